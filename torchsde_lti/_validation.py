@@ -1,0 +1,144 @@
+"""Argument checking shared by every public function.
+
+Every check raises ``ValueError`` (or ``TypeError`` for non-numeric input) naming the
+argument and the shapes it saw, so that a wrong call fails at the boundary and not deep
+inside a matrix exponential. Checks that need the values (finiteness, signs, PSD) cost
+one device synchronisation each; they can be switched off for hot loops whose inputs are
+valid by construction (e.g. parametrised modules) with :func:`validation`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator, Sequence
+
+import torch
+from torch import Tensor
+
+_VALUE_CHECKS_ENABLED = True
+
+
+def value_checks_enabled() -> bool:
+    """Whether value checks (finite, non-negative, PSD) run; shape checks always run."""
+    return _VALUE_CHECKS_ENABLED
+
+
+@contextlib.contextmanager
+def validation(enabled: bool) -> Iterator[None]:
+    """Context manager switching value checks on or off (shape checks always run).
+
+    >>> with validation(False):
+    ...     d = discretize(F, L, Qc, dt)   # no device sync for NaN/PSD checks
+    """
+    global _VALUE_CHECKS_ENABLED
+    previous = _VALUE_CHECKS_ENABLED
+    _VALUE_CHECKS_ENABLED = enabled
+    try:
+        yield
+    finally:
+        _VALUE_CHECKS_ENABLED = previous
+
+
+def shape_str(x: Tensor) -> str:
+    return "(" + ", ".join(str(d) for d in x.shape) + ")"
+
+
+def as_float_tensor(
+    x: object, name: str, dtype: torch.dtype | None = None, device: torch.device | None = None
+) -> Tensor:
+    """Convert ``x`` to a floating tensor (keeping autograd history when it already is one)."""
+    if isinstance(x, Tensor):
+        if x.is_complex() or not (x.is_floating_point() or dtype is not None):
+            raise TypeError(f"{name} must be a real floating tensor, got dtype {x.dtype}")
+        if dtype is not None and x.dtype != dtype:
+            x = x.to(dtype)
+        if device is not None and x.device != device:
+            x = x.to(device)
+        return x
+    try:
+        t = torch.as_tensor(x, dtype=dtype, device=device)
+    except (TypeError, ValueError, RuntimeError) as err:
+        raise TypeError(f"{name} must be a tensor or array-like of numbers, got {type(x).__name__}") from err
+    if not t.is_floating_point():
+        t = t.to(torch.get_default_dtype())
+    return t
+
+
+def common_float_dtype(*tensors: Tensor | None) -> torch.dtype:
+    """The promoted floating dtype of the given tensors (float32 at least)."""
+    dtype: torch.dtype | None = None
+    for t in tensors:
+        if t is None:
+            continue
+        if not t.is_floating_point():
+            continue
+        dtype = t.dtype if dtype is None else torch.promote_types(dtype, t.dtype)
+    return dtype if dtype is not None else torch.get_default_dtype()
+
+
+def check_matrix(
+    x: Tensor, name: str, rows: int | None = None, cols: int | None = None, square: bool = False
+) -> None:
+    """Check ``x`` is (..., rows, cols); ``square`` requires rows == cols."""
+    if x.dim() < 2:
+        raise ValueError(f"{name} must be a matrix of shape (..., r, c), got shape {shape_str(x)}")
+    r, c = x.shape[-2], x.shape[-1]
+    if square and r != c:
+        raise ValueError(f"{name} must be square (..., n, n), got shape {shape_str(x)}")
+    if rows is not None and r != rows:
+        raise ValueError(f"{name} must have {rows} rows, got shape {shape_str(x)}")
+    if cols is not None and c != cols:
+        raise ValueError(f"{name} must have {cols} columns, got shape {shape_str(x)}")
+
+
+def check_vector(x: Tensor, name: str, size: int) -> None:
+    """Check ``x`` is (..., size)."""
+    if x.dim() < 1 or x.shape[-1] != size:
+        raise ValueError(f"{name} must have shape (..., {size}), got shape {shape_str(x)}")
+
+
+def check_finite(x: Tensor, name: str) -> None:
+    if value_checks_enabled() and not bool(torch.isfinite(x).all()):
+        raise ValueError(f"{name} contains NaN or Inf (shape {shape_str(x)})")
+
+
+def check_nonnegative(x: Tensor, name: str) -> None:
+    check_finite(x, name)
+    if value_checks_enabled() and bool((x < 0).any()):
+        raise ValueError(f"{name} must be non-negative, got min {float(x.min()):.3g} (shape {shape_str(x)})")
+
+
+def psd_tolerance(x: Tensor) -> float:
+    """Relative tolerance for symmetry/PSD checks: a few hundred ulps per dimension."""
+    return 100.0 * x.shape[-1] * torch.finfo(x.dtype).eps
+
+
+def check_symmetric_psd(x: Tensor, name: str) -> None:
+    """Check ``x`` (..., k, k) is symmetric positive semi-definite up to rounding."""
+    check_matrix(x, name, square=True)
+    check_finite(x, name)
+    if not value_checks_enabled() or x.numel() == 0:
+        return
+    with torch.no_grad():
+        scale = x.abs().amax(dim=(-2, -1)).clamp_min(torch.finfo(x.dtype).tiny)
+        tol = psd_tolerance(x)
+        asym = (x - x.mT).abs().amax(dim=(-2, -1)) / scale
+        if bool((asym > tol).any()):
+            raise ValueError(
+                f"{name} must be symmetric, got relative asymmetry {float(asym.max()):.3g} (shape {shape_str(x)})"
+            )
+        eig_min = torch.linalg.eigvalsh(0.5 * (x + x.mT)).amin(dim=-1) / scale
+        if bool((eig_min < -tol).any()):
+            raise ValueError(
+                f"{name} must be positive semi-definite, got smallest eigenvalue "
+                f"{float(eig_min.min()):.3g} relative to its largest entry (shape {shape_str(x)})"
+            )
+
+
+def broadcast_batch(named: Sequence[tuple[str, Sequence[int]]]) -> torch.Size:
+    """Broadcast named batch shapes, naming them all when they do not broadcast."""
+    try:
+        return torch.broadcast_shapes(*(tuple(s) for _, s in named))
+    except RuntimeError as err:
+        seen = ", ".join(f"{n}: ({', '.join(map(str, s))})" for n, s in named)
+        raise ValueError(f"batch shapes do not broadcast: {seen}") from err
