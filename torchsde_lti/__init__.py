@@ -6,8 +6,14 @@ observations y = H x + v, v ~ N(0, R).
 
 from torchsde_lti.discretization import Discrete, discretize, propagate, transition_matrix
 from torchsde_lti.stationary import stationary_covariance
+from torchsde_lti.sde import LTISDE, SDEMatrices
+from torchsde_lti import models, parametrizations
 
 __all__ = [
+    "LTISDE",
+    "SDEMatrices",
+    "models",
+    "parametrizations",
     "Discrete",
     "discretize",
     "propagate",

@@ -1,0 +1,596 @@
+r"""Motion-model library: each factory returns an :class:`~torchsde_lti.LTISDE` with exact (F, L, Qc[, B]).
+
+The models are :class:`StructuredSDE` subclasses: their matrices are functions of a few
+named scalars (``q``, ``alpha``, ``k``, ``theta``, ``lengthscale``, ``variance``, ``m``,
+``c`` …) that are learnable ``nn.Parameter``\ s, positive by construction
+(:class:`~torchsde_lti.parametrizations.Positive`, ``softplus + floor``). Read and set them
+by name: ``model.q`` is the current positive value, ``model.q = 2.0`` stores it (in place);
+the raw tensor is ``model.parametrizations.q.original``. Scalars may carry a batch shape
+(``q`` of shape (16,) gives 16 models in one module, matrices (16, n, n)); Python floats
+become tensors of ``dtype`` (default: torch's default dtype).
+
+``model.F`` etc. are read-only (they are derived); use :meth:`LTISDE.to_free` to continue
+from a model with free matrices.
+
+Multi-axis models use per-axis state ordering ``[x, vx, y, vy]`` (``[x, vx, ax, y, vy, ay]``),
+one independent Brownian motion per axis (``Qc = q I_dim``), and ``position_indices`` lists the
+position components (``position_observation`` builds the matching H).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+from torch.nn.utils import parametrize
+
+from torchsde_lti._validation import as_float_tensor, check_finite, common_float_dtype, shape_str
+from torchsde_lti.parametrizations import Positive
+from torchsde_lti.sde import LTISDE, SDEMatrices
+
+__all__ = [
+    "BlockDiagSDE",
+    "Companion",
+    "IntegratedOU",
+    "IntegratedWiener",
+    "MassSpringDamper",
+    "Matern",
+    "OrnsteinUhlenbeck",
+    "Singer",
+    "StructuredSDE",
+    "block_diag",
+    "companion",
+    "constant_acceleration",
+    "constant_velocity",
+    "integrated_ou",
+    "integrated_wiener",
+    "mass_spring_damper",
+    "matern",
+    "ornstein_uhlenbeck",
+    "position_observation",
+    "singer",
+]
+
+Scalar = float | Tensor
+
+
+# ---------------------------------------------------------------------------- helpers
+def _check_int(value: object, name: str, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return value
+
+
+def _scalar_dtype(values: Sequence[object], dtype: torch.dtype | None) -> torch.dtype:
+    if dtype is not None:
+        return dtype
+    tensors = [v for v in values if isinstance(v, Tensor)]
+    return common_float_dtype(*tensors) if tensors else torch.get_default_dtype()
+
+
+def _scalar_device(values: Sequence[object], device: torch.device | str | None) -> torch.device | None:
+    if device is not None:
+        return torch.device(device)
+    for v in values:
+        if isinstance(v, Tensor):
+            return v.device
+    return None
+
+
+def _block_diag(blocks: Sequence[Tensor]) -> Tensor:
+    """Batched block-diagonal matrix of (..., r_i, c_i) blocks (batch dims broadcast)."""
+    batch = torch.broadcast_shapes(*(b.shape[:-2] for b in blocks))
+    total_c = sum(b.shape[-1] for b in blocks)
+    rows = []
+    offset = 0
+    for b in blocks:
+        c = b.shape[-1]
+        b = b.expand(*batch, *b.shape[-2:])
+        rows.append(nn.functional.pad(b, (offset, total_c - offset - c)))
+        offset += c
+    return torch.cat(rows, dim=-2)
+
+
+def _eye_blocks(like: Tensor, dim: int, scale: Tensor) -> Tensor:
+    """``scale[..., None, None] · I_dim`` (..., dim, dim)."""
+    eye = torch.eye(dim, dtype=like.dtype, device=like.device)
+    return scale[..., None, None] * eye
+
+
+class StructuredSDE(LTISDE):
+    """An :class:`LTISDE` whose matrices are derived from named scalar parameters.
+
+    Subclasses call :meth:`_init_structure` and implement :meth:`_build`. Positive scalars
+    are registered with :class:`~torchsde_lti.parametrizations.Positive`; free ones as plain
+    parameters. Constant structure matrices are non-persistent buffers (they follow
+    ``.to()`` but are not in ``state_dict``).
+    """
+
+    def __init__(self) -> None:  # noqa: D107 — LTISDE.__init__ (free matrices) is bypassed on purpose
+        nn.Module.__init__(self)
+
+    def _add_positive(self, name: str, value: Scalar, dtype: torch.dtype, device: torch.device | None) -> None:
+        v = as_float_tensor(value, name, dtype, device).detach().clone()
+        check_finite(v, name)
+        if bool((v <= 0).any()):
+            raise ValueError(f"{name} must be positive, got min {float(v.min()):.3g} (shape {shape_str(v)})")
+        self.register_parameter(name, nn.Parameter(v))
+        parametrize.register_parametrization(self, name, Positive(name=name).to(dtype=v.dtype, device=v.device))
+
+    def _build(self) -> SDEMatrices:
+        raise NotImplementedError
+
+    def matrices(self) -> SDEMatrices:
+        with parametrize.cached():
+            return self._build()
+
+    def _read_only(self, name: str) -> None:
+        params = [n.replace("parametrizations.", "").replace(".original", "") for n, _ in self.named_parameters()]
+        cls = type(self).__name__.removeprefix("Parametrized")
+        raise AttributeError(
+            f"{name} of {cls} is derived from its parameters ({', '.join(params)}); "
+            "set those, or use .to_free() for free matrices"
+        )
+
+    @property
+    def F(self) -> Tensor:  # type: ignore[override]
+        return self.matrices().F
+
+    @F.setter
+    def F(self, value: Tensor) -> None:
+        self._read_only("F")
+
+    @property
+    def L(self) -> Tensor:  # type: ignore[override]
+        return self.matrices().L
+
+    @L.setter
+    def L(self, value: Tensor) -> None:
+        self._read_only("L")
+
+    @property
+    def Qc(self) -> Tensor:  # type: ignore[override]
+        return self.matrices().Qc
+
+    @Qc.setter
+    def Qc(self, value: Tensor) -> None:
+        self._read_only("Qc")
+
+    @property
+    def B(self) -> Tensor | None:  # type: ignore[override]
+        return self.matrices().B
+
+    @B.setter
+    def B(self, value: Tensor) -> None:
+        self._read_only("B")
+
+    def _scalar_repr(self, names: Sequence[str]) -> str:
+        out = []
+        for n in names:
+            v = getattr(self, n).detach()
+            out.append(f"{n}={float(v):.4g}" if v.numel() == 1 else f"{n}: {shape_str(v)}")
+        return ", ".join(out)
+
+
+class _ChainSDE(StructuredSDE):
+    """Shared layout: ``dim`` axes of ``order`` derivatives each, noise on the highest one."""
+
+    def _init_chain(self, order: int, dim: int, dtype: torch.dtype, device: torch.device | None) -> None:
+        self.order = order
+        self.dim = dim
+        n = order * dim
+        kw = {"dtype": dtype, "device": device}
+        chain = torch.zeros(n, n, **kw)
+        top = torch.zeros(n, dim, **kw)
+        for axis in range(dim):
+            base = axis * order
+            for k in range(order - 1):
+                chain[base + k, base + k + 1] = 1.0
+            top[base + order - 1, axis] = 1.0
+        self.register_buffer("_chain", chain, persistent=False)
+        self.register_buffer("_top", top, persistent=False)  # L: noise drives the highest derivative
+        self.position_indices = tuple(axis * order for axis in range(dim))
+
+    def _drag(self, rate: Tensor) -> Tensor:
+        """``_chain − rate · (highest-derivative selector)``: (..., n, n)."""
+        sel = self._top @ self._top.mT
+        return self._chain - rate[..., None, None] * sel
+
+
+# ---------------------------------------------------------------------------- integrator chains
+class IntegratedWiener(_ChainSDE):
+    r"""Integrator chain per axis: ``d x^(order−1) = dβ``, ``E[dβ dβᵀ] = q I dt``.
+
+    Per axis the state is ``[x, x', …, x^(order−1)]``; F has ones on the per-axis
+    superdiagonal, L selects the highest derivative, ``Qc = q I_dim``. Closed form
+    (0-based i, j within an axis, a = order−1−i, b = order−1−j):
+    ``A_ij = dt^(j−i)/(j−i)!`` (j ≥ i), ``Q_ij = q dt^(a+b+1) / (a! b! (a+b+1))``.
+    """
+
+    def __init__(self, order: int, dim: int, q: Scalar, *, dtype: torch.dtype | None = None,
+                 device: torch.device | str | None = None) -> None:
+        super().__init__()
+        _check_int(order, "order", 1)
+        _check_int(dim, "dim", 1)
+        dt_ = _scalar_dtype([q], dtype)
+        dev = _scalar_device([q], device)
+        self._add_positive("q", q, dt_, dev)
+        self._init_chain(order, dim, dt_, dev)
+
+    def _build(self) -> SDEMatrices:
+        q = self.q
+        F = self._chain.expand(*q.shape, *self._chain.shape)
+        return SDEMatrices(F, self._top.expand(*q.shape, *self._top.shape), _eye_blocks(q, self.dim, q), None)
+
+    def extra_repr(self) -> str:
+        return f"order={self.order}, dim={self.dim}, " + self._scalar_repr(["q"])
+
+
+def integrated_wiener(order: int, dim: int = 1, q: Scalar = 1.0, **kw: object) -> IntegratedWiener:
+    r"""Integrator chain of ``order`` states per axis driven by white noise of spectral density q.
+
+    SDE per axis: ``dx^(k) = x^(k+1) dt`` (k < order−1), ``dx^(order−1) = dβ``, ``E[dβ²] = q dt``.
+    ``order=1``: Brownian motion; 2: constant velocity; 3: constant acceleration.
+    """
+    return IntegratedWiener(order, dim, q, **kw)  # type: ignore[arg-type]
+
+
+def constant_velocity(dim: int = 2, q: Scalar = 1.0, **kw: object) -> IntegratedWiener:
+    r"""Constant velocity (white-noise acceleration), state ``[x, vx, y, vy, …]``.
+
+    Per axis ``dx = v dt``, ``dv = dβ``, ``E[dβ²] = q dt``:
+    ``A = [[1, dt], [0, 1]]``, ``Q = q [[dt³/3, dt²/2], [dt²/2, dt]]``.
+    """
+    return IntegratedWiener(2, dim, q, **kw)  # type: ignore[arg-type]
+
+
+def constant_acceleration(dim: int = 2, q: Scalar = 1.0, **kw: object) -> IntegratedWiener:
+    r"""Constant acceleration (white-noise jerk), state ``[x, vx, ax, y, vy, ay, …]``.
+
+    Per axis ``dx = v dt``, ``dv = a dt``, ``da = dβ``, ``E[dβ²] = q dt``:
+    ``Q = q [[dt⁵/20, dt⁴/8, dt³/6], [dt⁴/8, dt³/3, dt²/2], [dt³/6, dt²/2, dt]]``.
+    """
+    return IntegratedWiener(3, dim, q, **kw)  # type: ignore[arg-type]
+
+
+class Singer(_ChainSDE):
+    r"""Singer model per axis: ``dx = v dt``, ``dv = a dt``, ``da = −α a dt + dβ``, ``E[dβ²] = q dt``.
+
+    Same parametrisation as Stone Soup's ``Singer(damping_coeff=α, noise_diff_coeff=q)``.
+    """
+
+    def __init__(self, alpha: Scalar, q: Scalar, dim: int = 1, *, dtype: torch.dtype | None = None,
+                 device: torch.device | str | None = None) -> None:
+        super().__init__()
+        _check_int(dim, "dim", 1)
+        dt_ = _scalar_dtype([alpha, q], dtype)
+        dev = _scalar_device([alpha, q], device)
+        self._add_positive("alpha", alpha, dt_, dev)
+        self._add_positive("q", q, dt_, dev)
+        self._init_chain(3, dim, dt_, dev)
+
+    def _build(self) -> SDEMatrices:
+        alpha, q = self.alpha, self.q
+        F = self._drag(alpha)
+        batch = F.shape[:-2]
+        Qc = _eye_blocks(F, self.dim, q.expand(batch))
+        return SDEMatrices(F, self._top.expand(*batch, *self._top.shape), Qc, None)
+
+    def extra_repr(self) -> str:
+        return f"dim={self.dim}, " + self._scalar_repr(["alpha", "q"])
+
+
+def singer(alpha: Scalar, q: Scalar, dim: int = 1, **kw: object) -> Singer:
+    r"""Singer acceleration model: ``da = −α a dt + dβ`` (spectral density q), state ``[x, v, a]`` per axis."""
+    return Singer(alpha, q, dim, **kw)  # type: ignore[arg-type]
+
+
+class IntegratedOU(_ChainSDE):
+    r"""Integrated Ornstein–Uhlenbeck per axis: ``dx = v dt``, ``dv = −k v dt + dβ``, ``E[dβ²] = q dt``.
+
+    Stone Soup calls this ``OrnsteinUhlenbeck(damping_coeff=k, noise_diff_coeff=q)``.
+    """
+
+    def __init__(self, k: Scalar, q: Scalar, dim: int = 1, *, dtype: torch.dtype | None = None,
+                 device: torch.device | str | None = None) -> None:
+        super().__init__()
+        _check_int(dim, "dim", 1)
+        dt_ = _scalar_dtype([k, q], dtype)
+        dev = _scalar_device([k, q], device)
+        self._add_positive("k", k, dt_, dev)
+        self._add_positive("q", q, dt_, dev)
+        self._init_chain(2, dim, dt_, dev)
+
+    def _build(self) -> SDEMatrices:
+        F = self._drag(self.k)
+        batch = F.shape[:-2]
+        Qc = _eye_blocks(F, self.dim, self.q.expand(batch))
+        return SDEMatrices(F, self._top.expand(*batch, *self._top.shape), Qc, None)
+
+    def extra_repr(self) -> str:
+        return f"dim={self.dim}, " + self._scalar_repr(["k", "q"])
+
+
+def integrated_ou(k: Scalar, q: Scalar, dim: int = 1, **kw: object) -> IntegratedOU:
+    r"""Velocity with drag k integrated to position: ``dx = v dt``, ``dv = −k v dt + dβ`` (density q)."""
+    return IntegratedOU(k, q, dim, **kw)  # type: ignore[arg-type]
+
+
+class OrnsteinUhlenbeck(StructuredSDE):
+    r"""Scalar OU per axis: ``dx = −θ x dt + dβ``, ``E[dβ dβᵀ] = q I dt``.
+
+    ``A = e^{−θ dt} I``, ``Q = q (1 − e^{−2θ dt}) / (2θ) I``, ``P∞ = q / (2θ) I``.
+    """
+
+    def __init__(self, theta: Scalar, q: Scalar, dim: int = 1, *, dtype: torch.dtype | None = None,
+                 device: torch.device | str | None = None) -> None:
+        super().__init__()
+        _check_int(dim, "dim", 1)
+        dt_ = _scalar_dtype([theta, q], dtype)
+        dev = _scalar_device([theta, q], device)
+        self._add_positive("theta", theta, dt_, dev)
+        self._add_positive("q", q, dt_, dev)
+        self.dim = dim
+        self.position_indices = tuple(range(dim))
+
+    def _build(self) -> SDEMatrices:
+        theta, q = self.theta, self.q
+        batch = torch.broadcast_shapes(theta.shape, q.shape)
+        F = _eye_blocks(theta, self.dim, -theta.expand(batch))
+        L = torch.eye(self.dim, dtype=F.dtype, device=F.device).expand(*batch, self.dim, self.dim)
+        return SDEMatrices(F, L, _eye_blocks(q, self.dim, q.expand(batch)), None)
+
+    def extra_repr(self) -> str:
+        return f"dim={self.dim}, " + self._scalar_repr(["theta", "q"])
+
+
+def ornstein_uhlenbeck(theta: Scalar, q: Scalar, dim: int = 1, **kw: object) -> OrnsteinUhlenbeck:
+    r"""Mean-reverting position: ``dx = −θ x dt + dβ`` per axis (spectral density q)."""
+    return OrnsteinUhlenbeck(theta, q, dim, **kw)  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------------- Matérn
+_MATERN_NU = (0.5, 1.5, 2.5)
+
+
+class Matern(StructuredSDE):
+    r"""State-space Matérn-ν Gaussian process (ν ∈ {1/2, 3/2, 5/2}), state ``[f, f', …]``.
+
+    With ``λ = √(2ν)/ℓ`` and ``m = ν + 1/2`` states, F is the companion matrix of
+    ``(d/dt + λ)^m`` (last row ``−C(m, j) λ^{m−j}``, j = 0…m−1), ``L = e_m`` and
+    ``Qc = 2σ² √π λ^{2ν} Γ(ν+½)/Γ(ν)`` (2σ²λ, 4σ²λ³, 16σ²λ⁵/3). Its stationary covariance
+    P∞ gives exactly the Matérn kernel: ``k(τ) = H expm(F τ) P∞ Hᵀ`` with ``H = e_1ᵀ``, e.g.
+    ``σ² (1 + λτ) e^{−λτ}`` for ν = 3/2.
+    """
+
+    def __init__(self, nu: float, lengthscale: Scalar, variance: Scalar, *, dtype: torch.dtype | None = None,
+                 device: torch.device | str | None = None) -> None:
+        super().__init__()
+        try:
+            nu_f = float(nu)
+        except (TypeError, ValueError):
+            raise ValueError(f"nu must be one of 1/2, 3/2, 5/2, got {nu!r}") from None
+        match = [v for v in _MATERN_NU if abs(nu_f - v) < 1e-12]
+        if not match:
+            raise ValueError(f"nu must be one of 1/2, 3/2, 5/2, got {nu!r}")
+        self.nu = match[0]
+        self.order = int(self.nu + 0.5)
+        dt_ = _scalar_dtype([lengthscale, variance], dtype)
+        dev = _scalar_device([lengthscale, variance], device)
+        self._add_positive("lengthscale", lengthscale, dt_, dev)
+        self._add_positive("variance", variance, dt_, dev)
+        m = self.order
+        kw = {"dtype": dt_, "device": dev}
+        self.register_buffer("_chain", torch.diag(torch.ones(m - 1, **kw), 1), persistent=False)
+        top = torch.zeros(m, 1, **kw)
+        top[-1, 0] = 1.0
+        self.register_buffer("_top", top, persistent=False)
+        self.register_buffer(
+            "_binom", torch.tensor([float(math.comb(m, j)) for j in range(m)], **kw), persistent=False
+        )
+        self.register_buffer("_powers", torch.arange(m, 0, -1, **kw), persistent=False)  # m−j
+        self.position_indices = (0,)
+        self._qc_const = 2.0 * math.sqrt(math.pi) * math.gamma(self.nu + 0.5) / math.gamma(self.nu)
+
+    @property
+    def rate(self) -> Tensor:
+        """λ = √(2ν)/ℓ, shape (...)."""
+        return math.sqrt(2.0 * self.nu) / self.lengthscale
+
+    def _build(self) -> SDEMatrices:
+        lam = self.rate
+        var = self.variance
+        batch = torch.broadcast_shapes(lam.shape, var.shape)
+        lam = lam.expand(batch)
+        m = self.order
+        last = -self._binom * lam[..., None] ** self._powers  # (..., m)
+        sel = self._top[:, 0]  # e_m
+        F = self._chain + sel[:, None] * last[..., None, :]
+        qc = self._qc_const * var.expand(batch) * lam ** (2 * self.nu)
+        L = self._top.expand(*batch, m, 1)
+        return SDEMatrices(F, L, qc[..., None, None], None)
+
+    def kernel(self, tau: Tensor) -> Tensor:
+        """Closed-form Matérn covariance ``k(τ)``; ``tau`` broadcasts against the batch."""
+        lam, var = self.rate, self.variance
+        r = lam * tau.abs()
+        poly = {0.5: 1.0, 1.5: 1.0 + r, 2.5: 1.0 + r + r**2 / 3.0}[self.nu]
+        return var * poly * torch.exp(-r)
+
+    def extra_repr(self) -> str:
+        return f"nu={self.nu}, " + self._scalar_repr(["lengthscale", "variance"])
+
+
+def matern(nu: float, lengthscale: Scalar = 1.0, variance: Scalar = 1.0, **kw: object) -> Matern:
+    r"""Matérn-ν GP as an SDE (ν ∈ {1/2, 3/2, 5/2}); ``k(τ) = σ² · poly(λτ) · e^{−λτ}``, λ = √(2ν)/ℓ."""
+    return Matern(nu, lengthscale, variance, **kw)  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------------- ODE systems
+class MassSpringDamper(StructuredSDE):
+    r"""``m p'' = u − c p' − k p + w``: state ``[p, p']``, force input u, random force w.
+
+    ``F = [[0, 1], [−k/m, −c/m]]``, ``B = L = [0, 1/m]ᵀ``, ``Qc = q`` (spectral density of
+    the random force), output ``C = [[1, 0]]`` (``output_matrix``).
+    """
+
+    def __init__(self, m: Scalar, k: Scalar, c: Scalar, q: Scalar = 1.0, *, dtype: torch.dtype | None = None,
+                 device: torch.device | str | None = None) -> None:
+        super().__init__()
+        dt_ = _scalar_dtype([m, k, c, q], dtype)
+        dev = _scalar_device([m, k, c, q], device)
+        for name, value in (("m", m), ("k", k), ("c", c), ("q", q)):
+            self._add_positive(name, value, dt_, dev)
+        self.register_buffer("output_matrix", torch.tensor([[1.0, 0.0]], dtype=dt_, device=dev), persistent=False)
+        self.position_indices = (0,)
+
+    @property
+    def C(self) -> Tensor:
+        """Output matrix ``[[1, 0]]`` (position)."""
+        return self.output_matrix
+
+    def _build(self) -> SDEMatrices:
+        m, k, c, q = self.m, self.k, self.c, self.q
+        batch = torch.broadcast_shapes(m.shape, k.shape, c.shape, q.shape)
+        zero = m.new_zeros(batch)
+        one = zero + 1.0
+        F = torch.stack(
+            (torch.stack((zero, one), -1), torch.stack(((-k / m).expand(batch), (-c / m).expand(batch)), -1)), -2
+        )
+        Bm = torch.stack((zero, (1.0 / m).expand(batch)), -1)[..., None]
+        return SDEMatrices(F, Bm, q.expand(batch)[..., None, None], Bm)
+
+    def extra_repr(self) -> str:
+        return self._scalar_repr(["m", "k", "c", "q"])
+
+
+def mass_spring_damper(m: Scalar, k: Scalar, c: Scalar, q: Scalar = 1.0, **kw: object) -> MassSpringDamper:
+    r"""Mass–spring–damper ``m p'' = u − c p' − k p + w`` with force input (B) and random force (q)."""
+    return MassSpringDamper(m, k, c, q, **kw)  # type: ignore[arg-type]
+
+
+class Companion(StructuredSDE):
+    r"""Order-n ODE ``a_n y⁽ⁿ⁾ + … + a_1 y' + a_0 y = u + w`` in companion form, state ``[y, y', …, y⁽ⁿ⁻¹⁾]``.
+
+    F has ones on the superdiagonal and last row ``−a_0/a_n … −a_{n−1}/a_n``;
+    ``B = L = [0, …, 0, 1/a_n]ᵀ``; ``Qc = q`` (spectral density of w); output
+    ``C = [[1, 0, …, 0]]``. The coefficients ``a`` (..., n+1) are free (unconstrained)
+    parameters — an ODE may be unstable or undamped — and a_n must stay non-zero; ``q`` is
+    positive.
+    """
+
+    def __init__(self, a: Sequence[float] | Tensor, q: Scalar = 1.0, *, dtype: torch.dtype | None = None,
+                 device: torch.device | str | None = None) -> None:
+        super().__init__()
+        dt_ = _scalar_dtype([a, q], dtype)
+        dev = _scalar_device([a, q], device)
+        coeffs = as_float_tensor(a, "a", dt_, dev).detach().clone()
+        if coeffs.dim() < 1 or coeffs.shape[-1] < 2:
+            raise ValueError(f"a must hold coefficients a_0..a_n with n >= 1, shape (..., n+1); got shape {shape_str(coeffs)}")
+        check_finite(coeffs, "a")
+        if bool((coeffs[..., -1] == 0).any()):
+            raise ValueError(f"a: the leading coefficient a_n must be non-zero (shape {shape_str(coeffs)})")
+        self.a = nn.Parameter(coeffs)
+        self._add_positive("q", q, dt_, dev)
+        n = coeffs.shape[-1] - 1
+        self.order = n
+        kw = {"dtype": dt_, "device": dev}
+        self.register_buffer("_chain", torch.diag(torch.ones(n - 1, **kw), 1), persistent=False)
+        e_n = torch.zeros(n, **kw)
+        e_n[-1] = 1.0
+        self.register_buffer("_e_n", e_n, persistent=False)
+        out = torch.zeros(1, n, **kw)
+        out[0, 0] = 1.0
+        self.register_buffer("output_matrix", out, persistent=False)
+        self.position_indices = (0,)
+
+    @property
+    def C(self) -> Tensor:
+        """Output matrix ``[[1, 0, …, 0]]``."""
+        return self.output_matrix
+
+    def _build(self) -> SDEMatrices:
+        a, q = self.a, self.q
+        lead = a[..., -1:]
+        last = -a[..., :-1] / lead  # (..., n)
+        F = self._chain + self._e_n[:, None] * last[..., None, :]
+        batch = torch.broadcast_shapes(F.shape[:-2], q.shape)
+        F = F.expand(*batch, *F.shape[-2:])
+        Bm = (self._e_n / lead)[..., None].expand(*batch, self.order, 1)
+        return SDEMatrices(F, Bm, q.expand(batch)[..., None, None], Bm)
+
+    def extra_repr(self) -> str:
+        return f"order={self.order}, a: {shape_str(self.a)}, " + self._scalar_repr(["q"])
+
+
+def companion(a: Sequence[float] | Tensor, q: Scalar = 1.0, **kw: object) -> Companion:
+    r"""Companion form of ``a_n y⁽ⁿ⁾ + … + a_0 y = u + w`` from coefficients ``a = [a_0, …, a_n]``."""
+    return Companion(a, q, **kw)  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------------- composition
+class BlockDiagSDE(StructuredSDE):
+    r"""Independent SDEs side by side: every matrix is the block diagonal of the parts'.
+
+    ``B`` is block diagonal over the parts that have an input (parts without one get a
+    zero-width block); it is None when no part has an input. The parts stay submodules
+    (``model.parts[i].q``), so their parameters are learned jointly.
+    """
+
+    def __init__(self, *sdes: LTISDE) -> None:
+        super().__init__()
+        if len(sdes) == 0:
+            raise ValueError("sdes must contain at least one LTISDE, got none")
+        for i, s in enumerate(sdes):
+            if not isinstance(s, LTISDE):
+                raise ValueError(f"sdes[{i}] must be an LTISDE, got {type(s).__name__}")
+        self.parts = nn.ModuleList(sdes)
+        dims = [s.state_dim for s in sdes]
+        if all(s.position_indices is not None for s in sdes):
+            idx: list[int] = []
+            offset = 0
+            for s, n in zip(sdes, dims):
+                idx.extend(offset + i for i in s.position_indices)  # type: ignore[union-attr]
+                offset += n
+            self.position_indices = tuple(idx)
+
+    def _build(self) -> SDEMatrices:
+        mats = [s.matrices() for s in self.parts]
+        F = _block_diag([m.F for m in mats])
+        L = _block_diag([m.L for m in mats])
+        Qc = _block_diag([m.Qc for m in mats])
+        if all(m.B is None for m in mats):
+            B = None
+        else:
+            B = _block_diag([m.B if m.B is not None else m.F.new_zeros(*m.F.shape[:-1], 0) for m in mats])
+        return SDEMatrices(F, L, Qc, B)
+
+    def extra_repr(self) -> str:
+        return f"{len(self.parts)} parts"
+
+
+def block_diag(*sdes: LTISDE) -> BlockDiagSDE:
+    r"""Compose independent SDEs: ``F = diag(F_1, F_2, …)`` and likewise L, Qc, B."""
+    return BlockDiagSDE(*sdes)
+
+
+def position_observation(model: LTISDE) -> Tensor:
+    """H (k, n) with a one at each position component: ``y = H x`` observes positions.
+
+    Uses ``model.position_indices`` (set by every model of this module and by
+    :func:`block_diag` of such models); dtype/device follow the model.
+    """
+    idx = getattr(model, "position_indices", None)
+    if idx is None:
+        raise ValueError(
+            f"model ({type(model).__name__}) does not declare position_indices; build H by hand"
+        )
+    with torch.no_grad():
+        F = model.matrices().F
+    n = F.shape[-1]
+    H = F.new_zeros(len(idx), n)
+    for row, col in enumerate(idx):
+        H[row, col] = 1.0
+    return H
