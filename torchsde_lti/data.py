@@ -46,6 +46,7 @@ __all__ = [
     "collate_tracks",
     "isotropic_covariance",
     "pad_tracks",
+    "selection_matrix",
     "simulate",
     "simulate_tracks",
 ]
@@ -119,6 +120,16 @@ def isotropic_covariance(std: float, dim: int) -> Tensor:
     if int(dim) < 1:
         raise ValueError(f"dim must be >= 1, got {dim}")
     return float(std) ** 2 * torch.eye(int(dim), dtype=torch.float64)
+
+
+def selection_matrix(indices: Sequence[int], n: int) -> Tensor:
+    """Observation matrix H (len(indices), n) picking state coordinates ``indices`` (float64)."""
+    idx = [int(i) for i in indices]
+    if not idx or any(not 0 <= i < int(n) for i in idx):
+        raise ValueError(f"indices must be a non-empty list of state indices in [0, {n}), got {idx}")
+    H = torch.zeros(len(idx), int(n), dtype=torch.float64)
+    H[torch.arange(len(idx)), torch.tensor(idx)] = 1.0
+    return H
 
 
 def _psd_sqrt(S: Tensor) -> Tensor:

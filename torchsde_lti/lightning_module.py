@@ -1,0 +1,366 @@
+"""Lightning glue: train a Kalman filter's learned motion model by maximum likelihood.
+
+Loss (per batch) = negative log-likelihood per observed scalar,
+
+    loss = -Σ_tracks log p(y_1:T) / #(observed scalars in y),
+
+from the filter's prediction-error decomposition (``out.log_likelihood``), optionally
+plus ``k_step_weight`` × the k-step-ahead predictive NLL per observed scalar: from each
+filtered state (m_t, P_t) the moments are pushed k steps through the exact discrete
+model (A, Q, G u of each step) and scored against y_{t+k}.
+
+Batches are dicts or NamedTuples with ``y`` (B, T, m; NaN = missing), ``dt`` (B, T),
+optional ``mask`` (B, T), ``u`` (B, T, p), ``x`` (B, T, n) — see :mod:`torchsde_lti.data`.
+
+Logged metrics: ``train/nll``, ``val/nll``, ``val/rmse`` (one-step-ahead prediction error
+of y), ``val/state_rmse`` (filtered mean vs true state, when batches carry ``x``), and when
+the truth is known ``val/param_error`` (largest relative error of the learned parameters)
+plus ``val/param_error/<name>`` for each of them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import torch
+from lightning.pytorch import Callback, LightningModule
+from torch import Tensor, nn
+
+__all__ = [
+    "KalmanFilterModule",
+    "ParameterHistory",
+    "learned_values",
+    "masked_gaussian_nll",
+    "parameter_errors",
+]
+
+
+def _field(batch: Any, key: str) -> Tensor | None:
+    if isinstance(batch, Mapping):
+        return batch.get(key)
+    return getattr(batch, key, None)
+
+
+# --------------------------------------------------------------------------- parameters vs truth
+
+
+def _resolve(module: nn.Module, path: str) -> Any:
+    obj: Any = module
+    for part in path.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _scalar_names(sde: nn.Module) -> list[str]:
+    """Names of the learned scalar parameters of a motion model (``q``, ``k``, ``alpha``, ...).
+
+    Read from ``named_parameters``: ``parametrizations.q.original`` -> ``q`` (and
+    ``parts.0.parametrizations.q.original`` -> ``parts.0.q``); only 0-dim values count.
+    """
+    names: list[str] = []
+    for raw_name, _ in sde.named_parameters():
+        name = raw_name.replace("parametrizations.", "").replace(".original", "")
+        try:
+            value = _resolve(sde, name)
+        except AttributeError:
+            continue
+        if isinstance(value, Tensor) and value.dim() == 0 and name not in names:
+            names.append(name)
+    return names
+
+
+def learned_values(
+    sde: nn.Module, R: Tensor | None = None, names: Sequence[str] | None = None
+) -> dict[str, Tensor]:
+    """Current values of a model's interpretable parameters, detached.
+
+    Named scalars (``names`` or the model's own list) come from ``getattr(sde, name)``;
+    then the matrices ``F`` and ``Qc`` and, if given, ``R``.
+    """
+    out: dict[str, Tensor] = {}
+    for name in names if names is not None else _scalar_names(sde):
+        out[name] = torch.as_tensor(_resolve(sde, name)).detach()
+    out["F"] = sde.F.detach()
+    out["Qc"] = sde.Qc.detach()
+    if R is not None:
+        out["R"] = R.detach()
+    return out
+
+
+def _rel(a: Tensor, b: Tensor) -> float:
+    """Relative Frobenius error ‖a − b‖ / ‖b‖ (absolute when b = 0)."""
+    a, b = a.detach().to(torch.float64), b.detach().to(torch.float64)
+    den = torch.linalg.vector_norm(b)
+    num = torch.linalg.vector_norm(a - b)
+    return float(num / den) if float(den) > 0 else float(num)
+
+
+def parameter_errors(
+    learned: nn.Module,
+    truth: nn.Module,
+    *,
+    R: Tensor | None = None,
+    R_true: Tensor | None = None,
+    names: Sequence[str] | None = None,
+    learn: Sequence[str] = ("F", "Qc"),
+    dts: Sequence[float] = (0.1, 1.0, 5.0),
+) -> dict[str, float]:
+    """Relative errors of every learned quantity against the truth.
+
+    * each named scalar (``q``, ``k``, ``alpha``, ...): |learned − true| / |true|;
+    * ``Qc`` (if learned and no scalar names cover it): relative Frobenius error;
+    * ``F`` (if learned): F is identifiable only through the transitions the data show,
+      so the error is ``max_dt ‖expm(F dt) − expm(F* dt)‖ / ‖expm(F* dt)‖`` over ``dts``,
+      reported as ``expmF``; named scalars inside F are reported on their own as well;
+    * ``R`` (if given): relative Frobenius error.
+    """
+    errors: dict[str, float] = {}
+    names = list(names) if names is not None else _scalar_names(learned)
+    for name in names:
+        errors[name] = _rel(torch.as_tensor(_resolve(learned, name)), torch.as_tensor(_resolve(truth, name)))
+    if not names:
+        if "Qc" in learn:
+            errors["Qc"] = _rel(learned.Qc, truth.Qc)
+    if "F" in learn:
+        F, F_true = learned.F.detach().to(torch.float64), truth.F.detach().to(torch.float64)
+        errors["expmF"] = max(_rel(torch.linalg.matrix_exp(F * t), torch.linalg.matrix_exp(F_true * t)) for t in dts)
+    if R is not None and R_true is not None:
+        errors["R"] = _rel(R, R_true)
+    return errors
+
+
+# --------------------------------------------------------------------------- masked Gaussian NLL
+
+
+def masked_gaussian_nll(r: Tensor, S: Tensor, observed: Tensor) -> Tensor:
+    """Σ over observed coordinates of the Gaussian NLL of residual r under N(0, S).
+
+    r: (..., m) residuals, S: (..., m, m), observed: (..., m) bool. Missing coordinates
+    are marginalised out exactly: their rows/columns of S are replaced by the identity
+    and their residuals by 0, which leaves logdet and the quadratic form of the observed
+    block unchanged. Returns (...), zero where nothing is observed.
+    """
+    obs = observed.to(r.dtype)
+    r = torch.where(observed, r, torch.zeros_like(r))
+    both = obs.unsqueeze(-1) * obs.unsqueeze(-2)
+    eye = torch.eye(r.shape[-1], dtype=r.dtype, device=r.device)
+    S = S * both + eye * (1.0 - obs).unsqueeze(-1)
+    S = 0.5 * (S + S.mT)
+    C = torch.linalg.cholesky(S)
+    z = torch.linalg.solve_triangular(C, r.unsqueeze(-1), upper=False).squeeze(-1)
+    logdet = 2.0 * torch.log(torch.diagonal(C, dim1=-2, dim2=-1)).sum(-1)
+    return 0.5 * ((z * z).sum(-1) + logdet + obs.sum(-1) * math.log(2.0 * math.pi))
+
+
+# --------------------------------------------------------------------------- module
+
+
+class KalmanFilterModule(LightningModule):
+    """LightningModule around a ``tl.KalmanFilter`` whose motion model is learned.
+
+    Args:
+        kf: the KalmanFilter (its LTISDE's learned parameters and, if learned, R).
+        optimizer: ``functools.partial`` of a torch optimizer (Hydra ``_partial_: true``).
+        scheduler: optional partial of an LR scheduler (stepped per epoch).
+        truth: optional {"sde": true LTISDE, "R": true R} for parameter errors.
+        k_step: horizon of the optional k-step-ahead predictive loss (0 = off).
+        k_step_weight: weight of that loss.
+        dtype: "float64" or "float32": parameters and batches are kept in this dtype.
+        param_names: names of the scalars to track (default: the model's own list).
+        learn: which of "F", "Qc", "R" are learned (for the parameter errors).
+    """
+
+    def __init__(
+        self,
+        kf: nn.Module,
+        optimizer: Callable[..., torch.optim.Optimizer] | None = None,
+        scheduler: Callable[..., Any] | None = None,
+        truth: Mapping[str, Any] | None = None,
+        k_step: int = 0,
+        k_step_weight: float = 0.0,
+        dtype: str = "float64",
+        param_names: Sequence[str] | None = None,
+        learn: Sequence[str] = ("F", "Qc", "R"),
+    ) -> None:
+        super().__init__()
+        if dtype not in ("float32", "float64"):
+            raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+        if int(k_step) < 0 or not k_step_weight >= 0:
+            raise ValueError(f"k_step must be >= 0 and k_step_weight >= 0, got {k_step}, {k_step_weight}")
+        self.save_hyperparameters(ignore=["kf", "optimizer", "scheduler", "truth"])
+        self.float_dtype = getattr(torch, dtype)
+        self.kf = kf.to(self.float_dtype)
+        self.optimizer_factory = optimizer
+        self.scheduler_factory = scheduler
+        # a plain dict, so the true model is neither trained nor saved in checkpoints
+        self._truth = dict(truth) if truth is not None else None
+        self.k_step, self.k_step_weight = int(k_step), float(k_step_weight)
+        self.param_names = list(param_names) if param_names is not None else None
+        self.learn = tuple(learn)
+
+    # ---------------------------------------------------------------- helpers
+
+    def _unpack(self, batch: Any) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor | None]:
+        def cast(t: Tensor | None) -> Tensor | None:
+            return t.to(self.float_dtype) if t is not None else None
+
+        y, dt = _field(batch, "y"), _field(batch, "dt")
+        if y is None or dt is None:
+            raise ValueError("a batch needs fields 'y' (B, T, m) and 'dt' (B, T)")
+        return cast(y), cast(dt), _field(batch, "mask"), cast(_field(batch, "u")), cast(_field(batch, "x"))
+
+    def forward(self, y: Tensor, dt: Tensor, u: Tensor | None = None) -> Any:
+        """Run the filter: y (B, T, m), dt (B, T), u (B, T, p) -> the filter's output."""
+        return self.kf(y, dt, u=u)
+
+    def _observed(self, y: Tensor, mask: Tensor | None) -> Tensor:
+        obs = ~torch.isnan(y)
+        if mask is not None:
+            obs = obs & mask.unsqueeze(-1)
+        return obs
+
+    def k_step_nll(self, out: Any, y: Tensor, dt: Tensor, u: Tensor | None, observed: Tensor) -> Tensor:
+        """Σ of the k-step-ahead predictive NLL of y_{t+k} given the filtered state at t.
+
+        Uses each step's exact (A_j, Q_j, G_j): m ← A m + G u, P ← A P Aᵀ + Q for
+        j = t+1 .. t+k (zero-dt padding steps are identities). Returns a scalar.
+        """
+        k, T = self.k_step, y.shape[-2]
+        if k < 1 or T <= k:
+            return y.new_zeros(())
+        d = self.kf.sde(dt)  # A (B, T, n, n)
+        n = out.mean.shape[-1]
+        A = d.A.expand(*dt.shape, n, n)
+        Q = d.Q.expand(*dt.shape, n, n)
+        m, P = out.mean[..., : T - k, :], out.cov[..., : T - k, :, :]
+        for j in range(1, k + 1):
+            Aj, Qj = A[..., j : T - k + j, :, :], Q[..., j : T - k + j, :, :]
+            m = (Aj @ m.unsqueeze(-1)).squeeze(-1)
+            if u is not None and d.G is not None:
+                m = m + (d.G[..., j : T - k + j, :, :] @ u[..., j : T - k + j, :].unsqueeze(-1)).squeeze(-1)
+            P = Aj @ P @ Aj.mT + Qj
+        H, R = self.kf.H, self.kf.R
+        target = y[..., k:, :]
+        r = target - m @ H.mT
+        S = H @ P @ H.mT + R
+        return masked_gaussian_nll(r, S, observed[..., k:, :]).sum()
+
+    def _step(self, batch: Any) -> tuple[Tensor, Tensor, Any, dict[str, Tensor]]:
+        y, dt, mask, u, x = self._unpack(batch)
+        observed = self._observed(y, mask)
+        if mask is not None:  # padding: no observation, no motion
+            y = torch.where(mask.unsqueeze(-1), y, torch.full_like(y, math.nan))
+            dt = torch.where(mask, dt, torch.zeros_like(dt))
+        out = self.kf(y, dt, u=u)
+        count = observed.sum().clamp_min(1).to(y.dtype)
+        nll = -out.log_likelihood.sum() / count
+        loss = nll
+        if self.k_step > 0 and self.k_step_weight > 0:
+            loss = loss + self.k_step_weight * self.k_step_nll(out, y, dt, u, observed) / count
+        return loss, nll, out, {"y": y, "x": x, "observed": observed, "mask": mask, "count": count}
+
+    # ---------------------------------------------------------------- Lightning hooks
+
+    def training_step(self, batch: Any, batch_idx: int) -> Tensor:
+        loss, nll, _, info = self._step(batch)
+        bs = info["y"].shape[0]
+        self.log("train/nll", nll, on_step=False, on_epoch=True, prog_bar=True, batch_size=bs, sync_dist=True)
+        if self.k_step > 0 and self.k_step_weight > 0:
+            self.log("train/loss", loss, on_step=False, on_epoch=True, batch_size=bs, sync_dist=True)
+        return loss
+
+    def _eval_step(self, batch: Any, stage: str) -> Tensor:
+        loss, nll, out, info = self._step(batch)
+        y, observed = info["y"], info["observed"]
+        bs = y.shape[0]
+        self.log(f"{stage}/nll", nll, on_epoch=True, prog_bar=stage == "val", batch_size=bs, sync_dist=True)
+        pred = out.pred_mean @ self.kf.H.mT  # one-step-ahead predicted observation
+        err = torch.where(observed, pred - y, torch.zeros_like(y))
+        mse = (err**2).sum() / observed.sum().clamp_min(1)
+        self.log(f"{stage}/rmse", mse.sqrt(), on_epoch=True, batch_size=bs, sync_dist=True)
+        x, mask = info["x"], info["mask"]
+        if x is not None:
+            valid = torch.ones_like(x[..., 0], dtype=torch.bool) if mask is None else mask
+            se = ((out.mean - x) ** 2).sum(-1)
+            smse = (se * valid).sum() / (valid.sum().clamp_min(1) * x.shape[-1])
+            self.log(f"{stage}/state_rmse", smse.sqrt(), on_epoch=True, batch_size=bs, sync_dist=True)
+        return loss
+
+    def validation_step(self, batch: Any, batch_idx: int) -> Tensor:
+        return self._eval_step(batch, "val")
+
+    def test_step(self, batch: Any, batch_idx: int) -> Tensor:
+        return self._eval_step(batch, "test")
+
+    def parameter_errors(self) -> dict[str, float]:
+        """Relative errors of the learned parameters against the truth ({} without truth)."""
+        if self._truth is None or self._truth.get("sde") is None:
+            return {}
+        R_true = self._truth.get("R") if "R" in self.learn else None
+        return parameter_errors(
+            self.kf.sde, self._truth["sde"], R=self.kf.R if R_true is not None else None, R_true=R_true,
+            names=self.param_names, learn=self.learn,
+        )  # fmt: skip
+
+    def on_validation_epoch_end(self) -> None:
+        errors = self.parameter_errors()
+        if not errors:
+            return
+        for name, value in errors.items():
+            self.log(f"val/param_error/{name}", value, sync_dist=False)
+        self.log("val/param_error", max(errors.values()), prog_bar=True, sync_dist=False)
+
+    def configure_optimizers(self) -> Any:
+        if self.optimizer_factory is None:
+            raise ValueError("KalmanFilterModule needs an optimizer (a partial, e.g. Hydra `_partial_: true`)")
+        opt = self.optimizer_factory(params=self.parameters())
+        if self.scheduler_factory is None:
+            return opt
+        sched = self.scheduler_factory(optimizer=opt)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
+
+
+# --------------------------------------------------------------------------- history callback
+
+
+def _flat(values: Mapping[str, Tensor]) -> dict[str, float]:
+    """Scalars as they are; matrices R and Qc by their diagonal entries (``R[0]``, ...)."""
+    out: dict[str, float] = {}
+    for name, v in values.items():
+        v = v.detach().to(torch.float64)
+        if v.dim() == 0:
+            out[name] = float(v)
+        elif name in ("R", "Qc") and v.dim() == 2:
+            out.update({f"{name}[{i}]": float(x) for i, x in enumerate(torch.diagonal(v))})
+    return out
+
+
+class ParameterHistory(Callback):
+    """Records, after every training epoch, the epoch-mean losses and the learned values.
+
+    ``history`` is a list of {"epoch", "train/nll", "val/nll", <param>: value} of plain
+    floats (so it round-trips through ``state_dict`` and ``torch.load(weights_only=True)``).
+    """
+
+    def __init__(self) -> None:
+        self.history: list[dict[str, float]] = []
+
+    def on_train_epoch_end(self, trainer: Any, pl_module: LightningModule) -> None:
+        if trainer.sanity_checking:
+            return
+        row: dict[str, float] = {"epoch": float(trainer.current_epoch)}
+        for key in ("train/nll", "val/nll", "val/param_error"):
+            if key in trainer.callback_metrics:
+                row[key] = float(trainer.callback_metrics[key])
+        if isinstance(pl_module, KalmanFilterModule):
+            kf = pl_module.kf
+            row.update(_flat(learned_values(kf.sde, kf.R, pl_module.param_names)))
+        self.history.append(row)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"history": [dict(r) for r in self.history]}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self.history = [dict(r) for r in state_dict.get("history", [])]
