@@ -348,24 +348,36 @@ def _doubling(
     coeff_QG = x_pow / torch.exp(log_fact + torch.log(k + 1.0))  # (νh)^k / (k+1)!
     h_mat = h.expand(batch)[..., None, None]
 
-    A = _combine(coeff_A, powers, batch)
+    # X holds E = A - I while A is near the identity (small ‖F‖ h): there A itself would lose
+    # the digits of E to rounding, and 2^s squarings amplify that loss. Once ‖A‖₁ falls below
+    # 1/2 (a decaying A), X switches to A itself, whose small entries E cannot resolve.
+    eye = torch.eye(n, dtype=dtype, device=F.device)
+    X = _combine(coeff_A[..., 1:], powers[..., 1:, :, :], batch)
     Q = None if lyap is None else h_mat * _combine(coeff_QG, lyap, batch)
     G = None if inputs is None else h_mat * _combine(coeff_QG, inputs, batch)
     if Q is not None:
         Q = 0.5 * (Q + Q.mT)
+    direct = torch.zeros(batch, dtype=torch.bool, device=F.device)[..., None, None]
 
     if halvings is not None:
         halvings = halvings.expand(batch)
         steps = int(halvings.max()) if halvings.numel() else 0
         for j in range(steps):
             active = (halvings > j)[..., None, None]
+            A = torch.where(direct, X, X + eye)
             if Q is not None:
                 AQ = A @ Q
-                Q_next = AQ @ A.mT + Q
+                Q_next = AQ @ A.mT + Q  # Q <- A Q Aᵀ + Q
                 Q = torch.where(active, 0.5 * (Q_next + Q_next.mT), Q)
             if G is not None:
-                G = torch.where(active, A @ G + G, G)
-            A = torch.where(active, A @ A, A)
+                G = torch.where(active, A @ G + G, G)  # G <- A G + G
+            XX = X @ X
+            X_next = torch.where(direct, XX, 2.0 * X + XX)  # A <- A A, or E <- 2E + E E
+            with torch.no_grad():
+                switch = active & ~direct & (_operator_norm_bound(X_next + eye) < 0.5)[..., None, None]
+            X = torch.where(active, torch.where(switch, X_next + eye, X_next), X)
+            direct = direct | switch
+    A = torch.where(direct, X, X + eye)
     return A, Q, G
 
 

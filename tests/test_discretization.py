@@ -1,0 +1,407 @@
+"""discretize / transition_matrix / zero_order_hold / propagate against independent references."""
+
+from __future__ import annotations
+
+import math
+
+import mpmath
+import numpy as np
+import pytest
+import scipy.linalg
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from reference import integrator_chain_Q, mp_discretize, quad_discretize, rel_err
+
+import torchsde_lti as tl
+from torchsde_lti.discretization import zero_order_hold
+
+METHODS = ["doubling", "van_loan"]
+f64 = torch.float64
+
+
+def t64(x) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(x, dtype=np.float64))
+
+
+def random_stable(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    M = rng.normal(size=(n, n))
+    return M - (np.linalg.eigvals(M).real.max() + rng.uniform(0.2, 1.0)) * np.eye(n)
+
+
+# --------------------------------------------------------------------------- closed forms
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("dt", [1e-3, 0.37, 1.0, 5.0])
+def test_constant_velocity_closed_form(method: str, dt: float) -> None:
+    q = 0.7
+    F = t64([[0, 1], [0, 0]])
+    L = t64([[0], [1]])
+    B = t64([[0], [1]])
+    d = tl.discretize(F, L, t64([[q]]), t64(dt), B=B, method=method)
+    np.testing.assert_allclose(d.A, [[1, dt], [0, 1]], rtol=1e-12, atol=0)
+    np.testing.assert_allclose(d.Q, q * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]]), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(d.G, [[dt**2 / 2], [dt]], rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("dt", [1e-4, 0.5, 3.0, 1e3])
+def test_constant_acceleration_closed_form(dt: float) -> None:
+    q = 2.5
+    F = t64([[0, 1, 0], [0, 0, 1], [0, 0, 0]])
+    L = t64([[0], [0], [1]])
+    d = tl.discretize(F, L, t64([[q]]), t64(dt))
+    np.testing.assert_allclose(d.A, [[1, dt, dt**2 / 2], [0, 1, dt], [0, 0, 1]], rtol=1e-12, atol=0)
+    np.testing.assert_allclose(d.Q, integrator_chain_Q(3, q, dt), rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("theta_dt", [1e-6, 0.3, 2.0, 15.0])
+def test_scalar_ou_closed_form(method: str, theta_dt: float) -> None:
+    theta, q = 1.7, 0.9
+    dt = theta_dt / theta
+    d = tl.discretize(t64([[-theta]]), t64([[1.0]]), t64([[q]]), t64(dt), method=method)
+    np.testing.assert_allclose(d.A[0, 0], math.exp(-theta * dt), rtol=1e-12)
+    np.testing.assert_allclose(d.Q[0, 0], q / (2 * theta) * -math.expm1(-2 * theta * dt), rtol=1e-12)
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("dt", [0.01, 0.8, 4.0])
+def test_integrated_ou_closed_form(method: str, dt: float) -> None:
+    # position integrates velocity; velocity: dv = -k v dt + dβ,  E[dβ²] = q dt
+    k, q = 1.3, 0.6
+    with mpmath.workdps(40):  # the closed form cancels for small dt: evaluate it at 40 digits
+        K, T = mpmath.mpf(k), mpmath.mpf(dt)
+        e1, e2 = mpmath.exp(-K * T), mpmath.exp(-2 * K * T)
+        A_ref = np.array([[1, float((1 - e1) / K)], [0, float(e1)]])
+        Q_ref = q * np.array(
+            [
+                [float((T - 2 * (1 - e1) / K + (1 - e2) / (2 * K)) / K**2), float(((1 - e1) / K - (1 - e2) / (2 * K)) / K)],
+                [float(((1 - e1) / K - (1 - e2) / (2 * K)) / K), float((1 - e2) / (2 * K))],
+            ]
+        )
+    d = tl.discretize(t64([[0, 1], [0, -k]]), t64([[0], [1]]), t64([[q]]), t64(dt), method=method)
+    if method == "doubling":
+        np.testing.assert_allclose(d.A, A_ref, rtol=1e-12, atol=1e-300)
+        np.testing.assert_allclose(d.Q, Q_ref, rtol=1e-12, atol=0)
+    else:  # the block exponential cancels in small entries: 2e-11 in A, 4e-7 in Q[0, 0] seen
+        assert rel_err(d.A, A_ref) < 1e-10 and rel_err(d.Q, Q_ref) < 1e-10
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("a", [-2.0, -1e-9, 0.0, 1e-9, 0.7])
+def test_scalar_zero_order_hold(method: str, a: float) -> None:
+    b, dt = 1.9, 0.6
+    expected = b * dt if a == 0 else math.expm1(a * dt) / a * b
+    d = tl.discretize(t64([[a]]), t64([[1.0]]), t64([[1.0]]), t64(dt), B=t64([[b]]), method=method)
+    np.testing.assert_allclose(d.G[0, 0], expected, rtol=1e-12)
+    A, G = zero_order_hold(t64([[a]]), t64([[b]]), t64(dt))
+    np.testing.assert_allclose(G[0, 0], expected, rtol=1e-12)
+
+
+# --------------------------------------------------------------------------- scipy / quadrature
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("seed", range(4))
+def test_random_models_match_scipy_and_quadrature(method: str, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    n, s, p = 3 + seed % 2, 2, 2
+    F = rng.normal(size=(n, n))
+    L = rng.normal(size=(n, s))
+    M = rng.normal(size=(s, s))
+    Qc = M @ M.T
+    B = rng.normal(size=(n, p))
+    dt = float(rng.uniform(0.05, 1.5))
+    A_ref, Q_ref, G_ref = quad_discretize(F, L @ Qc @ L.T, B, dt)
+    d = tl.discretize(t64(F), t64(L), t64(Qc), t64(dt), B=t64(B), method=method)
+    assert rel_err(d.A, A_ref) < 1e-12
+    assert rel_err(d.Q, Q_ref) < 1e-11
+    assert rel_err(d.G, G_ref) < 1e-12
+    np.testing.assert_allclose(tl.transition_matrix(t64(F), t64(dt)), A_ref, rtol=1e-11, atol=1e-13)
+
+
+def test_transition_matrix_batched_against_scipy() -> None:
+    rng = np.random.default_rng(7)
+    F = rng.normal(size=(4, 4)) * 3
+    dt = rng.exponential(1.0, size=(5, 6))
+    A = tl.transition_matrix(t64(F), t64(dt))
+    assert A.shape == (5, 6, 4, 4)
+    for idx in np.ndindex(5, 6):
+        ref = scipy.linalg.expm(F * dt[idx])
+        assert rel_err(A[idx], ref) < 1e-12
+
+
+# --------------------------------------------------------------------------- ODEs, semigroup, stationarity
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_moment_odes_by_finite_differences(method: str) -> None:
+    rng = np.random.default_rng(3)
+    n = 3
+    F, L, B = t64(rng.normal(size=(n, n))), t64(rng.normal(size=(n, 2))), t64(rng.normal(size=(n, 1)))
+    Qc = t64(np.diag([0.5, 2.0]))
+    m0, u = t64(rng.normal(size=n)), t64([0.7])
+    M = rng.normal(size=(n, n))
+    P0 = t64(M @ M.T)
+    t, h = 0.8, 1e-5
+
+    def moments(time: float):
+        return tl.propagate(m0, P0, F, L, Qc, t64(time), B=B, u=u, method=method)
+
+    (m_plus, P_plus), (m_minus, P_minus), (m, P) = moments(t + h), moments(t - h), moments(t)
+    dm = (m_plus - m_minus) / (2 * h)
+    dP = (P_plus - P_minus) / (2 * h)
+    np.testing.assert_allclose(dm, F @ m + B @ u, rtol=1e-7, atol=1e-8)
+    np.testing.assert_allclose(dP, F @ P + P @ F.T + L @ Qc @ L.T, rtol=1e-7, atol=1e-7)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_semigroup(method: str) -> None:
+    rng = np.random.default_rng(11)
+    F = t64(random_stable(3, 11))
+    L, Qc = t64(rng.normal(size=(3, 3))), t64(np.eye(3))
+    s, t = t64(0.4), t64(1.3)
+    ds, dt_, dst = (tl.discretize(F, L, Qc, x, method=method) for x in (s, t, s + t))
+    np.testing.assert_allclose(dst.A, dt_.A @ ds.A, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(dst.Q, dt_.A @ ds.Q @ dt_.A.T + dt_.Q, rtol=1e-11, atol=1e-14)
+
+
+def test_stationary_covariance_residual_and_limit() -> None:
+    F = t64(random_stable(4, 5))
+    rng = np.random.default_rng(5)
+    L, Qc = t64(rng.normal(size=(4, 2))), t64([[1.0, 0.3], [0.3, 0.5]])
+    P = tl.stationary_covariance(F, L, Qc)
+    W = L @ Qc @ L.T
+    residual = F @ P + P @ F.T + W
+    assert float(residual.abs().max()) < 1e-12 * float(W.abs().max())
+    ref = scipy.linalg.solve_continuous_lyapunov(F.numpy(), -W.numpy())
+    assert rel_err(P, ref) < 1e-12
+    d = tl.discretize(F, L, Qc, t64(1e4))
+    assert rel_err(d.Q, P.numpy()) < 1e-12
+    assert torch.linalg.eigvalsh(P).min() > 0
+
+
+def test_stationary_covariance_batched_and_float32() -> None:
+    F = torch.stack([t64(random_stable(3, i)) for i in range(4)])
+    L, Qc = t64(np.eye(3)), t64(np.eye(3))
+    P = tl.stationary_covariance(F, L, Qc)
+    assert P.shape == (4, 3, 3)
+    for i in range(4):
+        ref = scipy.linalg.solve_continuous_lyapunov(F[i].numpy(), -np.eye(3))
+        assert rel_err(P[i], ref) < 1e-12
+    P32 = tl.stationary_covariance(F.float(), L.float(), Qc.float())
+    assert P32.dtype == torch.float32
+    assert rel_err(P32.double(), P.numpy()) < 1e-4
+
+
+def test_stationary_covariance_rejects_unstable() -> None:
+    with pytest.raises(ValueError, match="Hurwitz"):
+        tl.stationary_covariance(t64([[0, 1], [0, 0]]), t64([[0], [1]]), t64([[1.0]]))
+
+
+# --------------------------------------------------------------------------- stiff and large-dt cases
+
+
+def _non_normal() -> np.ndarray:
+    # eigenvalues -1e-3 and -1e3 with strong coupling
+    return np.array([[-1e-3, 50.0], [0.0, -1e3]])
+
+
+def _jordan() -> np.ndarray:
+    return np.array([[-2.0, 1.0, 0.0], [0.0, -2.0, 1.0], [0.0, 0.0, -2.0]])
+
+
+STIFF_CASES = [
+    # name, F, L, Qc, dt
+    ("integrated_ou_kdt_1", np.array([[0, 1], [0, -3.0]]), np.array([[0], [1.0]]), np.array([[2.0]]), 1 / 3),
+    ("integrated_ou_kdt_20", np.array([[0, 1], [0, -3.0]]), np.array([[0], [1.0]]), np.array([[2.0]]), 20 / 3),
+    ("integrated_ou_kdt_60", np.array([[0, 1], [0, -3.0]]), np.array([[0], [1.0]]), np.array([[2.0]]), 20.0),
+    ("non_normal_dt_1e-3", _non_normal(), np.eye(2), np.eye(2), 1e-3),
+    ("non_normal_dt_1", _non_normal(), np.eye(2), np.eye(2), 1.0),
+    ("non_normal_dt_50", _non_normal(), np.eye(2), np.eye(2), 50.0),
+    ("jordan_dt_0.1", _jordan(), np.eye(3), np.eye(3), 0.1),
+    ("jordan_dt_30", _jordan(), np.eye(3), np.eye(3), 30.0),
+]
+
+
+@pytest.mark.parametrize("case", STIFF_CASES, ids=[c[0] for c in STIFF_CASES])
+def test_stiff_against_high_precision(case, dtype: torch.dtype) -> None:
+    _, F, L, Qc, dt = case
+    # the reference is computed from the inputs as rounded to the tested dtype
+    Ft, Lt, Qct, dtt = (torch.as_tensor(x, dtype=dtype) for x in (F, L, Qc, dt))
+    W = (Lt.double() @ Qct.double() @ Lt.double().T).numpy()
+    A_ref, Q_ref = mp_discretize(Ft.double().numpy(), W, float(dtt))
+    d = tl.discretize(Ft, Lt, Qct, dtt)
+    tol = 1e-10 if dtype == f64 else 1e-4
+    assert torch.isfinite(d.Q).all() and torch.isfinite(d.A).all()
+    assert torch.equal(d.Q, d.Q.mT)
+    assert rel_err(d.A, A_ref) < tol
+    assert rel_err(d.Q, Q_ref) < tol
+    eig_min = float(torch.linalg.eigvalsh(d.Q.double()).min())
+    assert eig_min >= -10 * torch.finfo(dtype).eps * float(d.Q.double().abs().max())
+
+
+@pytest.mark.parametrize("lam_dt", [100.0, 1000.0])
+def test_scalar_ou_extreme_rate(lam_dt: float, dtype: torch.dtype) -> None:
+    lam, q = 250.0, 3.0
+    dt = lam_dt / lam
+    d = tl.discretize(
+        torch.tensor([[-lam]], dtype=dtype), torch.ones(1, 1, dtype=dtype), torch.tensor([[q]], dtype=dtype),
+        torch.tensor(dt, dtype=dtype),
+    )
+    ref = q / (2 * lam) * -math.expm1(-2 * lam_dt)
+    tol = 1e-10 if dtype == f64 else 1e-4
+    assert abs(float(d.Q) - ref) / ref < tol
+    assert float(d.A) == pytest.approx(math.exp(-lam_dt), abs=1e-30)
+
+
+@pytest.mark.parametrize("dt", [1e-4, 1e3])
+def test_nilpotent_chain_extreme_dt(dt: float, dtype: torch.dtype) -> None:
+    order, q = 4, 0.3
+    F = torch.diag(torch.ones(order - 1, dtype=dtype), 1)
+    L = torch.zeros(order, 1, dtype=dtype)
+    L[-1, 0] = 1
+    dtt = torch.tensor(dt, dtype=dtype)
+    d = tl.discretize(F, L, torch.tensor([[q]], dtype=dtype), dtt)
+    Q_ref = integrator_chain_Q(order, float(torch.tensor(q, dtype=dtype)), float(dtt))
+    tol = 1e-10 if dtype == f64 else 1e-4
+    # entrywise, not just normwise: entries span dt^1 .. dt^7
+    np.testing.assert_allclose(d.Q.double().numpy(), Q_ref, rtol=tol, atol=0)
+
+
+def test_van_loan_is_inaccurate_where_doubling_is_not() -> None:
+    """Documents the trap: the plain block exponential cancels catastrophically."""
+    F, L, Qc = t64([[0, 1], [0, -3.0]]), t64([[0], [1.0]]), t64([[2.0]])
+    dt = t64(20.0)
+    A_ref, Q_ref = mp_discretize(F.numpy(), (L @ Qc @ L.T).numpy(), 20.0)
+    naive = tl.discretize(F, L, Qc, dt, method="van_loan")
+    robust = tl.discretize(F, L, Qc, dt)
+    assert rel_err(naive.Q, Q_ref) > 1e-3
+    assert rel_err(robust.Q, Q_ref) < 1e-13
+
+
+# --------------------------------------------------------------------------- batching
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_batched_irregular_dt_equals_loop(method: str) -> None:
+    rng = np.random.default_rng(0)
+    F = t64(random_stable(3, 2))
+    L, Qc, B = t64(rng.normal(size=(3, 2))), t64(np.eye(2)), t64(rng.normal(size=(3, 1)))
+    # a batch mixing tiny, moderate and huge steps (different numbers of doublings)
+    dt = t64(np.concatenate([[0.0, 1e-6], rng.exponential(1.0, size=20), [40.0, 300.0]]).reshape(4, 6))
+    d = tl.discretize(F, L, Qc, dt, B=B, method=method)
+    assert d.A.shape == (4, 6, 3, 3) and d.Q.shape == (4, 6, 3, 3) and d.G.shape == (4, 6, 3, 1)
+    # torch.matrix_exp picks its Taylor degree from the whole batch: looser for van_loan
+    rtol, atol = (1e-13, 1e-15) if method == "doubling" else (1e-11, 1e-14)
+    for idx in np.ndindex(4, 6):
+        single = tl.discretize(F, L, Qc, dt[idx], B=B, method=method)
+        np.testing.assert_allclose(d.A[idx], single.A, rtol=rtol, atol=atol)
+        np.testing.assert_allclose(d.Q[idx], single.Q, rtol=rtol, atol=atol)
+        np.testing.assert_allclose(d.G[idx], single.G, rtol=rtol, atol=atol)
+
+
+def test_batched_parameters_broadcast_against_dt() -> None:
+    rng = np.random.default_rng(1)
+    F = torch.stack([t64(random_stable(2, i)) for i in range(3)])[:, None]  # (3, 1, 2, 2)
+    L, Qc = t64(np.eye(2)), t64(np.diag([1.0, 2.0]))
+    dt = t64(rng.exponential(1.0, size=(3, 5)))
+    d = tl.discretize(F, L, Qc, dt)
+    assert d.Q.shape == (3, 5, 2, 2)
+    for i in range(3):
+        for t in range(5):
+            A_ref, Q_ref, _ = quad_discretize(F[i, 0].numpy(), np.diag([1.0, 2.0]), None, float(dt[i, t]))
+            assert rel_err(d.A[i, t], A_ref) < 1e-12
+            assert rel_err(d.Q[i, t], Q_ref) < 1e-11
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    f_batch=st.lists(st.integers(1, 3), min_size=0, max_size=2),
+    dt_batch=st.lists(st.integers(1, 3), min_size=0, max_size=2),
+    n=st.integers(1, 3),
+    seed=st.integers(0, 10_000),
+)
+def test_broadcast_shapes_property(f_batch, dt_batch, n, seed) -> None:
+    """Output batch = broadcast(F batch, dt batch) and every element equals its single call."""
+    # make the two batch shapes broadcastable by construction: pad and replace mismatches by 1
+    width = max(len(f_batch), len(dt_batch))
+    fb = [1] * (width - len(f_batch)) + f_batch
+    db = [1] * (width - len(dt_batch)) + dt_batch
+    db = [d if (d == f or d == 1 or f == 1) else 1 for f, d in zip(fb, db)]
+    fb = fb[width - len(f_batch) :] if f_batch else []
+    db = db[width - len(dt_batch) :] if dt_batch else []
+    gen = torch.Generator().manual_seed(seed)
+    F = torch.randn(*fb, n, n, generator=gen, dtype=f64)
+    dt = torch.rand(tuple(db), generator=gen, dtype=f64) * 3
+    L, Qc = torch.eye(n, dtype=f64), torch.eye(n, dtype=f64)
+    d = tl.discretize(F, L, Qc, dt)
+    batch = torch.broadcast_shapes(tuple(fb), tuple(db))
+    assert d.A.shape == (*batch, n, n) and d.Q.shape == (*batch, n, n)
+    Fb, dtb = F.expand(*batch, n, n), dt.expand(batch)
+    for idx in np.ndindex(*batch):
+        single = tl.discretize(Fb[idx], L, Qc, dtb[idx])
+        np.testing.assert_allclose(d.A[idx], single.A, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(d.Q[idx], single.Q, rtol=1e-12, atol=1e-14)
+
+
+# --------------------------------------------------------------------------- gradients
+
+
+def _sym(X: torch.Tensor) -> torch.Tensor:
+    return 0.5 * (X + X.mT)
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("F_kind", ["random", "nilpotent"])
+def test_gradcheck_all_inputs(method: str, F_kind: str) -> None:
+    rng = np.random.default_rng(4)
+    n = 3
+    F0 = rng.normal(size=(n, n)) if F_kind == "random" else np.diag(np.ones(n - 1), 1)
+    F = t64(F0).requires_grad_()
+    L = t64(rng.normal(size=(n, 2))).requires_grad_()
+    M = rng.normal(size=(2, 2))
+    Qc = t64(M @ M.T + np.eye(2)).requires_grad_()
+    B = t64(rng.normal(size=(n, 1))).requires_grad_()
+    dt = t64([0.3, 1.7, 6.0]).requires_grad_()
+
+    def fn(F, L, Qc, B, dt):
+        d = tl.discretize(F, L, _sym(Qc), dt, B=B, method=method)
+        return d.A, d.Q, d.G
+
+    assert torch.autograd.gradcheck(fn, (F, L, Qc, B, dt), eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_gradcheck_propagate_and_stationary() -> None:
+    rng = np.random.default_rng(8)
+    F = t64(random_stable(2, 8)).requires_grad_()
+    L = t64(rng.normal(size=(2, 2))).requires_grad_()
+    Qc = t64(np.eye(2)).requires_grad_()
+    m0 = t64([0.3, -1.0]).requires_grad_()
+    P0 = t64([[1.0, 0.2], [0.2, 0.5]]).requires_grad_()
+    dt = t64(0.9).requires_grad_()
+    assert torch.autograd.gradcheck(
+        lambda F, L, Qc, m0, P0, dt: tl.propagate(m0, _sym(P0), F, L, _sym(Qc), dt), (F, L, Qc, m0, P0, dt)
+    )
+    assert torch.autograd.gradcheck(lambda F, L, Qc: tl.stationary_covariance(F, L, _sym(Qc)), (F, L, Qc))
+
+
+def test_float32_and_dtype_promotion() -> None:
+    F = torch.tensor([[0.0, 1.0], [0.0, -0.5]])
+    L, Qc = torch.tensor([[0.0], [1.0]]), torch.tensor([[1.0]])
+    d32 = tl.discretize(F, L, Qc, 0.5)
+    assert d32.A.dtype == torch.float32 and d32.Q.dtype == torch.float32
+    d64 = tl.discretize(F.double(), L, Qc, 0.5)
+    assert d64.Q.dtype == torch.float64
+    assert rel_err(d32.Q.double(), d64.Q.numpy()) < 1e-6
+
+
+def test_propagate_matches_manual_moments() -> None:
+    F, L, Qc, B = t64([[0, 1], [-2, -0.3]]), t64([[0], [1]]), t64([[0.4]]), t64([[0], [1]])
+    m0, P0, u = t64([1.0, 0.0]), t64(np.eye(2)), t64([0.5])
+    d = tl.discretize(F, L, Qc, t64(0.7), B=B)
+    m, P = tl.propagate(m0, P0, F, L, Qc, t64(0.7), B=B, u=u)
+    np.testing.assert_allclose(m, d.A @ m0 + d.G @ u, rtol=1e-14)
+    np.testing.assert_allclose(P, d.A @ P0 @ d.A.T + d.Q, rtol=1e-14)

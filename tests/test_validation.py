@@ -1,0 +1,125 @@
+"""Every public function of the core rejects bad input with a message naming the argument."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchsde_lti as tl
+
+f64 = torch.float64
+
+
+def good():
+    F = torch.tensor([[0.0, 1.0], [0.0, -1.0]], dtype=f64)
+    L = torch.tensor([[0.0], [1.0]], dtype=f64)
+    Qc = torch.tensor([[1.0]], dtype=f64)
+    B = torch.tensor([[0.0], [1.0]], dtype=f64)
+    return F, L, Qc, B
+
+
+def test_non_square_F() -> None:
+    F, L, Qc, _ = good()
+    with pytest.raises(ValueError, match=r"F must be square.*\(2, 3\)"):
+        tl.discretize(torch.zeros(2, 3, dtype=f64), L, Qc, 1.0)
+    with pytest.raises(ValueError, match=r"F must be square"):
+        tl.transition_matrix(torch.zeros(3, 2, dtype=f64), 1.0)
+    with pytest.raises(ValueError, match=r"F must be a matrix"):
+        tl.transition_matrix(torch.zeros(3, dtype=f64), 1.0)
+
+
+def test_L_rows() -> None:
+    F, _, Qc, _ = good()
+    with pytest.raises(ValueError, match=r"L must have 2 rows.*\(3, 1\)"):
+        tl.discretize(F, torch.zeros(3, 1, dtype=f64), Qc, 1.0)
+
+
+def test_Qc_shape_for_L() -> None:
+    F, L, _, _ = good()
+    with pytest.raises(ValueError, match=r"Qc must have shape \(\.\.\., 1, 1\).*L \(2, 1\).*\(2, 2\)"):
+        tl.discretize(F, L, torch.eye(2, dtype=f64), 1.0)
+
+
+def test_Qc_not_symmetric() -> None:
+    F, _, _, _ = good()
+    with pytest.raises(ValueError, match=r"Qc must be symmetric"):
+        tl.discretize(F, torch.eye(2, dtype=f64), torch.tensor([[1.0, 0.5], [0.0, 1.0]], dtype=f64), 1.0)
+
+
+def test_Qc_not_psd() -> None:
+    F, _, _, _ = good()
+    with pytest.raises(ValueError, match=r"Qc must be positive semi-definite"):
+        tl.discretize(F, torch.eye(2, dtype=f64), torch.tensor([[1.0, 2.0], [2.0, 1.0]], dtype=f64), 1.0)
+    # a PSD matrix with rounding-level negative eigenvalue is accepted, in float32 too
+    v = torch.tensor([[1.0], [1.0]])
+    tl.discretize(F.float(), torch.eye(2), v @ v.T, 1.0)
+
+
+def test_B_rows() -> None:
+    F, L, Qc, _ = good()
+    with pytest.raises(ValueError, match=r"B must have 2 rows.*\(3, 1\)"):
+        tl.discretize(F, L, Qc, 1.0, B=torch.zeros(3, 1, dtype=f64))
+
+
+def test_negative_dt() -> None:
+    F, L, Qc, _ = good()
+    with pytest.raises(ValueError, match=r"dt must be non-negative"):
+        tl.discretize(F, L, Qc, torch.tensor([0.5, -0.1], dtype=f64))
+    with pytest.raises(ValueError, match=r"dt must be non-negative"):
+        tl.transition_matrix(F, -1.0)
+
+
+def test_dt_not_broadcastable() -> None:
+    F, L, Qc, _ = good()
+    Fb = F.expand(3, 2, 2)
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: F: \(3\).*dt: \(4\)"):
+        tl.discretize(Fb, L, Qc, torch.ones(4, dtype=f64))
+
+
+@pytest.mark.parametrize("which", ["F", "L", "Qc", "B", "dt"])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_nan_inf_inputs(which: str, bad: float) -> None:
+    F, L, Qc, B = good()
+    args = {"F": F.clone(), "L": L.clone(), "Qc": Qc.clone(), "B": B.clone(), "dt": torch.tensor(1.0, dtype=f64)}
+    args[which].view(-1)[0] = bad
+    with pytest.raises(ValueError, match=rf"{which} contains NaN or Inf"):
+        tl.discretize(args["F"], args["L"], args["Qc"], args["dt"], B=args["B"])
+
+
+def test_unknown_method() -> None:
+    F, L, Qc, _ = good()
+    with pytest.raises(ValueError, match=r"method must be one of"):
+        tl.discretize(F, L, Qc, 1.0, method="euler")
+
+
+def test_propagate_bad_moments_and_inputs() -> None:
+    F, L, Qc, B = good()
+    with pytest.raises(ValueError, match=r"m0 must have shape \(\.\.\., 2\).*\(3\)"):
+        tl.propagate(torch.zeros(3, dtype=f64), torch.eye(2, dtype=f64), F, L, Qc, 1.0)
+    with pytest.raises(ValueError, match=r"P0 must have 2 rows"):
+        tl.propagate(torch.zeros(2, dtype=f64), torch.eye(3, dtype=f64), F, L, Qc, 1.0)
+    with pytest.raises(ValueError, match=r"P0 must be positive semi-definite"):
+        tl.propagate(torch.zeros(2, dtype=f64), -torch.eye(2, dtype=f64), F, L, Qc, 1.0)
+    with pytest.raises(ValueError, match=r"u was given.*no input matrix B"):
+        tl.propagate(torch.zeros(2, dtype=f64), torch.eye(2, dtype=f64), F, L, Qc, 1.0, u=torch.ones(1, dtype=f64))
+    with pytest.raises(ValueError, match=r"u must have shape \(\.\.\., 1\)"):
+        tl.propagate(torch.zeros(2, dtype=f64), torch.eye(2, dtype=f64), F, L, Qc, 1.0, B=B, u=torch.ones(2, dtype=f64))
+
+
+def test_type_errors() -> None:
+    F, L, Qc, _ = good()
+    with pytest.raises(TypeError, match=r"F must be a real floating tensor"):
+        tl.discretize(F.to(torch.complex128), L, Qc, 1.0)
+    with pytest.raises(TypeError, match=r"dt must be a tensor or array-like"):
+        tl.discretize(F, L, Qc, "one second")
+
+
+def test_validation_can_be_switched_off_for_hot_loops() -> None:
+    F, L, Qc, _ = good()
+    from torchsde_lti._validation import validation
+
+    with validation(False):
+        d = tl.discretize(F, L, Qc, torch.tensor(float("nan"), dtype=f64))
+    assert torch.isnan(d.A).any()
+    with pytest.raises(ValueError):
+        tl.discretize(F, L, Qc, torch.tensor(float("nan"), dtype=f64))
