@@ -8,8 +8,25 @@ from torchsde_lti.discretization import Discrete, discretize, propagate, transit
 from torchsde_lti.stationary import stationary_covariance
 from torchsde_lti.sde import LTISDE, SDEMatrices
 from torchsde_lti import models, parametrizations
+from torchsde_lti.filtering import (
+    FilterResult,
+    SmootherResult,
+    kalman_filter,
+    parallel_kalman_filter,
+    parallel_rts_smoother,
+    rts_smoother,
+)
+from torchsde_lti.kalman import Forecast, KalmanFilter
 
 __all__ = [
+    "FilterResult",
+    "Forecast",
+    "KalmanFilter",
+    "SmootherResult",
+    "kalman_filter",
+    "parallel_kalman_filter",
+    "parallel_rts_smoother",
+    "rts_smoother",
     "LTISDE",
     "SDEMatrices",
     "models",

@@ -1,0 +1,304 @@
+r"""``KalmanFilter``: a differentiable Kalman filter whose motion model is an :class:`LTISDE`.
+
+The module assembles parameters and calls the pure functions of
+:mod:`torchsde_lti.filtering`::
+
+    kf = tl.KalmanFilter(sde, H, R)              # H (m, n), R (m, m) symmetric PD
+    out = kf(y, dt, u=None, mask=None)           # y (..., T, m), dt (..., T), u (..., T, p)
+    out.mean, out.cov                            # (..., T, n), (..., T, n, n) filtered
+    out.log_likelihood                           # (...)  -> loss = -out.log_likelihood.mean()
+    sm = kf.smooth(out)                          # RTS: sm.mean, sm.cov
+    fc = kf.forecast(out, horizons)              # moments at t_last + horizons (..., K)
+
+Timing convention: the prior N(m0, P0) sits at t₀; step k predicts over dt[..., k] and
+then updates with y[..., k]; ``dt[..., 0] = 0`` puts the prior at the first observation.
+All steps' (A_k, Q_k, G_k) come from ONE batched ``sde(dt, series=True)`` call (exact
+discretisation) before the time loop, so a parameter batch in the SDE (e.g. F (S, n, n))
+lines up with the series batch of dt (S, T).
+
+Prior: ``m0`` defaults to zeros; ``P0`` defaults to the stationary covariance P∞ of the
+SDE when F is Hurwitz at construction (recomputed at every call, so it follows a learned
+F — it raises if training makes F unstable, give P0 or use ``F_constraint="hurwitz"``),
+otherwise to a broad prior ``diffuse_variance · I`` (default 1e4, in squared state units:
+choose it larger than the squared spread of your positions/velocities).
+
+Learnable: any of ``"H"``, ``"R"``, ``"m0"``, ``"P0"`` (the SDE's own ``learn`` controls
+F, L, Qc, B). R and a learnable P0 are parametrised symmetric positive definite by
+:class:`~torchsde_lti.parametrizations.PositiveDefinite` (Cholesky factor with a softplus
+diagonal), so ``kf.R = value`` works and any optimiser step keeps them valid.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+from torch.nn.utils import parametrize
+
+from torchsde_lti._validation import as_float_tensor, check_finite, check_matrix, shape_str, validation
+from torchsde_lti.filtering import (
+    FilterResult,
+    SmootherResult,
+    kalman_filter,
+    parallel_kalman_filter,
+    parallel_rts_smoother,
+    rts_smoother,
+)
+from torchsde_lti.parametrizations import PositiveDefinite
+from torchsde_lti.sde import LTISDE
+
+__all__ = ["Forecast", "KalmanFilter"]
+
+_LEARNABLE = ("H", "R", "m0", "P0")
+
+
+class Forecast(NamedTuple):
+    """Predictive moments at future times.
+
+    mean: (..., K, n), cov: (..., K, n, n) of the state;
+    obs_mean: (..., K, m) = H mean, obs_cov: (..., K, m, m) = H cov Hᵀ + R.
+    """
+
+    mean: Tensor
+    cov: Tensor
+    obs_mean: Tensor
+    obs_cov: Tensor
+
+
+def _parse_learn(learn: Iterable[str] | str) -> tuple[str, ...]:
+    names = (learn,) if isinstance(learn, str) else tuple(learn)
+    bad = [x for x in names if x not in _LEARNABLE]
+    if bad:
+        raise ValueError(f"learn must name some of {_LEARNABLE}, got {names!r}")
+    return names
+
+
+class KalmanFilter(nn.Module):
+    r"""Kalman filter / RTS smoother for ``dx = F x dt + B u dt + L dβ``, ``y = H x + r``.
+
+    Args:
+        sde: the motion model (:class:`~torchsde_lti.LTISDE` or a model of
+            :mod:`torchsde_lti.models`); its parameters are trained through the filter.
+        H: (..., m, n) observation matrix.
+        R: (..., m, m) observation-noise covariance, symmetric positive definite.
+        m0: optional (..., n) prior mean (default zeros).
+        P0: optional (..., n, n) prior covariance (default: stationary P∞ if F is Hurwitz,
+            else ``diffuse_variance · I``).
+        learn: which of ``"H", "R", "m0", "P0"`` are ``nn.Parameter`` (default ``("R",)``).
+        parallel: use the associative-scan filter/smoother (O(log T) depth).
+        diffuse_variance: variance of the broad default prior for non-Hurwitz F.
+    """
+
+    def __init__(
+        self,
+        sde: LTISDE,
+        H: Tensor,
+        R: Tensor,
+        *,
+        m0: Tensor | None = None,
+        P0: Tensor | None = None,
+        learn: Iterable[str] | str = ("R",),
+        parallel: bool = False,
+        diffuse_variance: float = 1e4,
+    ) -> None:
+        super().__init__()
+        if not isinstance(sde, LTISDE):
+            raise TypeError(f"sde must be an LTISDE, got {type(sde).__name__}")
+        names = _parse_learn(learn)
+        self.sde = sde
+        self.parallel = bool(parallel)
+        self.diffuse_variance = float(diffuse_variance)
+        dtype, device = sde.dtype, sde.device
+        n = sde.state_dim
+
+        H = as_float_tensor(H, "H", dtype, device).detach().clone()
+        check_matrix(H, "H", cols=n)
+        check_finite(H, "H")
+        m = H.shape[-2]
+        R = as_float_tensor(R, "R", dtype, device).detach().clone()
+        if R.dim() < 2 or R.shape[-2:] != (m, m):
+            raise ValueError(f"R must have shape (..., {m}, {m}) to match H {shape_str(H)}, got shape {shape_str(R)}")
+        self._register("H", H, "H" in names)
+        self._register("R", R, "R" in names)
+        parametrize.register_parametrization(self, "R", PositiveDefinite(name="R").to(dtype=dtype, device=device))
+
+        m0_t = torch.zeros(n, dtype=dtype, device=device) if m0 is None else as_float_tensor(m0, "m0", dtype, device)
+        if m0_t.dim() < 1 or m0_t.shape[-1] != n:
+            raise ValueError(f"m0 must have shape (..., {n}), got shape {shape_str(m0_t)}")
+        check_finite(m0_t, "m0")
+        self._register("m0", m0_t.detach().clone(), "m0" in names)
+
+        # Prior covariance mode: given / stationary / diffuse.
+        self.prior_mode: str
+        if P0 is not None:
+            P0_t = as_float_tensor(P0, "P0", dtype, device).detach().clone()
+            check_matrix(P0_t, "P0", rows=n, cols=n)
+            self.prior_mode = "given"
+        else:
+            try:
+                with torch.no_grad():
+                    P0_t = sde.stationary_covariance().detach().clone()
+                self.prior_mode = "stationary"
+            except ValueError:
+                P0_t = self.diffuse_variance * torch.eye(n, dtype=dtype, device=device)
+                self.prior_mode = "diffuse"
+            if "P0" in names:
+                self.prior_mode = "given"  # learnable, initialised at the default
+        if self.prior_mode == "given":
+            self._register("P0", P0_t, "P0" in names)
+            parametrize.register_parametrization(self, "P0", PositiveDefinite(name="P0").to(dtype=dtype, device=device))
+        else:
+            self.register_buffer("P0", None)
+
+    def _register(self, name: str, value: Tensor, learnable: bool) -> None:
+        if learnable:
+            self.register_parameter(name, nn.Parameter(value))
+        else:
+            self.register_buffer(name, value)
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def state_dim(self) -> int:
+        return self.sde.state_dim
+
+    @property
+    def obs_dim(self) -> int:
+        return int(self.H.shape[-2])
+
+    def initial_state(self) -> tuple[Tensor, Tensor]:
+        """Prior (m0 (..., n), P0 (..., n, n)) at t₀ for the current parameters."""
+        if self.prior_mode == "given":
+            P0 = self.P0
+        elif self.prior_mode == "stationary":
+            try:
+                P0 = self.sde.stationary_covariance()
+            except ValueError as err:
+                raise ValueError(
+                    "the default prior P0 is the stationary covariance, but F is no longer Hurwitz; "
+                    "pass P0 explicitly or constrain F (F_constraint='hurwitz')"
+                ) from err
+        else:
+            n = self.state_dim
+            P0 = self.diffuse_variance * torch.eye(n, dtype=self.sde.dtype, device=self.sde.device)
+        return self.m0, P0
+
+    def _check_inputs(self, y: Tensor, dt: Tensor, u: Tensor | None) -> tuple[Tensor, Tensor, Tensor | None]:
+        dtype, device = self.sde.dtype, self.sde.device
+        y = as_float_tensor(y, "y", dtype, device)
+        if y.dim() < 2:
+            raise ValueError(f"y must have shape (..., T, m), got shape {shape_str(y)}")
+        m = self.obs_dim
+        if y.shape[-1] != m:
+            raise ValueError(
+                f"y has {y.shape[-1]} components (shape {shape_str(y)}) but H has {m} rows "
+                f"(shape {shape_str(self.H)})"
+            )
+        T = y.shape[-2]
+        dt = as_float_tensor(dt, "dt", dtype, device)
+        if dt.dim() < 1 or dt.shape[-1] != T:
+            raise ValueError(f"dt must have shape (..., T={T}) to match y {shape_str(y)}, got shape {shape_str(dt)}")
+        check_finite(dt, "dt")
+        if bool((dt < 0).any()):
+            raise ValueError(f"dt must be non-negative, got min {float(dt.min()):.3g} (shape {shape_str(dt)})")
+        if u is not None:
+            if self.sde.input_dim == 0:
+                raise ValueError(
+                    f"u was given (shape {shape_str(torch.as_tensor(u))}) but the SDE has no input matrix B"
+                )
+            u = as_float_tensor(u, "u", dtype, device)
+            p = self.sde.input_dim
+            if u.dim() < 2 or u.shape[-1] != p or u.shape[-2] not in (1, T):
+                raise ValueError(f"u must have shape (..., T={T}, p={p}), got shape {shape_str(u)}")
+        return y, dt, u
+
+    # ------------------------------------------------------------------ API
+    def forward(
+        self,
+        y: Tensor,
+        dt: Tensor,
+        u: Tensor | None = None,
+        mask: Tensor | None = None,
+    ) -> FilterResult:
+        """Filter observations y (..., T, m) taken after steps dt (..., T).
+
+        Args:
+            y: (..., T, m) observations; NaN marks a missing component.
+            dt: (..., T) non-negative steps; dt[..., 0] is the time from the prior to y[..., 0].
+            u: optional (..., T, p) inputs held constant over each step (needs the SDE's B).
+            mask: optional bool (..., T) or (..., T, m); False = not observed.
+
+        Returns:
+            :class:`~torchsde_lti.filtering.FilterResult` (mean, cov, pred_mean, pred_cov,
+            innovation, innovation_cov, log_likelihood (...), step_log_likelihood (..., T), …).
+        """
+        y, dt, u = self._check_inputs(y, dt, u)
+        d = self.sde(dt, series=True)  # one batched discretisation: A, Q (..., T, n, n)
+        m0, P0 = self.initial_state()
+        fn = parallel_kalman_filter if self.parallel else kalman_filter
+        G = d.G if u is not None else None
+        H, R = self.H, self.R
+        # A batch of observation models (..., m, n) is constant over time: insert the T axis.
+        H = H.unsqueeze(-3) if H.dim() > 2 else H
+        R = R.unsqueeze(-3) if R.dim() > 2 else R
+        with validation(False):  # matrices are valid by construction (PD parametrisations, PSD doubling)
+            return fn(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask)
+
+    def smooth(self, out: FilterResult) -> SmootherResult:
+        """RTS smoother over the filter output (uses the A_k, Q_k stored in ``out``)."""
+        return parallel_rts_smoother(out) if self.parallel else rts_smoother(out)
+
+    def forecast(
+        self,
+        state: FilterResult | SmootherResult | tuple[Tensor, Tensor],
+        dt: Tensor | float,
+        u: Tensor | None = None,
+    ) -> Forecast:
+        """Moments at horizons dt after the state's time (each horizon measured from it).
+
+        ``mean = A(dt) m + G(dt) u``, ``cov = A(dt) P A(dt)ᵀ + Q(dt)``, then the observation
+        moments ``H mean`` and ``H cov Hᵀ + R``.
+
+        Args:
+            state: a filter/smoother result (its last time step is used) or a pair
+                (mean (..., n), cov (..., n, n)).
+            dt: (..., K) non-negative horizons (a float or (K,) is shared by the batch).
+            u: optional (..., K, p) inputs held over each horizon.
+
+        Returns:
+            :class:`Forecast` with mean (..., K, n), cov (..., K, n, n), obs_mean, obs_cov.
+        """
+        if isinstance(state, (FilterResult, SmootherResult)):
+            mean, cov = state.mean[..., -1, :], state.cov[..., -1, :, :]
+        else:
+            mean, cov = state
+        dtype, device = self.sde.dtype, self.sde.device
+        dt = as_float_tensor(dt, "dt", dtype, device)
+        if dt.dim() == 0:
+            dt = dt.reshape(1)
+        check_finite(dt, "dt")
+        if bool((dt < 0).any()):
+            raise ValueError(f"dt must be non-negative, got min {float(dt.min()):.3g} (shape {shape_str(dt)})")
+        n = self.state_dim
+        if mean.shape[-1] != n or cov.shape[-2:] != (n, n):
+            raise ValueError(f"state must be (mean (..., {n}), cov (..., {n}, {n})), got "
+                             f"{shape_str(mean)}, {shape_str(cov)}")
+        d = self.sde(dt, series=True)
+        m = (d.A @ mean.unsqueeze(-2).unsqueeze(-1)).squeeze(-1)
+        if u is not None:
+            if d.G is None:
+                raise ValueError(f"u was given (shape {shape_str(torch.as_tensor(u))}) but the SDE has no input matrix B")
+            u = as_float_tensor(u, "u", dtype, device)
+            m = m + (d.G @ u.unsqueeze(-1)).squeeze(-1)
+        P = d.A @ cov.unsqueeze(-3) @ d.A.mT + d.Q
+        P = 0.5 * (P + P.mT)
+        H, R = self.H, self.R
+        Hk = H.unsqueeze(-3) if H.dim() > 2 else H
+        Rk = R.unsqueeze(-3) if R.dim() > 2 else R
+        obs_mean = (Hk @ m.unsqueeze(-1)).squeeze(-1)
+        S = Hk @ P @ Hk.mT + Rk
+        return Forecast(m, P, obs_mean, 0.5 * (S + S.mT))
+
+    def extra_repr(self) -> str:
+        return f"obs_dim={self.obs_dim}, prior={self.prior_mode}, parallel={self.parallel}"
