@@ -79,8 +79,11 @@ class _Parametrization(nn.Module):
 
     def _as_raw_tensor(self, value: object, name: str) -> Tensor:
         """Cast an assigned value to the raw tensor's dtype and device."""
-        x = as_float_tensor(value, name)
-        return x.detach().to(dtype=self._ref.dtype, device=self._ref.device)
+        if isinstance(value, torch.Tensor):
+            x = as_float_tensor(value, name).detach()
+        else:  # convert Python numbers / arrays straight to the raw dtype (no float32 detour)
+            x = as_float_tensor(value, name, self._ref.dtype)
+        return x.to(dtype=self._ref.dtype, device=self._ref.device)
 
     def extra_repr(self) -> str:
         return "" if self.floor is None else f"floor={self.floor}"

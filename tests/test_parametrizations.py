@@ -1,0 +1,244 @@
+"""Parametrisations: constraints hold for arbitrary raw values, right_inverse round-trips.
+
+References are independent of the library: numpy eigenvalues / Cholesky, scipy's
+Lyapunov solver, and the math.log1p/exp definition of softplus.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import scipy.linalg
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from torchsde_lti.parametrizations import (
+    Hurwitz,
+    IntegratorChain,
+    Positive,
+    PositiveDefinite,
+    default_floor,
+    softplus,
+    softplus_inverse,
+)
+
+F64 = torch.float64
+SETTINGS = settings(max_examples=60, deadline=None)
+
+
+def raw_arrays(shape: tuple[int, ...], bound: float) -> st.SearchStrategy[np.ndarray]:
+    return arrays(np.float64, shape, elements=st.floats(-bound, bound, allow_nan=False, allow_infinity=False))
+
+
+# ------------------------------------------------------------------------- softplus
+def test_softplus_matches_definition_and_inverts() -> None:
+    x = torch.tensor([-700.0, -50.0, -1.0, 0.0, 1e-8, 1.0, 19.0, 21.0, 50.0, 700.0], dtype=F64)
+    ref = torch.tensor([math.log1p(math.exp(v)) if v < 30 else v + math.log1p(math.exp(-v)) for v in x.tolist()], dtype=F64)
+    torch.testing.assert_close(softplus(x), ref, rtol=1e-15, atol=0)
+    y = torch.tensor([1e-300, 1e-12, 1e-3, 1.0, 25.0, 1e6], dtype=F64)
+    # conditioning: softplus(x) ≈ e^x for x ≪ 0, so the relative error is ≈ |x| eps (x = −690 for 1e-300)
+    raw = softplus_inverse(y)
+    rel = ((softplus(raw) - y) / y).abs()
+    assert bool((rel <= 4 * (raw.abs() + 1) * torch.finfo(F64).eps).all()), rel
+
+
+# ------------------------------------------------------------------------- Positive
+@SETTINGS
+@given(raw_arrays((5,), 200.0))
+def test_positive_is_positive_for_any_raw(raw: np.ndarray) -> None:
+    p = Positive()
+    for dtype in (torch.float32, torch.float64):
+        value = p(torch.as_tensor(raw, dtype=dtype))
+        assert bool((value > 0).all()) and bool(torch.isfinite(value).all())
+        assert bool((value >= default_floor(dtype)).all())
+
+
+@SETTINGS
+@given(st.floats(1e-10, 1e10))
+def test_positive_round_trip(v: float) -> None:
+    p = Positive().to(F64)
+    raw = p.right_inverse(v)
+    assert raw.dtype == F64
+    assert abs(float(p(raw)) / v - 1.0) < 1e-13
+
+
+def test_positive_right_inverse_casts_to_raw_dtype() -> None:
+    p = Positive().to(torch.float32)
+    assert p.right_inverse(torch.tensor(2.0, dtype=F64)).dtype == torch.float32
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, float("nan"), float("inf")])
+def test_positive_rejects_bad_values(bad: float) -> None:
+    with pytest.raises(ValueError, match="q"):
+        Positive(name="q").right_inverse(torch.tensor([1.0, bad]))
+
+
+# ------------------------------------------------------------------------- PositiveDefinite
+@SETTINGS
+@given(st.integers(1, 5).flatmap(lambda n: raw_arrays((2, n, n), 30.0)))
+def test_positive_definite_for_any_raw(raw: np.ndarray) -> None:
+    value = PositiveDefinite()(torch.as_tensor(raw)).numpy()
+    assert np.array_equal(value, np.swapaxes(value, -1, -2))
+    # eigenvalues of C Cᵀ are the squared singular values of C: positive; checked with numpy
+    # up to rounding relative to the largest entry
+    eig = np.linalg.eigvalsh(value)
+    scale = np.abs(value).max(axis=(-2, -1))
+    assert (eig.min(axis=-1) >= -1e-12 * scale).all()
+    # and the factor's diagonal is bounded below by the floor, so the value is PD
+    c = PositiveDefinite().factor(torch.as_tensor(raw))
+    assert bool((torch.diagonal(c, dim1=-2, dim2=-1) >= default_floor(F64)).all())
+
+
+@SETTINGS
+@given(st.integers(1, 5).flatmap(lambda n: raw_arrays((n, n), 3.0)))
+def test_positive_definite_round_trip(raw: np.ndarray) -> None:
+    n = raw.shape[0]
+    a = raw + 0.0
+    value = a @ a.T + 0.1 * np.eye(n)  # symmetric PD, built with numpy
+    p = PositiveDefinite().to(F64)
+    back = p(p.right_inverse(torch.as_tensor(value))).numpy()
+    np.testing.assert_allclose(back, value, rtol=1e-12, atol=1e-12 * np.abs(value).max())
+    # the raw preimage is the numpy Cholesky factor with softplus⁻¹ on its diagonal
+    chol = np.linalg.cholesky(value)
+    raw_back = p.right_inverse(torch.as_tensor(value)).numpy()
+    np.testing.assert_allclose(np.tril(raw_back, -1), np.tril(chol, -1), rtol=1e-12, atol=1e-14)
+
+
+def test_positive_definite_rejects_indefinite_and_asymmetric() -> None:
+    p = PositiveDefinite(name="Qc")
+    with pytest.raises(ValueError, match="Qc"):
+        p.right_inverse(torch.tensor([[1.0, 2.0], [2.0, 1.0]]))
+    with pytest.raises(ValueError, match="Qc.*symmetric"):
+        p.right_inverse(torch.tensor([[1.0, 0.5], [0.0, 1.0]]))
+    with pytest.raises(ValueError, match="Qc"):
+        p.right_inverse(torch.ones(2, 3))
+
+
+# ------------------------------------------------------------------------- Hurwitz
+@SETTINGS
+@given(st.integers(1, 5).flatmap(lambda n: raw_arrays((3, n, n), 3.0)))
+def test_hurwitz_for_any_raw(raw: np.ndarray) -> None:
+    h = Hurwitz()
+    F = h(torch.as_tensor(raw)).numpy()
+    assert np.linalg.eigvals(F).real.max() < 0
+    # Lyapunov certificate with the parametrisation's own P and R: F P + P Fᵀ = −2R
+    _, R, c_p = h.components(torch.as_tensor(raw))
+    P = (c_p @ c_p.mT).numpy()
+    lhs = F @ P + P @ F.T
+    # F = M P⁻¹ is formed by a solve: its rounding error scales with cond(P)
+    tol = 1e3 * np.finfo(np.float64).eps * np.linalg.cond(P) * max(1.0, np.abs(R.numpy()).max())
+    np.testing.assert_allclose(lhs, -2 * R.numpy(), rtol=0, atol=tol)
+
+
+def random_hurwitz(rng: np.random.Generator, n: int) -> np.ndarray:
+    M = rng.normal(size=(n, n))
+    shift = np.linalg.eigvals(M).real.max() + rng.uniform(0.1, 2.0)
+    return M - shift * np.eye(n)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5])
+def test_hurwitz_right_inverse_reaches_any_hurwitz_matrix(n: int) -> None:
+    rng = np.random.default_rng(n)
+    h = Hurwitz().to(F64)
+    for _ in range(5):
+        F = random_hurwitz(rng, n)
+        raw = h.right_inverse(torch.as_tensor(F))
+        np.testing.assert_allclose(h(raw).numpy(), F, rtol=1e-9, atol=1e-10 * np.abs(F).max())
+        # the preimage's P is scipy's Lyapunov solution of F P + P Fᵀ = −2I
+        _, R, c_p = h.components(raw)
+        P_ref = scipy.linalg.solve_continuous_lyapunov(F, -2 * np.eye(n))
+        np.testing.assert_allclose((c_p @ c_p.mT).numpy(), P_ref, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(R.numpy(), np.eye(n), atol=1e-9)
+
+
+def test_hurwitz_batched_round_trip() -> None:
+    rng = np.random.default_rng(0)
+    F = np.stack([random_hurwitz(rng, 3) for _ in range(4)])
+    h = Hurwitz().to(F64)
+    raw = h.right_inverse(torch.as_tensor(F))
+    assert raw.shape == (4, 3, 3, 3)
+    np.testing.assert_allclose(h(raw).numpy(), F, rtol=1e-9, atol=1e-10)
+
+
+def test_hurwitz_rejects_unstable() -> None:
+    with pytest.raises(ValueError, match="Hurwitz"):
+        Hurwitz().right_inverse(torch.tensor([[0.5, 1.0], [0.0, -1.0]]))
+    with pytest.raises(ValueError, match="Hurwitz"):
+        Hurwitz().right_inverse(torch.tensor([[0.0, 1.0], [-1.0, 0.0]]))  # marginal: eigenvalues ±i
+
+
+def test_hurwitz_stays_stable_under_large_learning_rate() -> None:
+    """Adam at lr=1 pulling F towards an unstable target: F stays Hurwitz at every step."""
+    torch.manual_seed(0)
+    h = Hurwitz().to(F64)
+    target = torch.tensor([[1.0, 3.0, 0.0], [-2.0, 0.5, 1.0], [0.0, 0.0, 2.0]], dtype=F64)
+    raw = torch.nn.Parameter(h.right_inverse(-torch.eye(3, dtype=F64)))
+    opt = torch.optim.Adam([raw], lr=1.0)
+    worst = -math.inf
+    for _ in range(300):
+        F = h(raw)
+        loss = ((F - target) ** 2).sum()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        with torch.no_grad():
+            F = h(raw).numpy()
+        assert np.isfinite(F).all()
+        worst = max(worst, np.linalg.eigvals(F).real.max())
+    assert worst < 0
+
+
+# ------------------------------------------------------------------------- IntegratorChain
+def cv_drag_matrix(f_v: np.ndarray, order: int) -> np.ndarray:
+    """Hand-built per-axis integrator chain with drag block f_v on the highest derivatives."""
+    d = f_v.shape[0]
+    n = order * d
+    F = np.zeros((n, n))
+    for a in range(d):
+        for k in range(order - 1):
+            F[a * order + k, a * order + k + 1] = 1.0
+        for b in range(d):
+            F[a * order + order - 1, b * order + order - 1] = f_v[a, b]
+    return F
+
+
+@pytest.mark.parametrize("order,dim", [(1, 2), (2, 2), (3, 2), (2, 3)])
+def test_integrator_chain_structure_and_round_trip(order: int, dim: int) -> None:
+    rng = np.random.default_rng(order * 10 + dim)
+    f_v = rng.normal(size=(dim, dim))
+    p = IntegratorChain(order, dim, drag="free").to(F64)
+    F = p(torch.as_tensor(f_v)).numpy()
+    np.testing.assert_array_equal(F, cv_drag_matrix(f_v, order))
+    np.testing.assert_array_equal(p.right_inverse(torch.as_tensor(F)).numpy(), f_v)
+
+
+@SETTINGS
+@given(raw_arrays((3, 2, 2), 3.0))
+def test_integrator_chain_hurwitz_drag(raw: np.ndarray) -> None:
+    p = IntegratorChain(2, 2, drag="hurwitz").to(F64)
+    F = p(torch.as_tensor(raw)).numpy()
+    f_v = F[np.ix_([1, 3], [1, 3])]
+    assert np.linalg.eigvals(f_v).real.max() < 0
+    np.testing.assert_array_equal(F - cv_drag_matrix(f_v, 2), np.zeros((4, 4)))
+    back = p(p.right_inverse(torch.as_tensor(F))).numpy()
+    np.testing.assert_allclose(back, F, rtol=1e-8, atol=1e-9 * np.abs(F).max())
+
+
+def test_integrator_chain_rejects_other_structure() -> None:
+    p = IntegratorChain(2, 2)
+    F = torch.zeros(4, 4)
+    F[0, 1] = 1.0  # the second axis lost its integrator
+    with pytest.raises(ValueError, match="F"):
+        p.right_inverse(F)
+    with pytest.raises(ValueError, match="F"):
+        p.right_inverse(torch.zeros(3, 3))
+    with pytest.raises(ValueError, match="order"):
+        IntegratorChain(0, 2)
+    with pytest.raises(ValueError, match="dim"):
+        IntegratorChain(2, 0)
+    with pytest.raises(ValueError, match="drag"):
+        IntegratorChain(2, 2, drag="stable")  # type: ignore[arg-type]
