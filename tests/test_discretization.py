@@ -405,3 +405,13 @@ def test_propagate_matches_manual_moments() -> None:
     m, P = tl.propagate(m0, P0, F, L, Qc, t64(0.7), B=B, u=u)
     np.testing.assert_allclose(m, d.A @ m0 + d.G @ u, rtol=1e-14)
     np.testing.assert_allclose(P, d.A @ P0 @ d.A.T + d.Q, rtol=1e-14)
+
+
+def test_process_noise_and_zero_order_hold_are_the_discretize_blocks() -> None:
+    F, L, Qc, B = t64([[0, 1], [-2, -0.3]]), t64([[0], [1]]), t64([[0.4]]), t64([[0], [1]])
+    dt = t64([0.1, 2.0])
+    d = tl.discretize(F, L, Qc, dt, B=B)
+    np.testing.assert_allclose(tl.process_noise(F, L, Qc, dt), d.Q, rtol=1e-15)
+    A, G = tl.zero_order_hold(F, B, dt)
+    np.testing.assert_allclose(A, d.A, rtol=1e-15)
+    np.testing.assert_allclose(G, d.G, rtol=1e-15)

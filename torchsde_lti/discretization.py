@@ -202,6 +202,21 @@ def zero_order_hold(F: Tensor, B: Tensor, dt: Tensor | float) -> tuple[Tensor, T
     return A, G
 
 
+def process_noise(
+    F: Tensor, L: Tensor, Qc: Tensor, dt: Tensor | float, method: str = "doubling"
+) -> Tensor:
+    """Q = ∫_0^dt expm(F s) L Qc Lᵀ expm(F s)ᵀ ds, the discrete process-noise covariance.
+
+    Args:
+        F: (..., n, n); L: (..., n, s); Qc: (..., s, s) symmetric PSD; dt: (...).
+        method: as in :func:`discretize`.
+
+    Returns:
+        (..., n, n) symmetric PSD.
+    """
+    return discretize(F, L, Qc, dt, method=method).Q
+
+
 def propagate(
     m0: Tensor,
     P0: Tensor,
