@@ -4,7 +4,14 @@ Notation (Särkkä & Solin): continuous-time F, L, Qc, B; discrete-time A, Q (= 
 observations y = H x + v, v ~ N(0, R).
 """
 
-from torchsde_lti.discretization import Discrete, discretize, propagate, transition_matrix
+from torchsde_lti.discretization import (
+    Discrete,
+    discretize,
+    process_noise,
+    propagate,
+    transition_matrix,
+    zero_order_hold,
+)
 from torchsde_lti.stationary import stationary_covariance
 from torchsde_lti.sde import LTISDE, SDEMatrices
 from torchsde_lti import models, parametrizations
@@ -33,9 +40,11 @@ __all__ = [
     "parametrizations",
     "Discrete",
     "discretize",
+    "process_noise",
     "propagate",
     "stationary_covariance",
     "transition_matrix",
+    "zero_order_hold",
 ]
 
 __version__ = "0.1.0"
