@@ -26,7 +26,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from torchsde_lti._validation import as_float_tensor, check_finite, common_float_dtype, shape_str
+from torchsde_lti._validation import as_float_tensor, broadcast_batch, check_finite, common_float_dtype, shape_str
 from torchsde_lti.parametrizations import Positive
 from torchsde_lti.sde import LTISDE, SDEMatrices
 
@@ -118,6 +118,11 @@ class StructuredSDE(LTISDE):
             raise ValueError(f"{name} must be positive, got min {float(v.min()):.3g} (shape {shape_str(v)})")
         self.register_parameter(name, nn.Parameter(v))
         parametrize.register_parametrization(self, name, Positive(name=name).to(dtype=v.dtype, device=v.device))
+
+    def _check_scalars(self, names: Sequence[str]) -> None:
+        """ValueError naming the scalars whose batch shapes do not broadcast."""
+        with torch.no_grad():
+            broadcast_batch([(n, getattr(self, n).shape) for n in names])
 
     def _build(self) -> SDEMatrices:
         raise NotImplementedError
@@ -269,6 +274,7 @@ class Singer(_ChainSDE):
         dev = _scalar_device([alpha, q], device)
         self._add_positive("alpha", alpha, dt_, dev)
         self._add_positive("q", q, dt_, dev)
+        self._check_scalars(("alpha", "q"))
         self._init_chain(3, dim, dt_, dev)
 
     def _build(self) -> SDEMatrices:
@@ -301,6 +307,7 @@ class IntegratedOU(_ChainSDE):
         dev = _scalar_device([k, q], device)
         self._add_positive("k", k, dt_, dev)
         self._add_positive("q", q, dt_, dev)
+        self._check_scalars(("k", "q"))
         self._init_chain(2, dim, dt_, dev)
 
     def _build(self) -> SDEMatrices:
@@ -332,6 +339,7 @@ class OrnsteinUhlenbeck(StructuredSDE):
         dev = _scalar_device([theta, q], device)
         self._add_positive("theta", theta, dt_, dev)
         self._add_positive("q", q, dt_, dev)
+        self._check_scalars(("theta", "q"))
         self.dim = dim
         self.position_indices = tuple(range(dim))
 
@@ -381,6 +389,7 @@ class Matern(StructuredSDE):
         dev = _scalar_device([lengthscale, variance], device)
         self._add_positive("lengthscale", lengthscale, dt_, dev)
         self._add_positive("variance", variance, dt_, dev)
+        self._check_scalars(("lengthscale", "variance"))
         m = self.order
         kw = {"dtype": dt_, "device": dev}
         self.register_buffer("_chain", torch.diag(torch.ones(m - 1, **kw), 1), persistent=False)
@@ -443,6 +452,7 @@ class MassSpringDamper(StructuredSDE):
         dev = _scalar_device([m, k, c, q], device)
         for name, value in (("m", m), ("k", k), ("c", c), ("q", q)):
             self._add_positive(name, value, dt_, dev)
+        self._check_scalars(("m", "k", "c", "q"))
         self.register_buffer("output_matrix", torch.tensor([[1.0, 0.0]], dtype=dt_, device=dev), persistent=False)
         self.position_indices = (0,)
 
@@ -494,6 +504,7 @@ class Companion(StructuredSDE):
             raise ValueError(f"a: the leading coefficient a_n must be non-zero (shape {shape_str(coeffs)})")
         self.a = nn.Parameter(coeffs)
         self._add_positive("q", q, dt_, dev)
+        broadcast_batch([("a", coeffs.shape[:-1]), ("q", self.q.shape)])
         n = coeffs.shape[-1] - 1
         self.order = n
         kw = {"dtype": dt_, "device": dev}

@@ -1,0 +1,402 @@
+"""Motion models: closed forms, Stone Soup, scipy and the Bessel-form Matérn kernel as references."""
+
+from __future__ import annotations
+
+import datetime
+import io
+import math
+
+import mpmath
+import numpy as np
+import pytest
+import scipy.linalg
+import scipy.special
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from stonesoup.models.transition.linear import (
+    CombinedLinearGaussianTransitionModel,
+    ConstantAcceleration,
+    ConstantNthDerivative,
+    ConstantVelocity,
+    OrnsteinUhlenbeck,
+    Singer,
+)
+from torch.func import functional_call
+
+import torchsde_lti as tl
+from torchsde_lti import models
+
+F64 = torch.float64
+RTOL = 1e-10
+
+
+def np64(x: torch.Tensor) -> np.ndarray:
+    return x.detach().to(F64).numpy()
+
+
+def close(actual: torch.Tensor, expected: np.ndarray, rtol: float = RTOL) -> None:
+    expected = np.asarray(expected, dtype=np.float64)
+    np.testing.assert_allclose(np64(actual), expected, rtol=rtol, atol=rtol * 1e-3 * max(1.0, np.abs(expected).max()))
+
+
+def delta(dt: float) -> datetime.timedelta:
+    return datetime.timedelta(seconds=dt)
+
+
+# ----------------------------------------------------------------------------- integrator chains
+@pytest.mark.parametrize("dt", [0.01, 0.5, 3.0])
+@pytest.mark.parametrize("q", [0.3, 2.0])
+def test_constant_velocity_closed_form_and_stone_soup(dt: float, q: float) -> None:
+    cv = models.constant_velocity(dim=2, q=q, dtype=F64)
+    d = cv(dt)
+    A1 = np.array([[1.0, dt], [0.0, 1.0]])
+    Q1 = q * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+    close(d.A, scipy.linalg.block_diag(A1, A1))  # state [x, vx, y, vy]
+    close(d.Q, scipy.linalg.block_diag(Q1, Q1))
+    ss = CombinedLinearGaussianTransitionModel([ConstantVelocity(noise_diff_coeff=q)] * 2)
+    close(d.A, ss.matrix(time_interval=delta(dt)))
+    close(d.Q, ss.covar(time_interval=delta(dt)))
+    np.testing.assert_array_equal(models.position_observation(cv).numpy(), [[1, 0, 0, 0], [0, 0, 1, 0]])
+
+
+@pytest.mark.parametrize("dt", [0.05, 1.0, 4.0])
+def test_constant_acceleration_closed_form_and_stone_soup(dt: float) -> None:
+    q = 0.7
+    ca = models.constant_acceleration(dim=3, q=q, dtype=F64)
+    d = ca(dt)
+    A1 = np.array([[1.0, dt, dt**2 / 2], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
+    Q1 = q * np.array(
+        [[dt**5 / 20, dt**4 / 8, dt**3 / 6], [dt**4 / 8, dt**3 / 3, dt**2 / 2], [dt**3 / 6, dt**2 / 2, dt]]
+    )
+    close(d.A, scipy.linalg.block_diag(A1, A1, A1))
+    close(d.Q, scipy.linalg.block_diag(Q1, Q1, Q1))
+    ss = ConstantAcceleration(noise_diff_coeff=q)
+    close(d.Q[:3, :3], ss.covar(time_interval=delta(dt)))
+    assert ca.position_indices == (0, 3, 6)
+
+
+@pytest.mark.parametrize("order", [1, 2, 4, 5])
+def test_integrated_wiener_any_order(order: int) -> None:
+    q, dt = 1.7, 0.8
+    d = models.integrated_wiener(order, dim=1, q=q, dtype=F64)(dt)
+    if order == 1:  # Brownian motion
+        close(d.A, [[1.0]])
+        close(d.Q, [[q * dt]])
+        return
+    ss = ConstantNthDerivative(constant_derivative=order - 1, noise_diff_coeff=q)
+    close(d.A, ss.matrix(time_interval=delta(dt)))
+    close(d.Q, ss.covar(time_interval=delta(dt)))
+
+
+# ----------------------------------------------------------------------------- Singer / OU family
+def singer_closed_form(alpha: float, q: float, T: float) -> tuple[np.ndarray, np.ndarray]:
+    """Singer (1970) transition and noise covariance (spectral density q), evaluated in mpmath."""
+    with mpmath.workdps(50):
+        a, q, T = mpmath.mpf(alpha), mpmath.mpf(q), mpmath.mpf(T)
+        e1, e2, aT = mpmath.exp(-a * T), mpmath.exp(-2 * a * T), a * T
+        A = [[1, T, (aT - 1 + e1) / a**2], [0, 1, (1 - e1) / a], [0, 0, e1]]
+        q11 = q / (2 * a**5) * (1 - e2 + 2 * aT + 2 * aT**3 / 3 - 2 * aT**2 - 4 * aT * e1)
+        q12 = q / (2 * a**4) * (e2 + 1 - 2 * e1 + 2 * aT * e1 - 2 * aT + aT**2)
+        q13 = q / (2 * a**3) * (1 - e2 - 2 * aT * e1)
+        q22 = q / (2 * a**3) * (4 * e1 - 3 - e2 + 2 * aT)
+        q23 = q / (2 * a**2) * (e2 + 1 - 2 * e1)
+        q33 = q / (2 * a) * (1 - e2)
+        Q = [[q11, q12, q13], [q12, q22, q23], [q13, q23, q33]]
+        return np.array(A, dtype=float), np.array(Q, dtype=float)
+
+
+@pytest.mark.parametrize("alpha,dt", [(0.05, 0.3), (0.5, 1.0), (2.0, 0.1), (3.0, 5.0)])
+def test_singer_closed_form_and_stone_soup(alpha: float, dt: float) -> None:
+    q = 1.3
+    d = models.singer(alpha, q, dim=2, dtype=F64)(dt)
+    A1, Q1 = singer_closed_form(alpha, q, dt)
+    close(d.A, scipy.linalg.block_diag(A1, A1))
+    close(d.Q, scipy.linalg.block_diag(Q1, Q1))
+    ss = Singer(damping_coeff=alpha, noise_diff_coeff=q)
+    close(d.A[:3, :3], ss.matrix(time_interval=delta(dt)))
+    close(d.Q[:3, :3], ss.covar(time_interval=delta(dt)))
+
+
+def integrated_ou_closed_form(k: float, q: float, T: float) -> tuple[np.ndarray, np.ndarray]:
+    with mpmath.workdps(50):
+        k, q, T = mpmath.mpf(k), mpmath.mpf(q), mpmath.mpf(T)
+        e1, e2 = mpmath.exp(-k * T), mpmath.exp(-2 * k * T)
+        A = [[1, (1 - e1) / k], [0, e1]]
+        q11 = q / k**2 * (T - 2 * (1 - e1) / k + (1 - e2) / (2 * k))
+        q12 = q / k * ((1 - e1) / k - (1 - e2) / (2 * k))
+        q22 = q * (1 - e2) / (2 * k)
+        return np.array(A, dtype=float), np.array([[q11, q12], [q12, q22]], dtype=float)
+
+
+@pytest.mark.parametrize("k,dt", [(0.02, 0.5), (0.7, 1.0), (4.0, 3.0)])
+def test_integrated_ou_closed_form_and_stone_soup(k: float, dt: float) -> None:
+    q = 0.4
+    d = models.integrated_ou(k, q, dim=2, dtype=F64)(dt)
+    A1, Q1 = integrated_ou_closed_form(k, q, dt)
+    close(d.A, scipy.linalg.block_diag(A1, A1))
+    close(d.Q, scipy.linalg.block_diag(Q1, Q1))
+    ss = OrnsteinUhlenbeck(damping_coeff=k, noise_diff_coeff=q)
+    close(d.A[:2, :2], ss.matrix(time_interval=delta(dt)))
+    close(d.Q[:2, :2], ss.covar(time_interval=delta(dt)))
+
+
+@pytest.mark.parametrize("theta,dt", [(0.1, 0.2), (1.5, 1.0), (10.0, 2.0)])
+def test_ornstein_uhlenbeck_closed_form(theta: float, dt: float) -> None:
+    q = 2.5
+    ou = models.ornstein_uhlenbeck(theta, q, dim=3, dtype=F64)
+    d = ou(dt)
+    close(d.A, math.exp(-theta * dt) * np.eye(3))
+    close(d.Q, q * -math.expm1(-2 * theta * dt) / (2 * theta) * np.eye(3))
+    close(ou.stationary_covariance(), q / (2 * theta) * np.eye(3))
+
+
+# ----------------------------------------------------------------------------- Matérn
+def matern_bessel(nu: float, ell: float, var: float, tau: np.ndarray) -> np.ndarray:
+    """General Matérn covariance via the modified Bessel function K_ν (scipy)."""
+    r = np.sqrt(2 * nu) * np.abs(tau) / ell
+    return var * 2 ** (1 - nu) / scipy.special.gamma(nu) * r**nu * scipy.special.kv(nu, r)
+
+
+@pytest.mark.parametrize("nu", [0.5, 1.5, 2.5])
+@pytest.mark.parametrize("ell,var", [(0.4, 1.0), (2.0, 3.5)])
+def test_matern_kernel_from_state_space(nu: float, ell: float, var: float) -> None:
+    gp = models.matern(nu, lengthscale=ell, variance=var, dtype=F64)
+    taus = np.array([0.01, 0.1, 0.5, 1.0, 2.5, 6.0])
+    P_inf = gp.stationary_covariance()
+    A = gp.transition_matrix(torch.as_tensor(taus))  # (6, m, m)
+    k_sde = (A @ P_inf)[:, 0, 0]  # H expm(Fτ) P∞ Hᵀ
+    close(k_sde, matern_bessel(nu, ell, var, taus))
+    close(P_inf[0, 0], var)
+    close(gp.kernel(torch.as_tensor(taus, dtype=F64)), matern_bessel(nu, ell, var, taus))
+    # Q over a step is P∞ − A P∞ Aᵀ for the stationary process (scipy expm reference)
+    F = np64(gp.F)
+    P = np64(P_inf)
+    A1 = scipy.linalg.expm(F * 0.7)
+    close(gp(0.7).Q, P - A1 @ P @ A1.T, rtol=1e-9)
+
+
+def test_matern_stationary_covariance_closed_forms() -> None:
+    ell, var = 0.8, 2.0
+    lam3, lam5 = math.sqrt(3) / ell, math.sqrt(5) / ell
+    close(models.matern(1.5, ell, var, dtype=F64).stationary_covariance(), np.diag([var, lam3**2 * var]))
+    kappa = lam5**2 * var / 3
+    P5 = np.array([[var, 0, -kappa], [0, kappa, 0], [-kappa, 0, lam5**4 * var]])
+    close(models.matern(2.5, ell, var, dtype=F64).stationary_covariance(), P5)
+    m12 = models.matern(0.5, ell, var, dtype=F64)
+    close(m12.F, [[-1 / ell]])
+    close(m12.Qc, [[2 * var / ell]])
+
+
+# ----------------------------------------------------------------------------- ODE systems
+def test_companion_reproduces_mass_spring_damper() -> None:
+    m, k, c = 2.0, 3.0, 0.5
+    msd = models.mass_spring_damper(m, k, c, dtype=F64)
+    comp = models.companion([k, c, m], dtype=F64)
+    close(msd.F, [[0.0, 1.0], [-k / m, -c / m]])
+    close(msd.B, [[0.0], [1.0 / m]])
+    close(comp.F, np64(msd.F), rtol=1e-15)
+    close(comp.B, np64(msd.B), rtol=1e-15)
+    np.testing.assert_array_equal(msd.C.numpy(), [[1.0, 0.0]])
+    np.testing.assert_array_equal(comp.C.numpy(), [[1.0, 0.0]])
+
+
+def test_companion_third_order_hand_derived() -> None:
+    a0, a1, a2, a3 = 6.0, 11.0, 6.0, 2.0  # 2 y''' + 6 y'' + 11 y' + 6 y = u
+    comp = models.companion([a0, a1, a2, a3], q=0.5, dtype=F64)
+    close(comp.F, [[0, 1, 0], [0, 0, 1], [-3.0, -5.5, -3.0]])
+    close(comp.B, [[0], [0], [0.5]])
+    np.testing.assert_array_equal(comp.C.numpy(), [[1.0, 0.0, 0.0]])
+    assert comp.state_dim == 3 and comp.input_dim == 1
+
+
+def test_mass_spring_damper_discretisation_vs_scipy() -> None:
+    m, k, c, q, dt = 1.5, 4.0, 0.3, 0.2, 0.6
+    msd = models.mass_spring_damper(m, k, c, q=q, dtype=F64)
+    F = np.array([[0.0, 1.0], [-k / m, -c / m]])
+    B = np.array([[0.0], [1.0 / m]])
+    Z = np.zeros((3, 3))
+    Z[:2, :2], Z[:2, 2:] = F * dt, B * dt
+    E = scipy.linalg.expm(Z)
+    C = np.block([[F, q * B @ B.T], [np.zeros((2, 2)), -F.T]]) * dt
+    V = scipy.linalg.expm(C)
+    d = msd(dt)
+    close(d.A, E[:2, :2])
+    close(d.G, E[:2, 2:])
+    close(d.Q, V[:2, 2:] @ V[:2, :2].T)
+
+
+# ----------------------------------------------------------------------------- composition
+def test_block_diag_and_position_observation() -> None:
+    cv = models.constant_velocity(dim=1, q=0.5, dtype=F64)
+    msd = models.mass_spring_damper(1.0, 2.0, 0.5, dtype=F64)
+    gp = models.matern(1.5, 1.0, 1.0, dtype=F64)
+    bd = models.block_diag(cv, msd, gp)
+    parts = [cv.matrices(), msd.matrices(), gp.matrices()]
+    for name in ("F", "L", "Qc"):
+        close(getattr(bd, name), scipy.linalg.block_diag(*(np64(getattr(p, name)) for p in parts)), rtol=0)
+    close(bd.B, np.array([[0, 0, 0, 1.0, 0, 0]]).T, rtol=0)
+    assert bd.position_indices == (0, 2, 4)
+    np.testing.assert_array_equal(models.position_observation(bd).numpy()[:, [0, 2, 4]], np.eye(3))
+    assert models.block_diag(cv, gp).B is None
+    d = bd(0.3)
+    close(d.Q[:2, :2], np64(cv(0.3).Q), rtol=1e-14)
+    # parameters of every part are learned jointly
+    names = {n for n, _ in bd.named_parameters()}
+    assert "parts.2.parametrizations.lengthscale.original" in names and len(names) == 7
+
+
+# ----------------------------------------------------------------------------- parameters
+ALL_MODELS = {
+    "cv": lambda: models.constant_velocity(2, 0.5, dtype=F64),
+    "iw": lambda: models.integrated_wiener(3, 1, 0.5, dtype=F64),
+    "singer": lambda: models.singer(0.8, 1.2, dim=2, dtype=F64),
+    "iou": lambda: models.integrated_ou(0.6, 0.9, dim=2, dtype=F64),
+    "ou": lambda: models.ornstein_uhlenbeck(1.1, 0.3, dim=2, dtype=F64),
+    "matern": lambda: models.matern(2.5, 0.9, 1.7, dtype=F64),
+    "msd": lambda: models.mass_spring_damper(1.3, 2.0, 0.4, q=0.6, dtype=F64),
+    "companion": lambda: models.companion([1.0, 0.5, 2.0, 1.5], q=0.3, dtype=F64),
+    "block": lambda: models.block_diag(models.constant_velocity(1, 0.5, dtype=F64), models.matern(1.5, 0.9, 1.0, dtype=F64)),
+}
+
+
+def test_learned_scalars_are_readable_and_assignable() -> None:
+    s = models.singer(0.8, 1.2, dim=2, dtype=F64)
+    assert {n for n, _ in s.named_parameters()} == {"parametrizations.alpha.original", "parametrizations.q.original"}
+    assert abs(s.alpha.item() - 0.8) < 1e-15 and abs(s.q.item() - 1.2) < 1e-15
+    s.q = 3.0
+    close(s.Qc, 3.0 * np.eye(2), rtol=1e-15)
+    with pytest.raises(ValueError, match="q"):
+        s.q = -1.0
+    with pytest.raises(AttributeError, match="alpha"):
+        s.F = torch.eye(6, dtype=F64)
+    free = s.to_free(learn=("F",))
+    assert isinstance(free, tl.LTISDE)
+    close(free.F, np64(s.F), rtol=0)
+
+
+@pytest.mark.parametrize("name", sorted(ALL_MODELS))
+def test_gradcheck_reaches_every_raw_parameter(name: str) -> None:
+    model = ALL_MODELS[name]()
+    assert isinstance(model, tl.LTISDE)
+    names = [n for n, _ in model.named_parameters()]
+    values = tuple(p.detach().clone().requires_grad_(True) for _, p in model.named_parameters())
+    dt = torch.tensor([0.4, 1.3], dtype=F64)
+
+    def fn(*raw: torch.Tensor):
+        d = functional_call(model, dict(zip(names, raw)), (dt,))
+        return tuple(x for x in d if x is not None)
+
+    assert torch.autograd.gradcheck(fn, values)
+    model.zero_grad()
+    d = model(dt)
+    (d.A.sum() + d.Q.sum() + (0 if d.G is None else d.G.sum())).backward()
+    for n, p in model.named_parameters():
+        assert p.grad is not None and bool(p.grad.abs().sum() > 0), n
+
+
+@pytest.mark.parametrize("name", sorted(ALL_MODELS))
+def test_state_dict_round_trip_and_float32(name: str) -> None:
+    src = ALL_MODELS[name]()
+    with torch.no_grad():
+        for p in src.parameters():
+            p.add_(0.37)  # move away from the construction values
+    dst = ALL_MODELS[name]()
+    buf = io.BytesIO()
+    torch.save(src.state_dict(), buf)
+    buf.seek(0)
+    dst.load_state_dict(torch.load(buf))
+    for a, b in zip(src.matrices(), dst.matrices()):
+        assert (a is None and b is None) or torch.equal(a, b)
+    m64 = src.matrices()
+    src32 = src.to(torch.float32)
+    m32 = src32.matrices()
+    for a, b in zip(m64, m32):
+        if a is not None:
+            assert b.dtype == torch.float32
+            np.testing.assert_allclose(np64(b), np64(a), rtol=1e-5, atol=1e-6)
+    d = src32(torch.tensor([0.1, 1.0]))
+    assert d.Q.dtype == torch.float32
+    assert bool((torch.linalg.eigvalsh(d.Q.double()) > -1e-5 * d.Q.abs().amax()).all())
+
+
+def test_batched_scalars_equal_loop() -> None:
+    alphas = torch.tensor([0.3, 1.0, 2.5], dtype=F64)
+    qs = torch.tensor([0.5, 1.0, 2.0], dtype=F64)
+    batched = models.singer(alphas, qs, dim=2)
+    assert batched.batch_shape == (3,)
+    dt = torch.tensor([0.2, 0.7, 1.5], dtype=F64)
+    d = batched(dt)
+    for i in range(3):
+        A1, Q1 = singer_closed_form(float(alphas[i]), float(qs[i]), float(dt[i]))
+        close(d.A[i], scipy.linalg.block_diag(A1, A1))
+        close(d.Q[i], scipy.linalg.block_diag(Q1, Q1))
+    gp = models.matern(1.5, torch.tensor([0.5, 1.0, 2.0], dtype=F64), 1.0)
+    P = gp.stationary_covariance()
+    assert P.shape == (3, 2, 2)
+    close(P[:, 1, 1], (3.0 / np.array([0.5, 1.0, 2.0]) ** 2))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.floats(-60, 60, allow_nan=False), min_size=4, max_size=4))
+def test_positive_for_arbitrary_raw_values(raws: list[float]) -> None:
+    msd = models.mass_spring_damper(1.0, 1.0, 1.0, q=1.0, dtype=F64)
+    with torch.no_grad():
+        for name, raw in zip(("m", "k", "c", "q"), raws):
+            msd.parametrizations[name].original.fill_(raw)
+    for name in ("m", "k", "c", "q"):
+        assert getattr(msd, name).item() > 0
+    assert msd.Qc.item() > 0
+    # positive m, k, c: the oscillator is stable (trace < 0, det > 0)
+    F = np64(msd.F)
+    assert np.trace(F) < 0 and np.linalg.det(F) > 0
+
+
+def test_scalars_stay_positive_under_large_learning_rate() -> None:
+    s = models.singer(0.8, 1.2, dim=1, dtype=F64)
+    opt = torch.optim.SGD(s.parameters(), lr=50.0)
+    for _ in range(100):
+        loss = (s.alpha + 3.0) ** 2 + (s.q + 3.0) ** 2  # minimum at negative values
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        assert s.alpha.item() > 0 and s.q.item() > 0
+        assert torch.isfinite(s(1.0).Q).all()
+
+
+# ----------------------------------------------------------------------------- bad input
+@pytest.mark.parametrize(
+    "make,match",
+    [
+        (lambda: models.constant_velocity(2, 0.0), "q"),
+        (lambda: models.constant_velocity(2, -1.0), "q"),
+        (lambda: models.constant_velocity(0, 1.0), "dim"),
+        (lambda: models.constant_velocity(1.5, 1.0), "dim"),
+        (lambda: models.integrated_wiener(0, 1, 1.0), "order"),
+        (lambda: models.singer(-0.1, 1.0), "alpha"),
+        (lambda: models.singer(0.1, float("nan")), "q"),
+        (lambda: models.integrated_ou(0.0, 1.0), "k"),
+        (lambda: models.ornstein_uhlenbeck(-2.0, 1.0), "theta"),
+        (lambda: models.matern(2.0, 1.0, 1.0), "nu"),
+        (lambda: models.matern("3/2", 1.0, 1.0), "nu"),
+        (lambda: models.matern(1.5, 0.0, 1.0), "lengthscale"),
+        (lambda: models.matern(1.5, 1.0, -1.0), "variance"),
+        (lambda: models.mass_spring_damper(0.0, 1.0, 1.0), "m"),
+        (lambda: models.mass_spring_damper(1.0, 1.0, -1.0), "c"),
+        (lambda: models.companion([1.0]), "a"),
+        (lambda: models.companion([1.0, 2.0, 0.0]), "a"),
+        (lambda: models.block_diag(), "sdes"),
+        (lambda: models.block_diag(models.constant_velocity(1, 1.0), torch.eye(2)), "sdes"),
+        (lambda: models.singer(torch.tensor([0.1, 0.2]), torch.tensor([1.0, 2.0, 3.0])), "alpha.*q"),
+        (lambda: models.companion(torch.ones(2, 3), q=torch.ones(3)), "a.*q"),
+    ],
+)
+def test_bad_input_raises_value_error(make, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_position_observation_needs_positions() -> None:
+    sde = tl.LTISDE(-torch.eye(2), torch.eye(2), torch.eye(2))
+    with pytest.raises(ValueError, match="position"):
+        models.position_observation(sde)
