@@ -19,6 +19,9 @@ others are buffers. Both move with ``.to()`` and are saved in ``state_dict`` (un
   ``IntegratorChain(order=2, dim=2, drag="hurwitz")`` to learn only the drag block of
   exact integrator chains.
 
+Save and load with ``state_dict()`` / ``load_state_dict()`` (or ``copy.deepcopy``):
+:mod:`torch.nn.utils.parametrize` does not support pickling whole parametrised modules.
+
 Each read of a parametrised matrix re-evaluates its (small) parametrisation; inside one
 computation use :meth:`LTISDE.matrices`, which reads all four once under
 ``torch.nn.utils.parametrize.cached()`` (or wrap a longer block in that context manager).
