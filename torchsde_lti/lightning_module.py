@@ -230,22 +230,21 @@ class KalmanFilterModule(LightningModule):
         k, T = self.k_step, y.shape[-2]
         if k < 1 or T <= k:
             return y.new_zeros(())
-        d = self.kf.sde(dt)  # A (B, T, n, n)
-        n = out.mean.shape[-1]
-        A = d.A.expand(*dt.shape, n, n)
-        Q = d.Q.expand(*dt.shape, n, n)
+        A, Q = out.transition, out.process_noise  # (B, T, n, n): the steps the filter used
+        G = self.kf.sde(dt, series=True).G if u is not None else None
         m, P = out.mean[..., : T - k, :], out.cov[..., : T - k, :, :]
         for j in range(1, k + 1):
             Aj, Qj = A[..., j : T - k + j, :, :], Q[..., j : T - k + j, :, :]
             m = (Aj @ m.unsqueeze(-1)).squeeze(-1)
-            if u is not None and d.G is not None:
-                m = m + (d.G[..., j : T - k + j, :, :] @ u[..., j : T - k + j, :].unsqueeze(-1)).squeeze(-1)
+            if u is not None and G is not None:
+                m = m + (G[..., j : T - k + j, :, :] @ u[..., j : T - k + j, :].unsqueeze(-1)).squeeze(-1)
             P = Aj @ P @ Aj.mT + Qj
         H, R = self.kf.H, self.kf.R
-        target = y[..., k:, :]
+        obs_k = observed[..., k:, :]
+        target = torch.where(obs_k, y[..., k:, :], torch.zeros_like(y[..., k:, :]))
         r = target - m @ H.mT
         S = H @ P @ H.mT + R
-        return masked_gaussian_nll(r, S, observed[..., k:, :]).sum()
+        return masked_gaussian_nll(r, S, obs_k).sum()
 
     def _step(self, batch: Any) -> tuple[Tensor, Tensor, Any, dict[str, Tensor]]:
         y, dt, mask, u, x = self._unpack(batch)

@@ -90,6 +90,8 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     objects: "cfg", "datamodule", "module", "trainer", "callbacks", "loggers".
     """
     _check_config(cfg)
+    if cfg.get("num_threads"):
+        torch.set_num_threads(int(cfg.num_threads))
     pl.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out_dir = Path(cfg.output_dir)
     datamodule = instantiate(cfg.data)
