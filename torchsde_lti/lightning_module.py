@@ -189,6 +189,9 @@ class KalmanFilterModule(LightningModule):
             raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
         if int(k_step) < 0 or not k_step_weight >= 0:
             raise ValueError(f"k_step must be >= 0 and k_step_weight >= 0, got {k_step}, {k_step_weight}")
+        # plain containers only, so checkpoints load with torch.load(weights_only=True)
+        learn = [str(x) for x in learn]
+        param_names = [str(x) for x in param_names] if param_names is not None else None
         self.save_hyperparameters(ignore=["kf", "optimizer", "scheduler", "truth"])
         self.float_dtype = getattr(torch, dtype)
         self.kf = kf.to(self.float_dtype)

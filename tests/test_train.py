@@ -1,0 +1,248 @@
+"""Hydra configs, the LightningModule and the main job, on tiny problems.
+
+Covers: every config group composes and instantiates; fast_dev_run end to end; resume from
+a checkpoint continues exactly like an uninterrupted run; checkpoints load with
+``weights_only=True``; a --multirun over two values launches two runs; a 2-process DDP
+(gloo) run; bad config values fail fast. Loss pieces are checked against independent
+references (scipy's multivariate normal, the filter's prediction-error decomposition).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException, InstantiationException
+from hydra.utils import instantiate
+
+from torchsde_lti import models
+from torchsde_lti.data import isotropic_covariance, simulate_tracks
+from torchsde_lti.lightning_module import KalmanFilterModule, masked_gaussian_nll, parameter_errors
+from torchsde_lti.train import train
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = ROOT / "conf"
+TINY = ["experiment=tiny"]
+
+
+def _cfg(tmp_path: Path, *overrides: str):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose("train", overrides=[f"output_dir={tmp_path}", *overrides])
+
+
+def _group(name: str) -> list[str]:
+    return sorted(p.stem for p in (CONF / name).glob("*.yaml"))
+
+
+# --------------------------------------------------------------------------- composition
+
+
+@pytest.mark.parametrize("model", _group("model"))
+def test_model_configs_instantiate_filter_and_data(tmp_path: Path, model: str) -> None:
+    cfg = _cfg(tmp_path, f"model={model}", *TINY)
+    dm = instantiate(cfg.data)
+    kf = instantiate(cfg.filter, m0=dm.m0, P0=dm.P0)
+    module = instantiate(cfg.module, kf=kf, truth=dm.truth)
+    assert isinstance(module, KalmanFilterModule)
+    assert kf.H.shape == (cfg.model.obs_dim, kf.sde.state_dim)
+    assert any(p.requires_grad for p in module.parameters())
+    # the learner starts away from the truth
+    assert max(module.parameter_errors().values()) > 0.5
+
+
+@pytest.mark.parametrize("dt", _group("data/dt"))
+def test_dt_configs_instantiate(tmp_path: Path, dt: str) -> None:
+    cfg = _cfg(tmp_path, f"data/dt={dt}", *TINY)
+    dm = instantiate(cfg.data)
+    dm.setup()
+    assert bool((dm.tracks["train"].dt[dm.tracks["train"].mask] > 0).all())
+
+
+@pytest.mark.parametrize("trainer", _group("trainer"))
+def test_trainer_configs_instantiate(tmp_path: Path, trainer: str) -> None:
+    cfg = _cfg(tmp_path, f"trainer={trainer}")
+    t = instantiate(cfg.trainer, logger=False, callbacks=[])
+    assert t.max_epochs == cfg.trainer.max_epochs
+    if trainer == "ddp":
+        assert type(t.strategy).__name__ == "DDPStrategy" and t.strategy._process_group_backend == "gloo"
+
+
+@pytest.mark.parametrize("logger", _group("logger"))
+def test_logger_configs_instantiate(tmp_path: Path, logger: str) -> None:
+    if logger == "tensorboard":
+        pytest.importorskip("tensorboard")
+    cfg = _cfg(tmp_path, f"logger={logger}")
+    for node in cfg.logger.values():
+        assert instantiate(node).save_dir == str(tmp_path)
+
+
+def test_callback_configs_instantiate(tmp_path: Path) -> None:
+    cfg = _cfg(tmp_path)
+    names = {type(instantiate(c)).__name__ for c in cfg.callbacks.values()}
+    assert names == {"ModelCheckpoint", "ParameterHistory"}
+    assert cfg.callbacks.checkpoint.monitor == "val/nll"
+
+
+@pytest.mark.parametrize("experiment", _group("experiment"))
+def test_experiment_configs_compose(tmp_path: Path, experiment: str) -> None:
+    if experiment == "ais":
+        pytest.importorskip("tracktable_data")
+    cfg = _cfg(tmp_path, f"experiment={experiment}")
+    assert cfg.data._target_ and cfg.filter._target_ and cfg.module._target_
+
+
+def test_joblib_launcher_config_composes(tmp_path: Path) -> None:
+    pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("train", overrides=["hydra/launcher=parallel"], return_hydra_config=True)
+    assert "JoblibLauncher" in cfg.hydra.launcher._target_ and cfg.hydra.launcher.n_jobs == 2
+
+
+# --------------------------------------------------------------------------- fail fast
+
+
+def test_unknown_model_fails_fast(tmp_path: Path) -> None:
+    with pytest.raises(ConfigCompositionException, match="nosuchmodel"):
+        _cfg(tmp_path, "model=nosuchmodel")
+
+
+@pytest.mark.parametrize(("override", "match"), [("data.noise=-0.5", "data.noise"), ("data.T=1", "data.T")])
+def test_bad_values_fail_before_training(tmp_path: Path, override: str, match: str) -> None:
+    cfg = _cfg(tmp_path, *TINY, override)
+    with pytest.raises(InstantiationException, match=match):
+        train(cfg)
+    assert not (tmp_path / "checkpoints").exists()
+
+
+def test_bad_dtype_fails_fast(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="dtype"):
+        train(_cfg(tmp_path, *TINY, "dtype=float16"))
+
+
+# --------------------------------------------------------------------------- loss pieces
+
+
+def test_masked_gaussian_nll_matches_scipy_marginal() -> None:
+    stats = pytest.importorskip("scipy.stats")
+    g = torch.Generator().manual_seed(0)
+    M = torch.randn(3, 3, generator=g, dtype=torch.float64)
+    S = M @ M.T + 0.5 * torch.eye(3, dtype=torch.float64)
+    r = torch.randn(3, generator=g, dtype=torch.float64)
+    obs = torch.tensor([True, False, True])
+    got = masked_gaussian_nll(r.clone().index_fill_(0, torch.tensor([1]), math.nan), S, obs)
+    idx = [0, 2]
+    ref = -stats.multivariate_normal(mean=[0, 0], cov=S[idx][:, idx].numpy()).logpdf(r[idx].numpy())
+    assert abs(float(got) - ref) < 1e-10
+    assert float(masked_gaussian_nll(r, S, torch.zeros(3, dtype=torch.bool))) == 0.0
+
+
+def test_one_step_ahead_loss_equals_prediction_error_decomposition() -> None:
+    """k = 1: scoring y_{t+1} from the filtered state at t is the filter's own step likelihood."""
+    import torchsde_lti as tl
+
+    sde = models.integrated_ou(k=0.7, q=1.3, dim=2).to(torch.float64)
+    H = models.position_observation(sde)
+    tr = simulate_tracks(sde, H, isotropic_covariance(0.4, 2), 3, 12, p_missing=0.2, seed=2)
+    kf = tl.KalmanFilter(sde, H, isotropic_covariance(0.4, 2), m0=torch.zeros(4), P0=torch.eye(4))
+    module = KalmanFilterModule(kf, k_step=1, k_step_weight=1.0)
+    out = kf(tr.y, tr.dt)
+    observed = ~torch.isnan(tr.y)
+    got = module.k_step_nll(out, tr.y, tr.dt, None, observed)
+    ref = -out.step_log_likelihood[..., 1:].sum()
+    assert torch.allclose(got, ref, rtol=1e-10)
+
+
+def test_parameter_errors_against_hand_values() -> None:
+    truth = models.singer(alpha=0.5, q=2.0, dim=2)
+    learned = models.singer(alpha=0.55, q=1.0, dim=2)
+    e = parameter_errors(learned, truth, R=torch.eye(2) * 1.2, R_true=torch.eye(2), dts=(1.0,))
+    assert e["alpha"] == pytest.approx(0.1, rel=1e-6) and e["q"] == pytest.approx(0.5, rel=1e-6)
+    assert e["R"] == pytest.approx(0.2, rel=1e-6)
+    assert e["expmF"] > 0
+    same = parameter_errors(truth, truth)
+    assert same["expmF"] == 0.0 and same["alpha"] == 0.0
+
+
+# --------------------------------------------------------------------------- training runs
+
+
+def test_fast_dev_run_end_to_end(tmp_path: Path) -> None:
+    cfg = _cfg(tmp_path, *TINY, "+trainer.fast_dev_run=true")
+    metrics, objects = train(cfg)
+    assert math.isfinite(metrics["train/nll"]) and math.isfinite(metrics["val/nll"])
+    assert set(metrics["param_errors"]) == {"k", "q", "expmF", "R"}
+    assert (tmp_path / "metrics.json").exists()
+
+
+def test_float32_training_keeps_float32(tmp_path: Path) -> None:
+    metrics, objects = train(_cfg(tmp_path, *TINY, "dtype=float32", "trainer.max_epochs=1"))
+    assert all(p.dtype == torch.float32 for p in objects["module"].parameters())
+    assert math.isfinite(metrics["val/nll"])
+
+
+def test_plots_and_table_written(tmp_path: Path) -> None:
+    metrics, _ = train(_cfg(tmp_path, *TINY, "plots=true", "test=false"))
+    for name in ("loss.png", "params.png", "track.png", "results.md"):
+        assert (tmp_path / name).stat().st_size > 0
+    summary = json.loads((tmp_path / "metrics.json").read_text())
+    assert {r["name"] for r in summary["table"]} >= {"k", "q", "R[0,0]"}
+
+
+def test_resume_from_checkpoint_continues_identically(tmp_path: Path) -> None:
+    # the interrupted run plans the same schedule (T_max) as the uninterrupted one
+    common = [*TINY, "test=false", "callbacks.checkpoint.save_top_k=-1", "module.scheduler.T_max=4"]
+    _, full = train(_cfg(tmp_path / "full", *common, "trainer.max_epochs=4"))
+    _, part = train(_cfg(tmp_path / "part", *common, "trainer.max_epochs=2"))
+    ckpt = tmp_path / "part" / "checkpoints" / "last.ckpt"
+    raw = torch.load(ckpt, weights_only=True)  # plain content only
+    assert raw["epoch"] == 1 and "ParameterHistory" in raw["callbacks"]
+    _, resumed = train(_cfg(tmp_path / "resumed", *common, "trainer.max_epochs=4", f"ckpt_path={ckpt}"))
+    a, b = full["module"].state_dict(), resumed["module"].state_dict()
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    # not trivially equal: training moved the parameters
+    assert not torch.equal(a["kf.sde.parametrizations.k.original"], part["module"].state_dict()["kf.sde.parametrizations.k.original"])
+    hist = [c for c in resumed["callbacks"] if type(c).__name__ == "ParameterHistory"][0].history
+    assert [r["epoch"] for r in hist] == [0.0, 1.0, 2.0, 3.0]
+
+
+def _run(args: list[str], cwd: Path, timeout: float = 240) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    return subprocess.run(
+        [sys.executable, "-m", "torchsde_lti.train", *args], cwd=cwd, env=env,
+        capture_output=True, text=True, timeout=timeout,
+    )  # fmt: skip
+
+
+def test_multirun_launches_two_runs(tmp_path: Path) -> None:
+    sweep = tmp_path / "sweep"
+    proc = _run(["--multirun", "data.noise=0.1,1.0", *TINY, "trainer.max_epochs=1", f"hydra.sweep.dir={sweep}"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    runs = sorted(p for p in sweep.iterdir() if p.is_dir() and p.name.isdigit())
+    assert [p.name for p in runs] == ["0", "1"]
+    noises = sorted(json.loads((p / "metrics.json").read_text())["noise"] for p in runs)
+    assert noises == [0.1, 1.0]
+    collect = subprocess.run(
+        [sys.executable, str(ROOT / "experiments" / "collect_sweep.py"), str(sweep)],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert collect.returncode == 0, collect.stderr[-3000:]
+    summary = (sweep / "summary.md").read_text()
+    assert "data.noise=0.1" in summary and "data.noise=1.0" in summary
+
+
+def test_ddp_two_cpu_processes_gloo(tmp_path: Path) -> None:
+    run_dir = tmp_path / "ddp"
+    proc = _run(["trainer=ddp", *TINY, "trainer.max_epochs=1", "test=false", f"hydra.run.dir={run_dir}"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((run_dir / "metrics.json").read_text())
+    assert math.isfinite(summary["metrics"]["val/nll"])
+    assert "world_size=2" in proc.stdout + proc.stderr or "distributed_backend=gloo" in proc.stdout + proc.stderr
