@@ -328,9 +328,12 @@ class KalmanFilterModule(LightningModule):
 
 
 def _flat(values: Mapping[str, Tensor]) -> dict[str, float]:
-    """Scalars as they are; matrices R and Qc by their diagonal entries (``R[0]``, ...)."""
+    """Scalars as they are; R and (without named scalars) Qc by their diagonals (``R[0]``, ...)."""
     out: dict[str, float] = {}
+    has_scalars = any(v.dim() == 0 for v in values.values())
     for name, v in values.items():
+        if name == "Qc" and has_scalars:  # Qc is a function of the named scalars
+            continue
         v = v.detach().to(torch.float64)
         if v.dim() == 0:
             out[name] = float(v)
