@@ -77,6 +77,7 @@ def plot(rows: list[dict], path: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("sweep_dir", type=Path, help="the Hydra sweep directory (hydra.sweep.dir)")
+    parser.add_argument("--out", type=Path, default=None, help="also write the table here (markdown)")
     args = parser.parse_args()
     rows = collect(args.sweep_dir)
     if not rows:
@@ -84,6 +85,9 @@ def main() -> None:
     text = f"# Sweep {args.sweep_dir}\n\n{summary_table(rows)}\n"
     (args.sweep_dir / "summary.md").write_text(text)
     plot(rows, args.sweep_dir / "summary.png")
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text)
     print(text)
 
 
