@@ -211,12 +211,12 @@ def _from_batch_last(x: Tensor, event_ndim: int, batch_ndim: int) -> Tensor:
 
 def _bl_matmul(X: Tensor, Y: Tensor) -> Tensor:
     """(a, b, *B) @ (b, c, *B) -> (a, c, *B)."""
-    return (X.unsqueeze(2) * Y.unsqueeze(0)).sum(1)
+    return torch.linalg.vecdot(X.unsqueeze(2), Y.unsqueeze(0), dim=1)
 
 
 def _bl_matvec(X: Tensor, v: Tensor) -> Tensor:
     """(a, b, *B) @ (b, *B) -> (a, *B)."""
-    return (X * v.unsqueeze(0)).sum(1)
+    return torch.linalg.vecdot(X, v.unsqueeze(0), dim=1)
 
 
 def _bl_sym(P: Tensor) -> Tensor:
@@ -481,6 +481,10 @@ def kalman_filter(
     nb = A_bf.dim() - 3
     to_bl = list(range(nb, nb + 2)) + list(range(nb))
     H_s = _to_batch_last(prep.Hw, 2, time=True)  # (T or 1, m, n, *cb or broadcastable)
+    # Materialise H' over the batch: products with a stride-0 (broadcast) inner dimension
+    # take a slow path, same-shape ones do not.
+    cb = A_bf.shape[:nb]
+    H_s = H_s.expand(*H_s.shape[:3], *torch.broadcast_shapes(H_s.shape[3:], cb)).contiguous()
     h_single = H_s.shape[0] == 1
     y_s = _to_batch_last(prep.yw, 1, time=True)  # (T, m, *mb)
     c_s = _to_batch_last(prep.c, 1, time=True) if prep.c is not None else None
@@ -492,12 +496,12 @@ def kalman_filter(
     for k in range(prep.T):
         Ak = A_bf[..., k, :, :].permute(to_bl).contiguous()
         Qk = Q_bf[..., k, :, :].permute(to_bl).contiguous()
-        # Predict.
+        # Predict. (P⁻ is symmetrised once for all steps after the loop; the update below
+        # ends with a symmetrisation of its own.)
         mean = _bl_matvec(Ak, mean)
         if c_s is not None:
             mean = mean + c_s[0 if c_single else k]
         P = _bl_matmul(_bl_matmul(Ak, P), Ak.transpose(0, 1)) + Qk
-        P = _bl_sym(P)
         pmeans.append(mean)
         pcovs.append(P)
         # Update: one whitened scalar observation at a time (Joseph form).
@@ -505,13 +509,13 @@ def kalman_filter(
         for j in range(m_dim):
             h = Hk[j]
             ph = _bl_matvec(P, h)
-            s = (h * ph).sum(0) + 1.0
+            s = torch.linalg.vecdot(h, ph, dim=0) + 1.0
             gain = ph / s
-            e = yk[j] - (h * mean).sum(0)
-            mean = mean + gain * e
-            MP = P - gain.unsqueeze(1) * ph.unsqueeze(0)  # (I − k hᵀ) P
+            e = yk[j] - torch.linalg.vecdot(h, mean, dim=0)
+            mean = torch.addcmul(mean, gain, e)
+            MP = torch.addcmul(P, gain.unsqueeze(1), ph.unsqueeze(0), value=-1.0)  # (I − k hᵀ) P
             w = _bl_matvec(MP, h)  # (I − k hᵀ) P h
-            P = MP + (gain - w).unsqueeze(1) * gain.unsqueeze(0)  # … (I − h kᵀ) + k kᵀ
+            P = torch.addcmul(MP, (gain - w).unsqueeze(1), gain.unsqueeze(0))  # … (I − h kᵀ) + k kᵀ
             es.append(e)
             ss.append(s)
         P = _bl_sym(P)
@@ -519,22 +523,32 @@ def kalman_filter(
         covs.append(P)
     nd = len(prep.mean_batch)
     pm_bl, pc_bl = torch.stack(pmeans), torch.stack(pcovs)  # (T, n, *mb), (T, n, n, *cb)
+    pc_bl = 0.5 * (pc_bl + pc_bl.transpose(1, 2))
     # Innovations and their covariances, batched over all steps in the same layout.
     H_bl = _to_batch_last(prep.H, 2, time=True)  # (T or 1, m, n, *)
     R_bl = _to_batch_last(prep.R, 2, time=True)
     y0_bl = _to_batch_last(prep.y0, 1, time=True)
     n = pm_bl.shape[1]
-    # (accumulated over the contracted index: no (T, m, n, n, *batch) intermediate)
-    innov = y0_bl
-    HP = None
-    for j in range(n):
-        innov = innov - H_bl[:, :, j] * pm_bl[:, j : j + 1]
-        term = H_bl[:, :, j : j + 1] * pc_bl[:, j : j + 1]  # (T, m, n, *)
-        HP = term if HP is None else HP + term
-    assert HP is not None
-    S = R_bl
-    for j in range(n):
-        S = S + HP[:, :, j : j + 1] * H_bl[:, :, j].unsqueeze(1)  # (T, m, m, *)
+    if H_bl.shape[0] == 1 and all(d == 1 for d in H_bl.shape[3:]):
+        # One H for every step and track: contract with a single matrix product (BLAS) on
+        # the flattened (T, n·n, batch) covariances.
+        Hm = H_bl.reshape(H_bl.shape[1:3])  # (m, n)
+        bshape = pc_bl.shape[3:]
+        innov = y0_bl - (Hm @ pm_bl.reshape(prep.T, n, -1)).reshape(prep.T, -1, *pm_bl.shape[2:])
+        HH = (Hm[:, None, :, None] * Hm[None, :, None, :]).reshape(m_dim * m_dim, n * n)  # (m², n²)
+        S = (HH @ pc_bl.reshape(prep.T, n * n, -1)).reshape(prep.T, m_dim, m_dim, *bshape) + R_bl
+    else:
+        # (accumulated over the contracted index: no (T, m, n, n, *batch) intermediate)
+        innov = y0_bl
+        HP = None
+        for j in range(n):
+            innov = innov - H_bl[:, :, j] * pm_bl[:, j : j + 1]
+            term = H_bl[:, :, j : j + 1] * pc_bl[:, j : j + 1]  # (T, m, n, *)
+            HP = term if HP is None else HP + term
+        assert HP is not None
+        S = R_bl
+        for j in range(n):
+            S = S + HP[:, :, j : j + 1] * H_bl[:, :, j].unsqueeze(1)  # (T, m, m, *)
     S = 0.5 * (S + S.transpose(1, 2))
     mean_t = _from_batch_last(torch.stack(means), 1, nd)
     cov_t = _from_batch_last(torch.stack(covs), 2, nd)
