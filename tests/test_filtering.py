@@ -171,6 +171,31 @@ def test_cv_irregular_dt_with_controls_matches_reference():
     np.testing.assert_allclose(out.step_log_likelihood.numpy(), ref["ll"], atol=1e-9)
 
 
+def test_time_varying_H_and_R_match_reference():
+    rng = np.random.default_rng(21)
+    d = random_problem(rng, batch=(2,), T=8)
+    Hs = rng.standard_normal((2, 8, 2, 4))
+    W = rng.standard_normal((8, 2, 2))
+    Rs = W @ np.swapaxes(W, -1, -2) + 0.3 * np.eye(2)
+    t = to_torch(d)
+    out = kalman_filter(t["y"], t["A"], t["Q"], torch.as_tensor(Hs), torch.as_tensor(Rs), t["m0"], t["P0"])
+    for b in range(2):
+        m, P = d["m0"][b], d["P0"][b]
+        for k in range(8):
+            m = d["A"][b, k] @ m
+            P = d["A"][b, k] @ P @ d["A"][b, k].T + d["Q"][b, k]
+            S_full = Hs[b, k] @ P @ Hs[b, k].T + Rs[k]
+            np.testing.assert_allclose(out.innovation_cov[b, k].numpy(), S_full, atol=1e-9)
+            o = ~np.isnan(d["y"][b, k])
+            if o.any():
+                Ho, So = Hs[b, k][o], S_full[np.ix_(o, o)]
+                v = d["y"][b, k][o] - Ho @ m
+                K = np.linalg.solve(So, Ho @ P).T
+                m, P = m + K @ v, P - K @ So @ K.T
+            np.testing.assert_allclose(out.mean[b, k].numpy(), m, atol=1e-9)
+            np.testing.assert_allclose(out.cov[b, k].numpy(), P, atol=1e-9)
+
+
 def test_mask_equals_nan():
     rng = np.random.default_rng(2)
     d = random_problem(rng, missing=False)

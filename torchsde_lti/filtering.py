@@ -477,35 +477,39 @@ def kalman_filter(
     # inner dimension, so every elementwise op and the broadcast-and-sum products below run
     # at full vector speed (batched 4×4 `bmm`/transposes are several times slower).
     # A_k, Q_k are moved to this layout one step at a time (a small, cache-friendly copy).
+    # (unbind, not indexing, inside the loop: the backward of T separate index operations
+    # would materialise T full-size zero gradients; unbind's backward is one stack.)
     A_bf, Q_bf = prep.A, prep.Q  # (*cb, T, n, n)
     nb = A_bf.dim() - 3
     to_bl = list(range(nb, nb + 2)) + list(range(nb))
+    A_steps, Q_steps = A_bf.unbind(-3), Q_bf.unbind(-3)
     H_s = _to_batch_last(prep.Hw, 2, time=True)  # (T or 1, m, n, *cb or broadcastable)
     # Materialise H' over the batch: products with a stride-0 (broadcast) inner dimension
     # take a slow path, same-shape ones do not.
     cb = A_bf.shape[:nb]
     H_s = H_s.expand(*H_s.shape[:3], *torch.broadcast_shapes(H_s.shape[3:], cb)).contiguous()
     h_single = H_s.shape[0] == 1
-    y_s = _to_batch_last(prep.yw, 1, time=True)  # (T, m, *mb)
-    c_s = _to_batch_last(prep.c, 1, time=True) if prep.c is not None else None
-    c_single = c_s is not None and c_s.shape[0] == 1
+    H_steps = H_s.unbind(0)
+    y_steps = _to_batch_last(prep.yw, 1, time=True).unbind(0)  # T × (m, *mb)
+    c_steps = _to_batch_last(prep.c, 1, time=True).unbind(0) if prep.c is not None else None
+    c_single = c_steps is not None and len(c_steps) == 1
 
     mean = _to_batch_last(prep.m0, 1)  # (n, *mb)
     P = _to_batch_last(prep.P0, 2)  # (n, n, *cb)
     means, covs, pmeans, pcovs, es, ss = [], [], [], [], [], []
     for k in range(prep.T):
-        Ak = A_bf[..., k, :, :].permute(to_bl).contiguous()
-        Qk = Q_bf[..., k, :, :].permute(to_bl).contiguous()
+        Ak = A_steps[k].permute(to_bl).contiguous()
+        Qk = Q_steps[k].permute(to_bl).contiguous()
         # Predict. (P⁻ is symmetrised once for all steps after the loop; the update below
         # ends with a symmetrisation of its own.)
         mean = _bl_matvec(Ak, mean)
-        if c_s is not None:
-            mean = mean + c_s[0 if c_single else k]
+        if c_steps is not None:
+            mean = mean + c_steps[0 if c_single else k]
         P = _bl_matmul(_bl_matmul(Ak, P), Ak.transpose(0, 1)) + Qk
         pmeans.append(mean)
         pcovs.append(P)
         # Update: one whitened scalar observation at a time (Joseph form).
-        Hk, yk = H_s[0 if h_single else k], y_s[k]
+        Hk, yk = H_steps[0 if h_single else k].unbind(0), y_steps[k].unbind(0)
         for j in range(m_dim):
             h = Hk[j]
             ph = _bl_matvec(P, h)
