@@ -57,6 +57,16 @@ def test_model_configs_instantiate_filter_and_data(tmp_path: Path, model: str) -
     assert max(module.parameter_errors().values()) > 0.5
 
 
+@pytest.mark.parametrize("data", _group("data"))
+def test_data_configs_instantiate_a_datamodule(tmp_path: Path, data: str) -> None:
+    import lightning.pytorch as pl
+
+    if data == "ais":
+        pytest.importorskip("tracktable_data")
+    cfg = _cfg(tmp_path, f"data={data}", *TINY) if data == "simulated" else _cfg(tmp_path, f"data={data}")
+    assert isinstance(instantiate(cfg.data), pl.LightningDataModule)
+
+
 @pytest.mark.parametrize("dt", _group("data/dt"))
 def test_dt_configs_instantiate(tmp_path: Path, dt: str) -> None:
     cfg = _cfg(tmp_path, f"data/dt={dt}", *TINY)
@@ -245,4 +255,5 @@ def test_ddp_two_cpu_processes_gloo(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr[-3000:]
     summary = json.loads((run_dir / "metrics.json").read_text())
     assert math.isfinite(summary["metrics"]["val/nll"])
-    assert "world_size=2" in proc.stdout + proc.stderr or "distributed_backend=gloo" in proc.stdout + proc.stderr
+    log = proc.stdout + proc.stderr
+    assert "distributed_backend=gloo" in log and "MEMBER: 2/2" in log
