@@ -35,6 +35,9 @@ The work that does not depend on the recursion (whitening, control terms, innova
 log-likelihood bookkeeping) is done batched over all T outside the loop. The covariance
 recursion depends on (A, Q, H, R, mask, P0) only, never on y, so it runs at the batch
 shape of those: with a shared dt grid and no missing data it runs once for all tracks.
+Inside the loop tensors are laid out batch-last, ``(n, n, *batch)``, so that elementwise
+work runs over the contiguous batch; the returned tensors are (possibly non-contiguous)
+views in the documented batch-first shapes.
 
 The parallel variants (Särkkä & García-Fernández, 2021, "Temporal parallelization of
 Bayesian smoothers") compute the same quantities with an associative scan of O(log T)
@@ -133,7 +136,6 @@ def _cholesky(S: Tensor) -> Tensor:
     k = S.shape[-1]
     if k > _SMALL:
         return torch.linalg.cholesky(S)
-    cols: list[list[Tensor]] = [[] for _ in range(k)]  # cols[j][i] = L[i, j] for i >= j
     rows: list[list[Tensor]] = [[] for _ in range(k)]  # rows[i][j] = L[i, j] for j <= i
     for j in range(k):
         d = S[..., j, j]
@@ -148,7 +150,6 @@ def _cholesky(S: Tensor) -> Tensor:
             rows[i].append(v / ljj)
     zero = torch.zeros_like(S[..., 0, 0])
     full = [[rows[i][j] if j <= i else zero for j in range(k)] for i in range(k)]
-    del cols
     return torch.stack([torch.stack(r, dim=-1) for r in full], dim=-2)
 
 
@@ -489,8 +490,9 @@ def kalman_filter(
     cb = A_bf.shape[:nb]
     H_s = H_s.expand(*H_s.shape[:3], *torch.broadcast_shapes(H_s.shape[3:], cb)).contiguous()
     h_single = H_s.shape[0] == 1
-    H_steps = H_s.unbind(0)
-    y_steps = _to_batch_last(prep.yw, 1, time=True).unbind(0)  # T × (m, *mb)
+    h_rows = H_s.reshape(-1, *H_s.shape[2:]).unbind(0)  # (T or 1)·m rows, each (n, *)
+    yw_bl = _to_batch_last(prep.yw, 1, time=True)  # (T, m, *mb)
+    y_rows = yw_bl.reshape(-1, *yw_bl.shape[2:]).unbind(0)  # T·m entries, each (*mb)
     c_steps = _to_batch_last(prep.c, 1, time=True).unbind(0) if prep.c is not None else None
     c_single = c_steps is not None and len(c_steps) == 1
 
@@ -509,13 +511,13 @@ def kalman_filter(
         pmeans.append(mean)
         pcovs.append(P)
         # Update: one whitened scalar observation at a time (Joseph form).
-        Hk, yk = H_steps[0 if h_single else k].unbind(0), y_steps[k].unbind(0)
+        hk0 = 0 if h_single else k * m_dim
         for j in range(m_dim):
-            h = Hk[j]
+            h = h_rows[hk0 + j]
             ph = _bl_matvec(P, h)
             s = torch.linalg.vecdot(h, ph, dim=0) + 1.0
             gain = ph / s
-            e = yk[j] - torch.linalg.vecdot(h, mean, dim=0)
+            e = y_rows[k * m_dim + j] - torch.linalg.vecdot(h, mean, dim=0)
             mean = torch.addcmul(mean, gain, e)
             MP = torch.addcmul(P, gain.unsqueeze(1), ph.unsqueeze(0), value=-1.0)  # (I − k hᵀ) P
             w = _bl_matvec(MP, h)  # (I − k hᵀ) P h
