@@ -380,7 +380,14 @@ class AISDataModule(L.LightningDataModule):
         reference: Sequence[float] = REFERENCE_LATLON,
     ) -> None:
         super().__init__()
-        self.save_hyperparameters()
+        # plain Python values only (no OmegaConf ListConfig), so checkpoints load with
+        # torch.load(weights_only=True), as the training entry point's resume does
+        self.save_hyperparameters({
+            "path": None if path is None else str(path), "min_reports": int(min_reports),
+            "fractions": [float(f) for f in fractions], "seed": int(seed),
+            "batch_size": None if batch_size is None else int(batch_size), "center": bool(center),
+            "dtype": str(dtype), "reference": [float(r) for r in reference],
+        })
         self.path = path
         self.min_reports = min_reports
         self.fractions = tuple(fractions)
