@@ -1,11 +1,11 @@
 """Parameter-recovery studies: simulate from a known motion model, learn it back from a wrong start.
 
-    python experiments/recovery.py                      # cv, integrated_ou, singer, hurwitz
+    python experiments/recovery.py                      # cv, integrated_ou, singer, hurwitz, msd
     python experiments/recovery.py --studies cv singer  # a subset
     python experiments/recovery.py --quick              # smaller data (minutes, for a smoke check)
 
 Each study composes ``conf/train.yaml`` with ``experiment=recovery_<model>`` (1000 tracks x
-200 irregular steps, 10 % missing) and runs the same :func:`torchsde_lti.train.train` as the
+200 irregular steps, 10 % missing; msd = mass-spring-damper with known force inputs, L-BFGS) and runs the same :func:`torchsde_lti.train.train` as the
 main job. Reported per study: true vs learned values, relative errors, wall time, and a check
 that no logged metric was NaN. For the free 4x4 Hurwitz F the transition behaviour is
 compared, ``‖expm(F dt) − expm(F* dt)‖ / ‖expm(F* dt)‖`` at several dt (F itself is only
@@ -29,7 +29,7 @@ from torchsde_lti.train import format_table, train
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
 RESULTS = ROOT / "experiments" / "results"
-STUDIES = ("cv", "integrated_ou", "singer", "hurwitz")
+STUDIES = ("cv", "integrated_ou", "singer", "hurwitz", "msd")
 DTS = (0.1, 0.5, 1.0, 2.0, 5.0)
 
 
@@ -112,12 +112,16 @@ def main() -> None:
     parser.add_argument("--studies", nargs="+", default=list(STUDIES), choices=STUDIES)
     parser.add_argument("--quick", action="store_true", help="smaller data for a smoke check")
     parser.add_argument("--out", type=Path, default=RESULTS / "recovery.md")
+    parser.add_argument("--append", action="store_true", help="append the new sections to --out")
     args = parser.parse_args()
+    previous = args.out.read_text().rstrip() + "\n\n" if args.append and args.out.exists() else ""
     results = []
     for name in args.studies:
         r = run_study(name, quick=args.quick)
         results.append(r)
         text = report(results)
+        if previous:  # keep the earlier sections, drop the repeated header
+            text = previous + text.split("\n", 5)[5].lstrip("\n")
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text + "\n")
         print(text)
