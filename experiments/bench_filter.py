@@ -348,7 +348,7 @@ def main() -> None:
 
 def write_outputs(rows: list[dict], args: argparse.Namespace) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
-    clock = "wall-clock medians" if args.clock == "wall" else "best-of-N process CPU time, 1 thread"
+    clock = "wall-clock medians" if args.clock == "wall" else "best-of-N process CPU time"
     head = (f"T = {T}, 2-D constant velocity (n = 4, m = 2); {clock}, torch {torch.__version__}, "
             f"{args.threads} thread(s), {platform.machine()}; track·steps/s (higher is better); "
             "'ours ×' = our throughput / the contestant's. filterpy is one track in a Python loop "
