@@ -502,12 +502,11 @@ def kalman_filter(
     for k in range(prep.T):
         Ak = A_steps[k].permute(to_bl).contiguous()
         Qk = Q_steps[k].permute(to_bl).contiguous()
-        # Predict. (P⁻ is symmetrised once for all steps after the loop; the update below
-        # ends with a symmetrisation of its own.)
+        # Predict.
         mean = _bl_matvec(Ak, mean)
         if c_steps is not None:
             mean = mean + c_steps[0 if c_single else k]
-        P = _bl_matmul(_bl_matmul(Ak, P), Ak.transpose(0, 1)) + Qk
+        P = _bl_sym(_bl_matmul(_bl_matmul(Ak, P), Ak.transpose(0, 1)) + Qk)
         pmeans.append(mean)
         pcovs.append(P)
         # Update: one whitened scalar observation at a time (Joseph form).
@@ -529,7 +528,6 @@ def kalman_filter(
         covs.append(P)
     nd = len(prep.mean_batch)
     pm_bl, pc_bl = torch.stack(pmeans), torch.stack(pcovs)  # (T, n, *mb), (T, n, n, *cb)
-    pc_bl = 0.5 * (pc_bl + pc_bl.transpose(1, 2))
     # Innovations and their covariances, batched over all steps in the same layout.
     H_bl = _to_batch_last(prep.H, 2, time=True)  # (T or 1, m, n, *)
     R_bl = _to_batch_last(prep.R, 2, time=True)
