@@ -87,7 +87,9 @@ class KalmanFilter(nn.Module):
         P0: optional (..., n, n) prior covariance (default: stationary P∞ if F is Hurwitz,
             else ``diffuse_variance · I``).
         learn: which of ``"H", "R", "m0", "P0"`` are ``nn.Parameter`` (default ``("R",)``).
-        parallel: use the associative-scan filter/smoother (O(log T) depth).
+        parallel: use the associative-scan filter/smoother (O(log T) depth). On CPU it pays
+            off only for a few tracks (per-step Python overhead dominates the loop there);
+            from ~100 tracks on the sequential loop is faster (experiments/bench_filter.py).
         diffuse_variance: variance of the broad default prior for non-Hurwitz F.
     """
 
