@@ -507,6 +507,7 @@ def _ok():
         (lambda t: t.update(P0=t["P0"][..., :3, :3]), "P0"),
         (lambda t: t.update(G=None), "G and u"),
         (lambda t: t.update(u=t["u"][..., :1]), "u must have shape"),
+        (lambda t: t.update(y=t["y"][..., :0, :]), "at least one step"),
     ],
 )
 def test_bad_input_raises(change, match):

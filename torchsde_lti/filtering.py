@@ -276,6 +276,8 @@ def _prepare(
     if y.dim() < 2:
         raise ValueError(f"y must have shape (..., T, m), got shape {shape_str(y)}")
     T, m = y.shape[-2], y.shape[-1]
+    if T < 1 or m < 1:
+        raise ValueError(f"y must have at least one step and one component, got shape {shape_str(y)}")
     check_matrix(A, "A", square=True)
     n = A.shape[-1]
     check_matrix(Q, "Q", rows=n, cols=n)
