@@ -53,11 +53,11 @@ from torchsde_lti.filtering import FilterResult, kalman_filter
 from torchsde_lti.parametrizations import IntegratorChain
 
 HORIZONS_MIN = (1.0, 5.0, 10.0)
-CURVE_MIN = (0.5, 1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)
+CURVE_MIN = (1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)
 P0_STD = (100.0, 5.0, 0.1)  # per axis: position (m), velocity (m/s), acceleration (m/s^2)
-CHI2_2SIGMA = 4.0
-Q_GRID = 10.0 ** np.arange(-5.0, 0.01, 0.5)  # m²/s³, half decades
-R_STD_GRID = np.array([2.0, 3.0, 5.0, 7.0, 10.0, 15.0, 20.0, 30.0, 50.0])  # m  # Mahalanobis^2 of the 2σ ellipse in 2-D; P(chi2_2 <= 4) = 1 - e^-2
+CHI2_2SIGMA = 4.0  # Mahalanobis² of the 2σ ellipse in 2-D; P(chi2_2 <= 4) = 1 - e^-2
+Q_GRID = 10.0 ** np.arange(-5.0, 0.01, 0.5)  # baseline grid for q, m²/s³, half decades
+R_STD_GRID = np.array([2.0, 3.0, 5.0, 7.0, 10.0, 15.0, 20.0, 30.0, 50.0])  # baseline grid for sqrt(R), m
 
 
 class Spec(NamedTuple):
@@ -109,11 +109,12 @@ def velocity_readout(kf: tl.KalmanFilter) -> Tensor:
 def run_filter(kf: tl.KalmanFilter, batch: ais.AISBatch) -> FilterResult:
     """``kf(batch.y, batch.dt, mask=batch.mask)`` with each DISTINCT dt discretised once.
 
-    AIS times have 1 s resolution, so the ~9k steps of a split share ~160 distinct dt;
-    discretising those (U, n, n) and gathering is the same computation as the filter's own
-    batched ``sde(dt, series=True)`` (checked in :func:`main`) but ~50x cheaper, backward
-    included. Everything else is ``tl.KalmanFilter``'s: its prior, H, R, and the functional
-    filter it calls.
+    AIS times have 1 s resolution, so the ~9k steps of the training split share ~160
+    distinct dt; discretising those (U, n, n) and gathering is the same computation as the
+    filter's own batched ``sde(dt, series=True)`` (checked in :func:`main`) but cheaper: one
+    likelihood + gradient on the training split took 0.064 s instead of 0.14 s (integrated
+    OU) and 0.083 s instead of 0.26 s (Singer), 1 thread. Everything else is
+    ``tl.KalmanFilter``'s: its prior, H, R, and the functional filter it calls.
     """
     uniq, inv = torch.unique(batch.dt, return_inverse=True)
     d = kf.sde(uniq)  # A, Q: (U, n, n)
@@ -213,7 +214,7 @@ def evaluate(kf: tl.KalmanFilter, batch: ais.AISBatch, curve_min: tuple[float, .
         res["rmse1"] = float(e.pow(2).sum(-1).mean().sqrt())
         maha = (e.unsqueeze(-2) @ torch.linalg.solve(S, e.unsqueeze(-1))).squeeze(-1).squeeze(-1)
         res["cover2s"] = float((maha <= CHI2_2SIGMA).double().mean())
-        under = torch.as_tensor(batch_sog(batch)) >= 2.0
+        under = batch.sog >= 2.0
         mu = m & under
         res["nll_underway"] = float(-(out.step_log_likelihood * mu).sum() / mu.sum())
         res["reports_underway"] = int(mu.sum())
@@ -247,18 +248,6 @@ def evaluate(kf: tl.KalmanFilter, batch: ais.AISBatch, curve_min: tuple[float, .
     return res
 
 
-_SOG: dict[int, np.ndarray] = {}
-
-
-def batch_sog(batch: ais.AISBatch) -> np.ndarray:
-    """(B, T) reported SOG in knots (0 on padding), from the loader's tracks by MMSI."""
-    out = np.zeros(tuple(batch.mask.shape))
-    for i, mmsi in enumerate(batch.mmsi.tolist()):
-        s = _SOG[mmsi]
-        out[i, : len(s)] = s
-    return out
-
-
 def describe(kf: tl.KalmanFilter) -> str:
     """Learned values in physical units."""
     sde, parts = kf.sde, []
@@ -287,7 +276,7 @@ def plot_map(path: Path, tracks: list[ais.AISTrack], batch: ais.AISBatch, filter
     import matplotlib.pyplot as plt
     from matplotlib.patches import Ellipse
 
-    sog = batch_sog(batch)
+    sog = batch.sog.numpy()
     moving = np.argsort(-(sog * batch.mask.numpy()).sum(1) / batch.mask.numpy().sum(1))[:4]
     fig = plt.figure(figsize=(15, 9.5))
     grid = fig.add_gridspec(2, 3)
@@ -319,6 +308,7 @@ def plot_map(path: Path, tracks: list[ais.AISTrack], batch: ais.AISBatch, filter
         ax.set_title(f"MMSI {int(batch.mmsi[i])}, median SOG {np.median(sog[i, :T]):.1f} kn")
         ax.set_aspect("equal")
         ax.set_xlabel("east (m)")
+        ax.set_ylabel("north (m)")
     axes[1].legend(fontsize=7, loc="best")
     fig.suptitle("One-step predictions with 2σ ellipses (predictive covariance H P⁻ Hᵀ + R)")
     fig.tight_layout()
@@ -382,7 +372,7 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
     parser.add_argument("--seed", type=int, default=0, help="vessel split seed of the main table")
     parser.add_argument("--robustness-seeds", type=int, nargs="*", default=[1, 2, 3, 4],
                         help="further vessel splits: test NLL only")
-    parser.add_argument("--max-iter", type=int, default=60, help="L-BFGS function evaluations per model")
+    parser.add_argument("--max-iter", type=int, default=100, help="L-BFGS function evaluations per model")
     args = parser.parse_args(argv)
     torch.manual_seed(0)
     torch.set_num_threads(1)  # small batched matrices: one intra-op thread is fastest
@@ -391,8 +381,6 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
     out_dir.mkdir(parents=True, exist_ok=True)
 
     data = ais.load_ais()
-    for tr in data.tracks:
-        _SOG[tr.mmsi] = tr.sog
     dts = ais.dt_summary(data.tracks)
     print(f"data: {data.counts}\ndt: {dts}", flush=True)
     filters, info, (train, val, test), split_tracks = fit_all(data, args.seed, args.max_iter)
@@ -412,19 +400,23 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
     base = per_vessel["cv (grid)"]
     paired = {name: paired_bootstrap(pv, base) for name, pv in per_vessel.items() if name != "cv (grid)"}
 
-    robust: dict[int, dict[str, tuple[float, float]]] = {args.seed: {k: (r["val_nll"], r["nll"]) for k, r in results.items()}}
+    robust: dict[int, dict[str, tuple[float, float]]] = {
+        args.seed: {k: (r["val_nll"], r["nll"]) for k, r in results.items()}
+    }
     for seed in args.robustness_seeds:
         f_s, _, (_, val_s, test_s), _ = fit_all(data, seed, args.max_iter, verbose=False)
         with torch.no_grad():
             robust[seed] = {k: (float(predictive_nll(run_filter(kf, val_s), val_s)),
                                 float(predictive_nll(run_filter(kf, test_s), test_s))) for k, kf in f_s.items()}
-        print(f"[seed {seed}] (val, test) NLL: " + ", ".join(f"{k}: {v[0]:.3f}, {v[1]:.3f}" for k, v in robust[seed].items()),
-              flush=True)
+        scores = ", ".join(f"{k}: {v[0]:.3f}, {v[1]:.3f}" for k, v in robust[seed].items())
+        print(f"[seed {seed}] (val, test) NLL: {scores}", flush=True)
     runtime = time.perf_counter() - start
 
-    plot_map(out_dir / "ais_map.png", split_tracks[2], test, {k: filters[k] for k in ("cv (grid)", best_learned(results))})
+    shown = {k: filters[k] for k in ("cv (grid)", best_learned(results))}
+    plot_map(out_dir / "ais_map.png", split_tracks[2], test, shown)
     plot_horizon(out_dir / "ais_horizon.png", results)
-    md = report(data, dts, [len(s) for s in split_tracks], results, paired, robust, info, runtime, args)
+    notes = interpretation(results, filters, dts)
+    md = report(data, dts, [len(s) for s in split_tracks], results, paired, robust, info, runtime, args, notes)
     (out_dir / "ais.md").write_text(md)
     (out_dir / "ais_metrics.json").write_text(json.dumps({"results": results, "paired": paired, "robustness": robust,
                                                           "counts": data.counts, "dt": dts,
@@ -434,6 +426,36 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
     return results
 
 
+def interpretation(results: dict[str, dict[str, float]], filters: dict[str, tl.KalmanFilter],
+                   dts: dict[str, float]) -> list[str]:
+    """Measured facts behind the table, as markdown bullet points."""
+    base, best = results["cv (grid)"], results[best_learned(results)]
+    name = best_learned(results)
+    lines = [
+        f"- Slow reports (SOG < 2 kn, {base['reports'] - base['reports_underway']} of {base['reports']}): "
+        f"NLL {base['nll_slow']:.3f} (baseline) vs {best['nll_slow']:.3f} ({name}); underway reports: "
+        f"{base['nll_underway']:.3f} vs {best['nll_underway']:.3f}. The learned drag helps on moving vessels "
+        "(velocity decorrelates over minutes, so long gaps are not extrapolated linearly), while the "
+        "baseline's smaller R, chosen on the validation vessels, suits the moored ones.",
+        f"- Every model here is linear-Gaussian, so its predictive covariance does not depend on the data: "
+        f"the same ellipse must cover moored vessels (median one-step error {base['med_err_slow']:.1f} m) and "
+        f"vessels under way, up to 30 kn ferries (median {base['med_err_underway']:.0f} m). "
+        "That heteroscedasticity, not the choice of dynamics, dominates the NLL (≈ 12 nats per report "
+        "for all models); regime-switching (IMM) or per-vessel noise would be the next step.",
+    ]
+    sg = filters.get("singer")
+    if sg is not None:
+        alpha, qs = float(sg.sde.alpha.detach()), float(sg.sde.q.detach())
+        cvq = float(filters["cv"].sde.q.detach())
+        if alpha * dts["median"] > 10:
+            lines.append(
+                f"- Singer learned alpha = {alpha:.3g} /s (1/alpha = {1 / alpha:.2g} s, far below the median gap "
+                f"{dts['median']:.0f} s): its acceleration is white on the reporting time scale, so it reduces to "
+                f"constant velocity with q = q_singer / alpha² = {qs / alpha**2:.4g} (learned cv: q = {cvq:.4g}) "
+                "and gives the same numbers.")
+    return lines
+
+
 def best_learned(results: dict[str, dict[str, float]]) -> str:
     """Learned model with the lowest VALIDATION NLL (the test set does not choose it)."""
     return min((k for k in results if k != "cv (grid)"), key=lambda k: results[k]["val_nll"])
@@ -441,7 +463,7 @@ def best_learned(results: dict[str, dict[str, float]]) -> str:
 
 def report(data: ais.AISData, dts: dict[str, float], sizes: list[int], results: dict[str, dict[str, float]],
            paired: dict[str, tuple[float, float, float, float]], robust: dict[int, dict[str, tuple[float, float]]],
-           info: dict[str, dict[str, object]], runtime: float, args: argparse.Namespace) -> str:
+           info: dict[str, dict[str, object]], runtime: float, args: argparse.Namespace, notes: list[str]) -> str:
     c = data.counts
     hz = " | ".join(f"fc RMSE {h:g} min (m)" for h in HORIZONS_MIN)
     lines = [
@@ -463,7 +485,7 @@ def report(data: ais.AISData, dts: dict[str, float], sizes: list[int], results: 
         "",
         f"| model | val NLL | test NLL / report | NLL, SOG>=2 kn | 1-step RMSE (m) | in 2σ (86.5 %) | {hz} "
         "| vel. RMSE vs SOG/COG (m/s) | vel. RMSE, SOG>=2 kn |",
-        "|---|" + "---:|" * (8 + len(HORIZONS_MIN)),
+        "|---|" + "---:|" * (7 + len(HORIZONS_MIN)),
     ]
     for name, r in results.items():
         fc = " | ".join(f"{r[f'fc_rmse_{h:g}']:.0f}" for h in HORIZONS_MIN)
@@ -481,6 +503,8 @@ def report(data: ais.AISData, dts: dict[str, float], sizes: list[int], results: 
         f"Best learned model by validation NLL: **{best}**; test NLL {results[best]['nll']:.3f} vs "
         f"{base['nll']:.3f} for the tuned baseline ({'better' if gap < 0 else 'NOT better'} by {abs(gap):.3f} "
         "nats per report).",
+        "",
+        *notes,
         "",
         "Paired difference to the baseline in test NLL per report (negative = learned model better), "
         "95 % interval and P(diff >= 0) from 4000 bootstrap resamples of the test VESSELS:",
@@ -515,7 +539,8 @@ def report(data: ais.AISData, dts: dict[str, float], sizes: list[int], results: 
     ]
     for name, d in info.items():
         extra = f" ({d['evals']} evaluations, {d['seconds']:.1f} s)" if "evals" in d else ""
-        lines.append(f"- {name}: {d['learned']}{extra}")
+        about = next((f" (learns {sp.about})" for sp in SPECS if sp.name == name), "")
+        lines.append(f"- {name}{about}: {d['learned']}{extra}")
     lines += ["", "Plots: `ais_map.png` (test tracks; one-step predictions with 2σ ellipses for the four fastest "
               "test vessels), `ais_horizon.png` (forecast RMSE vs horizon).", ""]
     return "\n".join(lines)

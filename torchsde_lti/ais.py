@@ -107,6 +107,7 @@ class AISBatch(NamedTuple):
     previous report (dt[:, 0] = 0: the prior sits at the first report; 0 on padding);
     mask: (B, T) bool, True on real reports; t: (B, T) seconds since file start;
     vel: (B, T, 2) SOG/COG velocity in m/s (NaN where unavailable or padding);
+    sog: (B, T) reported speed over ground in knots (0 on padding);
     origin: (B, 2) position subtracted from y (zeros if not centred); mmsi: (B,) int64;
     lengths: (B,) int64 number of real reports.
     """
@@ -116,6 +117,7 @@ class AISBatch(NamedTuple):
     mask: torch.Tensor
     t: torch.Tensor
     vel: torch.Tensor
+    sog: torch.Tensor
     origin: torch.Tensor
     mmsi: torch.Tensor
     lengths: torch.Tensor
@@ -323,6 +325,7 @@ def collate_tracks(
     b, T = len(tracks), max(len(tr.t) for tr in tracks)
     y = np.full((b, T, 2), np.nan)
     vel = np.full((b, T, 2), np.nan)
+    sog = np.zeros((b, T))
     t = np.zeros((b, T))
     dt = np.zeros((b, T))
     mask = np.zeros((b, T), dtype=bool)
@@ -333,6 +336,7 @@ def collate_tracks(
             origin[i] = tr.pos[0]
         y[i, :k] = tr.pos - origin[i]
         vel[i, :k] = tr.vel
+        sog[i, :k] = tr.sog
         t[i, :k] = tr.t
         t[i, k:] = tr.t[-1]
         dt[i, 1:k] = np.diff(tr.t)
@@ -343,6 +347,7 @@ def collate_tracks(
         mask=torch.as_tensor(mask),
         t=torch.as_tensor(t, dtype=dtype),
         vel=torch.as_tensor(vel, dtype=dtype),
+        sog=torch.as_tensor(sog, dtype=dtype),
         origin=torch.as_tensor(origin, dtype=dtype),
         mmsi=torch.tensor([tr.mmsi for tr in tracks], dtype=torch.int64),
         lengths=torch.tensor([len(tr.t) for tr in tracks], dtype=torch.int64),
