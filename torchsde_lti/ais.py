@@ -44,7 +44,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Iterable, NamedTuple, Sequence
 
-import lightning as L
+from lightning.pytorch import LightningDataModule
 import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
@@ -365,7 +365,7 @@ class _TrackDataset(Dataset):
         return self.tracks[i]
 
 
-class AISDataModule(L.LightningDataModule):
+class AISDataModule(LightningDataModule):
     """Train / val / test vessels of the NY Harbor AIS hour as padded, masked batches.
 
     Each batch is an :class:`AISBatch` (y (B, T, 2) metres, dt (B, T) seconds, mask
