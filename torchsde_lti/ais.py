@@ -44,9 +44,9 @@ from datetime import datetime
 from pathlib import Path
 from typing import Iterable, NamedTuple, Sequence
 
-from lightning.pytorch import LightningDataModule
 import numpy as np
 import torch
+from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset
 
 __all__ = [
