@@ -326,7 +326,7 @@ def plot_horizon(path: Path, results: dict[str, dict[str, float]]) -> None:
     styles = ["o-", "s--", "^:", "v-.", "D-"]
     for (name, r), st in zip(results.items(), styles):
         ax.plot(CURVE_MIN, [r[f"fc_rmse_{h:g}"] for h in CURVE_MIN], st, label=name, alpha=0.8, mfc="none")
-    ax.set_title("forecast error vs horizon (singer = cv, integrated_ou = hurwitz_drag overlap)", fontsize=8)
+    ax.set_title("forecast error vs horizon (curves on top of each other: near-equal errors)", fontsize=8)
     ax.set_xlabel("forecast horizon (min)")
     ax.set_ylabel("position RMSE on test vessels (m)")
     ax.set_yscale("log")
