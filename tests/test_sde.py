@@ -306,3 +306,19 @@ def test_bad_construction_raises_value_error(mats) -> None:
         tl.LTISDE(t(F), t(L), t(-Qc))
     with pytest.raises(ValueError, match="F"):
         tl.LTISDE(t(F * np.nan), t(L), t(Qc))
+
+
+def test_integrator_chain_constraint_declares_positions() -> None:
+    from torchsde_lti.parametrizations import IntegratorChain
+
+    F = torch.zeros(6, 6, dtype=torch.float64)
+    for axis in range(2):
+        F[3 * axis, 3 * axis + 1] = F[3 * axis + 1, 3 * axis + 2] = 1.0
+        F[3 * axis + 2, 3 * axis + 2] = -0.5
+    L = torch.zeros(6, 2, dtype=torch.float64)
+    L[2, 0] = L[5, 1] = 1.0
+    sde = tl.LTISDE(F, L, torch.eye(2, dtype=torch.float64), F_constraint=IntegratorChain(3, 2, drag="hurwitz"))
+    H = tl.models.position_observation(sde)
+    expected = torch.zeros(2, 6, dtype=torch.float64)
+    expected[0, 0] = expected[1, 3] = 1.0
+    assert torch.equal(H, expected)

@@ -45,7 +45,7 @@ from torchsde_lti._validation import (
     shape_str,
 )
 from torchsde_lti.discretization import Discrete, discretize, propagate, transition_matrix
-from torchsde_lti.parametrizations import Hurwitz, PositiveDefinite, _Parametrization
+from torchsde_lti.parametrizations import Hurwitz, IntegratorChain, PositiveDefinite, _Parametrization
 from torchsde_lti.stationary import stationary_covariance
 
 __all__ = ["LTISDE", "SDEMatrices", "Unconstrained"]
@@ -165,6 +165,8 @@ class LTISDE(nn.Module):
             f_param = Hurwitz(name="F")
         elif isinstance(F_constraint, nn.Module):
             f_param = F_constraint
+            if isinstance(F_constraint, IntegratorChain):  # per-axis [x, x', ..., y, y', ...]
+                self.position_indices = tuple(axis * F_constraint.order for axis in range(F_constraint.dim))
         else:
             raise ValueError(
                 f"F_constraint must be None, 'hurwitz' or a parametrisation module, got {type(F_constraint).__name__}"
