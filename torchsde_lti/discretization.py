@@ -312,6 +312,8 @@ def _series_terms(
 # over the contiguous batch (measured on CPU: faster than torch.bmm of 4×4 … 16×16 matrices,
 # whose per-matrix overhead dominates); beyond it they go through torch.matmul.
 _CHAIN_MAX_N = 16
+# For tiny batches the per-call overhead of the autograd.Function outweighs its gain.
+_CHAIN_MIN_BATCH = 256
 
 
 def _chain_matmul(a: Tensor, b: Tensor, c: Tensor | None) -> Tensor:
@@ -342,7 +344,7 @@ class _BatchLastMatmul(torch.autograd.Function):
 
 def _bl_matmul(a: Tensor, b: Tensor, c: Tensor | None = None) -> Tensor:
     """c + a b for batch-last matrices a: (n, m, N), b: (m, r, N), c: (n, r, N)."""
-    if a.shape[1] > _CHAIN_MAX_N:
+    if a.shape[1] > _CHAIN_MAX_N or a.shape[-1] <= _CHAIN_MIN_BATCH:
         out = (a.permute(2, 0, 1) @ b.permute(2, 0, 1)).permute(1, 2, 0)
         return out if c is None else out + c
     return _BatchLastMatmul.apply(a, b, c)
