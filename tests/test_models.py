@@ -337,6 +337,22 @@ def test_batched_scalars_equal_loop() -> None:
     close(P[:, 1, 1], (3.0 / np.array([0.5, 1.0, 2.0]) ** 2))
 
 
+@pytest.mark.parametrize("make", [models.singer, models.integrated_ou], ids=["singer", "integrated_ou"])
+def test_batched_noise_with_shared_rate_equals_loop(make) -> None:
+    # one shared rate (alpha / k) with a batch of 3 spectral densities q: the batch comes from q only
+    rate = 0.8
+    qs = torch.tensor([0.5, 1.0, 2.0], dtype=F64)
+    closed = singer_closed_form if make is models.singer else integrated_ou_closed_form
+    batched = make(rate, qs, dim=2)
+    assert batched.batch_shape == (3,)
+    dt = torch.tensor([0.2, 0.7, 1.5], dtype=F64)
+    d = batched(dt)
+    for i in range(3):
+        A1, Q1 = closed(rate, float(qs[i]), float(dt[i]))
+        close(d.A[i], scipy.linalg.block_diag(A1, A1))
+        close(d.Q[i], scipy.linalg.block_diag(Q1, Q1))
+
+
 @settings(max_examples=30, deadline=None)
 @given(st.lists(st.floats(-60, 60, allow_nan=False), min_size=4, max_size=4))
 def test_positive_for_arbitrary_raw_values(raws: list[float]) -> None:

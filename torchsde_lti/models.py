@@ -203,6 +203,16 @@ class _ChainSDE(StructuredSDE):
         sel = self._top @ self._top.mT
         return self._chain - rate[..., None, None] * sel
 
+    def _drag_matrices(self, rate: Tensor, q: Tensor) -> SDEMatrices:
+        """F with drag ``rate`` on the highest derivative, ``L = _top``, ``Qc = q I_dim``.
+
+        rate, q: (...) scalars whose batch shapes broadcast (either may be unbatched).
+        """
+        batch = torch.broadcast_shapes(rate.shape, q.shape)
+        F = self._drag(rate.expand(batch))
+        Qc = _eye_blocks(F, self.dim, q.expand(batch))
+        return SDEMatrices(F, self._top.expand(*batch, *self._top.shape), Qc, None)
+
 
 # ---------------------------------------------------------------------------- integrator chains
 class IntegratedWiener(_ChainSDE):
@@ -278,11 +288,7 @@ class Singer(_ChainSDE):
         self._init_chain(3, dim, dt_, dev)
 
     def _build(self) -> SDEMatrices:
-        alpha, q = self.alpha, self.q
-        F = self._drag(alpha)
-        batch = F.shape[:-2]
-        Qc = _eye_blocks(F, self.dim, q.expand(batch))
-        return SDEMatrices(F, self._top.expand(*batch, *self._top.shape), Qc, None)
+        return self._drag_matrices(self.alpha, self.q)
 
     def extra_repr(self) -> str:
         return f"dim={self.dim}, " + self._scalar_repr(["alpha", "q"])
@@ -311,10 +317,7 @@ class IntegratedOU(_ChainSDE):
         self._init_chain(2, dim, dt_, dev)
 
     def _build(self) -> SDEMatrices:
-        F = self._drag(self.k)
-        batch = F.shape[:-2]
-        Qc = _eye_blocks(F, self.dim, self.q.expand(batch))
-        return SDEMatrices(F, self._top.expand(*batch, *self._top.shape), Qc, None)
+        return self._drag_matrices(self.k, self.q)
 
     def extra_repr(self) -> str:
         return f"dim={self.dim}, " + self._scalar_repr(["k", "q"])
