@@ -118,6 +118,19 @@ def test_positive_definite_rejects_indefinite_and_asymmetric() -> None:
         p.right_inverse(torch.ones(2, 3))
 
 
+def test_size_is_checked_on_assignment() -> None:
+    p = PositiveDefinite(name="Qc", size=2)
+    with pytest.raises(ValueError, match=r"Qc.*\(3, 3\)"):
+        p.right_inverse(torch.eye(3))
+    assert p.right_inverse(torch.eye(2).expand(4, 2, 2)).shape == (4, 2, 2)  # batches are fine
+    h = Hurwitz(name="F", size=2)
+    with pytest.raises(ValueError, match=r"F.*\(3, 3\)"):
+        h.right_inverse(-torch.eye(3))
+    assert h.right_inverse(-torch.eye(2)).shape == (3, 2, 2)
+    with pytest.raises(ValueError, match="size"):
+        PositiveDefinite(size=0)
+
+
 # ------------------------------------------------------------------------- Hurwitz
 @SETTINGS
 @given(st.integers(1, 5).flatmap(lambda n: raw_arrays((3, n, n), 3.0)))

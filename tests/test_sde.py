@@ -141,6 +141,18 @@ def test_bad_assignment_raises(mats) -> None:
         sde.L = torch.ones(2, 2, dtype=F64)
 
 
+def test_assignment_of_wrong_size_raises_and_keeps_the_module(mats) -> None:
+    # L (3, 2): Qc must stay (2, 2); F (3, 3) even where the new value would satisfy the constraint
+    F, L, Qc, B = mats
+    sde = tl.LTISDE(t(F), t(L), t(Qc), t(B), F_constraint="hurwitz")
+    with pytest.raises(ValueError, match=r"Qc.*\(3, 3\)"):
+        sde.Qc = torch.eye(3, dtype=F64)  # symmetric PD, but not (s, s)
+    with pytest.raises(ValueError, match=r"F.*\(4, 4\)"):
+        sde.F = -torch.eye(4, dtype=F64)  # Hurwitz, but not (n, n)
+    assert sde.Qc.shape == (2, 2) and sde.F.shape == (3, 3)
+    np.testing.assert_allclose(sde(t(np.array(0.3))).Q.detach().numpy(), scipy_discretize(F, L, Qc, 0.3)[1], rtol=1e-9)
+
+
 # ----------------------------------------------------------------------------- batching
 def test_batched_parameters_equal_loop() -> None:
     Fs, Ls, Qcs = zip(*(example_matrices(seed)[:3] for seed in range(4)))

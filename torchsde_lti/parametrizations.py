@@ -67,12 +67,23 @@ def softplus_inverse(y: Tensor) -> Tensor:
 class _Parametrization(nn.Module):
     """Base: remembers dtype/device of the raw tensor through a zero-size buffer."""
 
-    def __init__(self, floor: float | None = None) -> None:
+    def __init__(self, floor: float | None = None, size: int | None = None) -> None:
         super().__init__()
         if floor is not None and not floor > 0:
             raise ValueError(f"floor must be positive or None, got {floor!r}")
+        if size is not None and (isinstance(size, bool) or not isinstance(size, int) or size < 1):
+            raise ValueError(f"size must be a positive integer or None, got {size!r}")
         self.floor = floor
+        self.size = size
         self.register_buffer("_ref", torch.empty(0), persistent=False)
+
+    def _check_size(self, value: Tensor, name: str) -> None:
+        """A square (..., k, k) value, with k = ``size`` when given.
+
+        :mod:`torch.nn.utils.parametrize` stores whatever ``right_inverse`` returns, even
+        with a new shape, so a wrong-sized assignment must fail here or it corrupts the module.
+        """
+        check_matrix(value, name, rows=self.size, cols=self.size, square=True)
 
     def _floor(self, dtype: torch.dtype) -> float:
         return default_floor(dtype) if self.floor is None else float(self.floor)
@@ -86,7 +97,10 @@ class _Parametrization(nn.Module):
         return x.to(dtype=self._ref.dtype, device=self._ref.device)
 
     def extra_repr(self) -> str:
-        return "" if self.floor is None else f"floor={self.floor}"
+        parts = [] if self.size is None else [f"size={self.size}"]
+        if self.floor is not None:
+            parts.append(f"floor={self.floor}")
+        return ", ".join(parts)
 
 
 class Positive(_Parametrization):
@@ -145,11 +159,11 @@ class PositiveDefinite(_Parametrization):
     strictly positive diagonal, so ``value`` is symmetric positive definite for every real
     ``raw`` (the upper triangle of ``raw`` is unused). The result is symmetrised.
     ``right_inverse`` takes the Cholesky factor of the value (ValueError if the value is
-    not symmetric positive definite).
+    not symmetric positive definite, or not (..., size, size) when ``size`` is given).
     """
 
-    def __init__(self, floor: float | None = None, name: str = "value") -> None:
-        super().__init__(floor)
+    def __init__(self, floor: float | None = None, name: str = "value", size: int | None = None) -> None:
+        super().__init__(floor, size)
         self.name = name
 
     def factor(self, raw: Tensor) -> Tensor:
@@ -163,6 +177,7 @@ class PositiveDefinite(_Parametrization):
 
     def right_inverse(self, value: object) -> Tensor:
         v = self._as_raw_tensor(value, self.name)
+        self._check_size(v, self.name)
         return _cholesky_raw(v, self._floor(v.dtype), self.name)
 
 
@@ -196,11 +211,12 @@ class Hurwitz(_Parametrization):
     ``(J − R) P⁻¹ = M P⁻¹ = F``. ``right_inverse`` computes exactly this preimage (with
     ``tl.stationary_covariance(F, I, 2I)``), so it raises ``ValueError`` for non-Hurwitz F.
     The only matrices not reached are those whose preimage needs a Cholesky diagonal
-    below the floor (condition numbers beyond ~1/eps).
+    below the floor (condition numbers beyond ~1/eps). With ``size`` given,
+    ``right_inverse`` also rejects values that are not (..., size, size).
     """
 
-    def __init__(self, floor: float | None = None, name: str = "F") -> None:
-        super().__init__(floor)
+    def __init__(self, floor: float | None = None, name: str = "F", size: int | None = None) -> None:
+        super().__init__(floor, size)
         self.name = name
 
     def components(self, raw: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -224,7 +240,7 @@ class Hurwitz(_Parametrization):
 
     def right_inverse(self, value: object) -> Tensor:
         f = self._as_raw_tensor(value, self.name)
-        check_matrix(f, self.name, square=True)
+        self._check_size(f, self.name)
         check_finite(f, self.name)
         p = _lyapunov_identity(f)
         p = 0.5 * (p + p.mT)

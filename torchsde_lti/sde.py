@@ -162,7 +162,7 @@ class LTISDE(nn.Module):
         elif isinstance(F_constraint, str):
             if F_constraint != "hurwitz":
                 raise ValueError(f"F_constraint must be None, 'hurwitz' or a parametrisation module, got {F_constraint!r}")
-            f_param = Hurwitz(name="F")
+            f_param = Hurwitz(name="F", size=n)
         elif isinstance(F_constraint, nn.Module):
             f_param = F_constraint
             if isinstance(F_constraint, IntegratorChain):  # per-axis [x, x', ..., y, y', ...]
@@ -174,7 +174,7 @@ class LTISDE(nn.Module):
         params: dict[str, nn.Module] = {
             "F": f_param,
             "L": Unconstrained("L", (n, s)),
-            "Qc": PositiveDefinite(name="Qc"),
+            "Qc": PositiveDefinite(name="Qc", size=s),
         }
         if "B" in mats:
             params["B"] = Unconstrained("B", (n, mats["B"].shape[-1]))
