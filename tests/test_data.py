@@ -107,6 +107,21 @@ def test_simulate_rejects_bad_input() -> None:
         simulate(sde, H, torch.eye(1), torch.ones(2, 3), u=torch.zeros(2, 3, 1), **kw)
 
 
+def test_simulate_rejects_mismatched_state_dim_and_indefinite_noise() -> None:
+    sde = models.constant_velocity(dim=1, q=1.0)  # n = 2
+    H3 = torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"m0 has shape \(3,\).*state dimension 2"):  # not a RuntimeError from expand
+        simulate(sde, H3, torch.eye(1), torch.ones(2, 3), m0=torch.zeros(3), P0=torch.eye(3))
+    with pytest.raises(ValueError, match="H"):
+        simulate_tracks(sde, H3, torch.eye(1), 2, 3)
+    H = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
+    kw = {"m0": torch.zeros(2), "P0": torch.eye(2)}
+    with pytest.raises(ValueError, match="R"):  # would be clamped to zero noise silently
+        simulate(sde, H, -torch.eye(1), torch.ones(2, 3), **kw)
+    with pytest.raises(ValueError, match="P0"):
+        simulate(sde, H, torch.eye(1), torch.ones(2, 3), m0=torch.zeros(2), P0=torch.tensor([[1.0, 2.0], [2.0, 1.0]]))
+
+
 def test_dt_samplers() -> None:
     g = torch.Generator().manual_seed(0)
     assert torch.equal(RegularDt(0.25)((3, 4), g), torch.full((3, 4), 0.25, dtype=torch.float64))

@@ -35,6 +35,8 @@ from lightning.pytorch import LightningDataModule
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, Sampler
 
+from torchsde_lti._validation import check_symmetric_psd
+
 __all__ = [
     "BurstDt",
     "EpochShuffleSampler",
@@ -186,12 +188,15 @@ def simulate(
         raise ValueError(f"R must have shape ({m}, {m}), got shape {tuple(R.shape)}")
     if P0.shape != (n, n):
         raise ValueError(f"P0 must have shape ({n}, {n}), got shape {tuple(P0.shape)}")
+    check_symmetric_psd(R, "R")  # _psd_sqrt would clamp negative eigenvalues away silently
+    check_symmetric_psd(P0, "P0")
+    n_sde = getattr(sde, "state_dim", n)
+    if n_sde != n:
+        raise ValueError(f"m0 has shape {tuple(m0.shape)} (H {tuple(H.shape)}) but the sde has state dimension {n_sde}")
     sde64 = copy.deepcopy(sde).to(torch.float64)
     with torch.no_grad():
         d = sde64(dt)  # A (N, T, n, n), Q (N, T, n, n), G (N, T, n, p) or None
         A, Q = d.A.expand(N, T, n, n), d.Q.expand(N, T, n, n)
-        if A.shape[-1] != n:
-            raise ValueError(f"sde has state dimension {A.shape[-1]} but m0 has {n}")
         drive = torch.zeros(N, T, n, dtype=torch.float64)
         if u is not None:
             if d.G is None:
