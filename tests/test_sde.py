@@ -334,3 +334,13 @@ def test_integrator_chain_constraint_declares_positions() -> None:
     expected = torch.zeros(2, 6, dtype=torch.float64)
     expected[0, 0] = expected[1, 3] = 1.0
     assert torch.equal(H, expected)
+
+
+def test_to_free_keeps_position_indices() -> None:
+    # a model's free copy has the same state ordering, so position_observation still works
+    cv = tl.models.constant_velocity(dim=2, q=1.0, dtype=F64)
+    free = cv.to_free()
+    assert free.position_indices == (0, 2)
+    np.testing.assert_array_equal(tl.models.position_observation(free).numpy(), [[1, 0, 0, 0], [0, 0, 1, 0]])
+    plain = tl.LTISDE(t(np.zeros((2, 2))), t(np.eye(2)), t(np.eye(2)))
+    assert plain.to_free().position_indices is None

@@ -273,9 +273,13 @@ class LTISDE(nn.Module):
         return SDEMatrices(*(None if x is None else x.unsqueeze(-3) for x in m))
 
     def to_free(self, learn: Iterable[str] | str = ("F", "Qc"), F_constraint: str | nn.Module | None = None) -> LTISDE:
-        """A plain :class:`LTISDE` initialised at the current matrices (detached)."""
+        """A plain :class:`LTISDE` initialised at the current matrices (detached).
+
+        The state ordering is unchanged, so ``position_indices`` carries over (unless
+        ``F_constraint`` declares its own).
+        """
         m = self.matrices()
-        return LTISDE(
+        free = LTISDE(
             m.F.detach(),
             m.L.detach(),
             m.Qc.detach(),
@@ -283,6 +287,9 @@ class LTISDE(nn.Module):
             learn=learn,
             F_constraint=F_constraint,
         )
+        if free.position_indices is None and self.position_indices is not None:
+            free.position_indices = tuple(self.position_indices)
+        return free
 
     def extra_repr(self) -> str:
         m = self._shapes()
