@@ -22,6 +22,7 @@ from torchsde_lti.parametrizations import (
     Positive,
     PositiveDefinite,
     default_floor,
+    integrator_chain,
     softplus,
     softplus_inverse,
 )
@@ -255,3 +256,12 @@ def test_integrator_chain_rejects_other_structure() -> None:
         IntegratorChain(2, 0)
     with pytest.raises(ValueError, match="drag"):
         IntegratorChain(2, 2, drag="stable")  # type: ignore[arg-type]
+
+
+def test_integrator_chain_matrices_by_hand() -> None:
+    chain, sel = integrator_chain(3, 2, dtype=torch.float64)  # [x, x', x'', y, y', y'']
+    expected = np.zeros((6, 6))
+    expected[0, 1] = expected[1, 2] = expected[3, 4] = expected[4, 5] = 1.0
+    np.testing.assert_array_equal(chain.numpy(), expected)
+    np.testing.assert_array_equal(sel.numpy(), [[0, 0], [0, 0], [1, 0], [0, 0], [0, 0], [0, 1]])
+    assert chain.dtype == torch.float64

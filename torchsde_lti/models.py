@@ -27,7 +27,7 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from torchsde_lti._validation import as_float_tensor, broadcast_batch, check_finite, common_float_dtype, shape_str
-from torchsde_lti.parametrizations import Positive
+from torchsde_lti.parametrizations import Positive, integrator_chain
 from torchsde_lti.sde import LTISDE, SDEMatrices
 
 __all__ = [
@@ -185,15 +185,7 @@ class _ChainSDE(StructuredSDE):
     def _init_chain(self, order: int, dim: int, dtype: torch.dtype, device: torch.device | None) -> None:
         self.order = order
         self.dim = dim
-        n = order * dim
-        kw = {"dtype": dtype, "device": device}
-        chain = torch.zeros(n, n, **kw)
-        top = torch.zeros(n, dim, **kw)
-        for axis in range(dim):
-            base = axis * order
-            for k in range(order - 1):
-                chain[base + k, base + k + 1] = 1.0
-            top[base + order - 1, axis] = 1.0
+        chain, top = integrator_chain(order, dim, dtype, device)
         self.register_buffer("_chain", chain, persistent=False)
         self.register_buffer("_top", top, persistent=False)  # L: noise drives the highest derivative
         self.position_indices = tuple(axis * order for axis in range(dim))
@@ -395,9 +387,8 @@ class Matern(StructuredSDE):
         self._check_scalars(("lengthscale", "variance"))
         m = self.order
         kw = {"dtype": dt_, "device": dev}
-        self.register_buffer("_chain", torch.diag(torch.ones(m - 1, **kw), 1), persistent=False)
-        top = torch.zeros(m, 1, **kw)
-        top[-1, 0] = 1.0
+        chain, top = integrator_chain(m, 1, dt_, dev)  # one axis: [f, f', …], top = e_m
+        self.register_buffer("_chain", chain, persistent=False)
         self.register_buffer("_top", top, persistent=False)
         self.register_buffer(
             "_binom", torch.tensor([float(math.comb(m, j)) for j in range(m)], **kw), persistent=False
@@ -511,10 +502,9 @@ class Companion(StructuredSDE):
         n = coeffs.shape[-1] - 1
         self.order = n
         kw = {"dtype": dt_, "device": dev}
-        self.register_buffer("_chain", torch.diag(torch.ones(n - 1, **kw), 1), persistent=False)
-        e_n = torch.zeros(n, **kw)
-        e_n[-1] = 1.0
-        self.register_buffer("_e_n", e_n, persistent=False)
+        chain, e_n = integrator_chain(n, 1, dt_, dev)  # one axis: [y, y', …], e_n (n, 1)
+        self.register_buffer("_chain", chain, persistent=False)
+        self.register_buffer("_e_n", e_n[:, 0], persistent=False)
         out = torch.zeros(1, n, **kw)
         out[0, 0] = 1.0
         self.register_buffer("output_matrix", out, persistent=False)

@@ -40,6 +40,7 @@ __all__ = [
     "Positive",
     "PositiveDefinite",
     "default_floor",
+    "integrator_chain",
     "softplus",
     "softplus_inverse",
 ]
@@ -256,6 +257,26 @@ class Hurwitz(_Parametrization):
 DragConstraint = Literal["free", "hurwitz"]
 
 
+def integrator_chain(
+    order: int, dim: int, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+) -> tuple[Tensor, Tensor]:
+    """Fixed part of ``dim`` integrator chains of ``order`` states each, per-axis ordering.
+
+    Returns ``chain`` (n, n), n = order·dim, with a one from derivative k+1 to derivative k
+    of the same axis, and ``selector`` E (n, dim) with a one at each axis' highest
+    derivative (so ``E F_v Eᵀ`` places a (dim, dim) drag block, and E is the noise gain L).
+    """
+    n = order * dim
+    chain = torch.zeros(n, n, dtype=dtype, device=device)
+    selector = torch.zeros(n, dim, dtype=dtype, device=device)
+    for axis in range(dim):
+        base = axis * order
+        for k in range(order - 1):
+            chain[base + k, base + k + 1] = 1.0
+        selector[base + order - 1, axis] = 1.0
+    return chain, selector
+
+
 class IntegratorChain(_Parametrization):
     """Integrator chains per axis with a learned drag block on the highest derivative.
 
@@ -293,16 +314,7 @@ class IntegratorChain(_Parametrization):
 
     def _chain_and_selector(self, like: Tensor) -> tuple[Tensor, Tensor]:
         """Fixed chain matrix (n, n) and selector E (n, dim) of the highest derivatives."""
-        n, order = self.state_dim, self.order
-        kw = {"dtype": like.dtype, "device": like.device}
-        chain = torch.zeros(n, n, **kw)
-        selector = torch.zeros(n, self.dim, **kw)
-        for axis in range(self.dim):
-            base = axis * order
-            for k in range(order - 1):
-                chain[base + k, base + k + 1] = 1.0
-            selector[base + order - 1, axis] = 1.0
-        return chain, selector
+        return integrator_chain(self.order, self.dim, like.dtype, like.device)
 
     def drag_block(self, raw: Tensor) -> Tensor:
         """The drag block F_v (..., dim, dim)."""
