@@ -224,6 +224,28 @@ def test_resume_from_checkpoint_continues_identically(tmp_path: Path) -> None:
     assert [r["epoch"] for r in hist] == [0.0, 1.0, 2.0, 3.0]
 
 
+def test_resume_past_restored_cosine_schedule_warns(tmp_path: Path) -> None:
+    import warnings
+
+    from torchsde_lti.train import _warn_if_schedule_ends_early
+
+    # what Lightning stores for CosineAnnealingLR(T_max=3): resuming restores T_max=3
+    opt = torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], lr=0.05)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=3, eta_min=0.002)
+    ckpt = tmp_path / "last.ckpt"
+    torch.save({"lr_schedulers": [sched.state_dict()]}, ckpt)
+    for _ in range(6):  # past T_max the LR climbs back to its initial value
+        opt.step()
+        sched.step()
+    assert opt.param_groups[0]["lr"] == pytest.approx(0.05)
+    with pytest.warns(UserWarning, match="T_max=3.*max_epochs=6"):
+        _warn_if_schedule_ends_early(str(ckpt), 6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _warn_if_schedule_ends_early(str(ckpt), 3)
+        _warn_if_schedule_ends_early(None, 6)
+
+
 def _run(args: list[str], cwd: Path, timeout: float = 240) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONWARNINGS": "ignore"}
     return subprocess.run(

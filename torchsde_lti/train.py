@@ -3,13 +3,18 @@
     python -m torchsde_lti.train                                   # default run (conf/train.yaml)
     python -m torchsde_lti.train model=singer data.noise=1.0       # override anything
     python -m torchsde_lti.train --multirun model=cv,integrated_ou,singer data.noise=0.1,1.0
-    python -m torchsde_lti.train ckpt_path=<run>/checkpoints/last.ckpt trainer.max_epochs=80
+    python -m torchsde_lti.train ckpt_path=<run>/checkpoints/last.ckpt    # resume, same overrides
 
 Everything is built with ``hydra.utils.instantiate`` from ``_target_`` nodes; the logic
 lives here in :func:`train`, which tests call with a composed config. A run writes into its
 Hydra output directory: ``checkpoints/``, logger files, ``metrics.json`` (final metrics and
 the true-vs-learned table), ``results.md`` and the plots ``loss.png``, ``track.png``,
 ``params.png``.
+
+Resuming restores the LR scheduler's own state, including the cosine schedule's
+``T_max`` (= the original ``trainer.max_epochs``): a resumed run continues the same
+schedule. Raising ``trainer.max_epochs`` beyond it makes the cosine LR climb back towards
+its initial value, so :func:`train` warns about it.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +51,26 @@ def _check_config(cfg: DictConfig) -> None:
             raise ValueError(f"config is missing the '{key}' node")
     if cfg.get("dtype") not in ("float32", "float64"):
         raise ValueError(f"dtype must be 'float32' or 'float64', got {cfg.get('dtype')!r}")
+
+
+def _warn_if_schedule_ends_early(ckpt_path: str | None, max_epochs: int | None) -> None:
+    """Warn when a resumed run trains past the restored scheduler's ``T_max``.
+
+    Schedulers such as CosineAnnealingLR are periodic beyond ``T_max``; the value comes
+    from the checkpoint, not from the config, so extending a finished run raises the LR.
+    """
+    if not ckpt_path or max_epochs is None or int(max_epochs) < 0:
+        return
+    ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+    for state in ckpt.get("lr_schedulers", []):
+        t_max = state.get("T_max") if isinstance(state, dict) else None
+        if isinstance(t_max, int) and int(max_epochs) > t_max:
+            warnings.warn(
+                f"resuming from {ckpt_path}: its LR scheduler has T_max={t_max} (restored from the "
+                f"checkpoint) but trainer.max_epochs={max_epochs}; past T_max the cosine LR rises "
+                "again. Resume with the original max_epochs, or start a new run from the weights.",
+                stacklevel=2,
+            )
 
 
 def parameter_table(module: KalmanFilterModule, truth: dict[str, Any] | None) -> list[dict[str, Any]]:
@@ -108,6 +134,7 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         for lg in loggers:
             lg.log_hyperparams(OmegaConf.to_container(cfg, resolve=True))
 
+    _warn_if_schedule_ends_early(cfg.get("ckpt_path"), cfg.trainer.get("max_epochs"))
     start = time.perf_counter()
     trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"), weights_only=True)
     wall = time.perf_counter() - start
