@@ -172,6 +172,25 @@ def test_datamodule_padded_masked_batches(data: ais.AISData) -> None:
     assert full.y.dtype == torch.float64 and full.y.shape[0] == len(dm.val_tracks)
 
 
+def test_shuffled_batches_depend_only_on_seed_and_epoch() -> None:
+    # a resumed run builds a fresh loader at epoch e: it must see the batches an
+    # uninterrupted run sees at epoch e (Lightning calls set_epoch before every epoch)
+    from lightning.fabric.utilities.data import _set_sampler_epoch
+
+    def order(loader, epoch: int) -> list[int]:
+        _set_sampler_epoch(loader, epoch)
+        return [int(m) for b in loader for m in b.mmsi]
+
+    dm = ais.AISDataModule(batch_size=32, seed=3)
+    dm.setup()
+    running = dm.train_dataloader()
+    epoch0, epoch1 = order(running, 0), order(running, 1)
+    assert epoch0 != epoch1 and sorted(epoch0) == sorted(epoch1)
+    fresh = ais.AISDataModule(batch_size=32, seed=3)
+    fresh.setup()
+    assert order(fresh.train_dataloader(), 1) == epoch1
+
+
 def test_padded_batch_likelihood_equals_per_track_filtering(data: ais.AISData) -> None:
     """Padding (dt = 0, y = NaN, mask False) adds nothing: batch log-likelihoods equal
     those of each track filtered alone, without padding."""

@@ -49,6 +49,8 @@ import torch
 from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset
 
+from torchsde_lti.data import EpochShuffleSampler
+
 __all__ = [
     "AIS_FILE",
     "REFERENCE_LATLON",
@@ -417,12 +419,12 @@ class AISDataModule(LightningDataModule):
 
     def _loader(self, tracks: list[AISTrack], shuffle: bool) -> DataLoader:
         bs = len(tracks) if self.batch_size is None else self.batch_size
-        gen = torch.Generator().manual_seed(self.seed)
+        # the order depends only on (seed, epoch), so a resumed run sees the same batches
+        sampler = EpochShuffleSampler(len(tracks), self.seed) if shuffle else None
         return DataLoader(
             _TrackDataset(tracks),
             batch_size=max(bs, 1),
-            shuffle=shuffle,
-            generator=gen if shuffle else None,
+            sampler=sampler,
             collate_fn=lambda items: collate_tracks(items, self.center, self.dtype),
         )
 
