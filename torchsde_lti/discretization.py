@@ -170,6 +170,32 @@ def discretize(
     return Discrete(A, Q, G)
 
 
+def _discretize_series(
+    F: Tensor, L: Tensor, Qc: Tensor, dt: Tensor, B: Tensor | None = None
+) -> Discrete:
+    """:func:`discretize` (doubling) of a time series dt (..., T), laid out for a filter loop.
+
+    Same values as ``discretize(F, L, Qc, dt, B)``, but when F, L, Qc, B are one parameter
+    set (all batch dims of size 1) the results are batch-first VIEWS (..., T, n, n) of
+    batch-last storage (n, n, T, ...): step k's matrices ``A[..., k, :, :]`` permuted to
+    (n, n, ...) are rows of contiguous batch, the layout of the filter's loop.
+    Otherwise the plain batch-first result is returned.
+    """
+    inputs = _prepare(F, L, Qc, dt, B)
+    params = [inputs.F.shape[:-2]] + [x.shape[:-2] for x in (inputs.W, inputs.B) if x is not None]
+    batch, dt_t = inputs.batch, inputs.dt
+    if len(batch) == 0 or any(torch.Size(s).numel() != 1 for s in params):
+        A, Q, G = _doubling(inputs.F, inputs.W, inputs.B, dt_t, batch)
+        assert Q is not None
+        return Discrete(A, Q, G)
+    lead = batch[:-1]
+    dt_tm = dt_t.expand(batch).movedim(-1, 0)  # (T, *lead)
+    A, Q, G = _doubling(inputs.F, inputs.W, inputs.B, dt_tm, dt_tm.shape, batch_last=True)
+    assert Q is not None
+    perm = [*range(3, 3 + len(lead)), 2, 0, 1]  # (r, c, T, *lead) -> (*lead, T, r, c)
+    return Discrete(A.permute(perm), Q.permute(perm), None if G is None else G.permute(perm))
+
+
 def transition_matrix(F: Tensor, dt: Tensor | float) -> Tensor:
     """A = expm(F dt).
 
@@ -436,10 +462,80 @@ def _to_batch_first(x: Tensor, order: Tensor | None, batch: torch.Size) -> Tenso
     return out.reshape(*batch, *x.shape[:2])
 
 
-def _doubling(
-    F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor, batch: torch.Size
+def _to_batch_last(x: Tensor, order: Tensor | None, batch: torch.Size) -> Tensor:
+    """Batch-last (r, c, N) whose column i belongs to element order[i] -> (r, c, *batch)."""
+    if order is not None:  # out[..., order[i]] = x[..., i]
+        x = torch.empty(x.shape, dtype=x.dtype, device=x.device).index_copy_(-1, order, x)
+    return x.reshape(*x.shape[:2], *batch)
+
+
+def _symmetric_index(n: int, device: torch.device) -> tuple[Tensor, Tensor]:
+    """Upper-triangle rows/cols (2, n(n+1)/2) and the (n·n,) map from (i, j) to its entry."""
+    iu = torch.triu_indices(n, n, device=device)
+    pos = torch.arange(iu.shape[1], device=device)
+    idx = torch.empty(n, n, dtype=torch.int64, device=device)
+    idx[iu[0], iu[1]] = pos
+    idx[iu[1], iu[0]] = pos
+    return iu, idx.reshape(-1)
+
+
+def _series_full_step(
+    powers: Tensor,
+    lyap: Tensor | None,
+    inputs: Tensor | None,
+    x: Tensor,
+    h: Tensor,
+    batch: torch.Size,
+    batch_last: bool,
 ) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    """Scaling and doubling: (A, Q, G) of shapes (*batch, n, n), (*batch, n, n), (*batch, n, p).
+    """Full-step series for ONE parameter set (no doubling).
+
+    powers: (K, n, n) F̃^k; lyap: (K, n, n) 𝓛̃^k(W) or None; inputs: (K, n, p) F̃^k B or None;
+    x = ν h, h: (N,) with N = prod(batch). With rows r_k = x^k / k! (K, N)::
+
+        A = Σ_k r_k F̃^k,   Q = h Σ_k r_k 𝓛̃^k(W) / (k+1),   G = h Σ_k r_k F̃^k B / (k+1)
+
+    each one GEMM whose output is the contiguous result: (*batch, n, n) batch-first, or
+    (n, n, *batch) with ``batch_last``. Q is formed on its n(n+1)/2 distinct entries and
+    mirrored (a copy of whole rows in the batch-last layout), so it is exactly symmetric.
+    """
+    count, n = powers.shape[0], powers.shape[-1]
+    rows = _taylor_rows(x, count)  # (K, N)
+
+    def combine(r: Tensor, terms: Tensor, shape: tuple[int, int]) -> Tensor:
+        if batch_last:
+            return (terms.mT @ r).reshape(*shape, *batch)
+        return (r.mT @ terms).reshape(*batch, *shape)
+
+    A = combine(rows, powers.reshape(count, n * n), (n, n))
+    Q = G = None
+    if lyap is None and inputs is None:
+        return A, Q, G
+    k1 = torch.arange(1, count + 1, dtype=powers.dtype, device=powers.device)
+    rows_h = rows * (h / k1[:, None])  # (K, N): h x^k / (k+1)!
+    if lyap is not None:
+        iu, idx = _symmetric_index(n, powers.device)
+        tri = lyap[:, iu[0], iu[1]]  # (K, n(n+1)/2)
+        if batch_last:
+            Q = (tri.mT @ rows_h).index_select(0, idx).reshape(n, n, *batch)
+        else:
+            Q = (rows_h.mT @ tri).index_select(1, idx).reshape(*batch, n, n)
+    if inputs is not None:
+        p = inputs.shape[-1]
+        G = combine(rows_h, inputs.reshape(count, n * p), (n, p))
+    return A, Q, G
+
+
+def _doubling(
+    F: Tensor,
+    W: Tensor | None,
+    B: Tensor | None,
+    dt: Tensor,
+    batch: torch.Size,
+    batch_last: bool = False,
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """Scaling and doubling: (A, Q, G) of shapes (*batch, n, n), (*batch, n, n), (*batch, n, p)
+    (contiguous (n, n, *batch), … with ``batch_last``).
 
     F: (..., n, n); W = L Qc Lᵀ: (..., n, n) or None; B: (..., n, p) or None; dt: (...).
     Each element takes s = ceil(log2(‖F‖ dt / θ)) halvings (none for nilpotent F), sums the
@@ -455,11 +551,16 @@ def _doubling(
     )
     n = F.shape[-1]
     p = 0 if B is None else B.shape[-1]
-    F = F.expand(*param_batch, n, n)
+    if param_batch.numel() == 1:
+        # One set of parameters (size-1 batch dims, e.g. an LTISDE aligned to a series):
+        # drop the dims so the series terms are combined by a single GEMM (K, T) x (K, N)
+        # instead of N tiny batched products.
+        param_batch = torch.Size()
+    F = F.expand(*param_batch, n, n) if param_batch else F.reshape(n, n)
     if W is not None:
-        W = W.expand(*param_batch, n, n)
+        W = W.expand(*param_batch, n, n) if param_batch else W.reshape(n, n)
     if B is not None:
-        B = B.expand(*param_batch, n, p)
+        B = B.expand(*param_batch, n, p) if param_batch else B.reshape(n, p)
 
     # Scale F to unit norm (a constant, so gradients are untouched): F = ν F̃.
     with torch.no_grad():
@@ -505,6 +606,8 @@ def _doubling(
                 order = torch.argsort(flat, descending=True)
                 tally = torch.bincount(flat, minlength=steps + 1)
                 counts = (N - torch.cumsum(tally, 0))[:steps].tolist()
+    if not counts and powers.dim() == 3:  # one parameter set, no doubling (e.g. nilpotent F)
+        return _series_full_step(powers, lyap, inputs, xf, hf, batch, batch_last)
     if order is not None:
         xf, hf = xf[order], hf[order]
 
@@ -527,10 +630,11 @@ def _doubling(
         A = X + torch.eye(n, dtype=dtype, device=F.device)[..., None]
     if Q is not None:
         Q = torch.lerp(Q, Q.transpose(0, 1), 0.5)  # symmetrise
+    convert = _to_batch_last if batch_last else _to_batch_first
     return (
-        _to_batch_first(A, order, batch),
-        None if Q is None else _to_batch_first(Q, order, batch),
-        None if G is None else _to_batch_first(G, order, batch),
+        convert(A, order, batch),
+        None if Q is None else convert(Q, order, batch),
+        None if G is None else convert(G, order, batch),
     )
 
 

@@ -38,6 +38,7 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from torchsde_lti._validation import as_float_tensor, check_finite, check_matrix, shape_str, validation
+from torchsde_lti.discretization import Discrete, _discretize_series
 from torchsde_lti.filtering import (
     FilterResult,
     SmootherResult,
@@ -235,17 +236,29 @@ class KalmanFilter(nn.Module):
             :class:`~torchsde_lti.filtering.FilterResult` (mean, cov, pred_mean, pred_cov,
             innovation, innovation_cov, log_likelihood (...), step_log_likelihood (..., T), …).
         """
-        y, dt, u = self._check_inputs(y, dt, u)
-        d = self.sde(dt, series=True)  # one batched discretisation: A, Q (..., T, n, n)
+        y, dt, u = self._check_inputs(y, dt, u)  # dt checked (finite, ≥ 0) once, here
         m0, P0 = self.initial_state()
         fn = parallel_kalman_filter if self.parallel else kalman_filter
-        G = d.G if u is not None else None
         H, R = self.H, self.R
         # A batch of observation models (..., m, n) is constant over time: insert the T axis.
         H = H.unsqueeze(-3) if H.dim() > 2 else H
         R = R.unsqueeze(-3) if R.dim() > 2 else R
-        with validation(False):  # matrices are valid by construction (PD parametrisations, PSD doubling)
+        # Matrices are valid by construction (parametrisations, PSD doubling): no value checks.
+        with validation(False):
+            d = self._discretize(dt)  # one batched discretisation: A, Q (..., T, n, n)
+            G = d.G if u is not None else None
             return fn(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask)
+
+    def _discretize(self, dt: Tensor) -> Discrete:
+        """``sde(dt, series=True)`` with the sequential filter's layout (same values).
+
+        For one parameter set the matrices come as batch-first views of batch-last storage,
+        so the filter loop's per-step moves to (n, n, batch) are cheap row copies.
+        """
+        if self.parallel:
+            return self.sde(dt, series=True)
+        m = self.sde._aligned(True)
+        return _discretize_series(m.F, m.L, m.Qc, dt, m.B)
 
     def smooth(self, out: FilterResult) -> SmootherResult:
         """RTS smoother over the filter output (uses the A_k, Q_k stored in ``out``)."""
