@@ -224,6 +224,14 @@ def _bl_sym(P: Tensor) -> Tensor:
     return 0.5 * (P + P.transpose(0, 1))
 
 
+def _bl_sym_into(P: Tensor, out: Tensor | None) -> Tensor:
+    """_bl_sym(P), written into ``out`` when given (no autograd); same values."""
+    if out is None:
+        return _bl_sym(P)
+    torch.add(P, P.transpose(0, 1), out=out)
+    return out.mul_(0.5)
+
+
 # ----------------------------------------------------------------------------------------
 # Argument preparation shared by the sequential and parallel filters
 # ----------------------------------------------------------------------------------------
@@ -501,14 +509,24 @@ def kalman_filter(
     mean = _to_batch_last(prep.m0, 1)  # (n, *mb)
     P = _to_batch_last(prep.P0, 2)  # (n, n, *cb)
     means, covs, pmeans, pcovs, es, ss = [], [], [], [], [], []
+    # Without autograd the covariances are written straight into (T, n, n, *cb) outputs
+    # (no stack of T tensors at the end); with autograd they are stacked.
+    buffers = not torch.is_grad_enabled() or not any(
+        t.requires_grad for t in (prep.A, prep.Q, prep.Hw, prep.P0) if isinstance(t, Tensor)
+    )
+    n_state = P.shape[0]
+    pc_buf = P.new_empty((prep.T, n_state, n_state, *P.shape[2:])) if buffers else None
+    fc_buf = P.new_empty((prep.T, n_state, n_state, *P.shape[2:])) if buffers else None
     for k in range(prep.T):
-        Ak = A_steps[k].permute(to_bl).contiguous()
-        Qk = Q_steps[k].permute(to_bl).contiguous()
+        Ak = A_steps[k].permute(to_bl)
+        Qk = Q_steps[k].permute(to_bl)
+        if Ak.stride(-1) != 1 or Ak.dim() == 2:
+            Ak, Qk = Ak.contiguous(), Qk.contiguous()
         # Predict.
         mean = _bl_matvec(Ak, mean)
         if c_steps is not None:
             mean = mean + c_steps[0 if c_single else k]
-        P = _bl_sym(_bl_matmul(_bl_matmul(Ak, P), Ak.transpose(0, 1)) + Qk)
+        P = _bl_sym_into(_bl_matmul(_bl_matmul(Ak, P), Ak.transpose(0, 1)) + Qk, None if pc_buf is None else pc_buf[k])
         pmeans.append(mean)
         pcovs.append(P)
         # Update: one whitened scalar observation at a time (Joseph form).
@@ -525,11 +543,12 @@ def kalman_filter(
             P = torch.addcmul(MP, (gain - w).unsqueeze(1), gain.unsqueeze(0))  # … (I − h kᵀ) + k kᵀ
             es.append(e)
             ss.append(s)
-        P = _bl_sym(P)
+        P = _bl_sym_into(P, None if fc_buf is None else fc_buf[k])
         means.append(mean)
         covs.append(P)
     nd = len(prep.mean_batch)
-    pm_bl, pc_bl = torch.stack(pmeans), torch.stack(pcovs)  # (T, n, *mb), (T, n, n, *cb)
+    pm_bl = torch.stack(pmeans)  # (T, n, *mb)
+    pc_bl = torch.stack(pcovs) if pc_buf is None else pc_buf  # (T, n, n, *cb)
     # Innovations and their covariances, batched over all steps in the same layout.
     H_bl = _to_batch_last(prep.H, 2, time=True)  # (T or 1, m, n, *)
     R_bl = _to_batch_last(prep.R, 2, time=True)
@@ -557,7 +576,7 @@ def kalman_filter(
             S = S + HP[:, :, j : j + 1] * H_bl[:, :, j].unsqueeze(1)  # (T, m, m, *)
     S = 0.5 * (S + S.transpose(1, 2))
     mean_t = _from_batch_last(torch.stack(means), 1, nd)
-    cov_t = _from_batch_last(torch.stack(covs), 2, nd)
+    cov_t = _from_batch_last(torch.stack(covs) if fc_buf is None else fc_buf, 2, nd)
     pmean_t = _from_batch_last(pm_bl, 1, nd)
     pcov_t = _from_batch_last(pc_bl, 2, nd)
     e_t = torch.stack(torch.broadcast_tensors(*es))  # (T m, *mb)
