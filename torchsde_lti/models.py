@@ -195,6 +195,17 @@ class _ChainSDE(StructuredSDE):
         sel = self._top @ self._top.mT
         return self._chain - rate[..., None, None] * sel
 
+    def _init_drag_model(self, order: int, rate_name: str, rate: Scalar, q: Scalar, dim: int,
+                         dtype: torch.dtype | None, device: torch.device | str | None) -> None:
+        """Positive scalars ``rate_name`` and ``q`` and the chain layout of a drag model."""
+        _check_int(dim, "dim", 1)
+        dt_ = _scalar_dtype([rate, q], dtype)
+        dev = _scalar_device([rate, q], device)
+        self._add_positive(rate_name, rate, dt_, dev)
+        self._add_positive("q", q, dt_, dev)
+        self._check_scalars((rate_name, "q"))
+        self._init_chain(order, dim, dt_, dev)
+
     def _drag_matrices(self, rate: Tensor, q: Tensor) -> SDEMatrices:
         """F with drag ``rate`` on the highest derivative, ``L = _top``, ``Qc = q I_dim``.
 
@@ -271,13 +282,7 @@ class Singer(_ChainSDE):
     def __init__(self, alpha: Scalar, q: Scalar, dim: int = 1, *, dtype: torch.dtype | None = None,
                  device: torch.device | str | None = None) -> None:
         super().__init__()
-        _check_int(dim, "dim", 1)
-        dt_ = _scalar_dtype([alpha, q], dtype)
-        dev = _scalar_device([alpha, q], device)
-        self._add_positive("alpha", alpha, dt_, dev)
-        self._add_positive("q", q, dt_, dev)
-        self._check_scalars(("alpha", "q"))
-        self._init_chain(3, dim, dt_, dev)
+        self._init_drag_model(3, "alpha", alpha, q, dim, dtype, device)
 
     def _build(self) -> SDEMatrices:
         return self._drag_matrices(self.alpha, self.q)
@@ -300,13 +305,7 @@ class IntegratedOU(_ChainSDE):
     def __init__(self, k: Scalar, q: Scalar, dim: int = 1, *, dtype: torch.dtype | None = None,
                  device: torch.device | str | None = None) -> None:
         super().__init__()
-        _check_int(dim, "dim", 1)
-        dt_ = _scalar_dtype([k, q], dtype)
-        dev = _scalar_device([k, q], device)
-        self._add_positive("k", k, dt_, dev)
-        self._add_positive("q", q, dt_, dev)
-        self._check_scalars(("k", "q"))
-        self._init_chain(2, dim, dt_, dev)
+        self._init_drag_model(2, "k", k, q, dim, dtype, device)
 
     def _build(self) -> SDEMatrices:
         return self._drag_matrices(self.k, self.q)
