@@ -88,3 +88,46 @@ def test_kalman_filter_uses_same_values_as_public_discretize():
     A_ref = torch.tensor(np.stack([[scipy.linalg.expm(cv.F.detach().numpy() * float(h)) for h in row] for row in dt]))
     torch.testing.assert_close(d_kf.A, A_ref, rtol=0, atol=1e-13)
     torch.testing.assert_close(d_kf.Q, d_pub.Q, rtol=1e-13, atol=1e-15)
+
+
+def _quantised_case(seed: int = 3):
+    g = torch.Generator().manual_seed(seed)
+    dt = torch.randint(0, 6, (4, 30), generator=g).to(f64) * 0.5  # 6 distinct gaps, incl. 0
+    y = torch.randn(4, 30, 2, generator=g, dtype=f64)
+    y[1, 5:9] = float("nan")
+    y[2, 3, 0] = float("nan")
+    return y, dt
+
+
+@pytest.mark.parametrize("parallel", [False, True])
+def test_unique_dt_equals_plain_path(parallel):
+    y, dt = _quantised_case()
+    H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=f64)
+    outs, grads = [], []
+    for unique in (False, True):
+        cv = tl.models.constant_velocity(dim=2, q=0.7, dtype=f64)
+        kf = tl.KalmanFilter(cv, H, 0.3 * torch.eye(2, dtype=f64), P0=10 * torch.eye(4, dtype=f64),
+                             parallel=parallel, unique_dt=unique)
+        out = kf(y, dt)
+        (-out.log_likelihood.sum()).backward()
+        outs.append(out)
+        grads.append([p.grad.clone() for p in kf.parameters()])
+    for a, b in zip(outs[0][:8], outs[1][:8]):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    for a, b in zip(grads[0], grads[1]):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_unique_dt_gathers_exact_matrices():
+    y, dt = _quantised_case(4)
+    cv = tl.models.constant_velocity(dim=2, q=1.1, dtype=f64)
+    H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=f64)
+    kf = tl.KalmanFilter(cv, H, torch.eye(2, dtype=f64), unique_dt=True)
+    d = kf._discretize(dt)
+    assert d.A.shape == (4, 30, 4, 4)
+    for idx in [(0, 0), (1, 7), (3, 29), (2, 11)]:
+        h = float(dt[idx])
+        A_ref = scipy.linalg.expm(cv.F.detach().numpy() * h)
+        Q_ref = np.kron(np.eye(2) * 1.1, integrator_chain_Q(2, 1.0, h))
+        np.testing.assert_allclose(d.A[idx].detach().numpy(), A_ref, atol=1e-14)
+        np.testing.assert_allclose(d.Q[idx].detach().numpy(), Q_ref, rtol=1e-13, atol=1e-15)

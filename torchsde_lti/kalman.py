@@ -92,6 +92,16 @@ class KalmanFilter(nn.Module):
             off only for a few tracks (per-step Python overhead dominates the loop there);
             from ~100 tracks on the sequential loop is faster (experiments/bench_filter.py).
         diffuse_variance: variance of the broad default prior for non-Hurwitz F.
+        unique_dt: discretise only the distinct values of dt (``torch.unique``) and gather
+            the per-step matrices; same values and gradients as the plain path. Pays off
+            for quantised gaps with a model whose F needs scaling and doubling (Singer,
+            OU, a learned Hurwitz F): measured 3.5x faster filtering and 2.8x faster
+            forward+backward for a 2-D Singer model with 162 distinct gaps in 1000 x 200
+            steps (1 thread). No gain for integrator chains (constant velocity/
+            acceleration), whose full-step series is already one GEMM as cheap as the
+            gather; and a loss when all gaps are distinct (the sort costs more than the
+            discretisation), hence off by default. Used only for one parameter set (no SDE
+            batch) and when dt does not require grad; otherwise the plain path runs.
     """
 
     def __init__(
@@ -105,8 +115,10 @@ class KalmanFilter(nn.Module):
         learn: Iterable[str] | str = ("R",),
         parallel: bool = False,
         diffuse_variance: float = 1e4,
+        unique_dt: bool = False,
     ) -> None:
         super().__init__()
+        self.unique_dt = bool(unique_dt)
         if not isinstance(sde, LTISDE):
             raise TypeError(f"sde must be an LTISDE, got {type(sde).__name__}")
         names = _parse_learn(learn)
@@ -255,10 +267,24 @@ class KalmanFilter(nn.Module):
         For one parameter set the matrices come as batch-first views of batch-last storage,
         so the filter loop's per-step moves to (n, n, batch) are cheap row copies.
         """
-        if self.parallel:
+        if self.parallel and not self.unique_dt:
             return self.sde(dt, series=True)
         m = self.sde._aligned(True)
-        return _discretize_series(m.F, m.L, m.Qc, dt, m.B)
+        single = all(x is None or x.shape[:-2].numel() == 1 for x in m)
+        if not (self.unique_dt and single and not dt.requires_grad):
+            return self.sde(dt, series=True) if self.parallel else _discretize_series(m.F, m.L, m.Qc, dt, m.B)
+        # Distinct steps only: values (U,), dt = values[inverse].
+        values, inverse = torch.unique(dt, return_inverse=True)
+        d = _discretize_series(m.F, m.L, m.Qc, values, m.B)  # (U, r, c) views of (r, c, U) storage
+        lead = dt.shape[:-1]
+        idx = inverse.movedim(-1, 0).reshape(-1)  # time-major, like _discretize_series
+
+        def gather(x: Tensor) -> Tensor:
+            store = x.permute(1, 2, 0).index_select(-1, idx)  # (r, c, T·prod(lead))
+            store = store.reshape(*store.shape[:2], dt.shape[-1], *lead)  # (r, c, T, *lead)
+            return store.permute(*range(3, 3 + len(lead)), 2, 0, 1)  # (*lead, T, r, c)
+
+        return Discrete(gather(d.A), gather(d.Q), None if d.G is None else gather(d.G))
 
     def smooth(self, out: FilterResult) -> SmootherResult:
         """RTS smoother over the filter output (uses the A_k, Q_k stored in ``out``)."""
@@ -316,4 +342,6 @@ class KalmanFilter(nn.Module):
         return Forecast(m, P, obs_mean, 0.5 * (S + S.mT))
 
     def extra_repr(self) -> str:
-        return f"obs_dim={self.obs_dim}, prior={self.prior_mode}, parallel={self.parallel}"
+        return (
+            f"obs_dim={self.obs_dim}, prior={self.prior_mode}, parallel={self.parallel}, unique_dt={self.unique_dt}"
+        )
