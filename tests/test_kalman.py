@@ -261,3 +261,47 @@ def test_float32_module_runs_and_matches_float64():
         assert out.mean.dtype == dtype
         res.append(out.log_likelihood.detach().double())
     torch.testing.assert_close(res[0], res[1], rtol=1e-4, atol=1e-3)
+
+
+def _small_filter() -> tuple[tl.KalmanFilter, torch.Tensor, torch.Tensor]:
+    sde = tl.models.integrated_ou(k=0.5, q=1.0, dim=2).double()
+    kf = tl.KalmanFilter(sde, tl.models.position_observation(sde), 0.3 * torch.eye(2, dtype=torch.float64))
+    y = torch.randn(3, 6, 2, dtype=torch.float64)
+    dt = torch.rand(3, 6, dtype=torch.float64)
+    return kf, y, dt
+
+
+def test_nan_parameter_after_diverged_step_raises() -> None:
+    """A NaN learned parameter must fail loudly, not give a silent NaN likelihood."""
+    kf, y, dt = _small_filter()
+    with torch.no_grad():
+        kf.sde.parametrizations.q.original.fill_(float("nan"))
+    with pytest.raises(ValueError, match=r"(Qc|F) contains NaN or Inf"):
+        kf(y, dt)
+
+
+def test_inf_measurement_and_nan_input_raise() -> None:
+    kf, y, dt = _small_filter()
+    y[1, 2, 0] = float("inf")
+    with pytest.raises(ValueError, match=r"y contains Inf"):
+        kf(y, dt)
+    B = torch.tensor([[0.0], [1.0], [0.0], [0.0]], dtype=torch.float64)
+    sde = tl.LTISDE(
+        torch.tensor([[0, 1, 0, 0], [0, -0.5, 0, 0], [0, 0, 0, 1], [0, 0, 0, -0.5]], dtype=torch.float64),
+        torch.tensor([[0, 0], [1, 0], [0, 0], [0, 1]], dtype=torch.float64),
+        torch.eye(2, dtype=torch.float64),
+        B,
+    )
+    kf_u = tl.KalmanFilter(sde, tl.models.position_observation(kf.sde), torch.eye(2, dtype=torch.float64))
+    u = torch.zeros(3, 6, 1, dtype=torch.float64)
+    u[0, 3, 0] = float("nan")
+    with pytest.raises(ValueError, match=r"u contains NaN or Inf"):
+        kf_u(torch.randn(3, 6, 2, dtype=torch.float64), dt, u=u)
+
+
+def test_assigning_wrong_sized_R_raises() -> None:
+    kf, _, _ = _small_filter()
+    with pytest.raises(ValueError, match=r"R"):
+        kf.R = torch.eye(3, dtype=torch.float64)
+    kf.R = 2.0 * torch.eye(2, dtype=torch.float64)
+    assert torch.allclose(kf.R, 2.0 * torch.eye(2, dtype=torch.float64))

@@ -137,7 +137,7 @@ class KalmanFilter(nn.Module):
             raise ValueError(f"R must have shape (..., {m}, {m}) to match H {shape_str(H)}, got shape {shape_str(R)}")
         self._register("H", H, "H" in names)
         self._register("R", R, "R" in names)
-        parametrize.register_parametrization(self, "R", PositiveDefinite(name="R").to(dtype=dtype, device=device))
+        parametrize.register_parametrization(self, "R", PositiveDefinite(name="R", size=m).to(dtype=dtype, device=device))
 
         m0_t = torch.zeros(n, dtype=dtype, device=device) if m0 is None else as_float_tensor(m0, "m0", dtype, device)
         if m0_t.dim() < 1 or m0_t.shape[-1] != n:
@@ -163,7 +163,7 @@ class KalmanFilter(nn.Module):
                 self.prior_mode = "given"  # learnable, initialised at the default
         if self.prior_mode == "given":
             self._register("P0", P0_t, "P0" in names)
-            parametrize.register_parametrization(self, "P0", PositiveDefinite(name="P0").to(dtype=dtype, device=device))
+            parametrize.register_parametrization(self, "P0", PositiveDefinite(name="P0", size=n).to(dtype=dtype, device=device))
         else:
             self.register_buffer("P0", None)
 
@@ -210,6 +210,8 @@ class KalmanFilter(nn.Module):
                 f"y has {y.shape[-1]} components (shape {shape_str(y)}) but H has {m} rows "
                 f"(shape {shape_str(self.H)})"
             )
+        if bool(torch.isinf(y).any()):
+            raise ValueError(f"y contains Inf (shape {shape_str(y)}); mark missing values with NaN or mask")
         T = y.shape[-2]
         dt = as_float_tensor(dt, "dt", dtype, device)
         if dt.dim() < 1 or dt.shape[-1] != T:
@@ -226,7 +228,17 @@ class KalmanFilter(nn.Module):
             p = self.sde.input_dim
             if u.dim() < 2 or u.shape[-1] != p or u.shape[-2] not in (1, T):
                 raise ValueError(f"u must have shape (..., T={T}, p={p}), got shape {shape_str(u)}")
+            check_finite(u, "u")
         return y, dt, u
+
+    def _check_parameters(self, m0: Tensor, P0: Tensor) -> None:
+        """NaN/Inf in any model matrix (e.g. after a diverged optimiser step) fails loudly here,
+        once per call on n×n matrices, so the unchecked discretisation cannot hide it."""
+        for name, value in zip(("F", "L", "Qc", "B"), self.sde.matrices()):
+            if value is not None:
+                check_finite(value, name)
+        for name, value in (("H", self.H), ("R", self.R), ("m0", m0), ("P0", P0)):
+            check_finite(value, name)
 
     # ------------------------------------------------------------------ API
     def forward(
@@ -250,6 +262,7 @@ class KalmanFilter(nn.Module):
         """
         y, dt, u = self._check_inputs(y, dt, u)  # dt checked (finite, ≥ 0) once, here
         m0, P0 = self.initial_state()
+        self._check_parameters(m0, P0)
         fn = parallel_kalman_filter if self.parallel else kalman_filter
         H, R = self.H, self.R
         # A batch of observation models (..., m, n) is constant over time: insert the T axis.
