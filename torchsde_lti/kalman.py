@@ -102,6 +102,11 @@ class KalmanFilter(nn.Module):
             gather; and a loss when all gaps are distinct (the sort costs more than the
             discretisation), hence off by default. Used only for one parameter set (no SDE
             batch) and when dt does not require grad; otherwise the plain path runs.
+        square_root: propagate Cholesky factors (QR predict, Givens update, see
+            ``kalman_filter(..., square_root=True)``): same results up to rounding, and in
+            float32 PSD, accurate covariances when predicted and measurement variances
+            differ by more than 1/eps (long gaps, precise sensors), where the Joseph form
+            can go negative. Slower; sequential filter only (ValueError with ``parallel=True``).
     """
 
     def __init__(
@@ -116,9 +121,13 @@ class KalmanFilter(nn.Module):
         parallel: bool = False,
         diffuse_variance: float = 1e4,
         unique_dt: bool = False,
+        square_root: bool = False,
     ) -> None:
         super().__init__()
         self.unique_dt = bool(unique_dt)
+        if square_root and parallel:
+            raise ValueError("square_root=True needs the sequential filter, got parallel=True")
+        self.square_root = bool(square_root)
         if not isinstance(sde, LTISDE):
             raise TypeError(f"sde must be an LTISDE, got {type(sde).__name__}")
         names = _parse_learn(learn)
@@ -272,6 +281,8 @@ class KalmanFilter(nn.Module):
         with validation(False):
             d = self._discretize(dt)  # one batched discretisation: A, Q (..., T, n, n)
             G = d.G if u is not None else None
+            if self.square_root:
+                return kalman_filter(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, square_root=True)
             return fn(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask)
 
     def _discretize(self, dt: Tensor) -> Discrete:
@@ -357,4 +368,5 @@ class KalmanFilter(nn.Module):
     def extra_repr(self) -> str:
         return (
             f"obs_dim={self.obs_dim}, prior={self.prior_mode}, parallel={self.parallel}, unique_dt={self.unique_dt}"
+            + (", square_root=True" if getattr(self, "square_root", False) else "")
         )
