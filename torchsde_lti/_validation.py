@@ -10,7 +10,7 @@ valid by construction (e.g. parametrised modules) with :func:`validation`.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 
 import torch
 from torch import Tensor
@@ -142,3 +142,11 @@ def broadcast_batch(named: Sequence[tuple[str, Sequence[int]]]) -> torch.Size:
     except RuntimeError as err:
         seen = ", ".join(f"{n}: ({', '.join(map(str, s))})" for n, s in named)
         raise ValueError(f"batch shapes do not broadcast: {seen}") from err
+
+
+def parse_learn(learn: Iterable[str] | str, allowed: Sequence[str]) -> tuple[str, ...]:
+    """The names in ``learn`` (one name or several), each checked to be among ``allowed``."""
+    names = (learn,) if isinstance(learn, str) else tuple(learn)
+    if any(name not in allowed for name in names):
+        raise ValueError(f"learn must name some of {tuple(allowed)}, got {names!r}")
+    return names

@@ -37,7 +37,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from torchsde_lti._validation import as_float_tensor, check_finite, check_matrix, shape_str, validation
+from torchsde_lti._validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str, validation
 from torchsde_lti.discretization import Discrete, _discretize_series
 from torchsde_lti.filtering import (
     FilterResult,
@@ -67,13 +67,6 @@ class Forecast(NamedTuple):
     obs_mean: Tensor
     obs_cov: Tensor
 
-
-def _parse_learn(learn: Iterable[str] | str) -> tuple[str, ...]:
-    names = (learn,) if isinstance(learn, str) else tuple(learn)
-    bad = [x for x in names if x not in _LEARNABLE]
-    if bad:
-        raise ValueError(f"learn must name some of {_LEARNABLE}, got {names!r}")
-    return names
 
 
 class KalmanFilter(nn.Module):
@@ -130,7 +123,7 @@ class KalmanFilter(nn.Module):
         self.square_root = bool(square_root)
         if not isinstance(sde, LTISDE):
             raise TypeError(f"sde must be an LTISDE, got {type(sde).__name__}")
-        names = _parse_learn(learn)
+        names = parse_learn(learn, _LEARNABLE)
         self.sde = sde
         self.parallel = bool(parallel)
         self.diffuse_variance = float(diffuse_variance)

@@ -42,6 +42,7 @@ from torchsde_lti._validation import (
     check_finite,
     check_matrix,
     common_float_dtype,
+    parse_learn,
     shape_str,
 )
 from torchsde_lti.discretization import Discrete, discretize, propagate, transition_matrix
@@ -88,13 +89,6 @@ class Unconstrained(_Parametrization):
         return x.clone()
 
 
-def _parse_learn(learn: Iterable[str] | str) -> tuple[str, ...]:
-    names = (learn,) if isinstance(learn, str) else tuple(learn)
-    bad = [n for n in names if n not in MATRIX_NAMES]
-    if bad:
-        raise ValueError(f"learn must name matrices among {MATRIX_NAMES}, got {names!r}")
-    return names
-
 
 class LTISDE(nn.Module):
     r"""Linear time-invariant SDE ``dx = F x dt + B u dt + L dβ``, ``E[dβ dβᵀ] = Qc dt``.
@@ -132,7 +126,7 @@ class LTISDE(nn.Module):
         F_constraint: str | nn.Module | None = None,
     ) -> None:
         super().__init__()
-        names = _parse_learn(learn)
+        names = parse_learn(learn, MATRIX_NAMES)
         if B is None and "B" in names:
             raise ValueError("learn contains 'B' but B is None")
         raw_inputs = {"F": F, "L": L, "Qc": Qc, "B": B}
