@@ -38,7 +38,7 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from torchsde_lti._validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str, validation
-from torchsde_lti.discretization import Discrete, _discretize_series
+from torchsde_lti.discretization import Discrete, _discretize_series, discretize
 from torchsde_lti.filtering import (
     FilterResult,
     SmootherResult,
@@ -48,7 +48,8 @@ from torchsde_lti.filtering import (
     rts_smoother,
 )
 from torchsde_lti.parametrizations import PositiveDefinite
-from torchsde_lti.sde import LTISDE
+from torchsde_lti.sde import LTISDE, SDEMatrices
+from torchsde_lti.stationary import stationary_covariance
 
 __all__ = ["Forecast", "KalmanFilter"]
 
@@ -186,11 +187,15 @@ class KalmanFilter(nn.Module):
 
     def initial_state(self) -> tuple[Tensor, Tensor]:
         """Prior (m0 (..., n), P0 (..., n, n)) at t₀ for the current parameters."""
+        return self._prior(self.sde.matrices())
+
+    def _prior(self, mats: SDEMatrices) -> tuple[Tensor, Tensor]:
+        """:meth:`initial_state` from already evaluated SDE matrices."""
         if self.prior_mode == "given":
             P0 = self.P0
         elif self.prior_mode == "stationary":
             try:
-                P0 = self.sde.stationary_covariance()
+                P0 = stationary_covariance(mats.F, mats.L, mats.Qc)
             except ValueError as err:
                 raise ValueError(
                     "the default prior P0 is the stationary covariance, but F is no longer Hurwitz; "
@@ -201,8 +206,11 @@ class KalmanFilter(nn.Module):
             P0 = self.diffuse_variance * torch.eye(n, dtype=self.sde.dtype, device=self.sde.device)
         return self.m0, P0
 
-    def _check_inputs(self, y: Tensor, dt: Tensor, u: Tensor | None) -> tuple[Tensor, Tensor, Tensor | None]:
-        dtype, device = self.sde.dtype, self.sde.device
+    def _check_inputs(
+        self, y: Tensor, dt: Tensor, u: Tensor | None, mats: SDEMatrices
+    ) -> tuple[Tensor, Tensor, Tensor | None]:
+        dtype, device = mats.F.dtype, mats.F.device
+        p = 0 if mats.B is None else mats.B.shape[-1]
         y = as_float_tensor(y, "y", dtype, device)
         if y.dim() < 2:
             raise ValueError(f"y must have shape (..., T, m), got shape {shape_str(y)}")
@@ -222,25 +230,23 @@ class KalmanFilter(nn.Module):
         if bool((dt < 0).any()):
             raise ValueError(f"dt must be non-negative, got min {float(dt.min()):.3g} (shape {shape_str(dt)})")
         if u is not None:
-            if self.sde.input_dim == 0:
+            if p == 0:
                 raise ValueError(
                     f"u was given (shape {shape_str(torch.as_tensor(u))}) but the SDE has no input matrix B"
                 )
             u = as_float_tensor(u, "u", dtype, device)
-            p = self.sde.input_dim
             if u.dim() < 2 or u.shape[-1] != p or u.shape[-2] not in (1, T):
                 raise ValueError(f"u must have shape (..., T={T}, p={p}), got shape {shape_str(u)}")
             check_finite(u, "u")
         return y, dt, u
 
-    def _check_parameters(self, m0: Tensor, P0: Tensor) -> None:
+    @staticmethod
+    def _check_parameters(mats: SDEMatrices, **named: Tensor) -> None:
         """NaN/Inf in any model matrix (e.g. after a diverged optimiser step) fails loudly here,
         once per call on n×n matrices, so the unchecked discretisation cannot hide it."""
-        for name, value in zip(("F", "L", "Qc", "B"), self.sde.matrices()):
+        for name, value in (*zip(("F", "L", "Qc", "B"), mats), *named.items()):
             if value is not None:
                 check_finite(value, name)
-        for name, value in (("H", self.H), ("R", self.R), ("m0", m0), ("P0", P0)):
-            check_finite(value, name)
 
     # ------------------------------------------------------------------ API
     def forward(
@@ -262,34 +268,39 @@ class KalmanFilter(nn.Module):
             :class:`~torchsde_lti.filtering.FilterResult` (mean, cov, pred_mean, pred_cov,
             innovation, innovation_cov, log_likelihood (...), step_log_likelihood (..., T), …).
         """
-        y, dt, u = self._check_inputs(y, dt, u)  # dt checked (finite, ≥ 0) once, here
-        m0, P0 = self.initial_state()
-        self._check_parameters(m0, P0)
-        fn = parallel_kalman_filter if self.parallel else kalman_filter
+        mats = self.sde.matrices()  # each parametrisation evaluated once per call
+        y, dt, u = self._check_inputs(y, dt, u, mats)  # dt checked (finite, ≥ 0) once, here
+        m0, P0 = self._prior(mats)
         H, R = self.H, self.R
+        self._check_parameters(mats, H=H, R=R, m0=m0, P0=P0)
+        fn = parallel_kalman_filter if self.parallel else kalman_filter
         # A batch of observation models (..., m, n) is constant over time: insert the T axis.
         H = H.unsqueeze(-3) if H.dim() > 2 else H
         R = R.unsqueeze(-3) if R.dim() > 2 else R
         # Matrices are valid by construction (parametrisations, PSD doubling): no value checks.
         with validation(False):
-            d = self._discretize(dt)  # one batched discretisation: A, Q (..., T, n, n)
+            d = self._discretize(dt, mats)  # one batched discretisation: A, Q (..., T, n, n)
             G = d.G if u is not None else None
             if self.square_root:
                 return kalman_filter(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, square_root=True)
             return fn(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask)
 
-    def _discretize(self, dt: Tensor) -> Discrete:
-        """``sde(dt, series=True)`` with the sequential filter's layout (same values).
+    def _discretize(self, dt: Tensor, mats: SDEMatrices | None = None) -> Discrete:
+        """``sde(dt, series=True)`` from the evaluated matrices, with the sequential filter's
+        layout (same values).
 
         For one parameter set the matrices come as batch-first views of batch-last storage,
         so the filter loop's per-step moves to (n, n, batch) are cheap row copies.
         """
-        if self.parallel and not self.unique_dt:
-            return self.sde(dt, series=True)
-        m = self.sde._aligned(True)
+        if mats is None:
+            mats = self.sde.matrices()
+        # a length-1 time axis in the matrices lines a parameter batch up with dt (..., T)
+        m = SDEMatrices(*(None if x is None else x.unsqueeze(-3) for x in mats))
         single = all(x is None or x.shape[:-2].numel() == 1 for x in m)
         if not (self.unique_dt and single and not dt.requires_grad):
-            return self.sde(dt, series=True) if self.parallel else _discretize_series(m.F, m.L, m.Qc, dt, m.B)
+            if self.parallel:
+                return discretize(m.F, m.L, m.Qc, dt, B=m.B)
+            return _discretize_series(m.F, m.L, m.Qc, dt, m.B)
         # Distinct steps only: values (U,), dt = values[inverse].
         values, inverse = torch.unique(dt, return_inverse=True)
         d = _discretize_series(m.F, m.L, m.Qc, values, m.B)  # (U, r, c) views of (r, c, U) storage
