@@ -48,9 +48,9 @@ from torch import Tensor
 
 import torchsde_lti as tl
 from torchsde_lti import ais
-from torchsde_lti._validation import validation
-from torchsde_lti.filtering import FilterResult, kalman_filter
-from torchsde_lti.parametrizations import IntegratorChain
+from torchsde_lti.core.validation import validation
+from torchsde_lti.filters import FilterResult, kalman_filter
+from torchsde_lti.nn.parametrizations import IntegratorChain
 
 HORIZONS_MIN = (1.0, 5.0, 10.0)
 CURVE_MIN = (1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)

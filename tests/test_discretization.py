@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from reference import integrator_chain_Q, mp_discretize, quad_discretize, rel_err
 
 import torchsde_lti as tl
-from torchsde_lti.discretization import zero_order_hold
+from torchsde_lti.core.discretization import zero_order_hold
 
 METHODS = ["doubling", "van_loan"]
 f64 = torch.float64

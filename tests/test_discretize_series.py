@@ -10,7 +10,7 @@ import torch
 from reference import integrator_chain_Q, quad_discretize
 
 import torchsde_lti as tl
-from torchsde_lti.discretization import _discretize_series
+from torchsde_lti.core import discretize_series as _discretize_series
 
 f64 = torch.float64
 

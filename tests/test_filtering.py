@@ -14,7 +14,7 @@ import scipy.linalg
 import scipy.stats
 import torch
 
-from torchsde_lti.filtering import (
+from torchsde_lti.filters import (
     FilterResult,
     kalman_filter,
     parallel_kalman_filter,

@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from torchsde_lti.parametrizations import (
+from torchsde_lti.nn.parametrizations import (
     Hurwitz,
     IntegratorChain,
     Positive,

@@ -14,7 +14,7 @@ from hypothesis.extra.numpy import arrays
 from torch.func import functional_call
 
 import torchsde_lti as tl
-from torchsde_lti.parametrizations import IntegratorChain
+from torchsde_lti.nn.parametrizations import IntegratorChain
 
 F64 = torch.float64
 
@@ -321,7 +321,7 @@ def test_bad_construction_raises_value_error(mats) -> None:
 
 
 def test_integrator_chain_constraint_declares_positions() -> None:
-    from torchsde_lti.parametrizations import IntegratorChain
+    from torchsde_lti.nn.parametrizations import IntegratorChain
 
     F = torch.zeros(6, 6, dtype=torch.float64)
     for axis in range(2):

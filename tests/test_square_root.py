@@ -15,7 +15,8 @@ from test_filtering import cv_matrices, random_problem, reference_batch, to_torc
 import torchsde_lti as tl
 from torchsde_lti import models as M
 from torchsde_lti.data import simulate
-from torchsde_lti.filtering import _psd_factor, kalman_filter, rts_smoother
+from torchsde_lti.filters import kalman_filter, rts_smoother
+from torchsde_lti.filters.square_root import psd_factor as _psd_factor
 
 F64 = torch.float64
 FIELDS = ("mean", "cov", "pred_mean", "pred_cov")

@@ -116,7 +116,7 @@ def test_type_errors() -> None:
 
 def test_validation_can_be_switched_off_for_hot_loops() -> None:
     F, L, Qc, _ = good()
-    from torchsde_lti._validation import validation
+    from torchsde_lti.core.validation import validation
 
     with validation(False):
         d = tl.discretize(F, L, Qc, torch.tensor(float("nan"), dtype=f64))

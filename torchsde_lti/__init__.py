@@ -2,20 +2,31 @@
 
 Notation (Särkkä & Solin): continuous-time F, L, Qc, B; discrete-time A, Q (= Qd), G;
 observations y = H x + v, v ~ N(0, R).
+
+Layers of the package (each imports only from the ones above it):
+
+- :mod:`torchsde_lti.core`: torch only — validation, linear-algebra kernels, exact
+  discretisation (doubling and torch.matrix_exp methods), stationary covariance, moments;
+- :mod:`torchsde_lti.nn`: the Transition / VanLoanNoise layers, parametrisations,
+  :class:`LTISDE`, :class:`KalmanFilter`;
+- :mod:`torchsde_lti.models`: the motion-model library;
+- :mod:`torchsde_lti.filters`: pure filter and smoother functions on discrete matrices;
+- :mod:`torchsde_lti.data`: simulation, track batches, AIS data;
+- :mod:`torchsde_lti.training`: Lightning module and the Hydra entry point.
 """
 
-from torchsde_lti.discretization import (
+from torchsde_lti import models
+from torchsde_lti.core import (
+    METHODS,
     Discrete,
     discretize,
     process_noise,
     propagate,
+    stationary_covariance,
     transition_matrix,
     zero_order_hold,
 )
-from torchsde_lti.stationary import stationary_covariance
-from torchsde_lti.sde import LTISDE, SDEMatrices
-from torchsde_lti import models, parametrizations
-from torchsde_lti.filtering import (
+from torchsde_lti.filters import (
     FilterResult,
     SmootherResult,
     kalman_filter,
@@ -23,25 +34,40 @@ from torchsde_lti.filtering import (
     parallel_rts_smoother,
     rts_smoother,
 )
-from torchsde_lti.kalman import Forecast, KalmanFilter
+from torchsde_lti.nn import (
+    LTISDE,
+    Discretization,
+    Forecast,
+    KalmanFilter,
+    SDEMatrices,
+    StructuredSDE,
+    Transition,
+    VanLoanNoise,
+)
+from torchsde_lti.nn import parametrizations
 
 __all__ = [
+    "METHODS",
+    "Discrete",
+    "Discretization",
     "FilterResult",
     "Forecast",
     "KalmanFilter",
-    "SmootherResult",
-    "kalman_filter",
-    "parallel_kalman_filter",
-    "parallel_rts_smoother",
-    "rts_smoother",
     "LTISDE",
     "SDEMatrices",
-    "models",
-    "parametrizations",
-    "Discrete",
+    "SmootherResult",
+    "StructuredSDE",
+    "Transition",
+    "VanLoanNoise",
     "discretize",
+    "kalman_filter",
+    "models",
+    "parallel_kalman_filter",
+    "parallel_rts_smoother",
+    "parametrizations",
     "process_noise",
     "propagate",
+    "rts_smoother",
     "stationary_covariance",
     "transition_matrix",
     "zero_order_hold",

@@ -35,7 +35,7 @@ from lightning.pytorch import LightningDataModule
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from torchsde_lti._validation import check_symmetric_psd
+from torchsde_lti.core.validation import check_symmetric_psd
 
 __all__ = [
     "BurstDt",

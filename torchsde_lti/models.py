@@ -3,7 +3,7 @@ r"""Motion-model library: each factory returns an :class:`~torchsde_lti.LTISDE` 
 The models are :class:`StructuredSDE` subclasses: their matrices are functions of a few
 named scalars (``q``, ``alpha``, ``k``, ``theta``, ``lengthscale``, ``variance``, ``m``,
 ``c`` …) that are learnable ``nn.Parameter``\ s, positive by construction
-(:class:`~torchsde_lti.parametrizations.Positive`, ``softplus + floor``). Read and set them
+(:class:`~torchsde_lti.nn.parametrizations.Positive`, ``softplus + floor``). Read and set them
 by name: ``model.q`` is the current positive value, ``model.q = 2.0`` stores it (in place);
 the raw tensor is ``model.parametrizations.q.original``. Scalars may carry a batch shape
 (``q`` of shape (16,) gives 16 models in one module, matrices (16, n, n)); Python floats
@@ -26,9 +26,9 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from torchsde_lti._validation import as_float_tensor, broadcast_batch, check_finite, common_float_dtype, shape_str
-from torchsde_lti.parametrizations import Positive, integrator_chain
-from torchsde_lti.sde import LTISDE, SDEMatrices
+from torchsde_lti.core.validation import as_float_tensor, broadcast_batch, check_finite, common_float_dtype, shape_str
+from torchsde_lti.nn.parametrizations import Positive, integrator_chain
+from torchsde_lti.nn.sde import LTISDE, SDEMatrices, StructuredSDE
 
 __all__ = [
     "BlockDiagSDE",
@@ -97,86 +97,6 @@ def _eye_blocks(like: Tensor, dim: int, scale: Tensor) -> Tensor:
     """``scale[..., None, None] · I_dim`` (..., dim, dim)."""
     eye = torch.eye(dim, dtype=like.dtype, device=like.device)
     return scale[..., None, None] * eye
-
-
-class StructuredSDE(LTISDE):
-    """An :class:`LTISDE` whose matrices are derived from named scalar parameters.
-
-    Subclasses call :meth:`_init_structure` and implement :meth:`_build`. Positive scalars
-    are registered with :class:`~torchsde_lti.parametrizations.Positive`; free ones as plain
-    parameters. Constant structure matrices are non-persistent buffers (they follow
-    ``.to()`` but are not in ``state_dict``).
-    """
-
-    def __init__(self) -> None:  # noqa: D107 — LTISDE.__init__ (free matrices) is bypassed on purpose
-        nn.Module.__init__(self)
-
-    def _add_positive(self, name: str, value: Scalar, dtype: torch.dtype, device: torch.device | None) -> None:
-        v = as_float_tensor(value, name, dtype, device).detach().clone()
-        check_finite(v, name)
-        if bool((v <= 0).any()):
-            raise ValueError(f"{name} must be positive, got min {float(v.min()):.3g} (shape {shape_str(v)})")
-        self.register_parameter(name, nn.Parameter(v))
-        parametrize.register_parametrization(self, name, Positive(name=name).to(dtype=v.dtype, device=v.device))
-
-    def _check_scalars(self, names: Sequence[str]) -> None:
-        """ValueError naming the scalars whose batch shapes do not broadcast."""
-        with torch.no_grad():
-            broadcast_batch([(n, getattr(self, n).shape) for n in names])
-
-    def _build(self) -> SDEMatrices:
-        raise NotImplementedError
-
-    def matrices(self) -> SDEMatrices:
-        with parametrize.cached():
-            return self._build()
-
-    def _read_only(self, name: str) -> None:
-        params = [n.replace("parametrizations.", "").replace(".original", "") for n, _ in self.named_parameters()]
-        cls = type(self).__name__.removeprefix("Parametrized")
-        raise AttributeError(
-            f"{name} of {cls} is derived from its parameters ({', '.join(params)}); "
-            "set those, or use .to_free() for free matrices"
-        )
-
-    @property
-    def F(self) -> Tensor:  # type: ignore[override]
-        return self.matrices().F
-
-    @F.setter
-    def F(self, value: Tensor) -> None:
-        self._read_only("F")
-
-    @property
-    def L(self) -> Tensor:  # type: ignore[override]
-        return self.matrices().L
-
-    @L.setter
-    def L(self, value: Tensor) -> None:
-        self._read_only("L")
-
-    @property
-    def Qc(self) -> Tensor:  # type: ignore[override]
-        return self.matrices().Qc
-
-    @Qc.setter
-    def Qc(self, value: Tensor) -> None:
-        self._read_only("Qc")
-
-    @property
-    def B(self) -> Tensor | None:  # type: ignore[override]
-        return self.matrices().B
-
-    @B.setter
-    def B(self, value: Tensor) -> None:
-        self._read_only("B")
-
-    def _scalar_repr(self, names: Sequence[str]) -> str:
-        out = []
-        for n in names:
-            v = getattr(self, n).detach()
-            out.append(f"{n}={float(v):.4g}" if v.numel() == 1 else f"{n}: {shape_str(v)}")
-        return ", ".join(out)
 
 
 class _ChainSDE(StructuredSDE):

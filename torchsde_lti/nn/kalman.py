@@ -1,7 +1,7 @@
 r"""``KalmanFilter``: a differentiable Kalman filter whose motion model is an :class:`LTISDE`.
 
 The module assembles parameters and calls the pure functions of
-:mod:`torchsde_lti.filtering`::
+:mod:`torchsde_lti.filters`::
 
     kf = tl.KalmanFilter(sde, H, R)              # H (m, n), R (m, m) symmetric PD
     out = kf(y, dt, u=None, mask=None)           # y (..., T, m), dt (..., T), u (..., T, p)
@@ -24,7 +24,7 @@ choose it larger than the squared spread of your positions/velocities).
 
 Learnable: any of ``"H"``, ``"R"``, ``"m0"``, ``"P0"`` (the SDE's own ``learn`` controls
 F, L, Qc, B). R and a learnable P0 are parametrised symmetric positive definite by
-:class:`~torchsde_lti.parametrizations.PositiveDefinite` (Cholesky factor with a softplus
+:class:`~torchsde_lti.nn.parametrizations.PositiveDefinite` (Cholesky factor with a softplus
 diagonal), so ``kf.R = value`` works and any optimiser step keeps them valid.
 """
 
@@ -37,9 +37,12 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from torchsde_lti._validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str, validation
-from torchsde_lti.discretization import Discrete, _discretize_series, discretize
-from torchsde_lti.filtering import (
+from torchsde_lti.core.discretization import Discrete, discretize, discretize_series, resolve_method
+from torchsde_lti.core.linalg import matvec, sym
+from torchsde_lti.core.moments import predict_moments
+from torchsde_lti.core.stationary import stationary_covariance
+from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str, validation
+from torchsde_lti.filters import (
     FilterResult,
     SmootherResult,
     kalman_filter,
@@ -47,9 +50,8 @@ from torchsde_lti.filtering import (
     parallel_rts_smoother,
     rts_smoother,
 )
-from torchsde_lti.parametrizations import PositiveDefinite
-from torchsde_lti.sde import LTISDE, SDEMatrices
-from torchsde_lti.stationary import stationary_covariance
+from torchsde_lti.nn.parametrizations import PositiveDefinite
+from torchsde_lti.nn.sde import LTISDE, SDEMatrices
 
 __all__ = ["Forecast", "KalmanFilter"]
 
@@ -101,6 +103,9 @@ class KalmanFilter(nn.Module):
             float32 PSD, accurate covariances when predicted and measurement variances
             differ by more than 1/eps (long gaps, precise sensors), where the Joseph form
             can go negative. Slower; sequential filter only (ValueError with ``parallel=True``).
+        method: discretisation method of every step, ``"doubling"`` or ``"matrix_exp"``
+            (torch.matrix_exp of Van Loan's block); default None = the SDE's own
+            :attr:`~torchsde_lti.LTISDE.method` (``"doubling"`` unless set).
     """
 
     def __init__(
@@ -116,8 +121,10 @@ class KalmanFilter(nn.Module):
         diffuse_variance: float = 1e4,
         unique_dt: bool = False,
         square_root: bool = False,
+        method: str | None = None,
     ) -> None:
         super().__init__()
+        self.method = None if method is None else resolve_method(method)
         self.unique_dt = bool(unique_dt)
         if square_root and parallel:
             raise ValueError("square_root=True needs the sequential filter, got parallel=True")
@@ -265,7 +272,7 @@ class KalmanFilter(nn.Module):
             mask: optional bool (..., T) or (..., T, m); False = not observed.
 
         Returns:
-            :class:`~torchsde_lti.filtering.FilterResult` (mean, cov, pred_mean, pred_cov,
+            :class:`~torchsde_lti.FilterResult` (mean, cov, pred_mean, pred_cov,
             innovation, innovation_cov, log_likelihood (...), step_log_likelihood (..., T), …).
         """
         mats = self.sde.matrices()  # each parametrisation evaluated once per call
@@ -285,34 +292,27 @@ class KalmanFilter(nn.Module):
                 return kalman_filter(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, square_root=True)
             return fn(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask)
 
-    def _discretize(self, dt: Tensor, mats: SDEMatrices | None = None) -> Discrete:
-        """``sde(dt, series=True)`` from the evaluated matrices, with the sequential filter's
-        layout (same values).
+    @property
+    def discretization_method(self) -> str:
+        """The method used for every step: :attr:`method`, else the SDE's."""
+        return self.method or self.sde.method
 
-        For one parameter set the matrices come as batch-first views of batch-last storage,
-        so the filter loop's per-step moves to (n, n, batch) are cheap row copies.
+    def _discretize(self, dt: Tensor, mats: SDEMatrices | None = None) -> Discrete:
+        """All steps' (A, Q, G) in one batched call, laid out for the sequential filter.
+
+        For one parameter set the doubling method returns batch-first views of batch-last
+        storage, so the filter loop's per-step moves to (n, n, batch) are cheap row copies
+        (:func:`~torchsde_lti.core.discretize_series`).
         """
         if mats is None:
             mats = self.sde.matrices()
         # a length-1 time axis in the matrices lines a parameter batch up with dt (..., T)
         m = SDEMatrices(*(None if x is None else x.unsqueeze(-3) for x in mats))
-        single = all(x is None or x.shape[:-2].numel() == 1 for x in m)
-        if not (self.unique_dt and single and not dt.requires_grad):
-            if self.parallel:
-                return discretize(m.F, m.L, m.Qc, dt, B=m.B)
-            return _discretize_series(m.F, m.L, m.Qc, dt, m.B)
-        # Distinct steps only: values (U,), dt = values[inverse].
-        values, inverse = torch.unique(dt, return_inverse=True)
-        d = _discretize_series(m.F, m.L, m.Qc, values, m.B)  # (U, r, c) views of (r, c, U) storage
-        lead = dt.shape[:-1]
-        idx = inverse.movedim(-1, 0).reshape(-1)  # time-major, like _discretize_series
-
-        def gather(x: Tensor) -> Tensor:
-            store = x.permute(1, 2, 0).index_select(-1, idx)  # (r, c, T·prod(lead))
-            store = store.reshape(*store.shape[:2], dt.shape[-1], *lead)  # (r, c, T, *lead)
-            return store.permute(*range(3, 3 + len(lead)), 2, 0, 1)  # (*lead, T, r, c)
-
-        return Discrete(gather(d.A), gather(d.Q), None if d.G is None else gather(d.G))
+        if self.parallel and not self.unique_dt:  # the scan wants plain batch-first tensors
+            return discretize(m.F, m.L, m.Qc, dt, B=m.B, method=self.discretization_method)
+        return discretize_series(
+            m.F, m.L, m.Qc, dt, m.B, method=self.discretization_method, unique=self.unique_dt
+        )
 
     def smooth(self, out: FilterResult) -> SmootherResult:
         """RTS smoother over the filter output (uses the A_k, Q_k stored in ``out``)."""
@@ -353,24 +353,20 @@ class KalmanFilter(nn.Module):
         if mean.shape[-1] != n or cov.shape[-2:] != (n, n):
             raise ValueError(f"state must be (mean (..., {n}), cov (..., {n}, {n})), got "
                              f"{shape_str(mean)}, {shape_str(cov)}")
-        d = self.sde(dt, series=True)
-        m = (d.A @ mean.unsqueeze(-2).unsqueeze(-1)).squeeze(-1)
+        d = self.sde(dt, method=self.discretization_method, series=True)
         if u is not None:
             if d.G is None:
                 raise ValueError(f"u was given (shape {shape_str(torch.as_tensor(u))}) but the SDE has no input matrix B")
             u = as_float_tensor(u, "u", dtype, device)
-            m = m + (d.G @ u.unsqueeze(-1)).squeeze(-1)
-        P = d.A @ cov.unsqueeze(-3) @ d.A.mT + d.Q
-        P = 0.5 * (P + P.mT)
+        m, P = predict_moments(mean.unsqueeze(-2), cov.unsqueeze(-3), d.A, d.Q, d.G, u)
         H, R = self.H, self.R
         Hk = H.unsqueeze(-3) if H.dim() > 2 else H
         Rk = R.unsqueeze(-3) if R.dim() > 2 else R
-        obs_mean = (Hk @ m.unsqueeze(-1)).squeeze(-1)
-        S = Hk @ P @ Hk.mT + Rk
-        return Forecast(m, P, obs_mean, 0.5 * (S + S.mT))
+        return Forecast(m, P, matvec(Hk, m), sym(Hk @ P @ Hk.mT + Rk))
 
     def extra_repr(self) -> str:
         return (
             f"obs_dim={self.obs_dim}, prior={self.prior_mode}, parallel={self.parallel}, unique_dt={self.unique_dt}"
             + (", square_root=True" if getattr(self, "square_root", False) else "")
+            + (f", method={self.method!r}" if self.method else "")
         )

@@ -11,9 +11,12 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterable, Iterator, Sequence
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
+
+from torchsde_lti.core.linalg import sym
 
 _VALUE_CHECKS_ENABLED = True
 
@@ -150,3 +153,69 @@ def parse_learn(learn: Iterable[str] | str, allowed: Sequence[str]) -> tuple[str
     if any(name not in allowed for name in names):
         raise ValueError(f"learn must name some of {tuple(allowed)}, got {names!r}")
     return names
+
+
+class SDEInputs(NamedTuple):
+    """Validated SDE arguments: F (..., n, n), W = L Qc Lᵀ (..., n, n) or None, B (..., n, p)
+    or None, dt (...) or None, and the broadcast batch shape of all of them."""
+
+    F: Tensor
+    W: Tensor | None
+    B: Tensor | None
+    dt: Tensor | None
+    batch: torch.Size
+
+
+def sde_inputs(
+    F: Tensor,
+    L: Tensor | None,
+    Qc: Tensor | None,
+    dt: Tensor | float | None = None,
+    B: Tensor | None = None,
+) -> SDEInputs:
+    """Validate and convert SDE arguments (common float dtype, F's device); W = L Qc Lᵀ.
+
+    Raises ValueError naming the argument and the shapes for non-square F, mismatched L,
+    Qc, B, non-PSD Qc, NaN/Inf values and negative dt (value checks: see :func:`validation`).
+    """
+    F = as_float_tensor(F, "F")
+    dtype = common_float_dtype(
+        F,
+        L if isinstance(L, Tensor) else None,
+        Qc if isinstance(Qc, Tensor) else None,
+        B if isinstance(B, Tensor) else None,
+    )
+    device = F.device
+    F = as_float_tensor(F, "F", dtype, device)
+    check_matrix(F, "F", square=True)
+    n = F.shape[-1]
+    check_finite(F, "F")
+    named: list[tuple[str, torch.Size]] = [("F", F.shape[:-2])]
+    W = None
+    if L is not None or Qc is not None:
+        if L is None or Qc is None:
+            raise ValueError("L and Qc must be given together")
+        L = as_float_tensor(L, "L", dtype, device)
+        Qc = as_float_tensor(Qc, "Qc", dtype, device)
+        check_matrix(L, "L", rows=n)
+        s = L.shape[-1]
+        if Qc.dim() < 2 or Qc.shape[-2:] != (s, s):
+            raise ValueError(
+                f"Qc must have shape (..., {s}, {s}) to match L {shape_str(L)}, got shape {shape_str(Qc)}"
+            )
+        check_finite(L, "L")
+        check_symmetric_psd(Qc, "Qc")
+        named += [("L", L.shape[:-2]), ("Qc", Qc.shape[:-2])]
+        W = sym(L @ Qc @ L.mT)
+    if B is not None:
+        B = as_float_tensor(B, "B", dtype, device)
+        check_matrix(B, "B", rows=n)
+        check_finite(B, "B")
+        named.append(("B", B.shape[:-2]))
+    dt_t = None
+    if dt is not None:
+        dt_t = as_float_tensor(dt, "dt", dtype, device)
+        check_nonnegative(dt_t, "dt")
+        named.append(("dt", dt_t.shape))
+    return SDEInputs(F, W, B, dt_t, broadcast_batch(named))
+

@@ -12,9 +12,9 @@ others are buffers. Both move with ``.to()`` and are saved in ``state_dict`` (un
 ``parametrizations.<name>.original``).
 
 - Qc is always symmetric positive definite: ``C Cᵀ`` with a Cholesky factor C whose
-  diagonal is ``softplus + floor`` (:class:`~torchsde_lti.parametrizations.PositiveDefinite`).
+  diagonal is ``softplus + floor`` (:class:`~torchsde_lti.nn.parametrizations.PositiveDefinite`).
 - ``F_constraint="hurwitz"`` keeps F Hurwitz-stable for any raw values through
-  ``F = (J − R) P⁻¹`` (:class:`~torchsde_lti.parametrizations.Hurwitz`; covers every Hurwitz
+  ``F = (J − R) P⁻¹`` (:class:`~torchsde_lti.nn.parametrizations.Hurwitz`; covers every Hurwitz
   matrix). Any parametrisation module can be passed instead, e.g.
   ``IntegratorChain(order=2, dim=2, drag="hurwitz")`` to learn only the drag block of
   exact integrator chains.
@@ -36,7 +36,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from torchsde_lti._validation import (
+from torchsde_lti.core.validation import (
     as_float_tensor,
     broadcast_batch,
     check_finite,
@@ -45,13 +45,17 @@ from torchsde_lti._validation import (
     parse_learn,
     shape_str,
 )
-from torchsde_lti.discretization import Discrete, discretize, propagate, transition_matrix
-from torchsde_lti.parametrizations import Hurwitz, IntegratorChain, PositiveDefinite, _Parametrization
-from torchsde_lti.stationary import stationary_covariance
+from torchsde_lti.core.discretization import Discrete, discretize, resolve_method
+from torchsde_lti.core.moments import propagate
+from torchsde_lti.core.stationary import stationary_covariance
+from torchsde_lti.nn.layers import Transition
+from torchsde_lti.nn.parametrizations import Hurwitz, IntegratorChain, Positive, PositiveDefinite, Unconstrained
 
-__all__ = ["LTISDE", "SDEMatrices", "Unconstrained"]
+__all__ = ["LTISDE", "SDEMatrices", "StructuredSDE"]
 
 MATRIX_NAMES = ("F", "L", "Qc", "B")
+
+Scalar = float | Tensor
 
 
 class SDEMatrices(NamedTuple):
@@ -66,30 +70,6 @@ class SDEMatrices(NamedTuple):
     B: Tensor | None
 
 
-class Unconstrained(_Parametrization):
-    """Identity parametrisation: ``value = raw``.
-
-    Registered on unconstrained matrices so that ``sde.L = X`` works for Parameters and
-    buffers alike (in place, casting X to the raw dtype/device, checking its shape).
-    """
-
-    def __init__(self, name: str = "value", shape_tail: tuple[int, int] | None = None) -> None:
-        super().__init__()
-        self.name = name
-        self.shape_tail = shape_tail
-
-    def forward(self, raw: Tensor) -> Tensor:
-        return raw
-
-    def right_inverse(self, value: object) -> Tensor:
-        x = self._as_raw_tensor(value, self.name)
-        if self.shape_tail is not None:
-            check_matrix(x, self.name, rows=self.shape_tail[0], cols=self.shape_tail[1])
-        check_finite(x, self.name)
-        return x.clone()
-
-
-
 class LTISDE(nn.Module):
     r"""Linear time-invariant SDE ``dx = F x dt + B u dt + L dβ``, ``E[dβ dβᵀ] = Qc dt``.
 
@@ -101,9 +81,11 @@ class LTISDE(nn.Module):
         learn: names among ``("F", "L", "Qc", "B")`` stored as ``nn.Parameter``; the rest
             are buffers.
         F_constraint: ``None`` (free F), ``"hurwitz"`` (every eigenvalue in the open left
-            half-plane, see :class:`~torchsde_lti.parametrizations.Hurwitz`) or a
+            half-plane, see :class:`~torchsde_lti.nn.parametrizations.Hurwitz`) or a
             parametrisation module with ``forward``/``right_inverse`` (e.g.
-            :class:`~torchsde_lti.parametrizations.IntegratorChain`).
+            :class:`~torchsde_lti.nn.parametrizations.IntegratorChain`).
+        method: default discretisation method, ``"doubling"`` (robust, default) or
+            ``"matrix_exp"`` (torch.matrix_exp of Van Loan's block); see :attr:`method`.
 
     Leading (batch) dimensions of the matrices may differ and broadcast (e.g. 16 different
     F's with one shared Qc); ``batch_shape`` is their broadcast.
@@ -124,8 +106,10 @@ class LTISDE(nn.Module):
         *,
         learn: Iterable[str] | str = ("F", "Qc"),
         F_constraint: str | nn.Module | None = None,
+        method: str = "doubling",
     ) -> None:
         super().__init__()
+        self.method = method
         names = parse_learn(learn, MATRIX_NAMES)
         if B is None and "B" in names:
             raise ValueError("learn contains 'B' but B is None")
@@ -181,6 +165,19 @@ class LTISDE(nn.Module):
                 self.register_buffer(name, value)
             parametrize.register_parametrization(self, name, params[name].to(dtype=value.dtype, device=value.device))
 
+    # ------------------------------------------------------------------ method
+    _method: str = "doubling"
+
+    @property
+    def method(self) -> str:
+        """Default discretisation method of :meth:`forward` and :meth:`propagate`:
+        ``"doubling"`` or ``"matrix_exp"`` (assignable; ``"van_loan"`` is an alias)."""
+        return self._method
+
+    @method.setter
+    def method(self, value: str) -> None:
+        self._method = resolve_method(value)
+
     # ------------------------------------------------------------------ matrices
     def matrices(self) -> SDEMatrices:
         """All four matrices, each parametrisation evaluated once."""
@@ -223,12 +220,13 @@ class LTISDE(nn.Module):
         return self._shapes().F.device
 
     # ------------------------------------------------------------------ computations
-    def forward(self, dt: Tensor | float, method: str = "doubling", *, series: bool = False) -> Discrete:
-        """Exact discretisation ``Discrete(A, Q, G)`` over steps ``dt`` (see :func:`tl.discretize`).
+    def forward(self, dt: Tensor | float, method: str | None = None, *, series: bool = False) -> Discrete:
+        """Exact discretisation ``Discrete(A, Q, G)`` over steps ``dt`` (see :func:`tl.discretize`):
+        A, Q (and G) in ONE joint evaluation.
 
         Args:
             dt: (...) step lengths; broadcasts right-aligned against ``batch_shape``.
-            method: ``"doubling"`` or ``"van_loan"``.
+            method: ``"doubling"`` or ``"matrix_exp"``; default :attr:`method`.
             series: if True, ``dt`` is a time series (..., T) whose leading dims align with
                 ``batch_shape`` (a length-1 time axis is inserted into the matrices), e.g.
                 16 models with dt (16, T) give A (16, T, n, n).
@@ -237,11 +235,11 @@ class LTISDE(nn.Module):
             A (..., n, n), Q (..., n, n), G (..., n, p) or None.
         """
         m = self._aligned(series)
-        return discretize(m.F, m.L, m.Qc, dt, B=m.B, method=method)
+        return discretize(m.F, m.L, m.Qc, dt, B=m.B, method=method or self.method)
 
     def transition_matrix(self, dt: Tensor | float, *, series: bool = False) -> Tensor:
-        """A = expm(F dt), (..., n, n)."""
-        return transition_matrix(self._aligned(series).F, dt)
+        """A = expm(F dt), (..., n, n), through the :class:`~torchsde_lti.Transition` layer."""
+        return Transition(self.method)(self._aligned(series).F, dt)
 
     def stationary_covariance(self) -> Tensor:
         """P∞ (..., n, n) solving F P∞ + P∞ Fᵀ + L Qc Lᵀ = 0 (ValueError if F is not Hurwitz)."""
@@ -254,11 +252,11 @@ class LTISDE(nn.Module):
         P0: Tensor,
         dt: Tensor | float,
         u: Tensor | None = None,
-        method: str = "doubling",
+        method: str | None = None,
     ) -> tuple[Tensor, Tensor]:
         """Moments after horizon dt: ``m = A m0 + G u`` (..., n), ``P = A P0 Aᵀ + Q`` (..., n, n)."""
         m = self.matrices()
-        return propagate(m0, P0, m.F, m.L, m.Qc, dt, B=m.B, u=u, method=method)
+        return propagate(m0, P0, m.F, m.L, m.Qc, dt, B=m.B, u=u, method=method or self.method)
 
     def _aligned(self, series: bool) -> SDEMatrices:
         m = self.matrices()
@@ -280,6 +278,7 @@ class LTISDE(nn.Module):
             None if m.B is None else m.B.detach(),
             learn=learn,
             F_constraint=F_constraint,
+            method=self.method,
         )
         if free.position_indices is None and self.position_indices is not None:
             free.position_indices = tuple(self.position_indices)
@@ -291,3 +290,83 @@ class LTISDE(nn.Module):
         if m.B is not None:
             parts.append(f"B: {shape_str(m.B)}")
         return ", ".join(parts)
+
+
+class StructuredSDE(LTISDE):
+    """An :class:`LTISDE` whose matrices are derived from named scalar parameters.
+
+    Subclasses call :meth:`_init_structure` and implement :meth:`_build`. Positive scalars
+    are registered with :class:`~torchsde_lti.nn.parametrizations.Positive`; free ones as plain
+    parameters. Constant structure matrices are non-persistent buffers (they follow
+    ``.to()`` but are not in ``state_dict``).
+    """
+
+    def __init__(self) -> None:  # noqa: D107 — LTISDE.__init__ (free matrices) is bypassed on purpose
+        nn.Module.__init__(self)
+
+    def _add_positive(self, name: str, value: Scalar, dtype: torch.dtype, device: torch.device | None) -> None:
+        v = as_float_tensor(value, name, dtype, device).detach().clone()
+        check_finite(v, name)
+        if bool((v <= 0).any()):
+            raise ValueError(f"{name} must be positive, got min {float(v.min()):.3g} (shape {shape_str(v)})")
+        self.register_parameter(name, nn.Parameter(v))
+        parametrize.register_parametrization(self, name, Positive(name=name).to(dtype=v.dtype, device=v.device))
+
+    def _check_scalars(self, names: Sequence[str]) -> None:
+        """ValueError naming the scalars whose batch shapes do not broadcast."""
+        with torch.no_grad():
+            broadcast_batch([(n, getattr(self, n).shape) for n in names])
+
+    def _build(self) -> SDEMatrices:
+        raise NotImplementedError
+
+    def matrices(self) -> SDEMatrices:
+        with parametrize.cached():
+            return self._build()
+
+    def _read_only(self, name: str) -> None:
+        params = [n.replace("parametrizations.", "").replace(".original", "") for n, _ in self.named_parameters()]
+        cls = type(self).__name__.removeprefix("Parametrized")
+        raise AttributeError(
+            f"{name} of {cls} is derived from its parameters ({', '.join(params)}); "
+            "set those, or use .to_free() for free matrices"
+        )
+
+    @property
+    def F(self) -> Tensor:  # type: ignore[override]
+        return self.matrices().F
+
+    @F.setter
+    def F(self, value: Tensor) -> None:
+        self._read_only("F")
+
+    @property
+    def L(self) -> Tensor:  # type: ignore[override]
+        return self.matrices().L
+
+    @L.setter
+    def L(self, value: Tensor) -> None:
+        self._read_only("L")
+
+    @property
+    def Qc(self) -> Tensor:  # type: ignore[override]
+        return self.matrices().Qc
+
+    @Qc.setter
+    def Qc(self, value: Tensor) -> None:
+        self._read_only("Qc")
+
+    @property
+    def B(self) -> Tensor | None:  # type: ignore[override]
+        return self.matrices().B
+
+    @B.setter
+    def B(self, value: Tensor) -> None:
+        self._read_only("B")
+
+    def _scalar_repr(self, names: Sequence[str]) -> str:
+        out = []
+        for n in names:
+            v = getattr(self, n).detach()
+            out.append(f"{n}={float(v):.4g}" if v.numel() == 1 else f"{n}: {shape_str(v)}")
+        return ", ".join(out)

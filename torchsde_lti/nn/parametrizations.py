@@ -32,7 +32,7 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
-from torchsde_lti._validation import as_float_tensor, check_finite, check_matrix, shape_str
+from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, shape_str
 
 __all__ = [
     "Hurwitz",
@@ -184,7 +184,7 @@ class PositiveDefinite(_Parametrization):
 
 def _lyapunov_identity(F: Tensor) -> Tensor:
     """P ≻ 0 solving F P + P Fᵀ + 2 I = 0 (ValueError if F is not Hurwitz)."""
-    from torchsde_lti.stationary import stationary_covariance  # lazy: core module
+    from torchsde_lti.core.stationary import stationary_covariance
 
     n = F.shape[-1]
     eye = torch.eye(n, dtype=F.dtype, device=F.device)
@@ -343,3 +343,26 @@ class IntegratorChain(_Parametrization):
 
     def extra_repr(self) -> str:
         return f"order={self.order}, dim={self.dim}, drag={self.drag!r}"
+
+
+class Unconstrained(_Parametrization):
+    """Identity parametrisation: ``value = raw``.
+
+    Registered on unconstrained matrices so that ``sde.L = X`` works for Parameters and
+    buffers alike (in place, casting X to the raw dtype/device, checking its shape).
+    """
+
+    def __init__(self, name: str = "value", shape_tail: tuple[int, int] | None = None) -> None:
+        super().__init__()
+        self.name = name
+        self.shape_tail = shape_tail
+
+    def forward(self, raw: Tensor) -> Tensor:
+        return raw
+
+    def right_inverse(self, value: object) -> Tensor:
+        x = self._as_raw_tensor(value, self.name)
+        if self.shape_tail is not None:
+            check_matrix(x, self.name, rows=self.shape_tail[0], cols=self.shape_tail[1])
+        check_finite(x, self.name)
+        return x.clone()

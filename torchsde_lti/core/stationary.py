@@ -5,8 +5,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchsde_lti._validation import value_checks_enabled
-from torchsde_lti.discretization import _prepare
+from torchsde_lti.core.linalg import sym
+from torchsde_lti.core.validation import sde_inputs, value_checks_enabled
+
+__all__ = ["stationary_covariance"]
 
 
 def stationary_covariance(F: Tensor, L: Tensor, Qc: Tensor) -> Tensor:
@@ -26,7 +28,7 @@ def stationary_covariance(F: Tensor, L: Tensor, Qc: Tensor) -> Tensor:
     Raises:
         ValueError: when F is not Hurwitz (naming its rightmost eigenvalue).
     """
-    inputs = _prepare(F, L, Qc, 0.0, None)
+    inputs = sde_inputs(F, L, Qc)
     F, W = inputs.F, inputs.W
     assert W is not None
     n = F.shape[-1]
@@ -47,4 +49,4 @@ def stationary_covariance(F: Tensor, L: Tensor, Qc: Tensor) -> Tensor:
     system = system.reshape(*batch, n * n, n * n)
     rhs = -W.expand(*batch, n, n).reshape(*batch, n * n, 1)
     P = torch.linalg.solve(system, rhs).reshape(*batch, n, n)
-    return 0.5 * (P + P.mT)
+    return sym(P)

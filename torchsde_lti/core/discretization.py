@@ -1,0 +1,213 @@
+r"""Exact discretisation of LTI SDEs ``dx = F x dt + B u dt + L dβ`` (spectral density Qc).
+
+Over a step dt with u held constant (zero-order hold)::
+
+    x_{k+1} = A x_k + G u_k + q_k,        q_k ~ N(0, Q)
+    A = expm(F dt),   G = ∫_0^dt expm(F s) ds B,   Q = ∫_0^dt expm(F s) W expm(F s)ᵀ ds,
+    W = L Qc Lᵀ.
+
+Two methods, selectable in every function (and in the layers, ``LTISDE``, ``KalmanFilter``
+and the Hydra configs that sit on top):
+
+``"doubling"`` (default): scaling and doubling on Taylor series, every doubling step adds
+PSD terms (private module ``_doubling``). Accurate to rounding and PSD for stiff F and
+large dt, in float32 too; F, L, Qc, B shared by a batch of dt are expanded once.
+
+``"matrix_exp"`` (alias ``"van_loan"``): :func:`torch.matrix_exp` — A = expm(F dt), G from
+the ZOH block ``[[F, B], [0, 0]]``, Q from Van Loan's block exponential (private module
+``_matrix_exp``). Exact in exact arithmetic; the ``−Fᵀ`` block grows like ``e^{|λ| dt}``,
+so Q loses accuracy for stiff F or large dt.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchsde_lti.core._doubling import doubling
+from torchsde_lti.core._matrix_exp import matrix_exp
+from torchsde_lti.core.validation import SDEInputs, sde_inputs
+
+__all__ = [
+    "METHODS",
+    "Discrete",
+    "discretize",
+    "discretize_series",
+    "process_noise",
+    "resolve_method",
+    "transition_matrix",
+    "zero_order_hold",
+]
+
+#: Discretisation methods; ``"van_loan"`` is an alias of ``"matrix_exp"``.
+METHODS = ("doubling", "matrix_exp", "van_loan")
+
+
+class Discrete(NamedTuple):
+    """Exact discrete-time model over a step: ``x' = A x + G u + q``, ``q ~ N(0, Q)``.
+
+    A: (..., n, n) transition matrix expm(F dt).
+    Q: (..., n, n) process-noise covariance (symmetric PSD).
+    G: (..., n, p) zero-order-hold input matrix, or None when the SDE has no input.
+    """
+
+    A: Tensor
+    Q: Tensor
+    G: Tensor | None
+
+
+def resolve_method(method: str) -> str:
+    """Canonical method name (``"doubling"`` or ``"matrix_exp"``); ValueError for others."""
+    if method == "van_loan":
+        return "matrix_exp"
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    return method
+
+
+def _run(inputs: SDEInputs, method: str, batch_last: bool = False) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    assert inputs.dt is not None
+    if resolve_method(method) == "doubling":
+        return doubling(inputs.F, inputs.W, inputs.B, inputs.dt, inputs.batch, batch_last=batch_last)
+    return matrix_exp(inputs.F, inputs.W, inputs.B, inputs.dt, inputs.batch)
+
+
+def discretize(
+    F: Tensor,
+    L: Tensor,
+    Qc: Tensor,
+    dt: Tensor | float,
+    B: Tensor | None = None,
+    method: str = "doubling",
+) -> Discrete:
+    r"""Exact discretisation (A, Q, G) of ``dx = F x dt + B u dt + L dβ`` over steps dt.
+
+    Args:
+        F: (..., n, n) drift matrix.
+        L: (..., n, s) noise-input matrix.
+        Qc: (..., s, s) spectral density of β (symmetric PSD).
+        dt: (...) non-negative step lengths; a Python float is a scalar.
+        B: optional (..., n, p) input matrix; u is held constant over each step.
+        method: ``"doubling"`` (default; accurate and PSD for stiff F and large dt) or
+            ``"matrix_exp"`` (torch.matrix_exp of Van Loan's block; alias ``"van_loan"``).
+
+    All leading dimensions broadcast (numpy rules, right-aligned): F (n, n) with dt (B, T)
+    gives (B, T, n, n); F (B, 1, n, n) with dt (B, T) gives (B, T, n, n).
+
+    Returns:
+        :class:`Discrete` with A (..., n, n), Q (..., n, n) symmetric PSD and
+        G (..., n, p) or None. Differentiable with respect to F, L, Qc, B and dt.
+    """
+    A, Q, G = _run(sde_inputs(F, L, Qc, dt, B), method)
+    assert Q is not None
+    return Discrete(A, Q, G)
+
+
+def discretize_series(
+    F: Tensor,
+    L: Tensor,
+    Qc: Tensor,
+    dt: Tensor,
+    B: Tensor | None = None,
+    method: str = "doubling",
+    unique: bool = False,
+) -> Discrete:
+    """:func:`discretize` of a time series dt (..., T), laid out for a filter's time loop.
+
+    Same values as ``discretize(F, L, Qc, dt, B, method)``. With the doubling method and ONE
+    parameter set (all batch dims of F, L, Qc, B of size 1) the results are batch-first
+    VIEWS (..., T, n, n) of batch-last storage (n, n, T, ...): step k's matrices
+    ``A[..., k, :, :]`` permuted to (n, n, ...) are rows of contiguous batch, the layout of
+    the filter loop. Otherwise the plain batch-first result is returned.
+
+    ``unique=True`` discretises the distinct values of dt only (``torch.unique``) and gathers
+    them (same values and gradients w.r.t. the parameters); it applies to one parameter set
+    and a dt that does not require grad, and otherwise falls back to the plain path. It
+    pays off for quantised gaps and models that need doubling.
+    """
+    inputs = sde_inputs(F, L, Qc, dt, B)
+    dt_t = inputs.dt
+    assert dt_t is not None
+    params = [inputs.F.shape[:-2]] + [x.shape[:-2] for x in (inputs.W, inputs.B) if x is not None]
+    single = all(torch.Size(s).numel() == 1 for s in params)
+    if resolve_method(method) != "doubling" or len(inputs.batch) == 0 or not single:
+        A, Q, G = _run(inputs, method)
+        assert Q is not None
+        return Discrete(A, Q, G)
+    if unique and not dt_t.requires_grad:
+        return _discretize_unique(inputs)
+    batch = inputs.batch
+    lead = batch[:-1]
+    dt_tm = dt_t.expand(batch).movedim(-1, 0)  # (T, *lead)
+    A, Q, G = doubling(inputs.F, inputs.W, inputs.B, dt_tm, dt_tm.shape, batch_last=True)
+    assert Q is not None
+    perm = [*range(3, 3 + len(lead)), 2, 0, 1]  # (r, c, T, *lead) -> (*lead, T, r, c)
+    return Discrete(A.permute(perm), Q.permute(perm), None if G is None else G.permute(perm))
+
+
+def _discretize_unique(inputs: SDEInputs) -> Discrete:
+    """Doubling on the distinct gaps only, gathered into the series layout of
+    :func:`discretize_series` (batch-first views of (r, c, T, *lead) storage)."""
+    dt = inputs.dt
+    assert dt is not None
+    dt = dt.expand(inputs.batch)
+    values, inverse = torch.unique(dt, return_inverse=True)
+    A, Q, G = doubling(inputs.F, inputs.W, inputs.B, values, values.shape, batch_last=True)  # (r, c, U)
+    lead, T = dt.shape[:-1], dt.shape[-1]
+    idx = inverse.movedim(-1, 0).reshape(-1)  # time-major
+
+    def gather(x: Tensor) -> Tensor:
+        store = x.index_select(-1, idx).reshape(*x.shape[:2], T, *lead)  # (r, c, T, *lead)
+        return store.permute(*range(3, 3 + len(lead)), 2, 0, 1)  # (*lead, T, r, c)
+
+    assert Q is not None
+    return Discrete(gather(A), gather(Q), None if G is None else gather(G))
+
+
+def transition_matrix(F: Tensor, dt: Tensor | float, method: str = "doubling") -> Tensor:
+    """A = expm(F dt).
+
+    Args:
+        F: (..., n, n) drift matrix.
+        dt: (...) non-negative step lengths.
+        method: ``"doubling"`` or ``"matrix_exp"`` (:func:`torch.matrix_exp` of F dt).
+
+    Returns:
+        (..., n, n), batch broadcast from F and dt.
+    """
+    A, _, _ = _run(sde_inputs(F, None, None, dt, None), method)
+    return A
+
+
+def zero_order_hold(F: Tensor, B: Tensor, dt: Tensor | float, method: str = "doubling") -> tuple[Tensor, Tensor]:
+    """(A, G) with A = expm(F dt) and G = ∫_0^dt expm(F s) ds B.
+
+    Equivalent to the blocks of expm([[F, B], [0, 0]] dt) = [[A, G], [0, I]] (which is what
+    ``method="matrix_exp"`` evaluates).
+
+    Args:
+        F: (..., n, n); B: (..., n, p); dt: (...).
+
+    Returns:
+        A (..., n, n), G (..., n, p).
+    """
+    A, _, G = _run(sde_inputs(F, None, None, dt, B), method)
+    assert G is not None
+    return A, G
+
+
+def process_noise(
+    F: Tensor, L: Tensor, Qc: Tensor, dt: Tensor | float, method: str = "doubling"
+) -> Tensor:
+    """Q = ∫_0^dt expm(F s) L Qc Lᵀ expm(F s)ᵀ ds, the discrete process-noise covariance.
+
+    Args:
+        F: (..., n, n); L: (..., n, s); Qc: (..., s, s) symmetric PSD; dt: (...).
+        method: as in :func:`discretize`.
+
+    Returns:
+        (..., n, n) symmetric PSD.
+    """
+    return discretize(F, L, Qc, dt, method=method).Q

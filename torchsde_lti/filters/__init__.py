@@ -1,0 +1,33 @@
+r"""Functional Kalman filtering and RTS smoothing on per-step discrete matrices.
+
+Inference is kept apart from models (as in dynamax): these are pure functions of the
+discrete-time state-space model
+
+    x_k = A_k x_{k-1} + G_k u_k + q_k,    q_k ~ N(0, Q_k),     x_{-1} ~ N(m0, P0)
+    y_k = H_k x_k + r_k,                  r_k ~ N(0, R_k),     k = 0 … T-1
+
+(the prior sits *before* step 0: step k first predicts with A_k, Q_k, then updates with
+y_k; pass A_0 = I, Q_0 = 0 to put the prior at the first observation).
+:class:`torchsde_lti.KalmanFilter` builds (A_k, Q_k, G_k) from an SDE and calls them.
+Shapes and missing-data rules: :mod:`torchsde_lti.filters.inputs`.
+
+- :func:`kalman_filter` (``sequential``): Joseph-form loop, or ``square_root=True``
+  (``square_root``: QR predict, Givens update, PSD by construction);
+- :func:`parallel_kalman_filter` (``parallel``): associative scan, O(log T) depth;
+- :func:`rts_smoother`, :func:`parallel_rts_smoother` (``smoothers``).
+"""
+
+from torchsde_lti.filters.parallel import associative_scan, parallel_kalman_filter
+from torchsde_lti.filters.results import FilterResult, SmootherResult
+from torchsde_lti.filters.sequential import kalman_filter
+from torchsde_lti.filters.smoothers import parallel_rts_smoother, rts_smoother
+
+__all__ = [
+    "FilterResult",
+    "SmootherResult",
+    "associative_scan",
+    "kalman_filter",
+    "parallel_kalman_filter",
+    "parallel_rts_smoother",
+    "rts_smoother",
+]

@@ -1,0 +1,316 @@
+r"""Input preparation shared by the sequential, square-root and parallel filters.
+
+Conventions of every filter in :mod:`torchsde_lti.filters` (batch dims ``...`` lead and
+broadcast, numpy rules, right-aligned)::
+
+    y (..., T, m)   A, Q (..., T, n, n)   H (..., T, m, n)   R (..., T, m, m)
+    m0 (..., n)     P0 (..., n, n)        G (..., T, n, p)   u (..., T, p)
+    mask (..., T) or (..., T, m) bool (True = observed)
+
+Per-step arrays may omit or size-1 the T axis (a constant ``H (m, n)`` is fine); a
+per-batch constant matrix needs its T axis as 1, e.g. ``A (B, 1, n, n)``.
+
+Three stages: argument checks (shapes always; values while value checks are on), masking
+(a NaN in y or mask False = not observed: y is sanitised with ``where(observed, y, 0)``,
+unobserved components get a zero row in H and a decoupled unit variance in R, so every
+step keeps static shapes and the log-likelihood counts observed components only), and
+whitening with the Cholesky factor of the masked R (R' = I).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchsde_lti.core.linalg import cholesky, matvec, solve_lower, sym
+from torchsde_lti.core.validation import (
+    as_float_tensor,
+    broadcast_batch,
+    check_finite,
+    check_matrix,
+    check_symmetric_psd,
+    common_float_dtype,
+    shape_str,
+    value_checks_enabled,
+)
+from torchsde_lti.filters.results import FilterResult
+
+__all__ = ["LOG_2PI", "PreparedInputs", "assemble_result", "mask_observation_model", "observed_components", "pad_dims", "prepare_inputs", "whiten"]
+
+LOG_2PI = math.log(2.0 * math.pi)
+
+
+class PreparedInputs(NamedTuple):
+    """Checked, masked, whitened and broadcast filter inputs (cb: covariance batch, mb: mean batch)."""
+
+    A: Tensor  # (*cb, T, n, n) broadcast view; cb has len(mean batch) dims
+    Q: Tensor  # (*cb, T, n, n)
+    Hw: Tensor  # (..., T or 1, m, n) whitened, masked observation matrix (broadcastable to cb)
+    yw: Tensor  # (*mb, T, m) whitened, sanitised observations
+    c: Tensor | None  # (*mb, T, n) control term G u
+    m0: Tensor  # (*mb, n)
+    P0: Tensor  # (*cb, n, n)
+    H: Tensor  # (..., T or 1, m, n) unwhitened (for innovations), broadcastable to (*cb, T, m, n)
+    R: Tensor  # (..., T or 1, m, m) unmasked (for innovation covariances)
+    y0: Tensor  # (*mb, T, m) sanitised y
+    obs: Tensor | None  # (*ob, T, m) bool, None when all observed
+    log_det_chol_R: Tensor  # (*cb, T) Σ log diag of the whitening factor (observed part)
+    mean_batch: torch.Size
+    T: int
+
+
+class _Checked(NamedTuple):
+    y: Tensor
+    A: Tensor
+    Q: Tensor
+    H: Tensor
+    R: Tensor
+    m0: Tensor
+    P0: Tensor
+    c: Tensor | None  # (..., T, n) control term G u
+    obs_given: Tensor | None  # (..., T, 1 or m) bool mask
+    T: int
+    m: int
+    n: int
+    dtype: torch.dtype
+    device: torch.device
+
+
+def pad_dims(x: Tensor, ndim: int) -> Tensor:
+    """Prepend size-1 dims so that x has ``ndim`` dims."""
+    return x.reshape((1,) * (ndim - x.dim()) + tuple(x.shape)) if x.dim() < ndim else x
+
+
+def _check_arguments(
+    y: Tensor,
+    A: Tensor,
+    Q: Tensor,
+    H: Tensor,
+    R: Tensor,
+    m0: Tensor,
+    P0: Tensor,
+    G: Tensor | None,
+    u: Tensor | None,
+    mask: Tensor | None,
+) -> _Checked:
+    """Shapes (and, with value checks on, values) of every argument; c = G u."""
+    dtype = common_float_dtype(*(t for t in (y, A, Q, H, R, m0, P0, G, u) if isinstance(t, Tensor)))
+    device = next(t.device for t in (y, A, Q, H, R, m0, P0) if isinstance(t, Tensor))
+    y = as_float_tensor(y, "y", dtype, device)
+    A = as_float_tensor(A, "A", dtype, device)
+    Q = as_float_tensor(Q, "Q", dtype, device)
+    H = as_float_tensor(H, "H", dtype, device)
+    R = as_float_tensor(R, "R", dtype, device)
+    m0 = as_float_tensor(m0, "m0", dtype, device)
+    P0 = as_float_tensor(P0, "P0", dtype, device)
+
+    if y.dim() < 2:
+        raise ValueError(f"y must have shape (..., T, m), got shape {shape_str(y)}")
+    T, m = y.shape[-2], y.shape[-1]
+    if T < 1 or m < 1:
+        raise ValueError(f"y must have at least one step and one component, got shape {shape_str(y)}")
+    check_matrix(A, "A", square=True)
+    n = A.shape[-1]
+    check_matrix(Q, "Q", rows=n, cols=n)
+    check_matrix(H, "H")
+    if H.shape[-2] != m:
+        raise ValueError(
+            f"y has {m} components (shape {shape_str(y)}) but H has {H.shape[-2]} rows (shape {shape_str(H)})"
+        )
+    if H.shape[-1] != n:
+        raise ValueError(f"H must have {n} columns to match A {shape_str(A)}, got shape {shape_str(H)}")
+    check_matrix(R, "R", rows=m, cols=m)
+    if m0.dim() < 1 or m0.shape[-1] != n:
+        raise ValueError(f"m0 must have shape (..., {n}), got shape {shape_str(m0)}")
+    check_matrix(P0, "P0", rows=n, cols=n)
+    if (G is None) != (u is None):
+        raise ValueError(
+            "G and u must be given together, got "
+            f"G={'None' if G is None else shape_str(G)}, u={'None' if u is None else shape_str(torch.as_tensor(u))}"
+        )
+    c = None
+    if G is not None and u is not None:
+        G = as_float_tensor(G, "G", dtype, device)
+        u = as_float_tensor(u, "u", dtype, device)
+        check_matrix(G, "G", rows=n)
+        p = G.shape[-1]
+        if u.dim() < 2 or u.shape[-1] != p:
+            raise ValueError(f"u must have shape (..., T, {p}) to match G {shape_str(G)}, got shape {shape_str(u)}")
+        check_finite(u, "u")
+        c = matvec(G, u)  # (..., T, n)
+    obs_given = None
+    if mask is not None:
+        mask = torch.as_tensor(mask, device=device)
+        if mask.dtype != torch.bool:
+            raise ValueError(f"mask must be a bool tensor, got dtype {mask.dtype}")
+        per_component = mask.dim() >= 2 and mask.shape[-2] == T and mask.shape[-1] == m
+        if not per_component and mask.dim() >= 1 and mask.shape[-1] == T:
+            mask = mask.unsqueeze(-1)  # (..., T) -> (..., T, 1)
+        if mask.dim() < 2 or mask.shape[-2] != T or mask.shape[-1] not in (1, m):
+            raise ValueError(f"mask must have shape (..., {T}) or (..., {T}, {m}), got shape {shape_str(mask)}")
+        obs_given = mask
+
+    # Per-step arrays: check their T axis.
+    for name, x, k in (("A", A, 3), ("Q", Q, 3), ("H", H, 3), ("R", R, 3)):
+        if x.dim() >= k and x.shape[-k] not in (1, T):
+            raise ValueError(
+                f"{name} has {x.shape[-k]} steps on its time axis (shape {shape_str(x)}) but y has T={T} "
+                f"(shape {shape_str(y)}); give a per-batch constant as (..., 1, r, c)"
+            )
+    if c is not None and c.shape[-2] not in (1, T):
+        raise ValueError(f"u has {c.shape[-2]} steps but y has T={T}")
+
+    if value_checks_enabled():
+        check_finite(A, "A")
+        check_finite(H, "H")
+        check_finite(m0, "m0")
+        check_symmetric_psd(Q, "Q")
+        check_symmetric_psd(R, "R")
+        check_symmetric_psd(P0, "P0")
+        if bool((torch.linalg.cholesky_ex(R).info != 0).any()):
+            raise ValueError(f"R must be positive definite (Cholesky failed; shape {shape_str(R)})")
+    return _Checked(y, A, Q, H, R, m0, P0, c, obs_given, T, m, n, dtype, device)
+
+
+def observed_components(y: Tensor, mask: Tensor | None) -> tuple[Tensor | None, Tensor]:
+    """(obs, y0): the observed components (NaN in y or mask False = missing; None when all
+    are observed) and y with every missing entry replaced by 0, so no NaN reaches any
+    arithmetic or gradient. y (..., T, m); mask (..., T, 1 or m) bool or None."""
+    # Observed components: NaN in y or mask False.
+    nan = torch.isnan(y)
+    obs: Tensor | None = None
+    if bool(nan.any()):
+        obs = ~nan
+    if mask is not None:
+        obs = mask if obs is None else (obs & mask)
+    y0 = y if obs is None else torch.where(obs, y, torch.zeros((), dtype=y.dtype, device=y.device))
+    return obs, y0
+
+
+def mask_observation_model(H: Tensor, R: Tensor, obs: Tensor | None) -> tuple[Tensor, Tensor]:
+    """(Hm, Rm): unobserved components get a zero row in H and a decoupled unit variance in R,
+    so every step keeps static shapes. H (..., T or 1, m, n), R (..., T or 1, m, m), obs
+    (..., T, m) bool padded to H's number of dims, or None."""
+    if obs is None:
+        return H, R
+    m = R.shape[-1]
+    o = obs.to(H.dtype)
+    o = o.expand(*o.shape[:-1], m)
+    eye_m = torch.eye(m, dtype=H.dtype, device=H.device)
+    Hm = H * o.unsqueeze(-1)
+    Rm = R * (o.unsqueeze(-1) * o.unsqueeze(-2)) + torch.diag_embed(1.0 - o) * eye_m
+    return Hm, Rm
+
+
+def whiten(H: Tensor, R: Tensor, y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(H', y', Σ log diag L) with L Lᵀ = R, H' = L⁻¹ H, y' = L⁻¹ y: the whitened model has
+    R' = I. H (..., m, n), R (..., m, m) symmetric PD, y (..., m)."""
+    LR = cholesky(R)
+    Hw = solve_lower(LR, H)
+    yw = solve_lower(LR, y.unsqueeze(-1)).squeeze(-1)
+    return Hw, yw, torch.log(torch.diagonal(LR, dim1=-2, dim2=-1)).sum(-1)
+
+
+def prepare_inputs(
+    y: Tensor,
+    A: Tensor,
+    Q: Tensor,
+    H: Tensor,
+    R: Tensor,
+    m0: Tensor,
+    P0: Tensor,
+    G: Tensor | None,
+    u: Tensor | None,
+    mask: Tensor | None,
+) -> PreparedInputs:
+    """Check, mask, broadcast and whiten the filter arguments (shapes: :mod:`torchsde_lti.filters`).
+
+    The covariance path's batch excludes y (and u) unless data are missing, so with a shared
+    dt grid and no missing data the covariance recursion runs once for all tracks.
+    """
+    args = _check_arguments(y, A, Q, H, R, m0, P0, G, u, mask)
+    y, A, Q, H, R, m0, P0, c = args.y, args.A, args.Q, args.H, args.R, args.m0, args.P0, args.c
+    T, n = args.T, args.n
+    obs, y0 = observed_components(y, args.obs_given)
+
+    # Batch shapes: the covariance path excludes y (and u) unless data are missing.
+    tshape = lambda s: tuple(s)  # noqa: E731
+    cov_named = [
+        ("A", tshape(A.shape[:-2])),
+        ("Q", tshape(Q.shape[:-2])),
+        ("H", tshape(H.shape[:-2])),
+        ("R", tshape(R.shape[:-2])),
+        ("P0", tshape(P0.shape[:-2]) + (1,)),
+        ("T", (T,)),
+    ]
+    if obs is not None:
+        cov_named.append(("mask", tshape(obs.shape[:-1])))
+    cov_bt = broadcast_batch(cov_named)  # (*cb, T)
+    mean_named = cov_named + [("y", tshape(y.shape[:-1])), ("m0", tshape(m0.shape[:-1]) + (1,))]
+    if c is not None:
+        mean_named.append(("u", tshape(c.shape[:-1])))
+    mean_bt = broadcast_batch(mean_named)
+    if mean_bt[-1] != T:
+        raise ValueError(f"time axes do not broadcast to T={T}: {mean_named}")
+    nd = len(mean_bt) - 1
+    cov_bt = torch.Size((1,) * (len(mean_bt) - len(cov_bt)) + tuple(cov_bt))
+    cb = cov_bt[:-1]
+
+    A = pad_dims(A, nd + 3).expand(*cov_bt, n, n)
+    Q = pad_dims(Q, nd + 3).expand(*cov_bt, n, n)
+    # H, R and everything derived from them keep their own (broadcastable) shapes.
+    H = pad_dims(H, nd + 3)
+    R = pad_dims(R, nd + 3)
+    P0 = pad_dims(P0, nd + 2).expand(*cb, n, n)
+    m0 = pad_dims(m0, nd + 1).expand(*mean_bt[:-1], n)
+    y0 = pad_dims(y0, nd + 2)
+    if c is not None:
+        c = pad_dims(c, nd + 2)
+
+    o = None if obs is None else pad_dims(obs, nd + 2)
+    Hw, yw, log_det = whiten(*mask_observation_model(H, R, o), y0)
+    return PreparedInputs(A, Q, Hw, yw, c, m0, P0, H, R, y0, obs, log_det, mean_bt[:-1], T)
+
+
+def assemble_result(
+    prep: PreparedInputs,
+    mean: Tensor,
+    cov: Tensor,
+    pred_mean: Tensor,
+    pred_cov: Tensor,
+    step_ll_core: Tensor,
+    innovation: Tensor | None = None,
+    innovation_cov: Tensor | None = None,
+) -> FilterResult:
+    """Innovations (original space), log-likelihood, broadcast outputs to the full batch."""
+    mb, T = prep.mean_batch, prep.T
+    n, m = mean.shape[-1], prep.yw.shape[-1]
+    if innovation is None or innovation_cov is None:
+        innovation = prep.y0 - matvec(prep.H, pred_mean)
+        innovation_cov = sym(prep.H @ pred_cov @ prep.H.mT + prep.R)
+    if prep.obs is None:
+        n_obs = torch.full((), float(m), dtype=mean.dtype, device=mean.device)
+        observed = torch.ones((*mb, T, m), dtype=torch.bool, device=mean.device)
+    else:
+        o = pad_dims(prep.obs, len(mb) + 2).expand(*mb, T, m)
+        innovation = innovation * o
+        n_obs = o.to(mean.dtype).sum(-1)
+        observed = o
+    step_ll = step_ll_core - 0.5 * n_obs * LOG_2PI - prep.log_det_chol_R
+    step_ll = step_ll.expand(*mb, T)
+    return FilterResult(
+        mean=mean.expand(*mb, T, n),
+        cov=cov.expand(*mb, T, n, n),
+        pred_mean=pred_mean.expand(*mb, T, n),
+        pred_cov=pred_cov.expand(*mb, T, n, n),
+        innovation=innovation.expand(*mb, T, m),
+        innovation_cov=innovation_cov.expand(*mb, T, m, m),
+        log_likelihood=step_ll.sum(-1),
+        step_log_likelihood=step_ll,
+        transition=prep.A,
+        process_noise=prep.Q,
+        observed=observed,
+    )

@@ -1,0 +1,52 @@
+"""Result types of the filters and smoothers (NamedTuples with batch-first fields)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+from torch import Tensor
+
+__all__ = ["FilterResult", "SmootherResult"]
+
+
+class FilterResult(NamedTuple):
+    """Output of :func:`kalman_filter` / :func:`parallel_kalman_filter`.
+
+    mean: (..., T, n) filtered means E[x_k | y_{0:k}].
+    cov: (..., T, n, n) filtered covariances.
+    pred_mean: (..., T, n) one-step predictions E[x_k | y_{0:k-1}].
+    pred_cov: (..., T, n, n) predicted covariances.
+    innovation: (..., T, m) ``y_k − H_k pred_mean_k``; 0 in unobserved components.
+    innovation_cov: (..., T, m, m) ``H_k pred_cov_k H_kᵀ + R_k`` (all components).
+    log_likelihood: (...) Σ_k step_log_likelihood.
+    step_log_likelihood: (..., T) log N(y_k^obs; H^obs pred_mean_k, S_k^obs) over the
+        observed components of y_k (0 for a fully missing step).
+    transition: (..., T, n, n) the A_k used (a broadcast view), kept for smoothing.
+    process_noise: (..., T, n, n) the Q_k used (a broadcast view), kept for smoothing.
+    observed: (..., T, m) bool, the components that entered the update.
+    """
+
+    mean: Tensor
+    cov: Tensor
+    pred_mean: Tensor
+    pred_cov: Tensor
+    innovation: Tensor
+    innovation_cov: Tensor
+    log_likelihood: Tensor
+    step_log_likelihood: Tensor
+    transition: Tensor
+    process_noise: Tensor
+    observed: Tensor
+
+
+class SmootherResult(NamedTuple):
+    """Output of :func:`rts_smoother` / :func:`parallel_rts_smoother`.
+
+    mean: (..., T, n) smoothed means E[x_k | y_{0:T-1}].
+    cov: (..., T, n, n) smoothed covariances (≤ the filtered ones in the PSD order).
+    gain: (..., T, n, n) smoother gains ``E_k = P_k A_{k+1}ᵀ (P⁻_{k+1})⁻¹`` (E_{T-1} = 0).
+    """
+
+    mean: Tensor
+    cov: Tensor
+    gain: Tensor
