@@ -2,7 +2,7 @@
 
     python experiments/ais_study.py            # ~ a few minutes on 2 CPU cores
 
-Data: one hour of AIS reports in New York Harbor (``torchsde_lti.ais``, needs the optional
+Data: one hour of AIS reports in New York Harbor (``torchsde_lti.data.ais``, needs the optional
 package tracktable-data), vessels split 60/20/20 into train/val/test with seed 0, positions
 in a local east/north frame (metres), each track centred on its first report.
 
@@ -47,7 +47,7 @@ import torch
 from torch import Tensor
 
 import torchsde_lti as tl
-from torchsde_lti import ais
+from torchsde_lti.data import TrackBatch, ais
 from torchsde_lti.core.validation import validation
 from torchsde_lti.filters import FilterResult, kalman_filter
 from torchsde_lti.nn.parametrizations import IntegratorChain
@@ -106,7 +106,7 @@ def velocity_readout(kf: tl.KalmanFilter) -> Tensor:
     return torch.roll(H, shifts=1, dims=-1)
 
 
-def run_filter(kf: tl.KalmanFilter, batch: ais.AISBatch) -> FilterResult:
+def run_filter(kf: tl.KalmanFilter, batch: TrackBatch) -> FilterResult:
     """``kf(batch.y, batch.dt, mask=batch.mask)`` with each DISTINCT dt discretised once.
 
     AIS times have 1 s resolution, so the ~9k steps of the training split share ~160
@@ -123,7 +123,7 @@ def run_filter(kf: tl.KalmanFilter, batch: ais.AISBatch) -> FilterResult:
         return kalman_filter(batch.y, d.A[inv], d.Q[inv], kf.H, kf.R, m0, P0, mask=batch.mask)
 
 
-def vessel_nll(kf: tl.KalmanFilter, batch: ais.AISBatch) -> tuple[np.ndarray, np.ndarray]:
+def vessel_nll(kf: tl.KalmanFilter, batch: TrackBatch) -> tuple[np.ndarray, np.ndarray]:
     """Per vessel: summed -log p(y_k | y_<k) over reports 2..T, and the number of them. (B,), (B,)."""
     with torch.no_grad():
         out = run_filter(kf, batch)
@@ -143,13 +143,13 @@ def paired_bootstrap(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.n
     return float(est), float(lo), float(hi), float((boot >= 0).mean())
 
 
-def predictive_nll(out: object, batch: ais.AISBatch) -> Tensor:
+def predictive_nll(out: object, batch: TrackBatch) -> Tensor:
     """Mean over reports 2..T of -log p(y_k | y_<k) (nats per 2-D report), a scalar."""
     m = batch.mask[:, 1:]
     return -(out.step_log_likelihood[:, 1:] * m).sum() / m.sum()
 
 
-def fit(kf: tl.KalmanFilter, batch: ais.AISBatch, max_iter: int) -> dict[str, float]:
+def fit(kf: tl.KalmanFilter, batch: TrackBatch, max_iter: int) -> dict[str, float]:
     """Maximise the training likelihood with full-batch L-BFGS (strong Wolfe line search)."""
     params = [p for p in kf.parameters() if p.requires_grad]
     opt = torch.optim.LBFGS(params, lr=1.0, max_iter=max_iter, history_size=20,
@@ -171,7 +171,7 @@ def fit(kf: tl.KalmanFilter, batch: ais.AISBatch, max_iter: int) -> dict[str, fl
     return {"train_nll": final, "evals": evals, "seconds": time.perf_counter() - start}
 
 
-def grid_search_cv(val: ais.AISBatch, q_grid: np.ndarray, r_grid: np.ndarray) -> tuple[float, float, np.ndarray]:
+def grid_search_cv(val: TrackBatch, q_grid: np.ndarray, r_grid: np.ndarray) -> tuple[float, float, np.ndarray]:
     """Validation NLL of constant velocity over q x R_std; returns best q, best R std, table."""
     table = np.empty((len(q_grid), len(r_grid)))
     with torch.no_grad():
@@ -184,7 +184,7 @@ def grid_search_cv(val: ais.AISBatch, q_grid: np.ndarray, r_grid: np.ndarray) ->
     return float(q_grid[i]), float(r_grid[j]), table
 
 
-def forecast_pairs(batch: ais.AISBatch, horizon: float, tol: float = 0.25) -> tuple[Tensor, Tensor, Tensor]:
+def forecast_pairs(batch: TrackBatch, horizon: float, tol: float = 0.25) -> tuple[Tensor, Tensor, Tensor]:
     """Origins (b, k), k >= 1, and targets j: the report with lead t_j - t_k nearest ``horizon``.
 
     Returns index tensors b, k, j (N,) of the pairs with |lead - horizon| <= tol * horizon.
@@ -202,7 +202,7 @@ def forecast_pairs(batch: ais.AISBatch, horizon: float, tol: float = 0.25) -> tu
     return b, k, j[b, k]
 
 
-def evaluate(kf: tl.KalmanFilter, batch: ais.AISBatch, curve_min: tuple[float, ...]) -> dict[str, float]:
+def evaluate(kf: tl.KalmanFilter, batch: TrackBatch, curve_min: tuple[float, ...]) -> dict[str, float]:
     """All test metrics of the module docstring for one filter on one batch."""
     with torch.no_grad():
         out = run_filter(kf, batch)
@@ -268,7 +268,7 @@ def describe(kf: tl.KalmanFilter) -> str:
     return ", ".join(parts)
 
 
-def plot_map(path: Path, tracks: list[ais.AISTrack], batch: ais.AISBatch, filters: dict[str, tl.KalmanFilter]) -> None:
+def plot_map(path: Path, tracks: list[ais.AISTrack], batch: TrackBatch, filters: dict[str, tl.KalmanFilter]) -> None:
     """Test tracks (grey), with one-step predictions and 2σ ellipses for a few underway vessels."""
     import matplotlib
 
@@ -305,7 +305,7 @@ def plot_map(path: Path, tracks: list[ais.AISTrack], batch: ais.AISBatch, filter
                 ang = math.degrees(math.atan2(V[1, 1], V[0, 1]))
                 ax.add_patch(Ellipse(p, 4 * math.sqrt(w[1]), 4 * math.sqrt(w[0]), angle=ang,
                                      fill=False, color=col, lw=0.7, alpha=0.7))
-        ax.set_title(f"MMSI {int(batch.mmsi[i])}, median SOG {np.median(sog[i, :T]):.1f} kn")
+        ax.set_title(f"MMSI {int(batch.track_id[i])}, median SOG {np.median(sog[i, :T]):.1f} kn")
         ax.set_aspect("equal")
         ax.set_xlabel("east (m)")
         ax.set_ylabel("north (m)")
@@ -338,11 +338,11 @@ def plot_horizon(path: Path, results: dict[str, dict[str, float]]) -> None:
 
 
 def fit_all(data: ais.AISData, seed: int, max_iter: int, verbose: bool = True) -> tuple[
-        dict[str, tl.KalmanFilter], dict[str, dict[str, object]], list[ais.AISBatch], list[list[ais.AISTrack]]]:
+        dict[str, tl.KalmanFilter], dict[str, dict[str, object]], list[TrackBatch], list[list[ais.AISTrack]]]:
     """Split vessels with ``seed``, grid-tune the baseline on val, train the learned models on train."""
     idx = ais.split_vessels(len(data.tracks), seed=seed)
     split_tracks = [[data.tracks[i] for i in ix] for ix in idx]
-    batches = [ais.collate_tracks(s, center=True, dtype=torch.float64) for s in split_tracks]
+    batches = [ais.ais_batch(s, center=True, dtype=torch.float64) for s in split_tracks]
     train, val, _ = batches
     filters: dict[str, tl.KalmanFilter] = {}
     info: dict[str, dict[str, object]] = {}

@@ -1,6 +1,6 @@
 """AIS loader and DataModule on the real NY Harbor file shipped by tracktable-data.
 
-Oracles are independent of torchsde_lti.ais: a plain csv re-count, the haversine
+Oracles are independent of torchsde_lti.data.ais: a plain csv re-count, the haversine
 great-circle distance and initial bearing, pymap3d's ENU conversion (when installed),
 and finite differences of the reported positions for the SOG/COG velocity.
 """
@@ -20,7 +20,9 @@ pytest.importorskip(
     reason="optional data package tracktable-data not installed (pip install -e .[data])",
 )
 
-from torchsde_lti import ais  # noqa: E402
+from torchsde_lti.data import TrackBatch  # noqa: E402
+from torchsde_lti.data import ais  # noqa: E402
+from torchsde_lti.data.modules import AISDataModule  # noqa: E402
 
 BATTERY = (40.7033, -74.0170)  # The Battery, Manhattan
 LIBERTY = (40.6892, -74.0445)  # Statue of Liberty
@@ -145,14 +147,14 @@ def test_split_vessels_disjoint_and_reproducible() -> None:
 
 
 def test_datamodule_padded_masked_batches(data: ais.AISData) -> None:
-    dm = ais.AISDataModule(batch_size=16, seed=0)
+    dm = AISDataModule(batch_size=16, seed=0)
     dm.setup("fit")
     mmsi = [{t.mmsi for t in s} for s in (dm.train_tracks, dm.val_tracks, dm.test_tracks)]
     assert not (mmsi[0] & mmsi[1] or mmsi[0] & mmsi[2] or mmsi[1] & mmsi[2])
     assert sum(map(len, mmsi)) == data.counts["vessels"]
     by_mmsi = {tr.mmsi: tr for tr in data.tracks}
     batch = next(iter(dm.train_dataloader()))
-    assert isinstance(batch, ais.AISBatch)
+    assert isinstance(batch, TrackBatch)
     B, T = batch.mask.shape
     assert B == 16 and batch.y.shape == (B, T, 2) and batch.dt.shape == (B, T)
     assert batch.y.dtype == torch.float32 and batch.mask.dtype == torch.bool
@@ -161,14 +163,14 @@ def test_datamodule_padded_masked_batches(data: ais.AISData) -> None:
     assert torch.equal(torch.isnan(batch.y).any(-1), ~batch.mask)
     assert torch.all(batch.dt[:, 0] == 0) and torch.all(batch.dt[~batch.mask] == 0)
     for i in range(B):
-        tr = by_mmsi[int(batch.mmsi[i])]
+        tr = by_mmsi[int(batch.track_id[i])]
         k = len(tr.t)
         np.testing.assert_allclose(batch.dt[i, 1:k].numpy(), np.diff(tr.t), rtol=1e-6)
         np.testing.assert_allclose(
             (batch.y[i, :k] + batch.origin[i]).double().numpy(), tr.pos, atol=0.01
         )
         assert torch.all(batch.y[i, 0] == 0)
-    full = next(iter(ais.AISDataModule(dtype="float64")._loader(dm.val_tracks, False)))
+    full = next(iter(AISDataModule(dtype="float64")._loader(dm.val_tracks, False)))
     assert full.y.dtype == torch.float64 and full.y.shape[0] == len(dm.val_tracks)
 
 
@@ -179,14 +181,14 @@ def test_shuffled_batches_depend_only_on_seed_and_epoch() -> None:
 
     def order(loader, epoch: int) -> list[int]:
         _set_sampler_epoch(loader, epoch)
-        return [int(m) for b in loader for m in b.mmsi]
+        return [int(m) for b in loader for m in b.track_id]
 
-    dm = ais.AISDataModule(batch_size=32, seed=3)
+    dm = AISDataModule(batch_size=32, seed=3)
     dm.setup()
     running = dm.train_dataloader()
     epoch0, epoch1 = order(running, 0), order(running, 1)
     assert epoch0 != epoch1 and sorted(epoch0) == sorted(epoch1)
-    fresh = ais.AISDataModule(batch_size=32, seed=3)
+    fresh = AISDataModule(batch_size=32, seed=3)
     fresh.setup()
     assert order(fresh.train_dataloader(), 1) == epoch1
 
@@ -197,7 +199,7 @@ def test_padded_batch_likelihood_equals_per_track_filtering(data: ais.AISData) -
     import torchsde_lti as tl
 
     tracks = data.tracks[:6]
-    batch = ais.collate_tracks(tracks, dtype=torch.float64)
+    batch = ais.ais_batch(tracks, dtype=torch.float64)
     assert batch.lengths.min() < batch.mask.shape[1]
     sde = tl.models.constant_velocity(dim=2, q=torch.tensor(0.01, dtype=torch.float64))
     kf = tl.KalmanFilter(sde, tl.models.position_observation(sde), 400.0 * torch.eye(2, dtype=torch.float64),
@@ -223,11 +225,11 @@ def test_experiment_ais_config_trains(tmp_path) -> None:
         cfg = compose("train", overrides=[f"output_dir={tmp_path}", "experiment=ais", "+trainer.fast_dev_run=true",
                                           "plots=false", "module.optimizer.max_iter=3"])
         hcfg = compose("train", overrides=["experiment=ais"], return_hydra_config=True)
-    assert cfg.data._target_ == "torchsde_lti.ais.AISDataModule"
+    assert cfg.data._target_ == "torchsde_lti.data.modules.AISDataModule"
     assert set(str(hcfg.hydra.sweeper.params.model).split(",")) == {"cv", "integrated_ou", "singer"}
     metrics, objects = train(cfg)
     dm = objects["datamodule"]
-    assert isinstance(dm, ais.AISDataModule) and len(dm.train_tracks) == 169
+    assert isinstance(dm, AISDataModule) and len(dm.train_tracks) == 169
     assert np.isfinite(metrics["train/nll"]) and np.isfinite(metrics["val/nll"])
     kf = objects["module"].kf
     assert kf.H.shape == (2, 4) and float(kf.sde.k.detach()) != pytest.approx(2.0)  # the drag moved off its init

@@ -18,14 +18,16 @@ from torchsde_lti.data import (
     EpochShuffleSampler,
     ExponentialDt,
     RegularDt,
-    SimulatedTracks,
+    Track,
     collate_tracks,
     isotropic_covariance,
     pad_tracks,
     selection_matrix,
     simulate,
     simulate_tracks,
+    unpad_tracks,
 )
+from torchsde_lti.data.modules import SimulatedTracks
 
 
 def _cv_closed_form(dt: float, q: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -180,20 +182,24 @@ def test_padding_contributes_nothing_to_likelihood() -> None:
 
 def test_pad_and_collate() -> None:
     tracks = [
-        {"y": torch.randn(3, 2), "dt": torch.rand(3) + 0.1, "x": torch.randn(3, 4)},
-        {"y": torch.randn(5, 2), "dt": torch.rand(5) + 0.1, "x": torch.randn(5, 4)},
+        Track(y=torch.randn(3, 2), dt=torch.rand(3) + 0.1, x=torch.randn(3, 4)),
+        Track(y=torch.randn(5, 2), dt=torch.rand(5) + 0.1, x=torch.randn(5, 4)),
     ]
     b = pad_tracks(tracks)
-    assert b["y"].shape == (2, 5, 2) and b["mask"].tolist() == [[True] * 3 + [False] * 2, [True] * 5]
-    assert bool(torch.isnan(b["y"][0, 3:]).all()) and bool((b["dt"][0, 3:] == 0).all())
-    assert torch.equal(b["x"][0, 4], tracks[0]["x"][-1])
+    assert b.y.shape == (2, 5, 2) and b.mask.tolist() == [[True] * 3 + [False] * 2, [True] * 5]
+    assert bool(torch.isnan(b.y[0, 3:]).all()) and bool((b.dt[0, 3:] == 0).all())
+    assert torch.equal(b.x[0, 4], tracks[0].x[-1])
+    assert b.u is None and b.lengths.tolist() == [3, 5]
     b7 = pad_tracks(tracks, length=7)
-    items = [{k: v[i] for k, v in b7.items()} for i in range(2)]
-    c = collate_tracks(items)  # trims the all-padding tail
-    assert c["y"].shape == (2, 5, 2)
-    assert torch.equal(torch.isnan(c["y"]), torch.isnan(b["y"]))
+    items = unpad_tracks(b7)
+    assert [int(it.dt.shape[0]) for it in items] == [3, 5] and torch.equal(items[1].x, tracks[1].x)
+    c = collate_tracks(items)  # pads to the longest track of the batch
+    assert c.y.shape == (2, 5, 2)
+    assert torch.equal(torch.isnan(c.y), torch.isnan(b.y))
     with pytest.raises(ValueError, match="track 1"):
         pad_tracks(tracks, length=4)
+    with pytest.raises(ValueError, match="all tracks or none"):
+        pad_tracks([tracks[0], Track(y=torch.randn(2, 2), dt=torch.rand(2))])
 
 
 def test_epoch_shuffle_sampler_depends_only_on_seed_and_epoch() -> None:
@@ -230,9 +236,9 @@ def test_datamodule_splits_and_batches(dtype: str) -> None:
     batches = list(dm.train_dataloader())
     assert len(batches) == 3
     b = batches[0]
-    assert set(b) == {"y", "dt", "mask", "x"}
-    assert b["y"].dtype == getattr(torch, dtype) and b["mask"].dtype == torch.bool
-    assert b["y"].shape[:2] == b["dt"].shape == b["mask"].shape and b["y"].shape[-1] == 2
+    assert {k for k, v in b._asdict().items() if v is not None} == {"y", "dt", "mask", "x", "lengths"}
+    assert b.y.dtype == getattr(torch, dtype) and b.mask.dtype == torch.bool
+    assert b.y.shape[:2] == b.dt.shape == b.mask.shape and b.y.shape[-1] == 2
     assert torch.allclose(dm.R, 0.25 * torch.eye(2, dtype=torch.float64))
     # the splits are different tracks
     assert not torch.equal(dm.tracks["train"].x[:3], dm.tracks["val"].x[:3])

@@ -28,7 +28,7 @@ Pipeline (:func:`load_ais`):
 6. drop vessels with fewer than ``min_reports`` reports; split VESSELS (not reports) into
    train / val / test with a fixed seed (:func:`split_vessels`).
 
-Batches (:func:`collate_tracks`) are padded to the longest track with ``mask`` False on
+Batches (:func:`ais_batch`, :class:`~torchsde_lti.data.tracks.TrackBatch`) are padded to the longest track with ``mask`` False on
 padding; ``y`` is NaN there as well, so a Kalman filter treating NaN as missing and one
 using ``mask`` agree. Positions may be centred on each track's first report
 (``center=True``, default) so that a zero prior mean with a few-metre prior variance
@@ -46,25 +46,22 @@ from typing import Iterable, NamedTuple, Sequence
 
 import numpy as np
 import torch
-from lightning.pytorch import LightningDataModule
-from torch.utils.data import DataLoader, Dataset
 
-from torchsde_lti.data import EpochShuffleSampler
+from torchsde_lti.data.tracks import Track, TrackBatch, pad_tracks
 
 __all__ = [
     "AIS_FILE",
     "REFERENCE_LATLON",
-    "AISBatch",
     "AISData",
-    "AISDataModule",
     "AISTrack",
-    "collate_tracks",
+    "ais_batch",
     "decode_cog",
     "geodetic_to_enu",
     "load_ais",
     "locate_ais_file",
     "sog_cog_to_enu",
     "split_vessels",
+    "to_track",
 ]
 
 AIS_FILE = "NYHarbor_2020_06_30_first_hour.csv"
@@ -100,29 +97,6 @@ class AISData(NamedTuple):
     tracks: list[AISTrack]
     counts: dict[str, int]
     t0: datetime
-
-
-class AISBatch(NamedTuple):
-    """A padded batch of B tracks, time-major length T = longest track in the batch.
-
-    y: (B, T, 2) positions in metres (NaN on padding); dt: (B, T) seconds from the
-    previous report (dt[:, 0] = 0: the prior sits at the first report; 0 on padding);
-    mask: (B, T) bool, True on real reports; t: (B, T) seconds since file start;
-    vel: (B, T, 2) SOG/COG velocity in m/s (NaN where unavailable or padding);
-    sog: (B, T) reported speed over ground in knots (0 on padding);
-    origin: (B, 2) position subtracted from y (zeros if not centred); mmsi: (B,) int64;
-    lengths: (B,) int64 number of real reports.
-    """
-
-    y: torch.Tensor
-    dt: torch.Tensor
-    mask: torch.Tensor
-    t: torch.Tensor
-    vel: torch.Tensor
-    sog: torch.Tensor
-    origin: torch.Tensor
-    mmsi: torch.Tensor
-    lengths: torch.Tensor
 
 
 def locate_ais_file(name: str = AIS_FILE) -> Path:
@@ -318,121 +292,28 @@ def split_vessels(
     )
 
 
-def collate_tracks(
-    tracks: Sequence[AISTrack], center: bool = True, dtype: torch.dtype = torch.float32
-) -> AISBatch:
-    """Pad ``tracks`` to the longest one: see :class:`AISBatch` for fields and shapes."""
-    if len(tracks) == 0:
-        raise ValueError("collate_tracks needs at least one track, got 0")
-    b, T = len(tracks), max(len(tr.t) for tr in tracks)
-    y = np.full((b, T, 2), np.nan)
-    vel = np.full((b, T, 2), np.nan)
-    sog = np.zeros((b, T))
-    t = np.zeros((b, T))
-    dt = np.zeros((b, T))
-    mask = np.zeros((b, T), dtype=bool)
-    origin = np.zeros((b, 2))
-    for i, tr in enumerate(tracks):
-        k = len(tr.t)
-        if center:
-            origin[i] = tr.pos[0]
-        y[i, :k] = tr.pos - origin[i]
-        vel[i, :k] = tr.vel
-        sog[i, :k] = tr.sog
-        t[i, :k] = tr.t
-        t[i, k:] = tr.t[-1]
-        dt[i, 1:k] = np.diff(tr.t)
-        mask[i, :k] = True
-    return AISBatch(
-        y=torch.as_tensor(y, dtype=dtype),
-        dt=torch.as_tensor(dt, dtype=dtype),
-        mask=torch.as_tensor(mask),
-        t=torch.as_tensor(t, dtype=dtype),
-        vel=torch.as_tensor(vel, dtype=dtype),
-        sog=torch.as_tensor(sog, dtype=dtype),
-        origin=torch.as_tensor(origin, dtype=dtype),
-        mmsi=torch.tensor([tr.mmsi for tr in tracks], dtype=torch.int64),
-        lengths=torch.tensor([len(tr.t) for tr in tracks], dtype=torch.int64),
+def to_track(track: AISTrack, center: bool = True, dtype: torch.dtype = torch.float32) -> Track:
+    """One vessel as a :class:`~torchsde_lti.data.tracks.Track`: y (T, 2) positions in metres
+    (minus the first report when ``center``, recorded in ``origin`` (2,)), dt (T,) seconds
+    from the previous report (dt[0] = 0: the prior sits at the first report), t (T,) seconds
+    since file start, vel (T, 2) SOG/COG velocity in m/s, sog (T,) knots, track_id = MMSI."""
+    origin = track.pos[0] if center else np.zeros(2)
+    dt = np.concatenate([[0.0], np.diff(track.t)])
+    as_t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64), dtype=dtype)  # noqa: E731
+    return Track(
+        y=as_t(track.pos - origin),
+        dt=as_t(dt),
+        t=as_t(track.t),
+        vel=as_t(track.vel),
+        sog=as_t(track.sog),
+        origin=as_t(origin),
+        track_id=torch.tensor(track.mmsi, dtype=torch.int64),
     )
 
 
-class _TrackDataset(Dataset):
-    def __init__(self, tracks: Sequence[AISTrack]) -> None:
-        self.tracks = list(tracks)
-
-    def __len__(self) -> int:
-        return len(self.tracks)
-
-    def __getitem__(self, i: int) -> AISTrack:
-        return self.tracks[i]
-
-
-class AISDataModule(LightningDataModule):
-    """Train / val / test vessels of the NY Harbor AIS hour as padded, masked batches.
-
-    Each batch is an :class:`AISBatch` (y (B, T, 2) metres, dt (B, T) seconds, mask
-    (B, T)). ``batch_size=None`` puts a whole split in one batch (the default: the train
-    split is ~170 vessels x <= 54 reports). Shuffling of training batches uses ``seed``.
-    """
-
-    def __init__(
-        self,
-        path: str | None = None,
-        min_reports: int = 5,
-        fractions: Sequence[float] = (0.6, 0.2, 0.2),
-        seed: int = 0,
-        batch_size: int | None = None,
-        center: bool = True,
-        dtype: str = "float32",
-        reference: Sequence[float] = REFERENCE_LATLON,
-    ) -> None:
-        super().__init__()
-        # plain Python values only (no OmegaConf ListConfig), so checkpoints load with
-        # torch.load(weights_only=True), as the training entry point's resume does
-        self.save_hyperparameters({
-            "path": None if path is None else str(path), "min_reports": int(min_reports),
-            "fractions": [float(f) for f in fractions], "seed": int(seed),
-            "batch_size": None if batch_size is None else int(batch_size), "center": bool(center),
-            "dtype": str(dtype), "reference": [float(r) for r in reference],
-        })
-        self.path = path
-        self.min_reports = min_reports
-        self.fractions = tuple(fractions)
-        self.seed = seed
-        self.batch_size = batch_size
-        self.center = center
-        self.dtype = getattr(torch, dtype) if isinstance(dtype, str) else dtype
-        self.reference = (float(reference[0]), float(reference[1]))
-        self.data: AISData | None = None
-        self.train_tracks: list[AISTrack] = []
-        self.val_tracks: list[AISTrack] = []
-        self.test_tracks: list[AISTrack] = []
-
-    def setup(self, stage: str | None = None) -> None:
-        if self.data is not None:
-            return
-        self.data = load_ais(self.path, self.min_reports, self.reference)
-        tr, va, te = split_vessels(len(self.data.tracks), self.fractions, self.seed)
-        self.train_tracks = [self.data.tracks[i] for i in tr]
-        self.val_tracks = [self.data.tracks[i] for i in va]
-        self.test_tracks = [self.data.tracks[i] for i in te]
-
-    def _loader(self, tracks: list[AISTrack], shuffle: bool) -> DataLoader:
-        bs = len(tracks) if self.batch_size is None else self.batch_size
-        # the order depends only on (seed, epoch), so a resumed run sees the same batches
-        sampler = EpochShuffleSampler(len(tracks), self.seed) if shuffle else None
-        return DataLoader(
-            _TrackDataset(tracks),
-            batch_size=max(bs, 1),
-            sampler=sampler,
-            collate_fn=lambda items: collate_tracks(items, self.center, self.dtype),
-        )
-
-    def train_dataloader(self) -> DataLoader:
-        return self._loader(self.train_tracks, shuffle=self.batch_size is not None)
-
-    def val_dataloader(self) -> DataLoader:
-        return self._loader(self.val_tracks, shuffle=False)
-
-    def test_dataloader(self) -> DataLoader:
-        return self._loader(self.test_tracks, shuffle=False)
+def ais_batch(tracks: Sequence[AISTrack], center: bool = True, dtype: torch.dtype = torch.float32) -> TrackBatch:
+    """Vessels padded into one :class:`~torchsde_lti.data.tracks.TrackBatch` (:func:`to_track`
+    then :func:`~torchsde_lti.data.tracks.pad_tracks`)."""
+    if len(tracks) == 0:
+        raise ValueError("ais_batch needs at least one track, got 0")
+    return pad_tracks([to_track(tr, center, dtype) for tr in tracks])
