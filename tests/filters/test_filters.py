@@ -14,6 +14,7 @@ import scipy.linalg
 import scipy.stats
 import torch
 
+from tests.reference import cv_matrices, numpy_kalman_filter, numpy_rts, random_problem, reference_batch, to_torch
 from torchsde_lti.filters import (
     FilterResult,
     kalman_filter,
@@ -23,104 +24,6 @@ from torchsde_lti.filters import (
 )
 
 F64 = torch.float64
-
-
-# ----------------------------------------------------------------------------------------
-# numpy references
-# ----------------------------------------------------------------------------------------
-
-
-def numpy_kalman_filter(y, A, Q, H, R, m0, P0, c=None):
-    """One track. y (T, m) with NaN = missing; A, Q (T, n, n); H (m, n); R (m, m); c (T, n)."""
-    T, n = y.shape[0], A.shape[-1]
-    m, P = m0.copy(), P0.copy()
-    out = {k: [] for k in ("mean", "cov", "pred_mean", "pred_cov", "ll")}
-    for k in range(T):
-        m = A[k] @ m + (c[k] if c is not None else 0.0)
-        P = A[k] @ P @ A[k].T + Q[k]
-        out["pred_mean"].append(m.copy())
-        out["pred_cov"].append(P.copy())
-        o = ~np.isnan(y[k])
-        ll = 0.0
-        if o.any():
-            Ho, Ro = H[o], R[np.ix_(o, o)]
-            S = Ho @ P @ Ho.T + Ro
-            v = y[k][o] - Ho @ m
-            K = np.linalg.solve(S, Ho @ P).T
-            m = m + K @ v
-            P = P - K @ S @ K.T
-            ll = scipy.stats.multivariate_normal(mean=np.zeros(o.sum()), cov=S).logpdf(v)
-        out["mean"].append(m.copy())
-        out["cov"].append(P.copy())
-        out["ll"].append(ll)
-    return {k: np.array(v) for k, v in out.items()}
-
-
-def numpy_rts(mean, cov, pred_mean, pred_cov, A):
-    T = mean.shape[0]
-    ms, Ps = mean.copy(), cov.copy()
-    for k in range(T - 2, -1, -1):
-        Ek = np.linalg.solve(pred_cov[k + 1], A[k + 1] @ cov[k]).T
-        ms[k] = mean[k] + Ek @ (ms[k + 1] - pred_mean[k + 1])
-        Ps[k] = cov[k] + Ek @ (Ps[k + 1] - pred_cov[k + 1]) @ Ek.T
-    return ms, Ps
-
-
-def cv_matrices(dt: np.ndarray, q: float = 1.0, axes: int = 2):
-    """Closed-form constant-velocity (A, Q, G) per step, state [x, vx, y, vy]."""
-    T = dt.shape[-1]
-    A = np.zeros(dt.shape + (2 * axes, 2 * axes))
-    Q = np.zeros_like(A)
-    G = np.zeros(dt.shape + (2 * axes, axes))
-    for a in range(axes):
-        i = 2 * a
-        A[..., i, i] = A[..., i + 1, i + 1] = 1.0
-        A[..., i, i + 1] = dt
-        Q[..., i, i] = q * dt**3 / 3
-        Q[..., i, i + 1] = Q[..., i + 1, i] = q * dt**2 / 2
-        Q[..., i + 1, i + 1] = q * dt
-        G[..., i, a] = dt**2 / 2
-        G[..., i + 1, a] = dt
-    assert A.shape[-3] == T
-    return A, Q, G
-
-
-def random_problem(rng, batch=(3,), T=12, n=4, m=2, p=2, missing=True):
-    """Random time-varying A, PSD Q, H, R; NaN-missing steps and partial observations."""
-    A = np.eye(n) + 0.3 * rng.standard_normal(batch + (T, n, n))
-    Wq = rng.standard_normal(batch + (T, n, n))
-    Q = 0.1 * Wq @ np.swapaxes(Wq, -1, -2)
-    H = rng.standard_normal((m, n))
-    Wr = rng.standard_normal((m, m))
-    R = Wr @ Wr.T + 0.5 * np.eye(m)
-    m0 = rng.standard_normal(batch + (n,))
-    W0 = rng.standard_normal(batch + (n, n))
-    P0 = W0 @ np.swapaxes(W0, -1, -2) + np.eye(n)
-    G = rng.standard_normal(batch + (T, n, p))
-    u = rng.standard_normal(batch + (T, p))
-    y = rng.standard_normal(batch + (T, m))
-    if missing:
-        flat = y.reshape(-1, T, m)
-        flat[0, 2 % T, :] = np.nan  # fully missing step
-        flat[0, 5 % T, 1] = np.nan  # partial observation
-        flat[-1, 0, 0] = np.nan
-        flat[-1, 7 % T, :] = np.nan
-    return dict(y=y, A=A, Q=Q, H=H, R=R, m0=m0, P0=P0, G=G, u=u)
-
-
-def to_torch(d, dtype=F64):
-    return {k: torch.as_tensor(v, dtype=dtype) for k, v in d.items()}
-
-
-def reference_batch(d):
-    """Run the numpy reference over the flattened batch; returns dict of stacked arrays."""
-    batch = d["y"].shape[:-2]
-    outs = []
-    for idx in np.ndindex(*batch):
-        c = d["G"][idx] @ d["u"][idx][..., None]
-        outs.append(numpy_kalman_filter(d["y"][idx], d["A"][idx], d["Q"][idx], d["H"], d["R"],
-                                        d["m0"][idx], d["P0"][idx], c[..., 0]))
-    return {k: np.stack([o[k] for o in outs]).reshape(batch + outs[0][k].shape) for k in outs[0]}
 
 
 # ----------------------------------------------------------------------------------------

@@ -220,7 +220,7 @@ def test_experiment_ais_config_trains(tmp_path) -> None:
 
     from torchsde_lti.train import train
 
-    conf = Path(__file__).resolve().parents[1] / "conf"
+    conf = Path(__file__).resolve().parents[2] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
         cfg = compose("train", overrides=[f"output_dir={tmp_path}", "experiment=ais", "+trainer.fast_dev_run=true",
                                           "plots=false", "module.optimizer.max_iter=3"])

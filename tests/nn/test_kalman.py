@@ -9,31 +9,9 @@ import torch
 from torch.func import functional_call
 
 import torchsde_lti as tl
-from test_filtering import numpy_kalman_filter, numpy_rts
+from tests.reference import numpy_kalman_filter, numpy_rts, scipy_discretize
 
 F64 = torch.float64
-
-
-def scipy_discretize(F, L, Qc, B, dt):
-    """(A, Q, G) per step by Van Loan block exponentials in float64 (moderate dt only)."""
-    n = F.shape[0]
-    W = L @ Qc @ L.T
-    out_A, out_Q, out_G = [], [], []
-    for h in np.ravel(dt):
-        E = scipy.linalg.expm(np.block([[F, W], [np.zeros((n, n)), -F.T]]) * h)
-        A = E[:n, :n]
-        Q = E[:n, n:] @ A.T
-        out_A.append(A)
-        out_Q.append(0.5 * (Q + Q.T))
-        if B is not None:
-            p = B.shape[1]
-            Z = scipy.linalg.expm(np.block([[F, B], [np.zeros((p, n)), np.zeros((p, p))]]) * h)
-            out_G.append(Z[:n, n:])
-    shape = np.shape(dt)
-    A = np.array(out_A).reshape(shape + (n, n))
-    Q = np.array(out_Q).reshape(shape + (n, n))
-    G = np.array(out_G).reshape(shape + (n, B.shape[1])) if B is not None else None
-    return A, Q, G
 
 
 def damped_model(with_input=True):
@@ -70,7 +48,7 @@ def test_filter_and_smoother_match_numpy_with_irregular_dt_missing_and_inputs():
                          P0=torch.tensor(P0))
     out = kf(torch.tensor(y), torch.tensor(dt), u=torch.tensor(u))
     sm = kf.smooth(out)
-    A, Q, G = scipy_discretize(F, L, Qc, B, dt)
+    A, Q, G = scipy_discretize(F, L, Qc, dt, B)
     for b in range(Bt):
         c = (G[b] @ u[b][..., None])[..., 0]
         ref = numpy_kalman_filter(y[b], A[b], Q[b], H_NP, R_NP, m0, P0, c)
@@ -95,7 +73,7 @@ def test_default_prior_is_stationary_for_hurwitz_and_diffuse_otherwise():
 
 
 def test_constant_velocity_model_matches_closed_form_reference():
-    from test_filtering import cv_matrices
+    from tests.reference import cv_matrices
 
     rng = np.random.default_rng(1)
     q = 0.8
@@ -187,7 +165,7 @@ def test_forecast_matches_scipy_moments():
     horizons = np.array([0.0, 0.5, 2.0, 10.0])
     u = rng.standard_normal((2, 4, 1))
     fc = kf.forecast(out, torch.tensor(horizons), u=torch.tensor(u))
-    A, Q, G = scipy_discretize(F, L, Qc, B, horizons)
+    A, Q, G = scipy_discretize(F, L, Qc, horizons, B)
     mT, PT = out.mean[:, -1].detach().numpy(), out.cov[:, -1].detach().numpy()
     for b in range(2):
         for k in range(4):

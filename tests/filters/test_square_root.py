@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from test_filtering import cv_matrices, random_problem, reference_batch, to_torch
+from tests.reference import cv_matrices, random_problem, reference_batch, to_torch
 
 import torchsde_lti as tl
 from torchsde_lti import models as M

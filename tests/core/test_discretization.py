@@ -11,7 +11,7 @@ import scipy.linalg
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from reference import integrator_chain_Q, mp_discretize, quad_discretize, rel_err
+from tests.reference import integrator_chain_Q, mp_discretize, quad_discretize, rel_err
 
 import torchsde_lti as tl
 from torchsde_lti.core.discretization import zero_order_hold

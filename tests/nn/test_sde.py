@@ -14,29 +14,13 @@ from hypothesis.extra.numpy import arrays
 from torch.func import functional_call
 
 import torchsde_lti as tl
+from tests.reference import scipy_discretize
 from torchsde_lti.nn.parametrizations import IntegratorChain
 
 F64 = torch.float64
 
 
 # ----------------------------------------------------------------------------- references
-def scipy_discretize(F: np.ndarray, L: np.ndarray, Qc: np.ndarray, dt: float, B: np.ndarray | None = None):
-    """(A, Q, G) with scipy.linalg.expm of the Van Loan / ZOH blocks (float64, moderate dt)."""
-    n = F.shape[0]
-    W = L @ Qc @ L.T
-    C = np.block([[F, W], [np.zeros((n, n)), -F.T]]) * dt
-    E = scipy.linalg.expm(C)
-    A = E[:n, :n]
-    Q = E[:n, n:] @ A.T
-    G = None
-    if B is not None:
-        p = B.shape[1]
-        Z = np.zeros((n + p, n + p))
-        Z[:n, :n], Z[:n, n:] = F * dt, B * dt
-        G = scipy.linalg.expm(Z)[:n, n:]
-    return A, 0.5 * (Q + Q.T), G
-
-
 def example_matrices(seed: int = 0, n: int = 3, s: int = 2, p: int = 1):
     rng = np.random.default_rng(seed)
     M = rng.normal(size=(n, n))

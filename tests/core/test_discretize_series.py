@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 import torch
-from reference import integrator_chain_Q, quad_discretize
+from tests.reference import integrator_chain_Q, quad_discretize
 
 import torchsde_lti as tl
 from torchsde_lti.core import discretize_series as _discretize_series
