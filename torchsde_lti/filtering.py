@@ -4,7 +4,10 @@ Inference is kept apart from models (as in dynamax): these are pure functions of
 discrete-time state-space model
 
     x_k = A_k x_{k-1} + G_k u_k + q_k,    q_k ~ N(0, Q_k),     x_{-1} ~ N(m0, P0)
-    y_k = H_k x_k + r_k,                  r_k ~ N(0, R_k),     k = 0 … T-1
+    y_k = H_k x_k + D u_k + r_k,          r_k ~ N(0, R_k),     k = 0 … T-1
+
+(D, the feedthrough of known inputs, is optional: ``D u`` is subtracted from y during the
+input preparation, so every filter variant sees ``y − D u``.)
 
 (the prior sits *before* step 0: step k first predicts with A_k, Q_k, then updates with
 y_k; pass A_0 = I, Q_0 = 0 to put the prior at the first observation).
@@ -273,8 +276,9 @@ def _prepare(
     G: Tensor | None,
     u: Tensor | None,
     mask: Tensor | None,
+    D: Tensor | None = None,
 ) -> _Prepared:
-    dtype = common_float_dtype(*(t for t in (y, A, Q, H, R, m0, P0, G, u) if isinstance(t, Tensor)))
+    dtype = common_float_dtype(*(t for t in (y, A, Q, H, R, m0, P0, G, u, D) if isinstance(t, Tensor)))
     device = next(t.device for t in (y, A, Q, H, R, m0, P0) if isinstance(t, Tensor))
     y = as_float_tensor(y, "y", dtype, device)
     A = as_float_tensor(A, "A", dtype, device)
@@ -303,11 +307,29 @@ def _prepare(
     if m0.dim() < 1 or m0.shape[-1] != n:
         raise ValueError(f"m0 must have shape (..., {n}), got shape {shape_str(m0)}")
     check_matrix(P0, "P0", rows=n, cols=n)
-    if (G is None) != (u is None):
+    if u is None and (G is not None or D is not None):
         raise ValueError(
-            "G and u must be given together, got "
-            f"G={'None' if G is None else shape_str(G)}, u={'None' if u is None else shape_str(torch.as_tensor(u))}"
+            f"G and u (or D and u) must be given together: u is None (G={'None' if G is None else shape_str(G)}, "
+            f"D={'None' if D is None else shape_str(torch.as_tensor(D))})"
         )
+    if u is not None and G is None and D is None:
+        raise ValueError(
+            f"G and u (or D and u) must be given together: u was given (shape {shape_str(torch.as_tensor(u))}) "
+            "but G and D are None"
+        )
+    if D is not None and u is not None:
+        # Feedthrough y = H x + D u + r: filter y − D u (NaN stays NaN, so missing data keep their meaning).
+        D = as_float_tensor(D, "D", dtype, device)
+        u = as_float_tensor(u, "u", dtype, device)
+        check_matrix(D, "D", rows=m)
+        pD = D.shape[-1]
+        if u.dim() < 2 or u.shape[-1] != pD or u.shape[-2] not in (1, T):
+            raise ValueError(f"u must have shape (..., T={T}, {pD}) to match D {shape_str(D)}, got shape {shape_str(u)}")
+        if D.dim() >= 3 and D.shape[-3] not in (1, T):
+            raise ValueError(f"D has {D.shape[-3]} steps on its time axis (shape {shape_str(D)}) but y has T={T}")
+        check_finite(D, "D")
+        check_finite(u, "u")
+        y = y - _matvec(D, u)
     c = None
     if G is not None and u is not None:
         G = as_float_tensor(G, "G", dtype, device)
@@ -467,6 +489,7 @@ def kalman_filter(
     u: Tensor | None = None,
     mask: Tensor | None = None,
     square_root: bool = False,
+    D: Tensor | None = None,
 ) -> FilterResult:
     r"""Kalman filter over T steps (sequential loop, O(T) depth).
 
@@ -480,18 +503,20 @@ def kalman_filter(
         A: (..., T, n, n) transitions. Q: (..., T, n, n) process noise (symmetric PSD).
         H: (..., T, m, n) observation matrices. R: (..., T, m, m) noise (symmetric PD).
         m0: (..., n) prior mean. P0: (..., n, n) prior covariance (before step 0).
-        G: optional (..., T, n, p) input matrices; u: (..., T, p) inputs (both or neither).
+        G: optional (..., T, n, p) input matrices; u: (..., T, p) inputs (u needs G or D).
         mask: optional bool (..., T) or (..., T, m); False = not observed.
         square_root: propagate factors ``P = S Sᵀ`` (QR predict, Givens update, see
             :func:`_square_root_filter`) instead of covariances; same results up to
             rounding, covariances PSD by construction and accurate in float32 when predicted
             and measurement variances differ by more than 1/eps. Slower (a batched LAPACK
             QR per step); off by default.
+        D: optional (..., [T,] m, p) feedthrough, ``y_k = H_k x_k + D u_k + r_k``: the update
+            uses ``y_k − D u_k`` (so innovations are ``y_k − D u_k − H_k m⁻_k``); needs u.
 
     Returns:
         :class:`FilterResult`; every output broadcasts to the full batch ``...``.
     """
-    prep = _prepare(y, A, Q, H, R, m0, P0, G, u, mask)
+    prep = _prepare(y, A, Q, H, R, m0, P0, G, u, mask, D)
     if square_root:
         return _square_root_filter(prep)
     m_dim = prep.yw.shape[-1]
@@ -799,6 +824,7 @@ def parallel_kalman_filter(
     G: Tensor | None = None,
     u: Tensor | None = None,
     mask: Tensor | None = None,
+    D: Tensor | None = None,
 ) -> FilterResult:
     r"""Kalman filter by associative scan (Särkkä & García-Fernández 2021), O(log T) depth.
 
@@ -813,7 +839,7 @@ def parallel_kalman_filter(
     batched over all steps. Wins over the sequential loop when per-step Python overhead
     dominates (small batch, long T); loses when the batch already fills the cores.
     """
-    prep = _prepare(y, A, Q, H, R, m0, P0, G, u, mask)
+    prep = _prepare(y, A, Q, H, R, m0, P0, G, u, mask, D)
     n = prep.A.shape[-1]
     T = prep.T
     A_ = prep.A
