@@ -86,3 +86,55 @@ def integrator_chain_Q(order: int, q: float, dt: float) -> np.ndarray:
 
 def rel_err(x: np.ndarray, ref: np.ndarray) -> float:
     return float(np.linalg.norm(np.asarray(x, dtype=np.float64) - ref) / max(np.linalg.norm(ref), 1e-300))
+
+
+def numpy_filter_with_feedthrough(y, A, Q, H, R, m0, P0, c=None, Du=None):
+    """Plain covariance-form Kalman filter for one track with a feedthrough term.
+
+    x_k = A_k x_{k-1} + c_k + q_k,  y_k = H x_k + Du_k + r_k;  y (T, m) with NaN = missing
+    component; A, Q (T, n, n); H (m, n); R (m, m); c (T, n) = G_k u_k; Du (T, m) = D u_k.
+    Returns dict of arrays: mean, cov, pred_mean, pred_cov (T, ...), ll (T,).
+    """
+    import scipy.stats
+
+    T = y.shape[0]
+    m, P = np.array(m0, dtype=float), np.array(P0, dtype=float)
+    out = {k: [] for k in ("mean", "cov", "pred_mean", "pred_cov", "ll")}
+    for k in range(T):
+        m = A[k] @ m + (c[k] if c is not None else 0.0)
+        P = A[k] @ P @ A[k].T + Q[k]
+        out["pred_mean"].append(m.copy())
+        out["pred_cov"].append(P.copy())
+        o = ~np.isnan(y[k])
+        ll = 0.0
+        if o.any():
+            Ho, Ro = H[o], R[np.ix_(o, o)]
+            S = Ho @ P @ Ho.T + Ro
+            v = y[k][o] - Ho @ m - (Du[k][o] if Du is not None else 0.0)
+            K = P @ Ho.T @ np.linalg.inv(S)
+            m = m + K @ v
+            IKH = np.eye(len(m)) - K @ Ho
+            P = IKH @ P @ IKH.T + K @ Ro @ K.T
+            ll = float(scipy.stats.multivariate_normal(mean=np.zeros(int(o.sum())), cov=S).logpdf(v))
+        out["mean"].append(m.copy())
+        out["cov"].append(P.copy())
+        out["ll"].append(ll)
+    return {k: np.array(v) for k, v in out.items()}
+
+
+def expm_zoh_steps(F, L, Qc, B, dt):
+    """Per-step (A, Q, G) over a 1-D array dt by scipy block exponentials (float64, moderate dt)."""
+    n = F.shape[0]
+    W = L @ Qc @ L.T
+    As, Qs, Gs = [], [], []
+    for h in np.ravel(dt):
+        E = scipy.linalg.expm(np.block([[F, W], [np.zeros((n, n)), -F.T]]) * h)
+        A = E[:n, :n]
+        Qd = E[:n, n:] @ A.T
+        As.append(A)
+        Qs.append(0.5 * (Qd + Qd.T))
+        if B is not None:
+            p = B.shape[1]
+            Z = scipy.linalg.expm(np.block([[F, B], [np.zeros((p, n)), np.zeros((p, p))]]) * h)
+            Gs.append(Z[:n, n:])
+    return np.array(As), np.array(Qs), (np.array(Gs) if B is not None else None)
