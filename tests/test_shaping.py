@@ -110,6 +110,8 @@ def test_kalman_filter_prior_mode_shaping_follows_the_parameters():
                         P0="shaping")
     with pytest.raises(ValueError, match="P0 must be a tensor or one of"):
         tl.KalmanFilter(model, H, torch.eye(1, dtype=F64), P0="steady")
+    with pytest.raises(ValueError, match="shaping start P0 is singular"):
+        tl.KalmanFilter(model, H, torch.eye(1, dtype=F64), learn=("P0",))
 
 
 def test_gradient_of_the_start_wrt_the_shaping_parameters():

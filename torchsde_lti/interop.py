@@ -88,7 +88,10 @@ def _stonesoup_class() -> type:
         ``matrix(time_interval=Δ)`` = expm(F Δ) and ``covar(time_interval=Δ)`` = the exact
         process noise over Δ (seconds of the ``timedelta``), computed by
         :func:`torchsde_lti.discretize` at the SDE's current parameters. Δ must be
-        non-negative. The state layout is the SDE's (e.g. ``[x, vx, y, vy]``).
+        non-negative. The state layout is the SDE's (e.g. ``[x, vx, y, vy]``). The last
+        (A, Q) is reused while the gap and every parameter/buffer version counter are
+        unchanged (in-place optimiser steps and ``sde.q = …`` bump them; writes through
+        ``tensor.data`` do not).
         """
 
         sde: Any = Property(doc="The torchsde_lti.LTISDE (unbatched) that defines the dynamics.")
@@ -103,17 +106,32 @@ def _stonesoup_class() -> type:
                     f"sde must be a single model (batch_shape ()), got batch_shape {tuple(self.sde.batch_shape)}"
                 )
 
+            self._last: tuple[tuple, tuple[np.ndarray, np.ndarray]] | None = None
+
         @property
         def ndim_state(self) -> int:
             return self.sde.state_dim
 
+        def _step(self, time_interval: datetime.timedelta) -> tuple[np.ndarray, np.ndarray]:
+            # A predict asks for matrix() twice and covar() once for the same gap: keep the last
+            # result, keyed on the gap and on the version counters of every parameter and buffer
+            # (an optimiser step or an assignment ``sde.q = …`` changes them in place).
+            seconds = _seconds(time_interval, "time_interval")
+            tensors = [*self.sde.parameters(), *(b for b in self.sde.buffers() if b is not None)]
+            key = (seconds, self.method, tuple((t.data_ptr(), t._version) for t in tensors))
+            if self._last is None or self._last[0] != key:
+                A, Q, _ = discrete_step(self.sde, seconds, self.method)
+                self._last = (key, (A, Q))
+            A, Q = self._last[1]
+            return A.copy(), Q.copy()
+
         def matrix(self, time_interval: datetime.timedelta, **kwargs: Any) -> np.ndarray:
             """A = expm(F Δ) (n, n) for the gap ``time_interval``."""
-            return discrete_step(self.sde, _seconds(time_interval, "time_interval"), self.method)[0]
+            return self._step(time_interval)[0]
 
         def covar(self, time_interval: datetime.timedelta, **kwargs: Any) -> Any:
             """Exact process-noise covariance Q(Δ) (n, n) as a Stone Soup ``CovarianceMatrix``."""
-            return CovarianceMatrix(discrete_step(self.sde, _seconds(time_interval, "time_interval"), self.method)[1])
+            return CovarianceMatrix(self._step(time_interval)[1])
 
     return LTISDETransitionModel
 

@@ -187,7 +187,7 @@ class KalmanFilter(nn.Module):
             self.prior_mode = P0
             with torch.no_grad():
                 P0_t = self._prior(sde.matrices())[1].detach().clone()  # raises now if not computable
-            if "P0" in names:
+            if "P0" in names and self.prior_mode != "shaping":
                 self.prior_mode = "given"  # learnable, initialised at that mode's value
         elif P0 is not None:
             P0_t = as_float_tensor(P0, "P0", dtype, device).detach().clone()
@@ -205,8 +205,13 @@ class KalmanFilter(nn.Module):
             except ValueError:
                 P0_t = self.diffuse_variance * torch.eye(n, dtype=dtype, device=device)
                 self.prior_mode = "diffuse"
-            if "P0" in names:
+            if "P0" in names and self.prior_mode != "shaping":
                 self.prior_mode = "given"  # learnable, initialised at the default
+        if "P0" in names and self.prior_mode == "shaping":
+            raise ValueError(
+                "learn contains 'P0', but the shaping start P0 is singular (every entry involving a system "
+                "state is 0) and a learnable P0 is parametrised positive definite; pass an initial P0 tensor"
+            )
         if self.prior_mode == "given":
             self._register("P0", P0_t, "P0" in names)
             parametrize.register_parametrization(self, "P0", PositiveDefinite(name="P0", size=n).to(dtype=dtype, device=device))
