@@ -125,6 +125,8 @@ def test_leading_zeros_batches_and_companion_outputs():
         single = tl.models.from_transfer_function([1.0, 0.5], dens[i].tolist(), dtype=F64)
         torch.testing.assert_close(batched.F[i], single.F)
         torch.testing.assert_close(batched.C[i], single.C)
+    with pytest.raises(ValueError, match="position_indices"):
+        tl.models.position_observation(b)  # the output is C x + D u: H = model.C
     msd = tl.models.mass_spring_damper(1.0, 2.0, 0.5, dtype=F64)
     comp = tl.models.companion([2.0, 0.5, 1.0], dtype=F64)
     for model in (msd, comp):

@@ -607,6 +607,7 @@ class TransferFunction(Companion):
         super().__init__(torch.flip(a, (-1,)), q, dtype=dt_, device=dev)
         broadcast_batch([("num", b.shape[:-1]), ("den", a.shape[:-1])])
         self.register_buffer("numerator", torch.flip(b, (-1,)), persistent=False)  # ascending b_0..b_n
+        self.position_indices = None  # the output is C x + D u, not a state component: use model.C as H
 
     def _output(self) -> tuple[Tensor, Tensor]:
         a, b = self.a, self.numerator
