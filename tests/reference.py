@@ -120,8 +120,9 @@ def scipy_discretize(F: np.ndarray, L: np.ndarray, Qc: np.ndarray, dt, B: np.nda
 # ----------------------------------------------------------------------------------------
 
 
-def numpy_kalman_filter(y, A, Q, H, R, m0, P0, c=None):
-    """One track. y (T, m) with NaN = missing; A, Q (T, n, n); H (m, n); R (m, m); c (T, n)."""
+def numpy_kalman_filter(y, A, Q, H, R, m0, P0, c=None, Du=None):
+    """One track. y (T, m) with NaN = missing; A, Q (T, n, n); H (m, n); R (m, m); c (T, n)
+    control term; Du (T, m) feedthrough (y_k = H x_k + D u_k + r_k)."""
     T, n = y.shape[0], A.shape[-1]
     m, P = m0.copy(), P0.copy()
     out = {k: [] for k in ("mean", "cov", "pred_mean", "pred_cov", "ll")}
@@ -135,7 +136,7 @@ def numpy_kalman_filter(y, A, Q, H, R, m0, P0, c=None):
         if o.any():
             Ho, Ro = H[o], R[np.ix_(o, o)]
             S = Ho @ P @ Ho.T + Ro
-            v = y[k][o] - Ho @ m
+            v = y[k][o] - Ho @ m - (Du[k][o] if Du is not None else 0.0)
             K = np.linalg.solve(S, Ho @ P).T
             m = m + K @ v
             P = P - K @ S @ K.T

@@ -26,7 +26,15 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from torchsde_lti.core.validation import as_float_tensor, broadcast_batch, check_finite, common_float_dtype, shape_str
+from torchsde_lti.core.stationary import stationary_covariance
+from torchsde_lti.core.validation import (
+    as_float_tensor,
+    broadcast_batch,
+    check_finite,
+    check_matrix,
+    common_float_dtype,
+    shape_str,
+)
 from torchsde_lti.nn.parametrizations import Positive, integrator_chain
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices, StructuredSDE
 
@@ -50,6 +58,10 @@ __all__ = [
     "matern",
     "ornstein_uhlenbeck",
     "position_observation",
+    "ShapedSDE",
+    "TransferFunction",
+    "from_transfer_function",
+    "shaped",
     "singer",
 ]
 
@@ -371,8 +383,13 @@ class MassSpringDamper(StructuredSDE):
 
     @property
     def C(self) -> Tensor:
-        """Output matrix ``[[1, 0]]`` (position)."""
+        """Output matrix ``[[1, 0]]`` (position): pass it as the filter's H."""
         return self.output_matrix
+
+    @property
+    def D(self) -> Tensor:
+        """Feedthrough ``[[0]]`` (1, 1) of ``y = C x + D u`` (pass as the filter's D)."""
+        return self.output_matrix.new_zeros(1, 1)
 
     def _build(self) -> SDEMatrices:
         m, k, c, q = self.m, self.k, self.c, self.q
@@ -431,8 +448,13 @@ class Companion(StructuredSDE):
 
     @property
     def C(self) -> Tensor:
-        """Output matrix ``[[1, 0, …, 0]]``."""
+        """Output matrix ``[[1, 0, …, 0]]`` (1, n): pass it as the filter's H."""
         return self.output_matrix
+
+    @property
+    def D(self) -> Tensor:
+        """Feedthrough ``[[0]]`` (1, 1) of ``y = C x + D u`` (pass as the filter's D)."""
+        return self.output_matrix.new_zeros(1, 1)
 
     def _build(self) -> SDEMatrices:
         a, q = self.a, self.q
@@ -451,6 +473,204 @@ class Companion(StructuredSDE):
 def companion(a: Sequence[float] | Tensor, q: Scalar = 1.0, **kw: object) -> Companion:
     r"""Companion form of ``a_n y⁽ⁿ⁾ + … + a_0 y = u + w`` from coefficients ``a = [a_0, …, a_n]``."""
     return Companion(a, q, **kw)  # type: ignore[arg-type]
+
+
+class TransferFunction(Companion):
+    r"""A proper transfer function ``G(s) = num(s) / den(s)`` in controllable canonical form.
+
+    With ``den(s) = a_n sⁿ + … + a_0`` and ``num(s) = b_n sⁿ + … + b_0`` (``b_n = 0`` unless
+    deg num = deg den), write ``num = d · den + r`` with ``d = b_n / a_n`` and deg r < n.
+    The state ``x = [z, z', …, z⁽ⁿ⁻¹⁾]`` of ``den(d/dt) z = u + w`` (the :class:`Companion`
+    matrices: F with ones on the superdiagonal and last row ``−a_0/a_n … −a_{n−1}/a_n``,
+    ``B = L = e_n / a_n``, ``Qc = q``) gives ``y = num(d/dt) z = C x + D u`` with
+
+        C = [r_0, r_1, …, r_{n−1}]  (1, n),      D = [[d]]  (1, 1).
+
+    State ordering: ascending derivatives. scipy's ``tf2ss`` uses the reversed order and a
+    monic denominator: its state is ``a_n J x`` with J the exchange matrix (ones on the
+    anti-diagonal), so ``A_scipy = J F J``, ``B_scipy = a_n J B`` (= e_1),
+    ``C_scipy = C J / a_n``, ``D_scipy = D``; transfer function and responses are identical.
+
+    The denominator coefficients ``a`` are free parameters (as in :class:`Companion`);
+    the numerator is a constant buffer ``numerator`` (..., n+1) in ascending powers; C and
+    D are recomputed from the current ``a``.
+    """
+
+    def __init__(self, num: Sequence[float] | Tensor, den: Sequence[float] | Tensor, q: Scalar = 1.0, *,
+                 dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> None:
+        dt_ = _scalar_dtype([num, den, q], dtype)
+        dev = _scalar_device([num, den, q], device)
+        b = as_float_tensor(num, "num", dt_, dev).detach().clone()
+        a = as_float_tensor(den, "den", dt_, dev).detach().clone()
+        if b.dim() < 1 or a.dim() < 1:
+            raise ValueError(
+                f"num and den must hold polynomial coefficients (..., k), highest power first; got shapes "
+                f"num {shape_str(b)}, den {shape_str(a)}"
+            )
+        check_finite(b, "num")
+        check_finite(a, "den")
+        a = _strip_leading_zeros(a)
+        b = _strip_leading_zeros(b)
+        if a.shape[-1] < 2:
+            raise ValueError(
+                f"den must have degree >= 1 (a transfer function with a state), got den of shape {shape_str(a)} "
+                "after removing leading zeros"
+            )
+        if b.shape[-1] > a.shape[-1]:
+            raise ValueError(
+                f"improper transfer function: deg num = {b.shape[-1] - 1} > deg den = {a.shape[-1] - 1} "
+                f"(num shape {shape_str(b)}, den shape {shape_str(a)}); a state-space model y = C x + D u needs "
+                "deg num <= deg den"
+            )
+        n1 = a.shape[-1]
+        b = nn.functional.pad(b, (n1 - b.shape[-1], 0))  # same length as den
+        super().__init__(torch.flip(a, (-1,)), q, dtype=dt_, device=dev)
+        broadcast_batch([("num", b.shape[:-1]), ("den", a.shape[:-1])])
+        self.register_buffer("numerator", torch.flip(b, (-1,)), persistent=False)  # ascending b_0..b_n
+        self.position_indices = None  # the output is C x + D u, not a state component: use model.C as H
+
+    def _output(self) -> tuple[Tensor, Tensor]:
+        a, b = self.a, self.numerator
+        d = b[..., -1:] / a[..., -1:]  # (..., 1)
+        r = b[..., :-1] - d * a[..., :-1]  # (..., n) remainder of num − d·den (ascending)
+        return r[..., None, :], d[..., None]
+
+    @property
+    def C(self) -> Tensor:
+        """Output matrix ``[r_0 … r_{n−1}]`` (..., 1, n): pass it as the filter's H."""
+        return self._output()[0]
+
+    @property
+    def D(self) -> Tensor:
+        """Feedthrough ``[[b_n / a_n]]`` (..., 1, 1): pass it as the filter's D."""
+        return self._output()[1]
+
+    def extra_repr(self) -> str:
+        return f"order={self.order}, num: {shape_str(self.numerator)}, a: {shape_str(self.a)}, " + self._scalar_repr(["q"])
+
+
+def _strip_leading_zeros(coeffs: Tensor) -> Tensor:
+    """Drop leading (highest-power) coefficients that are zero across the whole batch."""
+    while coeffs.shape[-1] > 1 and bool((coeffs[..., 0] == 0).all()):
+        coeffs = coeffs[..., 1:]
+    return coeffs
+
+
+def from_transfer_function(num: Sequence[float] | Tensor, den: Sequence[float] | Tensor, q: Scalar = 1.0,
+                           **kw: object) -> TransferFunction:
+    r"""State-space model of ``G(s) = num(s) / den(s)`` (coefficients highest power first, as in scipy).
+
+    Controllable canonical (companion) form, state ``[z, z', …]``: ``ẋ = F x + B u + L w``,
+    ``y = C x + D u`` with ``model.C`` (1, n) and ``model.D`` (1, 1); white noise w of
+    spectral density q enters where u does (``L = B``). D ≠ 0 exactly when
+    deg num = deg den; ValueError for an improper G (deg num > deg den).
+
+    Example: ``from_transfer_function([1.0], [1.0, 3.0, 2.0])`` is ``1 / (s² + 3s + 2)``.
+    """
+    return TransferFunction(num, den, q, **kw)  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------------- shaping filters
+class ShapedSDE(StructuredSDE):
+    r"""A system driven by coloured noise: the system plus a shaping filter driven by white noise.
+
+    The system ``dx_s = F_s x_s dt + B_s u dt + L_s ν dt`` has its white noise ν replaced by
+    the output ``ν = C_f x_f`` of the shaping filter ``dx_f = F_f x_f dt + B_f u_f dt + L_f dβ``
+    (spectral density Qc_f). The augmented state ``[x_s, x_f]`` (n_s + n_f) has
+
+        F = [[F_s, L_s C_f], [0, F_f]],   L = [[0], [L_f]],   Qc = Qc_f,
+        B = diag(B_s, B_f)   (deterministic inputs of either part; None when neither has one).
+
+    The system's own Qc is not used (its noise *is* the shaping filter's output). The parts
+    stay submodules (``model.system``, ``model.shaping``), learned jointly; a C taken
+    from the shaping model (its ``C`` property) is re-read at every evaluation.
+
+    :meth:`start_covariance` is the steady-state start of seed 003 (lecture 23): every
+    covariance entry that involves a system state is 0, the shaping-filter block is the
+    shaping filter's own P∞ (white noise applied for all past time); with it the
+    shaping-filter block stays at P∞ for all t. ``KalmanFilter`` uses it as the default
+    prior of a shaped model (``prior_mode == "shaping"``).
+    """
+
+    def __init__(self, system: LTISDE, shaping: LTISDE, C: Tensor | None = None) -> None:
+        super().__init__()
+        for name, value in (("system", system), ("shaping", shaping)):
+            if not isinstance(value, LTISDE):
+                raise TypeError(f"{name} must be an LTISDE, got {type(value).__name__}")
+        feedthrough = getattr(shaping, "D", None)
+        if isinstance(feedthrough, Tensor) and bool((feedthrough != 0).any()):
+            raise ValueError(
+                f"the shaping filter must be strictly proper (D = 0): its D (shape {shape_str(feedthrough)}) "
+                "would pass white noise straight into the system"
+            )
+        self.system = system
+        self.shaping = shaping
+        n_s, s, n_f = system.state_dim, system.noise_dim, shaping.state_dim
+        dtype, device = system.dtype, system.device
+        self._c_from_shaping = C is None and isinstance(getattr(shaping, "C", None), Tensor)
+        if C is None:
+            C = getattr(shaping, "C", None)
+            if C is None:
+                if n_f != s:
+                    raise ValueError(
+                        f"C is needed: the shaping filter has {n_f} states but the system's noise has "
+                        f"{s} components (L_s shape (…, {n_s}, {s})); give C of shape ({s}, {n_f})"
+                    )
+                C = torch.eye(s, dtype=dtype, device=device)
+            else:
+                C = C.detach().clone()
+        C = as_float_tensor(C, "C", dtype, device).detach().clone()
+        check_matrix(C, "C", rows=s, cols=n_f)
+        check_finite(C, "C")
+        self.register_buffer("shaping_output", C, persistent=False)
+        self.system_dim = n_s
+        if system.position_indices is not None:
+            self.position_indices = tuple(system.position_indices)
+
+    def _build(self) -> SDEMatrices:
+        ms, mf = self.system.matrices(), self.shaping.matrices()
+        n_s, n_f = ms.F.shape[-1], mf.F.shape[-1]
+        C_f = self.shaping.C if self._c_from_shaping else self.shaping_output  # follows a learned shaping C
+        coupling = ms.L @ C_f  # L_s C_f (..., n_s, n_f)
+        batch = torch.broadcast_shapes(ms.F.shape[:-2], coupling.shape[:-2], mf.F.shape[:-2])
+        top = torch.cat([ms.F.expand(*batch, n_s, n_s), coupling.expand(*batch, n_s, n_f)], dim=-1)
+        bottom = nn.functional.pad(mf.F.expand(*batch, n_f, n_f), (n_s, 0))
+        F = torch.cat([top, bottom], dim=-2)
+        L = nn.functional.pad(mf.L, (0, 0, n_s, 0))  # [0; L_f]
+        if ms.B is None and mf.B is None:
+            B = None
+        else:
+            B = _block_diag([m.B if m.B is not None else m.F.new_zeros(*m.F.shape[:-1], 0) for m in (ms, mf)])
+        return SDEMatrices(F, L, mf.Qc, B)
+
+    def start_covariance(self, mats: SDEMatrices | None = None) -> Tensor:
+        r"""Seed 003's steady-state start ``P0 = [[0, 0], [0, P∞_f]]`` (..., n, n).
+
+        ``P∞_f`` solves ``F_f P + P F_fᵀ + L_f Qc_f L_fᵀ = 0`` at the current parameters
+        (read from the augmented ``mats`` when given, so a filter evaluates each
+        parametrisation once). ValueError when F_f is not Hurwitz.
+        """
+        if mats is None:
+            mats = self.matrices()
+        n_s = self.system_dim
+        P_f = stationary_covariance(mats.F[..., n_s:, n_s:], mats.L[..., n_s:, :], mats.Qc)
+        return nn.functional.pad(P_f, (n_s, 0, n_s, 0))
+
+    def extra_repr(self) -> str:
+        return f"system_dim={self.system_dim}, shaping_dim={int(self.shaping_output.shape[-1])}"
+
+
+def shaped(system: LTISDE, shaping: LTISDE, C: Tensor | None = None) -> ShapedSDE:
+    r"""System driven by the coloured noise ``C x_f`` of a shaping filter (seed 003), see :class:`ShapedSDE`.
+
+    ``F = [[F_s, L_s C], [0, F_f]]``, ``L = [0; L_f]``, ``Qc = Qc_f``; the steady-state start
+    is ``model.start_covariance()``. C defaults to the shaping filter's ``C`` (companion,
+    mass–spring–damper, transfer-function models) or the identity when dimensions match.
+
+    Example (first-order system with a Gauss–Markov input, ``ẋ = −a x + f``,
+    ``ḟ = −b f + w``): ``shaped(ornstein_uhlenbeck(a, 1.0), ornstein_uhlenbeck(b, q))``.
+    """
+    return ShapedSDE(system, shaping, C)
 
 
 # ---------------------------------------------------------------------------- composition

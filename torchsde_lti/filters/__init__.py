@@ -4,7 +4,10 @@ Inference is kept apart from models (as in dynamax): these are pure functions of
 discrete-time state-space model
 
     x_k = A_k x_{k-1} + G_k u_k + q_k,    q_k ~ N(0, Q_k),     x_{-1} ~ N(m0, P0)
-    y_k = H_k x_k + r_k,                  r_k ~ N(0, R_k),     k = 0 … T-1
+    y_k = H_k x_k + D u_k + r_k,          r_k ~ N(0, R_k),     k = 0 … T-1
+
+(D, the feedthrough of known inputs, is optional: ``D u`` is subtracted from y during the
+input preparation, so every filter variant sees ``y − D u``.)
 
 (the prior sits *before* step 0: step k first predicts with A_k, Q_k, then updates with
 y_k; pass A_0 = I, Q_0 = 0 to put the prior at the first observation).

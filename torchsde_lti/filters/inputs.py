@@ -95,9 +95,10 @@ def _check_arguments(
     G: Tensor | None,
     u: Tensor | None,
     mask: Tensor | None,
+    D: Tensor | None = None,
 ) -> _Checked:
     """Shapes (and, with value checks on, values) of every argument; c = G u."""
-    dtype = common_float_dtype(*(t for t in (y, A, Q, H, R, m0, P0, G, u) if isinstance(t, Tensor)))
+    dtype = common_float_dtype(*(t for t in (y, A, Q, H, R, m0, P0, G, u, D) if isinstance(t, Tensor)))
     device = next(t.device for t in (y, A, Q, H, R, m0, P0) if isinstance(t, Tensor))
     y = as_float_tensor(y, "y", dtype, device)
     A = as_float_tensor(A, "A", dtype, device)
@@ -126,11 +127,29 @@ def _check_arguments(
     if m0.dim() < 1 or m0.shape[-1] != n:
         raise ValueError(f"m0 must have shape (..., {n}), got shape {shape_str(m0)}")
     check_matrix(P0, "P0", rows=n, cols=n)
-    if (G is None) != (u is None):
+    if u is None and (G is not None or D is not None):
         raise ValueError(
-            "G and u must be given together, got "
-            f"G={'None' if G is None else shape_str(G)}, u={'None' if u is None else shape_str(torch.as_tensor(u))}"
+            f"G and u (or D and u) must be given together: u is None (G={'None' if G is None else shape_str(G)}, "
+            f"D={'None' if D is None else shape_str(torch.as_tensor(D))})"
         )
+    if u is not None and G is None and D is None:
+        raise ValueError(
+            f"G and u (or D and u) must be given together: u was given (shape {shape_str(torch.as_tensor(u))}) "
+            "but G and D are None"
+        )
+    if D is not None and u is not None:
+        # Feedthrough y = H x + D u + r: filter y − D u (NaN stays NaN, so missing data keep their meaning).
+        D = as_float_tensor(D, "D", dtype, device)
+        u = as_float_tensor(u, "u", dtype, device)
+        check_matrix(D, "D", rows=m)
+        pD = D.shape[-1]
+        if u.dim() < 2 or u.shape[-1] != pD or u.shape[-2] not in (1, T):
+            raise ValueError(f"u must have shape (..., T={T}, {pD}) to match D {shape_str(D)}, got shape {shape_str(u)}")
+        if D.dim() >= 3 and D.shape[-3] not in (1, T):
+            raise ValueError(f"D has {D.shape[-3]} steps on its time axis (shape {shape_str(D)}) but y has T={T}")
+        check_finite(D, "D")
+        check_finite(u, "u")
+        y = y - matvec(D, u)
     c = None
     if G is not None and u is not None:
         G = as_float_tensor(G, "G", dtype, device)
@@ -225,13 +244,16 @@ def prepare_inputs(
     G: Tensor | None,
     u: Tensor | None,
     mask: Tensor | None,
+    D: Tensor | None = None,
 ) -> PreparedInputs:
     """Check, mask, broadcast and whiten the filter arguments (shapes: :mod:`torchsde_lti.filters`).
+
+    With a feedthrough D (..., [T,] m, p) and inputs u, the observations become ``y − D u``.
 
     The covariance path's batch excludes y (and u) unless data are missing, so with a shared
     dt grid and no missing data the covariance recursion runs once for all tracks.
     """
-    args = _check_arguments(y, A, Q, H, R, m0, P0, G, u, mask)
+    args = _check_arguments(y, A, Q, H, R, m0, P0, G, u, mask, D)
     y, A, Q, H, R, m0, P0, c = args.y, args.A, args.Q, args.H, args.R, args.m0, args.P0, args.c
     T, n = args.T, args.n
     obs, y0 = observed_components(y, args.obs_given)

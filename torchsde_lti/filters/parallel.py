@@ -97,6 +97,7 @@ def parallel_kalman_filter(
     G: Tensor | None = None,
     u: Tensor | None = None,
     mask: Tensor | None = None,
+    D: Tensor | None = None,
 ) -> FilterResult:
     r"""Kalman filter by associative scan (Särkkä & García-Fernández 2021), O(log T) depth.
 
@@ -111,7 +112,7 @@ def parallel_kalman_filter(
     batched over all steps. Wins over the sequential loop when per-step Python overhead
     dominates (small batch, long T); loses when the batch already fills the cores.
     """
-    prep = prepare_inputs(y, A, Q, H, R, m0, P0, G, u, mask)
+    prep = prepare_inputs(y, A, Q, H, R, m0, P0, G, u, mask, D)
     n = prep.A.shape[-1]
     T = prep.T
     A_ = prep.A

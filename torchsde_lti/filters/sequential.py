@@ -43,6 +43,7 @@ def kalman_filter(
     u: Tensor | None = None,
     mask: Tensor | None = None,
     square_root: bool = False,
+    D: Tensor | None = None,
 ) -> FilterResult:
     r"""Kalman filter over T steps (sequential loop, O(T) depth).
 
@@ -56,18 +57,20 @@ def kalman_filter(
         A: (..., T, n, n) transitions. Q: (..., T, n, n) process noise (symmetric PSD).
         H: (..., T, m, n) observation matrices. R: (..., T, m, m) noise (symmetric PD).
         m0: (..., n) prior mean. P0: (..., n, n) prior covariance (before step 0).
-        G: optional (..., T, n, p) input matrices; u: (..., T, p) inputs (both or neither).
+        G: optional (..., T, n, p) input matrices; u: (..., T, p) inputs (u needs G or D).
         mask: optional bool (..., T) or (..., T, m); False = not observed.
         square_root: propagate factors ``P = S Sᵀ`` (QR predict, Givens update, see
             :func:`square_root_filter`) instead of covariances; same results up to
             rounding, covariances PSD by construction and accurate in float32 when predicted
             and measurement variances differ by more than 1/eps. Slower (a batched LAPACK
             QR per step); off by default.
+        D: optional (..., [T,] m, p) feedthrough, ``y_k = H_k x_k + D u_k + r_k``: the update
+            uses ``y_k − D u_k`` (so innovations are ``y_k − D u_k − H_k m⁻_k``); needs u.
 
     Returns:
         :class:`FilterResult`; every output broadcasts to the full batch ``...``.
     """
-    prep = prepare_inputs(y, A, Q, H, R, m0, P0, G, u, mask)
+    prep = prepare_inputs(y, A, Q, H, R, m0, P0, G, u, mask, D)
     if square_root:
         return square_root_filter(prep)
     m_dim = prep.yw.shape[-1]

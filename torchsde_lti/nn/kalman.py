@@ -16,13 +16,18 @@ All steps' (A_k, Q_k, G_k) come from ONE batched ``sde(dt, series=True)`` call (
 discretisation) before the time loop, so a parameter batch in the SDE (e.g. F (S, n, n))
 lines up with the series batch of dt (S, T).
 
-Prior: ``m0`` defaults to zeros; ``P0`` defaults to the stationary covariance P∞ of the
-SDE when F is Hurwitz at construction (recomputed at every call, so it follows a learned
+Observation: ``y_k = H x_k + D u_k + v_k``; the feedthrough D (optional, (..., m, p)) acts
+on the same known inputs u as the SDE's B (an SDE without B may still have a D).
+
+Prior: ``m0`` defaults to zeros; ``P0`` defaults to the steady-state start of a shaped
+model (:func:`torchsde_lti.models.shaped`, prior mode ``"shaping"``: system blocks 0, the
+shaping-filter block at its own P∞, recomputed at every call), else to the stationary
+covariance P∞ of the SDE when F is Hurwitz at construction (recomputed at every call, so it follows a learned
 F — it raises if training makes F unstable, give P0 or use ``F_constraint="hurwitz"``),
 otherwise to a broad prior ``diffuse_variance · I`` (default 1e4, in squared state units:
 choose it larger than the squared spread of your positions/velocities).
 
-Learnable: any of ``"H"``, ``"R"``, ``"m0"``, ``"P0"`` (the SDE's own ``learn`` controls
+Learnable: any of ``"H"``, ``"D"``, ``"R"``, ``"m0"``, ``"P0"`` (the SDE's own ``learn`` controls
 F, L, Qc, B). R and a learnable P0 are parametrised symmetric positive definite by
 :class:`~torchsde_lti.nn.parametrizations.PositiveDefinite` (Cholesky factor with a softplus
 diagonal), so ``kf.R = value`` works and any optimiser step keeps them valid.
@@ -55,14 +60,15 @@ from torchsde_lti.nn.sde import LTISDE, SDEMatrices
 
 __all__ = ["Forecast", "KalmanFilter"]
 
-_LEARNABLE = ("H", "R", "m0", "P0")
+_LEARNABLE = ("H", "D", "R", "m0", "P0")
+_PRIOR_MODES = ("stationary", "diffuse", "shaping")
 
 
 class Forecast(NamedTuple):
     """Predictive moments at future times.
 
     mean: (..., K, n), cov: (..., K, n, n) of the state;
-    obs_mean: (..., K, m) = H mean, obs_cov: (..., K, m, m) = H cov Hᵀ + R.
+    obs_mean: (..., K, m) = H mean (+ D u when inputs are given), obs_cov: (..., K, m, m) = H cov Hᵀ + R.
     """
 
     mean: Tensor
@@ -73,7 +79,7 @@ class Forecast(NamedTuple):
 
 
 class KalmanFilter(nn.Module):
-    r"""Kalman filter / RTS smoother for ``dx = F x dt + B u dt + L dβ``, ``y = H x + r``.
+    r"""Kalman filter / RTS smoother for ``dx = F x dt + B u dt + L dβ``, ``y = H x + D u + r``.
 
     Args:
         sde: the motion model (:class:`~torchsde_lti.LTISDE` or a model of
@@ -81,9 +87,14 @@ class KalmanFilter(nn.Module):
         H: (..., m, n) observation matrix.
         R: (..., m, m) observation-noise covariance, symmetric positive definite.
         m0: optional (..., n) prior mean (default zeros).
-        P0: optional (..., n, n) prior covariance (default: stationary P∞ if F is Hurwitz,
-            else ``diffuse_variance · I``).
-        learn: which of ``"H", "R", "m0", "P0"`` are ``nn.Parameter`` (default ``("R",)``).
+        P0: optional (..., n, n) prior covariance, or a prior mode recomputed from the current
+            parameters at every call: ``"shaping"`` (a shaped model's
+            ``start_covariance()``, seed 003's steady-state start), ``"stationary"`` (P∞ of
+            the whole state) or ``"diffuse"`` (``diffuse_variance · I``). Default: "shaping"
+            for a shaped model, else "stationary" if F is Hurwitz, else "diffuse".
+        D: optional (..., m, p) feedthrough of the known inputs, ``y = H x + D u + r``
+            (p = the SDE's input dimension when it has a B).
+        learn: which of ``"H", "D", "R", "m0", "P0"`` are ``nn.Parameter`` (default ``("R",)``).
         parallel: use the associative-scan filter/smoother (O(log T) depth). On CPU it pays
             off only for a few tracks (per-step Python overhead dominates the loop there);
             from ~100 tracks on the sequential loop is faster (experiments/bench_filter.py).
@@ -115,7 +126,8 @@ class KalmanFilter(nn.Module):
         R: Tensor,
         *,
         m0: Tensor | None = None,
-        P0: Tensor | None = None,
+        P0: Tensor | str | None = None,
+        D: Tensor | None = None,
         learn: Iterable[str] | str = ("R",),
         parallel: bool = False,
         diffuse_variance: float = 1e4,
@@ -146,6 +158,21 @@ class KalmanFilter(nn.Module):
         if R.dim() < 2 or R.shape[-2:] != (m, m):
             raise ValueError(f"R must have shape (..., {m}, {m}) to match H {shape_str(H)}, got shape {shape_str(R)}")
         self._register("H", H, "H" in names)
+        if D is None:
+            if "D" in names:
+                raise ValueError("learn contains 'D' but D is None")
+            self.register_buffer("D", None)
+        else:
+            D_t = as_float_tensor(D, "D", dtype, device).detach().clone()
+            check_matrix(D_t, "D", rows=m)
+            check_finite(D_t, "D")
+            p = sde.input_dim
+            if p and D_t.shape[-1] != p:
+                raise ValueError(
+                    f"D must have shape (..., {m}, {p}): {p} columns for the SDE's input matrix B, got shape "
+                    f"{shape_str(D_t)}"
+                )
+            self._register("D", D_t, "D" in names)
         self._register("R", R, "R" in names)
         parametrize.register_parametrization(self, "R", PositiveDefinite(name="R", size=m).to(dtype=dtype, device=device))
 
@@ -155,22 +182,43 @@ class KalmanFilter(nn.Module):
         check_finite(m0_t, "m0")
         self._register("m0", m0_t.detach().clone(), "m0" in names)
 
-        # Prior covariance mode: given / stationary / diffuse.
+        # Prior covariance mode: given / shaping / stationary / diffuse.
         self.prior_mode: str
-        if P0 is not None:
+        if isinstance(P0, str):
+            if P0 not in _PRIOR_MODES:
+                raise ValueError(f"P0 must be a tensor or one of {_PRIOR_MODES}, got {P0!r}")
+            if P0 == "shaping" and not callable(getattr(sde, "start_covariance", None)):
+                raise ValueError(
+                    f"P0='shaping' needs a shaped model (tl.models.shaped), got {type(sde).__name__}"
+                )
+            self.prior_mode = P0
+            with torch.no_grad():
+                P0_t = self._prior(sde.matrices())[1].detach().clone()  # raises now if not computable
+            if "P0" in names and self.prior_mode != "shaping":
+                self.prior_mode = "given"  # learnable, initialised at that mode's value
+        elif P0 is not None:
             P0_t = as_float_tensor(P0, "P0", dtype, device).detach().clone()
             check_matrix(P0_t, "P0", rows=n, cols=n)
             self.prior_mode = "given"
         else:
             try:
                 with torch.no_grad():
-                    P0_t = sde.stationary_covariance().detach().clone()
-                self.prior_mode = "stationary"
+                    if callable(getattr(sde, "start_covariance", None)):
+                        P0_t = sde.start_covariance().detach().clone()
+                        self.prior_mode = "shaping"
+                    else:
+                        P0_t = sde.stationary_covariance().detach().clone()
+                        self.prior_mode = "stationary"
             except ValueError:
                 P0_t = self.diffuse_variance * torch.eye(n, dtype=dtype, device=device)
                 self.prior_mode = "diffuse"
-            if "P0" in names:
+            if "P0" in names and self.prior_mode != "shaping":
                 self.prior_mode = "given"  # learnable, initialised at the default
+        if "P0" in names and self.prior_mode == "shaping":
+            raise ValueError(
+                "learn contains 'P0', but the shaping start P0 is singular (every entry involving a system "
+                "state is 0) and a learnable P0 is parametrised positive definite; pass an initial P0 tensor"
+            )
         if self.prior_mode == "given":
             self._register("P0", P0_t, "P0" in names)
             parametrize.register_parametrization(self, "P0", PositiveDefinite(name="P0", size=n).to(dtype=dtype, device=device))
@@ -200,6 +248,8 @@ class KalmanFilter(nn.Module):
         """:meth:`initial_state` from already evaluated SDE matrices."""
         if self.prior_mode == "given":
             P0 = self.P0
+        elif self.prior_mode == "shaping":
+            P0 = self.sde.start_covariance(mats)  # type: ignore[operator]
         elif self.prior_mode == "stationary":
             try:
                 P0 = stationary_covariance(mats.F, mats.L, mats.Qc)
@@ -217,7 +267,7 @@ class KalmanFilter(nn.Module):
         self, y: Tensor, dt: Tensor, u: Tensor | None, mats: SDEMatrices
     ) -> tuple[Tensor, Tensor, Tensor | None]:
         dtype, device = mats.F.dtype, mats.F.device
-        p = 0 if mats.B is None else mats.B.shape[-1]
+        p = mats.B.shape[-1] if mats.B is not None else (self.D.shape[-1] if self.D is not None else 0)
         y = as_float_tensor(y, "y", dtype, device)
         if y.dim() < 2:
             raise ValueError(f"y must have shape (..., T, m), got shape {shape_str(y)}")
@@ -239,7 +289,8 @@ class KalmanFilter(nn.Module):
         if u is not None:
             if p == 0:
                 raise ValueError(
-                    f"u was given (shape {shape_str(torch.as_tensor(u))}) but the SDE has no input matrix B"
+                    f"u was given (shape {shape_str(torch.as_tensor(u))}) but the SDE has no input matrix B "
+                    "and the filter no feedthrough D"
                 )
             u = as_float_tensor(u, "u", dtype, device)
             if u.dim() < 2 or u.shape[-1] != p or u.shape[-2] not in (1, T):
@@ -268,7 +319,8 @@ class KalmanFilter(nn.Module):
         Args:
             y: (..., T, m) observations; NaN marks a missing component.
             dt: (..., T) non-negative steps; dt[..., 0] is the time from the prior to y[..., 0].
-            u: optional (..., T, p) inputs held constant over each step (needs the SDE's B).
+            u: optional (..., T, p) inputs held constant over each step (needs the SDE's B
+                or the filter's D); they enter ``G u`` and ``y = H x + D u + v``.
             mask: optional bool (..., T) or (..., T, m); False = not observed.
 
         Returns:
@@ -279,18 +331,21 @@ class KalmanFilter(nn.Module):
         y, dt, u = self._check_inputs(y, dt, u, mats)  # dt checked (finite, ≥ 0) once, here
         m0, P0 = self._prior(mats)
         H, R = self.H, self.R
-        self._check_parameters(mats, H=H, R=R, m0=m0, P0=P0)
+        D = self.D if u is not None else None  # no known input: D u = 0
+        self._check_parameters(mats, H=H, R=R, m0=m0, P0=P0, **({} if D is None else {"D": D}))
         fn = parallel_kalman_filter if self.parallel else kalman_filter
         # A batch of observation models (..., m, n) is constant over time: insert the T axis.
         H = H.unsqueeze(-3) if H.dim() > 2 else H
         R = R.unsqueeze(-3) if R.dim() > 2 else R
+        if D is not None and D.dim() > 2:
+            D = D.unsqueeze(-3)
         # Matrices are valid by construction (parametrisations, PSD doubling): no value checks.
         with validation(False):
             d = self._discretize(dt, mats)  # one batched discretisation: A, Q (..., T, n, n)
             G = d.G if u is not None else None
             if self.square_root:
-                return kalman_filter(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, square_root=True)
-            return fn(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask)
+                return kalman_filter(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, square_root=True, D=D)
+            return fn(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, D=D)
 
     @property
     def discretization_method(self) -> str:
@@ -327,7 +382,7 @@ class KalmanFilter(nn.Module):
         """Moments at horizons dt after the state's time (each horizon measured from it).
 
         ``mean = A(dt) m + G(dt) u``, ``cov = A(dt) P A(dt)ᵀ + Q(dt)``, then the observation
-        moments ``H mean`` and ``H cov Hᵀ + R``.
+        moments ``H mean + D u`` and ``H cov Hᵀ + R`` (G u and D u only where u is given).
 
         Args:
             state: a filter/smoother result (its last time step is used) or a pair
@@ -355,14 +410,23 @@ class KalmanFilter(nn.Module):
                              f"{shape_str(mean)}, {shape_str(cov)}")
         d = self.sde(dt, method=self.discretization_method, series=True)
         if u is not None:
-            if d.G is None:
-                raise ValueError(f"u was given (shape {shape_str(torch.as_tensor(u))}) but the SDE has no input matrix B")
+            if d.G is None and self.D is None:
+                raise ValueError(
+                    f"u was given (shape {shape_str(torch.as_tensor(u))}) but the SDE has no input matrix B "
+                    "and the filter no feedthrough D"
+                )
             u = as_float_tensor(u, "u", dtype, device)
+            p = d.G.shape[-1] if d.G is not None else self.D.shape[-1]  # type: ignore[union-attr]
+            if u.dim() < 2 or u.shape[-1] != p or u.shape[-2] not in (1, dt.shape[-1]):
+                raise ValueError(f"u must have shape (..., K={dt.shape[-1]}, p={p}), got shape {shape_str(u)}")
         m, P = predict_moments(mean.unsqueeze(-2), cov.unsqueeze(-3), d.A, d.Q, d.G, u)
         H, R = self.H, self.R
         Hk = H.unsqueeze(-3) if H.dim() > 2 else H
         Rk = R.unsqueeze(-3) if R.dim() > 2 else R
-        return Forecast(m, P, matvec(Hk, m), sym(Hk @ P @ Hk.mT + Rk))
+        obs_mean = matvec(Hk, m)
+        if u is not None and self.D is not None:
+            obs_mean = obs_mean + matvec(self.D.unsqueeze(-3) if self.D.dim() > 2 else self.D, u)
+        return Forecast(m, P, obs_mean, sym(Hk @ P @ Hk.mT + Rk))
 
     def extra_repr(self) -> str:
         return (
