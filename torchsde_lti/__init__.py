@@ -24,11 +24,13 @@ from torchsde_lti.filtering import (
     rts_smoother,
 )
 from torchsde_lti.kalman import Forecast, KalmanFilter
+from torchsde_lti.nn.imm import IMMFilter
 
 __all__ = [
     "FilterResult",
     "Forecast",
     "KalmanFilter",
+    "IMMFilter",
     "SmootherResult",
     "kalman_filter",
     "parallel_kalman_filter",
