@@ -274,6 +274,8 @@ def imm_filter(
         joint = log_c + ll
         step = torch.logsumexp(joint, dim=-1)
         prob = torch.exp(joint - step.unsqueeze(-1))
+        # Σ_j c_j = 1 exactly in theory: a fully missing step contributes exactly 0
+        step = torch.where(n_obs[..., k] > 0, step, torch.zeros_like(step))
         outs["c"].append(c)
         outs["mu"].append(prob)
         outs["mm"].append(mean)
