@@ -300,12 +300,17 @@ class IMMFilter(nn.Module):
         return (H if H.dim() == 3 else H.unsqueeze(0)), (R if R.dim() == 3 else R.unsqueeze(0))
 
     # ------------------------------------------------------------------ API
-    def forward(self, y: Tensor, dt: Tensor, mask: Tensor | None = None) -> IMMResult:
+    def forward(self, y: Tensor, dt: Tensor, u: Tensor | None = None, mask: Tensor | None = None) -> IMMResult:
         """Filter observations y (..., T, m) taken after steps dt (..., T).
+
+        ``u`` exists for the call shape of :class:`~torchsde_lti.KalmanFilter` only: the IMM
+        has no inputs, a non-None u raises ValueError.
 
         Returns :class:`~torchsde_lti.filters.imm.IMMResult` (log_likelihood (...),
         step_log_likelihood (..., T), mode_probabilities (..., T, M), mean, cov, …).
         """
+        if u is not None:
+            raise ValueError(f"u was given (shape {shape_str(torch.as_tensor(u))}) but IMMFilter has no inputs")
         dtype = self.models[0].dtype
         y = as_float_tensor(y, "y", dtype, self.models[0].device)
         if y.dim() < 2 or y.shape[-1] != self.obs_dim:
