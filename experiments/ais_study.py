@@ -123,10 +123,35 @@ def run_filter(kf: tl.KalmanFilter, batch: TrackBatch) -> FilterResult:
         return kalman_filter(batch.y, d.A[inv], d.Q[inv], kf.H, kf.R, m0, P0, mask=batch.mask)
 
 
-def vessel_nll(kf: tl.KalmanFilter, batch: TrackBatch) -> tuple[np.ndarray, np.ndarray]:
+def run_model(model: tl.KalmanFilter | tl.IMMFilter, batch: TrackBatch) -> object:
+    """:func:`run_filter` for a Kalman filter; the IMM's own forward (distinct dt discretised once)."""
+    if isinstance(model, tl.IMMFilter):
+        return model(batch.y, batch.dt, mask=batch.mask)
+    return run_filter(model, batch)
+
+
+def build_imm() -> tl.IMMFilter:
+    """Two-mode IMM in [x, vx, y, vy]: moored (velocity damped at rate k, position random walk)
+    and underway (integrated OU), per-mode R, learned switching rates and initial mode
+    probabilities; the modes' k, q are learned too. Prior per mode: position std 100 m,
+    velocity std 0.5 m/s (moored) / 5 m/s (underway)."""
+    moored = tl.models.moored(k=_f64(0.05), q=_f64(0.01), dim=2)
+    underway = tl.models.integrated_ou(k=_f64(0.005), q=_f64(0.01), dim=2)
+    H = tl.models.position_observation(underway)
+    eye = torch.eye(2, dtype=torch.float64)
+    R = torch.stack([5.0**2 * eye, 20.0**2 * eye])
+    rates = torch.tensor([[0.0, 1 / 1800], [1 / 1800, 0.0]], dtype=torch.float64)
+    P0 = torch.stack([torch.diag(torch.tensor([100.0**2, v**2, 100.0**2, v**2], dtype=torch.float64))
+                      for v in (0.5, P0_STD[1])])
+    return tl.IMMFilter([moored, underway], H, R, rates, m0=torch.zeros(4, dtype=torch.float64), P0=P0,
+                        mode_prob0=torch.tensor([0.5, 0.5], dtype=torch.float64),
+                        learn=("R", "rates", "mode_prob0"), unique_dt=True)
+
+
+def vessel_nll(kf: tl.KalmanFilter | tl.IMMFilter, batch: TrackBatch) -> tuple[np.ndarray, np.ndarray]:
     """Per vessel: summed -log p(y_k | y_<k) over reports 2..T, and the number of them. (B,), (B,)."""
     with torch.no_grad():
-        out = run_filter(kf, batch)
+        out = run_model(kf, batch)
     m = batch.mask[:, 1:]
     return (-(out.step_log_likelihood[:, 1:] * m).sum(1)).numpy(), m.sum(1).numpy()
 
@@ -160,14 +185,19 @@ def fit(kf: tl.KalmanFilter, batch: TrackBatch, max_iter: int) -> dict[str, floa
         nonlocal evals
         evals += 1
         opt.zero_grad()
-        loss = predictive_nll(run_filter(kf, batch), batch)
+        loss = predictive_nll(run_model(kf, batch), batch)
         loss.backward()
+        if not (torch.isfinite(loss) and all(torch.isfinite(p.grad).all() for p in params)):
+            # a trial point of the line search left the valid region (e.g. a singular
+            # innovation covariance): report a high loss so that the line search backtracks
+            opt.zero_grad()
+            return torch.tensor(1e6, dtype=loss.dtype)
         return loss
 
     start = time.perf_counter()
     opt.step(closure)
     with torch.no_grad():
-        final = float(predictive_nll(run_filter(kf, batch), batch))
+        final = float(predictive_nll(run_model(kf, batch), batch))
     return {"train_nll": final, "evals": evals, "seconds": time.perf_counter() - start}
 
 
@@ -188,68 +218,168 @@ def forecast_pairs(batch: TrackBatch, horizon: float, tol: float = 0.25) -> tupl
     """Origins (b, k), k >= 1, and targets j: the report with lead t_j - t_k nearest ``horizon``.
 
     Returns index tensors b, k, j (N,) of the pairs with |lead - horizon| <= tol * horizon.
+    Memory O(B T): times are sorted, so the nearest report to t_k + horizon is one of the two
+    neighbours found by ``searchsorted`` (the earlier version built (B, T, T) tensors).
     """
-    t, mask = batch.t, batch.mask
-    lead = t[:, None, :] - t[:, :, None]  # (B, K origins, J targets)
-    T = t.shape[1]
-    later = torch.arange(T)[None, :] > torch.arange(T)[:, None]
-    ok = later[None] & mask[:, None, :] & mask[:, :, None]
-    ok[:, 0, :] = False  # origin needs >= 2 reports seen
-    gap = torch.where(ok, (lead - horizon).abs(), torch.full_like(lead, math.inf))
-    best, j = gap.min(dim=-1)
-    sel = best <= tol * horizon
+    t, mask = batch.t.contiguous(), batch.mask
+    B, T = t.shape
+    hi = torch.searchsorted(t, (t + horizon).contiguous())  # first index with t_j >= t_k + horizon
+    last = (batch.lengths - 1).clamp_min(0)[:, None, None]
+    cand = torch.stack([hi - 1, hi], dim=-1).clamp_min(0).minimum(last)  # (B, T, 2)
+    tc = torch.gather(t, 1, cand.reshape(B, -1)).reshape(B, T, 2)
+    k_idx = torch.arange(T)
+    ok = (cand > k_idx[None, :, None]) & torch.gather(mask, 1, cand.reshape(B, -1)).reshape(B, T, 2)
+    gap = torch.where(ok, (tc - t[..., None] - horizon).abs(), torch.full_like(tc, math.inf))
+    best, which = gap.min(dim=-1)
+    j = cand.gather(-1, which.unsqueeze(-1)).squeeze(-1)
+    sel = (best <= tol * horizon) & mask & (k_idx[None, :] >= 1)
     b, k = sel.nonzero(as_tuple=True)
     return b, k, j[b, k]
 
 
-def evaluate(kf: tl.KalmanFilter, batch: TrackBatch, curve_min: tuple[float, ...]) -> dict[str, float]:
-    """All test metrics of the module docstring for one filter on one batch."""
+def _mixture_logpdf(x: Tensor, w: Tensor, mu: Tensor, S: Tensor) -> Tensor:
+    """log Σ_j w_j N(x; mu_j, S_j): x (N, ..., 2) against components w (N, M), mu (N, M, 2), S (N, M, 2, 2)."""
+    extra = x.dim() - 2
+    shape = (x.shape[0],) + (1,) * extra
+    mu_ = mu.reshape(shape[:1] + (1,) * extra + mu.shape[1:])
+    L = torch.linalg.cholesky(S).reshape(shape[:1] + (1,) * extra + S.shape[1:])
+    d = (x.unsqueeze(-2) - mu_).unsqueeze(-1)
+    z = torch.linalg.solve_triangular(L, d, upper=False).squeeze(-1)
+    logdet = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+    comp = -0.5 * (z * z).sum(-1) - logdet - math.log(2 * math.pi)
+    return torch.logsumexp(comp + torch.log(w.clamp_min(1e-300)).reshape(shape[:1] + (1,) * extra + w.shape[1:]), -1)
+
+
+def inside_2sigma(y: Tensor, w: Tensor, mu: Tensor, S: Tensor, samples: int = 1000, seed: int = 0) -> Tensor:
+    """y (N, 2) inside the predictive's 86.5 % highest-density region? (N,) bool.
+
+    One component: the 2σ ellipse (Mahalanobis² <= 4), exactly. A mixture: the share of
+    ``samples`` Monte Carlo draws with a higher density than y (seeded) <= 1 - e^-2, the
+    same region for a Gaussian.
+    """
+    if w.shape[-1] == 1:
+        d = (y - mu[:, 0]).unsqueeze(-1)
+        return (d.mT @ torch.linalg.solve(S[:, 0], d)).squeeze(-1).squeeze(-1) <= CHI2_2SIGMA
+    g = torch.Generator().manual_seed(seed)
+    out = []
+    for lo in range(0, y.shape[0], 2000):
+        sl = slice(lo, lo + 2000)
+        ww, mm, SS = w[sl], mu[sl], S[sl]
+        comp = torch.multinomial(ww, samples, replacement=True, generator=g)  # (n, samples)
+        Lc = torch.linalg.cholesky(SS)
+        z = torch.randn(*comp.shape, 2, generator=g, dtype=y.dtype)
+        xs = torch.gather(mm, 1, comp[..., None].expand(-1, -1, 2)) + (
+            torch.gather(Lc, 1, comp[..., None, None].expand(-1, -1, 2, 2)) @ z.unsqueeze(-1)).squeeze(-1)
+        ly = _mixture_logpdf(y[sl], ww, mm, SS)
+        lx = _mixture_logpdf(xs, ww, mm, SS)
+        out.append((lx > ly[:, None]).double().mean(-1) <= 1.0 - math.exp(-2.0))
+    return torch.cat(out)
+
+
+def predictive_mixture(model: tl.KalmanFilter | tl.IMMFilter, batch: TrackBatch) -> tuple[object, Tensor, Tensor, Tensor]:
+    """Filter output and the one-step predictive of y as a mixture: weights (B, T, M), means
+    (B, T, M, 2), covariances (B, T, M, 2, 2) (M = 1 for a Kalman filter)."""
+    out = run_model(model, batch)
+    H = model.H.detach()
+    if isinstance(model, tl.IMMFilter):
+        return out, out.pred_mode_probabilities, out.mode_pred_mean @ H.mT, out.mode_innovation_cov
+    w = torch.ones(*out.pred_mean.shape[:-1], 1, dtype=out.pred_mean.dtype)
+    return out, w, (out.pred_mean @ H.mT).unsqueeze(-2), out.innovation_cov.unsqueeze(-3)
+
+
+def forecast_mixture(model: tl.KalmanFilter | tl.IMMFilter, out: object, b: Tensor, k: Tensor,
+                     lead: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Predictive of y at t_k + lead from the filtered state at (b, k): weights (N, M), means, covs."""
+    if isinstance(model, tl.IMMFilter):
+        fc = model.forecast((out.mode_probabilities[b, k], out.mode_mean[b, k], out.mode_cov[b, k]),
+                            lead.unsqueeze(-1))
+        return fc.mode_probabilities[:, 0], fc.mode_obs_mean[:, 0], fc.mode_obs_cov[:, 0]
+    fc = model.forecast((out.mean[b, k], out.cov[b, k]), lead.unsqueeze(-1))
+    return torch.ones(len(b), 1, dtype=lead.dtype), fc.obs_mean[:, :1], fc.obs_cov[:, :1]
+
+
+def collect(model: tl.KalmanFilter | tl.IMMFilter, batch: TrackBatch, curve_min: tuple[float, ...]) -> dict[str, Tensor]:
+    """Per-report (reports 2..T) and per-forecast-pair arrays of one batch (see :func:`summarise`)."""
     with torch.no_grad():
-        out = run_filter(kf, batch)
+        out, w, ym, S = predictive_mixture(model, batch)
         m = batch.mask.clone()
         m[:, 0] = False
-        res: dict[str, float] = {"nll": float(predictive_nll(out, batch)), "reports": int(m.sum())}
-        e = out.innovation[m]  # (N, 2) y - H m⁻
-        S = out.innovation_cov[m]
-        res["rmse1"] = float(e.pow(2).sum(-1).mean().sqrt())
-        maha = (e.unsqueeze(-2) @ torch.linalg.solve(S, e.unsqueeze(-1))).squeeze(-1).squeeze(-1)
-        res["cover2s"] = float((maha <= CHI2_2SIGMA).double().mean())
-        under = batch.sog >= 2.0
-        mu = m & under
-        res["nll_underway"] = float(-(out.step_log_likelihood * mu).sum() / mu.sum())
-        res["reports_underway"] = int(mu.sum())
-        ms = m & ~under
-        res["nll_slow"] = float(-(out.step_log_likelihood * ms).sum() / ms.sum())
-        enorm = out.innovation.norm(dim=-1)
-        res["med_err_slow"] = float(enorm[ms].median())
-        res["med_err_underway"] = float(enorm[mu].median())
-        # velocity vs SOG/COG
-        Hv = velocity_readout(kf)
-        v = out.mean @ Hv.mT
-        good = m & torch.isfinite(batch.vel).all(-1)
-        dv = (v - batch.vel)[good]
-        res["vel_rmse"] = float(dv.pow(2).sum(-1).mean().sqrt())
-        gu = good & under
-        res["vel_rmse_underway"] = float((v - batch.vel)[gu].pow(2).sum(-1).mean().sqrt())
-        # forecasts
+        point = (w.unsqueeze(-1) * ym).sum(-2)
+        res: dict[str, Tensor] = {"ll": out.step_log_likelihood[m], "err": (batch.y - point)[m],
+                                  "inside": inside_2sigma(batch.y[m], w[m], ym[m], S[m]).double(),
+                                  "sog": batch.sog[m],
+                                  "vessel_nll": -(out.step_log_likelihood * m).sum(1), "vessel_n": m.sum(1)}
+        v = out.mean @ velocity_readout(model).mT
+        res["verr"] = (v - batch.vel)[m]
+        if isinstance(model, tl.IMMFilter):
+            res["p_mode"] = out.mode_probabilities[m]
         for h in curve_min:
             b, k, j = forecast_pairs(batch, 60.0 * h)
-            res[f"fc_n_{h:g}"] = int(len(b))
-            if len(b) == 0:  # no report near this lead time (e.g. 30 s: reports come every >= 60 s)
-                res[f"fc_rmse_{h:g}"] = res[f"fc_cover2s_{h:g}"] = math.nan
+            if len(b) == 0:
+                res[f"fc_err_{h:g}"], res[f"fc_in_{h:g}"] = torch.zeros(0, 2), torch.zeros(0)
                 continue
             lead = batch.t[b, j] - batch.t[b, k]
-            fc = kf.forecast((out.mean[b, k], out.cov[b, k]), lead.unsqueeze(-1))
-            err = fc.obs_mean[:, 0] - batch.y[b, j]
-            res[f"fc_rmse_{h:g}"] = float(err.pow(2).sum(-1).mean().sqrt())
-            d = err.unsqueeze(-1)
-            mh = (d.mT @ torch.linalg.solve(fc.obs_cov[:, 0], d)).squeeze()
-            res[f"fc_cover2s_{h:g}"] = float((mh <= CHI2_2SIGMA).double().mean())
+            fw, fm, fS = forecast_mixture(model, out, b, k, lead)
+            yj = batch.y[b, j]
+            res[f"fc_err_{h:g}"] = (fw.unsqueeze(-1) * fm).sum(-2) - yj
+            res[f"fc_in_{h:g}"] = inside_2sigma(yj, fw, fm, fS).double()
     return res
 
 
-def describe(kf: tl.KalmanFilter) -> str:
+def summarise(parts: list[dict[str, Tensor]], curve_min: tuple[float, ...]) -> dict[str, float]:
+    """Test metrics of the module docstring from :func:`collect` arrays of one or more batches."""
+    c = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+    ll, err, sog = c["ll"], c["err"], c["sog"]
+    enorm = err.norm(dim=-1)
+    under, slow = sog >= 2.0, sog < 2.0  # both False where SOG is unknown (.traj files)
+    nan = math.nan
+
+    def mean_or_nan(x: Tensor) -> float:
+        return float(x.mean()) if x.numel() else nan
+
+    res: dict[str, float] = {"nll": float(-ll.mean()), "reports": int(ll.numel()),
+                             "rmse1": float(err.pow(2).sum(-1).mean().sqrt()), "cover2s": float(c["inside"].mean()),
+                             "nll_underway": mean_or_nan(-ll[under]), "reports_underway": int(under.sum()),
+                             "nll_slow": mean_or_nan(-ll[slow]),
+                             "med_err_slow": float(enorm[slow].median()) if slow.any() else nan,
+                             "med_err_underway": float(enorm[under].median()) if under.any() else nan}
+    good = torch.isfinite(c["verr"]).all(-1)
+    res["vel_rmse"] = float(c["verr"][good].pow(2).sum(-1).mean().sqrt()) if good.any() else nan
+    gu = good & under
+    res["vel_rmse_underway"] = float(c["verr"][gu].pow(2).sum(-1).mean().sqrt()) if gu.any() else nan
+    if "p_mode" in c:
+        res["mean_p_mode"] = [float(x) for x in c["p_mode"].mean(0)]
+    for h in curve_min:
+        e = c[f"fc_err_{h:g}"]
+        res[f"fc_n_{h:g}"] = int(e.shape[0])
+        res[f"fc_rmse_{h:g}"] = float(e.pow(2).sum(-1).mean().sqrt()) if e.shape[0] else nan
+        res[f"fc_cover2s_{h:g}"] = float(c[f"fc_in_{h:g}"].mean()) if e.shape[0] else nan
+    return res
+
+
+def evaluate(kf: tl.KalmanFilter | tl.IMMFilter, batch: TrackBatch, curve_min: tuple[float, ...]) -> dict[str, float]:
+    """All test metrics of the module docstring for one filter (or IMM) on one batch."""
+    return summarise([collect(kf, batch, curve_min)], curve_min)
+
+
+def describe_imm(imm: tl.IMMFilter) -> str:
+    """Learned IMM values in physical units."""
+    names = ("moored", "underway")
+    parts = [f"{nm}: k={float(m.k.detach()):.3g}, q={float(m.q.detach()):.3g}" for nm, m in zip(names, imm.models)]
+    R = imm.R.detach()
+    parts += [f"R_{nm}=[[{R[j, 0, 0]:.3g}, {R[j, 0, 1]:.3g}], [{R[j, 1, 0]:.3g}, {R[j, 1, 1]:.3g}]] m²"
+              for j, nm in enumerate(names)]
+    lam = imm.rates.detach()
+    parts.append(f"rates: moored->underway {lam[0, 1]:.3g}/s (1/{1 / lam[0, 1]:.0f} s), "
+                 f"underway->moored {lam[1, 0]:.3g}/s (1/{1 / lam[1, 0]:.0f} s)")
+    parts.append(f"P(moored at first report)={float(imm.mode_prob0.detach()[0]):.3f}")
+    return ", ".join(parts)
+
+
+def describe(kf: tl.KalmanFilter | tl.IMMFilter) -> str:
     """Learned values in physical units."""
+    if isinstance(kf, tl.IMMFilter):
+        return describe_imm(kf)
     sde, parts = kf.sde, []
     names = [n.split(".")[1] for n, _ in sde.named_parameters() if n.startswith("parametrizations.")]
     for name in names:
@@ -363,7 +493,93 @@ def fit_all(data: ais.AISData, seed: int, max_iter: int, verbose: bool = True) -
         info[spec.name] = {**stats, "learned": describe(kf)}
         if verbose:
             print(f"[seed {seed}] {spec.name}: {stats} {describe(kf)}", flush=True)
+    torch.manual_seed(0)
+    imm = build_imm()
+    stats = fit(imm, train, max_iter)
+    filters["imm"] = imm
+    info["imm"] = {**stats, "learned": describe_imm(imm)}
+    if verbose:
+        print(f"[seed {seed}] imm: {stats} {describe_imm(imm)}", flush=True)
     return filters, info, batches, split_tracks
+
+
+# ---------------------------------------------------------------------------- saved models
+def model_config(name: str, info: dict[str, object]) -> dict[str, object]:
+    """The config that rebuilds ``name`` (then ``load_state_dict`` restores the fitted values)."""
+    if name == "cv (grid)":
+        return {"kind": "cv_grid", "q": info["q"], "r_std": info["r_std"]}
+    if name == "imm":
+        return {"kind": "imm"}
+    spec = next(sp for sp in SPECS if sp.name == name)
+    return {"kind": "kf", "spec": spec.name}
+
+
+def build_from_config(cfg: dict[str, object]) -> tl.KalmanFilter | tl.IMMFilter:
+    if cfg["kind"] == "cv_grid":
+        return make_filter(tl.models.constant_velocity(dim=2, q=_f64(float(cfg["q"]))), 2,
+                           float(cfg["r_std"]) ** 2 * torch.eye(2, dtype=torch.float64), learn_R=False)
+    if cfg["kind"] == "imm":
+        return build_imm()
+    spec = next(sp for sp in SPECS if sp.name == cfg["spec"])
+    return make_filter(spec.build(), spec.order, 10.0**2 * torch.eye(2, dtype=torch.float64))
+
+
+def save_models(path: Path, filters: dict[str, object], info: dict[str, dict[str, object]]) -> None:
+    """One file ``models.pt``: {name: {"config": ..., "state_dict": ...}} (torch.load(weights_only=True) works)."""
+    torch.save({name: {"config": model_config(name, info[name]), "state_dict": m.state_dict()}
+                for name, m in filters.items()}, path)
+
+
+def load_models(path: Path) -> dict[str, tl.KalmanFilter | tl.IMMFilter]:
+    saved = torch.load(path, weights_only=True)
+    out = {}
+    for name, entry in saved.items():
+        model = build_from_config(entry["config"])
+        model.load_state_dict(entry["state_dict"])
+        out[name] = model.eval()
+    return out
+
+
+def chunks(tracks: list[ais.AISTrack], max_steps: int = 100_000) -> list[list[ais.AISTrack]]:
+    """Tracks sorted by length and grouped so that each padded batch has <= max_steps (B x T)."""
+    order = sorted(tracks, key=lambda tr: len(tr.t))
+    groups: list[list[ais.AISTrack]] = []
+    cur: list[ais.AISTrack] = []
+    for tr in order:
+        if cur and (len(cur) + 1) * len(tr.t) > max_steps:
+            groups.append(cur)
+            cur = []
+        cur.append(tr)
+    return groups + ([cur] if cur else [])
+
+
+def holdout(args: argparse.Namespace) -> dict[str, object]:
+    """Frozen saved models on another AIS file (CSV or tracktable .traj): metrics + bootstrap vs cv (grid)."""
+    start = time.perf_counter()
+    models = load_models(Path(args.models))
+    name = str(args.holdout)
+    data = ais.load_traj(name) if name.endswith(".traj") else ais.load_ais(None if name == "june" else name)
+    dts = ais.dt_summary(data.tracks)
+    groups = chunks(data.tracks)
+    print(f"holdout {name}: {data.counts}; {len(groups)} batches", flush=True)
+    results: dict[str, dict[str, float]] = {}
+    per_vessel: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for mname, model in models.items():
+        parts = [collect(model, ais.ais_batch(g, center=True, dtype=torch.float64), CURVE_MIN) for g in groups]
+        results[mname] = summarise(parts, CURVE_MIN)
+        per_vessel[mname] = (torch.cat([p["vessel_nll"] for p in parts]).numpy(),
+                             torch.cat([p["vessel_n"] for p in parts]).numpy())
+        print(f"  {mname}: nll {results[mname]['nll']:.3f}, in 2σ {results[mname]['cover2s']:.3f}", flush=True)
+    base = per_vessel["cv (grid)"]
+    paired = {k: paired_bootstrap(v, base) for k, v in per_vessel.items() if k != "cv (grid)"}
+    note = ("no SOG/COG in .traj files: velocity and SOG-split metrics are NaN; tracks are the file's "
+            "trajectory segments" if name.endswith(".traj") else "")
+    payload = {"file": name, "models": str(args.models), "counts": data.counts, "dt": dts, "results": results,
+               "paired_vs_cv_grid": {k: dict(zip(("delta", "lo", "hi", "p_ge_0"), v)) for k, v in paired.items()},
+               "note": note, "runtime_s": time.perf_counter() - start}
+    if args.json:
+        Path(args.json).write_text(json.dumps(payload, indent=1))
+    return payload
 
 
 def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
@@ -373,9 +589,17 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
     parser.add_argument("--robustness-seeds", type=int, nargs="*", default=[1, 2, 3, 4],
                         help="further vessel splits: test NLL only")
     parser.add_argument("--max-iter", type=int, default=100, help="L-BFGS function evaluations per model")
+    parser.add_argument("--holdout", default=None,
+                        help="evaluate the SAVED models (--models) frozen on this AIS file (.csv, or a tracktable "
+                             ".traj path or file name, e.g. NYHarbor_2020_12_08.traj) instead of training")
+    parser.add_argument("--json", default=None, help="with --holdout: write the metrics here")
+    parser.add_argument("--models", default=str(Path(__file__).parent / "results" / "ais_models.pt"),
+                        help="saved models (written by a training run)")
     args = parser.parse_args(argv)
     torch.manual_seed(0)
     torch.set_num_threads(1)  # small batched matrices: one intra-op thread is fastest
+    if args.holdout is not None:
+        return holdout(args)["results"]
     start = time.perf_counter()
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -387,43 +611,109 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
 
     results: dict[str, dict[str, float]] = {}
     per_vessel: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    save_models(Path(args.models), filters, info)
     for name, kf in filters.items():
         with torch.no_grad():
-            val_nll = float(predictive_nll(run_filter(kf, val), val))
-            # the distinct-dt shortcut must reproduce the library's own forward pass
-            ref = kf(val.y, val.dt, mask=val.mask).step_log_likelihood
-            gap = float((ref - run_filter(kf, val).step_log_likelihood).abs().max())
-            if not gap < 1e-6:
-                raise RuntimeError(f"{name}: run_filter differs from KalmanFilter.forward by {gap:.3g}")
+            val_nll = float(predictive_nll(run_model(kf, val), val))
+            if isinstance(kf, tl.KalmanFilter):
+                # the distinct-dt shortcut must reproduce the library's own forward pass
+                ref = kf(val.y, val.dt, mask=val.mask).step_log_likelihood
+                gap = float((ref - run_filter(kf, val).step_log_likelihood).abs().max())
+                if not gap < 1e-6:
+                    raise RuntimeError(f"{name}: run_filter differs from KalmanFilter.forward by {gap:.3g}")
         results[name] = {"val_nll": val_nll, **evaluate(kf, test, CURVE_MIN)}
         per_vessel[name] = vessel_nll(kf, test)
     base = per_vessel["cv (grid)"]
     paired = {name: paired_bootstrap(pv, base) for name, pv in per_vessel.items() if name != "cv (grid)"}
 
+    paired_seeds: dict[int, dict[str, tuple[float, float, float, float]]] = {
+        args.seed: {k: paired_bootstrap(per_vessel["imm"], pv) for k, pv in per_vessel.items() if k != "imm"}}
     robust: dict[int, dict[str, tuple[float, float]]] = {
         args.seed: {k: (r["val_nll"], r["nll"]) for k, r in results.items()}
     }
     for seed in args.robustness_seeds:
         f_s, _, (_, val_s, test_s), _ = fit_all(data, seed, args.max_iter, verbose=False)
         with torch.no_grad():
-            robust[seed] = {k: (float(predictive_nll(run_filter(kf, val_s), val_s)),
-                                float(predictive_nll(run_filter(kf, test_s), test_s))) for k, kf in f_s.items()}
+            robust[seed] = {k: (float(predictive_nll(run_model(kf, val_s), val_s)),
+                                float(predictive_nll(run_model(kf, test_s), test_s))) for k, kf in f_s.items()}
+        pv = {k: vessel_nll(kf, test_s) for k, kf in f_s.items()}
+        paired_seeds[seed] = {k: paired_bootstrap(pv["imm"], pv[k]) for k in pv if k != "imm"}
         scores = ", ".join(f"{k}: {v[0]:.3f}, {v[1]:.3f}" for k, v in robust[seed].items())
         print(f"[seed {seed}] (val, test) NLL: {scores}", flush=True)
     runtime = time.perf_counter() - start
 
-    shown = {k: filters[k] for k in ("cv (grid)", best_learned(results))}
+    shown = {k: filters[k] for k in ("cv (grid)", best_learned(results, single=True))}
     plot_map(out_dir / "ais_map.png", split_tracks[2], test, shown)
     plot_horizon(out_dir / "ais_horizon.png", results)
     notes = interpretation(results, filters, dts)
     md = report(data, dts, [len(s) for s in split_tracks], results, paired, robust, info, runtime, args, notes)
+    plot_modes(out_dir / "ais_imm_modes.png", test, filters["imm"])
+    md += imm_section(paired_seeds, results)
     (out_dir / "ais.md").write_text(md)
     (out_dir / "ais_metrics.json").write_text(json.dumps({"results": results, "paired": paired, "robustness": robust,
+                                                          "paired_imm_vs": paired_seeds,
                                                           "counts": data.counts, "dt": dts,
                                                           "runtime_s": runtime}, indent=1))
     print(md)
     print(f"total {time.perf_counter() - start:.1f} s")
     return results
+
+
+def imm_section(paired_seeds: dict[int, dict[str, tuple[float, float, float, float]]],
+                results: dict[str, dict[str, float]]) -> str:
+    """IMM vs every other model, per split: Δ NLL / report with the vessel-bootstrap 95 % interval."""
+    others = list(next(iter(paired_seeds.values())))
+    lines = ["", "## IMM (moored + underway modes, learned switching) vs each model",
+             "", "Test NLL per report of the IMM minus the other model (negative = IMM better), 95 % vessel-bootstrap "
+             "interval; one row per vessel split (the models of each row trained on that split's train vessels).",
+             "", "| split seed | " + " | ".join(others) + " |", "|---|" + "---:|" * len(others)]
+    for seed, row in paired_seeds.items():
+        lines.append(f"| {seed} | " + " | ".join(f"{row[k][0]:+.3f} [{row[k][1]:+.3f}, {row[k][2]:+.3f}]"
+                                                 for k in others) + " |")
+    r = results["imm"]
+    lines += ["", f"IMM mean posterior mode probabilities on test reports (moored, underway): "
+              + ", ".join(f"{p:.3f}" for p in r.get("mean_p_mode", [])),
+              "Share inside 2σ for the IMM is the Monte Carlo 86.5 % highest-density region of its predictive "
+              "mixture (1000 draws per report, seeded); for single models the 2σ ellipse.",
+              "Plot: `ais_imm_modes.png` (P(underway) along test tracks).", ""]
+    return "\n".join(lines)
+
+
+def plot_modes(path: Path, batch: TrackBatch, imm: tl.IMMFilter) -> None:
+    """Test tracks coloured by the IMM's posterior P(underway)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with torch.no_grad():
+        out = run_model(imm, batch)
+    p = out.mode_probabilities[..., 1].numpy()
+    fig, axes = plt.subplots(1, 2, figsize=(13, 6))
+    pos = (batch.y + batch.origin[:, None]).numpy() / 1e3
+    for i in range(batch.y.shape[0]):
+        T = int(batch.lengths[i])
+        axes[0].plot(pos[i, :T, 0], pos[i, :T, 1], "-", color="0.8", lw=0.6, zorder=1)
+        sc = axes[0].scatter(pos[i, :T, 0], pos[i, :T, 1], c=p[i, :T], cmap="coolwarm", vmin=0, vmax=1, s=6, zorder=2)
+    fig.colorbar(sc, ax=axes[0], label="P(underway | reports so far)")
+    axes[0].set_title("test vessels (east/north km)")
+    axes[0].set_aspect("equal")
+    sog = batch.sog.numpy()
+    i = int(np.argmax([np.ptp(sog[b, : int(batch.lengths[b])]) for b in range(batch.y.shape[0])]))
+    T = int(batch.lengths[i])
+    t = (batch.t[i, :T] - batch.t[i, 0]).numpy() / 60
+    axes[1].plot(t, p[i, :T], "C3.-", label="IMM P(underway)")
+    ax2 = axes[1].twinx()
+    ax2.plot(t, sog[i, :T], "k.:", label="SOG (kn), not used by the filter")
+    ax2.set_ylabel("SOG (kn)")
+    axes[1].set_xlabel("minutes")
+    axes[1].set_ylabel("P(underway)")
+    axes[1].set_title(f"MMSI {int(batch.track_id[i])}: the test vessel whose speed changes most")
+    axes[1].legend(loc="upper left", fontsize=8)
+    ax2.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 def interpretation(results: dict[str, dict[str, float]], filters: dict[str, tl.KalmanFilter],
@@ -456,9 +746,11 @@ def interpretation(results: dict[str, dict[str, float]], filters: dict[str, tl.K
     return lines
 
 
-def best_learned(results: dict[str, dict[str, float]]) -> str:
-    """Learned model with the lowest VALIDATION NLL (the test set does not choose it)."""
-    return min((k for k in results if k != "cv (grid)"), key=lambda k: results[k]["val_nll"])
+def best_learned(results: dict[str, dict[str, float]], single: bool = False) -> str:
+    """Learned model with the lowest VALIDATION NLL (the test set does not choose it);
+    ``single``: among the single (Kalman-filter) models only."""
+    skip = {"cv (grid)"} | ({"imm"} if single else set())
+    return min((k for k in results if k not in skip), key=lambda k: results[k]["val_nll"])
 
 
 def report(data: ais.AISData, dts: dict[str, float], sizes: list[int], results: dict[str, dict[str, float]],

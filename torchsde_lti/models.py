@@ -737,3 +737,39 @@ def position_observation(model: LTISDE) -> Tensor:
     for row, col in enumerate(idx):
         H[row, col] = 1.0
     return H
+
+
+# ---------------------------------------------------------------------------- moored / stationary mode
+class Moored(_ChainSDE):
+    r"""A vessel at rest: per axis ``dx = v dt + dβ_x``, ``dv = −k v dt`` (state ``[x, vx, y, vy]``).
+
+    The velocity state decays with a strong rate k (any velocity inherited from another
+    mode of an IMM bank dies out within a few 1/k), and the position wanders as a slow
+    random walk of spectral density q (m²/s: drift at the mooring). Same state layout as
+    :func:`constant_velocity` / :func:`integrated_ou`, so it can share an IMM bank with them.
+    ``L`` selects the positions, ``Qc = q I_dim``.
+    """
+
+    def __init__(self, k: Scalar, q: Scalar, dim: int = 2, *, dtype: torch.dtype | None = None,
+                 device: torch.device | str | None = None) -> None:
+        super().__init__()
+        self._init_drag_model(2, "k", k, q, dim, dtype, device)
+        pos = torch.zeros_like(self._top)
+        for axis, idx in enumerate(self.position_indices):
+            pos[idx, axis] = 1.0
+        self.register_buffer("_pos", pos, persistent=False)
+
+    def _build(self) -> SDEMatrices:
+        k, q = self.k, self.q
+        batch = torch.broadcast_shapes(k.shape, q.shape)
+        F = self._drag(k.expand(batch))
+        Qc = _eye_blocks(F, self.dim, q.expand(batch))
+        return SDEMatrices(F, self._pos.expand(*batch, *self._pos.shape), Qc, None)
+
+    def extra_repr(self) -> str:
+        return f"dim={self.dim}, " + self._scalar_repr(["k", "q"])
+
+
+def moored(k: Scalar = 0.1, q: Scalar = 1e-3, dim: int = 2, **kw: object) -> Moored:
+    r"""Stationary-vessel mode: position random walk (density q), velocity damped at rate k."""
+    return Moored(k, q, dim, **kw)  # type: ignore[arg-type]

@@ -58,6 +58,8 @@ __all__ = [
     "decode_cog",
     "geodetic_to_enu",
     "load_ais",
+    "load_traj",
+    "load_traj",
     "locate_ais_file",
     "sog_cog_to_enu",
     "split_vessels",
@@ -317,3 +319,108 @@ def ais_batch(tracks: Sequence[AISTrack], center: bool = True, dtype: torch.dtyp
     if len(tracks) == 0:
         raise ValueError("ais_batch needs at least one track, got 0")
     return pad_tracks([to_track(tr, center, dtype) for tr in tracks])
+
+
+# ---------------------------------------------------------------------------- tracktable .traj files
+_TS = "%Y-%m-%d %H:%M:%S"
+
+
+def _parse_traj_line(fields: list[str]) -> tuple[int, list[tuple[datetime, float, float]]]:
+    """One trajectory line of a tracktable ``.traj`` file -> (object id, [(time, lon, lat), ...]).
+
+    Layout: ``*T*, uuid, domain, N points, n_traj_props, (name, type, value) * n, *P*, domain,
+    dim, has_id, has_time, k, (name, type) * k`` then N points of ``id, time, lon, lat,
+    k property values``. A string property may contain commas (vessel names): it then runs
+    until the next point's ``id, time`` (or the end of the line).
+    """
+    if len(fields) < 5 or fields[0] != "*T*":
+        raise ValueError(f"not a trajectory line: {fields[:5]}")
+    n_points, n_tprops = int(fields[3]), int(fields[4])
+    i = 5 + 3 * n_tprops
+    if fields[i] != "*P*" or fields[i + 2] != "2" or fields[i + 3] != "1" or fields[i + 4] != "1":
+        raise ValueError(f"expected 2-D points with id and timestamp, got header {fields[i:i + 6]}")
+    k = int(fields[i + 5])
+    types = [fields[i + 7 + 2 * p] for p in range(k)]
+    j = i + 6 + 2 * k
+    points: list[tuple[datetime, float, float]] = []
+    obj = fields[j] if j < len(fields) else ""
+    for _ in range(n_points):
+        if fields[j] != obj:
+            raise ValueError(f"point {len(points)} has object id {fields[j]!r}, expected {obj!r}")
+        when = datetime.strptime(fields[j + 1], _TS)
+        points.append((when, float(fields[j + 2]), float(fields[j + 3])))
+        j += 4
+        for p, kind in enumerate(types):
+            j += 1
+            if kind == "2" and p == k - 1:  # trailing string: may contain commas
+                while j < len(fields) and not (fields[j] == obj and j + 1 < len(fields)
+                                               and len(fields[j + 1]) == 19 and fields[j + 1][4] == "-"):
+                    j += 1
+    if j != len(fields) and not (j == len(fields) - 1 and fields[-1] == ""):  # a trailing comma is fine
+        raise ValueError(f"{len(fields) - j} unparsed fields after {n_points} points")
+    return int(obj), points
+
+
+def load_traj(
+    name: str | Path,
+    min_reports: int = 5,
+    reference: tuple[float, float] = REFERENCE_LATLON,
+) -> AISData:
+    """Tracks from a tracktable ``.traj`` file (e.g. ``NYHarbor_2020_12_08.traj``).
+
+    ``name``: a path, or a file name inside the installed ``tracktable_data`` package
+    (:func:`locate_ais_file`). Each trajectory line becomes one :class:`AISTrack` (the file's
+    own segmentation; one vessel may have several), time-sorted, with repeated timestamps
+    dropped (first kept) and positions in the same east/north frame as :func:`load_ais`.
+    These files carry no SOG/COG: ``vel`` and ``sog`` are NaN, so velocity checks and
+    SOG-based splits are not available (they evaluate to NaN). ``t`` are seconds since the
+    file's first report. ``counts``: trajectories, unparsed_trajectories (malformed lines,
+    skipped), repeated_timestamps, vessels_dropped_short, reports_dropped_short, vessels
+    (distinct ids kept), tracks, reports.
+    """
+    if min_reports < 2:
+        raise ValueError(f"min_reports must be >= 2 to have a time step, got {min_reports}")
+    path = Path(name)
+    if not path.exists():
+        path = locate_ais_file(str(name))
+    parsed: list[tuple[int, list[tuple[datetime, float, float]]]] = []
+    counts = {"trajectories": 0, "unparsed_trajectories": 0, "repeated_timestamps": 0}
+    with open(path) as fh:
+        for line in fh:
+            if not line.strip():
+                continue
+            counts["trajectories"] += 1
+            try:
+                parsed.append(_parse_traj_line(line.rstrip("\n").split(",")))
+            except (ValueError, IndexError):
+                counts["unparsed_trajectories"] += 1
+    if not parsed:
+        raise ValueError(f"{path}: no trajectory could be parsed")
+    t0 = min(p[0] for _, pts in parsed for p in pts)
+    tracks: list[AISTrack] = []
+    short_v = short_r = 0
+    for obj, pts in parsed:
+        pts = sorted(pts)
+        keep, seen = [], set()
+        for p in pts:
+            if p[0] in seen:
+                counts["repeated_timestamps"] += 1
+                continue
+            seen.add(p[0])
+            keep.append(p)
+        if len(keep) < min_reports:
+            short_v += 1
+            short_r += len(keep)
+            continue
+        t = np.array([(p[0] - t0).total_seconds() for p in keep])
+        lon = np.array([p[1] for p in keep])
+        lat = np.array([p[2] for p in keep])
+        nan = np.full(len(keep), np.nan)
+        tracks.append(AISTrack(obj, t, geodetic_to_enu(lat, lon, reference), np.stack([nan, nan], -1),
+                               np.stack([lon, lat], -1), nan.copy()))
+    counts["vessels_dropped_short"] = short_v
+    counts["reports_dropped_short"] = short_r
+    counts["vessels"] = len({tr.mmsi for tr in tracks})
+    counts["tracks"] = len(tracks)
+    counts["reports"] = sum(len(tr.t) for tr in tracks)
+    return AISData(tracks, counts, t0)

@@ -17,9 +17,11 @@ Shapes and missing-data rules: :mod:`torchsde_lti.filters.inputs`.
 - :func:`kalman_filter` (``sequential``): Joseph-form loop, or ``square_root=True``
   (``square_root``: QR predict, Givens update, PSD by construction);
 - :func:`parallel_kalman_filter` (``parallel``): associative scan, O(log T) depth;
-- :func:`rts_smoother`, :func:`parallel_rts_smoother` (``smoothers``).
+- :func:`rts_smoother`, :func:`parallel_rts_smoother` (``smoothers``);
+- :func:`imm_filter` (``imm``): interacting multiple models over a bank of per-mode matrices.
 """
 
+from torchsde_lti.filters.imm import IMMResult, imm_filter
 from torchsde_lti.filters.parallel import associative_scan, parallel_kalman_filter
 from torchsde_lti.filters.results import FilterResult, SmootherResult
 from torchsde_lti.filters.sequential import kalman_filter
@@ -27,8 +29,10 @@ from torchsde_lti.filters.smoothers import parallel_rts_smoother, rts_smoother
 
 __all__ = [
     "FilterResult",
+    "IMMResult",
     "SmootherResult",
     "associative_scan",
+    "imm_filter",
     "kalman_filter",
     "parallel_kalman_filter",
     "parallel_rts_smoother",

@@ -1,6 +1,7 @@
 """Modules: the parameter-free discretisation layers, parametrisations, the LTISDE (and the
 StructuredSDE base of the motion models) and the KalmanFilter module."""
 
+from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import Forecast, KalmanFilter
 from torchsde_lti.nn.layers import Discretization, Transition, VanLoanNoise
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices, StructuredSDE
@@ -8,6 +9,7 @@ from torchsde_lti.nn.sde import LTISDE, SDEMatrices, StructuredSDE
 __all__ = [
     "Discretization",
     "Forecast",
+    "IMMFilter",
     "KalmanFilter",
     "LTISDE",
     "SDEMatrices",

@@ -1,0 +1,341 @@
+r"""Interacting multiple model (IMM) filter on per-mode discrete matrices (Blom & Bar-Shalom 1988).
+
+M mode-matched Kalman filters share one state space (dimension n); a Markov chain over the
+modes switches between them. Over step k (gap dt_k) the chain moves with the transition
+matrix ``Pi_k[i, j] = P(mode j at k | mode i at k−1)`` (for a continuous-time chain with
+generator Λ: ``Pi_k = expm(Λ dt_k)``). One IMM cycle, for k = 0 … T−1:
+
+1. mixing:      c_j = Σ_i Pi_ij μ_i,   w_ij = Pi_ij μ_i / c_j,
+                m̄_j = Σ_i w_ij m_i,    P̄_j = Σ_i w_ij (P_i + (m_i − m̄_j)(m_i − m̄_j)ᵀ);
+2. predict:     m⁻_j = A_j m̄_j,       P⁻_j = A_j P̄_j A_jᵀ + Q_j          (mode j's matrices);
+3. update:      ŷ_j = H_j m⁻_j, S_j = H_j P⁻_j H_jᵀ + R_j, Kalman update (Joseph form),
+                ℓ_j = log N(y_k; ŷ_j, S_j) over the observed components of y_k;
+4. modes:       log p(y_k | y_<k) = log Σ_j c_j exp(ℓ_j)  (log-sum-exp),  μ_j ∝ c_j exp(ℓ_j);
+5. output:      x = Σ_j μ_j m_j,  P = Σ_j μ_j (P_j + (m_j − x)(m_j − x)ᵀ)  (moment matching).
+
+The prior (m_j, P_j, μ) sits before step 0, as in :func:`torchsde_lti.kalman_filter`.
+
+Shape convention (the mode axis M sits right after the time axis; batch dims ``...``
+lead and broadcast right-aligned)::
+
+    y (..., T, m)               A, Q (..., T, M, n, n)      Pi (..., T, M, M)
+    H (..., T, M, m, n)         R (..., T, M, m, m)
+    m0 (..., M, n)              P0 (..., M, n, n)           mode_prob0 (..., M)
+    mask (..., T) or (..., T, m) bool (True = observed)
+
+so a mode-dependent, time-constant H is (M, m, n), one H for every mode is (m, n), and a
+per-step H without mode dependence is (T, 1, m, n). Missing data (NaN in y or mask False)
+are handled as in :mod:`torchsde_lti.filtering`: unobserved components get a zero row in H
+and a decoupled unit variance in R, so a fully missing step is a pure prediction (ℓ_j = 0,
+μ = c) and contributes 0 to the log-likelihood; no NaN reaches any arithmetic or gradient.
+
+No matrix is inverted: S_j is factored by Cholesky (unrolled for m ≤ 4) and solved.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchsde_lti.core.validation import (
+    as_float_tensor,
+    check_finite,
+    check_matrix,
+    common_float_dtype,
+    shape_str,
+    value_checks_enabled,
+    check_symmetric_psd,
+)
+from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, solve_lower, sym
+
+__all__ = ["IMMResult", "imm_filter", "imm_predict", "IMMPrediction"]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+class IMMResult(NamedTuple):
+    """Output of :func:`imm_filter`.
+
+    log_likelihood: (...) Σ_k step_log_likelihood.
+    step_log_likelihood: (..., T) ``log Σ_j c_j N(y_k; ŷ_j, S_j)`` (observed components;
+        0 for a fully missing step).
+    mode_probabilities: (..., T, M) posterior μ_k = P(mode j at k | y_0:k).
+    pred_mode_probabilities: (..., T, M) predicted c_k = P(mode j at k | y_0:k−1).
+    mean: (..., T, n) combined filtered mean. cov: (..., T, n, n) combined covariance.
+    mode_mean: (..., T, M, n) mode-matched filtered means. mode_cov: (..., T, M, n, n).
+    pred_mean: (..., T, n) combined one-step prediction Σ_j c_j m⁻_j;
+    pred_cov: (..., T, n, n) its moment-matched covariance.
+    mode_pred_mean: (..., T, M, n) m⁻_j. mode_pred_cov: (..., T, M, n, n) P⁻_j.
+    mode_innovation: (..., T, M, m) y_k − ŷ_j (0 in unobserved components).
+    mode_innovation_cov: (..., T, M, m, m) S_j = H_j P⁻_j H_jᵀ + R_j (all components).
+    observed: (..., T, m) bool, the components that entered the update.
+    """
+
+    log_likelihood: Tensor
+    step_log_likelihood: Tensor
+    mode_probabilities: Tensor
+    pred_mode_probabilities: Tensor
+    mean: Tensor
+    cov: Tensor
+    mode_mean: Tensor
+    mode_cov: Tensor
+    pred_mean: Tensor
+    pred_cov: Tensor
+    mode_pred_mean: Tensor
+    mode_pred_cov: Tensor
+    mode_innovation: Tensor
+    mode_innovation_cov: Tensor
+    observed: Tensor
+
+
+class IMMPrediction(NamedTuple):
+    """Output of :func:`imm_predict` (one IMM prediction over each horizon, no update).
+
+    mode_probabilities: (..., K, M) c = μ Pi(h). mode_mean: (..., K, M, n), mode_cov:
+    (..., K, M, n, n) the mode-matched predictions; mean (..., K, n), cov (..., K, n, n)
+    their moment-matched mixture.
+    """
+
+    mode_probabilities: Tensor
+    mode_mean: Tensor
+    mode_cov: Tensor
+    mean: Tensor
+    cov: Tensor
+
+
+def combine(prob: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
+    """Moment-matched Gaussian of a mixture: prob (..., M), mean (..., M, n), cov (..., M, n, n).
+
+    Returns ``x = Σ_j p_j m_j`` (..., n) and ``P = Σ_j p_j (P_j + (m_j − x)(m_j − x)ᵀ)`` (..., n, n).
+    """
+    x = torch.einsum("...j,...jn->...n", prob, mean)
+    d = mean - x.unsqueeze(-2)
+    P = torch.einsum("...j,...jab->...ab", prob, cov + d.unsqueeze(-1) * d.unsqueeze(-2))
+    return x, sym(P)
+
+
+def _mix(prob: Tensor, Pi: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """IMM mixing step. prob (..., M), Pi (..., M, M), mean (..., M, n), cov (..., M, n, n).
+
+    Returns c (..., M) = prob Pi, mixed means (..., M, n) and covariances (..., M, n, n).
+    A mode with c_j = 0 gets mixed moments 0 (it carries no weight; nothing divides by 0).
+    """
+    joint = prob.unsqueeze(-1) * Pi  # (..., M_i, M_j) P(i at k−1, j at k)
+    c = joint.sum(-2)
+    pos = c > 0
+    c_safe = torch.where(pos, c, torch.ones_like(c))
+    w = joint / c_safe.unsqueeze(-2)  # w_ij = P(i at k−1 | j at k)
+    m_mix = torch.einsum("...ij,...in->...jn", w, mean)
+    d = mean.unsqueeze(-2) - m_mix.unsqueeze(-3)  # (..., M_i, M_j, n)
+    spread = cov.unsqueeze(-3) + d.unsqueeze(-1) * d.unsqueeze(-2)  # (..., M_i, M_j, n, n)
+    P_mix = torch.einsum("...ij,...ijab->...jab", w, spread)
+    return c, m_mix, sym(P_mix)
+
+
+def _check_inputs(
+    y: Tensor, A: Tensor, Q: Tensor, H: Tensor, R: Tensor, Pi: Tensor, m0: Tensor, P0: Tensor,
+    mode_prob0: Tensor, mask: Tensor | None,
+) -> tuple[Tensor, ...]:
+    dtype = common_float_dtype(*(t for t in (y, A, Q, H, R, Pi, m0, P0, mode_prob0) if isinstance(t, Tensor)))
+    device = next(t.device for t in (y, A, Q, H, R, Pi, m0, P0) if isinstance(t, Tensor))
+    y = as_float_tensor(y, "y", dtype, device)
+    A = as_float_tensor(A, "A", dtype, device)
+    Q = as_float_tensor(Q, "Q", dtype, device)
+    H = as_float_tensor(H, "H", dtype, device)
+    R = as_float_tensor(R, "R", dtype, device)
+    Pi = as_float_tensor(Pi, "Pi", dtype, device)
+    m0 = as_float_tensor(m0, "m0", dtype, device)
+    P0 = as_float_tensor(P0, "P0", dtype, device)
+    mode_prob0 = as_float_tensor(mode_prob0, "mode_prob0", dtype, device)
+    if y.dim() < 2 or y.shape[-2] < 1 or y.shape[-1] < 1:
+        raise ValueError(f"y must have shape (..., T, m) with T, m >= 1, got shape {shape_str(y)}")
+    T, m = y.shape[-2], y.shape[-1]
+    if mode_prob0.dim() < 1:
+        raise ValueError(f"mode_prob0 must have shape (..., M), got shape {shape_str(mode_prob0)}")
+    M = mode_prob0.shape[-1]
+    check_matrix(A, "A", square=True)
+    n = A.shape[-1]
+    for name, x, r, c in (("A", A, n, n), ("Q", Q, n, n), ("H", H, m, n), ("R", R, m, m), ("P0", P0, n, n)):
+        check_matrix(x, name, rows=r, cols=c)
+        if x.dim() >= 3 and x.shape[-3] not in (1, M):
+            raise ValueError(f"{name} must have its mode axis (dim -3) of size 1 or M={M} "
+                             f"(mode_prob0 {shape_str(mode_prob0)}), got shape {shape_str(x)}")
+    for name, x in (("A", A), ("Q", Q), ("H", H), ("R", R)):
+        if x.dim() >= 4 and x.shape[-4] not in (1, T):
+            raise ValueError(f"{name} must have its time axis (dim -4) of size 1 or T={T} "
+                             f"(y {shape_str(y)}), got shape {shape_str(x)}")
+    if Pi.dim() < 2 or Pi.shape[-2:] != (M, M):
+        raise ValueError(f"Pi must have shape (..., T, {M}, {M}) to match mode_prob0 {shape_str(mode_prob0)}, "
+                         f"got shape {shape_str(Pi)}")
+    if Pi.dim() >= 3 and Pi.shape[-3] not in (1, T):
+        raise ValueError(f"Pi must have its time axis (dim -3) of size 1 or T={T}, got shape {shape_str(Pi)}")
+    if m0.dim() < 1 or m0.shape[-1] != n or (m0.dim() >= 2 and m0.shape[-2] not in (1, M)):
+        raise ValueError(f"m0 must have shape (..., {M}, {n}) or (..., 1, {n}) or ({n},), got shape {shape_str(m0)}")
+    if mask is not None:
+        mask = torch.as_tensor(mask, device=device)
+        if mask.dtype != torch.bool:
+            raise ValueError(f"mask must be a bool tensor, got dtype {mask.dtype}")
+        per_component = mask.dim() >= 2 and mask.shape[-2] == T and mask.shape[-1] == m
+        if not per_component and mask.dim() >= 1 and mask.shape[-1] == T:
+            mask = mask.unsqueeze(-1)
+        if mask.dim() < 2 or mask.shape[-2] != T or mask.shape[-1] not in (1, m):
+            raise ValueError(f"mask must have shape (..., {T}) or (..., {T}, {m}), got shape {shape_str(mask)}")
+    if bool(torch.isinf(y).any()):
+        raise ValueError(f"y contains Inf (shape {shape_str(y)}); mark missing values with NaN or mask")
+    if value_checks_enabled():
+        for name, x in (("A", A), ("H", H), ("Pi", Pi), ("m0", m0), ("mode_prob0", mode_prob0)):
+            check_finite(x, name)
+        for name, x in (("Q", Q), ("R", R), ("P0", P0)):
+            check_symmetric_psd(x, name)
+        if bool((Pi < 0).any()) or bool(((Pi.sum(-1) - 1).abs() > 1e3 * torch.finfo(dtype).eps * M).any()):
+            raise ValueError(f"Pi must be row-stochastic (entries >= 0, rows summing to 1), shape {shape_str(Pi)}")
+        if bool((mode_prob0 < 0).any()) or bool(((mode_prob0.sum(-1) - 1).abs() > 1e3 * torch.finfo(dtype).eps * M).any()):
+            raise ValueError(f"mode_prob0 must be a probability vector over the last axis, shape {shape_str(mode_prob0)}")
+    return y, A, Q, H, R, Pi, m0, P0, mode_prob0, mask
+
+
+def imm_filter(
+    y: Tensor,
+    A: Tensor,
+    Q: Tensor,
+    H: Tensor,
+    R: Tensor,
+    Pi: Tensor,
+    m0: Tensor,
+    P0: Tensor,
+    mode_prob0: Tensor,
+    mask: Tensor | None = None,
+) -> IMMResult:
+    r"""IMM filter over T steps (see the module docstring for the cycle and the shapes).
+
+    Args:
+        y: (..., T, m) observations; NaN = missing component.
+        A, Q: (..., T, M, n, n) per-step, per-mode transitions and process noise.
+        H: (..., T, M, m, n) observation matrices; R: (..., T, M, m, m) noise (SPD).
+        Pi: (..., T, M, M) row-stochastic mode transition matrices of each step
+            (``expm(Λ dt_k)`` for a continuous-time chain; identity for dt_k = 0).
+        m0: (..., M, n) per-mode prior means; P0: (..., M, n, n) covariances.
+        mode_prob0: (..., M) prior mode probabilities (before step 0).
+        mask: optional bool (..., T) or (..., T, m); False = not observed.
+
+    Returns:
+        :class:`IMMResult`; every output broadcasts to the full batch ``...``.
+    """
+    y, A, Q, H, R, Pi, m0, P0, prob, mask = _check_inputs(y, A, Q, H, R, Pi, m0, P0, mode_prob0, mask)
+    T, m = y.shape[-2], y.shape[-1]
+    M, n = prob.shape[-1], A.shape[-1]
+    dtype, device = y.dtype, y.device
+    nan = torch.isnan(y)
+    obs = ~nan
+    if mask is not None:
+        obs = obs & mask
+    y0 = torch.where(obs, y, torch.zeros((), dtype=dtype, device=device))
+    o = obs.to(dtype).expand(*obs.shape[:-1], m)  # (..., T, m)
+    n_obs = o.sum(-1)  # (..., T)
+    # Masked observation model, per step and mode: (..., T, M, m, n), (..., T, M, m, m).
+    om = o.unsqueeze(-2)  # (..., T, 1, m)
+    Hm = H * om.unsqueeze(-1)
+    Rm = R * (om.unsqueeze(-1) * om.unsqueeze(-2)) + torch.diag_embed(1.0 - om)
+    # Time-constant arrays get a size-1 time axis; then step k reads index 0 or k.
+    A4 = A if A.dim() >= 4 else A.unsqueeze(-4)
+    Q4 = Q if Q.dim() >= 4 else Q.unsqueeze(-4)
+    Pi3 = Pi if Pi.dim() >= 3 else Pi.unsqueeze(-3)
+    mean = m0 if m0.dim() >= 2 else m0.unsqueeze(-2)
+    cov = P0
+    eye = torch.eye(n, dtype=dtype, device=device)
+
+    def at(x: Tensor, k: int, axis: int) -> Tensor:
+        return x.select(axis, 0 if x.shape[axis] == 1 else k)
+
+    outs: dict[str, list[Tensor]] = {k: [] for k in ("c", "mu", "mm", "mc", "pm", "pc", "e", "S", "ll")}
+    for k in range(T):
+        c, m_mix, P_mix = _mix(prob, at(Pi3, k, -3), mean, cov)
+        Ak, Qk = at(A4, k, -4), at(Q4, k, -4)
+        m_pred = matvec(Ak, m_mix)
+        P_pred = sym(Ak @ P_mix @ Ak.mT + Qk)
+        Hk, Rk = at(Hm, k, -4), at(Rm, k, -4)  # (..., M, m, n), (..., M, m, m)
+        yk = y0[..., k, :].unsqueeze(-2)  # (..., 1, m)
+        e = yk - matvec(Hk, m_pred)  # (..., M, m); 0 in unobserved components
+        HP = Hk @ P_pred  # (..., M, m, n)
+        S = sym(HP @ Hk.mT + Rk)
+        LS = cholesky(S)
+        gain = cho_solve(LS, HP).mT  # K = P Hᵀ S⁻¹ (..., M, n, m)
+        mean = m_pred + matvec(gain, e)
+        IKH = eye - gain @ Hk
+        cov = sym(IKH @ P_pred @ IKH.mT + gain @ Rk @ gain.mT)
+        z = solve_lower(LS, e.unsqueeze(-1)).squeeze(-1)
+        ll = -0.5 * (z * z).sum(-1) - torch.log(torch.diagonal(LS, dim1=-2, dim2=-1)).sum(-1)
+        ll = ll - 0.5 * n_obs[..., k, None] * _LOG_2PI  # (..., M): log N over observed components
+        log_c = torch.where(c > 0, torch.log(torch.where(c > 0, c, torch.ones_like(c))),
+                            torch.full_like(c, -math.inf))
+        joint = log_c + ll
+        step = torch.logsumexp(joint, dim=-1)
+        prob = torch.exp(joint - step.unsqueeze(-1))
+        # Σ_j c_j = 1 exactly in theory: a fully missing step contributes exactly 0
+        step = torch.where(n_obs[..., k] > 0, step, torch.zeros_like(step))
+        outs["c"].append(c)
+        outs["mu"].append(prob)
+        outs["mm"].append(mean)
+        outs["mc"].append(cov)
+        outs["pm"].append(m_pred)
+        outs["pc"].append(P_pred)
+        outs["e"].append(e)
+        outs["S"].append(S)
+        outs["ll"].append(step)
+    # the T axis goes before each output's event dims (vector over modes: -2, (M, n): -3, ...)
+    event_ndim = {"c": 1, "mu": 1, "mm": 2, "mc": 3, "pm": 2, "pc": 3, "e": 2, "S": 3, "ll": 0}
+    stk = {k: torch.stack(torch.broadcast_tensors(*v), dim=-1 - event_ndim[k]) for k, v in outs.items()}
+    batch = torch.broadcast_shapes(stk["mm"].shape[:-3], stk["ll"].shape[:-1], stk["mc"].shape[:-4],
+                                   stk["mu"].shape[:-2], obs.shape[:-2])
+    mu = stk["mu"].expand(*batch, T, M)
+    cc = stk["c"].expand(*batch, T, M)
+    mm = stk["mm"].expand(*batch, T, M, n)
+    mc = stk["mc"].expand(*batch, T, M, n, n)
+    pm = stk["pm"].expand(*batch, T, M, n)
+    pc = stk["pc"].expand(*batch, T, M, n, n)
+    x, P = combine(mu, mm, mc)
+    xp, Pp = combine(cc, pm, pc)
+    step_ll = stk["ll"].expand(*batch, T)
+    return IMMResult(
+        log_likelihood=step_ll.sum(-1),
+        step_log_likelihood=step_ll,
+        mode_probabilities=mu,
+        pred_mode_probabilities=cc,
+        mean=x,
+        cov=P,
+        mode_mean=mm,
+        mode_cov=mc,
+        pred_mean=xp,
+        pred_cov=Pp,
+        mode_pred_mean=pm,
+        mode_pred_cov=pc,
+        mode_innovation=stk["e"].expand(*batch, T, M, m),
+        mode_innovation_cov=stk["S"].expand(*batch, T, M, m, m),
+        observed=obs.expand(*batch, T, m),
+    )
+
+
+def imm_predict(
+    mode_prob: Tensor, mean: Tensor, cov: Tensor, A: Tensor, Q: Tensor, Pi: Tensor
+) -> IMMPrediction:
+    r"""One IMM prediction (mixing + mode-matched prediction) over each of K horizons.
+
+    Each horizon h is measured from the state's time: ``c = μ Pi(h)``, then the mixed
+    moments of each mode are pushed through ``A_j(h)``, ``Q_j(h)``. (Exact when no switch
+    occurs within the horizon; the IMM's usual one-step approximation otherwise.)
+
+    Args:
+        mode_prob: (..., M) mode probabilities; mean: (..., M, n); cov: (..., M, n, n).
+        A, Q: (..., K, M, n, n) mode matrices over each horizon; Pi: (..., K, M, M).
+
+    Returns:
+        :class:`IMMPrediction` with a K axis after the batch.
+    """
+    c, m_mix, P_mix = _mix(mode_prob.unsqueeze(-2), Pi, mean.unsqueeze(-3), cov.unsqueeze(-4))
+    m_pred = matvec(A, m_mix)
+    P_pred = sym(A @ P_mix @ A.mT + Q)
+    x, P = combine(c, m_pred, P_pred)
+    return IMMPrediction(c, m_pred, P_pred, x, P)

@@ -1,0 +1,368 @@
+r"""``IMMFilter``: an interacting multiple model filter over learned continuous-time motion models.
+
+    imm = tl.IMMFilter([sde_1, …, sde_M], H, R, rates)   # LTISDEs in ONE common state (n)
+    out = imm(y, dt, mask=None)                          # y (..., T, m), dt (..., T)
+    out.log_likelihood                                   # (...)  -> loss = -out.log_likelihood.mean()
+    out.mode_probabilities, out.mean, out.cov            # (..., T, M), (..., T, n), (..., T, n, n)
+    fc = imm.forecast(out, horizons)                     # the mixture at t_last + horizons (..., K)
+
+Modes switch by a continuous-time Markov chain with generator Λ (``imm.rates``, (M, M):
+off-diagonal rates Λ_ij ≥ 0 of jumping from mode i to j, rows summing to 0), so over a gap
+dt the mode transition matrix is ``Pi = expm(Λ dt)`` (``torch.matrix_exp``), exact for any
+irregular gap. Each mode's (A_j, Q_j) is the exact discretisation of its SDE; the whole
+bank is ONE batched :func:`torchsde_lti.discretize` call over (track, step, mode): the M
+drift matrices are stacked along a batch axis (each mode's noise enters as
+``L_j Qc_j L_jᵀ`` with L = I, so the noise dimensions of the modes may differ).
+The IMM cycle itself is :func:`torchsde_lti.filters.imm.imm_filter`.
+
+The models must share the state space: same n, and the same meaning of each component
+(e.g. [x, vx, y, vy] for :func:`~torchsde_lti.models.constant_velocity`,
+:func:`~torchsde_lti.models.integrated_ou` and :func:`~torchsde_lti.models.moored`).
+Inputs u (B matrices) are not used.
+
+Learnable (``learn``): ``"H"``, ``"R"`` (per mode when R is (M, m, m)), ``"rates"``,
+``"mode_prob0"``, ``"m0"``, ``"P0"``; the models' own ``learn`` controls F, Qc. R and a
+learnable P0 are symmetric positive definite by
+:class:`~torchsde_lti.parametrizations.PositiveDefinite`; the rates by :class:`Generator`
+(``softplus(raw) + floor`` off the diagonal: finite and ≥ 0 for every finite raw value, no
+exponential of an unbounded parameter); the initial mode probabilities by a softmax.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+from torch.nn.utils import parametrize
+
+from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str, validation
+from torchsde_lti.core.discretization import Discrete, discretize
+from torchsde_lti.filters.imm import IMMPrediction, IMMResult, combine, imm_filter, imm_predict
+from torchsde_lti.nn.parametrizations import PositiveDefinite, default_floor, softplus, softplus_inverse
+from torchsde_lti.nn.sde import LTISDE
+
+__all__ = ["Generator", "IMMFilter", "IMMForecast", "ModeProbabilities"]
+
+_LEARNABLE = ("H", "R", "rates", "mode_prob0", "m0", "P0")
+
+
+def _offdiag(M: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    return 1.0 - torch.eye(M, dtype=dtype, device=device)
+
+
+def generator_from_rates(rates: Tensor) -> Tensor:
+    """Generator (..., M, M) from its off-diagonal rates (the diagonal of ``rates`` is ignored):
+    ``Λ_ij = rates_ij`` (i ≠ j), ``Λ_ii = −Σ_{j≠i} rates_ij``."""
+    off = rates * _offdiag(rates.shape[-1], rates.dtype, rates.device)
+    return off - torch.diag_embed(off.sum(-1))
+
+
+class Generator(nn.Module):
+    r"""Markov-chain generators Λ (..., M, M): ``Λ_ij = softplus(raw_ij) + floor`` for i ≠ j,
+    ``Λ_ii = −Σ_{j≠i} Λ_ij`` (the diagonal of raw is unused).
+
+    ``right_inverse`` accepts a generator or a matrix of off-diagonal rates (its diagonal is
+    ignored); rates must be finite and > 0 (ValueError otherwise; use a fixed buffer for
+    exactly zero rates).
+    """
+
+    def __init__(self, name: str = "rates", floor: float | None = None) -> None:
+        super().__init__()
+        self.name = name
+        self.floor = floor
+        self.register_buffer("_ref", torch.empty(0), persistent=False)
+
+    def _floor(self, dtype: torch.dtype) -> float:
+        return default_floor(dtype) if self.floor is None else float(self.floor)
+
+    def forward(self, raw: Tensor) -> Tensor:
+        return generator_from_rates(softplus(raw) + self._floor(raw.dtype))
+
+    def right_inverse(self, value: object) -> Tensor:
+        v = as_float_tensor(value, self.name).detach()
+        v = v.to(dtype=self._ref.dtype, device=self._ref.device)
+        check_matrix(v, self.name, square=True)
+        check_finite(v, self.name)
+        off = _offdiag(v.shape[-1], v.dtype, v.device).bool()
+        if bool((v[..., off] <= 0).any()):
+            raise ValueError(f"{self.name}: learnable off-diagonal rates must be > 0, got min "
+                             f"{float(v[..., off].min()):.3g} (shape {shape_str(v)})")
+        raw = softplus_inverse((v - self._floor(v.dtype)).clamp_min(torch.finfo(v.dtype).tiny))
+        return torch.where(off, raw, torch.zeros_like(raw))
+
+
+class ModeProbabilities(nn.Module):
+    """Probability vectors (..., M) = softmax(raw); ``right_inverse`` = log (entries must be > 0)."""
+
+    def __init__(self, name: str = "mode_prob0") -> None:
+        super().__init__()
+        self.name = name
+        self.register_buffer("_ref", torch.empty(0), persistent=False)
+
+    def forward(self, raw: Tensor) -> Tensor:
+        return torch.softmax(raw, dim=-1)
+
+    def right_inverse(self, value: object) -> Tensor:
+        v = as_float_tensor(value, self.name).detach().to(dtype=self._ref.dtype, device=self._ref.device)
+        check_finite(v, self.name)
+        if bool((v <= 0).any()):
+            raise ValueError(f"{self.name}: learnable probabilities must be > 0, got {v.tolist()}")
+        return torch.log(v / v.sum(-1, keepdim=True))
+
+
+class IMMForecast(NamedTuple):
+    """Predictive mixture at future times (K horizons).
+
+    mode_probabilities: (..., K, M); mode_mean: (..., K, M, n); mode_cov: (..., K, M, n, n);
+    mean: (..., K, n), cov: (..., K, n, n) moment-matched state; obs_mean: (..., K, m),
+    obs_cov: (..., K, m, m) moment-matched observation; mode_obs_mean: (..., K, M, m) and
+    mode_obs_cov: (..., K, M, m, m) = H_j P_j H_jᵀ + R_j, the components of the
+    observation mixture.
+    """
+
+    mode_probabilities: Tensor
+    mode_mean: Tensor
+    mode_cov: Tensor
+    mean: Tensor
+    cov: Tensor
+    obs_mean: Tensor
+    obs_cov: Tensor
+    mode_obs_mean: Tensor
+    mode_obs_cov: Tensor
+
+
+class IMMFilter(nn.Module):
+    r"""IMM filter over M continuous-time motion models with a learned switching generator.
+
+    Args:
+        models: M :class:`~torchsde_lti.LTISDE` s with the same state dimension n (and
+            without a parameter batch): the modes.
+        H: (m, n) shared or (M, m, n) per-mode observation matrix.
+        R: (m, m) shared or (M, m, m) per-mode observation-noise covariance (SPD).
+        rates: (M, M) generator Λ or off-diagonal switching rates (1/time; diagonal
+            ignored). Learnable rates must be > 0; fixed ones (``"rates"`` not in learn)
+            may be 0 (no switching).
+        m0: optional (n,) or (M, n) prior mean (default zeros).
+        P0: optional (n, n) or (M, n, n) prior covariance (default ``diffuse_variance · I``).
+        mode_prob0: optional (M,) prior mode probabilities (default uniform).
+        learn: which of ``"H", "R", "rates", "mode_prob0", "m0", "P0"`` are learned
+            (default ``("R", "rates")``).
+        diffuse_variance: variance of the default prior.
+        unique_dt: discretise only the distinct values of dt and gather (same values and
+            gradients; used when dt does not require grad). Pays off for quantised gaps.
+        method: discretisation method passed to :func:`torchsde_lti.discretize`.
+    """
+
+    def __init__(
+        self,
+        models: Sequence[LTISDE],
+        H: Tensor,
+        R: Tensor,
+        rates: Tensor,
+        *,
+        m0: Tensor | None = None,
+        P0: Tensor | None = None,
+        mode_prob0: Tensor | None = None,
+        learn: Iterable[str] | str = ("R", "rates"),
+        diffuse_variance: float = 1e4,
+        unique_dt: bool = False,
+        method: str = "doubling",
+    ) -> None:
+        super().__init__()
+        models = list(models)
+        if len(models) < 1:
+            raise ValueError("models must contain at least one LTISDE, got 0")
+        for i, sde in enumerate(models):
+            if not isinstance(sde, LTISDE):
+                raise TypeError(f"models[{i}] must be an LTISDE, got {type(sde).__name__}")
+        names = parse_learn(learn, _LEARNABLE)
+        self.models = nn.ModuleList(models)
+        self.unique_dt = bool(unique_dt)
+        self.method = method
+        M = len(models)
+        dtype, device = models[0].dtype, models[0].device
+        n = models[0].state_dim
+        for i, sde in enumerate(models):
+            with torch.no_grad():
+                F = sde.matrices().F
+            if F.shape != (n, n):
+                raise ValueError(f"models[{i}] has F of shape {shape_str(F)}; every mode needs an unbatched "
+                                 f"({n}, {n}) F (the common state of models[0])")
+            if F.dtype != dtype:
+                raise ValueError(f"models[{i}] has dtype {F.dtype}, models[0] has {dtype}")
+
+        H = as_float_tensor(H, "H", dtype, device).detach().clone()
+        check_matrix(H, "H", cols=n)
+        check_finite(H, "H")
+        if H.dim() not in (2, 3) or (H.dim() == 3 and H.shape[0] != M):
+            raise ValueError(f"H must have shape (m, {n}) or (M={M}, m, {n}), got shape {shape_str(H)}")
+        m = H.shape[-2]
+        R = as_float_tensor(R, "R", dtype, device).detach().clone()
+        if R.dim() not in (2, 3) or R.shape[-2:] != (m, m) or (R.dim() == 3 and R.shape[0] != M):
+            raise ValueError(f"R must have shape ({m}, {m}) or (M={M}, {m}, {m}) to match H {shape_str(H)}, "
+                             f"got shape {shape_str(R)}")
+        self._register("H", H, "H" in names)
+        self._register("R", R, "R" in names)
+        parametrize.register_parametrization(self, "R", PositiveDefinite(name="R", size=m).to(dtype=dtype, device=device))
+
+        rates_t = as_float_tensor(rates, "rates", dtype, device).detach().clone()
+        if rates_t.shape != (M, M):
+            raise ValueError(f"rates must have shape (M={M}, {M}) for {M} models, got shape {shape_str(rates_t)}")
+        check_finite(rates_t, "rates")
+        off = _offdiag(M, dtype, device).bool()
+        if bool((rates_t[off] < 0).any()):
+            raise ValueError(f"rates must be >= 0 off the diagonal, got min {float(rates_t[off].min()):.3g}")
+        if "rates" in names:
+            self.register_parameter("rates", nn.Parameter(rates_t))
+            parametrize.register_parametrization(self, "rates", Generator(name="rates").to(dtype=dtype, device=device))
+        else:
+            self.register_buffer("rates", generator_from_rates(rates_t))
+
+        p0 = torch.full((M,), 1.0 / M, dtype=dtype, device=device) if mode_prob0 is None else \
+            as_float_tensor(mode_prob0, "mode_prob0", dtype, device).detach().clone()
+        if p0.shape != (M,) or bool((p0 < 0).any()) or abs(float(p0.sum()) - 1.0) > 1e-6:
+            raise ValueError(f"mode_prob0 must be a probability vector of shape ({M},), got {p0.tolist()}")
+        p0 = p0 / p0.sum()
+        self._register("mode_prob0", p0, "mode_prob0" in names)
+        if "mode_prob0" in names:
+            parametrize.register_parametrization(self, "mode_prob0",
+                                                 ModeProbabilities().to(dtype=dtype, device=device))
+
+        m0_t = torch.zeros(n, dtype=dtype, device=device) if m0 is None else as_float_tensor(m0, "m0", dtype, device)
+        if m0_t.shape not in ((n,), (M, n)):
+            raise ValueError(f"m0 must have shape ({n},) or (M={M}, {n}), got shape {shape_str(m0_t)}")
+        check_finite(m0_t, "m0")
+        self._register("m0", m0_t.detach().clone(), "m0" in names)
+        P0_t = diffuse_variance * torch.eye(n, dtype=dtype, device=device) if P0 is None else \
+            as_float_tensor(P0, "P0", dtype, device).detach().clone()
+        if P0_t.shape not in ((n, n), (M, n, n)):
+            raise ValueError(f"P0 must have shape ({n}, {n}) or (M={M}, {n}, {n}), got shape {shape_str(P0_t)}")
+        self._register("P0", P0_t, "P0" in names)
+        parametrize.register_parametrization(self, "P0", PositiveDefinite(name="P0", size=n).to(dtype=dtype, device=device))
+
+    def _register(self, name: str, value: Tensor, learnable: bool) -> None:
+        if learnable:
+            self.register_parameter(name, nn.Parameter(value))
+        else:
+            self.register_buffer(name, value)
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def num_modes(self) -> int:
+        return len(self.models)
+
+    @property
+    def state_dim(self) -> int:
+        return self.models[0].state_dim
+
+    @property
+    def obs_dim(self) -> int:
+        return int(self.H.shape[-2])
+
+    def bank(self) -> tuple[Tensor, Tensor]:
+        """Stacked mode matrices: F (M, n, n) and noise intensity ``L Qc Lᵀ`` (M, n, n)."""
+        mats = [sde.matrices() for sde in self.models]
+        F = torch.stack([mm.F for mm in mats])
+        W = torch.stack([mm.L @ mm.Qc @ mm.L.mT for mm in mats])
+        return F, 0.5 * (W + W.mT)
+
+    def discretize(self, dt: Tensor) -> tuple[Discrete, Tensor]:
+        """Every mode over every gap, in ONE batched discretisation, and the chain's transitions.
+
+        dt: (...) gaps. Returns ``Discrete`` with A, Q (..., M, n, n) and Pi (..., M, M) =
+        ``expm(Λ dt)``.
+        """
+        F, W = self.bank()
+        eye = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device)
+        if self.unique_dt and not dt.requires_grad and dt.numel() > 0:
+            values, inverse = torch.unique(dt, return_inverse=True)
+            d, Pi = self._discretize_flat(F, W, eye, values)
+            return Discrete(d.A[inverse], d.Q[inverse], None), Pi[inverse]
+        return self._discretize_flat(F, W, eye, dt)
+
+    def _discretize_flat(self, F: Tensor, W: Tensor, eye: Tensor, dt: Tensor) -> tuple[Discrete, Tensor]:
+        d = discretize(F, eye, W, dt.unsqueeze(-1), method=self.method)  # F (M,·,·) with dt (..., 1)
+        Pi = torch.matrix_exp(self.rates * dt[..., None, None]).clamp_min(0.0)
+        return d, Pi
+
+    def _check_dt(self, dt: Tensor | float, name: str = "dt") -> Tensor:
+        dt = as_float_tensor(dt, name, self.models[0].dtype, self.models[0].device)
+        check_finite(dt, name)
+        if bool((dt < 0).any()):
+            raise ValueError(f"{name} must be non-negative, got min {float(dt.min()):.3g} (shape {shape_str(dt)})")
+        return dt
+
+    def _obs_model(self) -> tuple[Tensor, Tensor]:
+        """H (M or 1, m, n), R (M or 1, m, m)."""
+        H, R = self.H, self.R
+        return (H if H.dim() == 3 else H.unsqueeze(0)), (R if R.dim() == 3 else R.unsqueeze(0))
+
+    # ------------------------------------------------------------------ API
+    def forward(self, y: Tensor, dt: Tensor, u: Tensor | None = None, mask: Tensor | None = None) -> IMMResult:
+        """Filter observations y (..., T, m) taken after steps dt (..., T).
+
+        ``u`` exists for the call shape of :class:`~torchsde_lti.KalmanFilter` only: the IMM
+        has no inputs, a non-None u raises ValueError.
+
+        Returns :class:`~torchsde_lti.filters.imm.IMMResult` (log_likelihood (...),
+        step_log_likelihood (..., T), mode_probabilities (..., T, M), mean, cov, …).
+        """
+        if u is not None:
+            raise ValueError(f"u was given (shape {shape_str(torch.as_tensor(u))}) but IMMFilter has no inputs")
+        dtype = self.models[0].dtype
+        y = as_float_tensor(y, "y", dtype, self.models[0].device)
+        if y.dim() < 2 or y.shape[-1] != self.obs_dim:
+            raise ValueError(f"y must have shape (..., T, m={self.obs_dim}) to match H {shape_str(self.H)}, "
+                             f"got shape {shape_str(y)}")
+        dt = self._check_dt(dt)
+        if dt.dim() < 1 or dt.shape[-1] != y.shape[-2]:
+            raise ValueError(f"dt must have shape (..., T={y.shape[-2]}) to match y {shape_str(y)}, "
+                             f"got shape {shape_str(dt)}")
+        H, R = self._obs_model()
+        rates, m0, P0, p0 = self.rates, self.m0, self.P0, self.mode_prob0
+        for name, value in (("H", H), ("R", R), ("rates", rates), ("m0", m0), ("P0", P0), ("mode_prob0", p0)):
+            check_finite(value, name)
+        with validation(False):  # valid by construction (parametrisations, PSD doubling)
+            d, Pi = self.discretize(dt)
+            return imm_filter(y, d.A, d.Q, H, R, Pi, m0, P0, p0.expand(self.num_modes), mask=mask)
+
+    def forecast(
+        self,
+        state: IMMResult | tuple[Tensor, Tensor, Tensor],
+        dt: Tensor | float,
+    ) -> IMMForecast:
+        """The mixture at horizons dt after the state's time (each measured from it).
+
+        One IMM prediction per horizon: ``c = μ expm(Λ h)``, mixing, then each mode's exact
+        ``A_j(h)``, ``Q_j(h)``; observation moments per mode and moment-matched.
+
+        Args:
+            state: a filter result (its last step is used) or (mode_prob (..., M),
+                mode_mean (..., M, n), mode_cov (..., M, n, n)).
+            dt: (..., K) non-negative horizons (a float or (K,) is shared by the batch).
+        """
+        if isinstance(state, IMMResult):
+            prob, mean, cov = state.mode_probabilities[..., -1, :], state.mode_mean[..., -1, :, :], \
+                state.mode_cov[..., -1, :, :, :]
+        else:
+            prob, mean, cov = state
+        M, n = self.num_modes, self.state_dim
+        if prob.shape[-1] != M or mean.shape[-2:] != (M, n) or cov.shape[-3:] != (M, n, n):
+            raise ValueError(f"state must be (mode_prob (..., {M}), mode_mean (..., {M}, {n}), mode_cov "
+                             f"(..., {M}, {n}, {n})), got {shape_str(prob)}, {shape_str(mean)}, {shape_str(cov)}")
+        dt = self._check_dt(dt)
+        if dt.dim() == 0:
+            dt = dt.reshape(1)
+        d, Pi = self.discretize(dt)  # (..., K, M, n, n), (..., K, M, M)
+        p: IMMPrediction = imm_predict(prob, mean, cov, d.A, d.Q, Pi)
+        H, R = self._obs_model()
+        ym = (H @ p.mode_mean.unsqueeze(-1)).squeeze(-1)  # (..., K, M, m)
+        S = H @ p.mode_cov @ H.mT + R
+        S = 0.5 * (S + S.mT)
+        obs_mean, obs_cov = combine(p.mode_probabilities, ym, S)
+        return IMMForecast(p.mode_probabilities, p.mode_mean, p.mode_cov, p.mean, p.cov, obs_mean, obs_cov, ym, S)
+
+    def extra_repr(self) -> str:
+        return f"modes={self.num_modes}, obs_dim={self.obs_dim}, unique_dt={self.unique_dt}"
