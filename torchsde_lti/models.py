@@ -24,7 +24,6 @@ from collections.abc import Sequence
 
 import torch
 from torch import Tensor, nn
-from torch.nn.utils import parametrize
 
 from torchsde_lti.core.stationary import stationary_covariance
 from torchsde_lti.core.validation import (
@@ -35,7 +34,7 @@ from torchsde_lti.core.validation import (
     common_float_dtype,
     shape_str,
 )
-from torchsde_lti.nn.parametrizations import Positive, integrator_chain
+from torchsde_lti.nn.parametrizations import integrator_chain
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices, StructuredSDE
 
 __all__ = [
@@ -130,6 +129,7 @@ class _ChainSDE(StructuredSDE):
     def _init_drag_model(self, order: int, rate_name: str, rate: Scalar, q: Scalar, dim: int,
                          dtype: torch.dtype | None, device: torch.device | str | None) -> None:
         """Positive scalars ``rate_name`` and ``q`` and the chain layout of a drag model."""
+        self._rate_name = rate_name
         _check_int(dim, "dim", 1)
         dt_ = _scalar_dtype([rate, q], dtype)
         dev = _scalar_device([rate, q], device)
@@ -150,6 +150,18 @@ class _ChainSDE(StructuredSDE):
 
 
 # ---------------------------------------------------------------------------- integrator chains
+class _DragSDE(_ChainSDE):
+    """A chain whose highest derivative has a positive drag rate (named by ``_rate_name``)."""
+
+    _rate_name: str
+
+    def _build(self) -> SDEMatrices:
+        return self._drag_matrices(getattr(self, self._rate_name), self.q)
+
+    def extra_repr(self) -> str:
+        return f"dim={self.dim}, " + self._scalar_repr([self._rate_name, "q"])
+
+
 class IntegratedWiener(_ChainSDE):
     r"""Integrator chain per axis: ``d x^(order−1) = dβ``, ``E[dβ dβᵀ] = q I dt``.
 
@@ -205,7 +217,7 @@ def constant_acceleration(dim: int = 2, q: Scalar = 1.0, **kw: object) -> Integr
     return IntegratedWiener(3, dim, q, **kw)  # type: ignore[arg-type]
 
 
-class Singer(_ChainSDE):
+class Singer(_DragSDE):
     r"""Singer model per axis: ``dx = v dt``, ``dv = a dt``, ``da = −α a dt + dβ``, ``E[dβ²] = q dt``.
 
     Same parametrisation as Stone Soup's ``Singer(damping_coeff=α, noise_diff_coeff=q)``.
@@ -216,19 +228,13 @@ class Singer(_ChainSDE):
         super().__init__()
         self._init_drag_model(3, "alpha", alpha, q, dim, dtype, device)
 
-    def _build(self) -> SDEMatrices:
-        return self._drag_matrices(self.alpha, self.q)
-
-    def extra_repr(self) -> str:
-        return f"dim={self.dim}, " + self._scalar_repr(["alpha", "q"])
-
 
 def singer(alpha: Scalar, q: Scalar, dim: int = 1, **kw: object) -> Singer:
     r"""Singer acceleration model: ``da = −α a dt + dβ`` (spectral density q), state ``[x, v, a]`` per axis."""
     return Singer(alpha, q, dim, **kw)  # type: ignore[arg-type]
 
 
-class IntegratedOU(_ChainSDE):
+class IntegratedOU(_DragSDE):
     r"""Integrated Ornstein–Uhlenbeck per axis: ``dx = v dt``, ``dv = −k v dt + dβ``, ``E[dβ²] = q dt``.
 
     Stone Soup calls this ``OrnsteinUhlenbeck(damping_coeff=k, noise_diff_coeff=q)``.
@@ -238,12 +244,6 @@ class IntegratedOU(_ChainSDE):
                  device: torch.device | str | None = None) -> None:
         super().__init__()
         self._init_drag_model(2, "k", k, q, dim, dtype, device)
-
-    def _build(self) -> SDEMatrices:
-        return self._drag_matrices(self.k, self.q)
-
-    def extra_repr(self) -> str:
-        return f"dim={self.dim}, " + self._scalar_repr(["k", "q"])
 
 
 def integrated_ou(k: Scalar, q: Scalar, dim: int = 1, **kw: object) -> IntegratedOU:
@@ -740,7 +740,7 @@ def position_observation(model: LTISDE) -> Tensor:
 
 
 # ---------------------------------------------------------------------------- moored / stationary mode
-class Moored(_ChainSDE):
+class Moored(_DragSDE):
     r"""A vessel at rest: per axis ``dx = v dt + dβ_x``, ``dv = −k v dt`` (state ``[x, vx, y, vy]``).
 
     The velocity state decays with a strong rate k (any velocity inherited from another
@@ -765,9 +765,6 @@ class Moored(_ChainSDE):
         F = self._drag(k.expand(batch))
         Qc = _eye_blocks(F, self.dim, q.expand(batch))
         return SDEMatrices(F, self._pos.expand(*batch, *self._pos.shape), Qc, None)
-
-    def extra_repr(self) -> str:
-        return f"dim={self.dim}, " + self._scalar_repr(["k", "q"])
 
 
 def moored(k: Scalar = 0.1, q: Scalar = 1e-3, dim: int = 2, **kw: object) -> Moored:

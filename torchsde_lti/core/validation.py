@@ -79,6 +79,17 @@ def common_float_dtype(*tensors: Tensor | None) -> torch.dtype:
     return dtype if dtype is not None else torch.get_default_dtype()
 
 
+
+def as_float_tensors(**named: object) -> dict[str, Tensor | None]:
+    """Every non-None argument as a floating tensor of their common dtype
+    (:func:`common_float_dtype`), on the device of the first tensor given; None stays None.
+    The keyword names are the argument names used in error messages."""
+    tensors = [v for v in named.values() if isinstance(v, Tensor)]
+    dtype = common_float_dtype(*tensors)
+    device = tensors[0].device if tensors else None
+    return {k: None if v is None else as_float_tensor(v, k, dtype, device) for k, v in named.items()}
+
+
 def check_matrix(
     x: Tensor, name: str, rows: int | None = None, cols: int | None = None, square: bool = False
 ) -> None:

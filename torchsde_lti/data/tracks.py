@@ -40,21 +40,6 @@ from torch.utils.data import Dataset, Sampler
 __all__ = ["EpochShuffleSampler", "Track", "TrackBatch", "TrackDataset", "collate_tracks", "pad_tracks", "unpad_tracks"]
 
 
-class Track(NamedTuple):
-    """One track of T steps (fields as in :class:`TrackBatch` without the batch dimension;
-    ``origin`` (m,) and ``track_id`` () are per-track)."""
-
-    y: Tensor
-    dt: Tensor
-    u: Tensor | None = None
-    x: Tensor | None = None
-    t: Tensor | None = None
-    vel: Tensor | None = None
-    sog: Tensor | None = None
-    origin: Tensor | None = None
-    track_id: Tensor | None = None
-
-
 class TrackBatch(NamedTuple):
     """A padded batch of B tracks; fields and padding in the module docstring."""
 
@@ -69,6 +54,14 @@ class TrackBatch(NamedTuple):
     sog: Tensor | None = None
     origin: Tensor | None = None
     track_id: Tensor | None = None
+
+
+_TRACK_FIELDS = [(f, TrackBatch.__annotations__[f]) for f in TrackBatch._fields if f not in ("mask", "lengths")]
+#: One track of T steps: the fields of :class:`TrackBatch` without the batch dimension and
+#: without ``mask`` / ``lengths`` (y (T, m) and dt (T,) required; ``origin`` (m,) and
+#: ``track_id`` () are per-track; the rest optional, default None).
+Track = NamedTuple("Track", _TRACK_FIELDS)  # type: ignore[misc]
+Track.__new__.__defaults__ = (None,) * (len(_TRACK_FIELDS) - 2)
 
 
 # Per-step fields and their padding rule: a fill value, or None = repeat the last value.

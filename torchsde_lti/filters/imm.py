@@ -41,10 +41,9 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.validation import (
-    as_float_tensor,
+    as_float_tensors,
     check_finite,
     check_matrix,
-    common_float_dtype,
     shape_str,
     value_checks_enabled,
     check_symmetric_psd,
@@ -139,17 +138,9 @@ def _check_inputs(
     y: Tensor, A: Tensor, Q: Tensor, H: Tensor, R: Tensor, Pi: Tensor, m0: Tensor, P0: Tensor,
     mode_prob0: Tensor, mask: Tensor | None,
 ) -> tuple[Tensor, ...]:
-    dtype = common_float_dtype(*(t for t in (y, A, Q, H, R, Pi, m0, P0, mode_prob0) if isinstance(t, Tensor)))
-    device = next(t.device for t in (y, A, Q, H, R, Pi, m0, P0) if isinstance(t, Tensor))
-    y = as_float_tensor(y, "y", dtype, device)
-    A = as_float_tensor(A, "A", dtype, device)
-    Q = as_float_tensor(Q, "Q", dtype, device)
-    H = as_float_tensor(H, "H", dtype, device)
-    R = as_float_tensor(R, "R", dtype, device)
-    Pi = as_float_tensor(Pi, "Pi", dtype, device)
-    m0 = as_float_tensor(m0, "m0", dtype, device)
-    P0 = as_float_tensor(P0, "P0", dtype, device)
-    mode_prob0 = as_float_tensor(mode_prob0, "mode_prob0", dtype, device)
+    t = as_float_tensors(y=y, A=A, Q=Q, H=H, R=R, Pi=Pi, m0=m0, P0=P0, mode_prob0=mode_prob0)
+    y, A, Q, H, R, Pi, m0, P0, mode_prob0 = (t[k] for k in ("y", "A", "Q", "H", "R", "Pi", "m0", "P0", "mode_prob0"))
+    dtype, device = y.dtype, y.device
     if y.dim() < 2 or y.shape[-2] < 1 or y.shape[-1] < 1:
         raise ValueError(f"y must have shape (..., T, m) with T, m >= 1, got shape {shape_str(y)}")
     T, m = y.shape[-2], y.shape[-1]

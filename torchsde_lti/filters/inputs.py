@@ -27,12 +27,11 @@ from torch import Tensor
 
 from torchsde_lti.core.linalg import cholesky, matvec, solve_lower, sym
 from torchsde_lti.core.validation import (
-    as_float_tensor,
+    as_float_tensors,
     broadcast_batch,
     check_finite,
     check_matrix,
     check_symmetric_psd,
-    common_float_dtype,
     shape_str,
     value_checks_enabled,
 )
@@ -98,15 +97,9 @@ def _check_arguments(
     D: Tensor | None = None,
 ) -> _Checked:
     """Shapes (and, with value checks on, values) of every argument; c = G u."""
-    dtype = common_float_dtype(*(t for t in (y, A, Q, H, R, m0, P0, G, u, D) if isinstance(t, Tensor)))
-    device = next(t.device for t in (y, A, Q, H, R, m0, P0) if isinstance(t, Tensor))
-    y = as_float_tensor(y, "y", dtype, device)
-    A = as_float_tensor(A, "A", dtype, device)
-    Q = as_float_tensor(Q, "Q", dtype, device)
-    H = as_float_tensor(H, "H", dtype, device)
-    R = as_float_tensor(R, "R", dtype, device)
-    m0 = as_float_tensor(m0, "m0", dtype, device)
-    P0 = as_float_tensor(P0, "P0", dtype, device)
+    t = as_float_tensors(y=y, A=A, Q=Q, H=H, R=R, m0=m0, P0=P0, G=G, u=u, D=D)
+    y, A, Q, H, R, m0, P0, G, u, D = (t[k] for k in ("y", "A", "Q", "H", "R", "m0", "P0", "G", "u", "D"))
+    dtype, device = y.dtype, y.device
 
     if y.dim() < 2:
         raise ValueError(f"y must have shape (..., T, m), got shape {shape_str(y)}")
@@ -139,8 +132,6 @@ def _check_arguments(
         )
     if D is not None and u is not None:
         # Feedthrough y = H x + D u + r: filter y − D u (NaN stays NaN, so missing data keep their meaning).
-        D = as_float_tensor(D, "D", dtype, device)
-        u = as_float_tensor(u, "u", dtype, device)
         check_matrix(D, "D", rows=m)
         pD = D.shape[-1]
         if u.dim() < 2 or u.shape[-1] != pD or u.shape[-2] not in (1, T):
@@ -152,8 +143,6 @@ def _check_arguments(
         y = y - matvec(D, u)
     c = None
     if G is not None and u is not None:
-        G = as_float_tensor(G, "G", dtype, device)
-        u = as_float_tensor(u, "u", dtype, device)
         check_matrix(G, "G", rows=n)
         p = G.shape[-1]
         if u.dim() < 2 or u.shape[-1] != p:

@@ -40,6 +40,7 @@ from torch.nn.utils import parametrize
 from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str, validation
 from torchsde_lti.core.discretization import Discrete, discretize
 from torchsde_lti.filters.imm import IMMPrediction, IMMResult, combine, imm_filter, imm_predict
+from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn.parametrizations import PositiveDefinite, default_floor, softplus, softplus_inverse
 from torchsde_lti.nn.sde import LTISDE
 
@@ -203,8 +204,8 @@ class IMMFilter(nn.Module):
         if R.dim() not in (2, 3) or R.shape[-2:] != (m, m) or (R.dim() == 3 and R.shape[0] != M):
             raise ValueError(f"R must have shape ({m}, {m}) or (M={M}, {m}, {m}) to match H {shape_str(H)}, "
                              f"got shape {shape_str(R)}")
-        self._register("H", H, "H" in names)
-        self._register("R", R, "R" in names)
+        register_tensor(self, "H", H, "H" in names)
+        register_tensor(self, "R", R, "R" in names)
         parametrize.register_parametrization(self, "R", PositiveDefinite(name="R", size=m).to(dtype=dtype, device=device))
 
         rates_t = as_float_tensor(rates, "rates", dtype, device).detach().clone()
@@ -225,7 +226,7 @@ class IMMFilter(nn.Module):
         if p0.shape != (M,) or bool((p0 < 0).any()) or abs(float(p0.sum()) - 1.0) > 1e-6:
             raise ValueError(f"mode_prob0 must be a probability vector of shape ({M},), got {p0.tolist()}")
         p0 = p0 / p0.sum()
-        self._register("mode_prob0", p0, "mode_prob0" in names)
+        register_tensor(self, "mode_prob0", p0, "mode_prob0" in names)
         if "mode_prob0" in names:
             parametrize.register_parametrization(self, "mode_prob0",
                                                  ModeProbabilities().to(dtype=dtype, device=device))
@@ -234,19 +235,13 @@ class IMMFilter(nn.Module):
         if m0_t.shape not in ((n,), (M, n)):
             raise ValueError(f"m0 must have shape ({n},) or (M={M}, {n}), got shape {shape_str(m0_t)}")
         check_finite(m0_t, "m0")
-        self._register("m0", m0_t.detach().clone(), "m0" in names)
+        register_tensor(self, "m0", m0_t.detach().clone(), "m0" in names)
         P0_t = diffuse_variance * torch.eye(n, dtype=dtype, device=device) if P0 is None else \
             as_float_tensor(P0, "P0", dtype, device).detach().clone()
         if P0_t.shape not in ((n, n), (M, n, n)):
             raise ValueError(f"P0 must have shape ({n}, {n}) or (M={M}, {n}, {n}), got shape {shape_str(P0_t)}")
-        self._register("P0", P0_t, "P0" in names)
+        register_tensor(self, "P0", P0_t, "P0" in names)
         parametrize.register_parametrization(self, "P0", PositiveDefinite(name="P0", size=n).to(dtype=dtype, device=device))
-
-    def _register(self, name: str, value: Tensor, learnable: bool) -> None:
-        if learnable:
-            self.register_parameter(name, nn.Parameter(value))
-        else:
-            self.register_buffer(name, value)
 
     # ------------------------------------------------------------------ helpers
     @property

@@ -47,14 +47,8 @@ from torchsde_lti.core.linalg import matvec, sym
 from torchsde_lti.core.moments import predict_moments
 from torchsde_lti.core.stationary import stationary_covariance
 from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str, validation
-from torchsde_lti.filters import (
-    FilterResult,
-    SmootherResult,
-    kalman_filter,
-    parallel_kalman_filter,
-    parallel_rts_smoother,
-    rts_smoother,
-)
+from torchsde_lti.filters import FilterResult, SmootherResult, kalman_filter, parallel_kalman_filter, parallel_rts_smoother, rts_smoother
+from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn.parametrizations import PositiveDefinite
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
 
@@ -157,7 +151,7 @@ class KalmanFilter(nn.Module):
         R = as_float_tensor(R, "R", dtype, device).detach().clone()
         if R.dim() < 2 or R.shape[-2:] != (m, m):
             raise ValueError(f"R must have shape (..., {m}, {m}) to match H {shape_str(H)}, got shape {shape_str(R)}")
-        self._register("H", H, "H" in names)
+        register_tensor(self, "H", H, "H" in names)
         if D is None:
             if "D" in names:
                 raise ValueError("learn contains 'D' but D is None")
@@ -172,15 +166,15 @@ class KalmanFilter(nn.Module):
                     f"D must have shape (..., {m}, {p}): {p} columns for the SDE's input matrix B, got shape "
                     f"{shape_str(D_t)}"
                 )
-            self._register("D", D_t, "D" in names)
-        self._register("R", R, "R" in names)
+            register_tensor(self, "D", D_t, "D" in names)
+        register_tensor(self, "R", R, "R" in names)
         parametrize.register_parametrization(self, "R", PositiveDefinite(name="R", size=m).to(dtype=dtype, device=device))
 
         m0_t = torch.zeros(n, dtype=dtype, device=device) if m0 is None else as_float_tensor(m0, "m0", dtype, device)
         if m0_t.dim() < 1 or m0_t.shape[-1] != n:
             raise ValueError(f"m0 must have shape (..., {n}), got shape {shape_str(m0_t)}")
         check_finite(m0_t, "m0")
-        self._register("m0", m0_t.detach().clone(), "m0" in names)
+        register_tensor(self, "m0", m0_t.detach().clone(), "m0" in names)
 
         # Prior covariance mode: given / shaping / stationary / diffuse.
         self.prior_mode: str
@@ -220,16 +214,10 @@ class KalmanFilter(nn.Module):
                 "state is 0) and a learnable P0 is parametrised positive definite; pass an initial P0 tensor"
             )
         if self.prior_mode == "given":
-            self._register("P0", P0_t, "P0" in names)
+            register_tensor(self, "P0", P0_t, "P0" in names)
             parametrize.register_parametrization(self, "P0", PositiveDefinite(name="P0", size=n).to(dtype=dtype, device=device))
         else:
             self.register_buffer("P0", None)
-
-    def _register(self, name: str, value: Tensor, learnable: bool) -> None:
-        if learnable:
-            self.register_parameter(name, nn.Parameter(value))
-        else:
-            self.register_buffer(name, value)
 
     # ------------------------------------------------------------------ helpers
     @property

@@ -29,7 +29,7 @@ computation use :meth:`LTISDE.matrices`, which reads all four once under
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from typing import NamedTuple
 
 import torch
@@ -292,6 +292,19 @@ class LTISDE(nn.Module):
         return ", ".join(parts)
 
 
+def _derived_matrix(name: str) -> property:
+    """Read-only property ``name`` of a :class:`StructuredSDE`: the matrix built from its
+    scalar parameters; assigning raises an AttributeError that names those parameters."""
+
+    def get(self: StructuredSDE) -> Tensor | None:
+        return getattr(self.matrices(), name)
+
+    def set_(self: StructuredSDE, value: Tensor) -> None:
+        self._read_only(name)
+
+    return property(get, set_, doc=f"{name}, derived from the model's scalar parameters (read-only).")
+
+
 class StructuredSDE(LTISDE):
     """An :class:`LTISDE` whose matrices are derived from named scalar parameters.
 
@@ -332,37 +345,10 @@ class StructuredSDE(LTISDE):
             "set those, or use .to_free() for free matrices"
         )
 
-    @property
-    def F(self) -> Tensor:  # type: ignore[override]
-        return self.matrices().F
-
-    @F.setter
-    def F(self, value: Tensor) -> None:
-        self._read_only("F")
-
-    @property
-    def L(self) -> Tensor:  # type: ignore[override]
-        return self.matrices().L
-
-    @L.setter
-    def L(self, value: Tensor) -> None:
-        self._read_only("L")
-
-    @property
-    def Qc(self) -> Tensor:  # type: ignore[override]
-        return self.matrices().Qc
-
-    @Qc.setter
-    def Qc(self, value: Tensor) -> None:
-        self._read_only("Qc")
-
-    @property
-    def B(self) -> Tensor | None:  # type: ignore[override]
-        return self.matrices().B
-
-    @B.setter
-    def B(self, value: Tensor) -> None:
-        self._read_only("B")
+    F = _derived_matrix("F")
+    L = _derived_matrix("L")
+    Qc = _derived_matrix("Qc")
+    B = _derived_matrix("B")
 
     def _scalar_repr(self, names: Sequence[str]) -> str:
         out = []
