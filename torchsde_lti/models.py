@@ -363,7 +363,23 @@ def matern(nu: float, lengthscale: Scalar = 1.0, variance: Scalar = 1.0, **kw: o
 
 
 # ---------------------------------------------------------------------------- ODE systems
-class MassSpringDamper(StructuredSDE):
+class _OutputEquation:
+    """Models with an output equation ``y = C x + D u``: ``C`` is the registered buffer
+    ``output_matrix`` (1, n) (pass it as the filter's H), ``D`` the (1, p) zero feedthrough
+    unless a subclass says otherwise (pass it as the filter's D)."""
+
+    output_matrix: Tensor
+
+    @property
+    def C(self) -> Tensor:
+        return self.output_matrix
+
+    @property
+    def D(self) -> Tensor:
+        return self.output_matrix.new_zeros(1, 1)
+
+
+class MassSpringDamper(_OutputEquation, StructuredSDE):
     r"""``m p'' = u − c p' − k p + w``: state ``[p, p']``, force input u, random force w.
 
     ``F = [[0, 1], [−k/m, −c/m]]``, ``B = L = [0, 1/m]ᵀ``, ``Qc = q`` (spectral density of
@@ -380,16 +396,6 @@ class MassSpringDamper(StructuredSDE):
         self._check_scalars(("m", "k", "c", "q"))
         self.register_buffer("output_matrix", torch.tensor([[1.0, 0.0]], dtype=dt_, device=dev), persistent=False)
         self.position_indices = (0,)
-
-    @property
-    def C(self) -> Tensor:
-        """Output matrix ``[[1, 0]]`` (position): pass it as the filter's H."""
-        return self.output_matrix
-
-    @property
-    def D(self) -> Tensor:
-        """Feedthrough ``[[0]]`` (1, 1) of ``y = C x + D u`` (pass as the filter's D)."""
-        return self.output_matrix.new_zeros(1, 1)
 
     def _build(self) -> SDEMatrices:
         m, k, c, q = self.m, self.k, self.c, self.q
@@ -411,7 +417,7 @@ def mass_spring_damper(m: Scalar, k: Scalar, c: Scalar, q: Scalar = 1.0, **kw: o
     return MassSpringDamper(m, k, c, q, **kw)  # type: ignore[arg-type]
 
 
-class Companion(StructuredSDE):
+class Companion(_OutputEquation, StructuredSDE):
     r"""Order-n ODE ``a_n y⁽ⁿ⁾ + … + a_1 y' + a_0 y = u + w`` in companion form, state ``[y, y', …, y⁽ⁿ⁻¹⁾]``.
 
     F has ones on the superdiagonal and last row ``−a_0/a_n … −a_{n−1}/a_n``;
@@ -445,16 +451,6 @@ class Companion(StructuredSDE):
         out[0, 0] = 1.0
         self.register_buffer("output_matrix", out, persistent=False)
         self.position_indices = (0,)
-
-    @property
-    def C(self) -> Tensor:
-        """Output matrix ``[[1, 0, …, 0]]`` (1, n): pass it as the filter's H."""
-        return self.output_matrix
-
-    @property
-    def D(self) -> Tensor:
-        """Feedthrough ``[[0]]`` (1, 1) of ``y = C x + D u`` (pass as the filter's D)."""
-        return self.output_matrix.new_zeros(1, 1)
 
     def _build(self) -> SDEMatrices:
         a, q = self.a, self.q

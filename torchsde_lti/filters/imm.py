@@ -48,6 +48,7 @@ from torchsde_lti.core.validation import (
     value_checks_enabled,
     check_symmetric_psd,
 )
+from torchsde_lti.filters.inputs import check_mask
 from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, solve_lower, sym
 
 __all__ = ["IMMResult", "imm_filter", "imm_predict", "IMMPrediction"]
@@ -165,15 +166,7 @@ def _check_inputs(
         raise ValueError(f"Pi must have its time axis (dim -3) of size 1 or T={T}, got shape {shape_str(Pi)}")
     if m0.dim() < 1 or m0.shape[-1] != n or (m0.dim() >= 2 and m0.shape[-2] not in (1, M)):
         raise ValueError(f"m0 must have shape (..., {M}, {n}) or (..., 1, {n}) or ({n},), got shape {shape_str(m0)}")
-    if mask is not None:
-        mask = torch.as_tensor(mask, device=device)
-        if mask.dtype != torch.bool:
-            raise ValueError(f"mask must be a bool tensor, got dtype {mask.dtype}")
-        per_component = mask.dim() >= 2 and mask.shape[-2] == T and mask.shape[-1] == m
-        if not per_component and mask.dim() >= 1 and mask.shape[-1] == T:
-            mask = mask.unsqueeze(-1)
-        if mask.dim() < 2 or mask.shape[-2] != T or mask.shape[-1] not in (1, m):
-            raise ValueError(f"mask must have shape (..., {T}) or (..., {T}, {m}), got shape {shape_str(mask)}")
+    mask = check_mask(mask, T, m, device)
     if bool(torch.isinf(y).any()):
         raise ValueError(f"y contains Inf (shape {shape_str(y)}); mark missing values with NaN or mask")
     if value_checks_enabled():

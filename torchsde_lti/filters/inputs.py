@@ -37,7 +37,7 @@ from torchsde_lti.core.validation import (
 )
 from torchsde_lti.filters.results import FilterResult
 
-__all__ = ["LOG_2PI", "PreparedInputs", "assemble_result", "mask_observation_model", "observed_components", "pad_dims", "prepare_inputs", "whiten"]
+__all__ = ["LOG_2PI", "PreparedInputs", "assemble_result", "check_mask", "mask_observation_model", "observed_components", "pad_dims", "prepare_inputs", "whiten"]
 
 LOG_2PI = math.log(2.0 * math.pi)
 
@@ -81,6 +81,22 @@ class _Checked(NamedTuple):
 def pad_dims(x: Tensor, ndim: int) -> Tensor:
     """Prepend size-1 dims so that x has ``ndim`` dims."""
     return x.reshape((1,) * (ndim - x.dim()) + tuple(x.shape)) if x.dim() < ndim else x
+
+
+def check_mask(mask: Tensor | None, T: int, m: int, device: torch.device) -> Tensor | None:
+    """A bool mask (..., T) or (..., T, m) (True = observed) as (..., T, 1 or m) on ``device``;
+    ValueError naming its shape or dtype otherwise. None stays None."""
+    if mask is None:
+        return None
+    mask = torch.as_tensor(mask, device=device)
+    if mask.dtype != torch.bool:
+        raise ValueError(f"mask must be a bool tensor, got dtype {mask.dtype}")
+    per_component = mask.dim() >= 2 and mask.shape[-2] == T and mask.shape[-1] == m
+    if not per_component and mask.dim() >= 1 and mask.shape[-1] == T:
+        mask = mask.unsqueeze(-1)  # (..., T) -> (..., T, 1)
+    if mask.dim() < 2 or mask.shape[-2] != T or mask.shape[-1] not in (1, m):
+        raise ValueError(f"mask must have shape (..., {T}) or (..., {T}, {m}), got shape {shape_str(mask)}")
+    return mask
 
 
 def _check_arguments(
@@ -149,17 +165,7 @@ def _check_arguments(
             raise ValueError(f"u must have shape (..., T, {p}) to match G {shape_str(G)}, got shape {shape_str(u)}")
         check_finite(u, "u")
         c = matvec(G, u)  # (..., T, n)
-    obs_given = None
-    if mask is not None:
-        mask = torch.as_tensor(mask, device=device)
-        if mask.dtype != torch.bool:
-            raise ValueError(f"mask must be a bool tensor, got dtype {mask.dtype}")
-        per_component = mask.dim() >= 2 and mask.shape[-2] == T and mask.shape[-1] == m
-        if not per_component and mask.dim() >= 1 and mask.shape[-1] == T:
-            mask = mask.unsqueeze(-1)  # (..., T) -> (..., T, 1)
-        if mask.dim() < 2 or mask.shape[-2] != T or mask.shape[-1] not in (1, m):
-            raise ValueError(f"mask must have shape (..., {T}) or (..., {T}, {m}), got shape {shape_str(mask)}")
-        obs_given = mask
+    obs_given = check_mask(mask, T, m, device)
 
     # Per-step arrays: check their T axis.
     for name, x, k in (("A", A, 3), ("Q", Q, 3), ("H", H, 3), ("R", R, 3)):
