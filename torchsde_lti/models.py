@@ -129,7 +129,6 @@ class _ChainSDE(StructuredSDE):
     def _init_drag_model(self, order: int, rate_name: str, rate: Scalar, q: Scalar, dim: int,
                          dtype: torch.dtype | None, device: torch.device | str | None) -> None:
         """Positive scalars ``rate_name`` and ``q`` and the chain layout of a drag model."""
-        self._rate_name = rate_name
         _check_int(dim, "dim", 1)
         dt_ = _scalar_dtype([rate, q], dtype)
         dev = _scalar_device([rate, q], device)
@@ -151,9 +150,16 @@ class _ChainSDE(StructuredSDE):
 
 # ---------------------------------------------------------------------------- integrator chains
 class _DragSDE(_ChainSDE):
-    """A chain whose highest derivative has a positive drag rate (named by ``_rate_name``)."""
+    """A chain of ``_order`` derivatives per axis whose highest one has a positive drag rate,
+    the scalar named ``_rate_name``; constructed as ``Model(rate, q, dim, dtype=, device=)``."""
 
+    _order: int
     _rate_name: str
+
+    def __init__(self, rate: Scalar, q: Scalar, dim: int = 1, *, dtype: torch.dtype | None = None,
+                 device: torch.device | str | None = None) -> None:
+        super().__init__()
+        self._init_drag_model(self._order, self._rate_name, rate, q, dim, dtype, device)
 
     def _build(self) -> SDEMatrices:
         return self._drag_matrices(getattr(self, self._rate_name), self.q)
@@ -223,10 +229,7 @@ class Singer(_DragSDE):
     Same parametrisation as Stone Soup's ``Singer(damping_coeff=α, noise_diff_coeff=q)``.
     """
 
-    def __init__(self, alpha: Scalar, q: Scalar, dim: int = 1, *, dtype: torch.dtype | None = None,
-                 device: torch.device | str | None = None) -> None:
-        super().__init__()
-        self._init_drag_model(3, "alpha", alpha, q, dim, dtype, device)
+    _order, _rate_name = 3, "alpha"
 
 
 def singer(alpha: Scalar, q: Scalar, dim: int = 1, **kw: object) -> Singer:
@@ -240,10 +243,7 @@ class IntegratedOU(_DragSDE):
     Stone Soup calls this ``OrnsteinUhlenbeck(damping_coeff=k, noise_diff_coeff=q)``.
     """
 
-    def __init__(self, k: Scalar, q: Scalar, dim: int = 1, *, dtype: torch.dtype | None = None,
-                 device: torch.device | str | None = None) -> None:
-        super().__init__()
-        self._init_drag_model(2, "k", k, q, dim, dtype, device)
+    _order, _rate_name = 2, "k"
 
 
 def integrated_ou(k: Scalar, q: Scalar, dim: int = 1, **kw: object) -> IntegratedOU:
@@ -746,10 +746,11 @@ class Moored(_DragSDE):
     ``L`` selects the positions, ``Qc = q I_dim``.
     """
 
+    _order, _rate_name = 2, "k"
+
     def __init__(self, k: Scalar, q: Scalar, dim: int = 2, *, dtype: torch.dtype | None = None,
                  device: torch.device | str | None = None) -> None:
-        super().__init__()
-        self._init_drag_model(2, "k", k, q, dim, dtype, device)
+        super().__init__(k, q, dim, dtype=dtype, device=device)
         pos = torch.zeros_like(self._top)
         for axis, idx in enumerate(self.position_indices):
             pos[idx, axis] = 1.0
