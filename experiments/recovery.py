@@ -68,7 +68,7 @@ def run_study(name: str, quick: bool = False) -> dict:
     metrics, objects = train(cfg)
     wall = time.perf_counter() - start
     truth = objects["datamodule"].truth
-    transition = _transition_errors(objects["module"], truth) if "F" in cfg.model.learn else []
+    transition = _transition_errors(objects["module"], truth) if "F" in cfg.model.compare else []
     return {
         "name": name,
         "wall": wall,

@@ -24,7 +24,13 @@ from hydra.utils import instantiate
 
 from torchsde_lti import models
 from torchsde_lti.data import isotropic_covariance, simulate_tracks
-from torchsde_lti.lightning_module import KalmanFilterModule, masked_gaussian_nll, parameter_errors
+from torchsde_lti.lightning_module import (
+    KalmanFilterModule,
+    masked_gaussian_nll,
+    observed_autocovariance,
+    parameter_errors,
+    raw_f_identifiable,
+)
 from torchsde_lti.train import train
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -180,6 +186,75 @@ def test_parameter_errors_against_hand_values() -> None:
     assert same["expmF"] == 0.0 and same["alpha"] == 0.0
 
 
+def test_autocovariance_is_basis_free_and_raw_f_is_not() -> None:
+    """A similarity transform of a free F (with H T⁻¹, T L) changes F but not H e^{Fτ} P∞ Hᵀ."""
+    import torchsde_lti as tl
+
+    F = torch.tensor([[0.0, 1.0], [-2.0, -0.6]], dtype=torch.float64)
+    L = torch.tensor([[0.0], [1.0]], dtype=torch.float64)
+    Qc = torch.tensor([[0.7]], dtype=torch.float64)
+    H = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
+    T = torch.tensor([[1.0, 0.0], [0.8, 1.5]], dtype=torch.float64)  # H T⁻¹ = H: same observation
+    Ti = torch.linalg.inv(T)
+    truth = tl.LTISDE(F, L, Qc, F_constraint="hurwitz")
+    twin = tl.LTISDE(T @ F @ Ti, T @ L, Qc, F_constraint="hurwitz")
+    assert not raw_f_identifiable(twin, H) and raw_f_identifiable(twin, torch.eye(2, dtype=torch.float64))
+    e = parameter_errors(twin, truth, H=H, compare=("F", "Qc"))
+    assert set(e) == {"autocov"} and e["autocov"] < 1e-12
+    raw = parameter_errors(twin, truth, compare=("F", "Qc"))  # without H: entrywise (and large)
+    assert raw["expmF"] > 0.3
+    # against a hand value: scalar OU dx = -a x dt + dβ (q): C(τ) = q/(2a) e^{-aτ}
+    ou = tl.LTISDE(-torch.ones(1, 1, dtype=torch.float64), torch.ones(1, 1, dtype=torch.float64), 2 * torch.ones(1, 1, dtype=torch.float64))
+    C = observed_autocovariance(ou, torch.ones(1, 1, dtype=torch.float64), [0.0, 1.0])
+    torch.testing.assert_close(C.flatten(), torch.tensor([1.0, math.exp(-1.0)], dtype=torch.float64))
+
+
+def _nan_batch_module(skip: bool) -> tuple[KalmanFilterModule, list]:
+    import torchsde_lti as tl
+
+    sde = models.integrated_ou(k=0.7, q=1.3, dim=1).to(torch.float64)
+    H = models.position_observation(sde)
+    kf = tl.KalmanFilter(sde, H, isotropic_covariance(0.4, 1), m0=torch.zeros(2), P0=torch.eye(2))
+    module = KalmanFilterModule(kf, optimizer=lambda params: torch.optim.Adam(params, lr=0.1), skip_nonfinite=skip)
+    tr = simulate_tracks(sde, H, isotropic_covariance(0.4, 1), 4, 10, seed=1)
+    bad_y = tr.y.clone()
+    bad_y[0, 3, 0] = 1e200  # finite, but its squared residual overflows: loss and gradients non-finite
+    good = {"y": tr.y, "dt": tr.dt}
+    return module, [good, {"y": bad_y, "dt": tr.dt}, good]
+
+
+def test_nonfinite_step_is_skipped_and_counted(tmp_path: Path) -> None:
+    import lightning.pytorch as pl
+
+    module, batches = _nan_batch_module(skip=True)
+    before = {k: v.clone() for k, v in module.state_dict().items()}
+    trainer = pl.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, default_root_dir=tmp_path)
+    with pytest.warns(RuntimeWarning, match="non-finite loss or gradient.*skipped"):
+        trainer.fit(module, train_dataloaders=torch.utils.data.DataLoader(batches, batch_size=None))
+    assert module.skipped_steps == 1
+    after = module.state_dict()
+    assert all(bool(torch.isfinite(v).all()) for v in after.values())
+    assert any(not torch.equal(before[k], after[k]) for k in before)  # the good steps trained
+
+
+def test_gradient_norm_is_clipped() -> None:
+    module, batches = _nan_batch_module(skip=True)
+    module.grad_clip_norm = 1e-3
+    loss, *_ = module._step(batches[0])
+    loss = loss * 1e6  # a huge gradient
+    loss.backward()
+    module._guard_gradients(loss.detach())
+    norm = torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in module.parameters() if p.grad is not None]))
+    assert float(norm) == pytest.approx(1e-3, rel=1e-6)
+
+
+def test_bad_grad_clip_norm_raises() -> None:
+    module, _ = _nan_batch_module(skip=True)
+    with pytest.raises(ValueError, match="grad_clip_norm"):
+        KalmanFilterModule(module.kf, grad_clip_norm=-1.0)
+
+
 # --------------------------------------------------------------------------- training runs
 
 
@@ -189,6 +264,7 @@ def test_fast_dev_run_end_to_end(tmp_path: Path) -> None:
     assert math.isfinite(metrics["train/nll"]) and math.isfinite(metrics["val/nll"])
     assert set(metrics["param_errors"]) == {"k", "q", "expmF", "R"}
     assert (tmp_path / "metrics.json").exists()
+    assert metrics["skipped_steps"] == 0.0
 
 
 def test_float32_training_keeps_float32(tmp_path: Path) -> None:

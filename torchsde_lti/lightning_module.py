@@ -14,13 +14,16 @@ optional ``mask`` (B, T), ``u`` (B, T, p), ``x`` (B, T, n) — see :mod:`torchsd
 
 Logged metrics: ``train/nll``, ``val/nll``, ``val/rmse`` (one-step-ahead prediction error
 of y), ``val/state_rmse`` (filtered mean vs true state, when batches carry ``x``), and when
-the truth is known ``val/param_error`` (largest relative error of the learned parameters)
-plus ``val/param_error/<name>`` for each of them.
+the truth is known ``val/param_error`` (largest relative error of the quantities the data
+determine: see :func:`parameter_errors`) plus ``val/param_error/<name>`` for each of them.
+Robustness: gradient-norm clipping before every step, and a non-finite loss or gradient
+skips the step (warned, counted in ``skipped_steps`` / ``train/skipped_steps``).
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -33,7 +36,9 @@ __all__ = [
     "ParameterHistory",
     "learned_values",
     "masked_gaussian_nll",
+    "observed_autocovariance",
     "parameter_errors",
+    "raw_f_identifiable",
 ]
 
 
@@ -97,6 +102,43 @@ def _rel(a: Tensor, b: Tensor) -> float:
     return float(num / den) if float(den) > 0 else float(num)
 
 
+def raw_f_identifiable(sde: nn.Module, H: Tensor | None) -> bool:
+    """Whether the data determine F itself (not only up to a change of state basis).
+
+    True for structured models (named scalars fix the basis), for a fixed structure such as
+    :class:`~torchsde_lti.parametrizations.IntegratorChain`, and for a free F observed
+    through an H of full column rank. A free F seen through fewer observations than states
+    is determined only up to similarity transforms ``T F T⁻¹`` (with ``H T⁻¹``, ``T L``):
+    every such F gives the same likelihood, so raw-F errors are meaningless there.
+    """
+    from torchsde_lti.parametrizations import IntegratorChain
+
+    if _scalar_names(sde):
+        return True
+    param = getattr(getattr(sde, "parametrizations", None), "F", None)
+    if param is not None and any(isinstance(p, IntegratorChain) for p in param):
+        return True
+    if H is None:
+        return True
+    H = H.detach().to(torch.float64)
+    return int(torch.linalg.matrix_rank(H)) >= sde.F.shape[-1]
+
+
+def observed_autocovariance(sde: nn.Module, H: Tensor, lags: Sequence[float]) -> Tensor:
+    """Stationary autocovariance of the observed signal, ``H e^{F τ} P∞ Hᵀ`` at each lag.
+
+    P∞ solves ``F P∞ + P∞ Fᵀ + L Qc Lᵀ = 0``; invariant under a change of state basis, so
+    the data determine it whenever they determine anything. Returns (len(lags), m, m) in
+    float64; ValueError (from ``stationary_covariance``) when F is not Hurwitz.
+    """
+    from torchsde_lti.stationary import stationary_covariance
+
+    F = sde.F.detach().to(torch.float64)
+    P = stationary_covariance(F, sde.L.detach().to(torch.float64), sde.Qc.detach().to(torch.float64))
+    H = H.detach().to(torch.float64)
+    return torch.stack([H @ torch.linalg.matrix_exp(F * float(t)) @ P @ H.mT for t in lags])
+
+
 def parameter_errors(
     learned: nn.Module,
     truth: nn.Module,
@@ -104,26 +146,43 @@ def parameter_errors(
     R: Tensor | None = None,
     R_true: Tensor | None = None,
     names: Sequence[str] | None = None,
-    learn: Sequence[str] = ("F", "Qc"),
+    compare: Sequence[str] = ("F", "Qc"),
     dts: Sequence[float] = (0.1, 1.0, 5.0),
+    H: Tensor | None = None,
+    H_true: Tensor | None = None,
+    lags: Sequence[float] = (0.0, 0.5, 1.0, 2.0, 5.0),
 ) -> dict[str, float]:
-    """Relative errors of every learned quantity against the truth.
+    """Relative errors of every learned quantity the data determine, against the truth.
 
     * each named scalar (``q``, ``k``, ``alpha``, ...): |learned − true| / |true|;
-    * ``Qc`` (if learned and no scalar names cover it): relative Frobenius error;
-    * ``F`` (if learned): F is identifiable only through the transitions the data show,
-      so the error is ``max_dt ‖expm(F dt) − expm(F* dt)‖ / ‖expm(F* dt)‖`` over ``dts``,
-      reported as ``expmF``; named scalars inside F are reported on their own as well;
+    * ``Qc`` (if compared, identifiable and no scalar names cover it): relative Frobenius error;
+    * ``F`` (if compared and identifiable, see :func:`raw_f_identifiable`):
+      ``max_dt ‖expm(F dt) − expm(F* dt)‖ / ‖expm(F* dt)‖`` over ``dts``, as ``expmF``;
+    * ``F`` not identifiable (free F, H of lower rank than the state): the observed
+      autocovariance ``C(τ) = H e^{Fτ} P∞ Hᵀ`` instead,
+      ``max_τ ‖C(τ) − C*(τ)‖ / ‖C*(0)‖`` over ``lags``, as ``autocov`` (it covers Qc's
+      effect as well; inf while the learned F is not Hurwitz). Raw F and Qc errors are
+      left out: the likelihood cannot see them;
     * ``R`` (if given): relative Frobenius error.
     """
     errors: dict[str, float] = {}
     names = list(names) if names is not None else _scalar_names(learned)
     for name in names:
         errors[name] = _rel(torch.as_tensor(_resolve(learned, name)), torch.as_tensor(_resolve(truth, name)))
-    if not names:
-        if "Qc" in learn:
-            errors["Qc"] = _rel(learned.Qc, truth.Qc)
-    if "F" in learn:
+    identifiable = raw_f_identifiable(learned, H)
+    if "F" in compare and not identifiable and H is not None:
+        H_true = H if H_true is None else H_true
+        C_true = observed_autocovariance(truth, H_true, lags)
+        try:
+            C = observed_autocovariance(learned, H, lags)
+        except ValueError:  # the learned F is not Hurwitz (yet): no stationary autocovariance
+            errors["autocov"] = math.inf
+        else:
+            scale = torch.linalg.matrix_norm(C_true[0])
+            errors["autocov"] = float((torch.linalg.matrix_norm(C - C_true) / scale).max())
+    elif not names and "Qc" in compare:
+        errors["Qc"] = _rel(learned.Qc, truth.Qc)
+    if "F" in compare and identifiable:
         F, F_true = learned.F.detach().to(torch.float64), truth.F.detach().to(torch.float64)
         errors["expmF"] = max(_rel(torch.linalg.matrix_exp(F * t), torch.linalg.matrix_exp(F_true * t)) for t in dts)
     if R is not None and R_true is not None:
@@ -169,7 +228,15 @@ class KalmanFilterModule(LightningModule):
         k_step_weight: weight of that loss.
         dtype: "float64" or "float32": parameters and batches are kept in this dtype.
         param_names: names of the scalars to track (default: the model's own list).
-        learn: which of "F", "Qc", "R" are learned (for the parameter errors).
+        compare: which of "F", "Qc", "R" are compared with the truth in the parameter
+            errors (which parameters are *trained* is the filter's and LTISDE's ``learn``).
+        grad_clip_norm: clip the global gradient 2-norm to this value before every
+            optimizer step (None or 0 = off). Works for every optimizer, L-BFGS included
+            (it runs inside the closure).
+        skip_nonfinite: when the loss or any gradient is NaN/Inf, drop that step's
+            gradients (every ``grad`` set to None, so Adam leaves parameters and moments
+            untouched and L-BFGS stops its iteration), warn, and count it in
+            ``skipped_steps`` (logged as ``train/skipped_steps``, saved in checkpoints).
     """
 
     def __init__(
@@ -182,15 +249,19 @@ class KalmanFilterModule(LightningModule):
         k_step_weight: float = 0.0,
         dtype: str = "float64",
         param_names: Sequence[str] | None = None,
-        learn: Sequence[str] = ("F", "Qc", "R"),
+        compare: Sequence[str] = ("F", "Qc", "R"),
+        grad_clip_norm: float | None = 10.0,
+        skip_nonfinite: bool = True,
     ) -> None:
         super().__init__()
         if dtype not in ("float32", "float64"):
             raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
         if int(k_step) < 0 or not k_step_weight >= 0:
             raise ValueError(f"k_step must be >= 0 and k_step_weight >= 0, got {k_step}, {k_step_weight}")
+        if grad_clip_norm is not None and not float(grad_clip_norm) >= 0:
+            raise ValueError(f"grad_clip_norm must be >= 0 or None, got {grad_clip_norm!r}")
         # plain containers only, so checkpoints load with torch.load(weights_only=True)
-        learn = [str(x) for x in learn]
+        compare = [str(x) for x in compare]
         param_names = [str(x) for x in param_names] if param_names is not None else None
         self.save_hyperparameters(ignore=["kf", "optimizer", "scheduler", "truth"])
         self.float_dtype = getattr(torch, dtype)
@@ -201,7 +272,10 @@ class KalmanFilterModule(LightningModule):
         self._truth = dict(truth) if truth is not None else None
         self.k_step, self.k_step_weight = int(k_step), float(k_step_weight)
         self.param_names = list(param_names) if param_names is not None else None
-        self.learn = tuple(learn)
+        self.compare = tuple(compare)
+        self.grad_clip_norm = float(grad_clip_norm) if grad_clip_norm else None
+        self.skip_nonfinite = bool(skip_nonfinite)
+        self.skipped_steps = 0
 
     # ---------------------------------------------------------------- helpers
 
@@ -300,11 +374,22 @@ class KalmanFilterModule(LightningModule):
         """Relative errors of the learned parameters against the truth ({} without truth)."""
         if self._truth is None or self._truth.get("sde") is None:
             return {}
-        R_true = self._truth.get("R") if "R" in self.learn else None
+        R_true = self._truth.get("R") if "R" in self.compare else None
         return parameter_errors(
             self.kf.sde, self._truth["sde"], R=self.kf.R if R_true is not None else None, R_true=R_true,
-            names=self.param_names, learn=self.learn,
+            names=self.param_names, compare=self.compare, H=self.kf.H, H_true=self._truth.get("H"),
         )  # fmt: skip
+
+    def identifiability_note(self) -> str:
+        """'' when the raw parameters are identifiable, else a sentence saying why not."""
+        if raw_f_identifiable(self.kf.sde, self.kf.H):
+            return ""
+        m, n = self.kf.H.shape[-2:]
+        return (
+            f"F is free and observed through H ({m}x{n}, rank < {n}): F and Qc are determined only up to a "
+            "change of state basis, so they are compared through the observed autocovariance "
+            "H e^{F tau} P_inf H^T (`autocov`), not entrywise."
+        )
 
     def on_validation_epoch_end(self) -> None:
         errors = self.parameter_errors()
@@ -313,6 +398,46 @@ class KalmanFilterModule(LightningModule):
         for name, value in errors.items():
             self.log(f"val/param_error/{name}", value, sync_dist=False)
         self.log("val/param_error", max(errors.values()), prog_bar=True, sync_dist=False)
+
+    # ---------------------------------------------------------------- robust optimizer steps
+
+    def _guard_gradients(self, loss: Any) -> None:
+        """After backward: skip a non-finite step (grads -> None, counted), else clip the norm."""
+        params = [p for p in self.parameters() if p.grad is not None]
+        finite = loss is None or bool(torch.isfinite(torch.as_tensor(loss)).all())
+        finite = finite and all(bool(torch.isfinite(p.grad).all()) for p in params)
+        if not finite and self.skip_nonfinite:
+            for p in params:
+                p.grad = None
+            self.skipped_steps += 1
+            warnings.warn(
+                f"non-finite loss or gradient at epoch {self.current_epoch}, step {self.global_step}: "
+                f"step skipped ({self.skipped_steps} so far)",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+            return
+        if self.grad_clip_norm is not None and params:
+            torch.nn.utils.clip_grad_norm_(params, self.grad_clip_norm)
+
+    def optimizer_step(self, epoch: int, batch_idx: int, optimizer: Any, optimizer_closure: Any = None) -> None:
+        """``optimizer.step`` with a closure that checks and clips the gradients it produces."""
+
+        def closure() -> Any:
+            loss = optimizer_closure() if optimizer_closure is not None else None
+            self._guard_gradients(loss)
+            return loss
+
+        optimizer.step(closure=closure)
+
+    def on_train_epoch_end(self) -> None:
+        self.log("train/skipped_steps", float(self.skipped_steps), sync_dist=False)
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint["skipped_steps"] = int(self.skipped_steps)
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        self.skipped_steps = int(checkpoint.get("skipped_steps", 0))
 
     def configure_optimizers(self) -> Any:
         if self.optimizer_factory is None:

@@ -34,7 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchsde_lti.lightning_module import KalmanFilterModule, ParameterHistory, learned_values
 
-__all__ = ["format_table", "main", "parameter_table", "plot_run", "train"]
+__all__ = ["format_table", "main", "parameter_table", "plot_run", "restart_learner", "train"]
 
 
 def _instantiate_dict(node: DictConfig | None) -> list[Any]:
@@ -77,7 +77,8 @@ def parameter_table(module: KalmanFilterModule, truth: dict[str, Any] | None) ->
     """Rows {"name", "true", "learned", "rel_error"} for every learned quantity.
 
     Named scalars and the diagonal of R are listed by value; the matrix errors (``expmF``:
-    max over dt of ‖expm(F dt) − expm(F* dt)‖/‖expm(F* dt)‖, ``Qc``, ``R``) by error only.
+    max over dt of ‖expm(F dt) − expm(F* dt)‖/‖expm(F* dt)‖; ``autocov``: the observed
+    autocovariance, for a free F the data do not determine entrywise; ``Qc``, ``R``) by error only.
     """
     errors = module.parameter_errors()
     kf = module.kf
@@ -92,10 +93,27 @@ def parameter_table(module: KalmanFilterModule, truth: dict[str, Any] | None) ->
         for i, (a, b) in enumerate(zip(torch.diagonal(learned["R"]), torch.diagonal(true["R"]))):
             err = abs(float(a) - float(b)) / abs(float(b)) if float(b) != 0 else math.nan
             rows.append({"name": f"R[{i},{i}]", "true": float(b), "learned": float(a), "rel_error": err})
-    for name in ("expmF", "Qc", "R"):
+    for name in ("expmF", "autocov", "Qc", "R"):
         if name in errors:
             rows.append({"name": f"{name} (matrix)", "true": math.nan, "learned": math.nan, "rel_error": errors[name]})
     return rows
+
+
+def restart_learner(kf: torch.nn.Module, jitter: float, seed: int) -> None:
+    """Random restart: add N(0, jitter²) (generator seeded with ``seed``) to every raw parameter
+    of the learner's motion model, in place (``jitter = 0``: keep the configured start).
+
+    Raw parameters are unconstrained by construction (softplus / Cholesky / Hurwitz
+    factors), so every perturbed start is valid: a Hurwitz F stays Hurwitz. A Hydra seed sweep
+    (``experiment=restarts``) then runs K restarts and keeps the best validation NLL.
+    """
+    if not jitter > 0:
+        return
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in kf.sde.parameters():
+            if p.requires_grad:
+                p.add_(jitter * torch.randn(p.shape, generator=g, dtype=torch.float64).to(p))
 
 
 def format_table(rows: list[dict[str, Any]]) -> str:
@@ -125,7 +143,10 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     prior: dict[str, Any] = {}
     if getattr(datamodule, "m0", None) is not None and getattr(datamodule, "P0", None) is not None:
         prior = {"m0": datamodule.m0, "P0": datamodule.P0}
+    if truth is not None and getattr(datamodule, "H", None) is not None:
+        truth = {**truth, "H": datamodule.H}
     kf = instantiate(cfg.filter, **prior)
+    restart_learner(kf, float(cfg.get("init_jitter") or 0.0), int(cfg.seed))
     module = instantiate(cfg.module, kf=kf, truth=truth)
     callbacks = _instantiate_dict(cfg.get("callbacks"))
     loggers = _instantiate_dict(cfg.get("logger"))
@@ -145,6 +166,10 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             metrics.update({k: float(v) for k, v in r.items()})
     metrics["wall_time"] = wall
     metrics["param_errors"] = module.parameter_errors()
+    metrics["skipped_steps"] = float(module.skipped_steps)
+    note = module.identifiability_note() if truth else ""
+    if module.skipped_steps:
+        warnings.warn(f"{module.skipped_steps} optimizer steps were skipped (non-finite loss or gradient)", stacklevel=2)
     metrics["table"] = parameter_table(module, truth) if truth else []
     ckpt = next((c for c in callbacks if isinstance(c, pl.callbacks.ModelCheckpoint)), None)
     metrics["best_model_path"] = ckpt.best_model_path if ckpt is not None else ""
@@ -159,11 +184,16 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             "epochs": trainer.current_epoch,
             "metrics": {k: v for k, v in metrics.items() if isinstance(v, float)},
             "param_errors": metrics["param_errors"],
+            "skipped_steps": module.skipped_steps,
+            "identifiability": note,
             "table": metrics["table"],
         }
         (out_dir / "metrics.json").write_text(json.dumps(summary, indent=2, allow_nan=True))
         if metrics["table"]:
             text = f"# {cfg.model.get('name')}: true vs learned ({wall:.1f} s)\n\n{format_table(metrics['table'])}\n"
+            text += f"\nskipped optimizer steps (non-finite loss or gradient): {module.skipped_steps}\n"
+            if note:
+                text += f"\nNot identifiable: {note}\n"
             (out_dir / "results.md").write_text(text)
             print("\n" + text)
         if cfg.get("plots") and not trainer.fast_dev_run:
