@@ -34,7 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchsde_lti.lightning_module import KalmanFilterModule, ParameterHistory, learned_values
 
-__all__ = ["format_table", "main", "parameter_table", "plot_run", "restart_learner", "train"]
+__all__ = ["config_path", "format_table", "main", "parameter_table", "plot_run", "restart_learner", "train"]
 
 
 def _instantiate_dict(node: DictConfig | None) -> list[Any]:
@@ -303,7 +303,25 @@ def plot_run(
     return paths
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="train")
+def config_path() -> str:
+    """Where the Hydra configs are: a checkout's top-level conf/, else the installed package's.
+
+    A source checkout (editable install, ``PYTHONPATH``) has ``conf/`` next to the package
+    directory; a wheel ships the same files inside the package as ``torchsde_lti/conf/``
+    (setup.py maps the top-level conf/ to ``torchsde_lti.conf``). Both are returned as
+    absolute paths, so the job runs from any working directory. (Hydra's
+    ``pkg://torchsde_lti.conf`` would need an ``__init__.py`` in conf/.)
+    """
+    import torchsde_lti
+
+    package = Path(torchsde_lti.__file__).resolve().parent
+    for candidate in (package.parent / "conf", package / "conf"):
+        if (candidate / "train.yaml").is_file():
+            return str(candidate)
+    raise FileNotFoundError(f"no Hydra configs (conf/train.yaml) next to or inside {package}")
+
+
+@hydra.main(version_base="1.3", config_path=config_path(), config_name="train")
 def main(cfg: DictConfig) -> float | None:
     """Hydra entry point; returns val/nll (for Hydra sweepers)."""
     metrics, _ = train(cfg)
