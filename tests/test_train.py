@@ -267,6 +267,43 @@ def test_fast_dev_run_end_to_end(tmp_path: Path) -> None:
     assert metrics["skipped_steps"] == 0.0
 
 
+def test_any_learner_pairs_with_any_truth(tmp_path: Path) -> None:
+    """model= picks the learner, truth= the simulated model: a CV learner on Singer data runs."""
+    cfg = _cfg(tmp_path, "model=cv", "truth=singer", *TINY, "+trainer.fast_dev_run=true")
+    assert cfg.data.sde._target_.endswith("singer") and cfg.filter.sde._target_.endswith("constant_velocity")
+    metrics, objects = train(cfg)
+    assert math.isfinite(metrics["val/nll"])
+    assert objects["datamodule"].tracks["train"].x.shape[-1] == 6 and objects["module"].kf.sde.state_dim == 4
+    # nothing to pair entrywise between a CV and a Singer model but R
+    assert set(metrics["param_errors"]) == {"R"}
+    # the default pairs the learner with its own truth
+    assert _cfg(tmp_path, "model=singer").data.sde._target_.endswith("singer")
+
+
+def test_config_path_finds_the_checkout_conf() -> None:
+    from torchsde_lti.train import config_path
+
+    assert Path(config_path()) == CONF
+
+
+def test_restart_learner_perturbs_raw_parameters_reproducibly() -> None:
+    import torchsde_lti as tl
+    from torchsde_lti.train import restart_learner
+
+    def make() -> tl.KalmanFilter:
+        sde = tl.LTISDE(-torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64),
+                        torch.eye(2, dtype=torch.float64), F_constraint="hurwitz")
+        return tl.KalmanFilter(sde, torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64))
+
+    a, b, c = make(), make(), make()
+    restart_learner(a, 0.5, 3)
+    restart_learner(b, 0.5, 3)
+    restart_learner(c, 0.0, 3)
+    assert torch.equal(a.sde.F, b.sde.F) and not torch.equal(a.sde.F, c.sde.F)
+    assert torch.equal(c.sde.F, -torch.eye(2, dtype=torch.float64))
+    assert float(torch.linalg.eigvals(a.sde.F).real.max()) < 0  # a restart of a Hurwitz F is Hurwitz
+
+
 def test_float32_training_keeps_float32(tmp_path: Path) -> None:
     metrics, objects = train(_cfg(tmp_path, *TINY, "dtype=float32", "trainer.max_epochs=1"))
     assert all(p.dtype == torch.float32 for p in objects["module"].parameters())
@@ -345,6 +382,19 @@ def test_multirun_launches_two_runs(tmp_path: Path) -> None:
     assert collect.returncode == 0, collect.stderr[-3000:]
     summary = (sweep / "summary.md").read_text()
     assert "data.noise=0.1" in summary and "data.noise=1.0" in summary
+
+
+def test_restarts_multirun_keeps_the_best_validation_nll(tmp_path: Path) -> None:
+    sweep = tmp_path / "restarts"
+    small = ["data.num_tracks.train=8", "data.num_tracks.val=4", "data.T=8", "data.T_min=5", "data.batch_size=4"]
+    proc = _run(["--multirun", "experiment=restarts", "model=hurwitz", *small, "restart=range(2)", "trainer.max_epochs=1",
+                 "test=false", "plots=false", f"hydra.sweep.dir={sweep}"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    best = json.loads((sweep / "best_run.json").read_text())
+    values = [json.loads((sweep / str(i) / "metrics.json").read_text())["metrics"]["val/nll"] for i in range(2)]
+    assert len(best["runs"]) == 2 and best["value"] == min(values)
+    assert values[0] != values[1]  # the restarts really started apart
+    assert any(str(o).startswith("restart=") for o in best["overrides"])
 
 
 def test_ddp_two_cpu_processes_gloo(tmp_path: Path) -> None:

@@ -39,6 +39,7 @@ __all__ = [
     "observed_autocovariance",
     "parameter_errors",
     "raw_f_identifiable",
+    "same_model",
 ]
 
 
@@ -100,6 +101,14 @@ def _rel(a: Tensor, b: Tensor) -> float:
     den = torch.linalg.vector_norm(b)
     num = torch.linalg.vector_norm(a - b)
     return float(num / den) if float(den) > 0 else float(num)
+
+
+def same_model(learned: nn.Module, truth: nn.Module) -> bool:
+    """Whether learner and truth are the same kind of model, so their named scalars pair up."""
+    def kind(m: nn.Module) -> str:
+        return type(m).__name__.removeprefix("Parametrized")
+
+    return kind(learned) == kind(truth) and learned.F.shape[-2:] == truth.F.shape[-2:]
 
 
 def raw_f_identifiable(sde: nn.Module, H: Tensor | None) -> bool:
@@ -167,20 +176,27 @@ def parameter_errors(
     """
     errors: dict[str, float] = {}
     names = list(names) if names is not None else _scalar_names(learned)
-    for name in names:
+    same_shape = learned.F.shape[-2:] == truth.F.shape[-2:] and learned.Qc.shape[-2:] == truth.Qc.shape[-2:]
+    for name in names if same_model(learned, truth) else ():  # a learner of another kind: nothing to pair
         errors[name] = _rel(torch.as_tensor(_resolve(learned, name)), torch.as_tensor(_resolve(truth, name)))
     identifiable = raw_f_identifiable(learned, H)
+    if not same_shape:  # e.g. model=cv truth=singer: only observation-level quantities compare
+        identifiable = False
     if "F" in compare and not identifiable and H is not None:
         H_true = H if H_true is None else H_true
-        C_true = observed_autocovariance(truth, H_true, lags)
         try:
-            C = observed_autocovariance(learned, H, lags)
-        except ValueError:  # the learned F is not Hurwitz (yet): no stationary autocovariance
-            errors["autocov"] = math.inf
-        else:
-            scale = torch.linalg.matrix_norm(C_true[0])
-            errors["autocov"] = float((torch.linalg.matrix_norm(C - C_true) / scale).max())
-    elif not names and "Qc" in compare:
+            C_true = observed_autocovariance(truth, H_true, lags)
+        except ValueError:  # the truth has no stationary autocovariance (integrators): nothing to compare
+            C_true = None
+        if C_true is not None:
+            try:
+                C = observed_autocovariance(learned, H, lags)
+            except ValueError:  # the learned F is not Hurwitz (yet): no stationary autocovariance
+                errors["autocov"] = math.inf
+            else:
+                scale = torch.linalg.matrix_norm(C_true[0])
+                errors["autocov"] = float((torch.linalg.matrix_norm(C - C_true) / scale).max())
+    elif not names and "Qc" in compare and same_shape:
         errors["Qc"] = _rel(learned.Qc, truth.Qc)
     if "F" in compare and identifiable:
         F, F_true = learned.F.detach().to(torch.float64), truth.F.detach().to(torch.float64)
@@ -357,7 +373,7 @@ class KalmanFilterModule(LightningModule):
         mse = (err**2).sum() / observed.sum().clamp_min(1)
         self.log(f"{stage}/rmse", mse.sqrt(), on_epoch=True, batch_size=bs, sync_dist=True)
         x, mask = info["x"], info["mask"]
-        if x is not None:
+        if x is not None and x.shape[-1] == out.mean.shape[-1]:  # the truth's state (same kind of model)
             valid = torch.ones_like(x[..., 0], dtype=torch.bool) if mask is None else mask
             se = ((out.mean - x) ** 2).sum(-1)
             smse = (se * valid).sum() / (valid.sum().clamp_min(1) * x.shape[-1])

@@ -29,12 +29,13 @@ from typing import Any
 import hydra
 import lightning.pytorch as pl
 import torch
+from hydra.experimental.callback import Callback as HydraCallback
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from torchsde_lti.lightning_module import KalmanFilterModule, ParameterHistory, learned_values
+from torchsde_lti.lightning_module import KalmanFilterModule, ParameterHistory, learned_values, same_model
 
-__all__ = ["config_path", "format_table", "main", "parameter_table", "plot_run", "restart_learner", "train"]
+__all__ = ["BestRun", "config_path", "format_table", "main", "parameter_table", "plot_run", "restart_learner", "train"]
 
 
 def _instantiate_dict(node: DictConfig | None) -> list[Any]:
@@ -83,7 +84,12 @@ def parameter_table(module: KalmanFilterModule, truth: dict[str, Any] | None) ->
     errors = module.parameter_errors()
     kf = module.kf
     learned = learned_values(kf.sde, kf.R, module.param_names)
-    true = learned_values(truth["sde"], truth.get("R"), module.param_names) if truth else {}
+    true: dict[str, Any] = {}
+    if truth:
+        paired = same_model(kf.sde, truth["sde"])
+        true = learned_values(truth["sde"], truth.get("R"), module.param_names if paired else [])
+        if not paired:
+            true = {k: v for k, v in true.items() if k == "R"}
     rows: list[dict[str, Any]] = []
     for name, value in learned.items():
         if value.dim() == 0:
@@ -116,6 +122,47 @@ def restart_learner(kf: torch.nn.Module, jitter: float, seed: int) -> None:
                 p.add_(jitter * torch.randn(p.shape, generator=g, dtype=torch.float64).to(p))
 
 
+class BestRun(HydraCallback):
+    """Hydra callback: after a multirun, pick the run with the best ``metric`` and report it.
+
+    Reads every job's ``metrics.json`` under the sweep directory, writes ``best_run.json``
+    (the winner's directory, overrides, metric value, and all runs' values) there, and
+    prints it. With ``experiment=restarts`` (a sweep over ``restart``) this keeps the best
+    of K random restarts; the jobs themselves run through whatever Hydra launcher is
+    configured (``hydra/launcher=parallel`` for joblib).
+    """
+
+    def __init__(self, metric: str = "val/nll", mode: str = "min") -> None:
+        if mode not in ("min", "max"):
+            raise ValueError(f"mode must be 'min' or 'max', got {mode!r}")
+        self.metric, self.mode = metric, mode
+
+    def best(self, sweep_dir: Path) -> dict[str, Any]:
+        """{"best_dir", "overrides", "value", "runs": [{"dir", "overrides", "value"}]} for ``sweep_dir``."""
+        runs = []
+        for path in sorted(Path(sweep_dir).glob("*/metrics.json")):
+            summary = json.loads(path.read_text())
+            value = summary.get("metrics", {}).get(self.metric)
+            if value is None or not math.isfinite(float(value)):
+                continue
+            overrides_file = path.parent / ".hydra" / "overrides.yaml"
+            overrides = OmegaConf.to_container(OmegaConf.load(overrides_file)) if overrides_file.exists() else []
+            runs.append({"dir": str(path.parent), "overrides": overrides, "value": float(value)})
+        if not runs:
+            raise ValueError(f"no run under {sweep_dir} logged a finite {self.metric}")
+        pick = min if self.mode == "min" else max
+        winner = pick(runs, key=lambda r: r["value"])
+        return {"metric": self.metric, "best_dir": winner["dir"], "overrides": winner["overrides"],
+                "value": winner["value"], "runs": runs}
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        sweep_dir = Path(config.hydra.sweep.dir)
+        result = self.best(sweep_dir)
+        (sweep_dir / "best_run.json").write_text(json.dumps(result, indent=2))
+        print(f"best of {len(result['runs'])} runs by {self.metric}: {result['value']:.6g} in {result['best_dir']} "
+              f"({' '.join(map(str, result['overrides']))})")
+
+
 def format_table(rows: list[dict[str, Any]]) -> str:
     """Markdown table of :func:`parameter_table` rows."""
     lines = ["| parameter | true | learned | rel. error |", "|---|---:|---:|---:|"]
@@ -142,11 +189,13 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     truth = getattr(datamodule, "truth", None)
     prior: dict[str, Any] = {}
     if getattr(datamodule, "m0", None) is not None and getattr(datamodule, "P0", None) is not None:
-        prior = {"m0": datamodule.m0, "P0": datamodule.P0}
+        # the data's prior, when the learner has the truth's state (model=cv truth=singer: it does not)
+        if int(instantiate(cfg.filter.sde).state_dim) == int(datamodule.m0.shape[-1]):
+            prior = {"m0": datamodule.m0, "P0": datamodule.P0}
     if truth is not None and getattr(datamodule, "H", None) is not None:
         truth = {**truth, "H": datamodule.H}
     kf = instantiate(cfg.filter, **prior)
-    restart_learner(kf, float(cfg.get("init_jitter") or 0.0), int(cfg.seed))
+    restart_learner(kf, float(cfg.get("init_jitter") or 0.0), int(cfg.get("restart") or 0))
     module = instantiate(cfg.module, kf=kf, truth=truth)
     callbacks = _instantiate_dict(cfg.get("callbacks"))
     loggers = _instantiate_dict(cfg.get("logger"))
@@ -246,7 +295,8 @@ def plot_run(
         if truth:
             from torchsde_lti.lightning_module import _flat
 
-            true = _flat(learned_values(truth["sde"], truth.get("R"), module.param_names))
+            paired = same_model(module.kf.sde, truth["sde"])
+            true = _flat(learned_values(truth["sde"], truth.get("R"), module.param_names if paired else []))
         if names:
             cols = min(len(names), 4)
             rows = math.ceil(len(names) / cols)
