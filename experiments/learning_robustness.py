@@ -11,10 +11,10 @@ M standard normal) and Qc0 = 1, plus R; Adam (lr 0.05), ``grad_clip_norm`` and t
 non-finite-step skip of the Lightning module reproduced here (a plain loop: 64 tracks fit one
 batch). F is not identifiable from positions (any T with H T⁻¹ = H and T L = L... gives the same
 likelihood), so the reported errors are the raw ``expmF`` error and the identifiable
-``autocov`` error of :func:`torchsde_lti.lightning_module.parameter_errors`.
+``autocov`` error of :func:`torchsde_lti.training.parameter_errors`.
 
 Restarts: K runs per seed (restart j perturbs the seed's start with
-:func:`torchsde_lti.train.restart_learner`, jitter 0.5), keeping the best final NLL — what
+:func:`torchsde_lti.training.restart_learner`, jitter 0.5), keeping the best final NLL — what
 ``python -m torchsde_lti.train -m experiment=restarts`` does through Hydra's launcher.
 Writes ``experiments/results/learning_robustness.md``.
 """
@@ -31,8 +31,8 @@ import torch
 
 import torchsde_lti as tl
 from torchsde_lti.data import ExponentialDt, simulate_tracks
-from torchsde_lti.lightning_module import parameter_errors
-from torchsde_lti.train import restart_learner
+from torchsde_lti.training import parameter_errors, restart_learner
+
 
 RESULTS = Path(__file__).resolve().parents[1] / "experiments" / "results"
 F64 = torch.float64

@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 from hydra import compose, initialize_config_dir
 
-from torchsde_lti.train import format_table, train
+from torchsde_lti.training import format_table, train
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"

@@ -33,7 +33,6 @@ arrays, tensors of another dtype) to the dtype and device of the raw tensor.
 
 from __future__ import annotations
 
-import math
 from typing import Literal
 
 import torch

@@ -1,10 +1,10 @@
-"""Hydra configs, the LightningModule and the main job, on tiny problems.
+"""The Hydra entry point (torchsde_lti.training.train): configs, the main job, sweeps, on tiny problems.
 
 Covers: every config group composes and instantiates; fast_dev_run end to end; resume from
 a checkpoint continues exactly like an uninterrupted run; checkpoints load with
 ``weights_only=True``; a --multirun over two values launches two runs; a 2-process DDP
-(gloo) run; bad config values fail fast. Loss pieces are checked against independent
-references (scipy's multivariate normal, the filter's prediction-error decomposition).
+(gloo) run; bad config values fail fast; learner/truth pairing; random restarts through a
+Hydra multirun. Loss pieces and metrics: test_training_module.py, test_training_metrics.py.
 """
 
 from __future__ import annotations
@@ -22,16 +22,7 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException, InstantiationException
 from hydra.utils import instantiate
 
-from torchsde_lti import models
-from torchsde_lti.data import isotropic_covariance, simulate_tracks
-from torchsde_lti.lightning_module import (
-    KalmanFilterModule,
-    masked_gaussian_nll,
-    observed_autocovariance,
-    parameter_errors,
-    raw_f_identifiable,
-)
-from torchsde_lti.train import train
+from torchsde_lti.training import KalmanFilterModule, train
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
@@ -142,119 +133,6 @@ def test_bad_dtype_fails_fast(tmp_path: Path) -> None:
         train(_cfg(tmp_path, *TINY, "dtype=float16"))
 
 
-# --------------------------------------------------------------------------- loss pieces
-
-
-def test_masked_gaussian_nll_matches_scipy_marginal() -> None:
-    stats = pytest.importorskip("scipy.stats")
-    g = torch.Generator().manual_seed(0)
-    M = torch.randn(3, 3, generator=g, dtype=torch.float64)
-    S = M @ M.T + 0.5 * torch.eye(3, dtype=torch.float64)
-    r = torch.randn(3, generator=g, dtype=torch.float64)
-    obs = torch.tensor([True, False, True])
-    got = masked_gaussian_nll(r.clone().index_fill_(0, torch.tensor([1]), math.nan), S, obs)
-    idx = [0, 2]
-    ref = -stats.multivariate_normal(mean=[0, 0], cov=S[idx][:, idx].numpy()).logpdf(r[idx].numpy())
-    assert abs(float(got) - ref) < 1e-10
-    assert float(masked_gaussian_nll(r, S, torch.zeros(3, dtype=torch.bool))) == 0.0
-
-
-def test_one_step_ahead_loss_equals_prediction_error_decomposition() -> None:
-    """k = 1: scoring y_{t+1} from the filtered state at t is the filter's own step likelihood."""
-    import torchsde_lti as tl
-
-    sde = models.integrated_ou(k=0.7, q=1.3, dim=2).to(torch.float64)
-    H = models.position_observation(sde)
-    tr = simulate_tracks(sde, H, isotropic_covariance(0.4, 2), 3, 12, p_missing=0.2, seed=2)
-    kf = tl.KalmanFilter(sde, H, isotropic_covariance(0.4, 2), m0=torch.zeros(4), P0=torch.eye(4))
-    module = KalmanFilterModule(kf, k_step=1, k_step_weight=1.0)
-    out = kf(tr.y, tr.dt)
-    observed = ~torch.isnan(tr.y)
-    got = module.k_step_nll(out, tr.y, tr.dt, None, observed)
-    ref = -out.step_log_likelihood[..., 1:].sum()
-    assert torch.allclose(got, ref, rtol=1e-10)
-
-
-def test_parameter_errors_against_hand_values() -> None:
-    truth = models.singer(alpha=0.5, q=2.0, dim=2)
-    learned = models.singer(alpha=0.55, q=1.0, dim=2)
-    e = parameter_errors(learned, truth, R=torch.eye(2) * 1.2, R_true=torch.eye(2), dts=(1.0,))
-    assert e["alpha"] == pytest.approx(0.1, rel=1e-6) and e["q"] == pytest.approx(0.5, rel=1e-6)
-    assert e["R"] == pytest.approx(0.2, rel=1e-6)
-    assert e["expmF"] > 0
-    same = parameter_errors(truth, truth)
-    assert same["expmF"] == 0.0 and same["alpha"] == 0.0
-
-
-def test_autocovariance_is_basis_free_and_raw_f_is_not() -> None:
-    """A similarity transform of a free F (with H T⁻¹, T L) changes F but not H e^{Fτ} P∞ Hᵀ."""
-    import torchsde_lti as tl
-
-    F = torch.tensor([[0.0, 1.0], [-2.0, -0.6]], dtype=torch.float64)
-    L = torch.tensor([[0.0], [1.0]], dtype=torch.float64)
-    Qc = torch.tensor([[0.7]], dtype=torch.float64)
-    H = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
-    T = torch.tensor([[1.0, 0.0], [0.8, 1.5]], dtype=torch.float64)  # H T⁻¹ = H: same observation
-    Ti = torch.linalg.inv(T)
-    truth = tl.LTISDE(F, L, Qc, F_constraint="hurwitz")
-    twin = tl.LTISDE(T @ F @ Ti, T @ L, Qc, F_constraint="hurwitz")
-    assert not raw_f_identifiable(twin, H) and raw_f_identifiable(twin, torch.eye(2, dtype=torch.float64))
-    e = parameter_errors(twin, truth, H=H, compare=("F", "Qc"))
-    assert set(e) == {"autocov"} and e["autocov"] < 1e-12
-    raw = parameter_errors(twin, truth, compare=("F", "Qc"))  # without H: entrywise (and large)
-    assert raw["expmF"] > 0.3
-    # against a hand value: scalar OU dx = -a x dt + dβ (q): C(τ) = q/(2a) e^{-aτ}
-    ou = tl.LTISDE(-torch.ones(1, 1, dtype=torch.float64), torch.ones(1, 1, dtype=torch.float64), 2 * torch.ones(1, 1, dtype=torch.float64))
-    C = observed_autocovariance(ou, torch.ones(1, 1, dtype=torch.float64), [0.0, 1.0])
-    torch.testing.assert_close(C.flatten(), torch.tensor([1.0, math.exp(-1.0)], dtype=torch.float64))
-
-
-def _nan_batch_module(skip: bool) -> tuple[KalmanFilterModule, list]:
-    import torchsde_lti as tl
-
-    sde = models.integrated_ou(k=0.7, q=1.3, dim=1).to(torch.float64)
-    H = models.position_observation(sde)
-    kf = tl.KalmanFilter(sde, H, isotropic_covariance(0.4, 1), m0=torch.zeros(2), P0=torch.eye(2))
-    module = KalmanFilterModule(kf, optimizer=lambda params: torch.optim.Adam(params, lr=0.1), skip_nonfinite=skip)
-    tr = simulate_tracks(sde, H, isotropic_covariance(0.4, 1), 4, 10, seed=1)
-    bad_y = tr.y.clone()
-    bad_y[0, 3, 0] = 1e200  # finite, but its squared residual overflows: loss and gradients non-finite
-    good = {"y": tr.y, "dt": tr.dt}
-    return module, [good, {"y": bad_y, "dt": tr.dt}, good]
-
-
-def test_nonfinite_step_is_skipped_and_counted(tmp_path: Path) -> None:
-    import lightning.pytorch as pl
-
-    module, batches = _nan_batch_module(skip=True)
-    before = {k: v.clone() for k, v in module.state_dict().items()}
-    trainer = pl.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                         enable_model_summary=False, default_root_dir=tmp_path)
-    with pytest.warns(RuntimeWarning, match="non-finite loss or gradient.*skipped"):
-        trainer.fit(module, train_dataloaders=torch.utils.data.DataLoader(batches, batch_size=None))
-    assert module.skipped_steps == 1
-    after = module.state_dict()
-    assert all(bool(torch.isfinite(v).all()) for v in after.values())
-    assert any(not torch.equal(before[k], after[k]) for k in before)  # the good steps trained
-
-
-def test_gradient_norm_is_clipped() -> None:
-    module, batches = _nan_batch_module(skip=True)
-    module.grad_clip_norm = 1e-3
-    loss, *_ = module._step(batches[0])
-    loss = loss * 1e6  # a huge gradient
-    loss.backward()
-    module._guard_gradients(loss.detach())
-    norm = torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in module.parameters() if p.grad is not None]))
-    assert float(norm) == pytest.approx(1e-3, rel=1e-6)
-
-
-def test_bad_grad_clip_norm_raises() -> None:
-    module, _ = _nan_batch_module(skip=True)
-    with pytest.raises(ValueError, match="grad_clip_norm"):
-        KalmanFilterModule(module.kf, grad_clip_norm=-1.0)
-
-
 # --------------------------------------------------------------------------- training runs
 
 
@@ -281,14 +159,14 @@ def test_any_learner_pairs_with_any_truth(tmp_path: Path) -> None:
 
 
 def test_config_path_finds_the_checkout_conf() -> None:
-    from torchsde_lti.train import config_path
+    from torchsde_lti.training import config_path
 
     assert Path(config_path()) == CONF
 
 
 def test_restart_learner_perturbs_raw_parameters_reproducibly() -> None:
     import torchsde_lti as tl
-    from torchsde_lti.train import restart_learner
+    from torchsde_lti.training import restart_learner
 
     def make() -> tl.KalmanFilter:
         sde = tl.LTISDE(-torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64),
@@ -340,7 +218,7 @@ def test_resume_from_checkpoint_continues_identically(tmp_path: Path) -> None:
 def test_resume_past_restored_cosine_schedule_warns(tmp_path: Path) -> None:
     import warnings
 
-    from torchsde_lti.train import _warn_if_schedule_ends_early
+    from torchsde_lti.training.train import _warn_if_schedule_ends_early
 
     # what Lightning stores for CosineAnnealingLR(T_max=3): resuming restores T_max=3
     opt = torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], lr=0.05)

@@ -28,205 +28,18 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import torch
-from lightning.pytorch import Callback, LightningModule
+from lightning.pytorch import LightningModule
 from torch import Tensor, nn
 
-__all__ = [
-    "KalmanFilterModule",
-    "ParameterHistory",
-    "learned_values",
-    "masked_gaussian_nll",
-    "observed_autocovariance",
-    "parameter_errors",
-    "raw_f_identifiable",
-    "same_model",
-]
+from torchsde_lti.training.metrics import masked_gaussian_nll, parameter_errors, raw_f_identifiable
+
+__all__ = ["KalmanFilterModule"]
 
 
 def _field(batch: Any, key: str) -> Tensor | None:
     if isinstance(batch, Mapping):
         return batch.get(key)
     return getattr(batch, key, None)
-
-
-# --------------------------------------------------------------------------- parameters vs truth
-
-
-def _resolve(module: nn.Module, path: str) -> Any:
-    obj: Any = module
-    for part in path.split("."):
-        obj = getattr(obj, part)
-    return obj
-
-
-def _scalar_names(sde: nn.Module) -> list[str]:
-    """Names of the learned scalar parameters of a motion model (``q``, ``k``, ``alpha``, ...).
-
-    Read from ``named_parameters``: ``parametrizations.q.original`` -> ``q`` (and
-    ``parts.0.parametrizations.q.original`` -> ``parts.0.q``); only 0-dim values count.
-    """
-    names: list[str] = []
-    for raw_name, _ in sde.named_parameters():
-        name = raw_name.replace("parametrizations.", "").replace(".original", "")
-        try:
-            value = _resolve(sde, name)
-        except AttributeError:
-            continue
-        if isinstance(value, Tensor) and value.dim() == 0 and name not in names:
-            names.append(name)
-    return names
-
-
-def learned_values(
-    sde: nn.Module, R: Tensor | None = None, names: Sequence[str] | None = None
-) -> dict[str, Tensor]:
-    """Current values of a model's interpretable parameters, detached.
-
-    Named scalars (``names`` or the model's own list) come from ``getattr(sde, name)``;
-    then the matrices ``F`` and ``Qc`` and, if given, ``R``.
-    """
-    out: dict[str, Tensor] = {}
-    for name in names if names is not None else _scalar_names(sde):
-        out[name] = torch.as_tensor(_resolve(sde, name)).detach()
-    out["F"] = sde.F.detach()
-    out["Qc"] = sde.Qc.detach()
-    if R is not None:
-        out["R"] = R.detach()
-    return out
-
-
-def _rel(a: Tensor, b: Tensor) -> float:
-    """Relative Frobenius error ‖a − b‖ / ‖b‖ (absolute when b = 0)."""
-    a, b = a.detach().to(torch.float64), b.detach().to(torch.float64)
-    den = torch.linalg.vector_norm(b)
-    num = torch.linalg.vector_norm(a - b)
-    return float(num / den) if float(den) > 0 else float(num)
-
-
-def same_model(learned: nn.Module, truth: nn.Module) -> bool:
-    """Whether learner and truth are the same kind of model, so their named scalars pair up."""
-    def kind(m: nn.Module) -> str:
-        return type(m).__name__.removeprefix("Parametrized")
-
-    return kind(learned) == kind(truth) and learned.F.shape[-2:] == truth.F.shape[-2:]
-
-
-def raw_f_identifiable(sde: nn.Module, H: Tensor | None) -> bool:
-    """Whether the data determine F itself (not only up to a change of state basis).
-
-    True for structured models (named scalars fix the basis), for a fixed structure such as
-    :class:`~torchsde_lti.parametrizations.IntegratorChain`, and for a free F observed
-    through an H of full column rank. A free F seen through fewer observations than states
-    is determined only up to similarity transforms ``T F T⁻¹`` (with ``H T⁻¹``, ``T L``):
-    every such F gives the same likelihood, so raw-F errors are meaningless there.
-    """
-    from torchsde_lti.parametrizations import IntegratorChain
-
-    if _scalar_names(sde):
-        return True
-    param = getattr(getattr(sde, "parametrizations", None), "F", None)
-    if param is not None and any(isinstance(p, IntegratorChain) for p in param):
-        return True
-    if H is None:
-        return True
-    H = H.detach().to(torch.float64)
-    return int(torch.linalg.matrix_rank(H)) >= sde.F.shape[-1]
-
-
-def observed_autocovariance(sde: nn.Module, H: Tensor, lags: Sequence[float]) -> Tensor:
-    """Stationary autocovariance of the observed signal, ``H e^{F τ} P∞ Hᵀ`` at each lag.
-
-    P∞ solves ``F P∞ + P∞ Fᵀ + L Qc Lᵀ = 0``; invariant under a change of state basis, so
-    the data determine it whenever they determine anything. Returns (len(lags), m, m) in
-    float64; ValueError (from ``stationary_covariance``) when F is not Hurwitz.
-    """
-    from torchsde_lti.stationary import stationary_covariance
-
-    F = sde.F.detach().to(torch.float64)
-    P = stationary_covariance(F, sde.L.detach().to(torch.float64), sde.Qc.detach().to(torch.float64))
-    H = H.detach().to(torch.float64)
-    return torch.stack([H @ torch.linalg.matrix_exp(F * float(t)) @ P @ H.mT for t in lags])
-
-
-def parameter_errors(
-    learned: nn.Module,
-    truth: nn.Module,
-    *,
-    R: Tensor | None = None,
-    R_true: Tensor | None = None,
-    names: Sequence[str] | None = None,
-    compare: Sequence[str] = ("F", "Qc"),
-    dts: Sequence[float] = (0.1, 1.0, 5.0),
-    H: Tensor | None = None,
-    H_true: Tensor | None = None,
-    lags: Sequence[float] = (0.0, 0.5, 1.0, 2.0, 5.0),
-) -> dict[str, float]:
-    """Relative errors of every learned quantity the data determine, against the truth.
-
-    * each named scalar (``q``, ``k``, ``alpha``, ...): |learned − true| / |true|;
-    * ``Qc`` (if compared, identifiable and no scalar names cover it): relative Frobenius error;
-    * ``F`` (if compared and identifiable, see :func:`raw_f_identifiable`):
-      ``max_dt ‖expm(F dt) − expm(F* dt)‖ / ‖expm(F* dt)‖`` over ``dts``, as ``expmF``;
-    * ``F`` not identifiable (free F, H of lower rank than the state): the observed
-      autocovariance ``C(τ) = H e^{Fτ} P∞ Hᵀ`` instead,
-      ``max_τ ‖C(τ) − C*(τ)‖ / ‖C*(0)‖`` over ``lags``, as ``autocov`` (it covers Qc's
-      effect as well; inf while the learned F is not Hurwitz). Raw F and Qc errors are
-      left out: the likelihood cannot see them;
-    * ``R`` (if given): relative Frobenius error.
-    """
-    errors: dict[str, float] = {}
-    names = list(names) if names is not None else _scalar_names(learned)
-    same_shape = learned.F.shape[-2:] == truth.F.shape[-2:] and learned.Qc.shape[-2:] == truth.Qc.shape[-2:]
-    for name in names if same_model(learned, truth) else ():  # a learner of another kind: nothing to pair
-        errors[name] = _rel(torch.as_tensor(_resolve(learned, name)), torch.as_tensor(_resolve(truth, name)))
-    identifiable = raw_f_identifiable(learned, H)
-    if not same_shape:  # e.g. model=cv truth=singer: only observation-level quantities compare
-        identifiable = False
-    if "F" in compare and not identifiable and H is not None:
-        H_true = H if H_true is None else H_true
-        try:
-            C_true = observed_autocovariance(truth, H_true, lags)
-        except ValueError:  # the truth has no stationary autocovariance (integrators): nothing to compare
-            C_true = None
-        if C_true is not None:
-            try:
-                C = observed_autocovariance(learned, H, lags)
-            except ValueError:  # the learned F is not Hurwitz (yet): no stationary autocovariance
-                errors["autocov"] = math.inf
-            else:
-                scale = torch.linalg.matrix_norm(C_true[0])
-                errors["autocov"] = float((torch.linalg.matrix_norm(C - C_true) / scale).max())
-    elif not names and "Qc" in compare and same_shape:
-        errors["Qc"] = _rel(learned.Qc, truth.Qc)
-    if "F" in compare and identifiable:
-        F, F_true = learned.F.detach().to(torch.float64), truth.F.detach().to(torch.float64)
-        errors["expmF"] = max(_rel(torch.linalg.matrix_exp(F * t), torch.linalg.matrix_exp(F_true * t)) for t in dts)
-    if R is not None and R_true is not None:
-        errors["R"] = _rel(R, R_true)
-    return errors
-
-
-# --------------------------------------------------------------------------- masked Gaussian NLL
-
-
-def masked_gaussian_nll(r: Tensor, S: Tensor, observed: Tensor) -> Tensor:
-    """Σ over observed coordinates of the Gaussian NLL of residual r under N(0, S).
-
-    r: (..., m) residuals, S: (..., m, m), observed: (..., m) bool. Missing coordinates
-    are marginalised out exactly: their rows/columns of S are replaced by the identity
-    and their residuals by 0, which leaves logdet and the quadratic form of the observed
-    block unchanged. Returns (...), zero where nothing is observed.
-    """
-    obs = observed.to(r.dtype)
-    r = torch.where(observed, r, torch.zeros_like(r))
-    both = obs.unsqueeze(-1) * obs.unsqueeze(-2)
-    eye = torch.eye(r.shape[-1], dtype=r.dtype, device=r.device)
-    S = S * both + eye * (1.0 - obs).unsqueeze(-1)
-    S = 0.5 * (S + S.mT)
-    C = torch.linalg.cholesky(S)
-    z = torch.linalg.solve_triangular(C, r.unsqueeze(-1), upper=False).squeeze(-1)
-    logdet = 2.0 * torch.log(torch.diagonal(C, dim1=-2, dim2=-1)).sum(-1)
-    return 0.5 * ((z * z).sum(-1) + logdet + obs.sum(-1) * math.log(2.0 * math.pi))
 
 
 # --------------------------------------------------------------------------- module
@@ -295,7 +108,7 @@ class KalmanFilterModule(LightningModule):
 
     # ---------------------------------------------------------------- helpers
 
-    def _unpack(self, batch: Any) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor | None]:
+    def unpack(self, batch: Any) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor | None]:
         def cast(t: Tensor | None) -> Tensor | None:
             return t.to(self.float_dtype) if t is not None else None
 
@@ -340,7 +153,7 @@ class KalmanFilterModule(LightningModule):
         return masked_gaussian_nll(r, S, obs_k).sum()
 
     def _step(self, batch: Any) -> tuple[Tensor, Tensor, Any, dict[str, Tensor]]:
-        y, dt, mask, u, x = self._unpack(batch)
+        y, dt, mask, u, x = self.unpack(batch)
         observed = self._observed(y, mask)
         if mask is not None:  # padding: no observation, no motion
             y = torch.where(mask.unsqueeze(-1), y, torch.full_like(y, math.nan))
@@ -463,50 +276,3 @@ class KalmanFilterModule(LightningModule):
             return opt
         sched = self.scheduler_factory(optimizer=opt)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
-
-
-# --------------------------------------------------------------------------- history callback
-
-
-def _flat(values: Mapping[str, Tensor]) -> dict[str, float]:
-    """Scalars as they are; R and (without named scalars) Qc by their diagonals (``R[0]``, ...)."""
-    out: dict[str, float] = {}
-    has_scalars = any(v.dim() == 0 for v in values.values())
-    for name, v in values.items():
-        if name == "Qc" and has_scalars:  # Qc is a function of the named scalars
-            continue
-        v = v.detach().to(torch.float64)
-        if v.dim() == 0:
-            out[name] = float(v)
-        elif name in ("R", "Qc") and v.dim() == 2:
-            out.update({f"{name}[{i}]": float(x) for i, x in enumerate(torch.diagonal(v))})
-    return out
-
-
-class ParameterHistory(Callback):
-    """Records, after every training epoch, the epoch-mean losses and the learned values.
-
-    ``history`` is a list of {"epoch", "train/nll", "val/nll", <param>: value} of plain
-    floats (so it round-trips through ``state_dict`` and ``torch.load(weights_only=True)``).
-    """
-
-    def __init__(self) -> None:
-        self.history: list[dict[str, float]] = []
-
-    def on_train_epoch_end(self, trainer: Any, pl_module: LightningModule) -> None:
-        if trainer.sanity_checking:
-            return
-        row: dict[str, float] = {"epoch": float(trainer.current_epoch)}
-        for key in ("train/nll", "val/nll", "val/param_error"):
-            if key in trainer.callback_metrics:
-                row[key] = float(trainer.callback_metrics[key])
-        if isinstance(pl_module, KalmanFilterModule):
-            kf = pl_module.kf
-            row.update(_flat(learned_values(kf.sde, kf.R, pl_module.param_names)))
-        self.history.append(row)
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"history": [dict(r) for r in self.history]}
-
-    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
-        self.history = [dict(r) for r in state_dict.get("history", [])]
