@@ -41,6 +41,7 @@ L = torch.tensor([[0.0], [1.0]], dtype=F64)
 QC_TRUE = torch.tensor([[0.5]], dtype=F64)
 H = torch.tensor([[1.0, 0.0]], dtype=F64)
 R_TRUE = torch.tensor([[0.01]], dtype=F64)
+PARALLEL = False  # the sequential filter: measured faster here (37 vs 43 ms per step, 64 x 100, n = 2)
 
 
 def random_hurwitz(seed: int) -> torch.Tensor:
@@ -52,7 +53,7 @@ def random_hurwitz(seed: int) -> torch.Tensor:
 def fit(tracks, seed: int, restart: int, steps: int, lr: float, clip: float) -> dict[str, float]:
     sde = tl.LTISDE(random_hurwitz(seed), L, torch.eye(1, dtype=F64), F_constraint="hurwitz")
     kf = tl.KalmanFilter(sde, H, 0.25 * torch.eye(1, dtype=F64), m0=torch.zeros(2, dtype=F64),
-                         P0=torch.eye(2, dtype=F64))
+                         P0=torch.eye(2, dtype=F64), parallel=PARALLEL)
     restart_learner(kf, 0.5 if restart else 0.0, 1000 * seed + restart)
     opt = torch.optim.Adam(kf.parameters(), lr=lr)
     count = (~torch.isnan(tracks.y)).sum()
@@ -78,7 +79,15 @@ def fit(tracks, seed: int, restart: int, steps: int, lr: float, clip: float) -> 
         truth = tl.LTISDE(F_TRUE, L, QC_TRUE, learn=())
         raw = parameter_errors(kf.sde, truth, compare=("F",))  # entrywise, as if F were identifiable
         ident = parameter_errors(kf.sde, truth, compare=("F", "Qc"), H=H)
-    return {"nll": nll, "expmF": raw["expmF"], "autocov": ident["autocov"], "skipped": skipped, "exceptions": exceptions}
+    return {"nll": nll, "expmF": raw["expmF"], "autocov": ident["autocov"], "skipped": skipped, "exceptions": exceptions,
+            "F": kf.sde.F.detach().clone(), "Qc": kf.sde.Qc.detach().clone()}
+
+
+def autocov_vs(run: dict, reference: dict) -> float:
+    """Identifiable error of ``run`` against another learned model (the best run): spread among optima."""
+    a = tl.LTISDE(run["F"], L, run["Qc"], learn=())
+    b = tl.LTISDE(reference["F"], L, reference["Qc"], learn=())
+    return parameter_errors(a, b, compare=("F", "Qc"), H=H)["autocov"]
 
 
 def main() -> None:
@@ -88,15 +97,23 @@ def main() -> None:
     parser.add_argument("--restarts", type=int, default=3)
     parser.add_argument("--lr", type=float, default=0.05)
     parser.add_argument("--clip", type=float, default=10.0)
+    parser.add_argument("--first-seed", type=int, default=0, help="run seeds first-seed .. first-seed+seeds-1")
     parser.add_argument("--out", type=Path, default=RESULTS / "learning_robustness.md")
     args = parser.parse_args()
     torch.set_num_threads(1)
     truth = tl.LTISDE(F_TRUE, L, QC_TRUE, learn=())
     tracks = simulate_tracks(truth, H, R_TRUE, 64, 100, dt_sampler=ExponentialDt(0.5, 0.1), seed=1234)
     start = time.perf_counter()
-    rows = {s: [fit(tracks, s, j, args.steps, args.lr, args.clip) for j in range(args.restarts)] for s in range(args.seeds)}
+    rows: dict[int, list[dict[str, float]]] = {}
+    for s in range(args.first_seed, args.first_seed + args.seeds):
+        rows[s] = []
+        for j in range(args.restarts):
+            rows[s].append(fit(tracks, s, j, args.steps, args.lr, args.clip))
+            row = {k: v for k, v in rows[s][-1].items() if not isinstance(v, torch.Tensor)}
+            print(f"seed {s} restart {j}: {row} F={rows[s][-1]['F'].tolist()} Qc={rows[s][-1]['Qc'].tolist()}", flush=True)
     wall = time.perf_counter() - start
-    best_nll = min(r["nll"] for runs in rows.values() for r in runs)
+    best_run = min((r for runs in rows.values() for r in runs), key=lambda r: r["nll"])
+    best_nll = best_run["nll"]
     lines = [
         f"# Free Hurwitz F from position data: {args.seeds} seeds x {args.restarts} restarts, Adam {args.steps} steps",
         "",
@@ -104,15 +121,15 @@ def main() -> None:
         f" ({wall:.0f} s). Restart 0 = the seed's random Hurwitz start; best = lowest final NLL of the seed's restarts."
         " Optimum = NLL within 1 % of the best over all runs.",
         "",
-        "| seed | NLL/obs (restart 0) | expmF raw error | autocov error | at optimum | best-of-K NLL | best within 1 % | skipped | exceptions |",
-        "|---:|---:|---:|---:|:---:|---:|:---:|---:|---:|",
+        "| seed | NLL/obs (restart 0) | expmF raw error vs truth | autocov error vs truth | autocov vs best run | at optimum | best-of-K NLL | best within 1 % | skipped | exceptions |",
+        "|---:|---:|---:|---:|---:|:---:|---:|:---:|---:|---:|",
     ]
     for s, runs in rows.items():
         r0, best = runs[0], min(runs, key=lambda r: r["nll"])
         at_opt = abs(r0["nll"] - best_nll) <= 0.01 * abs(best_nll)
         ok = abs(best["nll"] - best_nll) <= 0.01 * abs(best_nll)
         lines.append(
-            f"| {s} | {r0['nll']:.4f} | {100 * r0['expmF']:.1f} % | {100 * r0['autocov']:.2f} % | {'yes' if at_opt else 'no'} | "
+            f"| {s} | {r0['nll']:.4f} | {100 * r0['expmF']:.1f} % | {100 * r0['autocov']:.2f} % | {100 * autocov_vs(r0, best_run):.2f} % | {'yes' if at_opt else 'no'} | "
             f"{best['nll']:.4f} | {'yes' if ok else 'no'} | {sum(r['skipped'] for r in runs)} | {sum(r['exceptions'] for r in runs)} |"
         )
     text = "\n".join(lines) + "\n"
