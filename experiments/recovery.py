@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 from hydra import compose, initialize_config_dir
 
-from torchsde_lti.train import format_table, train
+from torchsde_lti.training import format_table, train
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
@@ -68,7 +68,7 @@ def run_study(name: str, quick: bool = False) -> dict:
     metrics, objects = train(cfg)
     wall = time.perf_counter() - start
     truth = objects["datamodule"].truth
-    transition = _transition_errors(objects["module"], truth) if "F" in cfg.model.learn else []
+    transition = _transition_errors(objects["module"], truth) if "F" in cfg.model.compare else []
     return {
         "name": name,
         "wall": wall,

@@ -22,6 +22,7 @@ from torchsde_lti.nn.parametrizations import (
     Positive,
     PositiveDefinite,
     default_floor,
+    hurwitz_floor,
     integrator_chain,
     softplus,
     softplus_inverse,
@@ -139,13 +140,95 @@ def test_hurwitz_for_any_raw(raw: np.ndarray) -> None:
     h = Hurwitz()
     F = h(torch.as_tensor(raw)).numpy()
     assert np.linalg.eigvals(F).real.max() < 0
-    # Lyapunov certificate with the parametrisation's own P and R: F P + P Fᵀ = −2R
-    _, R, c_p = h.components(torch.as_tensor(raw))
-    P = (c_p @ c_p.mT).numpy()
-    lhs = F @ P + P @ F.T
-    # F = M P⁻¹ is formed by a solve: its rounding error scales with cond(P)
-    tol = 1e3 * np.finfo(np.float64).eps * np.linalg.cond(P) * max(1.0, np.abs(R.numpy()).max())
-    np.testing.assert_allclose(lhs, -2 * R.numpy(), rtol=0, atol=tol)
+    # Lyapunov certificate with the parametrisation's own S and R, multiplied through by S
+    # (no inverse): F S⁻¹ + S⁻¹ Fᵀ = −2R  <=>  S F + Fᵀ S = −2 S R S
+    J, R, S = (x.numpy() for x in h.components(torch.as_tensor(raw)))
+    np.testing.assert_allclose(J, -J.T, rtol=0, atol=0)
+    assert np.linalg.eigvalsh(R).min() > 0 and np.linalg.eigvalsh(S).min() > 0
+    np.testing.assert_allclose(F, (J - R) @ S, rtol=1e-12, atol=1e-12 * np.abs(F).max())
+    lhs = S @ F + F.T @ S
+    tol = 1e3 * np.finfo(np.float64).eps * np.abs(S).max() ** 2 * max(1.0, np.abs(R).max(), np.abs(J).max())
+    np.testing.assert_allclose(lhs, -2 * S @ R @ S, rtol=0, atol=tol)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_hurwitz_floors_are_relative(dtype: torch.dtype) -> None:
+    """λ_min(R) ≥ δ(‖C_R C_Rᵀ‖ + ‖J‖) and λ_min(S) ≥ δ‖C_S C_Sᵀ‖, for raw values of any size."""
+    g = torch.Generator().manual_seed(0)
+    h = Hurwitz().to(dtype)
+    delta = hurwitz_floor(dtype)
+    for scale in (1e-3, 1.0, 1e3):
+        raw = scale * torch.randn(3, 4, 4, generator=g, dtype=torch.float64)
+        J, R, S = (x.to(torch.float64) for x in h.components(raw.to(dtype)))
+        assert float(torch.linalg.eigvalsh(R).min()) >= 0.99 * delta * float(torch.linalg.matrix_norm(J, 2))
+        assert float(torch.linalg.eigvalsh(S).min()) >= 0.99 * delta * float(torch.linalg.eigvalsh(S).max()) / (1 + 4 * delta)
+        F = h(raw.to(dtype)).to(torch.float64)
+        assert float(torch.linalg.eigvals(F).real.max()) < 0
+
+
+@SETTINGS
+@given(st.integers(1, 5).flatmap(lambda n: raw_arrays((3, n, n), 0.5)))
+def test_hurwitz_round_trip_of_reached_values(raw: np.ndarray) -> None:
+    h = Hurwitz().to(F64)
+    F = h(torch.as_tensor(raw))
+    back = h(h.right_inverse(F))
+    assert float(torch.linalg.matrix_norm(back - F) / torch.linalg.matrix_norm(F)) < 1e-10
+
+
+def test_hurwitz_out_of_reach_raises_naming_the_floor() -> None:
+    F = torch.diag(torch.tensor([-1.0, -1e5], dtype=F64))  # time scales 1e5 apart > 1/floor
+    with pytest.raises(ValueError, match="out of reach of the floor"):
+        Hurwitz().right_inverse(F)
+    h = Hurwitz(floor=1e-6).to(F64)  # a smaller floor reaches it
+    torch.testing.assert_close(h(h.right_inverse(F)), F, rtol=1e-10, atol=1e-10)
+
+
+def _hostile_sgd(n: int, dtype: torch.dtype, lr: float, steps: int, seed: int) -> int:
+    """Plain SGD on the unbounded random-sign loss −ξ₁ Σ A − 3 ξ₂ tr Q (issue 11).
+
+    Returns how many float64 steps reached an F beyond ``right_inverse``'s reach."""
+    import torchsde_lti as tl
+
+    g = torch.Generator().manual_seed(seed)
+    eye = torch.eye(n, dtype=dtype)
+    sde = tl.LTISDE(-eye, eye, eye, F_constraint="hurwitz")
+    param = sde.parametrizations.F[0]
+    opt = torch.optim.SGD(sde.parameters(), lr=lr)
+    reach_failures: list[int] = []
+    for _ in range(steps):
+        dt = torch.rand(8, generator=g).to(dtype)
+        xi = torch.randint(0, 2, (2,), generator=g).to(dtype) * 2 - 1
+        d = sde(dt)
+        loss = -(d.A.sum() * xi[0]) - 3.0 * torch.diagonal(d.Q, dim1=-2, dim2=-1).sum() * xi[1]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        with torch.no_grad():
+            F, Qc = sde.F.to(F64), sde.Qc.to(F64)
+            assert bool(torch.isfinite(F).all()) and bool(torch.isfinite(Qc).all())
+            assert np.linalg.eigvals(F.numpy()).real.max() < 0
+            # Qc = C Cᵀ is PD by certificate: its Cholesky factor has a positive, finite diagonal
+            qc_param = sde.parametrizations.Qc[0]
+            diag = torch.diagonal(qc_param.factor(sde.parametrizations.Qc.original.to(F64)))
+            assert bool((diag > 0).all()) and bool(torch.isfinite(diag).all())
+            if dtype == F64:
+                try:
+                    raw = param.right_inverse(F)
+                except ValueError as err:  # reached, but beyond the R = rI preimage (documented)
+                    assert "out of reach" in str(err)
+                    reach_failures.append(1)
+                    continue
+                back = param(raw)
+                assert float(torch.linalg.matrix_norm(back - F) / torch.linalg.matrix_norm(F)) < 1e-10
+    return len(reach_failures)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("n", [2, 3, 4, 6])
+def test_hurwitz_survives_hostile_sgd(n: int, dtype: torch.dtype) -> None:
+    """Short version of experiments/hurwitz_robustness.py (200 steps, full grid, there)."""
+    for lr in (0.1, 0.5, 1.0):
+        _hostile_sgd(n, dtype, lr, steps=12, seed=n)
 
 
 def random_hurwitz(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -162,11 +245,14 @@ def test_hurwitz_right_inverse_reaches_any_hurwitz_matrix(n: int) -> None:
         F = random_hurwitz(rng, n)
         raw = h.right_inverse(torch.as_tensor(F))
         np.testing.assert_allclose(h(raw).numpy(), F, rtol=1e-9, atol=1e-10 * np.abs(F).max())
-        # the preimage's P is scipy's Lyapunov solution of F P + P Fᵀ = −2I
-        _, R, c_p = h.components(raw)
+        # the preimage is (r K, r I, P⁻¹ / r) with P scipy's solution of F P + P Fᵀ = −2I
+        J, R, S = (x.numpy() for x in h.components(raw))
         P_ref = scipy.linalg.solve_continuous_lyapunov(F, -2 * np.eye(n))
-        np.testing.assert_allclose((c_p @ c_p.mT).numpy(), P_ref, rtol=1e-9, atol=1e-12)
-        np.testing.assert_allclose(R.numpy(), np.eye(n), atol=1e-9)
+        r = R[0, 0]
+        np.testing.assert_allclose(R, r * np.eye(n), rtol=1e-12, atol=1e-12 * r)
+        np.testing.assert_allclose(r * S @ P_ref, np.eye(n), rtol=0, atol=1e-9)
+        # well scaled: the raw entries stay O(1) for these O(1) matrices
+        assert float(raw.abs().max()) < 20
 
 
 def test_hurwitz_batched_round_trip() -> None:
@@ -238,8 +324,16 @@ def test_integrator_chain_hurwitz_drag(raw: np.ndarray) -> None:
     f_v = F[np.ix_([1, 3], [1, 3])]
     assert np.linalg.eigvals(f_v).real.max() < 0
     np.testing.assert_array_equal(F - cv_drag_matrix(f_v, 2), np.zeros((4, 4)))
+
+
+@SETTINGS
+@given(raw_arrays((3, 2, 2), 0.5))
+def test_integrator_chain_hurwitz_drag_round_trip(raw: np.ndarray) -> None:
+    """Raw values of moderate size: the reached F_v lies within the preimage's reach."""
+    p = IntegratorChain(2, 2, drag="hurwitz").to(F64)
+    F = p(torch.as_tensor(raw)).numpy()
     back = p(p.right_inverse(torch.as_tensor(F))).numpy()
-    np.testing.assert_allclose(back, F, rtol=1e-8, atol=1e-9 * np.abs(F).max())
+    np.testing.assert_allclose(back, F, rtol=1e-10, atol=1e-10 * np.abs(F).max())
 
 
 def test_integrator_chain_rejects_other_structure() -> None:

@@ -12,14 +12,20 @@ class                  value                                       raw tensor
 ``Positive``           ``softplus(x) + floor`` (elementwise)       same shape as value
 ``PositiveDefinite``   ``C Cᵀ``, C lower-triangular,               (..., n, n); strict lower
                        ``diag C = softplus(diag x) + floor``       triangle + diagonal used
-``Hurwitz``            ``F = (J − R) P⁻¹``, J skew, R, P ≻ 0       (..., 3, n, n)
+``Hurwitz``            ``F = (J − R) S``, J skew, R, S ⪰ δ I       (..., 3, n, n)
 ``IntegratorChain``    ``[[0, I], [0, F_v]]`` per axis, F_v free   (..., d, d) or
                        or Hurwitz                                  (..., 3, d, d)
 =====================  ==========================================  =======================
 
-The floor (default ``torch.finfo(dtype).eps`` of the raw tensor, so float32 and float64
-each get their own) only keeps values strictly positive when ``softplus`` underflows to
-zero; ``right_inverse`` subtracts it again, so set-then-get round-trips to rounding.
+No forward map inverts, solves with, or exponentiates an unbounded quantity: values are
+polynomial in the raw entries and ``softplus`` (whose ``exp`` only sees ``−|x|``), so they
+are finite for every finite raw tensor (audited: ``Positive``, ``PositiveDefinite``,
+``Hurwitz``, ``IntegratorChain`` with either drag; :class:`Hurwitz` formerly used ``P⁻¹``).
+
+The floor of ``Positive``/``PositiveDefinite`` (default ``torch.finfo(dtype).eps`` of the
+raw tensor, so float32 and float64 each get their own) only keeps values strictly positive
+when ``softplus`` underflows to zero; ``right_inverse`` subtracts it again, so set-then-get
+round-trips to rounding. :class:`Hurwitz` uses a relative floor instead (see there).
 Parametrisation modules carry a zero-size, non-persistent buffer that follows
 ``module.to(...)`` so that ``right_inverse`` can cast assigned values (Python floats,
 arrays, tensors of another dtype) to the dtype and device of the raw tensor.
@@ -40,6 +46,7 @@ __all__ = [
     "Positive",
     "PositiveDefinite",
     "default_floor",
+    "hurwitz_floor",
     "integrator_chain",
     "softplus",
     "softplus_inverse",
@@ -129,6 +136,11 @@ class Positive(_Parametrization):
         return softplus_inverse((v - floor).clamp_min(torch.finfo(v.dtype).tiny))
 
 
+def _sym(x: Tensor) -> Tensor:
+    """``(X + Xᵀ) / 2`` over the last two dims (the lead's core ``sym`` kernel replaces this)."""
+    return 0.5 * (x + x.mT)
+
+
 def _cholesky_factor(raw: Tensor, floor: float) -> Tensor:
     """Lower-triangular factor with strictly positive diagonal from an unconstrained (..., n, n)."""
     diag = softplus(torch.diagonal(raw, dim1=-2, dim2=-1)) + floor
@@ -143,7 +155,7 @@ def _cholesky_raw(value: Tensor, floor: float, name: str) -> Tensor:
     tol = 100.0 * value.shape[-1] * torch.finfo(value.dtype).eps
     if bool(((value - value.mT).abs() / scale > tol).any()):
         raise ValueError(f"{name} must be symmetric (shape {shape_str(value)})")
-    chol, info = torch.linalg.cholesky_ex(0.5 * (value + value.mT))
+    chol, info = torch.linalg.cholesky_ex(_sym(value))
     if bool((info != 0).any()):
         raise ValueError(
             f"{name} must be symmetric positive definite (Cholesky failed; shape {shape_str(value)})"
@@ -173,8 +185,7 @@ class PositiveDefinite(_Parametrization):
 
     def forward(self, raw: Tensor) -> Tensor:
         c = self.factor(raw)
-        value = c @ c.mT
-        return 0.5 * (value + value.mT)
+        return _sym(c @ c.mT)
 
     def right_inverse(self, value: object) -> Tensor:
         v = self._as_raw_tensor(value, self.name)
@@ -191,67 +202,129 @@ def _lyapunov_identity(F: Tensor) -> Tensor:
     return stationary_covariance(F, eye, 2.0 * eye)
 
 
+HURWITZ_FLOOR = 1e-3
+
+
+def hurwitz_floor(dtype: torch.dtype) -> float:
+    """Default relative floor δ of :class:`Hurwitz`: ``HURWITZ_FLOOR`` (1e-3) for every dtype.
+
+    The floor is a property of the map raw -> F, so it must not change with the raw dtype:
+    ``module.to(torch.float32)`` keeps F (to rounding). 1e-3 guarantees a relative stability
+    margin ``δ² = 1e-6`` (≈ 8 float32 eps, so rounding F to float32 cannot cross the
+    imaginary axis at moderate eigenvector conditioning) and reaches every F whose time
+    scales lie within ~1e3 of each other. ``dtype`` must be a floating dtype.
+    """
+    torch.finfo(dtype)  # TypeError for non-floating dtypes
+    return HURWITZ_FLOOR
+
+
+def _frobenius_sq(x: Tensor) -> Tensor:
+    """``‖X‖_F²`` over the last two dims, kept as (..., 1, 1) to scale an identity."""
+    return (x * x).sum(dim=(-2, -1), keepdim=True)
+
+
 class Hurwitz(_Parametrization):
     """Hurwitz-stable matrices (every eigenvalue strictly in the open left half-plane).
 
-    ``F = (J − R) P⁻¹`` with J skew-symmetric, R and P symmetric positive definite,
-    all three built from one raw tensor (..., 3, n, n):
+    ``F = (J − R) S`` with J skew-symmetric and R, S symmetric positive definite, all three
+    from one raw tensor (..., 3, n, n):
 
     - ``raw[..., 0, :, :]``: its strict upper triangle U gives ``J = U − Uᵀ``;
-    - ``raw[..., 1, :, :]``: Cholesky raw of R (see :class:`PositiveDefinite`);
-    - ``raw[..., 2, :, :]``: Cholesky raw of P; ``F`` is formed with ``cholesky_solve``.
+    - ``raw[..., 1, :, :]``: ``R = C_R C_Rᵀ + δ (‖C_R‖_F² + sqrt(1 + ‖J‖_F²)) I``;
+    - ``raw[..., 2, :, :]``: ``S = C_S C_Sᵀ + δ (‖C_S‖_F² + 1) I``;
 
-    Why every such F is Hurwitz: ``F P + P Fᵀ = (J − R) + (J − R)ᵀ = −2R ≺ 0`` with
-    ``P ≻ 0``. For an eigenpair ``Fᵀ v = λ v``,
-    ``vᴴ(F P + P Fᵀ)v = 2 Re(λ) vᴴ P v < 0``, hence ``Re λ < 0`` (Lyapunov).
+    where ``C = tril(raw, −1) + diag(softplus(diag raw))`` is a Cholesky-type factor and δ
+    the floor (default :func:`hurwitz_floor`, 1e-3 whatever the dtype). The forward
+    map is polynomial in ``U``, ``C_R``, ``C_S`` (up to the smooth ``sqrt(1 + ·)``; softplus is
+    bounded by ``|x| + log 2``): no inverse, no solve, no exponential of an unbounded
+    quantity, so F is finite for any finite raw tensor.
 
-    Why every Hurwitz F is reached (the parametrisation is onto the Hurwitz set): for
-    Hurwitz F the Lyapunov equation ``F P + P Fᵀ = −2I`` has the solution
-    ``P = 2∫₀^∞ e^{Ft} e^{Fᵀt} dt ≻ 0``. Put ``M = F P``; then ``M + Mᵀ = −2I``, so
-    ``R := −(M + Mᵀ)/2 = I ≻ 0`` and ``J := (M − Mᵀ)/2`` is skew, and
-    ``(J − R) P⁻¹ = M P⁻¹ = F``. ``right_inverse`` computes exactly this preimage (with
-    ``tl.stationary_covariance(F, I, 2I)``), so it raises ``ValueError`` for non-Hurwitz F.
-    The only matrices not reached are those whose preimage needs a Cholesky diagonal
-    below the floor (condition numbers beyond ~1/eps). With ``size`` given,
-    ``right_inverse`` also rejects values that are not (..., size, size).
+    The floors are relative (``‖C C ᵀ‖₂ ≤ ‖C‖_F²``): ``λ_min(R) ≥ δ (‖C_R C_Rᵀ‖ + ‖J‖)``
+    and ``λ_min(S) ≥ δ ‖C_S C_Sᵀ‖``, so the conditioning of R and S and the size of J
+    relative to R stay bounded whatever an optimiser writes into the raw tensor, and the
+    stability margin scales with F: ``Re λ ≤ −λ_min(R) λ_min(S) ≈ −δ² ‖J − R‖ ‖S‖``. An
+    absolute floor would not do: one large SGD step can leave R and S with λ_min/λ_max
+    ~ 1e-10, a Hurwitz F that is indistinguishable from an unstable one after rounding.
+
+    Why every such F is Hurwitz: ``F S⁻¹ + S⁻¹ Fᵀ = (J − R) + (J − R)ᵀ = −2R ≺ 0`` with
+    ``S⁻¹ ≻ 0``. For an eigenpair ``Fᵀ v = λ v``: ``2 Re(λ) vᴴ S⁻¹ v = −2 vᴴ R v``, so
+    ``Re λ = −vᴴRv / vᴴS⁻¹v ≤ −λ_min(R) λ_min(S) < 0``.
+
+    Which F are reached: for Hurwitz F the Lyapunov equation ``F P + P Fᵀ = −2I`` has
+    ``P = 2∫₀^∞ e^{Ft} e^{Fᵀt} dt ≻ 0``. With ``M = F P``, ``M + Mᵀ = −2I``, so
+    ``(J, R, S) = (r (M − Mᵀ)/2, r I, P⁻¹ / r)`` gives ``(J − R) S = F`` for any ``r > 0``.
+    ``right_inverse`` computes this preimage (P by ``tl.stationary_covariance(F, I, 2I)``,
+    ``P⁻¹`` by a Cholesky inverse — the only inverse, and it is not in ``forward``) with
+    r the geometric mean of the interval where both floors hold (closed form: the floors
+    are ``c = δ (tr S + 1) / (1 + n δ)`` for S, likewise for R), so R, S and J start at
+    comparable sizes (a well-scaled start). It
+    raises ``ValueError`` for non-Hurwitz F and for F this preimage cannot reach:
+    roughly, ``cond(P) ≳ 1/δ`` or ``‖(M − Mᵀ)/2‖ ≳ 1/δ`` (time scales more than ~1/δ apart,
+    or rotation much faster than damping), or eigenvalues below ``δ²`` in magnitude; pass a
+    smaller ``floor`` to reach those. With ``size`` given, ``right_inverse`` also rejects
+    values that are not (..., size, size).
     """
 
     def __init__(self, floor: float | None = None, name: str = "F", size: int | None = None) -> None:
         super().__init__(floor, size)
         self.name = name
 
+    def _floor(self, dtype: torch.dtype) -> float:
+        return hurwitz_floor(dtype) if self.floor is None else float(self.floor)
+
     def components(self, raw: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """``(J, R, chol(P))`` from the raw (..., 3, n, n) tensor."""
+        """``(J, R, S)`` (each (..., n, n)) from the raw (..., 3, n, n) tensor."""
         if raw.dim() < 3 or raw.shape[-3] != 3:
             raise ValueError(f"Hurwitz raw tensor must have shape (..., 3, n, n), got {shape_str(raw)}")
-        floor = self._floor(raw.dtype)
+        delta = self._floor(raw.dtype)
+        eye = torch.eye(raw.shape[-1], dtype=raw.dtype, device=raw.device)
         upper = torch.triu(raw[..., 0, :, :], 1)
         skew = upper - upper.mT
-        c_r = _cholesky_factor(raw[..., 1, :, :], floor)
-        r = c_r @ c_r.mT
-        r = 0.5 * (r + r.mT)
-        c_p = _cholesky_factor(raw[..., 2, :, :], floor)
-        return skew, r, c_p
+        c_r = _cholesky_factor(raw[..., 1, :, :], 0.0)
+        c_s = _cholesky_factor(raw[..., 2, :, :], 0.0)
+        shift_r = delta * (_frobenius_sq(c_r) + torch.sqrt(1.0 + _frobenius_sq(skew)))
+        shift_s = delta * (_frobenius_sq(c_s) + 1.0)
+        return skew, _sym(c_r @ c_r.mT) + shift_r * eye, _sym(c_s @ c_s.mT) + shift_s * eye
 
     def forward(self, raw: Tensor) -> Tensor:
-        skew, r, c_p = self.components(raw)
-        m = skew - r
-        # F = M P⁻¹  <=>  Fᵀ = P⁻¹ Mᵀ (P symmetric), solved with the Cholesky factor of P.
-        return torch.cholesky_solve(m.mT, c_p).mT
+        skew, r, s = self.components(raw)
+        return (skew - r) @ s
 
     def right_inverse(self, value: object) -> Tensor:
         f = self._as_raw_tensor(value, self.name)
         self._check_size(f, self.name)
         check_finite(f, self.name)
-        p = _lyapunov_identity(f)
-        p = 0.5 * (p + p.mT)
+        n = f.shape[-1]
+        eye = torch.eye(n, dtype=f.dtype, device=f.device)
+        p = _sym(_lyapunov_identity(f))
         m = f @ p
-        r = -0.5 * (m + m.mT)
-        skew = 0.5 * (m - m.mT)
-        floor = self._floor(f.dtype)
-        raw_r = _cholesky_raw(r, floor, f"{self.name} (dissipative part R)")
-        raw_p = _cholesky_raw(p, floor, f"{self.name} (Lyapunov solution P)")
-        return torch.stack((torch.triu(skew, 1), raw_r, raw_p), dim=-3)
+        chol_p, info = torch.linalg.cholesky_ex(p)
+        if bool((info != 0).any()):
+            raise ValueError(f"{self.name}: Lyapunov solution P is not positive definite (shape {shape_str(f)})")
+        s1 = _sym(torch.cholesky_inverse(chol_p))  # right_inverse only: P⁻¹ of a bounded, PD P
+        delta = self._floor(f.dtype)
+        # (J, R, S) = (r K, r I, S1 / r): the floors hold for r in (r_lo, r_hi); take their
+        # geometric mean (the largest relative slack on both sides), else the F is out of reach.
+        k_sq = _frobenius_sq(0.5 * (m - m.mT))
+        trace = lambda x: torch.diagonal(x, dim1=-2, dim2=-1).sum(-1)[..., None, None]  # noqa: E731
+        lam_min = torch.linalg.eigvalsh(s1)[..., :1].unsqueeze(-1)
+        r_lo = delta / (1.0 - delta**2 * k_sq).clamp_min(torch.finfo(f.dtype).tiny).sqrt()
+        r_hi = (lam_min * (1.0 + n * delta) - delta * trace(s1)) / delta
+        if bool(((delta**2 * k_sq >= 1.0) | (r_hi <= r_lo)).any()):
+            raise ValueError(
+                f"{self.name} is Hurwitz but out of reach of the floor {delta:.3g}: its Lyapunov solution P "
+                "is too ill-conditioned or its rotation too fast for its damping; pass a smaller floor "
+                f"(shape {shape_str(f)})"
+            )
+        r = (r_lo * r_hi).sqrt()
+        skew = r * 0.5 * (m - m.mT)
+        s = s1 / r
+        c_r = delta * (n * r + torch.sqrt(1.0 + _frobenius_sq(skew))) / (1.0 + n * delta)
+        c_s = delta * (trace(s) + 1.0) / (1.0 + n * delta)
+        what = f"{self.name} (floor {delta:.3g})"
+        raw_r = _cholesky_raw((r - c_r) * eye, 0.0, f"{what}; R − floor")
+        raw_s = _cholesky_raw(s - c_s * eye, 0.0, f"{what}; S − floor")
+        return torch.stack((torch.triu(skew, 1), raw_r, raw_s), dim=-3)
 
 
 DragConstraint = Literal["free", "hurwitz"]

@@ -14,144 +14,27 @@ optional ``mask`` (B, T), ``u`` (B, T, p), ``x`` (B, T, n) — see :mod:`torchsd
 
 Logged metrics: ``train/nll``, ``val/nll``, ``val/rmse`` (one-step-ahead prediction error
 of y), ``val/state_rmse`` (filtered mean vs true state, when batches carry ``x``), and when
-the truth is known ``val/param_error`` (largest relative error of the learned parameters)
-plus ``val/param_error/<name>`` for each of them.
+the truth is known ``val/param_error`` (largest relative error of the quantities the data
+determine: see :func:`parameter_errors`) plus ``val/param_error/<name>`` for each of them.
+Robustness: gradient-norm clipping before every step, and a non-finite loss or gradient
+skips the step (warned, counted in ``skipped_steps`` / ``train/skipped_steps``).
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import torch
-from lightning.pytorch import Callback, LightningModule
+from lightning.pytorch import LightningModule
 from torch import Tensor, nn
 
-__all__ = [
-    "KalmanFilterModule",
-    "ParameterHistory",
-    "learned_values",
-    "masked_gaussian_nll",
-    "parameter_errors",
-]
+from torchsde_lti.data.tracks import TrackBatch
+from torchsde_lti.training.metrics import masked_gaussian_nll, parameter_errors, raw_f_identifiable
 
-
-def _field(batch: Any, key: str) -> Tensor | None:
-    if isinstance(batch, Mapping):
-        return batch.get(key)
-    return getattr(batch, key, None)
-
-
-# --------------------------------------------------------------------------- parameters vs truth
-
-
-def _resolve(module: nn.Module, path: str) -> Any:
-    obj: Any = module
-    for part in path.split("."):
-        obj = getattr(obj, part)
-    return obj
-
-
-def _scalar_names(sde: nn.Module) -> list[str]:
-    """Names of the learned scalar parameters of a motion model (``q``, ``k``, ``alpha``, ...).
-
-    Read from ``named_parameters``: ``parametrizations.q.original`` -> ``q`` (and
-    ``parts.0.parametrizations.q.original`` -> ``parts.0.q``); only 0-dim values count.
-    """
-    names: list[str] = []
-    for raw_name, _ in sde.named_parameters():
-        name = raw_name.replace("parametrizations.", "").replace(".original", "")
-        try:
-            value = _resolve(sde, name)
-        except AttributeError:
-            continue
-        if isinstance(value, Tensor) and value.dim() == 0 and name not in names:
-            names.append(name)
-    return names
-
-
-def learned_values(
-    sde: nn.Module, R: Tensor | None = None, names: Sequence[str] | None = None
-) -> dict[str, Tensor]:
-    """Current values of a model's interpretable parameters, detached.
-
-    Named scalars (``names`` or the model's own list) come from ``getattr(sde, name)``;
-    then the matrices ``F`` and ``Qc`` and, if given, ``R``.
-    """
-    out: dict[str, Tensor] = {}
-    for name in names if names is not None else _scalar_names(sde):
-        out[name] = torch.as_tensor(_resolve(sde, name)).detach()
-    out["F"] = sde.F.detach()
-    out["Qc"] = sde.Qc.detach()
-    if R is not None:
-        out["R"] = R.detach()
-    return out
-
-
-def _rel(a: Tensor, b: Tensor) -> float:
-    """Relative Frobenius error ‖a − b‖ / ‖b‖ (absolute when b = 0)."""
-    a, b = a.detach().to(torch.float64), b.detach().to(torch.float64)
-    den = torch.linalg.vector_norm(b)
-    num = torch.linalg.vector_norm(a - b)
-    return float(num / den) if float(den) > 0 else float(num)
-
-
-def parameter_errors(
-    learned: nn.Module,
-    truth: nn.Module,
-    *,
-    R: Tensor | None = None,
-    R_true: Tensor | None = None,
-    names: Sequence[str] | None = None,
-    learn: Sequence[str] = ("F", "Qc"),
-    dts: Sequence[float] = (0.1, 1.0, 5.0),
-) -> dict[str, float]:
-    """Relative errors of every learned quantity against the truth.
-
-    * each named scalar (``q``, ``k``, ``alpha``, ...): |learned − true| / |true|;
-    * ``Qc`` (if learned and no scalar names cover it): relative Frobenius error;
-    * ``F`` (if learned): F is identifiable only through the transitions the data show,
-      so the error is ``max_dt ‖expm(F dt) − expm(F* dt)‖ / ‖expm(F* dt)‖`` over ``dts``,
-      reported as ``expmF``; named scalars inside F are reported on their own as well;
-    * ``R`` (if given): relative Frobenius error.
-    """
-    errors: dict[str, float] = {}
-    names = list(names) if names is not None else _scalar_names(learned)
-    for name in names:
-        errors[name] = _rel(torch.as_tensor(_resolve(learned, name)), torch.as_tensor(_resolve(truth, name)))
-    if not names:
-        if "Qc" in learn:
-            errors["Qc"] = _rel(learned.Qc, truth.Qc)
-    if "F" in learn:
-        F, F_true = learned.F.detach().to(torch.float64), truth.F.detach().to(torch.float64)
-        errors["expmF"] = max(_rel(torch.linalg.matrix_exp(F * t), torch.linalg.matrix_exp(F_true * t)) for t in dts)
-    if R is not None and R_true is not None:
-        errors["R"] = _rel(R, R_true)
-    return errors
-
-
-# --------------------------------------------------------------------------- masked Gaussian NLL
-
-
-def masked_gaussian_nll(r: Tensor, S: Tensor, observed: Tensor) -> Tensor:
-    """Σ over observed coordinates of the Gaussian NLL of residual r under N(0, S).
-
-    r: (..., m) residuals, S: (..., m, m), observed: (..., m) bool. Missing coordinates
-    are marginalised out exactly: their rows/columns of S are replaced by the identity
-    and their residuals by 0, which leaves logdet and the quadratic form of the observed
-    block unchanged. Returns (...), zero where nothing is observed.
-    """
-    obs = observed.to(r.dtype)
-    r = torch.where(observed, r, torch.zeros_like(r))
-    both = obs.unsqueeze(-1) * obs.unsqueeze(-2)
-    eye = torch.eye(r.shape[-1], dtype=r.dtype, device=r.device)
-    S = S * both + eye * (1.0 - obs).unsqueeze(-1)
-    S = 0.5 * (S + S.mT)
-    C = torch.linalg.cholesky(S)
-    z = torch.linalg.solve_triangular(C, r.unsqueeze(-1), upper=False).squeeze(-1)
-    logdet = 2.0 * torch.log(torch.diagonal(C, dim1=-2, dim2=-1)).sum(-1)
-    return 0.5 * ((z * z).sum(-1) + logdet + obs.sum(-1) * math.log(2.0 * math.pi))
+__all__ = ["KalmanFilterModule"]
 
 
 # --------------------------------------------------------------------------- module
@@ -169,7 +52,15 @@ class KalmanFilterModule(LightningModule):
         k_step_weight: weight of that loss.
         dtype: "float64" or "float32": parameters and batches are kept in this dtype.
         param_names: names of the scalars to track (default: the model's own list).
-        learn: which of "F", "Qc", "R" are learned (for the parameter errors).
+        compare: which of "F", "Qc", "R" are compared with the truth in the parameter
+            errors (which parameters are *trained* is the filter's and LTISDE's ``learn``).
+        grad_clip_norm: clip the global gradient 2-norm to this value before every
+            optimizer step (None or 0 = off). Works for every optimizer, L-BFGS included
+            (it runs inside the closure).
+        skip_nonfinite: when the loss or any gradient is NaN/Inf, drop that step's
+            gradients (every ``grad`` set to None, so Adam leaves parameters and moments
+            untouched and L-BFGS stops its iteration), warn, and count it in
+            ``skipped_steps`` (logged as ``train/skipped_steps``, saved in checkpoints).
     """
 
     def __init__(
@@ -182,15 +73,19 @@ class KalmanFilterModule(LightningModule):
         k_step_weight: float = 0.0,
         dtype: str = "float64",
         param_names: Sequence[str] | None = None,
-        learn: Sequence[str] = ("F", "Qc", "R"),
+        compare: Sequence[str] = ("F", "Qc", "R"),
+        grad_clip_norm: float | None = 10.0,
+        skip_nonfinite: bool = True,
     ) -> None:
         super().__init__()
         if dtype not in ("float32", "float64"):
             raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
         if int(k_step) < 0 or not k_step_weight >= 0:
             raise ValueError(f"k_step must be >= 0 and k_step_weight >= 0, got {k_step}, {k_step_weight}")
+        if grad_clip_norm is not None and not float(grad_clip_norm) >= 0:
+            raise ValueError(f"grad_clip_norm must be >= 0 or None, got {grad_clip_norm!r}")
         # plain containers only, so checkpoints load with torch.load(weights_only=True)
-        learn = [str(x) for x in learn]
+        compare = [str(x) for x in compare]
         param_names = [str(x) for x in param_names] if param_names is not None else None
         self.save_hyperparameters(ignore=["kf", "optimizer", "scheduler", "truth"])
         self.float_dtype = getattr(torch, dtype)
@@ -201,18 +96,22 @@ class KalmanFilterModule(LightningModule):
         self._truth = dict(truth) if truth is not None else None
         self.k_step, self.k_step_weight = int(k_step), float(k_step_weight)
         self.param_names = list(param_names) if param_names is not None else None
-        self.learn = tuple(learn)
+        self.compare = tuple(compare)
+        self.grad_clip_norm = float(grad_clip_norm) if grad_clip_norm else None
+        self.skip_nonfinite = bool(skip_nonfinite)
+        self.skipped_steps = 0
 
     # ---------------------------------------------------------------- helpers
 
-    def _unpack(self, batch: Any) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor | None]:
+    def unpack(self, batch: TrackBatch) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor | None]:
+        """(y, dt, mask, u, x) of a :class:`~torchsde_lti.data.TrackBatch`, floats in the module's dtype."""
+        if not isinstance(batch, TrackBatch):
+            raise TypeError(f"batches must be torchsde_lti.data.TrackBatch, got {type(batch).__name__}")
+
         def cast(t: Tensor | None) -> Tensor | None:
             return t.to(self.float_dtype) if t is not None else None
 
-        y, dt = _field(batch, "y"), _field(batch, "dt")
-        if y is None or dt is None:
-            raise ValueError("a batch needs fields 'y' (B, T, m) and 'dt' (B, T)")
-        return cast(y), cast(dt), _field(batch, "mask"), cast(_field(batch, "u")), cast(_field(batch, "x"))
+        return cast(batch.y), cast(batch.dt), batch.mask, cast(batch.u), cast(batch.x)
 
     def forward(self, y: Tensor, dt: Tensor, u: Tensor | None = None) -> Any:
         """Run the filter: y (B, T, m), dt (B, T), u (B, T, p) -> the filter's output."""
@@ -250,7 +149,7 @@ class KalmanFilterModule(LightningModule):
         return masked_gaussian_nll(r, S, obs_k).sum()
 
     def _step(self, batch: Any) -> tuple[Tensor, Tensor, Any, dict[str, Tensor]]:
-        y, dt, mask, u, x = self._unpack(batch)
+        y, dt, mask, u, x = self.unpack(batch)
         observed = self._observed(y, mask)
         if mask is not None:  # padding: no observation, no motion
             y = torch.where(mask.unsqueeze(-1), y, torch.full_like(y, math.nan))
@@ -283,7 +182,7 @@ class KalmanFilterModule(LightningModule):
         mse = (err**2).sum() / observed.sum().clamp_min(1)
         self.log(f"{stage}/rmse", mse.sqrt(), on_epoch=True, batch_size=bs, sync_dist=True)
         x, mask = info["x"], info["mask"]
-        if x is not None:
+        if x is not None and x.shape[-1] == out.mean.shape[-1]:  # the truth's state (same kind of model)
             valid = torch.ones_like(x[..., 0], dtype=torch.bool) if mask is None else mask
             se = ((out.mean - x) ** 2).sum(-1)
             smse = (se * valid).sum() / (valid.sum().clamp_min(1) * x.shape[-1])
@@ -300,11 +199,22 @@ class KalmanFilterModule(LightningModule):
         """Relative errors of the learned parameters against the truth ({} without truth)."""
         if self._truth is None or self._truth.get("sde") is None:
             return {}
-        R_true = self._truth.get("R") if "R" in self.learn else None
+        R_true = self._truth.get("R") if "R" in self.compare else None
         return parameter_errors(
             self.kf.sde, self._truth["sde"], R=self.kf.R if R_true is not None else None, R_true=R_true,
-            names=self.param_names, learn=self.learn,
+            names=self.param_names, compare=self.compare, H=self.kf.H, H_true=self._truth.get("H"),
         )  # fmt: skip
+
+    def identifiability_note(self) -> str:
+        """'' when the raw parameters are identifiable, else a sentence saying why not."""
+        if raw_f_identifiable(self.kf.sde, self.kf.H):
+            return ""
+        m, n = self.kf.H.shape[-2:]
+        return (
+            f"F is free and observed through H ({m}x{n}, rank < {n}): F and Qc are determined only up to a "
+            "change of state basis, so they are compared through the observed autocovariance "
+            "H e^{F tau} P_inf H^T (`autocov`), not entrywise."
+        )
 
     def on_validation_epoch_end(self) -> None:
         errors = self.parameter_errors()
@@ -314,6 +224,46 @@ class KalmanFilterModule(LightningModule):
             self.log(f"val/param_error/{name}", value, sync_dist=False)
         self.log("val/param_error", max(errors.values()), prog_bar=True, sync_dist=False)
 
+    # ---------------------------------------------------------------- robust optimizer steps
+
+    def _guard_gradients(self, loss: Any) -> None:
+        """After backward: skip a non-finite step (grads -> None, counted), else clip the norm."""
+        params = [p for p in self.parameters() if p.grad is not None]
+        finite = loss is None or bool(torch.isfinite(torch.as_tensor(loss)).all())
+        finite = finite and all(bool(torch.isfinite(p.grad).all()) for p in params)
+        if not finite and self.skip_nonfinite:
+            for p in params:
+                p.grad = None
+            self.skipped_steps += 1
+            warnings.warn(
+                f"non-finite loss or gradient at epoch {self.current_epoch}, step {self.global_step}: "
+                f"step skipped ({self.skipped_steps} so far)",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+            return
+        if self.grad_clip_norm is not None and params:
+            torch.nn.utils.clip_grad_norm_(params, self.grad_clip_norm)
+
+    def optimizer_step(self, epoch: int, batch_idx: int, optimizer: Any, optimizer_closure: Any = None) -> None:
+        """``optimizer.step`` with a closure that checks and clips the gradients it produces."""
+
+        def closure() -> Any:
+            loss = optimizer_closure() if optimizer_closure is not None else None
+            self._guard_gradients(loss)
+            return loss
+
+        optimizer.step(closure=closure)
+
+    def on_train_epoch_end(self) -> None:
+        self.log("train/skipped_steps", float(self.skipped_steps), sync_dist=False)
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint["skipped_steps"] = int(self.skipped_steps)
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        self.skipped_steps = int(checkpoint.get("skipped_steps", 0))
+
     def configure_optimizers(self) -> Any:
         if self.optimizer_factory is None:
             raise ValueError("KalmanFilterModule needs an optimizer (a partial, e.g. Hydra `_partial_: true`)")
@@ -322,50 +272,3 @@ class KalmanFilterModule(LightningModule):
             return opt
         sched = self.scheduler_factory(optimizer=opt)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
-
-
-# --------------------------------------------------------------------------- history callback
-
-
-def _flat(values: Mapping[str, Tensor]) -> dict[str, float]:
-    """Scalars as they are; R and (without named scalars) Qc by their diagonals (``R[0]``, ...)."""
-    out: dict[str, float] = {}
-    has_scalars = any(v.dim() == 0 for v in values.values())
-    for name, v in values.items():
-        if name == "Qc" and has_scalars:  # Qc is a function of the named scalars
-            continue
-        v = v.detach().to(torch.float64)
-        if v.dim() == 0:
-            out[name] = float(v)
-        elif name in ("R", "Qc") and v.dim() == 2:
-            out.update({f"{name}[{i}]": float(x) for i, x in enumerate(torch.diagonal(v))})
-    return out
-
-
-class ParameterHistory(Callback):
-    """Records, after every training epoch, the epoch-mean losses and the learned values.
-
-    ``history`` is a list of {"epoch", "train/nll", "val/nll", <param>: value} of plain
-    floats (so it round-trips through ``state_dict`` and ``torch.load(weights_only=True)``).
-    """
-
-    def __init__(self) -> None:
-        self.history: list[dict[str, float]] = []
-
-    def on_train_epoch_end(self, trainer: Any, pl_module: LightningModule) -> None:
-        if trainer.sanity_checking:
-            return
-        row: dict[str, float] = {"epoch": float(trainer.current_epoch)}
-        for key in ("train/nll", "val/nll", "val/param_error"):
-            if key in trainer.callback_metrics:
-                row[key] = float(trainer.callback_metrics[key])
-        if isinstance(pl_module, KalmanFilterModule):
-            kf = pl_module.kf
-            row.update(_flat(learned_values(kf.sde, kf.R, pl_module.param_names)))
-        self.history.append(row)
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"history": [dict(r) for r in self.history]}
-
-    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
-        self.history = [dict(r) for r in state_dict.get("history", [])]

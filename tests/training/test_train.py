@@ -1,10 +1,10 @@
-"""Hydra configs, the LightningModule and the main job, on tiny problems.
+"""The Hydra entry point (torchsde_lti.training.train): configs, the main job, sweeps, on tiny problems.
 
 Covers: every config group composes and instantiates; fast_dev_run end to end; resume from
 a checkpoint continues exactly like an uninterrupted run; checkpoints load with
 ``weights_only=True``; a --multirun over two values launches two runs; a 2-process DDP
-(gloo) run; bad config values fail fast. Loss pieces are checked against independent
-references (scipy's multivariate normal, the filter's prediction-error decomposition).
+(gloo) run; bad config values fail fast; learner/truth pairing; random restarts through a
+Hydra multirun. Loss pieces and metrics: test_training_module.py, test_training_metrics.py.
 """
 
 from __future__ import annotations
@@ -22,12 +22,9 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException, InstantiationException
 from hydra.utils import instantiate
 
-from torchsde_lti import models
-from torchsde_lti.data import isotropic_covariance, simulate_tracks
-from torchsde_lti.lightning_module import KalmanFilterModule, masked_gaussian_nll, parameter_errors
-from torchsde_lti.train import train
+from torchsde_lti.training import KalmanFilterModule, train
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 CONF = ROOT / "conf"
 TINY = ["experiment=tiny"]
 
@@ -136,50 +133,6 @@ def test_bad_dtype_fails_fast(tmp_path: Path) -> None:
         train(_cfg(tmp_path, *TINY, "dtype=float16"))
 
 
-# --------------------------------------------------------------------------- loss pieces
-
-
-def test_masked_gaussian_nll_matches_scipy_marginal() -> None:
-    stats = pytest.importorskip("scipy.stats")
-    g = torch.Generator().manual_seed(0)
-    M = torch.randn(3, 3, generator=g, dtype=torch.float64)
-    S = M @ M.T + 0.5 * torch.eye(3, dtype=torch.float64)
-    r = torch.randn(3, generator=g, dtype=torch.float64)
-    obs = torch.tensor([True, False, True])
-    got = masked_gaussian_nll(r.clone().index_fill_(0, torch.tensor([1]), math.nan), S, obs)
-    idx = [0, 2]
-    ref = -stats.multivariate_normal(mean=[0, 0], cov=S[idx][:, idx].numpy()).logpdf(r[idx].numpy())
-    assert abs(float(got) - ref) < 1e-10
-    assert float(masked_gaussian_nll(r, S, torch.zeros(3, dtype=torch.bool))) == 0.0
-
-
-def test_one_step_ahead_loss_equals_prediction_error_decomposition() -> None:
-    """k = 1: scoring y_{t+1} from the filtered state at t is the filter's own step likelihood."""
-    import torchsde_lti as tl
-
-    sde = models.integrated_ou(k=0.7, q=1.3, dim=2).to(torch.float64)
-    H = models.position_observation(sde)
-    tr = simulate_tracks(sde, H, isotropic_covariance(0.4, 2), 3, 12, p_missing=0.2, seed=2)
-    kf = tl.KalmanFilter(sde, H, isotropic_covariance(0.4, 2), m0=torch.zeros(4), P0=torch.eye(4))
-    module = KalmanFilterModule(kf, k_step=1, k_step_weight=1.0)
-    out = kf(tr.y, tr.dt)
-    observed = ~torch.isnan(tr.y)
-    got = module.k_step_nll(out, tr.y, tr.dt, None, observed)
-    ref = -out.step_log_likelihood[..., 1:].sum()
-    assert torch.allclose(got, ref, rtol=1e-10)
-
-
-def test_parameter_errors_against_hand_values() -> None:
-    truth = models.singer(alpha=0.5, q=2.0, dim=2)
-    learned = models.singer(alpha=0.55, q=1.0, dim=2)
-    e = parameter_errors(learned, truth, R=torch.eye(2) * 1.2, R_true=torch.eye(2), dts=(1.0,))
-    assert e["alpha"] == pytest.approx(0.1, rel=1e-6) and e["q"] == pytest.approx(0.5, rel=1e-6)
-    assert e["R"] == pytest.approx(0.2, rel=1e-6)
-    assert e["expmF"] > 0
-    same = parameter_errors(truth, truth)
-    assert same["expmF"] == 0.0 and same["alpha"] == 0.0
-
-
 # --------------------------------------------------------------------------- training runs
 
 
@@ -189,6 +142,44 @@ def test_fast_dev_run_end_to_end(tmp_path: Path) -> None:
     assert math.isfinite(metrics["train/nll"]) and math.isfinite(metrics["val/nll"])
     assert set(metrics["param_errors"]) == {"k", "q", "expmF", "R"}
     assert (tmp_path / "metrics.json").exists()
+    assert metrics["skipped_steps"] == 0.0
+
+
+def test_any_learner_pairs_with_any_truth(tmp_path: Path) -> None:
+    """model= picks the learner, truth= the simulated model: a CV learner on Singer data runs."""
+    cfg = _cfg(tmp_path, "model=cv", "truth=singer", *TINY, "+trainer.fast_dev_run=true")
+    assert cfg.data.sde._target_.endswith("singer") and cfg.filter.sde._target_.endswith("constant_velocity")
+    metrics, objects = train(cfg)
+    assert math.isfinite(metrics["val/nll"])
+    assert objects["datamodule"].tracks["train"].x.shape[-1] == 6 and objects["module"].kf.sde.state_dim == 4
+    # nothing to pair entrywise between a CV and a Singer model but R
+    assert set(metrics["param_errors"]) == {"R"}
+    # the default pairs the learner with its own truth
+    assert _cfg(tmp_path, "model=singer").data.sde._target_.endswith("singer")
+
+
+def test_config_path_finds_the_checkout_conf() -> None:
+    from torchsde_lti.training import config_path
+
+    assert Path(config_path()) == CONF
+
+
+def test_restart_learner_perturbs_raw_parameters_reproducibly() -> None:
+    import torchsde_lti as tl
+    from torchsde_lti.training import restart_learner
+
+    def make() -> tl.KalmanFilter:
+        sde = tl.LTISDE(-torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64),
+                        torch.eye(2, dtype=torch.float64), F_constraint="hurwitz")
+        return tl.KalmanFilter(sde, torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64))
+
+    a, b, c = make(), make(), make()
+    restart_learner(a, 0.5, 3)
+    restart_learner(b, 0.5, 3)
+    restart_learner(c, 0.0, 3)
+    assert torch.equal(a.sde.F, b.sde.F) and not torch.equal(a.sde.F, c.sde.F)
+    assert torch.equal(c.sde.F, -torch.eye(2, dtype=torch.float64))
+    assert float(torch.linalg.eigvals(a.sde.F).real.max()) < 0  # a restart of a Hurwitz F is Hurwitz
 
 
 def test_float32_training_keeps_float32(tmp_path: Path) -> None:
@@ -227,7 +218,7 @@ def test_resume_from_checkpoint_continues_identically(tmp_path: Path) -> None:
 def test_resume_past_restored_cosine_schedule_warns(tmp_path: Path) -> None:
     import warnings
 
-    from torchsde_lti.train import _warn_if_schedule_ends_early
+    from torchsde_lti.training.train import _warn_if_schedule_ends_early
 
     # what Lightning stores for CosineAnnealingLR(T_max=3): resuming restores T_max=3
     opt = torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], lr=0.05)
@@ -269,6 +260,19 @@ def test_multirun_launches_two_runs(tmp_path: Path) -> None:
     assert collect.returncode == 0, collect.stderr[-3000:]
     summary = (sweep / "summary.md").read_text()
     assert "data.noise=0.1" in summary and "data.noise=1.0" in summary
+
+
+def test_restarts_multirun_keeps_the_best_validation_nll(tmp_path: Path) -> None:
+    sweep = tmp_path / "restarts"
+    small = ["data.num_tracks.train=8", "data.num_tracks.val=4", "data.T=8", "data.T_min=5", "data.batch_size=4"]
+    proc = _run(["--multirun", "experiment=restarts", "model=hurwitz", *small, "restart=range(2)", "trainer.max_epochs=1",
+                 "test=false", "plots=false", f"hydra.sweep.dir={sweep}"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    best = json.loads((sweep / "best_run.json").read_text())
+    values = [json.loads((sweep / str(i) / "metrics.json").read_text())["metrics"]["val/nll"] for i in range(2)]
+    assert len(best["runs"]) == 2 and best["value"] == min(values)
+    assert values[0] != values[1]  # the restarts really started apart
+    assert any(str(o).startswith("restart=") for o in best["overrides"])
 
 
 def test_ddp_two_cpu_processes_gloo(tmp_path: Path) -> None:

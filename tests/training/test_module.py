@@ -1,0 +1,74 @@
+"""The LightningModule (torchsde_lti.training.module): loss pieces and robust optimizer steps."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchsde_lti import models
+from torchsde_lti.data import isotropic_covariance, simulate_tracks
+from torchsde_lti.training.module import KalmanFilterModule
+
+
+def test_one_step_ahead_loss_equals_prediction_error_decomposition() -> None:
+    """k = 1: scoring y_{t+1} from the filtered state at t is the filter's own step likelihood."""
+    import torchsde_lti as tl
+
+    sde = models.integrated_ou(k=0.7, q=1.3, dim=2).to(torch.float64)
+    H = models.position_observation(sde)
+    tr = simulate_tracks(sde, H, isotropic_covariance(0.4, 2), 3, 12, p_missing=0.2, seed=2)
+    kf = tl.KalmanFilter(sde, H, isotropic_covariance(0.4, 2), m0=torch.zeros(4), P0=torch.eye(4))
+    module = KalmanFilterModule(kf, k_step=1, k_step_weight=1.0)
+    out = kf(tr.y, tr.dt)
+    observed = ~torch.isnan(tr.y)
+    got = module.k_step_nll(out, tr.y, tr.dt, None, observed)
+    ref = -out.step_log_likelihood[..., 1:].sum()
+    assert torch.allclose(got, ref, rtol=1e-10)
+
+
+def _nan_batch_module(skip: bool) -> tuple[KalmanFilterModule, list]:
+    import torchsde_lti as tl
+
+    sde = models.integrated_ou(k=0.7, q=1.3, dim=1).to(torch.float64)
+    H = models.position_observation(sde)
+    kf = tl.KalmanFilter(sde, H, isotropic_covariance(0.4, 1), m0=torch.zeros(2), P0=torch.eye(2))
+    module = KalmanFilterModule(kf, optimizer=lambda params: torch.optim.Adam(params, lr=0.1), skip_nonfinite=skip)
+    tr = simulate_tracks(sde, H, isotropic_covariance(0.4, 1), 4, 10, seed=1)
+    bad_y = tr.y.clone()
+    bad_y[0, 3, 0] = 1e200  # finite, but its squared residual overflows: loss and gradients non-finite
+    good = {"y": tr.y, "dt": tr.dt}
+    return module, [good, {"y": bad_y, "dt": tr.dt}, good]
+
+
+def test_nonfinite_step_is_skipped_and_counted(tmp_path: Path) -> None:
+    import lightning.pytorch as pl
+
+    module, batches = _nan_batch_module(skip=True)
+    before = {k: v.clone() for k, v in module.state_dict().items()}
+    trainer = pl.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, default_root_dir=tmp_path)
+    with pytest.warns(RuntimeWarning, match="non-finite loss or gradient.*skipped"):
+        trainer.fit(module, train_dataloaders=torch.utils.data.DataLoader(batches, batch_size=None))
+    assert module.skipped_steps == 1
+    after = module.state_dict()
+    assert all(bool(torch.isfinite(v).all()) for v in after.values())
+    assert any(not torch.equal(before[k], after[k]) for k in before)  # the good steps trained
+
+
+def test_gradient_norm_is_clipped() -> None:
+    module, batches = _nan_batch_module(skip=True)
+    module.grad_clip_norm = 1e-3
+    loss, *_ = module._step(batches[0])
+    loss = loss * 1e6  # a huge gradient
+    loss.backward()
+    module._guard_gradients(loss.detach())
+    norm = torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in module.parameters() if p.grad is not None]))
+    assert float(norm) == pytest.approx(1e-3, rel=1e-6)
+
+
+def test_bad_grad_clip_norm_raises() -> None:
+    module, _ = _nan_batch_module(skip=True)
+    with pytest.raises(ValueError, match="grad_clip_norm"):
+        KalmanFilterModule(module.kf, grad_clip_norm=-1.0)

@@ -1,0 +1,87 @@
+"""Callbacks: Lightning's :class:`ParameterHistory` (per-epoch values) and Hydra's :class:`BestRun`."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from hydra.experimental.callback import Callback as HydraCallback
+from lightning.pytorch import Callback, LightningModule
+from omegaconf import DictConfig, OmegaConf
+
+from torchsde_lti.training.metrics import flat_values, learned_values
+from torchsde_lti.training.module import KalmanFilterModule
+
+__all__ = ["BestRun", "ParameterHistory"]
+
+
+class ParameterHistory(Callback):
+    """Records, after every training epoch, the epoch-mean losses and the learned values.
+
+    ``history`` is a list of {"epoch", "train/nll", "val/nll", <param>: value} of plain
+    floats (so it round-trips through ``state_dict`` and ``torch.load(weights_only=True)``).
+    """
+
+    def __init__(self) -> None:
+        self.history: list[dict[str, float]] = []
+
+    def on_train_epoch_end(self, trainer: Any, pl_module: LightningModule) -> None:
+        if trainer.sanity_checking:
+            return
+        row: dict[str, float] = {"epoch": float(trainer.current_epoch)}
+        for key in ("train/nll", "val/nll", "val/param_error"):
+            if key in trainer.callback_metrics:
+                row[key] = float(trainer.callback_metrics[key])
+        if isinstance(pl_module, KalmanFilterModule):
+            kf = pl_module.kf
+            row.update(flat_values(learned_values(kf.sde, kf.R, pl_module.param_names)))
+        self.history.append(row)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"history": [dict(r) for r in self.history]}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self.history = [dict(r) for r in state_dict.get("history", [])]
+
+
+class BestRun(HydraCallback):
+    """Hydra callback: after a multirun, pick the run with the best ``metric`` and report it.
+
+    Reads every job's ``metrics.json`` under the sweep directory, writes ``best_run.json``
+    (the winner's directory, overrides, metric value, and all runs' values) there, and
+    prints it. With ``experiment=restarts`` (a sweep over ``restart``) this keeps the best
+    of K random restarts; the jobs themselves run through whatever Hydra launcher is
+    configured (``hydra/launcher=parallel`` for joblib).
+    """
+
+    def __init__(self, metric: str = "val/nll", mode: str = "min") -> None:
+        if mode not in ("min", "max"):
+            raise ValueError(f"mode must be 'min' or 'max', got {mode!r}")
+        self.metric, self.mode = metric, mode
+
+    def best(self, sweep_dir: Path) -> dict[str, Any]:
+        """{"best_dir", "overrides", "value", "runs": [{"dir", "overrides", "value"}]} for ``sweep_dir``."""
+        runs = []
+        for path in sorted(Path(sweep_dir).glob("*/metrics.json")):
+            summary = json.loads(path.read_text())
+            value = summary.get("metrics", {}).get(self.metric)
+            if value is None or not math.isfinite(float(value)):
+                continue
+            overrides_file = path.parent / ".hydra" / "overrides.yaml"
+            overrides = OmegaConf.to_container(OmegaConf.load(overrides_file)) if overrides_file.exists() else []
+            runs.append({"dir": str(path.parent), "overrides": overrides, "value": float(value)})
+        if not runs:
+            raise ValueError(f"no run under {sweep_dir} logged a finite {self.metric}")
+        pick = min if self.mode == "min" else max
+        winner = pick(runs, key=lambda r: r["value"])
+        return {"metric": self.metric, "best_dir": winner["dir"], "overrides": winner["overrides"],
+                "value": winner["value"], "runs": runs}
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        sweep_dir = Path(config.hydra.sweep.dir)
+        result = self.best(sweep_dir)
+        (sweep_dir / "best_run.json").write_text(json.dumps(result, indent=2))
+        print(f"best of {len(result['runs'])} runs by {self.metric}: {result['value']:.6g} in {result['best_dir']} "
+              f"({' '.join(map(str, result['overrides']))})")

@@ -1,0 +1,260 @@
+"""What a run reports: learned values, errors against the truth, the masked Gaussian NLL.
+
+Torch only (no Lightning): usable on any pair of models.
+
+* :func:`parameter_errors` compares the quantities the data determine: named scalars of
+  structured models, ``expm(F dt)`` where F itself is identifiable, and for a free F seen
+  through fewer observations than states the observed autocovariance
+  ``H e^{Fτ} P∞ Hᵀ`` (:func:`observed_autocovariance`), which every state basis shares.
+* :func:`parameter_table` / :func:`format_table`: the true-vs-learned table of a run.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from torchsde_lti.core.stationary import stationary_covariance
+from torchsde_lti.nn.parametrizations import IntegratorChain
+
+__all__ = [
+    "flat_values",
+    "format_table",
+    "learned_values",
+    "masked_gaussian_nll",
+    "observed_autocovariance",
+    "parameter_errors",
+    "parameter_table",
+    "raw_f_identifiable",
+    "same_model",
+]
+
+
+def _resolve(module: nn.Module, path: str) -> Any:
+    obj: Any = module
+    for part in path.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _scalar_names(sde: nn.Module) -> list[str]:
+    """Names of the learned scalar parameters of a motion model (``q``, ``k``, ``alpha``, ...).
+
+    Read from ``named_parameters``: ``parametrizations.q.original`` -> ``q`` (and
+    ``parts.0.parametrizations.q.original`` -> ``parts.0.q``); only 0-dim values count.
+    """
+    names: list[str] = []
+    for raw_name, _ in sde.named_parameters():
+        name = raw_name.replace("parametrizations.", "").replace(".original", "")
+        try:
+            value = _resolve(sde, name)
+        except AttributeError:
+            continue
+        if isinstance(value, Tensor) and value.dim() == 0 and name not in names:
+            names.append(name)
+    return names
+
+
+def learned_values(
+    sde: nn.Module, R: Tensor | None = None, names: Sequence[str] | None = None
+) -> dict[str, Tensor]:
+    """Current values of a model's interpretable parameters, detached.
+
+    Named scalars (``names`` or the model's own list) come from ``getattr(sde, name)``;
+    then the matrices ``F`` and ``Qc`` and, if given, ``R``.
+    """
+    out: dict[str, Tensor] = {}
+    for name in names if names is not None else _scalar_names(sde):
+        out[name] = torch.as_tensor(_resolve(sde, name)).detach()
+    out["F"] = sde.F.detach()
+    out["Qc"] = sde.Qc.detach()
+    if R is not None:
+        out["R"] = R.detach()
+    return out
+
+
+def _rel(a: Tensor, b: Tensor) -> float:
+    """Relative Frobenius error ‖a − b‖ / ‖b‖ (absolute when b = 0)."""
+    a, b = a.detach().to(torch.float64), b.detach().to(torch.float64)
+    den = torch.linalg.vector_norm(b)
+    num = torch.linalg.vector_norm(a - b)
+    return float(num / den) if float(den) > 0 else float(num)
+
+
+def same_model(learned: nn.Module, truth: nn.Module) -> bool:
+    """Whether learner and truth are the same kind of model, so their named scalars pair up."""
+    def kind(m: nn.Module) -> str:
+        return type(m).__name__.removeprefix("Parametrized")
+
+    return kind(learned) == kind(truth) and learned.F.shape[-2:] == truth.F.shape[-2:]
+
+
+def raw_f_identifiable(sde: nn.Module, H: Tensor | None) -> bool:
+    """Whether the data determine F itself (not only up to a change of state basis).
+
+    True for structured models (named scalars fix the basis), for a fixed structure such as
+    :class:`~torchsde_lti.nn.parametrizations.IntegratorChain`, and for a free F observed
+    through an H of full column rank. A free F seen through fewer observations than states
+    is determined only up to similarity transforms ``T F T⁻¹`` (with ``H T⁻¹``, ``T L``):
+    every such F gives the same likelihood, so raw-F errors are meaningless there.
+    """
+    if _scalar_names(sde):
+        return True
+    param = getattr(getattr(sde, "parametrizations", None), "F", None)
+    if param is not None and any(isinstance(p, IntegratorChain) for p in param):
+        return True
+    if H is None:
+        return True
+    H = H.detach().to(torch.float64)
+    return int(torch.linalg.matrix_rank(H)) >= sde.F.shape[-1]
+
+
+def observed_autocovariance(sde: nn.Module, H: Tensor, lags: Sequence[float]) -> Tensor:
+    """Stationary autocovariance of the observed signal, ``H e^{F τ} P∞ Hᵀ`` at each lag.
+
+    P∞ solves ``F P∞ + P∞ Fᵀ + L Qc Lᵀ = 0``; invariant under a change of state basis, so
+    the data determine it whenever they determine anything. Returns (len(lags), m, m) in
+    float64; ValueError (from ``stationary_covariance``) when F is not Hurwitz.
+    """
+    F = sde.F.detach().to(torch.float64)
+    P = stationary_covariance(F, sde.L.detach().to(torch.float64), sde.Qc.detach().to(torch.float64))
+    H = H.detach().to(torch.float64)
+    return torch.stack([H @ torch.linalg.matrix_exp(F * float(t)) @ P @ H.mT for t in lags])
+
+
+def parameter_errors(
+    learned: nn.Module,
+    truth: nn.Module,
+    *,
+    R: Tensor | None = None,
+    R_true: Tensor | None = None,
+    names: Sequence[str] | None = None,
+    compare: Sequence[str] = ("F", "Qc"),
+    dts: Sequence[float] = (0.1, 1.0, 5.0),
+    H: Tensor | None = None,
+    H_true: Tensor | None = None,
+    lags: Sequence[float] = (0.0, 0.5, 1.0, 2.0, 5.0),
+) -> dict[str, float]:
+    """Relative errors of every learned quantity the data determine, against the truth.
+
+    * each named scalar (``q``, ``k``, ``alpha``, ...): |learned − true| / |true|;
+    * ``Qc`` (if compared, identifiable and no scalar names cover it): relative Frobenius error;
+    * ``F`` (if compared and identifiable, see :func:`raw_f_identifiable`):
+      ``max_dt ‖expm(F dt) − expm(F* dt)‖ / ‖expm(F* dt)‖`` over ``dts``, as ``expmF``;
+    * ``F`` not identifiable (free F, H of lower rank than the state): the observed
+      autocovariance ``C(τ) = H e^{Fτ} P∞ Hᵀ`` instead,
+      ``max_τ ‖C(τ) − C*(τ)‖ / ‖C*(0)‖`` over ``lags``, as ``autocov`` (it covers Qc's
+      effect as well; inf while the learned F is not Hurwitz). Raw F and Qc errors are
+      left out: the likelihood cannot see them;
+    * ``R`` (if given): relative Frobenius error.
+    """
+    errors: dict[str, float] = {}
+    names = list(names) if names is not None else _scalar_names(learned)
+    same_shape = learned.F.shape[-2:] == truth.F.shape[-2:] and learned.Qc.shape[-2:] == truth.Qc.shape[-2:]
+    for name in names if same_model(learned, truth) else ():  # a learner of another kind: nothing to pair
+        errors[name] = _rel(torch.as_tensor(_resolve(learned, name)), torch.as_tensor(_resolve(truth, name)))
+    identifiable = raw_f_identifiable(learned, H)
+    if not same_shape:  # e.g. model=cv truth=singer: only observation-level quantities compare
+        identifiable = False
+    if "F" in compare and not identifiable and H is not None:
+        H_true = H if H_true is None else H_true
+        try:
+            C_true = observed_autocovariance(truth, H_true, lags)
+        except ValueError:  # the truth has no stationary autocovariance (integrators): nothing to compare
+            C_true = None
+        if C_true is not None:
+            try:
+                C = observed_autocovariance(learned, H, lags)
+            except ValueError:  # the learned F is not Hurwitz (yet): no stationary autocovariance
+                errors["autocov"] = math.inf
+            else:
+                scale = torch.linalg.matrix_norm(C_true[0])
+                errors["autocov"] = float((torch.linalg.matrix_norm(C - C_true) / scale).max())
+    elif not names and "Qc" in compare and same_shape:
+        errors["Qc"] = _rel(learned.Qc, truth.Qc)
+    if "F" in compare and identifiable:
+        F, F_true = learned.F.detach().to(torch.float64), truth.F.detach().to(torch.float64)
+        errors["expmF"] = max(_rel(torch.linalg.matrix_exp(F * t), torch.linalg.matrix_exp(F_true * t)) for t in dts)
+    if R is not None and R_true is not None:
+        errors["R"] = _rel(R, R_true)
+    return errors
+
+
+def masked_gaussian_nll(r: Tensor, S: Tensor, observed: Tensor) -> Tensor:
+    """Σ over observed coordinates of the Gaussian NLL of residual r under N(0, S).
+
+    r: (..., m) residuals, S: (..., m, m), observed: (..., m) bool. Missing coordinates
+    are marginalised out exactly: their rows/columns of S are replaced by the identity
+    and their residuals by 0, which leaves logdet and the quadratic form of the observed
+    block unchanged. Returns (...), zero where nothing is observed.
+    """
+    obs = observed.to(r.dtype)
+    r = torch.where(observed, r, torch.zeros_like(r))
+    both = obs.unsqueeze(-1) * obs.unsqueeze(-2)
+    eye = torch.eye(r.shape[-1], dtype=r.dtype, device=r.device)
+    S = S * both + eye * (1.0 - obs).unsqueeze(-1)
+    S = 0.5 * (S + S.mT)
+    C = torch.linalg.cholesky(S)
+    z = torch.linalg.solve_triangular(C, r.unsqueeze(-1), upper=False).squeeze(-1)
+    logdet = 2.0 * torch.log(torch.diagonal(C, dim1=-2, dim2=-1)).sum(-1)
+    return 0.5 * ((z * z).sum(-1) + logdet + obs.sum(-1) * math.log(2.0 * math.pi))
+
+
+def flat_values(values: Mapping[str, Tensor]) -> dict[str, float]:
+    """Scalars as they are; R and (without named scalars) Qc by their diagonals (``R[0]``, ...)."""
+    out: dict[str, float] = {}
+    has_scalars = any(v.dim() == 0 for v in values.values())
+    for name, v in values.items():
+        if name == "Qc" and has_scalars:  # Qc is a function of the named scalars
+            continue
+        v = v.detach().to(torch.float64)
+        if v.dim() == 0:
+            out[name] = float(v)
+        elif name in ("R", "Qc") and v.dim() == 2:
+            out.update({f"{name}[{i}]": float(x) for i, x in enumerate(torch.diagonal(v))})
+    return out
+
+
+def parameter_table(module: Any, truth: dict[str, Any] | None) -> list[dict[str, Any]]:
+    """Rows {"name", "true", "learned", "rel_error"} for every learned quantity.
+
+    Named scalars and the diagonal of R are listed by value; the matrix errors (``expmF``:
+    max over dt of ‖expm(F dt) − expm(F* dt)‖/‖expm(F* dt)‖; ``autocov``: the observed
+    autocovariance, for a free F the data do not determine entrywise; ``Qc``, ``R``) by error only.
+    """
+    errors = module.parameter_errors()
+    kf = module.kf
+    learned = learned_values(kf.sde, kf.R, module.param_names)
+    true: dict[str, Any] = {}
+    if truth:
+        paired = same_model(kf.sde, truth["sde"])
+        true = learned_values(truth["sde"], truth.get("R"), module.param_names if paired else [])
+        if not paired:
+            true = {k: v for k, v in true.items() if k == "R"}
+    rows: list[dict[str, Any]] = []
+    for name, value in learned.items():
+        if value.dim() == 0:
+            t = float(true[name]) if name in true else math.nan
+            rows.append({"name": name, "true": t, "learned": float(value), "rel_error": errors.get(name, math.nan)})
+    if "R" in errors and "R" in true:
+        for i, (a, b) in enumerate(zip(torch.diagonal(learned["R"]), torch.diagonal(true["R"]))):
+            err = abs(float(a) - float(b)) / abs(float(b)) if float(b) != 0 else math.nan
+            rows.append({"name": f"R[{i},{i}]", "true": float(b), "learned": float(a), "rel_error": err})
+    for name in ("expmF", "autocov", "Qc", "R"):
+        if name in errors:
+            rows.append({"name": f"{name} (matrix)", "true": math.nan, "learned": math.nan, "rel_error": errors[name]})
+    return rows
+
+
+def format_table(rows: list[dict[str, Any]]) -> str:
+    """Markdown table of :func:`parameter_table` rows."""
+    lines = ["| parameter | true | learned | rel. error |", "|---|---:|---:|---:|"]
+    for r in rows:
+        t = "" if math.isnan(r["true"]) else f"{r['true']:.4g}"
+        v = "" if math.isnan(r["learned"]) else f"{r['learned']:.4g}"
+        lines.append(f"| {r['name']} | {t} | {v} | {100 * r['rel_error']:.2f} % |")
+    return "\n".join(lines)
