@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchsde_lti import models
-from torchsde_lti.data import isotropic_covariance, simulate_tracks
+from torchsde_lti.data import TrackBatch, isotropic_covariance, simulate_tracks
 from torchsde_lti.training.module import KalmanFilterModule
 
 
@@ -38,8 +38,8 @@ def _nan_batch_module(skip: bool) -> tuple[KalmanFilterModule, list]:
     tr = simulate_tracks(sde, H, isotropic_covariance(0.4, 1), 4, 10, seed=1)
     bad_y = tr.y.clone()
     bad_y[0, 3, 0] = 1e200  # finite, but its squared residual overflows: loss and gradients non-finite
-    good = {"y": tr.y, "dt": tr.dt}
-    return module, [good, {"y": bad_y, "dt": tr.dt}, good]
+    good = TrackBatch(y=tr.y, dt=tr.dt, mask=tr.mask, lengths=tr.lengths)
+    return module, [good, good._replace(y=bad_y), good]
 
 
 def test_nonfinite_step_is_skipped_and_counted(tmp_path: Path) -> None:
