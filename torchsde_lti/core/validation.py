@@ -130,7 +130,13 @@ def check_symmetric_psd(x: Tensor, name: str) -> None:
             raise ValueError(
                 f"{name} must be symmetric, got relative asymmetry {float(asym.max()):.3g} (shape {shape_str(x)})"
             )
-        eig_min = torch.linalg.eigvalsh(0.5 * (x + x.mT)).amin(dim=-1) / scale
+        xs = 0.5 * (x + x.mT)
+        # Cheap sufficient test first: a Cholesky factor of xs + tol·scale·I exists iff
+        # λ_min(xs) > −tol·scale (up to rounding far below tol); eigvalsh only when it fails.
+        shifted = xs + (tol * scale)[..., None, None] * torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
+        if not bool(torch.linalg.cholesky_ex(shifted).info.any()):
+            return
+        eig_min = torch.linalg.eigvalsh(xs).amin(dim=-1) / scale
         if bool((eig_min < -tol).any()):
             raise ValueError(
                 f"{name} must be positive semi-definite, got smallest eigenvalue "
