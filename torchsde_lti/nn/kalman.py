@@ -45,9 +45,10 @@ from torchsde_lti.core.validation import as_float_tensor, check_finite, check_ma
 from torchsde_lti.filters import (
     FilterResult,
     SmootherResult,
+    chunked_kalman_filter,
     kalman_filter,
-    parallel_kalman_filter,
     parallel_rts_smoother,
+    prefers_scan,
     rts_smoother,
 )
 from torchsde_lti.nn.parametrizations import PositiveDefinite
@@ -84,9 +85,12 @@ class KalmanFilter(nn.Module):
         P0: optional (..., n, n) prior covariance (default: stationary P∞ if F is Hurwitz,
             else ``diffuse_variance · I``).
         learn: which of ``"H", "R", "m0", "P0"`` are ``nn.Parameter`` (default ``("R",)``).
-        parallel: use the associative-scan filter/smoother (O(log T) depth). On CPU it pays
-            off only for a few tracks (per-step Python overhead dominates the loop there);
-            from ~100 tracks on the sequential loop is faster (experiments/bench_filter.py).
+        parallel: ``None`` (default) chooses per call (:func:`~torchsde_lti.filters.prefers_scan`):
+            on CPU the associative scan (O(log T) depth, in memory-bounded time chunks,
+            :func:`~torchsde_lti.filters.chunked_kalman_filter`) for at most
+            ``SCAN_MAX_BATCH_CPU`` = 16 tracks, where per-step Python overhead dominates the
+            loop, else the sequential loop; on other devices the scan. ``True`` / ``False``
+            force the scan / the loop (experiments/bench_filter_choice.py).
         diffuse_variance: variance of the broad default prior for non-Hurwitz F.
         unique_dt: discretise only the distinct values of dt (``torch.unique``) and gather
             the per-step matrices; same values and gradients as the plain path. Pays off
@@ -117,7 +121,7 @@ class KalmanFilter(nn.Module):
         m0: Tensor | None = None,
         P0: Tensor | None = None,
         learn: Iterable[str] | str = ("R",),
-        parallel: bool = False,
+        parallel: bool | None = None,
         diffuse_variance: float = 1e4,
         unique_dt: bool = False,
         square_root: bool = False,
@@ -133,7 +137,7 @@ class KalmanFilter(nn.Module):
             raise TypeError(f"sde must be an LTISDE, got {type(sde).__name__}")
         names = parse_learn(learn, _LEARNABLE)
         self.sde = sde
-        self.parallel = bool(parallel)
+        self.parallel = None if parallel is None else bool(parallel)
         self.diffuse_variance = float(diffuse_variance)
         dtype, device = sde.dtype, sde.device
         n = sde.state_dim
@@ -280,24 +284,37 @@ class KalmanFilter(nn.Module):
         m0, P0 = self._prior(mats)
         H, R = self.H, self.R
         self._check_parameters(mats, H=H, R=R, m0=m0, P0=P0)
-        fn = parallel_kalman_filter if self.parallel else kalman_filter
         # A batch of observation models (..., m, n) is constant over time: insert the T axis.
         H = H.unsqueeze(-3) if H.dim() > 2 else H
         R = R.unsqueeze(-3) if R.dim() > 2 else R
         # Matrices are valid by construction (parametrisations, PSD doubling): no value checks.
+        scan = self.uses_scan(y.shape[:-2], dt.shape[:-1], y.shape[-2], y.device)
         with validation(False):
-            d = self._discretize(dt, mats)  # one batched discretisation: A, Q (..., T, n, n)
+            d = self._discretize(dt, mats, scan)  # one batched discretisation: A, Q (..., T, n, n)
             G = d.G if u is not None else None
             if self.square_root:
                 return kalman_filter(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, square_root=True)
+            fn = chunked_kalman_filter if scan else kalman_filter
             return fn(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask)
+
+    def uses_scan(self, *batch_shapes_T_device: object) -> bool:
+        """Whether a call with these batch shapes, T and device runs the associative scan:
+        ``uses_scan(y_batch, dt_batch, T, device)``; :attr:`parallel` when set, else
+        :func:`~torchsde_lti.filters.prefers_scan` (never with ``square_root``)."""
+        *shapes, T, device = batch_shapes_T_device
+        if self.square_root:
+            return False
+        if self.parallel is not None:
+            return self.parallel
+        batch = torch.broadcast_shapes(*(tuple(s) for s in shapes))  # type: ignore[arg-type]
+        return prefers_scan(batch.numel(), int(T), device)  # type: ignore[arg-type]
 
     @property
     def discretization_method(self) -> str:
         """The method used for every step: :attr:`method`, else the SDE's."""
         return self.method or self.sde.method
 
-    def _discretize(self, dt: Tensor, mats: SDEMatrices | None = None) -> Discrete:
+    def _discretize(self, dt: Tensor, mats: SDEMatrices | None = None, scan: bool | None = None) -> Discrete:
         """All steps' (A, Q, G) in one batched call, laid out for the sequential filter.
 
         For one parameter set the doubling method returns batch-first views of batch-last
@@ -308,7 +325,9 @@ class KalmanFilter(nn.Module):
             mats = self.sde.matrices()
         # a length-1 time axis in the matrices lines a parameter batch up with dt (..., T)
         m = SDEMatrices(*(None if x is None else x.unsqueeze(-3) for x in mats))
-        if self.parallel and not self.unique_dt:  # the scan wants plain batch-first tensors
+        if scan is None:
+            scan = bool(self.parallel)
+        if scan and not self.unique_dt:  # the scan wants plain batch-first tensors
             return discretize(m.F, m.L, m.Qc, dt, B=m.B, method=self.discretization_method)
         return discretize_series(
             m.F, m.L, m.Qc, dt, m.B, method=self.discretization_method, unique=self.unique_dt
@@ -316,7 +335,8 @@ class KalmanFilter(nn.Module):
 
     def smooth(self, out: FilterResult) -> SmootherResult:
         """RTS smoother over the filter output (uses the A_k, Q_k stored in ``out``)."""
-        return parallel_rts_smoother(out) if self.parallel else rts_smoother(out)
+        scan = self.uses_scan(out.mean.shape[:-2], out.mean.shape[-2], out.mean.device)
+        return parallel_rts_smoother(out) if scan else rts_smoother(out)
 
     def forecast(
         self,
