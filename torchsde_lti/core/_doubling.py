@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import bl_matmul
-from torchsde_lti.core.validation import broadcast_batch
+from torchsde_lti.core.validation import broadcast_batch, tracing
 
 __all__ = ["doubling"]
 
@@ -493,6 +493,83 @@ def _doubling_per_element(
     )
 
 
+
+# ----------------------------------------------------------------------------------------
+# Traced (torch.compile / torch.export): no data-dependent control flow
+# ----------------------------------------------------------------------------------------
+
+#: Halvings the traced path can take: covers ν dt ≤ θ · 2^32 (beyond it the result is that
+#: of dt = θ 2^32 / ν; far outside any physical model, where A and Q have long converged).
+_TRACED_MAX_HALVINGS = 32
+
+
+def _doubling_traced(
+    F: Tensor,
+    W: Tensor | None,
+    B: Tensor | None,
+    dt: Tensor,
+    batch: torch.Size,
+    batch_last: bool,
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """:func:`_doubling_per_element` without value-dependent control flow, for tracing.
+
+    Same sub-step series (all K_max terms) and the same doubling recursion, but every
+    element runs :data:`_TRACED_MAX_HALVINGS` masked doubling steps (``torch.where`` keeps
+    the elements whose own s_i halvings are done), and the E → A switch is a mask too. The
+    values equal the eager path's up to rounding; the graph has a static size.
+    """
+    n = F.shape[-1]
+    p = 0 if B is None else B.shape[-1]
+    N = batch.numel()
+    dtype, device = F.dtype, F.device
+    lo = _Layout(batch_first=True)
+    Fb = F.expand(*batch, n, n).reshape(N, n, n)
+    dtf = dt.expand(batch).reshape(N)
+    theta = _THETA_ELEMENT
+    K_max = len(_element_thresholds(dtype, theta))
+    with torch.no_grad():
+        x_full = torch.nan_to_num(_operator_norm_bound(Fb) * dtf, nan=0.0, posinf=0.0)
+        halvings = torch.ceil(torch.log2((x_full / theta).clamp_min(1.0))).clamp_max(_TRACED_MAX_HALVINGS)
+    h = dtf * torch.exp2(-halvings)
+    hc = h[:, None, None]
+    M = Fb * hc
+    eye = torch.eye(n, dtype=dtype, device=device)
+    Y = eye.expand(N, n, n)
+    Z = None if W is None else W.expand(*batch, n, n).reshape(N, n, n)
+    W_f = Z
+    for k in range(K_max, 0, -1):
+        Y = torch.baddbmm(eye.expand(N, n, n), M, Y * (1.0 / (k + 1)))
+        if Z is not None and W_f is not None:
+            FZ = M @ (Z * (1.0 / (k + 1)))
+            Z = W_f + FZ + FZ.mT
+    X = M @ Y  # E = A − I
+    Q = None if Z is None else Z * hc
+    G = None if B is None else (Y @ B.expand(*batch, n, p).reshape(N, n, p)) * hc
+    near = torch.ones(N, 1, 1, dtype=torch.bool, device=device)
+    A = X + eye
+    for j in range(_TRACED_MAX_HALVINGS):
+        active = (halvings > j)[:, None, None]
+        if j:
+            switch = near & (_operator_norm_bound(A) < 0.5)[:, None, None]
+            X = torch.where(switch, A, X)
+            near = near & ~switch
+        if Q is not None:
+            Q = torch.where(active, A @ Q @ A.mT + Q, Q)
+        if G is not None:
+            G = torch.where(active, torch.baddbmm(G, A, G), G)
+        X_new = torch.where(near, torch.baddbmm(X, X, A), A @ A)
+        X = torch.where(active, X_new, X)
+        A = torch.where(near, X + eye, X)
+    if Q is not None:
+        Q = torch.lerp(Q, Q.mT, 0.5)
+
+    def convert(x: Tensor) -> Tensor:
+        x = x.reshape(*batch, *x.shape[1:])
+        return x.movedim((-2, -1), (0, 1)) if batch_last else x
+
+    return convert(A), None if Q is None else convert(Q), None if G is None else convert(G)
+
+
 def doubling(
     F: Tensor,
     W: Tensor | None,
@@ -511,6 +588,8 @@ def doubling(
     rows of N) and sorted by s, so doubling step j only touches the elements with s > j.
     """
     dtype = F.dtype
+    if tracing():
+        return _doubling_traced(F, W, B, dt, batch, batch_last)
     param_batch = broadcast_batch(
         [("F", F.shape[:-2])]
         + ([("W", W.shape[:-2])] if W is not None else [])

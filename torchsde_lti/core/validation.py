@@ -21,9 +21,16 @@ from torchsde_lti.core.linalg import sym
 _VALUE_CHECKS_ENABLED = True
 
 
+def tracing() -> bool:
+    """Whether torch.compile / torch.export is tracing the call (values are symbolic then:
+    no data-dependent branch may run)."""
+    return torch.compiler.is_compiling() or torch.compiler.is_exporting()
+
+
 def value_checks_enabled() -> bool:
-    """Whether value checks (finite, non-negative, PSD) run; shape checks always run."""
-    return _VALUE_CHECKS_ENABLED
+    """Whether value checks (finite, non-negative, PSD) run; shape checks always run.
+    Off while :func:`tracing` (torch.compile / torch.export), which cannot branch on values."""
+    return _VALUE_CHECKS_ENABLED and not tracing()
 
 
 @contextlib.contextmanager

@@ -41,7 +41,15 @@ from torchsde_lti.core.discretization import Discrete, discretize, discretize_se
 from torchsde_lti.core.linalg import matvec, sym
 from torchsde_lti.core.moments import predict_moments
 from torchsde_lti.core.stationary import stationary_covariance
-from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str, validation
+from torchsde_lti.core.validation import (
+    as_float_tensor,
+    check_finite,
+    check_matrix,
+    parse_learn,
+    shape_str,
+    validation,
+    value_checks_enabled,
+)
 from torchsde_lti.filters import (
     FilterResult,
     SmootherResult,
@@ -231,14 +239,14 @@ class KalmanFilter(nn.Module):
                 f"y has {y.shape[-1]} components (shape {shape_str(y)}) but H has {m} rows "
                 f"(shape {shape_str(self.H)})"
             )
-        if bool(torch.isinf(y).any()):
+        if value_checks_enabled() and bool(torch.isinf(y).any()):
             raise ValueError(f"y contains Inf (shape {shape_str(y)}); mark missing values with NaN or mask")
         T = y.shape[-2]
         dt = as_float_tensor(dt, "dt", dtype, device)
         if dt.dim() < 1 or dt.shape[-1] != T:
             raise ValueError(f"dt must have shape (..., T={T}) to match y {shape_str(y)}, got shape {shape_str(dt)}")
         check_finite(dt, "dt")
-        if bool((dt < 0).any()):
+        if value_checks_enabled() and bool((dt < 0).any()):
             raise ValueError(f"dt must be non-negative, got min {float(dt.min()):.3g} (shape {shape_str(dt)})")
         if u is not None:
             if p == 0:
@@ -367,7 +375,7 @@ class KalmanFilter(nn.Module):
         if dt.dim() == 0:
             dt = dt.reshape(1)
         check_finite(dt, "dt")
-        if bool((dt < 0).any()):
+        if value_checks_enabled() and bool((dt < 0).any()):
             raise ValueError(f"dt must be non-negative, got min {float(dt.min()):.3g} (shape {shape_str(dt)})")
         n = self.state_dim
         if mean.shape[-1] != n or cov.shape[-2:] != (n, n):
