@@ -522,7 +522,7 @@ def _doubling_traced(
     p = 0 if B is None else B.shape[-1]
     N = batch.numel()
     dtype, device = F.dtype, F.device
-    lo = _Layout(batch_first=True)
+    lo = _Layout(batch_first=n > _BATCH_LAST_MAX_N or N <= _BATCH_LAST_MIN_BATCH)
     Fb = F.expand(*batch, n, n).reshape(N, n, n)
     dtf = dt.expand(batch).reshape(N)
     theta = _THETA_ELEMENT
@@ -530,40 +530,76 @@ def _doubling_traced(
     with torch.no_grad():
         x_full = torch.nan_to_num(_operator_norm_bound(Fb) * dtf, nan=0.0, posinf=0.0)
         halvings = torch.ceil(torch.log2((x_full / theta).clamp_min(1.0))).clamp_max(_TRACED_MAX_HALVINGS)
+
+    def layout(x: Tensor, cols: int) -> Tensor:  # (..., n, c) -> (N, n, c) or (n, c, N)
+        x = x.expand(*batch, n, cols).reshape(N, n, cols)
+        return x if lo.batch_first else x.permute(1, 2, 0).contiguous()
+
     h = dtf * torch.exp2(-halvings)
-    hc = h[:, None, None]
-    M = Fb * hc
-    eye = torch.eye(n, dtype=dtype, device=device)
-    Y = eye.expand(N, n, n)
-    Z = None if W is None else W.expand(*batch, n, n).reshape(N, n, n)
-    W_f = Z
+    hc = lo.col(h)
+    M = layout(F, n) * hc
+    eye = lo.eye(n, M)
+    Y = lo.expand_eye(eye, N)
+    W_l = None if W is None else layout(W, n)
+    Z = W_l
     for k in range(K_max, 0, -1):
-        Y = torch.baddbmm(eye.expand(N, n, n), M, Y * (1.0 / (k + 1)))
-        if Z is not None and W_f is not None:
-            FZ = M @ (Z * (1.0 / (k + 1)))
-            Z = W_f + FZ + FZ.mT
-    X = M @ Y  # E = A − I
+        Y = lo.mm(M, Y * (1.0 / (k + 1)), eye)
+        if Z is not None and W_l is not None:
+            FZ = lo.mm(M, Z * (1.0 / (k + 1)))
+            Z = W_l + FZ + lo.t(FZ)
+    X = lo.mm(M, Y)  # E = A − I
     Q = None if Z is None else Z * hc
-    G = None if B is None else (Y @ B.expand(*batch, n, p).reshape(N, n, p)) * hc
-    near = torch.ones(N, 1, 1, dtype=torch.bool, device=device)
+    G = None if B is None else lo.mm(Y, layout(B, p)) * hc
+    near = lo.col(torch.ones(N, dtype=torch.bool, device=device))
     A = X + eye
-    for j in range(_TRACED_MAX_HALVINGS):
-        active = (halvings > j)[:, None, None]
-        if j:
-            switch = near & (_operator_norm_bound(A) < 0.5)[:, None, None]
-            X = torch.where(switch, A, X)
-            near = near & ~switch
+
+    def double(j: Tensor | int, A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, near: Tensor):
+        """Doubling step j (masked to the elements with s_i > j)."""
+        active = lo.col(halvings > j)
+        switch = near & lo.col(lo.norm_bound(A) < 0.5) & (j > 0 if isinstance(j, int) else (j > 0).reshape(()))
+        X = torch.where(switch, A, X)
+        near = near & ~switch
         if Q is not None:
-            Q = torch.where(active, A @ Q @ A.mT + Q, Q)
+            Q = torch.where(active, lo.mm(lo.mm(A, Q), lo.t(A), Q), Q)
         if G is not None:
-            G = torch.where(active, torch.baddbmm(G, A, G), G)
-        X_new = torch.where(near, torch.baddbmm(X, X, A), A @ A)
+            G = torch.where(active, lo.mm(A, G, G), G)
+        X_new = torch.where(near, lo.mm(X, A, X), lo.mm(A, A))
         X = torch.where(active, X_new, X)
         A = torch.where(near, X + eye, X)
+        return A, X, Q, G, near
+
+    if torch.compiler.is_exporting():
+        # the exported program loops max_i s_i times (torch's structured while_loop), not
+        # _TRACED_MAX_HALVINGS times
+        from torch._higher_order_ops import while_loop
+
+        has_q, has_g = Q is not None, G is not None
+        steps = halvings.max().to(torch.int64).reshape(())
+
+        def cond(j: Tensor, *rest: Tensor) -> Tensor:
+            return j < steps
+
+        def body(j: Tensor, A: Tensor, X: Tensor, near: Tensor, *qg: Tensor):
+            q = qg[0] if has_q else None
+            g = qg[-1] if has_g else None
+            A, X, q, g, near = double(j, A, X, q, g, near)
+            return (j + 1, A, X, near, *(t for t in (q, g) if t is not None))
+
+        init = (torch.zeros((), dtype=torch.int64, device=device), A, X, near,
+                *(t for t in (Q, G) if t is not None))
+        out = while_loop(cond, body, init)
+        A, X = out[1], out[2]
+        Q = out[4] if has_q else None
+        G = out[-1] if has_g else None
+    else:
+        for j in range(_TRACED_MAX_HALVINGS):
+            A, X, Q, G, near = double(j, A, X, Q, G, near)
     if Q is not None:
-        Q = torch.lerp(Q, Q.mT, 0.5)
+        Q = torch.lerp(Q, lo.t(Q), 0.5)
 
     def convert(x: Tensor) -> Tensor:
+        if not lo.batch_first:
+            return x.reshape(*x.shape[:2], *batch) if batch_last else x.permute(2, 0, 1).reshape(*batch, *x.shape[:2])
         x = x.reshape(*batch, *x.shape[1:])
         return x.movedim((-2, -1), (0, 1)) if batch_last else x
 
