@@ -96,10 +96,11 @@ def test_exported_filter_runs_without_lightning_or_hydra(tmp_path):
     torch.testing.assert_close(got, expected, rtol=0, atol=1e-10)
 
 
-@pytest.mark.parametrize("dtype,rtol", [(torch.float64, 1e-11), (torch.float32, 1e-4)])
+@pytest.mark.parametrize("dtype,rtol", [(torch.float64, 1e-11), (torch.float32, 5e-4)])
 def test_traced_doubling_equals_eager(dtype, rtol):
     """The traced discretisation (static graph: all series terms, masked doublings) equals
-    the eager one, for per-element F, a shared F and an input matrix, dt over 6 decades."""
+    the eager one, for per-element F, a shared F and an input matrix, dt over 6 decades
+    (relative to each matrix: float32 A decayed to 1e-16 after ~10 doublings differs by 1e-4)."""
     from torchsde_lti.core._doubling import _doubling_traced, doubling
     from torchsde_lti.core.validation import sde_inputs
 
