@@ -126,7 +126,11 @@ class _Layout:
         return x.shape[self.dim]
 
     def head(self, x: Tensor, c: int) -> Tensor:
-        return x[:c] if self.batch_first else x[..., :c]
+        return self.part(x, 0, c)
+
+    def part(self, x: Tensor, start: int, stop: int) -> Tensor:
+        """Elements start … stop − 1 of the batch."""
+        return x[start:stop] if self.batch_first else x[..., start:stop]
 
     def split(self, x: Tensor, c: int) -> tuple[Tensor, Tensor]:
         a, b = x.split([c, x.shape[self.dim] - c], self.dim)
@@ -234,6 +238,18 @@ def _unsort_batch_last(x: Tensor, order: Tensor | None, batch: torch.Size) -> Te
     if order is not None:  # out[..., order[i]] = x[..., i]
         x = torch.empty(x.shape, dtype=x.dtype, device=x.device).index_copy_(-1, order, x)
     return x.reshape(*x.shape[:2], *batch)
+
+
+def _unsort_from_batch_first(x: Tensor, order: Tensor | None, batch: torch.Size) -> Tensor:
+    """Batch-first (N, r, c) whose row i belongs to element order[i] -> (*batch, r, c)."""
+    if order is not None:  # out[order[i]] = x[i]
+        x = torch.empty(x.shape, dtype=x.dtype, device=x.device).index_copy_(0, order, x)
+    return x.reshape(*batch, *x.shape[1:])
+
+
+def _unsort_from_batch_first_last(x: Tensor, order: Tensor | None, batch: torch.Size) -> Tensor:
+    """Batch-first (N, r, c), sorted by ``order`` -> (r, c, *batch)."""
+    return _unsort_from_batch_first(x, order, batch).movedim((-2, -1), (0, 1))
 
 
 def _symmetric_index(n: int, device: torch.device) -> tuple[Tensor, Tensor]:
@@ -450,7 +466,7 @@ def _doubling_per_element(
             grow = lo.expand_eye(eye, c - active)
             Y = grow if Y is None else lo.cat([Y, grow])
             if W_s is not None:
-                Z = lo.head(W_s, c) if Z is None else lo.cat([Z, lo.head(W_s, c)[active:] if lo.batch_first else W_s[..., active:c]])
+                Z = lo.head(W_s, c) if Z is None else lo.cat([Z, lo.part(W_s, active, c)])
             active = c
         assert Y is not None
         Mc = lo.head(M, c) if c < N else M
@@ -462,8 +478,7 @@ def _doubling_per_element(
         grow = lo.expand_eye(eye, N - active)
         Y = grow if Y is None else lo.cat([Y, grow])
         if W_s is not None:
-            rest = W_s[active:] if lo.batch_first else W_s[..., active:]
-            Z = W_s if Z is None else lo.cat([Z, rest])
+            Z = W_s if Z is None else lo.cat([Z, lo.part(W_s, active, N)])
     assert Y is not None
     X = lo.mm(M, Y)  # E = A − I
     Q = None if Z is None else Z * hc
@@ -475,17 +490,9 @@ def _doubling_per_element(
     if Q is not None:
         Q = torch.lerp(Q, lo.t(Q), 0.5)  # symmetrise
     if lo.batch_first:
-        def convert(x: Tensor, order: Tensor | None, batch: torch.Size) -> Tensor:
-            if order is not None:
-                x = torch.empty(x.shape, dtype=x.dtype, device=x.device).index_copy_(0, order, x)
-            x = x.reshape(*batch, *x.shape[1:])
-            return x.movedim((-2, -1), (0, 1)) if batch_last else x
-        return (
-            convert(A, order, batch),
-            None if Q is None else convert(Q, order, batch),
-            None if G is None else convert(G, order, batch),
-        )
-    convert = _unsort_batch_last if batch_last else _unsort_batch_first
+        convert = _unsort_from_batch_first_last if batch_last else _unsort_from_batch_first
+    else:
+        convert = _unsort_batch_last if batch_last else _unsort_batch_first
     return (
         convert(A, order, batch),
         None if Q is None else convert(Q, order, batch),
