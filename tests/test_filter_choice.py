@@ -77,3 +77,19 @@ def test_kalman_filter_auto_choice_and_forcing():
                 np.testing.assert_allclose(a.cov.detach().numpy(), b.cov.detach().numpy(), atol=1e-9)
     sq = tl.KalmanFilter(cv, H, R, square_root=True)
     assert not sq.uses_scan((1,), (1,), 200, torch.device("cpu"))
+
+
+def test_auto_choice_gradients_equal_loop():
+    """Training through the automatic choice (the scan for few tracks) gives the loop's gradients."""
+    g = torch.Generator().manual_seed(3)
+    y = torch.randn(2, 30, 1, generator=g, dtype=F64).cumsum(1)
+    dt = torch.rand(2, 30, generator=g, dtype=F64) + 0.05
+    grads = []
+    for parallel in (None, False):
+        sde = tl.models.ornstein_uhlenbeck(0.8, 0.5, dtype=F64)  # learnable θ, q (stationary prior)
+        kf = tl.KalmanFilter(sde, torch.tensor([[1.0]], dtype=F64), torch.tensor([[0.2]], dtype=F64), parallel=parallel)
+        (-kf(y, dt).log_likelihood.sum()).backward()
+        grads.append([p.grad.clone() for p in kf.parameters() if p.grad is not None])
+    assert grads[0] and len(grads[0]) == len(grads[1])
+    for a, b in zip(*grads):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-10)
