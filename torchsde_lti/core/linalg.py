@@ -122,7 +122,9 @@ def matvec(M: Tensor, v: Tensor) -> Tensor:
 # of 4×4 … 16×16 matrices, whose per-matrix overhead dominates); beyond it, and for tiny
 # batches, the product goes through torch.matmul.
 _CHAIN_MAX_N = 16
-# For tiny batches the per-call overhead of the autograd.Function outweighs its gain.
+# For tiny batches the per-call overhead of the autograd.Function outweighs its gain, and
+# the broadcast-and-sum ``vecdot`` (one kernel, no copies) beats ``bmm`` on permuted views
+# (measured, float64, 1 thread: n = 4, N = 100: 14 vs 19 µs; n = 8, N = 100: 37 vs 363 µs).
 _CHAIN_MIN_BATCH = 256
 
 
@@ -175,10 +177,11 @@ def bl_matmul(a: Tensor, b: Tensor, c: Tensor | None = None) -> Tensor:
     views; otherwise a broadcast-and-sum ``vecdot`` that keeps the batch innermost.
     """
     if a.dim() == 3 and b.dim() == 3 and a.shape[-1] == b.shape[-1]:
-        if a.shape[1] > _CHAIN_MAX_N or a.shape[-1] <= _CHAIN_MIN_BATCH:
+        if a.shape[1] > _CHAIN_MAX_N:
             out = (a.permute(2, 0, 1) @ b.permute(2, 0, 1)).permute(1, 2, 0)
             return out if c is None else out + c
-        return _FmaMatmul.apply(a, b, c)
+        if a.shape[-1] > _CHAIN_MIN_BATCH:
+            return _FmaMatmul.apply(a, b, c)
     out = torch.linalg.vecdot(a.unsqueeze(2), b.unsqueeze(0), dim=1)
     return out if c is None else out + c
 

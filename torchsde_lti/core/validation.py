@@ -21,9 +21,16 @@ from torchsde_lti.core.linalg import sym
 _VALUE_CHECKS_ENABLED = True
 
 
+def tracing() -> bool:
+    """Whether torch.compile / torch.export is tracing the call (values are symbolic then:
+    no data-dependent branch may run)."""
+    return torch.compiler.is_compiling() or torch.compiler.is_exporting()
+
+
 def value_checks_enabled() -> bool:
-    """Whether value checks (finite, non-negative, PSD) run; shape checks always run."""
-    return _VALUE_CHECKS_ENABLED
+    """Whether value checks (finite, non-negative, PSD) run; shape checks always run.
+    Off while :func:`tracing` (torch.compile / torch.export), which cannot branch on values."""
+    return _VALUE_CHECKS_ENABLED and not tracing()
 
 
 @contextlib.contextmanager
@@ -141,7 +148,13 @@ def check_symmetric_psd(x: Tensor, name: str) -> None:
             raise ValueError(
                 f"{name} must be symmetric, got relative asymmetry {float(asym.max()):.3g} (shape {shape_str(x)})"
             )
-        eig_min = torch.linalg.eigvalsh(0.5 * (x + x.mT)).amin(dim=-1) / scale
+        xs = 0.5 * (x + x.mT)
+        # Cheap sufficient test first: a Cholesky factor of xs + tol·scale·I exists iff
+        # λ_min(xs) > −tol·scale (up to rounding far below tol); eigvalsh only when it fails.
+        shifted = xs + (tol * scale)[..., None, None] * torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
+        if not bool(torch.linalg.cholesky_ex(shifted).info.any()):
+            return
+        eig_min = torch.linalg.eigvalsh(xs).amin(dim=-1) / scale
         if bool((eig_min < -tol).any()):
             raise ValueError(
                 f"{name} must be positive semi-definite, got smallest eigenvalue "

@@ -33,6 +33,7 @@ from torchsde_lti.core.validation import (
     check_matrix,
     check_symmetric_psd,
     shape_str,
+    tracing,
     value_checks_enabled,
 )
 from torchsde_lti.filters.results import FilterResult
@@ -196,7 +197,7 @@ def observed_components(y: Tensor, mask: Tensor | None) -> tuple[Tensor | None, 
     # Observed components: NaN in y or mask False.
     nan = torch.isnan(y)
     obs: Tensor | None = None
-    if bool(nan.any()):
+    if tracing() or bool(nan.any()):  # traced: always the masked path (same values)
         obs = ~nan
     if mask is not None:
         obs = mask if obs is None else (obs & mask)

@@ -46,8 +46,24 @@ from torchsde_lti.core.discretization import Discrete, discretize, discretize_se
 from torchsde_lti.core.linalg import matvec, sym
 from torchsde_lti.core.moments import predict_moments
 from torchsde_lti.core.stationary import stationary_covariance
-from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str, validation
-from torchsde_lti.filters import FilterResult, SmootherResult, kalman_filter, parallel_kalman_filter, parallel_rts_smoother, rts_smoother
+from torchsde_lti.core.validation import (
+    as_float_tensor,
+    check_finite,
+    check_matrix,
+    parse_learn,
+    shape_str,
+    validation,
+    value_checks_enabled,
+)
+from torchsde_lti.filters import (
+    FilterResult,
+    SmootherResult,
+    chunked_kalman_filter,
+    kalman_filter,
+    parallel_rts_smoother,
+    prefers_scan,
+    rts_smoother,
+)
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn.parametrizations import PositiveDefinite
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
@@ -89,9 +105,12 @@ class KalmanFilter(nn.Module):
         D: optional (..., m, p) feedthrough of the known inputs, ``y = H x + D u + r``
             (p = the SDE's input dimension when it has a B).
         learn: which of ``"H", "D", "R", "m0", "P0"`` are ``nn.Parameter`` (default ``("R",)``).
-        parallel: use the associative-scan filter/smoother (O(log T) depth). On CPU it pays
-            off only for a few tracks (per-step Python overhead dominates the loop there);
-            from ~100 tracks on the sequential loop is faster (experiments/bench_filter.py).
+        parallel: ``None`` (default) chooses per call (:func:`~torchsde_lti.filters.prefers_scan`):
+            on CPU the associative scan (O(log T) depth, in memory-bounded time chunks,
+            :func:`~torchsde_lti.filters.chunked_kalman_filter`) for at most
+            ``SCAN_MAX_BATCH_CPU`` = 16 tracks, where per-step Python overhead dominates the
+            loop, else the sequential loop; on other devices the scan. ``True`` / ``False``
+            force the scan / the loop (experiments/bench_filter_choice.py).
         diffuse_variance: variance of the broad default prior for non-Hurwitz F.
         unique_dt: discretise only the distinct values of dt (``torch.unique``) and gather
             the per-step matrices; same values and gradients as the plain path. Pays off
@@ -123,7 +142,7 @@ class KalmanFilter(nn.Module):
         P0: Tensor | str | None = None,
         D: Tensor | None = None,
         learn: Iterable[str] | str = ("R",),
-        parallel: bool = False,
+        parallel: bool | None = None,
         diffuse_variance: float = 1e4,
         unique_dt: bool = False,
         square_root: bool = False,
@@ -139,7 +158,7 @@ class KalmanFilter(nn.Module):
             raise TypeError(f"sde must be an LTISDE, got {type(sde).__name__}")
         names = parse_learn(learn, _LEARNABLE)
         self.sde = sde
-        self.parallel = bool(parallel)
+        self.parallel = None if parallel is None else bool(parallel)
         self.diffuse_variance = float(diffuse_variance)
         dtype, device = sde.dtype, sde.device
         n = sde.state_dim
@@ -265,14 +284,14 @@ class KalmanFilter(nn.Module):
                 f"y has {y.shape[-1]} components (shape {shape_str(y)}) but H has {m} rows "
                 f"(shape {shape_str(self.H)})"
             )
-        if bool(torch.isinf(y).any()):
+        if value_checks_enabled() and bool(torch.isinf(y).any()):
             raise ValueError(f"y contains Inf (shape {shape_str(y)}); mark missing values with NaN or mask")
         T = y.shape[-2]
         dt = as_float_tensor(dt, "dt", dtype, device)
         if dt.dim() < 1 or dt.shape[-1] != T:
             raise ValueError(f"dt must have shape (..., T={T}) to match y {shape_str(y)}, got shape {shape_str(dt)}")
         check_finite(dt, "dt")
-        if bool((dt < 0).any()):
+        if value_checks_enabled() and bool((dt < 0).any()):
             raise ValueError(f"dt must be non-negative, got min {float(dt.min()):.3g} (shape {shape_str(dt)})")
         if u is not None:
             if p == 0:
@@ -314,33 +333,67 @@ class KalmanFilter(nn.Module):
         Returns:
             :class:`~torchsde_lti.FilterResult` (mean, cov, pred_mean, pred_cov,
             innovation, innovation_cov, log_likelihood (...), step_log_likelihood (..., T), …).
+
+        Under ``torch.compile(kf)`` the call is not traced as one graph (T unrolled steps
+        take minutes to compile): the sequential loop runs as torch's structured scan with
+        ONE step compiled (``kalman_filter(..., compile_step=True)``: ≈ 5 s first call at
+        T = 200 and 2000, then 2.6× the eager loop at B = 1), the associative scan (the
+        automatic choice for few tracks on CPU) runs eagerly. ``torch.export`` traces the
+        call whole (value checks off), since an exported program is one graph.
         """
+        if torch.compiler.is_compiling() and not torch.compiler.is_exporting():
+            return self._forward_compiled_steps(y, dt, u, mask)
+        return self._forward(y, dt, u, mask, compile_step=False)
+
+    @torch.compiler.disable
+    def _forward_compiled_steps(
+        self, y: Tensor, dt: Tensor, u: Tensor | None, mask: Tensor | None
+    ) -> FilterResult:
+        return self._forward(y, dt, u, mask, compile_step=True)
+
+    def _forward(
+        self, y: Tensor, dt: Tensor, u: Tensor | None, mask: Tensor | None, compile_step: bool
+    ) -> FilterResult:
         mats = self.sde.matrices()  # each parametrisation evaluated once per call
         y, dt, u = self._check_inputs(y, dt, u, mats)  # dt checked (finite, ≥ 0) once, here
         m0, P0 = self._prior(mats)
         H, R = self.H, self.R
         D = self.D if u is not None else None  # no known input: D u = 0
         self._check_parameters(mats, H=H, R=R, m0=m0, P0=P0, **({} if D is None else {"D": D}))
-        fn = parallel_kalman_filter if self.parallel else kalman_filter
         # A batch of observation models (..., m, n) is constant over time: insert the T axis.
         H = H.unsqueeze(-3) if H.dim() > 2 else H
         R = R.unsqueeze(-3) if R.dim() > 2 else R
         if D is not None and D.dim() > 2:
             D = D.unsqueeze(-3)
         # Matrices are valid by construction (parametrisations, PSD doubling): no value checks.
+        scan = self.uses_scan(y.shape[:-2], dt.shape[:-1], y.shape[-2], y.device)
         with validation(False):
-            d = self._discretize(dt, mats)  # one batched discretisation: A, Q (..., T, n, n)
+            d = self._discretize(dt, mats, scan)  # one batched discretisation: A, Q (..., T, n, n)
             G = d.G if u is not None else None
             if self.square_root:
                 return kalman_filter(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, square_root=True, D=D)
-            return fn(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, D=D)
+            if scan:
+                return chunked_kalman_filter(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, D=D)
+            return kalman_filter(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, D=D, compile_step=compile_step)
+
+    def uses_scan(self, *batch_shapes_T_device: object) -> bool:
+        """Whether a call with these batch shapes, T and device runs the associative scan:
+        ``uses_scan(y_batch, dt_batch, T, device)``; :attr:`parallel` when set, else
+        :func:`~torchsde_lti.filters.prefers_scan` (never with ``square_root``)."""
+        *shapes, T, device = batch_shapes_T_device
+        if self.square_root:
+            return False
+        if self.parallel is not None:
+            return self.parallel
+        batch = torch.broadcast_shapes(*(tuple(s) for s in shapes))  # type: ignore[arg-type]
+        return prefers_scan(batch.numel(), int(T), device)  # type: ignore[arg-type]
 
     @property
     def discretization_method(self) -> str:
         """The method used for every step: :attr:`method`, else the SDE's."""
         return self.method or self.sde.method
 
-    def _discretize(self, dt: Tensor, mats: SDEMatrices | None = None) -> Discrete:
+    def _discretize(self, dt: Tensor, mats: SDEMatrices | None = None, scan: bool | None = None) -> Discrete:
         """All steps' (A, Q, G) in one batched call, laid out for the sequential filter.
 
         For one parameter set the doubling method returns batch-first views of batch-last
@@ -351,7 +404,9 @@ class KalmanFilter(nn.Module):
             mats = self.sde.matrices()
         # a length-1 time axis in the matrices lines a parameter batch up with dt (..., T)
         m = SDEMatrices(*(None if x is None else x.unsqueeze(-3) for x in mats))
-        if self.parallel and not self.unique_dt:  # the scan wants plain batch-first tensors
+        if scan is None:
+            scan = bool(self.parallel)
+        if scan and not self.unique_dt:  # the scan wants plain batch-first tensors
             return discretize(m.F, m.L, m.Qc, dt, B=m.B, method=self.discretization_method)
         return discretize_series(
             m.F, m.L, m.Qc, dt, m.B, method=self.discretization_method, unique=self.unique_dt
@@ -359,7 +414,8 @@ class KalmanFilter(nn.Module):
 
     def smooth(self, out: FilterResult) -> SmootherResult:
         """RTS smoother over the filter output (uses the A_k, Q_k stored in ``out``)."""
-        return parallel_rts_smoother(out) if self.parallel else rts_smoother(out)
+        scan = self.uses_scan(out.mean.shape[:-2], out.mean.shape[-2], out.mean.device)
+        return parallel_rts_smoother(out) if scan else rts_smoother(out)
 
     def forecast(
         self,
@@ -390,7 +446,7 @@ class KalmanFilter(nn.Module):
         if dt.dim() == 0:
             dt = dt.reshape(1)
         check_finite(dt, "dt")
-        if bool((dt < 0).any()):
+        if value_checks_enabled() and bool((dt < 0).any()):
             raise ValueError(f"dt must be non-negative, got min {float(dt.min()):.3g} (shape {shape_str(dt)})")
         n = self.state_dim
         if mean.shape[-1] != n or cov.shape[-2:] != (n, n):

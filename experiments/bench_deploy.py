@@ -1,0 +1,141 @@
+r"""Benchmark: deploying a trained KalmanFilter (issue 10, item 5) — torch.compile and
+torch.export, measured side by side with eager.
+
+Model: 2-D constant velocity (n = 4, m = 2) with R learned (a state_dict checkpoint is saved
+and loaded, as after training), irregular dt, float64, no grad.
+
+1. ``torch.compile(kf)``: wall time of the first call (compilation) and the median of the
+   following calls, for the default (``parallel=None``) and the forced loop
+   (``parallel=False``), at T = 200 and T = 2000, B = 1 — vs the same filter eager.
+2. checkpoint → ``torch.export.export`` → ``torch.export.save`` → ``torch.export.load`` →
+   run on new tracks of the exported shape: export / save / load times, the exported
+   program's run time vs eager, and the largest |difference| of log-likelihood and means.
+
+Shared machine (other sessions run): medians of repeats, noisy.
+
+    python experiments/bench_deploy.py [--threads 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+import torchsde_lti as tl
+
+F64 = torch.float64
+
+
+def make_filter(parallel: bool | None) -> tl.KalmanFilter:
+    cv = tl.models.constant_velocity(dim=2, q=1.0, dtype=F64)
+    H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=F64)
+    return tl.KalmanFilter(cv, H, 0.5 * torch.eye(2, dtype=F64), P0=100 * torch.eye(4, dtype=F64),
+                           learn=("R",), parallel=parallel)
+
+
+def data(B: int, T: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    dt = torch.rand(B, T, generator=g, dtype=F64) * 1.95 + 0.05
+    y = torch.randn(B, T, 2, generator=g, dtype=F64).cumsum(1)
+    return y, dt
+
+
+class Deployed(torch.nn.Module):
+    """The exported entry point: (log-likelihood (B,), filtered means (B, T, n))."""
+
+    def __init__(self, kf: tl.KalmanFilter) -> None:
+        super().__init__()
+        self.kf = kf
+
+    def forward(self, y: torch.Tensor, dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.kf(y, dt)
+        return out.log_likelihood, out.mean
+
+
+def median_ms(fn, repeats: int = 7) -> float:
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return statistics.median(ts) * 1e3
+
+
+def bench_compile() -> None:
+    print("\n### torch.compile(kf), B = 1: first call (compile) and steady state\n")
+    print("| T | parallel | first call (s) | compiled (ms) | eager (ms) | eager / compiled |")
+    print("|---|---|---|---|---|---|")
+    for T in (200, 2000):
+        y, dt = data(1, T, 0)
+        for parallel in (None, False):
+            torch._dynamo.reset()
+            kf = make_filter(parallel)
+            ck = torch.compile(kf)
+            with torch.no_grad():
+                t0 = time.perf_counter()
+                ck(y, dt)
+                first = time.perf_counter() - t0
+                t_c = median_ms(lambda: ck(y, dt))
+                t_e = median_ms(lambda: kf(y, dt))
+            print(f"| {T} | {parallel} | {first:.1f} | {t_c:.2f} | {t_e:.2f} | {t_e / t_c:.2f}× |", flush=True)
+
+
+def bench_export(B: int, T: int) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        ckpt, prog = Path(tmp) / "kf.ckpt", Path(tmp) / "kf.pt2"
+        trained = make_filter(None)
+        with torch.no_grad():
+            trained.R = torch.tensor([[0.4, 0.05], [0.05, 0.6]], dtype=F64)  # "learned"
+        torch.save(trained.state_dict(), ckpt)
+
+        kf = make_filter(None)  # deployment side: same architecture, weights from the checkpoint
+        kf.load_state_dict(torch.load(ckpt))
+        kf.eval()
+        example = data(B, T, 0)
+        t0 = time.perf_counter()
+        ep = torch.export.export(Deployed(kf), example)
+        t_export = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        torch.export.save(ep, prog)
+        t_save = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        run = torch.export.load(prog).module()
+        t_load = time.perf_counter() - t0
+
+        y, dt = data(B, T, 1)  # new tracks
+        with torch.no_grad():
+            ll, mean = run(y, dt)
+            ref = kf(y, dt)
+            t_prog = median_ms(lambda: run(y, dt))
+            t_eager = median_ms(lambda: kf(y, dt))
+        d_ll = float((ll - ref.log_likelihood).abs().max())
+        d_mean = float((mean - ref.mean).abs().max())
+        print(f"| {B} | {T} | {len(ep.graph.nodes)} | {t_export:.1f} | {t_save:.2f} | {t_load:.2f} | "
+              f"{t_prog:.2f} | {t_eager:.2f} | {t_eager / t_prog:.2f}× | {d_ll:.1e} / {d_mean:.1e} |", flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    print(f"# deploy benchmark (torch {torch.__version__}, {args.threads} thread(s), load "
+          f"{os.getloadavg()[0]:.2f}; shared machine, noisy: medians)")
+    bench_compile()
+    print("\n### checkpoint → torch.export → save → load → run (float64, no grad)\n")
+    print("| B | T | graph nodes | export (s) | save (s) | load (s) | exported run (ms) | eager (ms) | "
+          "eager / exported | max |Δ| ll / means |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for B, T in ((1, 200), (100, 200)):
+        bench_export(B, T)
+    print(f"\nload at end {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
