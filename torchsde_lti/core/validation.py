@@ -148,7 +148,7 @@ def check_symmetric_psd(x: Tensor, name: str) -> None:
             raise ValueError(
                 f"{name} must be symmetric, got relative asymmetry {float(asym.max()):.3g} (shape {shape_str(x)})"
             )
-        xs = 0.5 * (x + x.mT)
+        xs = sym(x)
         # Cheap sufficient test first: a Cholesky factor of xs + tol·scale·I exists iff
         # λ_min(xs) > −tol·scale (up to rounding far below tol); eigvalsh only when it fails.
         shifted = xs + (tol * scale)[..., None, None] * torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)

@@ -26,6 +26,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.validation import check_symmetric_psd
 from torchsde_lti.data.tracks import TrackBatch
 
@@ -122,7 +123,7 @@ def selection_matrix(indices: Sequence[int], n: int) -> Tensor:
 
 def _psd_sqrt(S: Tensor) -> Tensor:
     """A square root ``W`` with ``W Wᵀ = S`` for symmetric PSD, possibly singular ``S`` (..., k, k)."""
-    w, V = torch.linalg.eigh(0.5 * (S + S.mT))
+    w, V = torch.linalg.eigh(sym(S))
     return V * w.clamp_min(0.0).sqrt().unsqueeze(-2)
 
 

@@ -38,6 +38,7 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
+from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, shape_str
 
 __all__ = [
@@ -136,11 +137,6 @@ class Positive(_Parametrization):
         return softplus_inverse((v - floor).clamp_min(torch.finfo(v.dtype).tiny))
 
 
-def _sym(x: Tensor) -> Tensor:
-    """``(X + Xᵀ) / 2`` over the last two dims (the lead's core ``sym`` kernel replaces this)."""
-    return 0.5 * (x + x.mT)
-
-
 def _cholesky_factor(raw: Tensor, floor: float) -> Tensor:
     """Lower-triangular factor with strictly positive diagonal from an unconstrained (..., n, n)."""
     diag = softplus(torch.diagonal(raw, dim1=-2, dim2=-1)) + floor
@@ -155,7 +151,7 @@ def _cholesky_raw(value: Tensor, floor: float, name: str) -> Tensor:
     tol = 100.0 * value.shape[-1] * torch.finfo(value.dtype).eps
     if bool(((value - value.mT).abs() / scale > tol).any()):
         raise ValueError(f"{name} must be symmetric (shape {shape_str(value)})")
-    chol, info = torch.linalg.cholesky_ex(_sym(value))
+    chol, info = torch.linalg.cholesky_ex(sym(value))
     if bool((info != 0).any()):
         raise ValueError(
             f"{name} must be symmetric positive definite (Cholesky failed; shape {shape_str(value)})"
@@ -185,7 +181,7 @@ class PositiveDefinite(_Parametrization):
 
     def forward(self, raw: Tensor) -> Tensor:
         c = self.factor(raw)
-        return _sym(c @ c.mT)
+        return sym(c @ c.mT)
 
     def right_inverse(self, value: object) -> Tensor:
         v = self._as_raw_tensor(value, self.name)
@@ -284,7 +280,7 @@ class Hurwitz(_Parametrization):
         c_s = _cholesky_factor(raw[..., 2, :, :], 0.0)
         shift_r = delta * (_frobenius_sq(c_r) + torch.sqrt(1.0 + _frobenius_sq(skew)))
         shift_s = delta * (_frobenius_sq(c_s) + 1.0)
-        return skew, _sym(c_r @ c_r.mT) + shift_r * eye, _sym(c_s @ c_s.mT) + shift_s * eye
+        return skew, sym(c_r @ c_r.mT) + shift_r * eye, sym(c_s @ c_s.mT) + shift_s * eye
 
     def forward(self, raw: Tensor) -> Tensor:
         skew, r, s = self.components(raw)
@@ -296,12 +292,12 @@ class Hurwitz(_Parametrization):
         check_finite(f, self.name)
         n = f.shape[-1]
         eye = torch.eye(n, dtype=f.dtype, device=f.device)
-        p = _sym(_lyapunov_identity(f))
+        p = sym(_lyapunov_identity(f))
         m = f @ p
         chol_p, info = torch.linalg.cholesky_ex(p)
         if bool((info != 0).any()):
             raise ValueError(f"{self.name}: Lyapunov solution P is not positive definite (shape {shape_str(f)})")
-        s1 = _sym(torch.cholesky_inverse(chol_p))  # right_inverse only: P⁻¹ of a bounded, PD P
+        s1 = sym(torch.cholesky_inverse(chol_p))  # right_inverse only: P⁻¹ of a bounded, PD P
         delta = self._floor(f.dtype)
         # (J, R, S) = (r K, r I, S1 / r): the floors hold for r in (r_lo, r_hi); take their
         # geometric mean (the largest relative slack on both sides), else the F is out of reach.

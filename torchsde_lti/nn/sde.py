@@ -14,7 +14,7 @@ others are buffers. Both move with ``.to()`` and are saved in ``state_dict`` (un
 - Qc is always symmetric positive definite: ``C Cᵀ`` with a Cholesky factor C whose
   diagonal is ``softplus + floor`` (:class:`~torchsde_lti.nn.parametrizations.PositiveDefinite`).
 - ``F_constraint="hurwitz"`` keeps F Hurwitz-stable for any raw values through
-  ``F = (J − R) P⁻¹`` (:class:`~torchsde_lti.nn.parametrizations.Hurwitz`; covers every Hurwitz
+  ``F = (J − R) S`` (:class:`~torchsde_lti.nn.parametrizations.Hurwitz`, polynomial in its raw factors; covers every Hurwitz
   matrix). Any parametrisation module can be passed instead, e.g.
   ``IntegratorChain(order=2, dim=2, drag="hurwitz")`` to learn only the drag block of
   exact integrator chains.

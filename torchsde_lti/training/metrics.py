@@ -18,6 +18,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.stationary import stationary_covariance
 from torchsde_lti.nn.parametrizations import IntegratorChain
 
@@ -197,7 +198,7 @@ def masked_gaussian_nll(r: Tensor, S: Tensor, observed: Tensor) -> Tensor:
     both = obs.unsqueeze(-1) * obs.unsqueeze(-2)
     eye = torch.eye(r.shape[-1], dtype=r.dtype, device=r.device)
     S = S * both + eye * (1.0 - obs).unsqueeze(-1)
-    S = 0.5 * (S + S.mT)
+    S = sym(S)
     C = torch.linalg.cholesky(S)
     z = torch.linalg.solve_triangular(C, r.unsqueeze(-1), upper=False).squeeze(-1)
     logdet = 2.0 * torch.log(torch.diagonal(C, dim1=-2, dim2=-1)).sum(-1)
