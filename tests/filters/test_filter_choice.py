@@ -9,8 +9,8 @@ import torch
 import torchsde_lti as tl
 from tests.reference import random_problem, reference_batch, to_torch
 from torchsde_lti.filters import (
-    chunked_kalman_filter,
     kalman_filter,
+    parallel_kalman_filter,
     parallel_rts_smoother,
     prefers_scan,
     rts_smoother,
@@ -26,8 +26,8 @@ def test_chunked_scan_matches_numpy_reference(chunk):
     d = random_problem(np.random.default_rng(1), batch=(2,), T=21)
     ref = reference_batch(d)
     t = to_torch(d)
-    out = chunked_kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"],
-                                chunk=chunk)
+    out = parallel_kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"],
+                                 chunk=chunk)
     for name in ("mean", "cov", "pred_mean", "pred_cov"):
         np.testing.assert_allclose(getattr(out, name).numpy(), ref[name], rtol=0, atol=1e-9)
     np.testing.assert_allclose(out.step_log_likelihood.numpy(), ref["ll"], atol=1e-9)
@@ -44,7 +44,7 @@ def test_chunked_scan_with_per_step_mask():
     t = to_torch(d)
     mask = torch.rand(3, 10, generator=torch.Generator().manual_seed(0)) > 0.3
     args = (t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"])
-    out = chunked_kalman_filter(*args, mask=mask, chunk=3)
+    out = parallel_kalman_filter(*args, mask=mask, chunk=3)
     seq = kalman_filter(*args, mask=mask)
     np.testing.assert_allclose(out.mean.numpy(), seq.mean.numpy(), atol=1e-9)
     np.testing.assert_allclose(out.log_likelihood.numpy(), seq.log_likelihood.numpy(), atol=1e-9)

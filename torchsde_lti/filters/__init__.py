@@ -17,16 +17,16 @@ Shapes and missing-data rules: :mod:`torchsde_lti.filters.inputs`.
 - :func:`kalman_filter` (``sequential``): Joseph-form loop, or ``square_root=True``
   (``square_root``: QR predict, Givens update, PSD by construction);
 - :func:`parallel_kalman_filter` (``parallel``): associative scan, O(log T) depth;
-  :func:`chunked_kalman_filter` scans in memory-bounded time chunks; :func:`prefers_scan`
+  ``chunk=`` scans in memory-bounded time chunks; :func:`prefers_scan`
   is the automatic choice of :class:`~torchsde_lti.KalmanFilter`;
 - :func:`rts_smoother`, :func:`parallel_rts_smoother` (``smoothers``);
 - :func:`imm_filter` (``imm``): interacting multiple models over a bank of per-mode matrices.
 """
 
 from torchsde_lti.filters.imm import IMMResult, imm_filter
-from torchsde_lti.filters.parallel import associative_scan, chunked_kalman_filter, parallel_kalman_filter, prefers_scan
+from torchsde_lti.filters.kalman import kalman_filter, parallel_kalman_filter
+from torchsde_lti.filters.parallel import associative_scan, prefers_scan
 from torchsde_lti.filters.results import FilterResult, SmootherResult
-from torchsde_lti.filters.sequential import kalman_filter
 from torchsde_lti.filters.smoothers import parallel_rts_smoother, rts_smoother
 
 __all__ = [
@@ -34,7 +34,6 @@ __all__ = [
     "IMMResult",
     "SmootherResult",
     "associative_scan",
-    "chunked_kalman_filter",
     "imm_filter",
     "kalman_filter",
     "parallel_kalman_filter",

@@ -38,9 +38,25 @@ from torchsde_lti.core.validation import (
 )
 from torchsde_lti.filters.results import FilterResult
 
-__all__ = ["LOG_2PI", "PreparedInputs", "assemble_result", "check_mask", "mask_observation_model", "observed_components", "pad_dims", "prepare_inputs", "whiten"]
+__all__ = ["LOG_2PI", "FilterInputs", "PreparedInputs", "assemble_result", "check_mask", "mask_observation_model", "observed_components", "pad_dims", "prepare_inputs", "whiten"]
 
 LOG_2PI = math.log(2.0 * math.pi)
+
+
+class FilterInputs(NamedTuple):
+    """The arguments of every filter, as given (shapes in the module docstring)."""
+
+    y: Tensor
+    A: Tensor
+    Q: Tensor
+    H: Tensor
+    R: Tensor
+    m0: Tensor
+    P0: Tensor
+    G: Tensor | None = None
+    u: Tensor | None = None
+    mask: Tensor | None = None
+    D: Tensor | None = None
 
 
 class PreparedInputs(NamedTuple):
@@ -100,21 +116,10 @@ def check_mask(mask: Tensor | None, T: int, m: int, device: torch.device) -> Ten
     return mask
 
 
-def _check_arguments(
-    y: Tensor,
-    A: Tensor,
-    Q: Tensor,
-    H: Tensor,
-    R: Tensor,
-    m0: Tensor,
-    P0: Tensor,
-    G: Tensor | None,
-    u: Tensor | None,
-    mask: Tensor | None,
-    D: Tensor | None = None,
-) -> _Checked:
+def _check_arguments(args: FilterInputs) -> _Checked:
     """Shapes (and, with value checks on, values) of every argument; c = G u."""
-    t = as_float_tensors(y=y, A=A, Q=Q, H=H, R=R, m0=m0, P0=P0, G=G, u=u, D=D)
+    t = as_float_tensors(**{k: v for k, v in args._asdict().items() if k != "mask"})
+    mask = args.mask
     y, A, Q, H, R, m0, P0, G, u, D = (t[k] for k in ("y", "A", "Q", "H", "R", "m0", "P0", "G", "u", "D"))
     dtype, device = y.dtype, y.device
 
@@ -229,19 +234,7 @@ def whiten(H: Tensor, R: Tensor, y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return Hw, yw, torch.log(torch.diagonal(LR, dim1=-2, dim2=-1)).sum(-1)
 
 
-def prepare_inputs(
-    y: Tensor,
-    A: Tensor,
-    Q: Tensor,
-    H: Tensor,
-    R: Tensor,
-    m0: Tensor,
-    P0: Tensor,
-    G: Tensor | None,
-    u: Tensor | None,
-    mask: Tensor | None,
-    D: Tensor | None = None,
-) -> PreparedInputs:
+def prepare_inputs(args: FilterInputs) -> PreparedInputs:
     """Check, mask, broadcast and whiten the filter arguments (shapes: :mod:`torchsde_lti.filters`).
 
     With a feedthrough D (..., [T,] m, p) and inputs u, the observations become ``y − D u``.
@@ -249,10 +242,10 @@ def prepare_inputs(
     The covariance path's batch excludes y (and u) unless data are missing, so with a shared
     dt grid and no missing data the covariance recursion runs once for all tracks.
     """
-    args = _check_arguments(y, A, Q, H, R, m0, P0, G, u, mask, D)
-    y, A, Q, H, R, m0, P0, c = args.y, args.A, args.Q, args.H, args.R, args.m0, args.P0, args.c
-    T, n = args.T, args.n
-    obs, y0 = observed_components(y, args.obs_given)
+    checked = _check_arguments(args)
+    y, A, Q, H, R, m0, P0, c = checked.y, checked.A, checked.Q, checked.H, checked.R, checked.m0, checked.P0, checked.c
+    T, n = checked.T, checked.n
+    obs, y0 = observed_components(y, checked.obs_given)
 
     # Batch shapes: the covariance path excludes y (and u) unless data are missing.
     tshape = lambda s: tuple(s)  # noqa: E731

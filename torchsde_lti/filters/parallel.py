@@ -13,10 +13,10 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, solve_lower, sym
-from torchsde_lti.filters.inputs import assemble_result, prepare_inputs
+from torchsde_lti.filters.inputs import FilterInputs, PreparedInputs, assemble_result, prepare_inputs
 from torchsde_lti.filters.results import FilterResult
 
-__all__ = ["SCAN_MAX_BATCH_CPU", "SCAN_MAX_ELEMENTS", "associative_scan", "chunked_kalman_filter", "parallel_kalman_filter", "prefers_scan"]
+__all__ = ["SCAN_MAX_BATCH_CPU", "SCAN_MAX_ELEMENTS", "associative_scan", "chunked_scan", "prefers_scan", "scan_filter"]
 
 
 Elems = tuple[Tensor, ...]
@@ -86,22 +86,10 @@ def _filter_combine(a: Elems, b: Elems) -> Elems:
     return A, b, C, e, J
 
 
-def parallel_kalman_filter(
-    y: Tensor,
-    A: Tensor,
-    Q: Tensor,
-    H: Tensor,
-    R: Tensor,
-    m0: Tensor,
-    P0: Tensor,
-    G: Tensor | None = None,
-    u: Tensor | None = None,
-    mask: Tensor | None = None,
-    D: Tensor | None = None,
-) -> FilterResult:
+def scan_filter(prep: PreparedInputs) -> FilterResult:
     r"""Kalman filter by associative scan (Särkkä & García-Fernández 2021), O(log T) depth.
 
-    Same arguments and results as :func:`kalman_filter` (up to rounding). Step k's element
+    On prepared inputs; same results as the sequential loop (up to rounding). Step k's element
     (with whitened H', y' and R' = I, prior moments ``c_k = G_k u_k``, ``Q_k``; for k = 0 the
     prior is folded in: ``c_0 += A_0 m0``, ``Q_0 += A_0 P0 A_0ᵀ``, ``A_0 := 0``)::
 
@@ -112,7 +100,6 @@ def parallel_kalman_filter(
     batched over all steps. Wins over the sequential loop when per-step Python overhead
     dominates (small batch, long T); loses when the batch already fills the cores.
     """
-    prep = prepare_inputs(y, A, Q, H, R, m0, P0, G, u, mask, D)
     n = prep.A.shape[-1]
     T = prep.T
     A_ = prep.A
@@ -202,33 +189,20 @@ def _time_slice(x: Tensor | None, axis: int, T: int, start: int, stop: int) -> T
     return x.narrow(x.dim() + axis, start, stop - start)
 
 
-def chunked_kalman_filter(
-    y: Tensor,
-    A: Tensor,
-    Q: Tensor,
-    H: Tensor,
-    R: Tensor,
-    m0: Tensor,
-    P0: Tensor,
-    G: Tensor | None = None,
-    u: Tensor | None = None,
-    mask: Tensor | None = None,
-    chunk: int | None = None,
-    D: Tensor | None = None,
-) -> FilterResult:
-    """:func:`parallel_kalman_filter` over consecutive time chunks of ``chunk`` steps, each
-    chunk's prior the previous chunk's last filtered state (exact: the filter is Markov).
+def chunked_scan(args: FilterInputs, chunk: int | None = None) -> FilterResult:
+    """:func:`scan_filter` over consecutive time chunks of ``chunk`` steps, each chunk's prior
+    the previous chunk's last filtered state (exact: the filter is Markov).
 
     Memory O(batch · chunk) instead of O(batch · T); depth (T / chunk) · O(log chunk).
     ``chunk=None``: the largest chunk with batch · chunk ≤ :data:`SCAN_MAX_ELEMENTS`.
-    Same arguments and results as :func:`parallel_kalman_filter`.
     """
+    y, A, Q, H, R, m0, P0, G, u, mask, D = args
     T = y.shape[-2]
     batch = torch.broadcast_shapes(y.shape[:-2], A.shape[:-3] if A.dim() > 3 else ())
     if chunk is None:
         chunk = max(2, SCAN_MAX_ELEMENTS // max(1, batch.numel()))
     if chunk >= T:
-        return parallel_kalman_filter(y, A, Q, H, R, m0, P0, G, u, mask, D=D)
+        return scan_filter(prepare_inputs(args))
     m_dim = y.shape[-1]
     mask_axis = -1
     if mask is not None and mask.dim() >= 2 and mask.shape[-2] == T and mask.shape[-1] == m_dim:
@@ -238,10 +212,11 @@ def chunked_kalman_filter(
     for start in range(0, T, chunk):
         stop = min(T, start + chunk)
         sl = lambda x, axis: _time_slice(x, axis, T, start, stop)  # noqa: E731
-        out = parallel_kalman_filter(
+        piece = FilterInputs(
             y[..., start:stop, :], sl(A, -3), sl(Q, -3), sl(H, -3), sl(R, -3), m, P,
-            sl(G, -3), sl(u, -2), sl(mask, mask_axis), D=sl(D, -3),
+            sl(G, -3), sl(u, -2), sl(mask, mask_axis), sl(D, -3),
         )
+        out = scan_filter(prepare_inputs(piece))
         parts.append(out)
         m, P = out.mean[..., -1, :], out.cov[..., -1, :, :]
     axes = FilterResult(-2, -3, -2, -3, -2, -3, 0, -1, -3, -3, -2)

@@ -26,59 +26,21 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import bl_matmul, bl_matvec, bl_sym_into, from_batch_last, to_batch_last
-from torchsde_lti.filters.inputs import assemble_result, prepare_inputs
+from torchsde_lti.filters.inputs import PreparedInputs, assemble_result
 from torchsde_lti.filters.results import FilterResult
-from torchsde_lti.filters.square_root import square_root_filter
 
-__all__ = ["kalman_filter"]
+__all__ = ["sequential_filter"]
 
 
-def kalman_filter(
-    y: Tensor,
-    A: Tensor,
-    Q: Tensor,
-    H: Tensor,
-    R: Tensor,
-    m0: Tensor,
-    P0: Tensor,
-    G: Tensor | None = None,
-    u: Tensor | None = None,
-    mask: Tensor | None = None,
-    square_root: bool = False,
-    D: Tensor | None = None,
-    compile_step: bool = False,
-) -> FilterResult:
-    r"""Kalman filter over T steps (sequential loop, O(T) depth).
+def sequential_filter(prep: PreparedInputs, compile_step: bool = False) -> FilterResult:
+    r"""The sequential loop on prepared inputs (what :func:`~torchsde_lti.filters.kalman_filter`
+    runs by default): step k predicts ``m⁻ = A_k m + G_k u_k``, ``P⁻ = A_k P A_kᵀ + Q_k``, then
+    updates with the observed components of y_k (whitened scalar updates in Joseph form).
 
-    Step k: predict ``m⁻ = A_k m + G_k u_k``, ``P⁻ = A_k P A_kᵀ + Q_k``; then update with the
-    observed components of y_k (whitened sequential scalar updates in Joseph form, see the
-    module docstring). The log-likelihood is the prediction-error decomposition
-    ``Σ_k log N(y_k^obs; H_k^obs m⁻_k, H_k^obs P⁻_k H_k^obsᵀ + R_k^obs)``.
-
-    Args:
-        y: (..., T, m) observations; NaN = missing component.
-        A: (..., T, n, n) transitions. Q: (..., T, n, n) process noise (symmetric PSD).
-        H: (..., T, m, n) observation matrices. R: (..., T, m, m) noise (symmetric PD).
-        m0: (..., n) prior mean. P0: (..., n, n) prior covariance (before step 0).
-        G: optional (..., T, n, p) input matrices; u: (..., T, p) inputs (u needs G or D).
-        mask: optional bool (..., T) or (..., T, m); False = not observed.
-        square_root: propagate factors ``P = S Sᵀ`` (QR predict, Givens update, see
-            :func:`square_root_filter`) instead of covariances; same results up to
-            rounding, covariances PSD by construction and accurate in float32 when predicted
-            and measurement variances differ by more than 1/eps. Slower (a batched LAPACK
-            QR per step); off by default.
-        D: optional (..., [T,] m, p) feedthrough, ``y_k = H_k x_k + D u_k + r_k``: the update
-            uses ``y_k − D u_k`` (so innovations are ``y_k − D u_k − H_k m⁻_k``); needs u.
-        compile_step: run the loop as torch's structured scan (``torch._higher_order_ops.scan``)
-            through ``torch.compile``: one step's graph is compiled (once), the T steps are not
-            unrolled. What ``torch.compile(KalmanFilter)`` uses.
-
-    Returns:
-        :class:`FilterResult`; every output broadcasts to the full batch ``...``.
+    ``compile_step``: run the loop as torch's structured scan (``torch._higher_order_ops.scan``)
+    through ``torch.compile``: one step's graph is compiled (once), the T steps are not
+    unrolled. What ``torch.compile(KalmanFilter)`` uses.
     """
-    prep = prepare_inputs(y, A, Q, H, R, m0, P0, G, u, mask, D)
-    if square_root:
-        return square_root_filter(prep)
     m_dim = prep.yw.shape[-1]
     # Batch-last layout: per-step tensors (n, n, *batch) keep the batch as the contiguous
     # inner dimension, so every elementwise op and the broadcast-and-sum products below run

@@ -58,7 +58,6 @@ from torchsde_lti.core.validation import (
 from torchsde_lti.filters import (
     FilterResult,
     SmootherResult,
-    chunked_kalman_filter,
     kalman_filter,
     parallel_rts_smoother,
     prefers_scan,
@@ -107,7 +106,7 @@ class KalmanFilter(nn.Module):
         learn: which of ``"H", "D", "R", "m0", "P0"`` are ``nn.Parameter`` (default ``("R",)``).
         parallel: ``None`` (default) chooses per call (:func:`~torchsde_lti.filters.prefers_scan`):
             on CPU the associative scan (O(log T) depth, in memory-bounded time chunks,
-            :func:`~torchsde_lti.filters.chunked_kalman_filter`) for at most
+            ``kalman_filter(..., parallel=True)``) for at most
             ``SCAN_MAX_BATCH_CPU`` = 16 tracks, where per-step Python overhead dominates the
             loop, else the sequential loop; on other devices the scan. ``True`` / ``False``
             force the scan / the loop (experiments/bench_filter_choice.py).
@@ -373,7 +372,7 @@ class KalmanFilter(nn.Module):
             if self.square_root:
                 return kalman_filter(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, square_root=True, D=D)
             if scan:
-                return chunked_kalman_filter(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, D=D)
+                return kalman_filter(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, D=D, parallel=True)
             return kalman_filter(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, D=D, compile_step=compile_step)
 
     def uses_scan(self, *batch_shapes_T_device: object) -> bool:
