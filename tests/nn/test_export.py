@@ -112,8 +112,8 @@ def test_traced_doubling_equals_eager(dtype, rtol):
     for F_case in (F, F[0]):
         inp = sde_inputs(F_case.to(dtype), torch.eye(n, dtype=dtype), torch.eye(n, dtype=dtype), dt.to(dtype),
                          B=torch.ones(n, 1, dtype=dtype))
-        eager = doubling(inp.F, inp.W, inp.B, inp.dt, inp.batch)
-        traced = _doubling_traced(inp.F, inp.W, inp.B, inp.dt, inp.batch, False)
+        eager = doubling(inp)
+        traced = _doubling_traced(inp, False)
         for a, b in zip(eager, traced):
             floor = torch.finfo(dtype).tiny ** 0.5  # entries that underflow in one path: absolute
             scale = a.flatten(-2).norm(dim=-1).clamp_min(floor)[..., None, None]

@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import bl_matmul
-from torchsde_lti.core.validation import broadcast_batch, tracing
+from torchsde_lti.core.validation import SDEInputs, broadcast_batch, tracing
 
 __all__ = ["doubling"]
 
@@ -398,14 +398,7 @@ def _prefix_counts(sorted_values: Tensor, top: int) -> list[int]:
     return (sorted_values.numel() - torch.cumsum(tally, 0))[:top].tolist()
 
 
-def _doubling_per_element(
-    F: Tensor,
-    W: Tensor | None,
-    B: Tensor | None,
-    dt: Tensor,
-    batch: torch.Size,
-    batch_last: bool,
-) -> tuple[Tensor, Tensor | None, Tensor | None]:
+def _doubling_per_element(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
     r"""Scaling and doubling when every element has its own parameters (or a small batch).
 
     Per element i: ν_i = max(‖F_i‖₁, ‖F_i‖∞), s_i = ceil(log2(ν_i dt_i / θ)) halvings,
@@ -419,6 +412,7 @@ def _doubling_per_element(
     then :func:`_doubling_steps`. The elements are sorted by ν dt (descending), so the
     elements that need term k and doubling j are prefixes and no work is spent on the others.
     """
+    F, W, B, dt, batch = x
     n = F.shape[-1]
     p = 0 if B is None else B.shape[-1]
     N = batch.numel()
@@ -510,14 +504,7 @@ def _doubling_per_element(
 _TRACED_MAX_HALVINGS = 32
 
 
-def _doubling_traced(
-    F: Tensor,
-    W: Tensor | None,
-    B: Tensor | None,
-    dt: Tensor,
-    batch: torch.Size,
-    batch_last: bool,
-) -> tuple[Tensor, Tensor | None, Tensor | None]:
+def _doubling_traced(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
     """:func:`_doubling_per_element` without value-dependent control flow, for tracing.
 
     Same sub-step series (all K_max terms) and the same doubling recursion, but every
@@ -525,6 +512,7 @@ def _doubling_traced(
     the elements whose own s_i halvings are done), and the E → A switch is a mask too. The
     values equal the eager path's up to rounding; the graph has a static size.
     """
+    F, W, B, dt, batch = x
     n = F.shape[-1]
     p = 0 if B is None else B.shape[-1]
     N = batch.numel()
@@ -613,40 +601,14 @@ def _doubling_traced(
     return convert(A), None if Q is None else convert(Q), None if G is None else convert(G)
 
 
-def doubling(
-    F: Tensor,
-    W: Tensor | None,
-    B: Tensor | None,
-    dt: Tensor,
-    batch: torch.Size,
-    batch_last: bool = False,
+def _doubling_shared(
+    F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor, batch: torch.Size, param_batch: torch.Size, batch_last: bool
 ) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    """Scaling and doubling: (A, Q, G) of shapes (*batch, n, n), (*batch, n, n), (*batch, n, p)
-    (contiguous (n, n, *batch), … with ``batch_last``).
-
-    F: (..., n, n); W = L Qc Lᵀ: (..., n, n) or None; B: (..., n, p) or None; dt: (...).
-    Each element takes s = ceil(log2(‖F‖ dt / θ)) halvings (none for nilpotent F), sums the
-    Taylor series on h = dt / 2^s and doubles s times. Internally the batch is flattened to
-    N = prod(batch), laid out last ("batch-last" (n, n, N): elementwise work on contiguous
-    rows of N) and sorted by s, so doubling step j only touches the elements with s > j.
-    """
+    """Shared (or few) parameter sets: the series terms are computed once per parameter set
+    and all elements are combined by one matrix product, then doubled in sorted order."""
     dtype = F.dtype
-    if tracing():
-        return _doubling_traced(F, W, B, dt, batch, batch_last)
-    param_batch = broadcast_batch(
-        [("F", F.shape[:-2])]
-        + ([("W", W.shape[:-2])] if W is not None else [])
-        + ([("B", B.shape[:-2])] if B is not None else [])
-    )
     n = F.shape[-1]
     p = 0 if B is None else B.shape[-1]
-    if param_batch.numel() > 1 and 4 * param_batch.numel() >= batch.numel():
-        # (nearly) every element its own parameters: per-element sub-steps
-        return _doubling_per_element(F, W, B, dt, batch, batch_last)
-    if 1 < batch.numel() * n <= _SMALL_BATCH or (batch.numel() == 1 and n > 2):
-        if _nilpotency_index(F) is None:
-            # a few elements (one call, an online step): the series length adapts to ν dt
-            return _doubling_per_element(F, W, B, dt, batch, batch_last)
     if param_batch.numel() == 1:
         # One set of parameters (size-1 batch dims, e.g. an LTISDE aligned to a series):
         # drop the dims so the series terms are combined by a single GEMM (K, T) x (K, N)
@@ -696,3 +658,32 @@ def doubling(
         None if Q is None else convert(Q, order, batch),
         None if G is None else convert(G, order, batch),
     )
+
+
+def doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """Scaling and doubling: (A, Q, G) of shapes (*batch, n, n), (*batch, n, n), (*batch, n, p)
+    (contiguous (n, n, *batch), … with ``batch_last``).
+
+    F: (..., n, n); W = L Qc Lᵀ: (..., n, n) or None; B: (..., n, p) or None; dt: (...).
+    Each element takes s = ceil(log2(‖F‖ dt / θ)) halvings (none for nilpotent F), sums the
+    Taylor series on h = dt / 2^s and doubles s times. Internally the batch is flattened to
+    N = prod(batch), laid out last ("batch-last" (n, n, N): elementwise work on contiguous
+    rows of N) and sorted by s, so doubling step j only touches the elements with s > j.
+    """
+    F, W, B, dt, batch = x
+    if tracing():
+        return _doubling_traced(x, batch_last)
+    param_batch = broadcast_batch(
+        [("F", F.shape[:-2])]
+        + ([("W", W.shape[:-2])] if W is not None else [])
+        + ([("B", B.shape[:-2])] if B is not None else [])
+    )
+    n = F.shape[-1]
+    if param_batch.numel() > 1 and 4 * param_batch.numel() >= batch.numel():
+        # (nearly) every element its own parameters: per-element sub-steps
+        return _doubling_per_element(x, batch_last)
+    if 1 < batch.numel() * n <= _SMALL_BATCH or (batch.numel() == 1 and n > 2):
+        if _nilpotency_index(F) is None:
+            # a few elements (one call, an online step): the series length adapts to ν dt
+            return _doubling_per_element(x, batch_last)
+    return _doubling_shared(F, W, B, dt, batch, param_batch, batch_last)

@@ -17,19 +17,19 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import sym
+from torchsde_lti.core.validation import SDEInputs
 
 __all__ = ["matrix_exp"]
 
 
-def matrix_exp(
-    F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor, batch: torch.Size
-) -> tuple[Tensor, Tensor | None, Tensor | None]:
+def matrix_exp(x: SDEInputs) -> tuple[Tensor, Tensor | None, Tensor | None]:
     """(A, Q, G) of shapes (*batch, n, n), (*batch, n, n) or None, (*batch, n, p) or None.
 
     F: (..., n, n); W = L Qc Lᵀ: (..., n, n) or None; B: (..., n, p) or None; dt: (...),
-    all broadcast to ``batch``. One :func:`torch.matrix_exp` of the smallest block that
-    holds what is asked for: (n, n) for A alone, (n+p) with B, (2n+p) with W.
+    all broadcast to ``batch`` (the fields of ``x``). One :func:`torch.matrix_exp` of the
+    smallest block that holds what is asked for: (n, n) for A alone, (n+p) with B, (2n+p) with W.
     """
+    F, W, B, dt, batch = x
     n = F.shape[-1]
     p = 0 if B is None else B.shape[-1]
     dt_mat = dt[..., None, None]

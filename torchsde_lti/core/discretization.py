@@ -70,8 +70,8 @@ def resolve_method(method: str) -> str:
 def _run(inputs: SDEInputs, method: str, batch_last: bool = False) -> tuple[Tensor, Tensor | None, Tensor | None]:
     assert inputs.dt is not None
     if resolve_method(method) == "doubling":
-        return doubling(inputs.F, inputs.W, inputs.B, inputs.dt, inputs.batch, batch_last=batch_last)
-    return matrix_exp(inputs.F, inputs.W, inputs.B, inputs.dt, inputs.batch)
+        return doubling(inputs, batch_last=batch_last)
+    return matrix_exp(inputs)
 
 
 def discretize(
@@ -141,7 +141,7 @@ def discretize_series(
     batch = inputs.batch
     lead = batch[:-1]
     dt_tm = dt_t.expand(batch).movedim(-1, 0)  # (T, *lead)
-    A, Q, G = doubling(inputs.F, inputs.W, inputs.B, dt_tm, dt_tm.shape, batch_last=True)
+    A, Q, G = doubling(inputs._replace(dt=dt_tm, batch=dt_tm.shape), batch_last=True)
     assert Q is not None
     perm = [*range(3, 3 + len(lead)), 2, 0, 1]  # (r, c, T, *lead) -> (*lead, T, r, c)
     return Discrete(A.permute(perm), Q.permute(perm), None if G is None else G.permute(perm))
@@ -154,7 +154,7 @@ def _discretize_unique(inputs: SDEInputs) -> Discrete:
     assert dt is not None
     dt = dt.expand(inputs.batch)
     values, inverse = torch.unique(dt, return_inverse=True)
-    A, Q, G = doubling(inputs.F, inputs.W, inputs.B, values, values.shape, batch_last=True)  # (r, c, U)
+    A, Q, G = doubling(inputs._replace(dt=values, batch=values.shape), batch_last=True)  # (r, c, U)
     lead, T = dt.shape[:-1], dt.shape[-1]
     idx = inverse.movedim(-1, 0).reshape(-1)  # time-major
 

@@ -20,7 +20,7 @@ whitening with the Cholesky factor of the masked R (R' = I).
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import torch
 from torch import Tensor
@@ -43,20 +43,13 @@ __all__ = ["LOG_2PI", "FilterInputs", "PreparedInputs", "assemble_result", "chec
 LOG_2PI = math.log(2.0 * math.pi)
 
 
-class FilterInputs(NamedTuple):
-    """The arguments of every filter, as given (shapes in the module docstring)."""
-
-    y: Tensor
-    A: Tensor
-    Q: Tensor
-    H: Tensor
-    R: Tensor
-    m0: Tensor
-    P0: Tensor
-    G: Tensor | None = None
-    u: Tensor | None = None
-    mask: Tensor | None = None
-    D: Tensor | None = None
+_REQUIRED, _OPTIONAL = ("y", "A", "Q", "H", "R", "m0", "P0"), ("G", "u", "mask", "D")
+#: The arguments of every filter, as given: y, A, Q, H, R, m0, P0 and the optional G, u,
+#: mask, D (default None); shapes in the module docstring.
+FilterInputs = NamedTuple(  # type: ignore[misc]
+    "FilterInputs", [(k, Tensor) for k in _REQUIRED] + [(k, Optional[Tensor]) for k in _OPTIONAL]
+)
+FilterInputs.__new__.__defaults__ = (None,) * len(_OPTIONAL)
 
 
 class PreparedInputs(NamedTuple):
@@ -79,20 +72,11 @@ class PreparedInputs(NamedTuple):
 
 
 class _Checked(NamedTuple):
-    y: Tensor
-    A: Tensor
-    Q: Tensor
-    H: Tensor
-    R: Tensor
-    m0: Tensor
-    P0: Tensor
+    args: FilterInputs  # converted to the common float dtype and device, y − D u applied
     c: Tensor | None  # (..., T, n) control term G u
     obs_given: Tensor | None  # (..., T, 1 or m) bool mask
     T: int
-    m: int
     n: int
-    dtype: torch.dtype
-    device: torch.device
 
 
 def pad_dims(x: Tensor, ndim: int) -> Tensor:
@@ -121,7 +105,7 @@ def _check_arguments(args: FilterInputs) -> _Checked:
     t = as_float_tensors(**{k: v for k, v in args._asdict().items() if k != "mask"})
     mask = args.mask
     y, A, Q, H, R, m0, P0, G, u, D = (t[k] for k in ("y", "A", "Q", "H", "R", "m0", "P0", "G", "u", "D"))
-    dtype, device = y.dtype, y.device
+    device = y.device
 
     if y.dim() < 2:
         raise ValueError(f"y must have shape (..., T, m), got shape {shape_str(y)}")
@@ -192,7 +176,7 @@ def _check_arguments(args: FilterInputs) -> _Checked:
         check_symmetric_psd(P0, "P0")
         if bool((torch.linalg.cholesky_ex(R).info != 0).any()):
             raise ValueError(f"R must be positive definite (Cholesky failed; shape {shape_str(R)})")
-    return _Checked(y, A, Q, H, R, m0, P0, c, obs_given, T, m, n, dtype, device)
+    return _Checked(FilterInputs(y, A, Q, H, R, m0, P0, G, u, obs_given, D), c, obs_given, T, n)
 
 
 def observed_components(y: Tensor, mask: Tensor | None) -> tuple[Tensor | None, Tensor]:
@@ -243,7 +227,8 @@ def prepare_inputs(args: FilterInputs) -> PreparedInputs:
     dt grid and no missing data the covariance recursion runs once for all tracks.
     """
     checked = _check_arguments(args)
-    y, A, Q, H, R, m0, P0, c = checked.y, checked.A, checked.Q, checked.H, checked.R, checked.m0, checked.P0, checked.c
+    y, A, Q, H, R, m0, P0 = checked.args[:7]
+    c = checked.c
     T, n = checked.T, checked.n
     obs, y0 = observed_components(y, checked.obs_given)
 
@@ -288,15 +273,17 @@ def prepare_inputs(args: FilterInputs) -> PreparedInputs:
 
 def assemble_result(
     prep: PreparedInputs,
-    mean: Tensor,
-    cov: Tensor,
-    pred_mean: Tensor,
-    pred_cov: Tensor,
+    filtered: tuple[Tensor, Tensor],
+    predicted: tuple[Tensor, Tensor],
     step_ll_core: Tensor,
-    innovation: Tensor | None = None,
-    innovation_cov: Tensor | None = None,
+    innovations: tuple[Tensor, Tensor] | None = None,
 ) -> FilterResult:
-    """Innovations (original space), log-likelihood, broadcast outputs to the full batch."""
+    """The :class:`FilterResult` of an algorithm's moments: filtered and predicted (mean
+    (..., T, n), cov (..., T, n, n)) pairs, the whitened per-step log-likelihood core
+    (..., T), and optionally the innovations and their covariances (else computed here, in
+    the original space); log-likelihood constants added, outputs broadcast to the full batch."""
+    (mean, cov), (pred_mean, pred_cov) = filtered, predicted
+    innovation, innovation_cov = (None, None) if innovations is None else innovations
     mb, T = prep.mean_batch, prep.T
     n, m = mean.shape[-1], prep.yw.shape[-1]
     if innovation is None or innovation_cov is None:

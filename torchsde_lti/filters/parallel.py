@@ -154,7 +154,7 @@ def scan_filter(prep: PreparedInputs) -> FilterResult:
     z = solve_lower(Lw, vw.unsqueeze(-1)).squeeze(-1)
     logdet = 2.0 * torch.log(torch.diagonal(Lw, dim1=-2, dim2=-1)).sum(-1)
     core = -0.5 * (logdet + (z * z).sum(-1))
-    return assemble_result(prep, mean, cov, pred_mean, pred_cov, core)
+    return assemble_result(prep, (mean, cov), (pred_mean, pred_cov), core)
 
 
 # ----------------------------------------------------------------------------------------

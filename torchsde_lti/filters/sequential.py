@@ -149,7 +149,7 @@ def sequential_filter(prep: PreparedInputs, compile_step: bool = False) -> Filte
     core = core.permute(*range(1, core.dim()), 0)  # (*mb, T)
     innovation = from_batch_last(innov, 1, nd)
     innovation_cov = from_batch_last(S, 2, nd)
-    return assemble_result(prep, mean_t, cov_t, pmean_t, pcov_t, core, innovation, innovation_cov)
+    return assemble_result(prep, (mean_t, cov_t), (pmean_t, pcov_t), core, (innovation, innovation_cov))
 
 
 def _joseph_step(

@@ -126,4 +126,4 @@ def square_root_filter(prep: PreparedInputs) -> FilterResult:
     pmean_t = torch.stack(torch.broadcast_tensors(*pmeans), dim=-2)
     core = torch.stack(torch.broadcast_tensors(*cores), dim=-1)
     core = core.expand(*torch.broadcast_shapes(core.shape[:-1], mb), prep.T)
-    return assemble_result(prep, mean_t, covs(facs), pmean_t, covs(pfacs), core)
+    return assemble_result(prep, (mean_t, covs(facs)), (pmean_t, covs(pfacs)), core)
