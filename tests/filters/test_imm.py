@@ -8,7 +8,7 @@ import torch
 
 import torchsde_lti as tl
 from torchsde_lti.filters.imm import imm_filter
-from torchsde_lti.nn.imm import Generator
+from torchsde_lti.nn.parametrizations import Generator
 
 D64 = torch.float64
 
