@@ -38,8 +38,7 @@ def _nan_batch_module(skip: bool) -> tuple[KalmanFilterModule, list]:
     tr = simulate_tracks(sde, H, isotropic_covariance(0.4, 1), 4, 10, seed=1)
     bad_y = tr.y.clone()
     bad_y[0, 3, 0] = 1e200  # finite, but its squared residual overflows: loss and gradients non-finite
-    good = {"y": tr.y, "dt": tr.dt}
-    return module, [good, {"y": bad_y, "dt": tr.dt}, good]
+    return module, [tr, tr._replace(y=bad_y), tr]
 
 
 def test_nonfinite_step_is_skipped_and_counted(tmp_path: Path) -> None:
