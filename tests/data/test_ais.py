@@ -238,3 +238,27 @@ def test_experiment_ais_config_trains(tmp_path) -> None:
     torch.save(dict(dm.hparams), buf)
     buf.seek(0)
     assert torch.load(buf, weights_only=True)["fractions"] == [0.6, 0.2, 0.2]
+
+
+def test_experiment_ais_imm_config_trains(tmp_path) -> None:
+    """`experiment=ais_imm` composes (AIS data, the moored + underway IMM bank) and runs end to end."""
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+
+    import torchsde_lti as tl
+    from torchsde_lti.train import train
+
+    conf = Path(__file__).resolve().parents[2] / "conf"
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose("train", overrides=[f"output_dir={tmp_path}", "experiment=ais_imm", "+trainer.fast_dev_run=true",
+                                          "plots=false", "module.optimizer.max_iter=3"])
+    assert cfg.filter._target_ == "torchsde_lti.IMMFilter" and cfg.get("truth") is None
+    metrics, objects = train(cfg)
+    assert len(objects["datamodule"].train_tracks) == 169
+    assert np.isfinite(metrics["train/nll"]) and np.isfinite(metrics["val/nll"])
+    kf = objects["module"].kf
+    assert isinstance(kf, tl.IMMFilter) and kf.mode_names == ("moored", "underway") and kf.R.shape == (2, 2, 2)
+    assert float(kf.models[0].k.detach()) != pytest.approx(0.05, rel=1e-6)  # the moored drag moved off its init
+    names = {r["name"] for r in metrics["table"]}
+    assert {"moored/k", "underway/k", "underway/R[0,0]", "rate[moored->underway]", "mode_prob0[moored]"} <= names

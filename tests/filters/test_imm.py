@@ -8,7 +8,9 @@ import torch
 
 import torchsde_lti as tl
 from torchsde_lti.filters.imm import imm_filter
-from torchsde_lti.nn.imm import Generator
+from torchsde_lti.nn.parametrizations import Generator
+
+import math
 
 D64 = torch.float64
 
@@ -254,3 +256,27 @@ def test_bad_call_arguments_raise() -> None:
     with pytest.raises(ValueError, match="A"):
         imm_filter(y, torch.eye(4, dtype=D64).expand(9, 3, 4, 4), 0 * A, H, torch.eye(2, dtype=D64), torch.eye(2, dtype=D64),
                    torch.zeros(4, dtype=D64), torch.eye(4, dtype=D64), torch.tensor([0.5, 0.5], dtype=D64))
+
+
+def test_subnormal_mode_probability_through_zero_dt_padding_has_finite_gradients() -> None:
+    """A subnormal mode weight c_j (a posterior that underflowed, kept through zero-dt padding
+    steps where Pi = I) used to reach the mixing division ``joint / c``, whose backward
+    ``joint / c²`` overflowed: NaN gradients (seen as skipped L-BFGS steps on AIS)."""
+    import torchsde_lti as tl
+    from torchsde_lti import models
+
+    moored = models.moored(k=1.0, q=1e-3, dim=1, dtype=D64)
+    underway = models.integrated_ou(k=0.01, q=1.0, dim=1, dtype=D64)
+    H = models.position_observation(underway)
+    R = torch.stack([1e-2 * torch.eye(1), 1.0 * torch.eye(1)]).to(D64)
+    tiny = 1e-310  # subnormal in float64
+    imm = tl.IMMFilter([moored, underway], H, R, torch.tensor([[0.0, 1e-3], [1e-3, 0.0]], dtype=D64),
+                       m0=torch.zeros(2, dtype=D64), P0=torch.eye(2, dtype=D64),
+                       mode_prob0=torch.tensor([tiny, 1.0 - tiny], dtype=D64), learn=("R", "rates", "P0"))
+    y = torch.tensor([[math.nan], [math.nan], [0.5], [1.0]], dtype=D64)
+    dt = torch.tensor([0.0, 0.0, 1.0, 1.0], dtype=D64)
+    out = imm(y, dt)
+    (-out.log_likelihood).backward()
+    assert bool(torch.isfinite(out.log_likelihood))
+    for name, p in imm.named_parameters():
+        assert p.grad is not None and bool(torch.isfinite(p.grad).all()), name

@@ -367,3 +367,39 @@ def test_integrator_chain_matrices_by_hand() -> None:
     np.testing.assert_array_equal(chain.numpy(), expected)
     np.testing.assert_array_equal(sel.numpy(), [[0, 0], [0, 0], [1, 0], [0, 0], [0, 0], [0, 1]])
     assert chain.dtype == torch.float64
+
+
+# --------------------------------------------------------------------------- Generator, ModeProbabilities
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_generator_is_a_generator_for_any_raw_and_round_trips(dtype: torch.dtype) -> None:
+    from torchsde_lti.nn.parametrizations import Generator
+
+    g = Generator().to(dtype=dtype)
+    raw = 30.0 * torch.randn(5, 3, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64).to(dtype)
+    lam = g(raw)
+    off = ~torch.eye(3, dtype=torch.bool)
+    assert lam.dtype == dtype and bool((lam[:, off] > 0).all()) and bool(torch.isfinite(lam).all())
+    assert torch.allclose(lam.sum(-1), torch.zeros(5, 3, dtype=dtype), atol=1e-4 if dtype == torch.float32 else 1e-12)
+    # expm(Λ dt) is a stochastic matrix
+    Pi = torch.linalg.matrix_exp(lam.double()[0] * 7.0)
+    assert torch.allclose(Pi.sum(-1), torch.ones(3, dtype=torch.float64), atol=1e-10) and bool((Pi > -1e-12).all())
+    rates = torch.tensor([[0.0, 0.2, 1e-3], [3.0, 0.0, 0.5], [0.01, 0.02, 0.0]], dtype=torch.float64)
+    back = g(g.right_inverse(rates.tolist()))  # Python lists cast to the raw dtype
+    tol = 1e-6 if dtype == torch.float32 else 1e-12
+    assert torch.allclose(back[off].double(), rates[off], rtol=tol)
+    with pytest.raises(ValueError, match="rates"):
+        g.right_inverse(torch.tensor([[0.0, 0.0], [1.0, 0.0]]))
+
+
+def test_mode_probabilities_softmax_and_round_trip() -> None:
+    from torchsde_lti.nn.parametrizations import ModeProbabilities
+
+    p = ModeProbabilities().to(dtype=torch.float64)
+    v = torch.tensor([0.7, 0.2, 0.1], dtype=torch.float64)
+    assert torch.allclose(p(p.right_inverse(v)), v, rtol=1e-14)
+    out = p(torch.tensor([50.0, -50.0, 0.0], dtype=torch.float64))
+    assert float(out.sum()) == pytest.approx(1.0) and bool((out >= 0).all())
+    with pytest.raises(ValueError, match="mode_prob0"):
+        p.right_inverse([0.5, 0.5, 0.0])

@@ -34,6 +34,7 @@ __all__ = [
     "BurstDt",
     "ExponentialDt",
     "RegularDt",
+    "diagonal_covariance",
     "isotropic_covariance",
     "selection_matrix",
     "simulate",
@@ -109,6 +110,21 @@ def isotropic_covariance(std: float, dim: int) -> Tensor:
     if int(dim) < 1:
         raise ValueError(f"dim must be >= 1, got {dim}")
     return float(std) ** 2 * torch.eye(int(dim), dtype=torch.float64)
+
+
+def diagonal_covariance(std: Sequence[float] | Sequence[Sequence[float]] | Tensor) -> Tensor:
+    """``diag(std²)`` in float64: covariances (..., n, n) from standard deviations (..., n).
+
+    A nested list gives a stack, e.g. per-mode covariances of an IMM:
+    ``diagonal_covariance([[5, 5], [20, 20]])`` is (2, 2, 2). ValueError for a negative,
+    non-finite or 0-dimensional std.
+    """
+    s = torch.as_tensor(std, dtype=torch.float64)
+    if s.dim() < 1 or s.shape[-1] < 1:
+        raise ValueError(f"std must have shape (..., n) with n >= 1, got shape {tuple(s.shape)}")
+    if not bool(torch.isfinite(s).all()) or bool((s < 0).any()):
+        raise ValueError(f"std must be finite and non-negative, got {s.tolist()}")
+    return torch.diag_embed(s**2)
 
 
 def selection_matrix(indices: Sequence[int], n: int) -> Tensor:

@@ -121,11 +121,15 @@ def _mix(prob: Tensor, Pi: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor, T
     """IMM mixing step. prob (..., M), Pi (..., M, M), mean (..., M, n), cov (..., M, n, n).
 
     Returns c (..., M) = prob Pi, mixed means (..., M, n) and covariances (..., M, n, n).
-    A mode with c_j = 0 gets mixed moments 0 (it carries no weight; nothing divides by 0).
+    A mode with c_j ≤ sqrt(tiny) of the dtype (≈ 1e-154 in float64) gets c_j = 0 and mixed
+    moments 0: it carries no weight, and nothing divides by a number whose square
+    underflows (the backward of ``joint / c`` is ``joint / c²``: with c subnormal, e.g. after
+    a zero-dt padding step of a mode whose probability underflowed, it returned NaN).
     """
     joint = prob.unsqueeze(-1) * Pi  # (..., M_i, M_j) P(i at k−1, j at k)
     c = joint.sum(-2)
-    pos = c > 0
+    pos = c > math.sqrt(torch.finfo(c.dtype).tiny)
+    c = torch.where(pos, c, torch.zeros_like(c))
     c_safe = torch.where(pos, c, torch.ones_like(c))
     w = joint / c_safe.unsqueeze(-2)  # w_ij = P(i at k−1 | j at k)
     m_mix = torch.einsum("...ij,...in->...jn", w, mean)

@@ -23,9 +23,11 @@ Inputs u (B matrices) are not used.
 Learnable (``learn``): ``"H"``, ``"R"`` (per mode when R is (M, m, m)), ``"rates"``,
 ``"mode_prob0"``, ``"m0"``, ``"P0"``; the models' own ``learn`` controls F, Qc. R and a
 learnable P0 are symmetric positive definite by
-:class:`~torchsde_lti.parametrizations.PositiveDefinite`; the rates by :class:`Generator`
+:class:`~torchsde_lti.nn.parametrizations.PositiveDefinite`; the rates by
+:class:`~torchsde_lti.nn.parametrizations.Generator`
 (``softplus(raw) + floor`` off the diagonal: finite and ≥ 0 for every finite raw value, no
-exponential of an unbounded parameter); the initial mode probabilities by a softmax.
+exponential of an unbounded parameter); the initial mode probabilities by
+:class:`~torchsde_lti.nn.parametrizations.ModeProbabilities` (a softmax).
 """
 
 from __future__ import annotations
@@ -41,76 +43,13 @@ from torchsde_lti.core.validation import as_float_tensor, check_finite, check_ma
 from torchsde_lti.core.discretization import Discrete, discretize
 from torchsde_lti.filters.imm import IMMPrediction, IMMResult, combine, imm_filter, imm_predict
 from torchsde_lti.nn._register import register_tensor
-from torchsde_lti.nn.parametrizations import PositiveDefinite, default_floor, softplus, softplus_inverse
+from torchsde_lti.nn.kalman import FilterMode
+from torchsde_lti.nn.parametrizations import Generator, ModeProbabilities, PositiveDefinite, generator_from_rates
 from torchsde_lti.nn.sde import LTISDE
 
-__all__ = ["Generator", "IMMFilter", "IMMForecast", "ModeProbabilities"]
+__all__ = ["IMMFilter", "IMMForecast"]
 
 _LEARNABLE = ("H", "R", "rates", "mode_prob0", "m0", "P0")
-
-
-def _offdiag(M: int, dtype: torch.dtype, device: torch.device) -> Tensor:
-    return 1.0 - torch.eye(M, dtype=dtype, device=device)
-
-
-def generator_from_rates(rates: Tensor) -> Tensor:
-    """Generator (..., M, M) from its off-diagonal rates (the diagonal of ``rates`` is ignored):
-    ``Λ_ij = rates_ij`` (i ≠ j), ``Λ_ii = −Σ_{j≠i} rates_ij``."""
-    off = rates * _offdiag(rates.shape[-1], rates.dtype, rates.device)
-    return off - torch.diag_embed(off.sum(-1))
-
-
-class Generator(nn.Module):
-    r"""Markov-chain generators Λ (..., M, M): ``Λ_ij = softplus(raw_ij) + floor`` for i ≠ j,
-    ``Λ_ii = −Σ_{j≠i} Λ_ij`` (the diagonal of raw is unused).
-
-    ``right_inverse`` accepts a generator or a matrix of off-diagonal rates (its diagonal is
-    ignored); rates must be finite and > 0 (ValueError otherwise; use a fixed buffer for
-    exactly zero rates).
-    """
-
-    def __init__(self, name: str = "rates", floor: float | None = None) -> None:
-        super().__init__()
-        self.name = name
-        self.floor = floor
-        self.register_buffer("_ref", torch.empty(0), persistent=False)
-
-    def _floor(self, dtype: torch.dtype) -> float:
-        return default_floor(dtype) if self.floor is None else float(self.floor)
-
-    def forward(self, raw: Tensor) -> Tensor:
-        return generator_from_rates(softplus(raw) + self._floor(raw.dtype))
-
-    def right_inverse(self, value: object) -> Tensor:
-        v = as_float_tensor(value, self.name).detach()
-        v = v.to(dtype=self._ref.dtype, device=self._ref.device)
-        check_matrix(v, self.name, square=True)
-        check_finite(v, self.name)
-        off = _offdiag(v.shape[-1], v.dtype, v.device).bool()
-        if bool((v[..., off] <= 0).any()):
-            raise ValueError(f"{self.name}: learnable off-diagonal rates must be > 0, got min "
-                             f"{float(v[..., off].min()):.3g} (shape {shape_str(v)})")
-        raw = softplus_inverse((v - self._floor(v.dtype)).clamp_min(torch.finfo(v.dtype).tiny))
-        return torch.where(off, raw, torch.zeros_like(raw))
-
-
-class ModeProbabilities(nn.Module):
-    """Probability vectors (..., M) = softmax(raw); ``right_inverse`` = log (entries must be > 0)."""
-
-    def __init__(self, name: str = "mode_prob0") -> None:
-        super().__init__()
-        self.name = name
-        self.register_buffer("_ref", torch.empty(0), persistent=False)
-
-    def forward(self, raw: Tensor) -> Tensor:
-        return torch.softmax(raw, dim=-1)
-
-    def right_inverse(self, value: object) -> Tensor:
-        v = as_float_tensor(value, self.name).detach().to(dtype=self._ref.dtype, device=self._ref.device)
-        check_finite(v, self.name)
-        if bool((v <= 0).any()):
-            raise ValueError(f"{self.name}: learnable probabilities must be > 0, got {v.tolist()}")
-        return torch.log(v / v.sum(-1, keepdim=True))
 
 
 class IMMForecast(NamedTuple):
@@ -154,6 +93,8 @@ class IMMFilter(nn.Module):
         unique_dt: discretise only the distinct values of dt and gather (same values and
             gradients; used when dt does not require grad). Pays off for quantised gaps.
         method: discretisation method passed to :func:`torchsde_lti.discretize`.
+        mode_names: optional M distinct names of the modes (default ``"mode0"``, ``"mode1"``, …),
+            used by :meth:`modes` and in reports (``"moored/k"``, ``"rate[moored->underway]"``).
     """
 
     def __init__(
@@ -170,11 +111,17 @@ class IMMFilter(nn.Module):
         diffuse_variance: float = 1e4,
         unique_dt: bool = False,
         method: str = "doubling",
+        mode_names: Sequence[str] | None = None,
     ) -> None:
         super().__init__()
         models = list(models)
         if len(models) < 1:
             raise ValueError("models must contain at least one LTISDE, got 0")
+        names_m = [f"mode{j}" for j in range(len(models))] if mode_names is None else [str(s) for s in mode_names]
+        if len(names_m) != len(models) or len(set(names_m)) != len(names_m) or not all(names_m):
+            raise ValueError(f"mode_names must be {len(models)} distinct non-empty names (one per model), "
+                             f"got {list(names_m)}")
+        self.mode_names = tuple(names_m)
         for i, sde in enumerate(models):
             if not isinstance(sde, LTISDE):
                 raise TypeError(f"models[{i}] must be an LTISDE, got {type(sde).__name__}")
@@ -212,7 +159,7 @@ class IMMFilter(nn.Module):
         if rates_t.shape != (M, M):
             raise ValueError(f"rates must have shape (M={M}, {M}) for {M} models, got shape {shape_str(rates_t)}")
         check_finite(rates_t, "rates")
-        off = _offdiag(M, dtype, device).bool()
+        off = ~torch.eye(M, dtype=torch.bool, device=device)
         if bool((rates_t[off] < 0).any()):
             raise ValueError(f"rates must be >= 0 off the diagonal, got min {float(rates_t[off].min()):.3g}")
         if "rates" in names:
@@ -255,6 +202,12 @@ class IMMFilter(nn.Module):
     @property
     def obs_dim(self) -> int:
         return int(self.H.shape[-2])
+
+    def modes(self) -> list[FilterMode]:
+        """Each mode's motion model and observation: ``FilterMode(name, sde, H_j, R_j)`` (H_j (m, n), R_j (m, m))."""
+        H, R = self._obs_model()
+        return [FilterMode(name, sde, H[min(j, H.shape[0] - 1)], R[min(j, R.shape[0] - 1)])
+                for j, (name, sde) in enumerate(zip(self.mode_names, self.models))]
 
     def bank(self) -> tuple[Tensor, Tensor]:
         """Stacked mode matrices: F (M, n, n) and noise intensity ``L Qc Lᵀ`` (M, n, n)."""
@@ -360,4 +313,4 @@ class IMMFilter(nn.Module):
         return IMMForecast(p.mode_probabilities, p.mode_mean, p.mode_cov, p.mean, p.cov, obs_mean, obs_cov, ym, S)
 
     def extra_repr(self) -> str:
-        return f"modes={self.num_modes}, obs_dim={self.obs_dim}, unique_dt={self.unique_dt}"
+        return f"modes={list(self.mode_names)}, obs_dim={self.obs_dim}, unique_dt={self.unique_dt}"

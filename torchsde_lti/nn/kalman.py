@@ -67,7 +67,7 @@ from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn.parametrizations import PositiveDefinite
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
 
-__all__ = ["Forecast", "KalmanFilter"]
+__all__ = ["FilterMode", "Forecast", "KalmanFilter"]
 
 _LEARNABLE = ("H", "D", "R", "m0", "P0")
 _PRIOR_MODES = ("stationary", "diffuse", "shaping")
@@ -85,6 +85,22 @@ class Forecast(NamedTuple):
     obs_mean: Tensor
     obs_cov: Tensor
 
+
+
+class FilterMode(NamedTuple):
+    """One motion model of a filter with its observation model: what a filter learns, per mode.
+
+    name: ``""`` for a single-model filter, else the mode's name; sde: its
+    :class:`~torchsde_lti.LTISDE`; H: (m, n) its observation matrix; R: (m, m) its
+    observation-noise covariance. :meth:`KalmanFilter.modes` returns one,
+    :meth:`~torchsde_lti.IMMFilter.modes` one per mode, so reporting and training code treat
+    both filters alike.
+    """
+
+    name: str
+    sde: LTISDE
+    H: Tensor
+    R: Tensor
 
 
 class KalmanFilter(nn.Module):
@@ -245,6 +261,10 @@ class KalmanFilter(nn.Module):
     @property
     def obs_dim(self) -> int:
         return int(self.H.shape[-2])
+
+    def modes(self) -> list[FilterMode]:
+        """The filter's one motion model and observation: ``[FilterMode("", sde, H, R)]``."""
+        return [FilterMode("", self.sde, self.H, self.R)]
 
     def initial_state(self) -> tuple[Tensor, Tensor]:
         """Prior (m0 (..., n), P0 (..., n, n)) at t₀ for the current parameters."""

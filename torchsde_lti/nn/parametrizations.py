@@ -15,6 +15,9 @@ class                  value                                       raw tensor
 ``Hurwitz``            ``F = (J − R) S``, J skew, R, S ⪰ δ I       (..., 3, n, n)
 ``IntegratorChain``    ``[[0, I], [0, F_v]]`` per axis, F_v free   (..., d, d) or
                        or Hurwitz                                  (..., 3, d, d)
+``Generator``          Markov generator Λ: ``softplus(x) + floor``  (..., M, M); diagonal
+                       off the diagonal, rows summing to 0         unused
+``ModeProbabilities``  ``softmax(x)`` (probability vectors)        (..., M)
 =====================  ==========================================  =======================
 
 No forward map inverts, solves with, or exponentiates an unbounded quantity: values are
@@ -42,11 +45,14 @@ from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, shape_str
 
 __all__ = [
+    "Generator",
     "Hurwitz",
     "IntegratorChain",
+    "ModeProbabilities",
     "Positive",
     "PositiveDefinite",
     "default_floor",
+    "generator_from_rates",
     "hurwitz_floor",
     "integrator_chain",
     "softplus",
@@ -435,3 +441,59 @@ class Unconstrained(_Parametrization):
             check_matrix(x, self.name, rows=self.shape_tail[0], cols=self.shape_tail[1])
         check_finite(x, self.name)
         return x.clone()
+
+
+def generator_from_rates(rates: Tensor) -> Tensor:
+    """Markov-chain generator (..., M, M) from its off-diagonal rates (the diagonal of ``rates``
+    is ignored): ``Λ_ij = rates_ij`` (i ≠ j), ``Λ_ii = −Σ_{j≠i} rates_ij``."""
+    off = rates * (1.0 - torch.eye(rates.shape[-1], dtype=rates.dtype, device=rates.device))
+    return off - torch.diag_embed(off.sum(-1))
+
+
+class Generator(_Parametrization):
+    r"""Markov-chain generators Λ (..., M, M): ``Λ_ij = softplus(raw_ij) + floor`` for i ≠ j,
+    ``Λ_ii = −Σ_{j≠i} Λ_ij`` (the diagonal of raw is unused).
+
+    Off-diagonal rates are finite and > 0 for every finite raw tensor (no exponential of an
+    unbounded parameter), so ``expm(Λ dt)`` is a stochastic matrix for every dt ≥ 0.
+    ``right_inverse`` accepts a generator or a matrix of off-diagonal rates (its diagonal is
+    ignored); rates must be finite and > 0 (ValueError otherwise; use a fixed buffer for
+    exactly zero rates).
+    """
+
+    def __init__(self, name: str = "rates", floor: float | None = None) -> None:
+        super().__init__(floor)
+        self.name = name
+
+    def forward(self, raw: Tensor) -> Tensor:
+        return generator_from_rates(softplus(raw) + self._floor(raw.dtype))
+
+    def right_inverse(self, value: object) -> Tensor:
+        v = self._as_raw_tensor(value, self.name)
+        check_matrix(v, self.name, square=True)
+        check_finite(v, self.name)
+        off = ~torch.eye(v.shape[-1], dtype=torch.bool, device=v.device)
+        if bool((v[..., off] <= 0).any()):
+            raise ValueError(f"{self.name}: learnable off-diagonal rates must be > 0, got min "
+                             f"{float(v[..., off].min()):.3g} (shape {shape_str(v)})")
+        raw = softplus_inverse((v - self._floor(v.dtype)).clamp_min(torch.finfo(v.dtype).tiny))
+        return torch.where(off, raw, torch.zeros_like(raw))
+
+
+class ModeProbabilities(_Parametrization):
+    """Probability vectors (..., M) = ``softmax(raw)``; ``right_inverse`` = log of the
+    normalised value (entries must be finite and > 0)."""
+
+    def __init__(self, name: str = "mode_prob0") -> None:
+        super().__init__()
+        self.name = name
+
+    def forward(self, raw: Tensor) -> Tensor:
+        return torch.softmax(raw, dim=-1)
+
+    def right_inverse(self, value: object) -> Tensor:
+        v = self._as_raw_tensor(value, self.name)
+        check_finite(v, self.name)
+        if bool((v <= 0).any()):
+            raise ValueError(f"{self.name}: learnable probabilities must be > 0, got {v.tolist()}")
+        return torch.log(v / v.sum(-1, keepdim=True))

@@ -11,7 +11,7 @@ from hydra.experimental.callback import Callback as HydraCallback
 from lightning.pytorch import Callback, LightningModule
 from omegaconf import DictConfig, OmegaConf
 
-from torchsde_lti.training.metrics import flat_values, learned_values
+from torchsde_lti.training.metrics import filter_values, flat_values
 from torchsde_lti.training.module import KalmanFilterModule
 
 __all__ = ["BestRun", "ParameterHistory"]
@@ -20,7 +20,9 @@ __all__ = ["BestRun", "ParameterHistory"]
 class ParameterHistory(Callback):
     """Records, after every training epoch, the epoch-mean losses and the learned values.
 
-    ``history`` is a list of {"epoch", "train/nll", "val/nll", <param>: value} of plain
+    ``history`` is a list of {"epoch", "train/nll", "val/nll", <param>: value} (the
+    learned values of :func:`~torchsde_lti.training.metrics.filter_values`, so every mode
+    of an IMM and its switching rates) of plain
     floats (so it round-trips through ``state_dict`` and ``torch.load(weights_only=True)``).
     """
 
@@ -35,8 +37,7 @@ class ParameterHistory(Callback):
             if key in trainer.callback_metrics:
                 row[key] = float(trainer.callback_metrics[key])
         if isinstance(pl_module, KalmanFilterModule):
-            kf = pl_module.kf
-            row.update(flat_values(learned_values(kf.sde, kf.R, pl_module.param_names)))
+            row.update(flat_values(filter_values(pl_module.kf, pl_module.param_names)))
         self.history.append(row)
 
     def state_dict(self) -> dict[str, Any]:

@@ -6,6 +6,10 @@ Torch only (no Lightning): usable on any pair of models.
   structured models, ``expm(F dt)`` where F itself is identifiable, and for a free F seen
   through fewer observations than states the observed autocovariance
   ``H e^{Fτ} P∞ Hᵀ`` (:func:`observed_autocovariance`), which every state basis shares.
+* :func:`filter_values`: what a filter learned, for a :class:`~torchsde_lti.KalmanFilter`
+  and an :class:`~torchsde_lti.IMMFilter` alike: it iterates over ``kf.modes()`` (one
+  :class:`~torchsde_lti.nn.FilterMode` per motion model) and, for several modes, adds the
+  switching chain (``kf.rates``, ``kf.mode_prob0``).
 * :func:`parameter_table` / :func:`format_table`: the true-vs-learned table of a run.
 """
 
@@ -23,6 +27,7 @@ from torchsde_lti.core.stationary import stationary_covariance
 from torchsde_lti.nn.parametrizations import IntegratorChain
 
 __all__ = [
+    "filter_values",
     "flat_values",
     "format_table",
     "learned_values",
@@ -205,17 +210,52 @@ def masked_gaussian_nll(r: Tensor, S: Tensor, observed: Tensor) -> Tensor:
     return 0.5 * ((z * z).sum(-1) + logdet + obs.sum(-1) * math.log(2.0 * math.pi))
 
 
+def filter_values(kf: nn.Module, names: Sequence[str] | None = None) -> dict[str, Tensor]:
+    """What a filter learned, detached: :func:`learned_values` of each of ``kf.modes()``.
+
+    A single-model filter (``KalmanFilter``) gives exactly ``learned_values(sde, R, names)``.
+    With several modes (``IMMFilter``) every key is prefixed by the mode's name
+    (``"moored/k"``, ``"underway/R"``) and the switching chain is added as scalars:
+    ``"rate[a->b]"`` = Λ_ab (1/time) for every ordered pair of modes and ``"mode_prob0[a]"``.
+    ``names`` applies to each mode's model (None: each model's own list).
+    """
+    modes = kf.modes()
+    if len(modes) == 1:
+        mode = modes[0]
+        return learned_values(mode.sde, mode.R, names)
+    out: dict[str, Tensor] = {}
+    for mode in modes:
+        out.update({f"{mode.name}/{k}": v for k, v in learned_values(mode.sde, mode.R, names).items()})
+    rates, p0 = kf.rates.detach(), kf.mode_prob0.detach()
+    labels = [mode.name for mode in modes]
+    for i, a in enumerate(labels):
+        for j, b in enumerate(labels):
+            if i != j:
+                out[f"rate[{a}->{b}]"] = rates[i, j]
+    out.update({f"mode_prob0[{a}]": p0[i] for i, a in enumerate(labels)})
+    return out
+
+
+def _split(name: str) -> tuple[str, str]:
+    """``"moored/R"`` -> (``"moored/"``, ``"R"``); ``"R"`` -> (``""``, ``"R"``)."""
+    prefix, _, base = name.rpartition("/")
+    return (f"{prefix}/" if prefix else ""), base
+
+
 def flat_values(values: Mapping[str, Tensor]) -> dict[str, float]:
-    """Scalars as they are; R and (without named scalars) Qc by their diagonals (``R[0]``, ...)."""
+    """Scalars as they are; R and (without named scalars) Qc by their diagonals (``R[0]``, ...).
+
+    Mode-prefixed keys of :func:`filter_values` (``"moored/R"``) are handled per mode."""
     out: dict[str, float] = {}
-    has_scalars = any(v.dim() == 0 for v in values.values())
+    with_scalars = {_split(k)[0] for k, v in values.items() if v.dim() == 0}
     for name, v in values.items():
-        if name == "Qc" and has_scalars:  # Qc is a function of the named scalars
+        prefix, base = _split(name)
+        if base == "Qc" and prefix in with_scalars:  # Qc is a function of the named scalars
             continue
         v = v.detach().to(torch.float64)
         if v.dim() == 0:
             out[name] = float(v)
-        elif name in ("R", "Qc") and v.dim() == 2:
+        elif base in ("R", "Qc") and v.dim() == 2:
             out.update({f"{name}[{i}]": float(x) for i, x in enumerate(torch.diagonal(v))})
     return out
 
@@ -223,16 +263,18 @@ def flat_values(values: Mapping[str, Tensor]) -> dict[str, float]:
 def parameter_table(module: Any, truth: dict[str, Any] | None) -> list[dict[str, Any]]:
     """Rows {"name", "true", "learned", "rel_error"} for every learned quantity.
 
-    Named scalars and the diagonal of R are listed by value; the matrix errors (``expmF``:
-    max over dt of ‖expm(F dt) − expm(F* dt)‖/‖expm(F* dt)‖; ``autocov``: the observed
-    autocovariance, for a free F the data do not determine entrywise; ``Qc``, ``R``) by error only.
+    Named scalars (for an IMM also the switching rates and initial mode probabilities) and
+    the diagonal of every R are listed by value (``true`` and ``rel_error`` NaN without a
+    truth); the matrix errors (``expmF``: max over dt of ‖expm(F dt) − expm(F* dt)‖/‖expm(F* dt)‖;
+    ``autocov``: the observed autocovariance, for a free F the data do not determine entrywise;
+    ``Qc``, ``R``) by error only. Only a single-model filter is paired with a truth.
     """
     errors = module.parameter_errors()
     kf = module.kf
-    learned = learned_values(kf.sde, kf.R, module.param_names)
+    learned = filter_values(kf, module.param_names)
     true: dict[str, Any] = {}
-    if truth:
-        paired = same_model(kf.sde, truth["sde"])
+    if truth and len(kf.modes()) == 1:
+        paired = same_model(kf.modes()[0].sde, truth["sde"])
         true = learned_values(truth["sde"], truth.get("R"), module.param_names if paired else [])
         if not paired:
             true = {k: v for k, v in true.items() if k == "R"}
@@ -241,10 +283,12 @@ def parameter_table(module: Any, truth: dict[str, Any] | None) -> list[dict[str,
         if value.dim() == 0:
             t = float(true[name]) if name in true else math.nan
             rows.append({"name": name, "true": t, "learned": float(value), "rel_error": errors.get(name, math.nan)})
-    if "R" in errors and "R" in true:
-        for i, (a, b) in enumerate(zip(torch.diagonal(learned["R"]), torch.diagonal(true["R"]))):
-            err = abs(float(a) - float(b)) / abs(float(b)) if float(b) != 0 else math.nan
-            rows.append({"name": f"R[{i},{i}]", "true": float(b), "learned": float(a), "rel_error": err})
+        elif _split(name)[1] == "R" and value.dim() == 2:
+            t_diag = torch.diagonal(true[name]) if name in true and "R" in errors else None
+            for i, a in enumerate(torch.diagonal(value)):
+                b = float(t_diag[i]) if t_diag is not None else math.nan
+                err = abs(float(a) - b) / abs(b) if t_diag is not None and b != 0 else math.nan
+                rows.append({"name": f"{name}[{i},{i}]", "true": b, "learned": float(a), "rel_error": err})
     for name in ("expmF", "autocov", "Qc", "R"):
         if name in errors:
             rows.append({"name": f"{name} (matrix)", "true": math.nan, "learned": math.nan, "rel_error": errors[name]})
@@ -257,5 +301,6 @@ def format_table(rows: list[dict[str, Any]]) -> str:
     for r in rows:
         t = "" if math.isnan(r["true"]) else f"{r['true']:.4g}"
         v = "" if math.isnan(r["learned"]) else f"{r['learned']:.4g}"
-        lines.append(f"| {r['name']} | {t} | {v} | {100 * r['rel_error']:.2f} % |")
+        e = "" if math.isnan(r["rel_error"]) else f"{100 * r['rel_error']:.2f} %"
+        lines.append(f"| {r['name']} | {t} | {v} | {e} |")
     return "\n".join(lines)

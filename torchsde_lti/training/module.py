@@ -32,6 +32,7 @@ from lightning.pytorch import LightningModule
 from torch import Tensor, nn
 
 from torchsde_lti.data.tracks import TrackBatch
+from torchsde_lti.nn.kalman import KalmanFilter
 from torchsde_lti.training.metrics import masked_gaussian_nll, parameter_errors, raw_f_identifiable
 
 __all__ = ["KalmanFilterModule"]
@@ -41,14 +42,18 @@ __all__ = ["KalmanFilterModule"]
 
 
 class KalmanFilterModule(LightningModule):
-    """LightningModule around a ``tl.KalmanFilter`` whose motion model is learned.
+    """LightningModule around a ``tl.KalmanFilter`` or ``tl.IMMFilter`` whose motion models are learned.
 
     Args:
-        kf: the KalmanFilter (its LTISDE's learned parameters and, if learned, R).
+        kf: the filter: a KalmanFilter (its LTISDE's learned parameters and, if learned, R)
+            or an IMMFilter (every mode's model, R, the switching rates, ...). Anything with
+            ``kf(y, dt, u=...)`` returning ``log_likelihood`` and ``pred_mean``, ``H``, and
+            ``modes()`` (:class:`~torchsde_lti.nn.FilterMode` per motion model).
         optimizer: ``functools.partial`` of a torch optimizer (Hydra ``_partial_: true``).
         scheduler: optional partial of an LR scheduler (stepped per epoch).
         truth: optional {"sde": true LTISDE, "R": true R} for parameter errors.
-        k_step: horizon of the optional k-step-ahead predictive loss (0 = off).
+        k_step: horizon of the optional k-step-ahead predictive loss (0 = off); needs a
+            KalmanFilter (the exact per-step transitions of one model), ValueError otherwise.
         k_step_weight: weight of that loss.
         dtype: "float64" or "float32": parameters and batches are kept in this dtype.
         param_names: names of the scalars to track (default: the model's own list).
@@ -82,6 +87,9 @@ class KalmanFilterModule(LightningModule):
             raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
         if int(k_step) < 0 or not k_step_weight >= 0:
             raise ValueError(f"k_step must be >= 0 and k_step_weight >= 0, got {k_step}, {k_step_weight}")
+        if int(k_step) > 0 and k_step_weight > 0 and not isinstance(kf, KalmanFilter):
+            raise ValueError(f"the k-step loss (k_step={k_step}, k_step_weight={k_step_weight}) pushes one model's "
+                             f"per-step (A, Q) and needs a KalmanFilter, got {type(kf).__name__}; set k_step=0")
         if grad_clip_norm is not None and not float(grad_clip_norm) >= 0:
             raise ValueError(f"grad_clip_norm must be >= 0 or None, got {grad_clip_norm!r}")
         # plain containers only, so checkpoints load with torch.load(weights_only=True)
@@ -196,20 +204,24 @@ class KalmanFilterModule(LightningModule):
         return self._eval_step(batch, "test")
 
     def parameter_errors(self) -> dict[str, float]:
-        """Relative errors of the learned parameters against the truth ({} without truth)."""
-        if self._truth is None or self._truth.get("sde") is None:
+        """Relative errors of the learned parameters against the truth ({} without truth, and for
+        a filter of several modes: the truth is one model)."""
+        modes = self.kf.modes()
+        if self._truth is None or self._truth.get("sde") is None or len(modes) != 1:
             return {}
+        mode = modes[0]
         R_true = self._truth.get("R") if "R" in self.compare else None
         return parameter_errors(
-            self.kf.sde, self._truth["sde"], R=self.kf.R if R_true is not None else None, R_true=R_true,
-            names=self.param_names, compare=self.compare, H=self.kf.H, H_true=self._truth.get("H"),
+            mode.sde, self._truth["sde"], R=mode.R if R_true is not None else None, R_true=R_true,
+            names=self.param_names, compare=self.compare, H=mode.H, H_true=self._truth.get("H"),
         )  # fmt: skip
 
     def identifiability_note(self) -> str:
         """'' when the raw parameters are identifiable, else a sentence saying why not."""
-        if raw_f_identifiable(self.kf.sde, self.kf.H):
+        hidden = [mode for mode in self.kf.modes() if not raw_f_identifiable(mode.sde, mode.H)]
+        if not hidden:
             return ""
-        m, n = self.kf.H.shape[-2:]
+        m, n = hidden[0].H.shape[-2:]
         return (
             f"F is free and observed through H ({m}x{n}, rank < {n}): F and Qc are determined only up to a "
             "change of state basis, so they are compared through the observed autocovariance "

@@ -1,4 +1,5 @@
-"""Plots of a run: loss curves, parameter trajectories against the truth, one filtered track."""
+"""Plots of a run: loss curves, parameter trajectories against the truth, one filtered (and, where the
+filter has a smoother, smoothed) track."""
 
 from __future__ import annotations
 
@@ -45,8 +46,9 @@ def plot_run(
         skip = {"epoch", "train/nll", "val/nll", "val/param_error"}
         names = [k for k in history[-1] if k not in skip]
         true = {}
-        if truth:
-            paired = same_model(module.kf.sde, truth["sde"])
+        modes = module.kf.modes()
+        if truth and len(modes) == 1:  # a truth is one model: it pairs with a single-model filter only
+            paired = same_model(modes[0].sde, truth["sde"])
             true = flat_values(learned_values(truth["sde"], truth.get("R"), module.param_names if paired else []))
         if names:
             cols = min(len(names), 4)
@@ -74,19 +76,20 @@ def plot_run(
     T = int(mask[0].sum()) if mask is not None else y.shape[-2]
     y, dt = y[:, :T], dt[:, :T]
     u = u[:, :T] if u is not None else None
+    smooth = getattr(module.kf, "smooth", None)  # the IMMFilter has no smoother: filtered only
     with torch.no_grad():
         out = module.kf(y, dt, u=u)
-        sm = module.kf.smooth(out)
-    H = module.kf.H.detach().to(y.dtype)
+        sm = smooth(out) if smooth is not None else None
+    H = module.kf.modes()[0].H.detach().to(y.dtype)  # the combined mean through the first mode's H
     t = torch.cumsum(dt[0], 0)
     m = y.shape[-1]
     fig, axes = plt.subplots(m, 1, figsize=(8, 2.4 * m), sharex=True, squeeze=False)
     for i, ax in enumerate(axes[:, 0]):
         h = H[i]
-        for label, mean, cov, color in (
-            ("filtered", out.mean[0], out.cov[0], "C0"),
-            ("smoothed", sm.mean[0], sm.cov[0], "C1"),
-        ):
+        curves = [("filtered", out.mean[0], out.cov[0], "C0")]
+        if sm is not None:
+            curves.append(("smoothed", sm.mean[0], sm.cov[0], "C1"))
+        for label, mean, cov, color in curves:
             mu = mean @ h
             sd = torch.einsum("i,tij,j->t", h, cov, h).clamp_min(0).sqrt()
             ax.plot(t, mu, color=color, label=f"{label} mean")

@@ -76,7 +76,8 @@ def _warn_if_schedule_ends_early(ckpt_path: str | None, max_epochs: int | None) 
 
 def restart_learner(kf: torch.nn.Module, jitter: float, seed: int) -> None:
     """Random restart: add N(0, jitter²) (generator seeded with ``seed``) to every raw parameter
-    of the learner's motion model, in place (``jitter = 0``: keep the configured start).
+    of the learner's motion models (``kf.modes()``: one for a KalmanFilter, every mode of an
+    IMMFilter), in place (``jitter = 0``: keep the configured start).
 
     Raw parameters are unconstrained by construction (softplus / Cholesky / Hurwitz
     factors), so every perturbed start is valid: a Hurwitz F stays Hurwitz. A Hydra seed sweep
@@ -86,7 +87,7 @@ def restart_learner(kf: torch.nn.Module, jitter: float, seed: int) -> None:
         return
     g = torch.Generator().manual_seed(seed)
     with torch.no_grad():
-        for p in kf.sde.parameters():
+        for p in (p for mode in kf.modes() for p in mode.sde.parameters()):
             if p.requires_grad:
                 p.add_(jitter * torch.randn(p.shape, generator=g, dtype=torch.float64).to(p))
 
@@ -107,12 +108,13 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     truth = getattr(datamodule, "truth", None)
     prior: dict[str, Any] = {}
     if getattr(datamodule, "m0", None) is not None and getattr(datamodule, "P0", None) is not None:
-        # the data's prior, when the learner has the truth's state (model=cv truth=singer: it does not)
-        if int(instantiate(cfg.filter.sde).state_dim) == int(datamodule.m0.shape[-1]):
-            prior = {"m0": datamodule.m0, "P0": datamodule.P0}
+        # the data's prior, used when the learner has the truth's state (model=cv truth=singer: it does not)
+        prior = {"m0": datamodule.m0, "P0": datamodule.P0}
     if truth is not None and getattr(datamodule, "H", None) is not None:
         truth = {**truth, "H": datamodule.H}
-    kf = instantiate(cfg.filter, **prior)
+    kf = instantiate(cfg.filter)
+    if prior and int(kf.state_dim) == int(prior["m0"].shape[-1]):
+        kf = instantiate(cfg.filter, **prior)
     restart_learner(kf, float(cfg.get("init_jitter") or 0.0), int(cfg.get("restart") or 0))
     module = instantiate(cfg.module, kf=kf, truth=truth)
     callbacks = _instantiate_dict(cfg.get("callbacks"))
@@ -137,7 +139,7 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     note = module.identifiability_note() if truth else ""
     if module.skipped_steps:
         warnings.warn(f"{module.skipped_steps} optimizer steps were skipped (non-finite loss or gradient)", stacklevel=2)
-    metrics["table"] = parameter_table(module, truth) if truth else []
+    metrics["table"] = parameter_table(module, truth)  # without a truth: what was learned
     ckpt = next((c for c in callbacks if isinstance(c, pl.callbacks.ModelCheckpoint)), None)
     metrics["best_model_path"] = ckpt.best_model_path if ckpt is not None else ""
     history = next((c for c in callbacks if isinstance(c, ParameterHistory)), None)
@@ -157,7 +159,8 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         }
         (out_dir / "metrics.json").write_text(json.dumps(summary, indent=2, allow_nan=True))
         if metrics["table"]:
-            text = f"# {cfg.model.get('name')}: true vs learned ({wall:.1f} s)\n\n{format_table(metrics['table'])}\n"
+            title = "true vs learned" if truth else "learned values"
+            text = f"# {cfg.model.get('name')}: {title} ({wall:.1f} s)\n\n{format_table(metrics['table'])}\n"
             text += f"\nskipped optimizer steps (non-finite loss or gradient): {module.skipped_steps}\n"
             if note:
                 text += f"\nNot identifiable: {note}\n"
