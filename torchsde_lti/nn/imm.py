@@ -39,6 +39,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
+from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str, validation
 from torchsde_lti.core.discretization import Discrete, discretize
 from torchsde_lti.filters.imm import IMMPrediction, IMMResult, combine, imm_filter, imm_predict
@@ -214,7 +215,7 @@ class IMMFilter(nn.Module):
         mats = [sde.matrices() for sde in self.models]
         F = torch.stack([mm.F for mm in mats])
         W = torch.stack([mm.L @ mm.Qc @ mm.L.mT for mm in mats])
-        return F, 0.5 * (W + W.mT)
+        return F, sym(W)
 
     def discretize(self, dt: Tensor) -> tuple[Discrete, Tensor]:
         """Every mode over every gap, in ONE batched discretisation, and the chain's transitions.
@@ -308,7 +309,7 @@ class IMMFilter(nn.Module):
         H, R = self._obs_model()
         ym = (H @ p.mode_mean.unsqueeze(-1)).squeeze(-1)  # (..., K, M, m)
         S = H @ p.mode_cov @ H.mT + R
-        S = 0.5 * (S + S.mT)
+        S = sym(S)
         obs_mean, obs_cov = combine(p.mode_probabilities, ym, S)
         return IMMForecast(p.mode_probabilities, p.mode_mean, p.mode_cov, p.mean, p.cov, obs_mean, obs_cov, ym, S)
 
