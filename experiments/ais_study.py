@@ -724,11 +724,11 @@ def interpretation(results: dict[str, dict[str, float]], filters: dict[str, tl.K
         f"{base['nll_underway']:.3f} vs {best['nll_underway']:.3f}. The learned drag helps on moving vessels "
         "(velocity decorrelates over minutes, so long gaps are not extrapolated linearly), while the "
         "baseline's smaller R, chosen on the validation vessels, suits the moored ones.",
-        f"- Every model here is linear-Gaussian, so its predictive covariance does not depend on the data: "
+        f"- Every single model here is linear-Gaussian, so its predictive covariance does not depend on the data: "
         f"the same ellipse must cover moored vessels (median one-step error {base['med_err_slow']:.1f} m) and "
         f"vessels under way, up to 30 kn ferries (median {base['med_err_underway']:.0f} m). "
         "That heteroscedasticity, not the choice of dynamics, dominates the NLL (≈ 12 nats per report "
-        "for all models); regime-switching (IMM) or per-vessel noise would be the next step.",
+        "for all single models); the IMM's moored and underway modes, each with its own R, address exactly that.",
     ]
     sg = filters.get("singer")
     if sg is not None:
