@@ -46,18 +46,6 @@ def data(B: int, T: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     return y, dt
 
 
-class Deployed(torch.nn.Module):
-    """The exported entry point: (log-likelihood (B,), filtered means (B, T, n))."""
-
-    def __init__(self, kf: tl.KalmanFilter) -> None:
-        super().__init__()
-        self.kf = kf
-
-    def forward(self, y: torch.Tensor, dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        out = self.kf(y, dt)
-        return out.log_likelihood, out.mean
-
-
 def median_ms(fn, repeats: int = 7) -> float:
     ts = []
     for _ in range(repeats):
@@ -99,7 +87,7 @@ def bench_export(B: int, T: int) -> None:
         kf.eval()
         example = data(B, T, 0)
         t0 = time.perf_counter()
-        ep = torch.export.export(Deployed(kf), example)
+        ep = torch.export.export(tl.DeployedFilter(kf), example)
         t_export = time.perf_counter() - t0
         t0 = time.perf_counter()
         torch.export.save(ep, prog)

@@ -36,6 +36,7 @@ from torchsde_lti.filters import (
 )
 from torchsde_lti.nn import (
     LTISDE,
+    DeployedFilter,
     Discretization,
     Forecast,
     IMMFilter,
@@ -49,6 +50,7 @@ from torchsde_lti.nn import parametrizations
 
 __all__ = [
     "METHODS",
+    "DeployedFilter",
     "Discrete",
     "Discretization",
     "FilterResult",

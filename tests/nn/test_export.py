@@ -16,18 +16,6 @@ import torchsde_lti as tl
 F64 = torch.float64
 
 
-class LogLikelihoodAndMean(torch.nn.Module):
-    """What a deployment calls: (log-likelihood (B,), filtered means (B, T, n))."""
-
-    def __init__(self, kf: tl.KalmanFilter) -> None:
-        super().__init__()
-        self.kf = kf
-
-    def forward(self, y: torch.Tensor, dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        out = self.kf(y, dt)
-        return out.log_likelihood, out.mean
-
-
 def _data(B: int, T: int, m: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     g = torch.Generator().manual_seed(seed)
     y = torch.randn(B, T, m, generator=g, dtype=F64).cumsum(1)
@@ -53,7 +41,7 @@ def test_exported_filter_saved_and_loaded_matches_eager(name, tmp_path):
     kf = _filters()[name]
     m = kf.obs_dim
     B, T = 2, 12
-    module = LogLikelihoodAndMean(kf).eval()
+    module = tl.DeployedFilter(kf).eval()
     ep = torch.export.export(module, _data(B, T, m, seed=0))
     path = tmp_path / f"{name}.pt2"
     torch.export.save(ep, path)
@@ -69,7 +57,7 @@ def test_exported_filter_saved_and_loaded_matches_eager(name, tmp_path):
 def test_exported_filter_runs_without_lightning_or_hydra(tmp_path):
     kf = _filters()["matern"]
     y, dt = _data(2, 12, 1, seed=0)
-    ep = torch.export.export(LogLikelihoodAndMean(kf).eval(), (y, dt))
+    ep = torch.export.export(tl.DeployedFilter(kf).eval(), (y, dt))
     path = tmp_path / "kf.pt2"
     torch.export.save(ep, path)
     torch.save((y, dt), tmp_path / "data.pt")

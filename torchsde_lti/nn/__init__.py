@@ -2,11 +2,12 @@
 StructuredSDE base of the motion models) and the KalmanFilter module."""
 
 from torchsde_lti.nn.imm import IMMFilter
-from torchsde_lti.nn.kalman import FilterMode, Forecast, KalmanFilter
+from torchsde_lti.nn.kalman import DeployedFilter, FilterMode, Forecast, KalmanFilter
 from torchsde_lti.nn.layers import Discretization, Transition, VanLoanNoise
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices, StructuredSDE
 
 __all__ = [
+    "DeployedFilter",
     "Discretization",
     "FilterMode",
     "Forecast",

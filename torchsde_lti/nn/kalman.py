@@ -497,3 +497,22 @@ class KalmanFilter(nn.Module):
             + (", square_root=True" if getattr(self, "square_root", False) else "")
             + (f", method={self.method!r}" if self.method else "")
         )
+
+
+class DeployedFilter(nn.Module):
+    """The entry point to ship a trained :class:`KalmanFilter` with ``torch.export`` (or
+    ``torch.jit``-free serving): plain tensor outputs instead of a :class:`FilterResult`.
+
+    ``forward(y, dt)``: y (..., T, m) with NaN = missing, dt (..., T) ->
+    ``(log_likelihood (...), mean (..., T, n))``, the filter's log-likelihood and filtered means.
+    """
+
+    def __init__(self, kf: KalmanFilter) -> None:
+        super().__init__()
+        if not isinstance(kf, KalmanFilter):
+            raise TypeError(f"kf must be a KalmanFilter, got {type(kf).__name__}")
+        self.kf = kf
+
+    def forward(self, y: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
+        out = self.kf(y, dt)
+        return out.log_likelihood, out.mean
