@@ -72,9 +72,8 @@ class PreparedInputs(NamedTuple):
 
 
 class _Checked(NamedTuple):
-    args: FilterInputs  # converted to the common float dtype and device, y − D u applied
+    args: FilterInputs  # converted to the common float dtype and device, y − D u applied, mask (..., T, 1 or m)
     c: Tensor | None  # (..., T, n) control term G u
-    obs_given: Tensor | None  # (..., T, 1 or m) bool mask
     T: int
     n: int
 
@@ -155,7 +154,7 @@ def _check_arguments(args: FilterInputs) -> _Checked:
             raise ValueError(f"u must have shape (..., T, {p}) to match G {shape_str(G)}, got shape {shape_str(u)}")
         check_finite(u, "u")
         c = matvec(G, u)  # (..., T, n)
-    obs_given = check_mask(mask, T, m, device)
+    mask = check_mask(mask, T, m, device)
 
     # Per-step arrays: check their T axis.
     for name, x, k in (("A", A, 3), ("Q", Q, 3), ("H", H, 3), ("R", R, 3)):
@@ -176,7 +175,7 @@ def _check_arguments(args: FilterInputs) -> _Checked:
         check_symmetric_psd(P0, "P0")
         if bool((torch.linalg.cholesky_ex(R).info != 0).any()):
             raise ValueError(f"R must be positive definite (Cholesky failed; shape {shape_str(R)})")
-    return _Checked(FilterInputs(y, A, Q, H, R, m0, P0, G, u, obs_given, D), c, obs_given, T, n)
+    return _Checked(FilterInputs(y, A, Q, H, R, m0, P0, G, u, mask, D), c, T, n)
 
 
 def observed_components(y: Tensor, mask: Tensor | None) -> tuple[Tensor | None, Tensor]:
@@ -230,7 +229,7 @@ def prepare_inputs(args: FilterInputs) -> PreparedInputs:
     y, A, Q, H, R, m0, P0 = checked.args[:7]
     c = checked.c
     T, n = checked.T, checked.n
-    obs, y0 = observed_components(y, checked.obs_given)
+    obs, y0 = observed_components(y, checked.args.mask)
 
     # Batch shapes: the covariance path excludes y (and u) unless data are missing.
     tshape = lambda s: tuple(s)  # noqa: E731

@@ -40,7 +40,7 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from torchsde_lti.core.linalg import sym
-from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str, validation
+from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, check_nonnegative, parse_learn, shape_str, validation
 from torchsde_lti.core.discretization import Discrete, discretize
 from torchsde_lti.filters.imm import IMMPrediction, IMMResult, combine, imm_filter, imm_predict
 from torchsde_lti.nn._register import register_tensor
@@ -238,9 +238,7 @@ class IMMFilter(nn.Module):
 
     def _check_dt(self, dt: Tensor | float, name: str = "dt") -> Tensor:
         dt = as_float_tensor(dt, name, self.models[0].dtype, self.models[0].device)
-        check_finite(dt, name)
-        if bool((dt < 0).any()):
-            raise ValueError(f"{name} must be non-negative, got min {float(dt.min()):.3g} (shape {shape_str(dt)})")
+        check_nonnegative(dt, name)
         return dt
 
     def _obs_model(self) -> tuple[Tensor, Tensor]:

@@ -50,6 +50,7 @@ from torchsde_lti.core.validation import (
     as_float_tensor,
     check_finite,
     check_matrix,
+    check_nonnegative,
     parse_learn,
     shape_str,
     validation,
@@ -309,9 +310,7 @@ class KalmanFilter(nn.Module):
         dt = as_float_tensor(dt, "dt", dtype, device)
         if dt.dim() < 1 or dt.shape[-1] != T:
             raise ValueError(f"dt must have shape (..., T={T}) to match y {shape_str(y)}, got shape {shape_str(dt)}")
-        check_finite(dt, "dt")
-        if value_checks_enabled() and bool((dt < 0).any()):
-            raise ValueError(f"dt must be non-negative, got min {float(dt.min()):.3g} (shape {shape_str(dt)})")
+        check_nonnegative(dt, "dt")
         if u is not None:
             if p == 0:
                 raise ValueError(
@@ -389,11 +388,10 @@ class KalmanFilter(nn.Module):
         with validation(False):
             d = self._discretize(dt, mats, scan)  # one batched discretisation: A, Q (..., T, n, n)
             G = d.G if u is not None else None
-            if self.square_root:
-                return kalman_filter(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, square_root=True, D=D)
-            if scan:
-                return kalman_filter(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, D=D, parallel=True)
-            return kalman_filter(y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, D=D, compile_step=compile_step)
+            return kalman_filter(
+                y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, D=D,
+                square_root=self.square_root, compile_step=compile_step, parallel=scan,
+            )
 
     def uses_scan(self, *batch_shapes_T_device: object) -> bool:
         """Whether a call with these batch shapes, T and device runs the associative scan:
@@ -464,9 +462,7 @@ class KalmanFilter(nn.Module):
         dt = as_float_tensor(dt, "dt", dtype, device)
         if dt.dim() == 0:
             dt = dt.reshape(1)
-        check_finite(dt, "dt")
-        if value_checks_enabled() and bool((dt < 0).any()):
-            raise ValueError(f"dt must be non-negative, got min {float(dt.min()):.3g} (shape {shape_str(dt)})")
+        check_nonnegative(dt, "dt")
         n = self.state_dim
         if mean.shape[-1] != n or cov.shape[-2:] != (n, n):
             raise ValueError(f"state must be (mean (..., {n}), cov (..., {n}, {n})), got "
