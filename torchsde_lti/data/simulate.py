@@ -8,12 +8,8 @@ step k advances over ``dt[..., k]`` and then observes,
 
 with the exact discretisation ``sde(dt) -> tl.Discrete(A, Q, G)`` (zero-order hold on u).
 
-Batches: :class:`~torchsde_lti.data.tracks.TrackBatch` (padding convention there).
-
-Padding: a padded step has ``dt = 0`` (so A = I, Qd = 0, G = 0: the state does not move),
-``y = NaN`` (no update, no log-likelihood term) and ``u = 0``. A Kalman filter therefore
-carries its last filtered state through the padding unchanged and the padding contributes
-exactly nothing to the likelihood, whether or not ``mask`` is passed on.
+Batches: :class:`~torchsde_lti.data.tracks.TrackBatch`; its padding (dt = 0, y = NaN, u = 0)
+contributes exactly nothing to a Kalman filter's likelihood (convention in that module).
 """
 
 from __future__ import annotations

@@ -59,10 +59,6 @@ def _scan(fn: Callable[[Elems, Elems], Elems], el: Elems) -> Elems:
     return tuple(out)
 
 
-def _bcast_pair(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
-    return torch.broadcast_tensors(a, b) if a.shape[:-2] != b.shape[:-2] else (a, b)
-
-
 def _filter_combine(a: Elems, b: Elems) -> Elems:
     """Särkkä & García-Fernández (2021), Lemma 7: combine filtering elements a (earlier), b (later)."""
     Ai, bi, Ci, ei, Ji = a
