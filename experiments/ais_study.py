@@ -571,7 +571,7 @@ def holdout(args: argparse.Namespace) -> dict[str, object]:
     paired = {k: paired_bootstrap(v, base) for k, v in per_vessel.items() if k != "cv (grid)"}
     note = ("no SOG/COG in .traj files: velocity and SOG-split metrics are NaN; tracks are the file's "
             "trajectory segments" if name.endswith(".traj") else "")
-    payload = {"file": name, "models": str(args.models), "counts": data.counts, "dt": dts, "results": results,
+    payload = {"file": name, "models": Path(args.models).name, "counts": data.counts, "dt": dts, "results": results,
                "paired_vs_cv_grid": {k: dict(zip(("delta", "lo", "hi", "p_ge_0"), v)) for k, v in paired.items()},
                "note": note, "runtime_s": time.perf_counter() - start}
     if args.json:
