@@ -23,7 +23,8 @@ from functools import lru_cache
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import bl_matmul
+from torchsde_lti.core._block import block_doubling
+from torchsde_lti.core._steps import _BATCH_LAST, _doubling_steps, _Layout, _operator_norm_bound, _prefix_counts
 from torchsde_lti.core.validation import SDEInputs, broadcast_batch, tracing
 
 __all__ = ["doubling"]
@@ -41,12 +42,6 @@ def _series_length(dtype: torch.dtype) -> int:
         k += 1
     return k + 1
 
-
-
-def _operator_norm_bound(F: Tensor) -> Tensor:
-    """max(‖F‖₁, ‖F‖∞): bounds ‖F‖ and ‖𝓛‖/2 in the induced 1-norm. Shape (...)."""
-    absF = F.abs()
-    return torch.maximum(absF.sum(-2).amax(-1), absF.sum(-1).amax(-1))
 
 
 def _nilpotency_index(F: Tensor) -> int | None:
@@ -95,132 +90,6 @@ def _taylor_rows(x: Tensor, count: int) -> Tensor:
     for k in range(1, count):
         rows.append(rows[-1] * x * (1.0 / k))
     return torch.stack(rows)
-
-
-def _norm_bound_last(A: Tensor) -> Tensor:
-    """max(‖A‖₁, ‖A‖∞) of batch-last A (n, n, N): (N,)."""
-    absA = A.abs()
-    return torch.maximum(absA.sum(0).amax(0), absA.sum(1).amax(0))
-
-
-class _Layout:
-    """Batch layout of the doubling/Horner loops: batch-last (r, c, N), whose products are
-    fused multiply-adds over the contiguous batch (:func:`bl_matmul`; small n, large N), or
-    batch-first (N, r, c), whose products are one ``bmm`` (measured faster for n ≥ 8 or a
-    small batch). Every method is the same operation in either layout."""
-
-    def __init__(self, batch_first: bool) -> None:
-        self.batch_first = batch_first
-        self.dim = 0 if batch_first else -1
-
-    def mm(self, a: Tensor, b: Tensor, c: Tensor | None = None) -> Tensor:
-        """c + a b."""
-        if self.batch_first:
-            return a @ b if c is None else torch.baddbmm(c, a, b) if c.dim() == 3 else a @ b + c
-        return bl_matmul(a, b, c)
-
-    def t(self, x: Tensor) -> Tensor:
-        return x.mT if self.batch_first else x.transpose(0, 1)
-
-    def size(self, x: Tensor) -> int:
-        return x.shape[self.dim]
-
-    def head(self, x: Tensor, c: int) -> Tensor:
-        return self.part(x, 0, c)
-
-    def part(self, x: Tensor, start: int, stop: int) -> Tensor:
-        """Elements start … stop − 1 of the batch."""
-        return x[start:stop] if self.batch_first else x[..., start:stop]
-
-    def split(self, x: Tensor, c: int) -> tuple[Tensor, Tensor]:
-        a, b = x.split([c, x.shape[self.dim] - c], self.dim)
-        return a, b
-
-    def cat(self, xs: list[Tensor]) -> Tensor:
-        return torch.cat(xs, self.dim)
-
-    def col(self, v: Tensor) -> Tensor:
-        """A per-element scalar (N,) broadcast against matrices."""
-        return v[:, None, None] if self.batch_first else v
-
-    def eye(self, n: int, like: Tensor) -> Tensor:
-        e = torch.eye(n, dtype=like.dtype, device=like.device)
-        return e if self.batch_first else e[..., None]
-
-    def expand_eye(self, eye: Tensor, count: int) -> Tensor:
-        n = eye.shape[-1] if self.batch_first else eye.shape[0]
-        return eye.expand(count, n, n) if self.batch_first else eye.expand(n, n, count)
-
-    def norm_bound(self, A: Tensor) -> Tensor:
-        return _operator_norm_bound(A) if self.batch_first else _norm_bound_last(A)
-
-
-_BATCH_LAST = _Layout(batch_first=False)
-
-
-def _doubling_steps(
-    X: Tensor, Q: Tensor | None, G: Tensor | None, counts: list[int], layout: _Layout = _BATCH_LAST
-) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    """Doubling on tensors sorted by number of halvings (descending).
-
-    X: (n, n, N) holds E = A − I; Q: (n, n, N); G: (n, p, N) (batch-last; (N, n, ·) with a
-    batch-first ``layout``). counts[j] is the number of
-    elements with more than j halvings: step j doubles the first counts[j] of them
-    (A ← A A, Q ← A Q Aᵀ + Q, G ← A G + G) and leaves the others final, so no work is
-    spent on elements that are done. While A is near the identity X carries E
-    (E ← 2E + E E keeps the digits of E that A = I + E would round away); once a doubling
-    leaves max(‖A‖₁, ‖A‖∞) < 1/2 (a decaying A, whose small entries E cannot resolve) it
-    carries A itself. Returns A, Q, G in the same layout and (sorted) order.
-    """
-    lo = layout
-    n = X.shape[1]
-    eye = lo.eye(n, X)
-    N = lo.size(X)
-    near = lo.col(X.new_ones(N))  # 1 while X holds E, 0 once it holds A
-    n_near = N
-    A = X + eye
-    done: list[list[Tensor]] = [[], [], []]
-    for j, c in enumerate(counts):
-        rest = lo.size(A) - c
-        if rest:
-            A, a_done = lo.split(A, c)
-            X, near = lo.head(X, c), lo.head(near, c)
-            done[0].append(a_done)
-            if Q is not None:
-                Q, q_done = lo.split(Q, c)
-                done[1].append(q_done)
-            if G is not None:
-                G, g_done = lo.split(G, c)
-                done[2].append(g_done)
-            if n_near:
-                n_near = int(near.sum())
-        if j and n_near:  # switch E -> A after the previous doubling where A has decayed
-            with torch.no_grad():
-                switch = (near > 0) & lo.col(lo.norm_bound(A) < 0.5)
-                n_switch = int(switch.sum())
-            if n_switch:
-                n_near -= n_switch
-                if n_near:
-                    X = torch.addcmul(X, switch.to(X.dtype), eye)  # = A in the switched columns
-                    near = near * (~switch).to(X.dtype)
-                else:
-                    X = A
-        if Q is not None:
-            Q = lo.mm(lo.mm(A, Q), lo.t(A), Q)  # Q ← A Q Aᵀ + Q
-        if G is not None:
-            G = lo.mm(A, G, G)  # G ← A G + G
-        if n_near == c:
-            X = lo.mm(X, A, X)  # E ← E + E A = 2E + E E
-            A = X + eye
-        elif n_near == 0:
-            A = X = lo.mm(A, A)
-        else:
-            X = lo.mm(X, A, X * near)  # columns holding E: 2E + E E; holding A: A A
-            A = torch.addcmul(X, near, eye)
-    out: list[Tensor | None] = []
-    for t, d in zip((A, Q, G), done):
-        out.append(None if t is None else (lo.cat([t] + d[::-1]) if d else t))
-    return out[0], out[1], out[2]  # type: ignore[return-value]
 
 
 def _unsort_batch_first(x: Tensor, order: Tensor | None, batch: torch.Size) -> Tensor:
@@ -371,10 +240,15 @@ _THETA_ELEMENT = 0.5
 # elements, batch-first bmm otherwise (measured on CPU, float64, n = 2 … 8).
 _BATCH_LAST_MAX_N = 4
 _BATCH_LAST_MIN_BATCH = 256
-# One parameter set and N·n up to this: the per-element path (its series length adapts to
-# ν dt) beats computing all K_max shared terms (measured at B = 1: n = 4 212 vs 351 µs,
-# n = 8 197 vs 397 µs; n = 2 no gain).
-_SMALL_BATCH = 64
+# Per-element parameters and at most this many elements: ``_block.block_doubling`` (a fixed,
+# small number of batched ops) beats the per-term Horner below; beyond it flops count and the
+# Horner on n × n matrices wins (measured, CPU, float64/float32, n = 2 … 8: block 1.2–2.2×
+# faster at N ≤ 1000, the Horner 1.2× faster at N = 3000 for n = 2).
+_BLOCK_MAX_BATCH = 1024
+# One parameter set (not nilpotent) and at most this many elements: the block path beats
+# computing all K shared series terms (measured at N = 1 … 64: 206–437 vs 468–623 µs for a
+# Matérn-3/2, 175–463 vs 382–482 µs for a Singer model).
+_BLOCK_MAX_SHARED = 64
 
 
 @lru_cache(maxsize=None)
@@ -390,12 +264,6 @@ def _element_thresholds(dtype: torch.dtype, theta: float) -> tuple[float, ...]:
             return tuple(out)
         out.append(x_K)
         K += 1
-
-
-def _prefix_counts(sorted_values: Tensor, top: int) -> list[int]:
-    """counts[j] = number of entries > j (j < top) of a descending int tensor."""
-    tally = torch.bincount(sorted_values, minlength=top + 1)
-    return (sorted_values.numel() - torch.cumsum(tally, 0))[:top].tolist()
 
 
 def _doubling_per_element(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
@@ -669,6 +537,12 @@ def doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | N
     Taylor series on h = dt / 2^s and doubles s times. Internally the batch is flattened to
     N = prod(batch), laid out last ("batch-last" (n, n, N): elementwise work on contiguous
     rows of N) and sorted by s, so doubling step j only touches the elements with s > j.
+
+    Paths (same values up to rounding): few elements — per-element parameters with
+    N ≤ 1024, or one non-nilpotent parameter set with N ≤ 64 — go through Van Loan's block
+    (``_block``: a fixed, small number of batched ops); more per-element elements through
+    the per-term Horner (``_doubling_per_element``); one shared parameter set through
+    ``_doubling_shared`` (series terms once, one GEMM for the whole batch).
     """
     F, W, B, dt, batch = x
     if tracing():
@@ -678,12 +552,13 @@ def doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | N
         + ([("W", W.shape[:-2])] if W is not None else [])
         + ([("B", B.shape[:-2])] if B is not None else [])
     )
-    n = F.shape[-1]
-    if param_batch.numel() > 1 and 4 * param_batch.numel() >= batch.numel():
+    N = batch.numel()
+    if param_batch.numel() > 1 and 4 * param_batch.numel() >= N:
         # (nearly) every element its own parameters: per-element sub-steps
+        if N <= _BLOCK_MAX_BATCH:
+            return block_doubling(x, batch_last)
         return _doubling_per_element(x, batch_last)
-    if 1 < batch.numel() * n <= _SMALL_BATCH or (batch.numel() == 1 and n > 2):
-        if _nilpotency_index(F) is None:
-            # a few elements (one call, an online step): the series length adapts to ν dt
-            return _doubling_per_element(x, batch_last)
+    if 0 < N <= _BLOCK_MAX_SHARED and _nilpotency_index(F) is None:
+        # a few elements (one call, an online step): few batched ops beat the shared terms
+        return block_doubling(x, batch_last)
     return _doubling_shared(F, W, B, dt, batch, param_batch, batch_last)

@@ -1,0 +1,143 @@
+r"""The doubling recursion shared by the doubling paths (private).
+
+After the sub-step series (``_doubling`` per-term Horner, ``_block`` Van Loan block), every
+element i is doubled s_i times: ``Q ← A Q Aᵀ + Q``, ``G ← A G + G``, ``A ← A A``, on tensors
+sorted by s_i so that step j only touches a prefix. Two layouts (:class:`_Layout`).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchsde_lti.core.linalg import bl_matmul
+
+
+def _operator_norm_bound(F: Tensor) -> Tensor:
+    """max(‖F‖₁, ‖F‖∞): bounds ‖F‖ and ‖𝓛‖/2 in the induced 1-norm. Shape (...)."""
+    absF = F.abs()
+    return torch.maximum(absF.sum(-2).amax(-1), absF.sum(-1).amax(-1))
+
+
+class _Layout:
+    """Batch layout of the doubling/Horner loops: batch-last (r, c, N), whose products are
+    fused multiply-adds over the contiguous batch (:func:`bl_matmul`; small n, large N), or
+    batch-first (N, r, c), whose products are one ``bmm`` (measured faster for n ≥ 8 or a
+    small batch). Every method is the same operation in either layout."""
+
+    def __init__(self, batch_first: bool) -> None:
+        self.batch_first = batch_first
+        self.dim = 0 if batch_first else -1
+
+    def mm(self, a: Tensor, b: Tensor, c: Tensor | None = None) -> Tensor:
+        """c + a b."""
+        if self.batch_first:
+            return a @ b if c is None else torch.baddbmm(c, a, b) if c.dim() == 3 else a @ b + c
+        return bl_matmul(a, b, c)
+
+    def t(self, x: Tensor) -> Tensor:
+        return x.mT if self.batch_first else x.transpose(0, 1)
+
+    def size(self, x: Tensor) -> int:
+        return x.shape[self.dim]
+
+    def head(self, x: Tensor, c: int) -> Tensor:
+        return self.part(x, 0, c)
+
+    def part(self, x: Tensor, start: int, stop: int) -> Tensor:
+        """Elements start … stop − 1 of the batch."""
+        return x[start:stop] if self.batch_first else x[..., start:stop]
+
+    def split(self, x: Tensor, c: int) -> tuple[Tensor, Tensor]:
+        a, b = x.split([c, x.shape[self.dim] - c], self.dim)
+        return a, b
+
+    def cat(self, xs: list[Tensor]) -> Tensor:
+        return torch.cat(xs, self.dim)
+
+    def col(self, v: Tensor) -> Tensor:
+        """A per-element scalar (N,) broadcast against matrices."""
+        return v[:, None, None] if self.batch_first else v
+
+    def eye(self, n: int, like: Tensor) -> Tensor:
+        e = torch.eye(n, dtype=like.dtype, device=like.device)
+        return e if self.batch_first else e[..., None]
+
+    def expand_eye(self, eye: Tensor, count: int) -> Tensor:
+        n = eye.shape[-1] if self.batch_first else eye.shape[0]
+        return eye.expand(count, n, n) if self.batch_first else eye.expand(n, n, count)
+
+    def norm_bound(self, A: Tensor) -> Tensor:
+        """Frobenius norm per element (≥ the spectral norm): (N,)."""
+        return torch.linalg.vector_norm(A, dim=(-2, -1) if self.batch_first else (0, 1))
+
+
+_BATCH_LAST = _Layout(batch_first=False)
+
+
+def _doubling_steps(
+    X: Tensor, Q: Tensor | None, G: Tensor | None, counts: list[int], layout: _Layout = _BATCH_LAST
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """Doubling on tensors sorted by number of halvings (descending).
+
+    X: (n, n, N) holds E = A − I; Q: (n, n, N); G: (n, p, N) (batch-last; (N, n, ·) with a
+    batch-first ``layout``). counts[j] is the number of
+    elements with more than j halvings: step j doubles the first counts[j] of them
+    (A ← A A, Q ← A Q Aᵀ + Q, G ← A G + G) and leaves the others final, so no work is
+    spent on elements that are done. While A is near the identity X carries E
+    (E ← 2E + E E keeps the digits of E that A = I + E would round away); once a doubling
+    leaves ‖A‖_F < 1/2 (a decaying A, whose small entries E cannot resolve) it
+    carries A itself. Returns A, Q, G in the same layout and (sorted) order.
+    """
+    lo = layout
+    n = X.shape[1]
+    eye = lo.eye(n, X)
+    near: Tensor | None = None  # per-element 1 while X holds E, 0 once A; None: all hold E
+    all_a = False  # every element holds A
+    A = X + eye
+    done: list[list[Tensor]] = [[], [], []]
+    for j, c in enumerate(counts):
+        if lo.size(A) > c:
+            A, a_done = lo.split(A, c)
+            done[0].append(a_done)
+            X = lo.head(X, c)
+            near = None if near is None else lo.head(near, c)
+            if Q is not None:
+                Q, q_done = lo.split(Q, c)
+                done[1].append(q_done)
+            if G is not None:
+                G, g_done = lo.split(G, c)
+                done[2].append(g_done)
+        if j and not all_a:  # switch E -> A after the previous doubling where A has decayed
+            with torch.no_grad():
+                switch = lo.col(lo.norm_bound(A) < 0.5)
+                if near is not None:
+                    switch = switch & (near > 0)
+            if bool(switch.any()):
+                sw = switch.to(X.dtype)
+                X = torch.addcmul(X, sw, eye)  # = A in the switched elements
+                near = 1.0 - sw if near is None else near * (1.0 - sw)
+                if not bool(near.any()):
+                    all_a, X, near = True, A, None
+        if Q is not None:
+            Q = lo.mm(lo.mm(A, Q), lo.t(A), Q)  # Q ← A Q Aᵀ + Q
+        if G is not None:
+            G = lo.mm(A, G, G)  # G ← A G + G
+        if all_a:
+            A = X = lo.mm(A, A)
+        elif near is None:
+            X = lo.mm(X, A, X)  # E ← E + E A = 2E + E E
+            A = X + eye
+        else:
+            X = lo.mm(X, A, X * near)  # elements holding E: 2E + E E; holding A: A A
+            A = torch.addcmul(X, near, eye)
+    out: list[Tensor | None] = []
+    for t, d in zip((A, Q, G), done):
+        out.append(None if t is None else (lo.cat([t] + d[::-1]) if d else t))
+    return out[0], out[1], out[2]  # type: ignore[return-value]
+
+
+def _prefix_counts(sorted_values: Tensor, top: int) -> list[int]:
+    """counts[j] = number of entries > j (j < top) of a descending int tensor."""
+    tally = torch.bincount(sorted_values, minlength=top + 1)
+    return (sorted_values.numel() - torch.cumsum(tally, 0))[:top].tolist()
