@@ -134,6 +134,18 @@ def psd_tolerance(x: Tensor) -> float:
     return 100.0 * x.shape[-1] * torch.finfo(x.dtype).eps
 
 
+def _psd_test(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(passes, asym, scale) without synchronising: ``passes`` (0-dim bool) says x is
+    symmetric within tol and x + tol·scale·I has a Cholesky factor (⇒ λ_min > −tol·scale up
+    to rounding far below tol); asym: relative asymmetry (...); scale: max |x| (...)."""
+    scale = x.abs().amax(dim=(-2, -1)).clamp_min(torch.finfo(x.dtype).tiny)
+    tol = psd_tolerance(x)
+    asym = (x - x.mT).abs().amax(dim=(-2, -1)) / scale
+    shifted = x + (tol * scale)[..., None, None] * torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
+    passes = ~((asym > tol) | (torch.linalg.cholesky_ex(shifted).info != 0)).any()
+    return passes, asym, scale
+
+
 def check_symmetric_psd(x: Tensor, name: str) -> None:
     """Check ``x`` (..., k, k) is symmetric positive semi-definite up to rounding."""
     check_matrix(x, name, square=True)
@@ -141,21 +153,15 @@ def check_symmetric_psd(x: Tensor, name: str) -> None:
     if not value_checks_enabled() or x.numel() == 0:
         return
     with torch.no_grad():
-        scale = x.abs().amax(dim=(-2, -1)).clamp_min(torch.finfo(x.dtype).tiny)
-        tol = psd_tolerance(x)
-        asym = (x - x.mT).abs().amax(dim=(-2, -1)) / scale
-        if bool((asym > tol).any()):
+        passes, asym, scale = _psd_test(x)
+        if bool(passes):  # the one synchronisation on the valid path
+            return
+        if bool((asym > psd_tolerance(x)).any()):
             raise ValueError(
                 f"{name} must be symmetric, got relative asymmetry {float(asym.max()):.3g} (shape {shape_str(x)})"
             )
-        xs = sym(x)
-        # Cheap sufficient test first: a Cholesky factor of xs + tol·scale·I exists iff
-        # λ_min(xs) > −tol·scale (up to rounding far below tol); eigvalsh only when it fails.
-        shifted = xs + (tol * scale)[..., None, None] * torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
-        if not bool(torch.linalg.cholesky_ex(shifted).info.any()):
-            return
-        eig_min = torch.linalg.eigvalsh(xs).amin(dim=-1) / scale
-        if bool((eig_min < -tol).any()):
+        eig_min = torch.linalg.eigvalsh(sym(x)).amin(dim=-1) / scale
+        if bool((eig_min < -psd_tolerance(x)).any()):
             raise ValueError(
                 f"{name} must be positive semi-definite, got smallest eigenvalue "
                 f"{float(eig_min.min()):.3g} relative to its largest entry (shape {shape_str(x)})"
@@ -163,12 +169,23 @@ def check_symmetric_psd(x: Tensor, name: str) -> None:
 
 
 def broadcast_batch(named: Sequence[tuple[str, Sequence[int]]]) -> torch.Size:
-    """Broadcast named batch shapes, naming them all when they do not broadcast."""
-    try:
-        return torch.broadcast_shapes(*(tuple(s) for _, s in named))
-    except RuntimeError as err:
-        seen = ", ".join(f"{n}: ({', '.join(map(str, s))})" for n, s in named)
-        raise ValueError(f"batch shapes do not broadcast: {seen}") from err
+    """Broadcast named batch shapes (numpy rules), naming them all when they do not broadcast."""
+    out: list[int] = []
+    for _, shape in named:
+        shape = tuple(shape)
+        if len(shape) > len(out):
+            out = [1] * (len(shape) - len(out)) + out
+        offset = len(out) - len(shape)
+        for i, size in enumerate(shape):
+            cur = out[offset + i]
+            if size == cur or size == 1:
+                continue
+            if cur == 1:
+                out[offset + i] = size
+                continue
+            seen = ", ".join(f"{n}: ({', '.join(map(str, s))})" for n, s in named)
+            raise ValueError(f"batch shapes do not broadcast: {seen}")
+    return torch.Size(out)
 
 
 def parse_learn(learn: Iterable[str] | str, allowed: Sequence[str]) -> tuple[str, ...]:
@@ -213,9 +230,8 @@ def sde_inputs(
     F = as_float_tensor(F, "F", dtype, device)
     check_matrix(F, "F", square=True)
     n = F.shape[-1]
-    check_finite(F, "F")
     named: list[tuple[str, torch.Size]] = [("F", F.shape[:-2])]
-    W = None
+    checked: list[tuple[str, Tensor]] = [("F", F)]  # finiteness, checked together below
     if L is not None or Qc is not None:
         if L is None or Qc is None:
             raise ValueError("L and Qc must be given together")
@@ -227,19 +243,39 @@ def sde_inputs(
             raise ValueError(
                 f"Qc must have shape (..., {s}, {s}) to match L {shape_str(L)}, got shape {shape_str(Qc)}"
             )
-        check_finite(L, "L")
-        check_symmetric_psd(Qc, "Qc")
+        checked += [("L", L), ("Qc", Qc)]
         named += [("L", L.shape[:-2]), ("Qc", Qc.shape[:-2])]
-        W = sym(L @ Qc @ L.mT)
     if B is not None:
         B = as_float_tensor(B, "B", dtype, device)
         check_matrix(B, "B", rows=n)
-        check_finite(B, "B")
+        checked.append(("B", B))
         named.append(("B", B.shape[:-2]))
     dt_t = None
     if dt is not None:
         dt_t = as_float_tensor(dt, "dt", dtype, device)
-        check_nonnegative(dt_t, "dt")
+        checked.append(("dt", dt_t))
         named.append(("dt", dt_t.shape))
-    return SDEInputs(F, W, B, dt_t, broadcast_batch(named))
+    batch = broadcast_batch(named)
+    if value_checks_enabled():
+        # one synchronisation when everything is valid; otherwise the detailed checks name
+        # the culprit (finiteness first, then dt ≥ 0, then Qc symmetric PSD)
+        with torch.no_grad():
+            flat = [t.reshape(-1) for _, t in checked]
+            ok = torch.isfinite(torch.cat(flat) if len(flat) > 1 else flat[0]).all()
+            if dt_t is not None and dt_t.numel():
+                ok = ok & (dt_t.amin() >= 0)
+            if Qc is not None and Qc.numel():
+                ok = ok & _psd_test(Qc)[0]
+            valid = bool(ok)
+        if not valid:
+            for name, t in checked:
+                check_finite(t, name)
+            if dt_t is not None:
+                check_nonnegative(dt_t, "dt")
+            if Qc is not None:
+                check_symmetric_psd(Qc, "Qc")
+    W = None
+    if L is not None and Qc is not None:
+        W = sym(L @ Qc @ L.mT)
+    return SDEInputs(F, W, B, dt_t, batch)
 

@@ -65,18 +65,18 @@ def _filter_combine(a: Elems, b: Elems) -> Elems:
     Aj, bj, Cj, ej, Jj = b
     n = Ai.shape[-1]
     eye = torch.eye(n, dtype=Ai.dtype, device=Ai.device)
-    X = eye + Ci @ Jj  # I + C_i J_j
+    X = eye + Ci @ Jj  # I + C_i J_j (eigenvalues ≥ 1: C, J PSD)
     bi_col = (bi + matvec(Ci, ej)).unsqueeze(-1)
-    lead = torch.broadcast_shapes(X.shape[:-2], bi_col.shape[:-2])
+    ecol = (ej - matvec(Jj, bi)).unsqueeze(-1)
+    lead = torch.broadcast_shapes(X.shape[:-2], bi_col.shape[:-2], ecol.shape[:-2])
+    LU, piv, _ = torch.linalg.lu_factor_ex(X.expand(*lead, n, n))  # one factorisation, two solves
     rhs = torch.cat([Ai.expand(*lead, n, n), Ci.expand(*lead, n, n), bi_col.expand(*lead, n, 1)], dim=-1)
-    sol = torch.linalg.solve(X.expand(*lead, n, n), rhs)  # (I + C_i J_j)^{-1} [A_i, C_i, b_i + C_i η_j]
+    sol = torch.linalg.lu_solve(LU, piv, rhs)  # (I + C_i J_j)^{-1} [A_i, C_i, b_i + C_i η_j]
     A = Aj @ sol[..., :n]
     C = sym(Aj @ sol[..., n : 2 * n] @ Aj.mT + Cj)
     b = matvec(Aj, sol[..., 2 * n]) + bj
-    ecol = (ej - matvec(Jj, bi)).unsqueeze(-1)
-    lead2 = torch.broadcast_shapes(X.shape[:-2], ecol.shape[:-2])
-    rhs2 = torch.cat([(Jj @ Ai).expand(*lead2, n, n), ecol.expand(*lead2, n, 1)], dim=-1)
-    sol2 = torch.linalg.solve(X.mT.expand(*lead2, n, n), rhs2)  # (I + J_j C_i)^{-1} [J_j A_i, η_j − J_j b_i]
+    rhs2 = torch.cat([(Jj @ Ai).expand(*lead, n, n), ecol.expand(*lead, n, 1)], dim=-1)
+    sol2 = torch.linalg.lu_solve(LU, piv, rhs2, adjoint=True)  # (I + J_j C_i)^{-1} [J_j A_i, η_j − J_j b_i]
     J = sym(Ai.mT @ sol2[..., :n] + Ji)
     e = matvec(Ai.mT, sol2[..., n]) + ei
     return A, b, C, e, J
