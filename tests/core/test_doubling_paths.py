@@ -1,0 +1,107 @@
+"""The doubling method's internal paths agree with each other and with independent references.
+
+``doubling`` dispatches by batch size and parameter sharing to Van Loan's block
+(``_block``: few elements), the per-term Horner (``_doubling_per_element``: many elements
+with their own parameters) and the shared series (``_doubling_shared``). Every path must give
+the same (A, Q, G) to rounding, on benign and stiff elements, with gradients.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.linalg
+import torch
+
+from torchsde_lti.core._block import block_doubling
+from torchsde_lti.core._doubling import _doubling_per_element, _doubling_shared
+from torchsde_lti.core.validation import sde_inputs
+
+F64 = torch.float64
+
+
+def _problem(n: int, p: int, N: int, kind: str, seed: int, dtype: torch.dtype = F64):
+    g = torch.Generator().manual_seed(seed)
+    F = torch.randn(N, n, n, generator=g, dtype=F64)
+    if kind == "stiff":  # fast and slow modes, long steps: A decays, the E → A switch runs
+        F = F + torch.diag_embed(-torch.logspace(-3, 4, n, dtype=F64)).expand(N, n, n)
+    elif kind == "nilpotent":
+        F = torch.triu(F, 1)
+    L = torch.randn(N, n, 2, generator=g, dtype=F64)
+    Qc = torch.eye(2, dtype=F64).expand(N, 2, 2) * (1e6 if kind == "big_noise" else 1.0)
+    B = torch.randn(N, n, p, generator=g, dtype=F64) if p else None
+    dt = torch.exp(torch.empty(N, dtype=F64).uniform_(-7.0, 3.0, generator=g))
+    dt[0] = 0.0
+    cast = lambda x: None if x is None else x.to(dtype)  # noqa: E731
+    return cast(F), cast(L), cast(Qc), cast(dt), cast(B)
+
+
+def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a - b).abs().amax() / b.abs().amax().clamp_min(1e-300))
+
+
+@pytest.mark.parametrize("kind", ["random", "stiff", "nilpotent", "big_noise"])
+@pytest.mark.parametrize("p", [0, 2])
+def test_block_path_equals_horner_path(kind: str, p: int) -> None:
+    for n in (1, 2, 3, 5):
+        F, L, Qc, dt, B = _problem(n, p, 9, kind, seed=n)
+        x = sde_inputs(F, L, Qc, dt, B)
+        A1, Q1, G1 = block_doubling(x)
+        A2, Q2, G2 = _doubling_per_element(x, False)
+        for i in range(9):  # per element: decayed A of a stiff element is small but exact
+            assert _rel(A1[i], A2[i]) < 1e-12
+            assert _rel(Q1[i], Q2[i]) < 1e-12
+            if p:
+                assert _rel(G1[i], G2[i]) < 1e-12
+        assert torch.equal(Q1, Q1.mT)
+
+
+def test_block_path_against_scipy_van_loan() -> None:
+    """Benign elements (‖F‖ dt ≤ 5, where scipy's full-step Van Loan is accurate)."""
+    F, L, Qc, dt, B = _problem(3, 1, 12, "random", seed=3)
+    A, Q, G = block_doubling(sde_inputs(F, L, Qc, dt, B))
+    for i in range(12):
+        if float(dt[i] * F[i].abs().sum(0).max()) > 5.0:
+            continue
+        W = (L[i] @ Qc[i] @ L[i].T).numpy()
+        Fi, Bi, h = F[i].numpy(), B[i].numpy(), float(dt[i])
+        E = scipy.linalg.expm(np.block([[Fi, W], [np.zeros((3, 3)), -Fi.T]]) * h)
+        Z = scipy.linalg.expm(np.block([[Fi, Bi], [np.zeros((1, 4))]]) * h)
+        assert _rel(A[i], torch.as_tensor(E[:3, :3])) < 1e-12
+        assert _rel(Q[i], torch.as_tensor(E[:3, 3:] @ E[:3, :3].T)) < 1e-11
+        assert _rel(G[i], torch.as_tensor(Z[:3, 3:])) < 1e-12
+
+
+def test_block_path_equals_shared_path_for_one_parameter_set() -> None:
+    F, L, Qc, _, B = _problem(4, 1, 1, "random", seed=5)
+    dt = torch.tensor([0.0, 1e-4, 0.3, 2.0, 40.0], dtype=F64)
+    x = sde_inputs(F[0], L[0], Qc[0], dt, B[0])
+    shared = _doubling_shared(x.F, x.W, x.B, x.dt, x.batch, torch.Size(), False)
+    for a, b in zip(block_doubling(x), shared):
+        assert _rel(a, b) < 1e-12
+
+
+def test_block_path_float32_psd_and_as_accurate_as_horner() -> None:
+    F, L, Qc, dt, _ = _problem(4, 0, 40, "stiff", seed=7, dtype=torch.float32)
+    x = sde_inputs(F, L, Qc, dt)
+    A, Q, _ = block_doubling(x)
+    A_h, Q_h, _ = _doubling_per_element(x, False)
+    A64, Q64, _ = _doubling_per_element(sde_inputs(F.double(), L.double(), Qc.double(), dt.double()), False)
+    assert _rel(A.double(), A64) <= 2 * _rel(A_h.double(), A64) + 1e-6
+    assert _rel(Q.double(), Q64) <= 2 * _rel(Q_h.double(), Q64) + 1e-6
+    assert _rel(Q.double(), Q64) < 1e-4
+    eig = torch.linalg.eigvalsh(Q.double())
+    assert bool((eig >= -1e-6 * eig.abs().amax(-1, keepdim=True)).all())
+
+
+def test_block_path_gradcheck_with_doubling_and_switch() -> None:
+    """Gradients through the sub-step polynomial, the sorted doubling and the E → A switch."""
+    F, L, Qc, _, B = _problem(3, 1, 1, "random", seed=4)
+    F = (F[0] - 0.5 * torch.eye(3, dtype=F64)).requires_grad_()
+    L, B = L[0].requires_grad_(), B[0].requires_grad_()
+    dt = torch.tensor([0.3, 1.7, 6.0, 25.0], dtype=F64, requires_grad=True)
+
+    def fn(F, L, B, dt):
+        return block_doubling(sde_inputs(F, L, Qc[0], dt, B))
+
+    assert torch.autograd.gradcheck(fn, (F, L, B, dt), eps=1e-6, atol=1e-6, rtol=1e-5)
