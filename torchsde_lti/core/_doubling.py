@@ -419,7 +419,7 @@ def _doubling_traced(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tensor | N
     def double(j: Tensor | int, A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, near: Tensor):
         """Doubling step j (masked to the elements with s_i > j)."""
         active = lo.col(halvings > j)
-        switch = near & lo.col(lo.norm_bound(A) < 0.5) & (j > 0 if isinstance(j, int) else (j > 0).reshape(()))
+        switch = near & lo.col(lo.norm_sq(A) < 0.25) & (j > 0 if isinstance(j, int) else (j > 0).reshape(()))
         X = torch.where(switch, A, X)
         near = near & ~switch
         if Q is not None:
