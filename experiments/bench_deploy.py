@@ -4,12 +4,16 @@ torch.export, measured side by side with eager.
 Model: 2-D constant velocity (n = 4, m = 2) with R learned (a state_dict checkpoint is saved
 and loaded, as after training), irregular dt, float64, no grad.
 
-1. ``torch.compile(kf)``: wall time of the first call (compilation) and the median of the
-   following calls, for the default (``parallel=None``) and the forced loop
-   (``parallel=False``), at T = 200 and T = 2000, B = 1 — vs the same filter eager.
+1. ``torch.compile(kf)``: wall time of the first call (compilation, inductor's caches off)
+   and the median of the following calls (no grad), for the default (``parallel=None``: the
+   scan, traced whole), the forced loop (``parallel=False``: one step compiled) and the forced
+   scan (``parallel=True``), at T = 200 and T = 2000, B = 1 — vs the same filter eager.
 2. checkpoint → ``torch.export.export`` → ``torch.export.save`` → ``torch.export.load`` →
    run on new tracks of the exported shape: export / save / load times, the exported
    program's run time vs eager, and the largest |difference| of log-likelihood and means.
+3. (B = 1) the exported program built by AOTInductor into a .pt2 package
+   (``torch._inductor.aoti_compile_and_package``), loaded with ``aoti_load_package`` and run
+   on new tracks: build / load / run times vs eager and vs filterpy on the same track.
 
 Shared machine (other sessions run): medians of repeats, noisy.
 
@@ -56,7 +60,10 @@ def median_ms(fn, repeats: int = 7) -> float:
 
 
 def bench_compile() -> None:
-    print("\n### torch.compile(kf), B = 1: first call (compile) and steady state\n")
+    # cold compiles: no inductor cache from an earlier run of this script
+    torch._inductor.config.fx_graph_cache = False
+    torch._inductor.config.autotune_local_cache = False
+    print("\n### torch.compile(kf), B = 1: first call (compile, caches off) and steady state\n")
     print("| T | parallel | first call (s) | compiled (ms) | eager (ms) | eager / compiled |")
     print("|---|---|---|---|---|---|")
     for T in (200, 2000):
@@ -74,7 +81,7 @@ def bench_compile() -> None:
             print(f"| {T} | {parallel} | {first:.1f} | {t_c:.2f} | {t_e:.2f} | {t_e / t_c:.2f}× |", flush=True)
 
 
-def bench_export(B: int, T: int) -> None:
+def bench_export(B: int, T: int, aoti: bool) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         ckpt, prog = Path(tmp) / "kf.ckpt", Path(tmp) / "kf.pt2"
         trained = make_filter(None)
@@ -106,11 +113,65 @@ def bench_export(B: int, T: int) -> None:
         d_mean = float((mean - ref.mean).abs().max())
         print(f"| {B} | {T} | {len(ep.graph.nodes)} | {t_export:.1f} | {t_save:.2f} | {t_load:.2f} | "
               f"{t_prog:.2f} | {t_eager:.2f} | {t_eager / t_prog:.2f}× | {d_ll:.1e} / {d_mean:.1e} |", flush=True)
+        if aoti:
+            AOTI_ROWS.append(bench_aoti(ep, Path(tmp) / "kf_aoti.pt2", kf, B, T, t_eager))
+
+
+AOTI_ROWS: list[str] = []
+
+
+def bench_aoti(ep: torch.export.ExportedProgram, path: Path, kf: tl.KalmanFilter, B: int, T: int,
+               t_eager: float) -> str:
+    """AOTInductor: the exported program compiled ahead of time into a .pt2 package (C++
+    kernels; needs a C++ compiler to build, only torch to load and run), vs eager and filterpy."""
+    t0 = time.perf_counter()
+    torch._inductor.aoti_compile_and_package(ep, package_path=str(path))
+    t_build = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    runner = torch._inductor.aoti_load_package(str(path))
+    t_load = time.perf_counter() - t0
+    y, dt = data(B, T, 2)  # new tracks again
+    with torch.no_grad():
+        ll, mean = runner(y, dt)
+        ref = kf(y, dt)
+        t_run = median_ms(lambda: runner(y, dt))
+    d_ll = float((ll - ref.log_likelihood).abs().max())
+    d_mean = float((mean - ref.mean).abs().max())
+    t_fp = filterpy_ms(y, dt) if B == 1 else float("nan")
+    fp = f"{t_fp:.2f} | {t_fp / t_run:.2f}×" if B == 1 else "– | –"
+    return (f"| {B} | {T} | {t_build:.1f} | {t_load:.3f} | {t_run:.2f} | {t_eager:.2f} | {t_eager / t_run:.2f}× | "
+            f"{fp} | {d_ll:.1e} / {d_mean:.1e} |")
+
+
+def filterpy_ms(y: torch.Tensor, dt: torch.Tensor) -> float:
+    """filterpy on the same single track, closed-form constant-velocity A, Q (the peer a user
+    would otherwise pick; its matrices are precomputed, not timed)."""
+    import numpy as np
+    from filterpy.kalman import KalmanFilter as FPKalman
+
+    T = y.shape[-2]
+    A, Q = np.zeros((T, 4, 4)), np.zeros((T, 4, 4))
+    for k, h in enumerate(dt[0].numpy()):
+        a, q = np.array([[1.0, h], [0.0, 1.0]]), np.array([[h**3 / 3, h**2 / 2], [h**2 / 2, h]])
+        A[k], Q[k] = np.kron(np.eye(2), a), np.kron(np.eye(2), q)
+    H = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
+    R = np.array([[0.4, 0.05], [0.05, 0.6]])
+    yn = y[0].numpy()
+
+    def run() -> None:
+        f = FPKalman(dim_x=4, dim_z=2)
+        f.x, f.P, f.H, f.R = np.zeros(4), 100 * np.eye(4), H, R
+        for k in range(T):
+            f.predict(F=A[k], Q=Q[k])
+            f.update(yn[k])
+
+    return median_ms(run)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--no-aoti", action="store_true", help="skip the AOTInductor package (needs a C++ compiler)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     print(f"# deploy benchmark (torch {torch.__version__}, {args.threads} thread(s), load "
@@ -121,7 +182,13 @@ def main() -> None:
           "eager / exported | max |Δ| ll / means |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for B, T in ((1, 200), (100, 200)):
-        bench_export(B, T)
+        bench_export(B, T, aoti=B == 1 and not args.no_aoti)  # B = 100: 12.8 k nodes, minutes to build
+    if AOTI_ROWS:
+        print("\n### exported program → AOTInductor package (torch._inductor.aoti_compile_and_package) → load → run\n")
+        print("| B | T | build (s) | load (s) | packaged run (ms) | eager (ms) | eager / packaged | filterpy (ms) | "
+              "filterpy / packaged | max |Δ| ll / means |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
+        print("\n".join(AOTI_ROWS))
     print(f"\nload at end {os.getloadavg()[0]:.2f}")
 
 

@@ -106,3 +106,33 @@ def test_traced_doubling_equals_eager(dtype, rtol):
             floor = torch.finfo(dtype).tiny ** 0.5  # entries that underflow in one path: absolute
             scale = a.flatten(-2).norm(dim=-1).clamp_min(floor)[..., None, None]
             assert float(((a - b).abs() / scale).max()) < rtol
+
+
+@pytest.mark.slow  # builds C++ kernels: ≈ 20–60 s
+def test_aoti_package_matches_eager(tmp_path):
+    """exported program → AOTInductor package → load → run equals eager to 1e-10 (float64)."""
+    kf = _filters()["cv-scan"].eval()
+    ep = torch.export.export(tl.DeployedFilter(kf), _data(2, 12, 2, seed=0))
+    path = torch._inductor.aoti_compile_and_package(ep, package_path=str(tmp_path / "kf_aoti.pt2"))
+    runner = torch._inductor.aoti_load_package(path)
+    y, dt = _data(2, 12, 2, seed=1)
+    ll, mean = runner(y, dt)
+    with torch.no_grad():
+        ref = kf(y, dt)
+    torch.testing.assert_close(ll, ref.log_likelihood, rtol=0, atol=1e-10)
+    torch.testing.assert_close(mean, ref.mean, rtol=0, atol=1e-10)
+
+
+@pytest.mark.slow  # inductor compiles the whole scan: ≈ 20–60 s
+def test_compiled_forced_scan_matches_eager():
+    """torch.compile(KalmanFilter(parallel=True)) traces the associative scan whole (the
+    doubling's while_loop without a gradient) and equals eager to 1e-10."""
+    cv = tl.models.constant_velocity(dim=2, q=0.8, dtype=F64)
+    H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=F64)
+    kf = tl.KalmanFilter(cv, H, 0.3 * torch.eye(2, dtype=F64), P0=50 * torch.eye(4, dtype=F64), parallel=True)
+    compiled = torch.compile(kf)
+    y, dt = _data(2, 12, 2, seed=1)
+    with torch.no_grad():
+        out, ref = compiled(y, dt), kf(y, dt)
+    torch.testing.assert_close(out.log_likelihood, ref.log_likelihood, rtol=0, atol=1e-10)
+    torch.testing.assert_close(out.mean, ref.mean, rtol=0, atol=1e-10)

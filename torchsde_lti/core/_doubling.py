@@ -375,10 +375,11 @@ _TRACED_MAX_HALVINGS = 32
 def _doubling_traced(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
     """:func:`_doubling_per_element` without value-dependent control flow, for tracing.
 
-    Same sub-step series (all K_max terms) and the same doubling recursion, but every
-    element runs :data:`_TRACED_MAX_HALVINGS` masked doubling steps (``torch.where`` keeps
-    the elements whose own s_i halvings are done), and the E → A switch is a mask too. The
-    values equal the eager path's up to rounding; the graph has a static size.
+    Same sub-step series (all K_max terms) and the same doubling recursion, but the doubling
+    steps are masked (``torch.where`` keeps the elements whose own s_i halvings are done) and
+    the E → A switch is a mask too: ``max_i s_i`` steps of torch's structured while_loop
+    without a gradient (export, inference under torch.compile), :data:`_TRACED_MAX_HALVINGS`
+    static steps with one. The values equal the eager path's up to rounding.
     """
     F, W, B, dt, batch = x
     n = F.shape[-1]
@@ -431,9 +432,11 @@ def _doubling_traced(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tensor | N
         A = torch.where(near, X + eye, X)
         return A, X, Q, G, near
 
-    if torch.compiler.is_exporting():
-        # the exported program loops max_i s_i times (torch's structured while_loop), not
-        # _TRACED_MAX_HALVINGS times
+    needs_grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (F, W, B, dt))
+    if torch.compiler.is_exporting() or not needs_grad:
+        # loop max_i s_i times (torch's structured while_loop), not _TRACED_MAX_HALVINGS
+        # times; the static loop below where a gradient is traced (torch.compile of a
+        # training step), which while_loop does not differentiate
         from torch._higher_order_ops import while_loop
 
         has_q, has_g = Q is not None, G is not None
