@@ -105,3 +105,14 @@ def test_block_path_gradcheck_with_doubling_and_switch() -> None:
         return block_doubling(sde_inputs(F, L, Qc[0], dt, B))
 
     assert torch.autograd.gradcheck(fn, (F, L, B, dt), eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_empty_batches() -> None:
+    """An empty batch (per-element or shared parameters) gives empty results of the right shapes."""
+    import torchsde_lti as tl
+
+    L, Qc = torch.eye(2, dtype=F64), torch.eye(2, dtype=F64)
+    d = tl.discretize(torch.randn(0, 2, 2, dtype=F64), L, Qc, torch.ones(0, dtype=F64))
+    assert d.A.shape == d.Q.shape == (0, 2, 2)
+    d = tl.discretize(-torch.eye(2, dtype=F64), L, Qc, torch.ones(0, 3, dtype=F64), B=torch.ones(2, 1, dtype=F64))
+    assert d.A.shape == (0, 3, 2, 2) and d.G is not None and d.G.shape == (0, 3, 2, 1)

@@ -561,7 +561,9 @@ def doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | N
         if N <= _BLOCK_MAX_BATCH:
             return block_doubling(x, batch_last)
         return _doubling_per_element(x, batch_last)
-    if 0 < N <= _BLOCK_MAX_SHARED and _nilpotency_index(F) is None:
+    if N == 0:  # an empty batch: nothing to compute, shapes only
+        return block_doubling(x, batch_last)
+    if N <= _BLOCK_MAX_SHARED and _nilpotency_index(F) is None:
         # a few elements (one call, an online step): few batched ops beat the shared terms
         return block_doubling(x, batch_last)
     return _doubling_shared(F, W, B, dt, batch, param_batch, batch_last)
