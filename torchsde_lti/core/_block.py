@@ -90,8 +90,8 @@ def _expm_minus_identity(C: Tensor) -> Tensor:
 def _power_of_two_scale(norm: Tensor, bound: Tensor) -> Tensor:
     """2^-k, k = ceil(log2(norm / bound)) clamped to [0, 60]: norm · 2^-k ≤ bound where reachable
     (scales down only; 1 for norm ≤ bound or norm 0)."""
-    k = torch.ceil(torch.log2(norm / bound)).clamp(0.0, _MAX_SCALE_EXPONENT)
-    return torch.exp2(-torch.nan_to_num(k, nan=0.0))
+    _, k = torch.frexp(norm / bound)  # norm / bound = m 2^k, m ∈ [1/2, 1): ≤ 2^k
+    return torch.exp2(-k.clamp(0, int(_MAX_SCALE_EXPONENT)).to(norm.dtype))
 
 
 def block_doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | None, Tensor | None]:

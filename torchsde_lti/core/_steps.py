@@ -49,8 +49,10 @@ class _Layout:
         return x[start:stop] if self.batch_first else x[..., start:stop]
 
     def split(self, x: Tensor, c: int) -> tuple[Tensor, Tensor]:
-        a, b = x.split([c, x.shape[self.dim] - c], self.dim)
-        return a, b
+        """(first c elements, the rest): two slicing views (cheaper than ``Tensor.split``)."""
+        if self.batch_first:
+            return x[:c], x[c:]
+        return x[..., :c], x[..., c:]
 
     def cat(self, xs: list[Tensor]) -> Tensor:
         return torch.cat(xs, self.dim)
