@@ -16,11 +16,12 @@ set the number of halvings. ``s = ceil(log2(‖C‖_F dt / θ))`` with θ = 1 ma
 −Fᵀ block grows at most e and the Taylor polynomial of degree m (18 in float64, 11 in
 float32; remainder below eps/8 relative to ‖C‖) is accurate to rounding. It is evaluated
 by Paterson–Stockmeyer: C², C³, C⁴, one product of the coefficient table with the stacked
-powers, and ⌈(m+1)/4⌉ − 1 Horner products in C⁴ — 7 batched products in float64, whatever
-the degree, instead of one per Taylor term. Then ``s`` doublings on the (n, ·) blocks only (``_steps._doubling_steps``, shared
-with the per-term path: Q ← A Q Aᵀ + Q, G ← A G + G, A = I + E with E ← E + E A while A is
-near the identity), which add PSD terms (Q stays PSD; nothing grows like e^{|λ| dt} for
-stable F). Elements are sorted by s (descending), so doubling step j only touches a prefix.
+powers, and ⌈(m+1)/4⌉ − 1 Horner products in C⁴ — 7 batched products in float64 instead of
+one per Taylor term. Then ``s`` doublings on the (n, ·) blocks only
+(``_steps._doubling_steps``, shared with the per-term path: Q ← A Q Aᵀ + Q, G ← A G + G,
+A = I + E with E ← E + E A while A is near the identity), which add PSD terms (Q stays PSD;
+nothing grows like e^{|λ| dt} for stable F). Elements are sorted by s (descending), so
+doubling step j only touches a prefix.
 
 Compared with :func:`torchsde_lti.core._doubling._doubling_per_element` (per-term Horner on
 n × n matrices), this path has a fixed, small number of batched ops: it wins where every
@@ -41,13 +42,13 @@ from torchsde_lti.core.validation import SDEInputs
 
 __all__ = ["block_doubling"]
 
-#: Block 1-norm bound on the sub-step.
+#: Bound on the sub-step block's Frobenius norm.
 _THETA = 1.0
 #: Powers kept by Paterson–Stockmeyer (C⁰ … C³; the Horner variable is C⁴).
 _PS_POWERS = 4
 _BATCH_FIRST = _Layout(batch_first=True)
 #: Largest exponent k of the similarity scales σ, β = 2^-k.
-_MAX_SCALE_EXPONENT = 60.0
+_MAX_SCALE_EXPONENT = 60
 
 
 @lru_cache(maxsize=None)
@@ -91,7 +92,7 @@ def _power_of_two_scale(norm: Tensor, bound: Tensor) -> Tensor:
     """2^-k, k = ceil(log2(norm / bound)) clamped to [0, 60]: norm · 2^-k ≤ bound where reachable
     (scales down only; 1 for norm ≤ bound or norm 0)."""
     _, k = torch.frexp(norm / bound)  # norm / bound = m 2^k, m ∈ [1/2, 1): ≤ 2^k
-    return torch.exp2(-k.clamp(0, int(_MAX_SCALE_EXPONENT)).to(norm.dtype))
+    return torch.exp2(-k.clamp(0, _MAX_SCALE_EXPONENT).to(norm.dtype))
 
 
 def block_doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | None, Tensor | None]:

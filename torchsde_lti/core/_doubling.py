@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core._block import block_doubling
-from torchsde_lti.core._steps import _BATCH_LAST, _doubling_steps, _Layout, _operator_norm_bound, _prefix_counts
+from torchsde_lti.core._steps import _doubling_steps, _Layout, _operator_norm_bound, _prefix_counts
 from torchsde_lti.core.validation import SDEInputs, broadcast_batch, tracing
 
 __all__ = ["doubling"]
