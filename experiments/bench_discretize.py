@@ -32,6 +32,7 @@ the nilpotent chain. Reported: relative Frobenius error of Q and whether Q is PS
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import math
 import os
@@ -251,6 +252,7 @@ def run_throughput(quick: bool) -> list[Cell]:
                         if c is not None:
                             calls[name] = c
                             warm[name] = make_call(name, prob, min(batch, 10_000), dtype, mode == "fwd+bwd")  # type: ignore[assignment]
+                    gc.collect()  # the previous cell's garbage (large autograd graphs) is not freed inside this one
                     time_cell(cell, calls, warm, repeats, budget_s, hard_s)
                     cells.append(cell)
                     rates = ", ".join(f"{k} {cell.rate(k):.3g}/s" for k in cell.times)
