@@ -37,7 +37,13 @@ from functools import lru_cache
 import torch
 from torch import Tensor
 
-from torchsde_lti.core._steps import _doubling_steps, _Layout
+from torchsde_lti.core._steps import (
+    _doubling_order,
+    _doubling_steps,
+    _Layout,
+    _unsort_from_batch_first,
+    _unsort_from_batch_first_last,
+)
 from torchsde_lti.core.validation import SDEInputs
 
 __all__ = ["block_doubling"]
@@ -73,7 +79,7 @@ def _ps_table(dtype: torch.dtype, device: torch.device) -> Tensor:
 
 
 def _expm_minus_identity(C: Tensor) -> Tensor:
-    """expm(C) − I for C (N, d, d) with ‖C‖₁ ≤ θ, by Paterson–Stockmeyer."""
+    """expm(C) − I for C (N, d, d) with ‖C‖_F ≤ θ, by Paterson–Stockmeyer."""
     N, d = C.shape[0], C.shape[-1]
     q = _PS_POWERS
     powers = [torch.eye(d, dtype=C.dtype, device=C.device).expand(N, d, d), C]
@@ -148,18 +154,11 @@ def block_doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tens
             below[:, :n, n : 2 * n] = -Fh.mT
         Ch = torch.cat([Ch, below], -2)
 
-    steps = int(halvings.max()) if N else 0
-    order = None
-    counts: list[int] = []
-    if steps:
-        if N > 1:
-            s_int = halvings.to(torch.int64)
-            order = torch.argsort(s_int, descending=True)
-            Ch = Ch[order]
-            tally = torch.bincount(s_int, minlength=steps + 1)
-            counts = (N - torch.cumsum(tally, 0))[:steps].tolist()
-        else:
-            counts = [1] * steps
+    order, counts = _doubling_order(halvings.to(torch.int64), torch.Size([N]))
+    if order is not None:  # descending halvings: doubling step j touches a prefix
+        Ch = Ch[order]
+        sigma = None if sigma is None else sigma[order]
+        beta = None if beta is None else beta[order]
 
     E = _expm_minus_identity(Ch)
     X = E[:, :n, :n]  # A_h − I
@@ -169,21 +168,15 @@ def block_doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tens
         A, Q, G = _doubling_steps(X, Q, G, counts, _BATCH_FIRST)
     else:
         A = X + torch.eye(n, dtype=dtype, device=device)
-    if order is not None:
-        A = torch.empty_like(A).index_copy_(0, order, A)
-        if Q is not None:
-            Q = torch.empty_like(Q).index_copy_(0, order, Q)
-        if G is not None:
-            G = torch.empty_like(G).index_copy_(0, order, G)
     if Q is not None:
         assert sigma is not None
         Q = (Q + Q.mT) * (0.5 / sigma)[:, None, None]  # symmetrise, undo σ
     if G is not None:
         assert beta is not None
         G = G / beta[:, None, None]  # undo β
-
-    def shape(t: Tensor) -> Tensor:
-        t = t.reshape(*batch, *t.shape[1:])
-        return t.movedim((-2, -1), (0, 1)).contiguous() if batch_last else t
-
-    return shape(A), None if Q is None else shape(Q), None if G is None else shape(G)
+    convert = _unsort_from_batch_first_last if batch_last else _unsort_from_batch_first
+    return (
+        convert(A, order, batch),
+        None if Q is None else convert(Q, order, batch),
+        None if G is None else convert(G, order, batch),
+    )

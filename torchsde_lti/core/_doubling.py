@@ -24,7 +24,17 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core._block import block_doubling
-from torchsde_lti.core._steps import _doubling_steps, _Layout, _operator_norm_bound, _prefix_counts
+from torchsde_lti.core._steps import (
+    _doubling_order,
+    _doubling_steps,
+    _Layout,
+    _operator_norm_bound,
+    _prefix_counts,
+    _unsort_batch_first,
+    _unsort_batch_last,
+    _unsort_from_batch_first,
+    _unsort_from_batch_first_last,
+)
 from torchsde_lti.core.validation import SDEInputs, broadcast_batch, tracing
 
 __all__ = ["doubling"]
@@ -90,35 +100,6 @@ def _taylor_rows(x: Tensor, count: int) -> Tensor:
     for k in range(1, count):
         rows.append(rows[-1] * x * (1.0 / k))
     return torch.stack(rows)
-
-
-def _unsort_batch_first(x: Tensor, order: Tensor | None, batch: torch.Size) -> Tensor:
-    """Batch-last (r, c, N) whose column i belongs to element order[i] -> (*batch, r, c)."""
-    xb = x.permute(2, 0, 1)
-    if order is None:
-        out = xb.contiguous()
-    else:  # out[order[i]] = xb[i]; its backward is a gather
-        out = torch.empty(xb.shape, dtype=x.dtype, device=x.device).index_copy_(0, order, xb)
-    return out.reshape(*batch, *x.shape[:2])
-
-
-def _unsort_batch_last(x: Tensor, order: Tensor | None, batch: torch.Size) -> Tensor:
-    """Batch-last (r, c, N) whose column i belongs to element order[i] -> (r, c, *batch)."""
-    if order is not None:  # out[..., order[i]] = x[..., i]
-        x = torch.empty(x.shape, dtype=x.dtype, device=x.device).index_copy_(-1, order, x)
-    return x.reshape(*x.shape[:2], *batch)
-
-
-def _unsort_from_batch_first(x: Tensor, order: Tensor | None, batch: torch.Size) -> Tensor:
-    """Batch-first (N, r, c) whose row i belongs to element order[i] -> (*batch, r, c)."""
-    if order is not None:  # out[order[i]] = x[i]
-        x = torch.empty(x.shape, dtype=x.dtype, device=x.device).index_copy_(0, order, x)
-    return x.reshape(*batch, *x.shape[1:])
-
-
-def _unsort_from_batch_first_last(x: Tensor, order: Tensor | None, batch: torch.Size) -> Tensor:
-    """Batch-first (N, r, c), sorted by ``order`` -> (r, c, *batch)."""
-    return _unsort_from_batch_first(x, order, batch).movedim((-2, -1), (0, 1))
 
 
 def _symmetric_index(n: int, device: torch.device) -> tuple[Tensor, Tensor]:
@@ -197,22 +178,6 @@ def _halvings(F: Tensor, dt: Tensor) -> tuple[Tensor, int, Tensor | None]:
         # non-finite dt (only reachable with value checks off) gives non-finite output
         halvings = torch.nan_to_num(halvings, nan=0.0, posinf=0.0).to(torch.int64)
     return nu, _series_length(F.dtype), halvings
-
-
-def _doubling_order(halvings: Tensor | None, batch: torch.Size) -> tuple[Tensor | None, list[int]]:
-    """Sort order (descending halvings) of the N = prod(batch) elements and ``counts``:
-    counts[j] = number of elements with more than j halvings. (None, []) without doubling."""
-    N = batch.numel()
-    if halvings is None or not N:
-        return None, []
-    with torch.no_grad():
-        flat = halvings.expand(batch).reshape(-1)
-        steps = int(flat.max())
-        if not steps:
-            return None, []
-        order = torch.argsort(flat, descending=True)
-        tally = torch.bincount(flat, minlength=steps + 1)
-        return order, (N - torch.cumsum(tally, 0))[:steps].tolist()
 
 
 def _stacked_terms(powers: Tensor, lyap: Tensor | None, inputs: Tensor | None) -> Tensor:

@@ -140,6 +140,52 @@ def _doubling_steps(
 
 
 def _prefix_counts(sorted_values: Tensor, top: int) -> list[int]:
-    """counts[j] = number of entries > j (j < top) of a descending int tensor."""
+    """counts[j] = number of entries > j (j < top) of an int tensor."""
     tally = torch.bincount(sorted_values, minlength=top + 1)
     return (sorted_values.numel() - torch.cumsum(tally, 0))[:top].tolist()
+
+
+def _doubling_order(halvings: Tensor | None, batch: torch.Size) -> tuple[Tensor | None, list[int]]:
+    """Sort order (descending halvings, int64) of the N = prod(batch) elements and
+    ``counts``: counts[j] = number of elements with more than j halvings. (None, []) without
+    doubling; order None for a single element."""
+    N = batch.numel()
+    if halvings is None or not N:
+        return None, []
+    with torch.no_grad():
+        flat = halvings.expand(batch).reshape(-1)
+        steps = int(flat.max())
+        if not steps:
+            return None, []
+        if N == 1:
+            return None, [1] * steps
+        return torch.argsort(flat, descending=True), _prefix_counts(flat, steps)
+
+
+def _unsort_batch_first(x: Tensor, order: Tensor | None, batch: torch.Size) -> Tensor:
+    """Batch-last (r, c, N) whose column i belongs to element order[i] -> (*batch, r, c)."""
+    xb = x.permute(2, 0, 1)
+    if order is None:
+        out = xb.contiguous()
+    else:  # out[order[i]] = xb[i]; its backward is a gather
+        out = torch.empty(xb.shape, dtype=x.dtype, device=x.device).index_copy_(0, order, xb)
+    return out.reshape(*batch, *x.shape[:2])
+
+
+def _unsort_batch_last(x: Tensor, order: Tensor | None, batch: torch.Size) -> Tensor:
+    """Batch-last (r, c, N) whose column i belongs to element order[i] -> (r, c, *batch)."""
+    if order is not None:  # out[..., order[i]] = x[..., i]
+        x = torch.empty(x.shape, dtype=x.dtype, device=x.device).index_copy_(-1, order, x)
+    return x.reshape(*x.shape[:2], *batch)
+
+
+def _unsort_from_batch_first(x: Tensor, order: Tensor | None, batch: torch.Size) -> Tensor:
+    """Batch-first (N, r, c) whose row i belongs to element order[i] -> (*batch, r, c)."""
+    if order is not None:  # out[order[i]] = x[i]
+        x = torch.empty(x.shape, dtype=x.dtype, device=x.device).index_copy_(0, order, x)
+    return x.reshape(*batch, *x.shape[1:])
+
+
+def _unsort_from_batch_first_last(x: Tensor, order: Tensor | None, batch: torch.Size) -> Tensor:
+    """Batch-first (N, r, c), sorted by ``order`` -> contiguous (r, c, *batch)."""
+    return _unsort_from_batch_first(x, order, batch).movedim((-2, -1), (0, 1)).contiguous()
