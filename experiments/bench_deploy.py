@@ -32,6 +32,7 @@ from pathlib import Path
 import torch
 
 import torchsde_lti as tl
+from bench_filter_choice import filterpy_cv  # the same filterpy contestant
 
 F64 = torch.float64
 
@@ -137,35 +138,10 @@ def bench_aoti(ep: torch.export.ExportedProgram, path: Path, kf: tl.KalmanFilter
         t_run = median_ms(lambda: runner(y, dt))
     d_ll = float((ll - ref.log_likelihood).abs().max())
     d_mean = float((mean - ref.mean).abs().max())
-    t_fp = filterpy_ms(y, dt) if B == 1 else float("nan")
+    t_fp = median_ms(filterpy_cv(y, dt, kf.R.detach().numpy())) if B == 1 else float("nan")
     fp = f"{t_fp:.2f} | {t_fp / t_run:.2f}×" if B == 1 else "– | –"
     return (f"| {B} | {T} | {t_build:.1f} | {t_load:.3f} | {t_run:.2f} | {t_eager:.2f} | {t_eager / t_run:.2f}× | "
             f"{fp} | {d_ll:.1e} / {d_mean:.1e} |")
-
-
-def filterpy_ms(y: torch.Tensor, dt: torch.Tensor) -> float:
-    """filterpy on the same single track, closed-form constant-velocity A, Q (the peer a user
-    would otherwise pick; its matrices are precomputed, not timed)."""
-    import numpy as np
-    from filterpy.kalman import KalmanFilter as FPKalman
-
-    T = y.shape[-2]
-    A, Q = np.zeros((T, 4, 4)), np.zeros((T, 4, 4))
-    for k, h in enumerate(dt[0].numpy()):
-        a, q = np.array([[1.0, h], [0.0, 1.0]]), np.array([[h**3 / 3, h**2 / 2], [h**2 / 2, h]])
-        A[k], Q[k] = np.kron(np.eye(2), a), np.kron(np.eye(2), q)
-    H = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
-    R = np.array([[0.4, 0.05], [0.05, 0.6]])
-    yn = y[0].numpy()
-
-    def run() -> None:
-        f = FPKalman(dim_x=4, dim_z=2)
-        f.x, f.P, f.H, f.R = np.zeros(4), 100 * np.eye(4), H, R
-        for k in range(T):
-            f.predict(F=A[k], Q=Q[k])
-            f.update(yn[k])
-
-    return median_ms(run)
 
 
 def main() -> None:

@@ -118,28 +118,34 @@ def gp_vs_sklearn(threads: int, N: int) -> None:
         print(f"| KalmanFilter {name} | {tm * 1e3:.1f} | {ll:.10f} | {t_sk / tm:.1f}× |")
 
 
-def vs_filterpy(threads: int) -> None:
+def filterpy_cv(y: torch.Tensor, dt: torch.Tensor, R: np.ndarray, p0: float = 100.0):
+    """filterpy on ONE track y (1, T, 2) with gaps dt (1, T): closed-form constant-velocity
+    A, Q (q = 1, state [x, vx, y, vy]) precomputed, not timed. Returns the timed call."""
     from filterpy.kalman import KalmanFilter as FPKalman
 
-    T = 200
-    y, dt = cv_data(1, T)
-    kf = cv_filter(None)
-    dtn = dt[0].numpy()
-    A = np.zeros((T, 4, 4))
-    Q = np.zeros((T, 4, 4))
-    for k, h in enumerate(dtn):  # closed-form CV per axis, state [x, vx, y, vy]
-        a = np.array([[1.0, h], [0.0, 1.0]])
-        q = np.array([[h**3 / 3, h**2 / 2], [h**2 / 2, h]])
+    T = y.shape[-2]
+    A, Q = np.zeros((T, 4, 4)), np.zeros((T, 4, 4))
+    for k, h in enumerate(dt[0].numpy()):  # closed-form CV per axis
+        a, q = np.array([[1.0, h], [0.0, 1.0]]), np.array([[h**3 / 3, h**2 / 2], [h**2 / 2, h]])
         A[k], Q[k] = np.kron(np.eye(2), a), np.kron(np.eye(2), q)
     H = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
     yn = y[0].numpy()
 
-    def fp() -> None:
+    def run() -> None:
         f = FPKalman(dim_x=4, dim_z=2)
-        f.x, f.P, f.H, f.R = np.zeros(4), 100 * np.eye(4), H, 0.5 * np.eye(2)
+        f.x, f.P, f.H, f.R = np.zeros(4), p0 * np.eye(4), H, R
         for k in range(T):
             f.predict(F=A[k], Q=Q[k])
             f.update(yn[k])
+
+    return run
+
+
+def vs_filterpy(threads: int) -> None:
+    T = 200
+    y, dt = cv_data(1, T)
+    kf = cv_filter(None)
+    fp = filterpy_cv(y, dt, 0.5 * np.eye(2))
 
     def ours() -> None:
         with torch.no_grad():
