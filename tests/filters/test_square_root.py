@@ -14,9 +14,9 @@ from tests.reference import cv_matrices, random_problem, reference_batch, to_tor
 
 import torchsde_lti as tl
 from torchsde_lti import models as M
+from torchsde_lti.core.linalg import cholesky
 from torchsde_lti.data import simulate
 from torchsde_lti.filters import kalman_filter, rts_smoother
-from torchsde_lti.filters.square_root import psd_factor as _psd_factor
 
 F64 = torch.float64
 FIELDS = ("mean", "cov", "pred_mean", "pred_cov")
@@ -91,13 +91,13 @@ def test_broadcast_shapes_and_time_varying_H_R_equal_standard_filter():
         torch.testing.assert_close(b, a, rtol=0, atol=1e-9, msg=name)
 
 
-def test_psd_factor_reproduces_singular_and_badly_scaled_matrices():
+def test_semidefinite_cholesky_reproduces_singular_and_badly_scaled_matrices():
     # CV process noise over a long gap (diagonal q dt³/3 vs q dt) and over dt = 0 (Q = 0),
     # plus a rank-1 matrix; closed-form Q from cv_matrices.
     _, Q, _ = cv_matrices(np.array([5000.0, 0.0, 1e-3]), q=10.0)
     v = np.array([1.0, -2.0, 0.5, 3.0])
     X = torch.as_tensor(np.concatenate([Q, np.outer(v, v)[None]]))
-    L = _psd_factor(X)
+    L = cholesky(X, semidefinite=True)
     assert torch.isfinite(L).all()
     assert torch.equal(L, torch.tril(L))
     err = (L @ L.mT - X).abs().amax((-2, -1))

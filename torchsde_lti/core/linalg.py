@@ -51,24 +51,43 @@ def sym(P: Tensor) -> Tensor:
     return 0.5 * (P + P.mT)
 
 
-def cholesky(S: Tensor) -> Tensor:
-    """Lower Cholesky factor L (L Lᵀ = S) of symmetric positive-definite S (..., k, k)."""
+def cholesky(S: Tensor, semidefinite: bool = False) -> Tensor:
+    r"""Lower Cholesky factor L (L Lᵀ = S) of symmetric S (..., k, k): positive-definite S, or
+    with ``semidefinite`` any PSD S, singular allowed.
+
+    Cholesky–Banachiewicz, unrolled over k and vectorised over the batch (torch.linalg.cholesky
+    for k > :data:`SMALL` when not ``semidefinite``). The semi-definite pivot rule: a pivot
+    ``d_j ≤ k · eps · S_jj`` (zero up to the rounding of its own diagonal entry, e.g. every
+    pivot of Q(dt = 0) = 0 or of a rank-deficient Q) gives a zero column instead of a NaN. The
+    threshold is per pivot, so badly scaled matrices (a constant-velocity Q over a long gap:
+    diagonal q dt³/3 vs q dt) keep their small pivots. No jitter is added, so ``L Lᵀ = S`` up to
+    rounding; the gradient through a dropped pivot is taken as 0 (``torch.where`` with safe
+    branches: no NaN in backward).
+    """
     k = S.shape[-1]
-    if k > SMALL:
+    if k > SMALL and not semidefinite:
         return torch.linalg.cholesky(S)
+    zero = torch.zeros_like(S[..., 0, 0])
+    if semidefinite:
+        rel = k * torch.finfo(S.dtype).eps
+        one = torch.ones((), dtype=S.dtype, device=S.device)
     rows: list[list[Tensor]] = [[] for _ in range(k)]  # rows[i][j] = L[i, j] for j <= i
     for j in range(k):
         d = S[..., j, j]
         for t in range(j):
             d = d - rows[j][t] * rows[j][t]
-        ljj = torch.sqrt(d)
+        if semidefinite:
+            pos = d > rel * S[..., j, j].detach()
+            ljj = torch.where(pos, torch.sqrt(torch.where(pos, d, one)), zero)
+            div = torch.where(pos, ljj, one)
+        else:
+            ljj = div = torch.sqrt(d)
         rows[j].append(ljj)
         for i in range(j + 1, k):
             v = S[..., i, j]
             for t in range(j):
                 v = v - rows[i][t] * rows[j][t]
-            rows[i].append(v / ljj)
-    zero = torch.zeros_like(S[..., 0, 0])
+            rows[i].append(torch.where(pos, v / div, zero) if semidefinite else v / div)
     full = [[rows[i][j] if j <= i else zero for j in range(k)] for i in range(k)]
     return torch.stack([torch.stack(r, dim=-1) for r in full], dim=-2)
 

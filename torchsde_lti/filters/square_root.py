@@ -10,50 +10,17 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import matvec, sym
+from torchsde_lti.core.linalg import cholesky, matvec, sym
 from torchsde_lti.filters.inputs import PreparedInputs, assemble_result
 from torchsde_lti.filters.results import FilterResult
 
-__all__ = ["psd_factor", "square_root_filter"]
-
-
-def psd_factor(X: Tensor) -> Tensor:
-    r"""Lower-triangular L with ``L Lᵀ = X`` for symmetric PSD X (..., n, n), singular allowed.
-
-    Cholesky–Banachiewicz, unrolled over n and vectorised over the batch, with a
-    semi-definite pivot rule: a pivot ``d_j ≤ n · eps · X_jj`` (zero up to the rounding of
-    its own diagonal entry, e.g. every pivot of Q(dt = 0) = 0 or of a rank-deficient Q)
-    gives a zero column instead of a NaN. The threshold is per pivot, so badly scaled
-    matrices (a constant-velocity Q over a long gap: diagonal q dt³/3 vs q dt) keep their
-    small pivots. No jitter is added, so ``L Lᵀ = X`` up to rounding; the gradient through a dropped
-    pivot is taken as 0 (``torch.where`` with safe branches: no NaN in backward).
-    """
-    n = X.shape[-1]
-    rel = n * torch.finfo(X.dtype).eps
-    one = torch.ones((), dtype=X.dtype, device=X.device)
-    zero = torch.zeros_like(X[..., 0, 0])
-    rows: list[list[Tensor]] = [[] for _ in range(n)]
-    for j in range(n):
-        d = X[..., j, j]
-        for t in range(j):
-            d = d - rows[j][t] * rows[j][t]
-        pos = d > rel * X[..., j, j].detach()
-        ljj = torch.where(pos, torch.sqrt(torch.where(pos, d, one)), zero)
-        safe = torch.where(pos, ljj, one)
-        rows[j].append(ljj)
-        for i in range(j + 1, n):
-            v = X[..., i, j]
-            for t in range(j):
-                v = v - rows[i][t] * rows[j][t]
-            rows[i].append(torch.where(pos, v / safe, zero))
-    full = [[rows[i][j] if j <= i else zero for j in range(n)] for i in range(n)]
-    return torch.stack([torch.stack(r, dim=-1) for r in full], dim=-2)
+__all__ = ["square_root_filter"]
 
 
 def square_root_filter(prep: PreparedInputs) -> FilterResult:
     r"""Square-root Kalman filter: propagates ``S_k`` with ``P_k = S_k S_kᵀ`` (no P is formed).
 
-    Predict (QR of a (2n, n) array; ``L_Q L_Qᵀ = Q_k`` by :func:`psd_factor`)::
+    Predict (QR of a (2n, n) array; ``L_Q L_Qᵀ = Q_k`` by ``cholesky(Q_k, semidefinite=True)``)::
 
         [ (A_k S)ᵀ ; L_Qᵀ ] = Θ [ S⁻ᵀ ; 0 ]   ⇒   S⁻ S⁻ᵀ = A_k S Sᵀ A_kᵀ + Q_k.
 
@@ -74,13 +41,13 @@ def square_root_filter(prep: PreparedInputs) -> FilterResult:
     rotations are differentiable.
     """
     A_steps = prep.A.unbind(-3)  # (*cb, n, n) each
-    LQ_steps = psd_factor(prep.Q).unbind(-3)
+    LQ_steps = cholesky(prep.Q, semidefinite=True).unbind(-3)
     Hw = prep.Hw  # (..., T or 1, m, n)
     h_single = Hw.shape[-3] == 1
     yw_steps = prep.yw.unbind(-2)  # (*mb, m) each
     c = prep.c
     m_dim, n = Hw.shape[-2], prep.A.shape[-1]
-    mean, S = prep.m0, psd_factor(prep.P0)
+    mean, S = prep.m0, cholesky(prep.P0, semidefinite=True)
     means, facs, pmeans, pfacs, cores = [], [], [], [], []
     for k in range(prep.T):
         Ak = A_steps[k]
