@@ -90,10 +90,6 @@ def _series_terms(
     )
 
 
-# Largest n for which the batch-last doubling products are summed as n fused multiply-adds
-# over the contiguous batch (measured on CPU: faster than torch.bmm of 4×4 … 16×16 matrices,
-
-
 def _taylor_rows(x: Tensor, count: int) -> Tensor:
     """Rows x^k / k! for k < count: (count, N) for x (N,)."""
     rows = [torch.ones_like(x)]
@@ -205,14 +201,17 @@ _THETA_ELEMENT = 0.5
 # elements, batch-first bmm otherwise (measured on CPU, float64, n = 2 … 8).
 _BATCH_LAST_MAX_N = 4
 _BATCH_LAST_MIN_BATCH = 256
-# Per-element parameters and at most this many elements: ``_block.block_doubling`` (a fixed,
-# small number of batched ops) beats the per-term Horner below; beyond it flops count and the
-# Horner on n × n matrices wins (measured, CPU, float64/float32, n = 2 … 8: block 1.2–2.2×
-# faster at N ≤ 1000, the Horner 1.2× faster at N = 3000 for n = 2).
-_BLOCK_MAX_BATCH = 1024
+# Per-element parameters and N · max(n, 4) up to this: ``_block.block_doubling`` (a fixed,
+# small number of batched ops) beats the per-term Horner below; beyond it flops and the 2n
+# blocks' memory count and the Horner on n × n matrices wins. Measured by
+# ``python experiments/profile_small_calls.py`` (section 2, CPU, 1 thread): Horner / block
+# time 1.1–2.4 (n = 2, N ≤ 1000), 1.2–1.9 (n = 4, N ≤ 1000), 1.1 (n = 8, N = 300–600), and
+# 0.64–0.88 at n = 2, N = 2000–3000 and 0.54–1.0 at n = 8, N = 1000 (float64).
+_BLOCK_MAX_ROWS = 4096
 # One parameter set (not nilpotent) and at most this many elements: the block path beats
-# computing all K shared series terms (measured at N = 1 … 64: 206–437 vs 468–623 µs for a
-# Matérn-3/2, 175–463 vs 382–482 µs for a Singer model).
+# computing all K shared series terms (same script, section 3: N = 1 … 64, block 247–454 vs
+# shared 468–604 µs for a Matérn-3/2, 202–512 vs 360–497 µs for a Singer model; the shared
+# path wins at N = 256).
 _BLOCK_MAX_SHARED = 64
 
 
@@ -507,7 +506,7 @@ def doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | N
     rows of N) and sorted by s, so doubling step j only touches the elements with s > j.
 
     Paths (same values up to rounding): few elements — per-element parameters with
-    N ≤ 1024, or one non-nilpotent parameter set with N ≤ 64 — go through Van Loan's block
+    N · max(n, 4) ≤ 4096, or one non-nilpotent parameter set with N ≤ 64 — go through Van Loan's block
     (``_block``: a fixed, small number of batched ops); more per-element elements through
     the per-term Horner (``_doubling_per_element``); one shared parameter set through
     ``_doubling_shared`` (series terms once, one GEMM for the whole batch).
@@ -520,10 +519,10 @@ def doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | N
         + ([("W", W.shape[:-2])] if W is not None else [])
         + ([("B", B.shape[:-2])] if B is not None else [])
     )
-    N = batch.numel()
+    N, n = batch.numel(), F.shape[-1]
     if param_batch.numel() > 1 and 4 * param_batch.numel() >= N:
         # (nearly) every element its own parameters: per-element sub-steps
-        if N <= _BLOCK_MAX_BATCH:
+        if N * max(n, _BATCH_LAST_MAX_N) <= _BLOCK_MAX_ROWS:
             return block_doubling(x, batch_last)
         return _doubling_per_element(x, batch_last)
     if N == 0:  # an empty batch: nothing to compute, shapes only

@@ -1,0 +1,170 @@
+r"""Where the time of small calls goes, and the measurements behind the doubling dispatch.
+
+Sections (medians of repeats; shared machine, noisy):
+
+1. One ``discretize`` call (per-element workload of ``bench_per_element.py``, B = 1): total,
+   argument checks with and without value checks, the computation alone, naive Van Loan.
+2. Per-element parameters: the few-element block path (``_block``) vs the per-term Horner
+   (``_doubling_per_element``) vs naive, over N — the ``_BLOCK_MAX_BATCH`` threshold.
+3. One shared non-nilpotent parameter set (Matérn-3/2, Singer) over small N: block vs
+   per-term vs shared-series path — the ``_BLOCK_MAX_SHARED`` threshold.
+4. The Horner at 1 and 2 threads, and the batch split over two Python threads (B = 1e4).
+5. The sequential filter loop: time inside the step function per step (2-D constant
+   velocity, T = 200, B = 1 and 1000).
+
+    python experiments/profile_small_calls.py [--threads 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import torch
+from bench_filter_choice import cv_data, cv_filter
+from bench_per_element import make_problem, naive_van_loan
+
+import torchsde_lti as tl
+import torchsde_lti.filters.sequential as sequential
+from torchsde_lti.core._block import block_doubling
+from torchsde_lti.core._doubling import _doubling_per_element, _doubling_shared
+from torchsde_lti.core.validation import sde_inputs, validation
+
+
+def median_us(fn, repeats: int = 50) -> float:
+    fn()
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return statistics.median(ts) * 1e6
+
+
+def one_call() -> None:
+    print("\n### 1. One discretize call, B = 1, float64 (µs)\n")
+    print("| n | discretize | sde_inputs | sde_inputs, value checks off | discretize, value checks off | naive |")
+    print("|---|---|---|---|---|---|")
+    for n in (2, 4, 8):
+        F, L, Qc, dt = make_problem(n, 1, torch.float64)
+        total = median_us(lambda: tl.discretize(F, L, Qc, dt))
+        inputs = median_us(lambda: sde_inputs(F, L, Qc, dt))
+        with validation(False):
+            inputs_off = median_us(lambda: sde_inputs(F, L, Qc, dt))
+            total_off = median_us(lambda: tl.discretize(F, L, Qc, dt))
+        naive = median_us(lambda: naive_van_loan(F, L, Qc, dt))
+        print(f"| {n} | {total:.0f} | {inputs:.0f} | {inputs_off:.0f} | {total_off:.0f} | {naive:.0f} |", flush=True)
+
+
+def per_element_paths(dtypes: tuple[torch.dtype, ...]) -> None:
+    print("\n### 2. Per-element parameters: block path vs per-term Horner vs naive (µs, value checks off)\n")
+    print("| dtype | n | N | block | Horner | naive | Horner / block |")
+    print("|---|---|---|---|---|---|---|")
+    with validation(False):
+        for dtype in dtypes:
+            for n in (2, 4, 8):
+                for N in (1, 10, 100, 300, 1000, 3000):
+                    F, L, Qc, dt = make_problem(n, N, dtype)
+                    x = sde_inputs(F, L, Qc, dt)
+                    r = 30 if N <= 300 else 7
+                    b = median_us(lambda: block_doubling(x), r)
+                    h = median_us(lambda: _doubling_per_element(x, False), r)
+                    v = median_us(lambda: naive_van_loan(F, L, Qc, dt), r)
+                    print(f"| {str(dtype)[6:]} | {n} | {N} | {b:.0f} | {h:.0f} | {v:.0f} | {h / b:.2f} |", flush=True)
+
+
+def shared_small() -> None:
+    print("\n### 3. One shared parameter set, small N: block vs per-term vs shared series (µs, value checks off)\n")
+    print("| model | N | block | per-term | shared |")
+    print("|---|---|---|---|---|")
+    f64 = torch.float64
+    models = {
+        "matern32": tl.models.matern(1.5, lengthscale=0.7, variance=2.0, dtype=f64),
+        "singer": tl.models.singer(alpha=0.5, q=1.0, dtype=f64),
+    }
+    g = torch.Generator().manual_seed(0)
+    with validation(False):
+        for name, sde in models.items():
+            F, L, Qc = sde.F.detach(), sde.L.detach(), sde.Qc.detach()
+            for N in (1, 4, 16, 64, 256):
+                x = sde_inputs(F, L, Qc, torch.rand(N, generator=g, dtype=f64) * 2 + 0.05)
+                b = median_us(lambda: block_doubling(x))
+                p = median_us(lambda: _doubling_per_element(x, False))
+                s = median_us(lambda: _doubling_shared(x.F, x.W, x.B, x.dt, x.batch, torch.Size(), False))
+                print(f"| {name} | {N} | {b:.0f} | {p:.0f} | {s:.0f} |", flush=True)
+
+
+def threads_and_split() -> None:
+    print("\n### 4. Per-term Horner at 1 and 2 threads; the batch split over two Python threads (ms, B = 1e4, float64)\n")
+    print("| n | threads | Horner | two Python threads × half | naive |")
+    print("|---|---|---|---|---|")
+    pool = ThreadPoolExecutor(2)
+    with validation(False):
+        for n in (2, 4):
+            F, L, Qc, dt = make_problem(n, 10_000, torch.float64)
+            half = F.shape[0] // 2
+            parts = [(F[:half], Qc[:half], dt[:half]), (F[half:], Qc[half:], dt[half:])]
+
+            def split() -> None:
+                futures = [pool.submit(lambda p: _doubling_per_element(sde_inputs(p[0], L, p[1], p[2]), False), p)
+                           for p in parts]
+                for f in futures:
+                    f.result()
+
+            for threads in (1, 2):
+                torch.set_num_threads(threads)
+                one = median_us(lambda: _doubling_per_element(sde_inputs(F, L, Qc, dt), False), 9) / 1e3
+                two = median_us(split, 9) / 1e3 if threads == 2 else float("nan")
+                naive = median_us(lambda: naive_van_loan(F, L, Qc, dt), 9) / 1e3
+                print(f"| {n} | {threads} | {one:.1f} | {two:.1f} | {naive:.1f} |", flush=True)
+    pool.shutdown()
+
+
+def loop_steps(threads: int) -> None:
+    torch.set_num_threads(threads)
+    print("\n### 5. Sequential loop: time in the step function (2-D CV, T = 200, float64)\n")
+    print("| B | call (ms) | in steps (ms) | per step (µs) |")
+    print("|---|---|---|---|")
+    original = sequential._joseph_step
+    for B in (1, 1000):
+        y, dt = cv_data(B, 200)
+        kf = cv_filter(False)
+        with torch.no_grad():
+            total = median_us(lambda: kf(y, dt), 7) / 1e3
+            spent = [0.0, 0]
+
+            def timed(*args, **kwargs):
+                t0 = time.perf_counter()
+                out = original(*args, **kwargs)
+                spent[0] += time.perf_counter() - t0
+                spent[1] += 1
+                return out
+
+            sequential._joseph_step = timed
+            try:
+                kf(y, dt)
+            finally:
+                sequential._joseph_step = original
+        print(f"| {B} | {total:.1f} | {spent[0] * 1e3:.1f} | {spent[0] / spent[1] * 1e6:.0f} |", flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--threads", type=int, default=1, help="threads for sections 1–3 and 5 (4 runs 1 and 2)")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    print(f"# small-call profile (torch {torch.__version__}, {args.threads} thread(s), load "
+          f"{os.getloadavg()[0]:.2f}; shared machine, noisy: medians)")
+    one_call()
+    per_element_paths((torch.float64, torch.float32))
+    shared_small()
+    threads_and_split()
+    loop_steps(args.threads)
+    print(f"\nload at end {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
