@@ -282,6 +282,7 @@ def _doubling_per_element(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tenso
     hc = lo.col(h)
     M = sort(F, n) * hc
     W_s = None if W is None else sort(W, n)
+    W_half = None if W_s is None else 0.5 * W_s  # Z ← W + F Z + Z Fᵀ as T + Tᵀ, T = W/2 + F Z
     eye = lo.eye(n, M)
     Y: Tensor | None = None  # φ₁ Horner state of the first `active` elements
     Z = None  # Q / h Horner state
@@ -296,10 +297,10 @@ def _doubling_per_element(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tenso
             active = c
         assert Y is not None
         Mc = lo.head(M, c) if c < N else M
-        Y = lo.mm(Mc, Y * (1.0 / (k + 1)), eye)  # I + M Y / (k+1)
-        if Z is not None and W_s is not None:
-            FZ = lo.mm(Mc, Z * (1.0 / (k + 1)))
-            Z = (lo.head(W_s, c) if c < N else W_s) + FZ + lo.t(FZ)
+        Y = lo.mm(Mc, Y, eye, 1.0 / (k + 1))  # I + M Y / (k+1)
+        if Z is not None and W_half is not None:
+            T = lo.mm(Mc, Z, lo.head(W_half, c) if c < N else W_half, 1.0 / (k + 1))
+            Z = T + lo.t(T)  # W + (M Z + Z Mᵀ) / (k+1)
     if active < N:  # elements with K = 0 (dt = 0 or tiny): φ₁ = I, Q/h = W
         grow = lo.expand_eye(eye, N - active)
         Y = grow if Y is None else lo.cat([Y, grow])
@@ -369,12 +370,13 @@ def _doubling_traced(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tensor | N
     eye = lo.eye(n, M)
     Y = lo.expand_eye(eye, N)
     W_l = None if W is None else layout(W, n)
+    W_half = None if W_l is None else 0.5 * W_l
     Z = W_l
     for k in range(K_max, 0, -1):
-        Y = lo.mm(M, Y * (1.0 / (k + 1)), eye)
-        if Z is not None and W_l is not None:
-            FZ = lo.mm(M, Z * (1.0 / (k + 1)))
-            Z = W_l + FZ + lo.t(FZ)
+        Y = lo.mm(M, Y, eye, 1.0 / (k + 1))
+        if Z is not None and W_half is not None:
+            T = lo.mm(M, Z, W_half, 1.0 / (k + 1))
+            Z = T + lo.t(T)
     X = lo.mm(M, Y)  # E = A − I
     Q = None if Z is None else Z * hc
     G = None if B is None else lo.mm(Y, layout(B, p)) * hc

@@ -29,11 +29,16 @@ class _Layout:
         self.batch_first = batch_first
         self.dim = 0 if batch_first else -1
 
-    def mm(self, a: Tensor, b: Tensor, c: Tensor | None = None) -> Tensor:
-        """c + a b."""
+    def mm(self, a: Tensor, b: Tensor, c: Tensor | None = None, alpha: float = 1.0) -> Tensor:
+        """c + α a b."""
         if self.batch_first:
-            return a @ b if c is None else torch.baddbmm(c, a, b) if c.dim() == 3 else a @ b + c
-        return bl_matmul(a, b, c)
+            if c is not None and c.dim() == 3:
+                return torch.baddbmm(c, a, b, alpha=alpha)
+            out = a @ b
+            if c is None:
+                return out if alpha == 1.0 else out * alpha
+            return torch.add(c, out, alpha=alpha)
+        return bl_matmul(a, b, c, alpha)
 
     def t(self, x: Tensor) -> Tensor:
         return x.mT if self.batch_first else x.transpose(0, 1)

@@ -161,34 +161,40 @@ def from_batch_last(x: Tensor, event_ndim: int, batch_ndim: int) -> Tensor:
     return x.permute(perm)
 
 
-def _fma_matmul(a: Tensor, b: Tensor, c: Tensor | None) -> Tensor:
-    """c + a b for a: (r, k, N), b: (k, s, N), c: (r, s, N), as k fused multiply-adds."""
-    out = a[:, 0:1] * b[0:1] if c is None else torch.addcmul(c, a[:, 0:1], b[0:1])
+def _fma_matmul(a: Tensor, b: Tensor, c: Tensor | None, alpha: float = 1.0) -> Tensor:
+    """c + α a b for a: (r, k, N), b: (k, s, N), c: (r, s, N), as k fused multiply-adds."""
+    if c is None:
+        out = a[:, 0:1] * b[0:1]
+        if alpha != 1.0:
+            out.mul_(alpha)
+    else:
+        out = torch.addcmul(c, a[:, 0:1], b[0:1], value=alpha)
     for j in range(1, a.shape[1]):
-        out.addcmul_(a[:, j : j + 1], b[j : j + 1])
+        out.addcmul_(a[:, j : j + 1], b[j : j + 1], value=alpha)
     return out
 
 
 class _FmaMatmul(torch.autograd.Function):
-    """c + a b on batch-last matrices with one flat batch dimension; the backward calls
+    """c + α a b on batch-last matrices with one flat batch dimension; the backward calls
     :func:`bl_matmul` again, so it is differentiable twice (double backward works)."""
 
     @staticmethod
-    def forward(ctx, a: Tensor, b: Tensor, c: Tensor | None) -> Tensor:  # type: ignore[override]
+    def forward(ctx, a: Tensor, b: Tensor, c: Tensor | None, alpha: float) -> Tensor:  # type: ignore[override]
         ctx.save_for_backward(a, b)
         ctx.has_c = c is not None
-        return _fma_matmul(a, b, c)
+        ctx.alpha = alpha
+        return _fma_matmul(a, b, c, alpha)
 
     @staticmethod
-    def backward(ctx, g: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None]:  # type: ignore[override]
+    def backward(ctx, g: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None, None]:  # type: ignore[override]
         a, b = ctx.saved_tensors
-        ga = bl_matmul(g, b.transpose(0, 1)) if ctx.needs_input_grad[0] else None
-        gb = bl_matmul(a.transpose(0, 1), g) if ctx.needs_input_grad[1] else None
-        return ga, gb, (g if ctx.has_c and ctx.needs_input_grad[2] else None)
+        ga = bl_matmul(g, b.transpose(0, 1), alpha=ctx.alpha) if ctx.needs_input_grad[0] else None
+        gb = bl_matmul(a.transpose(0, 1), g, alpha=ctx.alpha) if ctx.needs_input_grad[1] else None
+        return ga, gb, (g if ctx.has_c and ctx.needs_input_grad[2] else None), None
 
 
-def bl_matmul(a: Tensor, b: Tensor, c: Tensor | None = None) -> Tensor:
-    """``c + a b`` on batch-last matrices: a (r, k, *B), b (k, s, *B), c (r, s, *B) -> (r, s, *B).
+def bl_matmul(a: Tensor, b: Tensor, c: Tensor | None = None, alpha: float = 1.0) -> Tensor:
+    """``c + α a b`` on batch-last matrices: a (r, k, *B), b (k, s, *B), c (r, s, *B) -> (r, s, *B).
 
     The batch dims ``*B`` broadcast. With one flat, equal batch dimension (the layout of the
     discretisation's doubling and of the filter loop) the product is k fused multiply-adds
@@ -198,11 +204,17 @@ def bl_matmul(a: Tensor, b: Tensor, c: Tensor | None = None) -> Tensor:
     if a.dim() == 3 and b.dim() == 3 and a.shape[-1] == b.shape[-1]:
         if a.shape[1] > _CHAIN_MAX_N:
             out = (a.permute(2, 0, 1) @ b.permute(2, 0, 1)).permute(1, 2, 0)
-            return out if c is None else out + c
+            return _scaled_add(out, c, alpha)
         if a.shape[-1] > _CHAIN_MIN_BATCH:
-            return _FmaMatmul.apply(a, b, c)
-    out = torch.linalg.vecdot(a.unsqueeze(2), b.unsqueeze(0), dim=1)
-    return out if c is None else out + c
+            return _FmaMatmul.apply(a, b, c, alpha)
+    return _scaled_add(torch.linalg.vecdot(a.unsqueeze(2), b.unsqueeze(0), dim=1), c, alpha)
+
+
+def _scaled_add(out: Tensor, c: Tensor | None, alpha: float) -> Tensor:
+    """c + α out (``out`` alone for c None, α = 1)."""
+    if c is None:
+        return out if alpha == 1.0 else out * alpha
+    return torch.add(c, out, alpha=alpha)
 
 
 def bl_matvec(X: Tensor, v: Tensor) -> Tensor:

@@ -119,7 +119,9 @@ def check_vector(x: Tensor, name: str, size: int) -> None:
 
 
 def check_finite(x: Tensor, name: str) -> None:
-    if value_checks_enabled() and not bool(torch.isfinite(x).all()):
+    """ValueError if ``x`` holds NaN or ±Inf. Tested on the sum first (non-finite if any entry
+    is; one reduction), elementwise only where the sum is not finite (or overflowed)."""
+    if value_checks_enabled() and not bool(x.sum().isfinite()) and not bool(torch.isfinite(x).all()):
         raise ValueError(f"{name} contains NaN or Inf (shape {shape_str(x)})")
 
 
@@ -260,8 +262,11 @@ def sde_inputs(
         # one synchronisation when everything is valid; otherwise the detailed checks name
         # the culprit (finiteness first, then dt ≥ 0, then Qc symmetric PSD)
         with torch.no_grad():
-            flat = [t.reshape(-1) for _, t in checked]
-            ok = torch.isfinite(torch.cat(flat) if len(flat) > 1 else flat[0]).all()
+            # a sum is non-finite if any entry is (NaN propagates, inf − inf = NaN); a finite
+            # sum that overflows only sends the check to the detailed path, which passes it.
+            # One reduction per tensor: measured 30× faster than isfinite(cat(...)).all() at
+            # 4e4 … 4e5 entries, equal at a few (experiments/profile_small_calls.py)
+            ok = torch.stack([t.sum() for _, t in checked]).isfinite().all()
             if dt_t is not None and dt_t.numel():
                 ok = ok & (dt_t.amin() >= 0)
             if Qc is not None and Qc.numel():
