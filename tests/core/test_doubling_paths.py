@@ -116,3 +116,26 @@ def test_empty_batches() -> None:
     assert d.A.shape == d.Q.shape == (0, 2, 2)
     d = tl.discretize(-torch.eye(2, dtype=F64), L, Qc, torch.ones(0, 3, dtype=F64), B=torch.ones(2, 1, dtype=F64))
     assert d.A.shape == (0, 3, 2, 2) and d.G is not None and d.G.shape == (0, 3, 2, 1)
+
+
+# batch-first bmm layout; batch-last fused multiply-adds; the same with the gathers' sort
+@pytest.mark.parametrize("N", [5, 300, 1500])
+def test_per_element_gradients_through_sort_and_layouts(N: int) -> None:
+    """First and second derivatives through the per-term Horner: the sort by (halvings,
+    terms), both layouts' products and the unsort to the elements' order (index_copy_ for
+    few elements, ``_steps._Gather`` both ways for many)."""
+    F0, L0, Qc, dt0, B = _problem(2, 1, N, "stiff", seed=5)
+    shift = torch.linalg.eigvals(F0).real.amax(-1).clamp_min(0.0) + 0.1  # stable: bounded values
+    F0 = F0 - shift[:, None, None] * torch.eye(2, dtype=F64)
+    g = torch.Generator().manual_seed(6)
+    weights = [torch.randn(N, 2, c, generator=g, dtype=F64) for c in (2, 2, 1)]
+    a = torch.tensor(0.7, dtype=F64, requires_grad=True)
+    b = torch.tensor(1.3, dtype=F64, requires_grad=True)
+    L = L0[:1].clone().requires_grad_()  # shared by all elements
+
+    def fn(a, b, L):
+        out = _doubling_per_element(sde_inputs(F0 * a, L, Qc, dt0 * b, B), False)
+        return tuple((x * w).sum() for x, w in zip(out, weights))
+
+    assert torch.autograd.gradcheck(fn, (a, b, L), eps=1e-6, atol=1e-6, rtol=1e-5)
+    assert torch.autograd.gradgradcheck(fn, (a, b, L), eps=1e-6, atol=1e-5, rtol=1e-4)

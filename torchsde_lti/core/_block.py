@@ -40,6 +40,7 @@ from torch import Tensor
 from torchsde_lti.core._steps import (
     _doubling_order,
     _doubling_steps,
+    _frobenius_norm,
     _Layout,
     _unsort_from_batch_first,
     _unsort_from_batch_first_last,
@@ -122,17 +123,17 @@ def block_doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tens
     Bb = None if B is None else B.expand(*batch, n, p).reshape(N, n, p)
 
     with torch.no_grad():  # Frobenius norms (submultiplicative: bound the Taylor remainder)
-        f = torch.linalg.vector_norm(Fb, dim=(-2, -1))
+        f = _frobenius_norm(Fb)
         sq = f * f
         sigma = beta = None
         if d > n:  # similarity scales σ (W block), β (B block): powers of two, ≤ 1
             bound = torch.maximum(f, 0.25 / dtf.clamp_min(torch.finfo(dtype).tiny))
         if Wb is not None:
-            w_norm = torch.linalg.vector_norm(Wb, dim=(-2, -1))
+            w_norm = _frobenius_norm(Wb)
             sigma = _power_of_two_scale(w_norm, bound)
             sq = 2.0 * sq + (sigma * w_norm) ** 2  # F and −Fᵀ blocks, σW
         if Bb is not None:
-            b_norm = torch.linalg.vector_norm(Bb, dim=(-2, -1))
+            b_norm = _frobenius_norm(Bb)
             beta = _power_of_two_scale(b_norm, bound)
             sq = sq + (beta * b_norm) ** 2
         c = torch.nan_to_num(sq.sqrt() * dtf, nan=0.0, posinf=0.0)  # ‖C‖_F at the full step
@@ -154,11 +155,11 @@ def block_doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tens
             below[:, :n, n : 2 * n] = -Fh.mT
         Ch = torch.cat([Ch, below], -2)
 
-    order, counts = _doubling_order(halvings.to(torch.int64), torch.Size([N]))
-    if order is not None:  # descending halvings: doubling step j touches a prefix
-        Ch = Ch[order]
-        sigma = None if sigma is None else sigma[order]
-        beta = None if beta is None else beta[order]
+    perm, counts = _doubling_order(halvings.to(torch.int64), torch.Size([N]))
+    if perm is not None:  # descending halvings: doubling step j touches a prefix
+        Ch = perm.sort(Ch)
+        sigma = None if sigma is None else perm.sort(sigma)
+        beta = None if beta is None else perm.sort(beta)
 
     E = _expm_minus_identity(Ch)
     X = E[:, :n, :n]  # A_h − I
@@ -176,7 +177,7 @@ def block_doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tens
         G = G / beta[:, None, None]  # undo β
     convert = _unsort_from_batch_first_last if batch_last else _unsort_from_batch_first
     return (
-        convert(A, order, batch),
-        None if Q is None else convert(Q, order, batch),
-        None if G is None else convert(G, order, batch),
+        convert(A, perm, batch),
+        None if Q is None else convert(Q, perm, batch),
+        None if G is None else convert(G, perm, batch),
     )

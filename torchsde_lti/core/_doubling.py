@@ -27,8 +27,10 @@ from torchsde_lti.core._block import block_doubling
 from torchsde_lti.core._steps import (
     _doubling_order,
     _doubling_steps,
+    _frobenius_norm,
     _Layout,
     _operator_norm_bound,
+    _Permutation,
     _prefix_counts,
     _unsort_batch_first,
     _unsort_batch_last,
@@ -233,7 +235,7 @@ def _element_thresholds(dtype: torch.dtype, theta: float) -> tuple[float, ...]:
 def _doubling_per_element(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
     r"""Scaling and doubling when every element has its own parameters (or a small batch).
 
-    Per element i: ν_i = max(‖F_i‖₁, ‖F_i‖∞), s_i = ceil(log2(ν_i dt_i / θ)) halvings,
+    Per element i: ν_i = ‖F_i‖_F, s_i = ceil(log2(ν_i dt_i / θ)) halvings,
     h_i = dt_i / 2^{s_i}, M_i = F_i h_i and a series length K_i (the full K_max when
     s_i > 0, fewer terms for a small ν_i dt_i). On the sub-step, by Horner's rule on the
     batch-last layout (n, n, N) (one batched product per term over all elements)::
@@ -254,17 +256,16 @@ def _doubling_per_element(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tenso
     thresholds = _element_thresholds(dtype, _THETA_ELEMENT)
     K_max = len(thresholds)
     with torch.no_grad():
-        nu = _operator_norm_bound(Fb)
+        nu = _frobenius_norm(Fb)
         x_full = torch.nan_to_num(nu * dtf, nan=0.0, posinf=0.0)
         halvings = torch.ceil(torch.log2((x_full / _THETA_ELEMENT).clamp_min(1.0))).to(torch.int64)
         x_sub = x_full * torch.exp2(-halvings.to(dtype))
         terms = torch.bucketize(x_sub, torch.tensor(thresholds, dtype=dtype, device=device), right=True)
         terms = torch.where(halvings > 0, K_max, terms)
-        if N > 1:
-            order: Tensor | None = torch.argsort(x_full, descending=True)
-            halvings, terms = halvings[order], terms[order]
-        else:
-            order = None
+        perm: _Permutation | None = None
+        if N > 1:  # descending (halvings, terms): an int key sorts faster than ν dt
+            perm = _Permutation(torch.argsort(halvings * (K_max + 1) + terms, descending=True))
+            halvings, terms = perm.sort(halvings), perm.sort(terms)
         top_s = int(halvings[0]) if N else 0
         top_k = int(terms[0]) if N else 0
         counts = _prefix_counts(halvings, top_s) if top_s else []
@@ -275,10 +276,10 @@ def _doubling_per_element(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tenso
 
     def sort(x: Tensor, cols: int) -> Tensor:  # (..., n, c) -> sorted (N, n, c) or (n, c, N)
         x = x.expand(*batch, n, cols).reshape(N, n, cols)
-        x = x if order is None else x[order]
+        x = x if perm is None else perm.sort(x)
         return x.contiguous() if lo.batch_first else x.permute(1, 2, 0).contiguous()
 
-    h = (dtf if order is None else dtf[order]) * torch.exp2(-halvings.to(dtype))
+    h = (dtf if perm is None else perm.sort(dtf)) * torch.exp2(-halvings.to(dtype))
     hc = lo.col(h)
     M = sort(F, n) * hc
     W_s = None if W is None else sort(W, n)
@@ -321,11 +322,10 @@ def _doubling_per_element(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tenso
     else:
         convert = _unsort_batch_last if batch_last else _unsort_batch_first
     return (
-        convert(A, order, batch),
-        None if Q is None else convert(Q, order, batch),
-        None if G is None else convert(G, order, batch),
+        convert(A, perm, batch),
+        None if Q is None else convert(Q, perm, batch),
+        None if G is None else convert(G, perm, batch),
     )
-
 
 
 # ----------------------------------------------------------------------------------------
@@ -357,7 +357,7 @@ def _doubling_traced(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tensor | N
     theta = _THETA_ELEMENT
     K_max = len(_element_thresholds(dtype, theta))
     with torch.no_grad():
-        x_full = torch.nan_to_num(_operator_norm_bound(Fb) * dtf, nan=0.0, posinf=0.0)
+        x_full = torch.nan_to_num(_frobenius_norm(Fb) * dtf, nan=0.0, posinf=0.0)
         halvings = torch.ceil(torch.log2((x_full / theta).clamp_min(1.0))).clamp_max(_TRACED_MAX_HALVINGS)
 
     def layout(x: Tensor, cols: int) -> Tensor:  # (..., n, c) -> (N, n, c) or (n, c, N)
@@ -463,11 +463,11 @@ def _doubling_shared(
     N = batch.numel()
     hf = h.expand(batch).reshape(-1)
     xf = (h * nu).expand(batch).reshape(-1)  # ‖F‖ h ≤ θ
-    order, counts = _doubling_order(halvings, batch)
+    perm, counts = _doubling_order(halvings, batch)
     if not counts and powers.dim() == 3:  # one parameter set, no doubling (e.g. nilpotent F)
         return _series_full_step(powers, lyap, inputs, xf, hf, batch, batch_last)
-    if order is not None:
-        xf, hf = xf[order], hf[order]
+    if perm is not None:
+        xf, hf = perm.sort(xf), perm.sort(hf)
 
     # Series on the sub-step, batch-last (T, N). Shared parameters (the training case): one
     # GEMM (T, K) x (K, N) for the whole batch, already in doubling order.
@@ -476,9 +476,9 @@ def _doubling_shared(
     if terms_all.dim() == 2:
         out = terms_all.mT @ rows
     else:
-        coeff = rows.mT if order is None else rows.mT[torch.argsort(order)]  # original order
+        coeff = rows.mT if perm is None else perm.unsort(rows.mT)  # original order
         out = torch.einsum("...k,...kt->...t", coeff.reshape(*batch, count), terms_all).reshape(N, -1)
-        out = (out if order is None else out[order]).mT
+        out = (out if perm is None else perm.sort(out)).mT
     X = out[: n * n].reshape(n, n, N)
     Q = None if lyap is None else hf * out[n * n : 2 * n * n].reshape(n, n, N)
     G = None if inputs is None else hf * out[out.shape[0] - n * p :].reshape(n, p, N)
@@ -491,9 +491,9 @@ def _doubling_shared(
         Q = torch.lerp(Q, Q.transpose(0, 1), 0.5)  # symmetrise
     convert = _unsort_batch_last if batch_last else _unsort_batch_first
     return (
-        convert(A, order, batch),
-        None if Q is None else convert(Q, order, batch),
-        None if G is None else convert(G, order, batch),
+        convert(A, perm, batch),
+        None if Q is None else convert(Q, perm, batch),
+        None if G is None else convert(G, perm, batch),
     )
 
 
