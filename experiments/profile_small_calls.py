@@ -11,8 +11,11 @@ Sections (medians of repeats; shared machine, noisy):
 4. The Horner at 1 and 2 threads, and the batch split over two Python threads (B = 1e4).
 5. The sequential filter loop: time inside the step function per step (2-D constant
    velocity, T = 200, B = 1 and 1000).
+6. Kernel choices of the per-element path at N = 1e4, 1 and 2 threads: the finiteness test
+   (isfinite of the concatenation vs one sum per tensor), the scale (max(‖F‖₁, ‖F‖∞) vs
+   ‖F‖_F), the unsort to batch-first (index_copy_ vs the gather).
 
-    python experiments/profile_small_calls.py [--threads 1]
+    python experiments/profile_small_calls.py [--threads 1] [--sections 1 2 3 4 5 6]
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import torchsde_lti as tl
 import torchsde_lti.filters.sequential as sequential
 from torchsde_lti.core._block import block_doubling
 from torchsde_lti.core._doubling import _doubling_per_element, _doubling_shared
+from torchsde_lti.core._steps import _frobenius_norm, _operator_norm_bound
 from torchsde_lti.core.validation import sde_inputs, validation
 
 
@@ -151,18 +155,44 @@ def loop_steps(threads: int) -> None:
         print(f"| {B} | {total:.1f} | {spent[0] * 1e3:.1f} | {spent[0] / spent[1] * 1e6:.0f} |", flush=True)
 
 
+def kernel_choices() -> None:
+    print("\n### 6. Per-element kernel choices, N = 1e4, float64 (µs)\n")
+    print("| threads | n | isfinite(cat).all | sums | max(‖F‖₁, ‖F‖∞) | ‖F‖_F | unsort index_copy_ | unsort gather |")
+    print("|---|---|---|---|---|---|---|---|")
+    N = 10_000
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        for n in (2, 4, 8):
+            F, L, Qc, dt = make_problem(n, N, torch.float64)
+            args = (F, L, Qc, dt)
+            cat = median_us(lambda: torch.isfinite(torch.cat([t.reshape(-1) for t in args])).all(), 30)
+            sums = median_us(lambda: torch.stack([t.sum() for t in args]).isfinite().all(), 30)
+            induced = median_us(lambda: _operator_norm_bound(F), 30)
+            frob = median_us(lambda: _frobenius_norm(F), 30)
+            order = torch.randperm(N)
+            inverse = torch.empty_like(order).index_copy_(0, order, torch.arange(N))
+            x = torch.randn(n, n, N, dtype=torch.float64)  # batch-last, sorted
+            copy = median_us(lambda: torch.empty(N, n, n, dtype=x.dtype).index_copy_(0, order, x.permute(2, 0, 1)), 30)
+            gather = median_us(lambda: x.permute(2, 0, 1)[inverse], 30)
+            print(f"| {threads} | {n} | {cat:.0f} | {sums:.0f} | {induced:.0f} | {frob:.0f} | {copy:.0f} | {gather:.0f} |",
+                  flush=True)
+
+
+SECTIONS = {1: one_call, 2: lambda: per_element_paths((torch.float64, torch.float32)), 3: shared_small,
+            4: threads_and_split, 6: kernel_choices}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--threads", type=int, default=1, help="threads for sections 1–3 and 5 (4 runs 1 and 2)")
+    ap.add_argument("--threads", type=int, default=1, help="threads for sections 1–3 and 5 (4 and 6 run 1 and 2)")
+    ap.add_argument("--sections", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6])
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     print(f"# small-call profile (torch {torch.__version__}, {args.threads} thread(s), load "
           f"{os.getloadavg()[0]:.2f}; shared machine, noisy: medians)")
-    one_call()
-    per_element_paths((torch.float64, torch.float32))
-    shared_small()
-    threads_and_split()
-    loop_steps(args.threads)
+    for k in args.sections:
+        torch.set_num_threads(args.threads)
+        loop_steps(args.threads) if k == 5 else SECTIONS[k]()
     print(f"\nload at end {os.getloadavg()[0]:.2f}")
 
 

@@ -21,7 +21,7 @@ def _operator_norm_bound(F: Tensor) -> Tensor:
 
 def _frobenius_norm(F: Tensor) -> Tensor:
     """‖F‖_F (submultiplicative, ≥ ‖F‖₂; bounds ‖𝓛‖/2 in the Frobenius norm): the per-element
-    paths' scale, one contiguous reduction per element (measured 5–15× faster than
+    paths' scale, one contiguous reduction per element (measured 6–16× faster than
     :func:`_operator_norm_bound` on 1e4 small matrices, ``profile_small_calls.py`` section 6).
     F (..., r, c) -> (...)."""
     return torch.linalg.vector_norm(F.reshape(*F.shape[:-2], F.shape[-2] * F.shape[-1]), dim=-1)
@@ -208,7 +208,7 @@ class _Permutation:
 
     def unsort(self, x: Tensor) -> Tensor:
         """Rows (dim 0) of x, in sorted order, back to the elements' order. Many elements: a
-        gather (measured 2–5× faster than ``index_copy_`` into a batch-first result from a
+        gather (measured 1–9× faster than ``index_copy_`` into a batch-first result from a
         batch-last source, n = 2 … 8, N = 1e4, ``profile_small_calls.py`` section 6)."""
         if self.order.numel() >= _GATHER_MIN_BATCH:
             return _Gather.apply(x, self.inverse, self.order) if x.requires_grad else x[self.inverse]
