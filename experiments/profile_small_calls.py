@@ -14,8 +14,11 @@ Sections (medians of repeats; shared machine, noisy):
 6. Kernel choices of the per-element path at N = 1e4, 1 and 2 threads: the finiteness test
    (isfinite of the concatenation vs one sum per tensor), the scale (max(‖F‖₁, ‖F‖∞) vs
    ‖F‖_F), the unsort to batch-first (index_copy_ vs the gather).
+7. Would compiled kernels close the small-call gap? ``torch.compile`` (inductor, C++) of
+   ``discretize`` (the traced path: masked doubling steps) and of the naive block
+   exponential, per-element problem, B = 1 and 100, warm calls; first-call compile time.
 
-    python experiments/profile_small_calls.py [--threads 1] [--sections 1 2 3 4 5 6]
+    python experiments/profile_small_calls.py [--threads 1] [--sections 1 2 3 4 5 6 7]
 """
 
 from __future__ import annotations
@@ -178,14 +181,35 @@ def kernel_choices() -> None:
                   flush=True)
 
 
+def compiled_small_calls() -> None:
+    print("\n### 7. torch.compile'd discretize vs naive, per-element problem, float64 (µs per call, warm)\n")
+    print("| n | B | compile (s) | eager default | compiled default | eager naive | compiled naive |")
+    print("|---|---|---|---|---|---|---|")
+    import torch._dynamo
+
+    for n in (2, 4, 8):
+        for B in (1, 100):
+            torch._dynamo.reset()
+            F, L, Qc, dt = make_problem(n, B, torch.float64)
+            default = torch.compile(lambda F, L, Qc, dt: tl.discretize(F, L, Qc, dt).Q)
+            naive = torch.compile(lambda F, L, Qc, dt: naive_van_loan(F, L, Qc, dt)[1])
+            t0 = time.perf_counter()
+            default(F, L, Qc, dt)
+            compile_s = time.perf_counter() - t0
+            naive(F, L, Qc, dt)
+            row = [median_us(lambda f=f: f(F, L, Qc, dt)) for f in (
+                lambda *a: tl.discretize(*a), default, naive_van_loan, naive)]
+            print(f"| {n} | {B} | {compile_s:.1f} | " + " | ".join(f"{v:.0f}" for v in row) + " |", flush=True)
+
+
 SECTIONS = {1: one_call, 2: lambda: per_element_paths((torch.float64, torch.float32)), 3: shared_small,
-            4: threads_and_split, 6: kernel_choices}
+            4: threads_and_split, 6: kernel_choices, 7: compiled_small_calls}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--threads", type=int, default=1, help="threads for sections 1–3 and 5 (4 and 6 run 1 and 2)")
-    ap.add_argument("--sections", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6])
+    ap.add_argument("--sections", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6, 7])
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     print(f"# small-call profile (torch {torch.__version__}, {args.threads} thread(s), load "

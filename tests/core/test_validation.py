@@ -123,3 +123,36 @@ def test_validation_can_be_switched_off_for_hot_loops() -> None:
     assert torch.isnan(d.A).any()
     with pytest.raises(ValueError):
         tl.discretize(F, L, Qc, torch.tensor(float("nan"), dtype=f64))
+
+
+@pytest.mark.parametrize("k", [1, 2])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_closed_form_psd_test_equals_cholesky_test(k: int, dtype: torch.dtype) -> None:
+    """The 1×1 / 2×2 PSD test (closed-form Cholesky pivots) decides as LAPACK's factorisation
+    of the same shifted matrices, on matrices whose smallest eigenvalue straddles the
+    tolerance (−10 … +10 tolerances of the scale), huge and tiny scales, and asymmetry."""
+    from torchsde_lti.core.validation import _psd_test, psd_tolerance
+
+    g = torch.Generator().manual_seed(k)
+    N = 4000
+    V = torch.linalg.qr(torch.randn(N, k, k, generator=g, dtype=f64)).Q
+    top = torch.ones(N, 1, dtype=f64)
+    tol = psd_tolerance(torch.zeros(1, k, dtype=dtype))
+    low = torch.empty(N, 1, dtype=f64).uniform_(-10 * tol, 10 * tol, generator=g)
+    lam = torch.cat([low, top], -1)[:, :k]
+    x = (V * lam[:, None, :]) @ V.mT
+    decades = 150 if dtype == f64 else 30
+    x = 0.5 * (x + x.mT) * torch.logspace(-decades, decades, N, dtype=f64)[:, None, None]
+    x = x.to(dtype)
+    tiny = torch.finfo(dtype).tiny
+    outcomes = set()
+    for i in range(N):
+        xi = x[i : i + 1]
+        shifted = xi + tol * xi.abs().amax().clamp_min(tiny) * torch.eye(k, dtype=dtype)
+        want = bool(torch.linalg.cholesky_ex(shifted).info == 0)
+        assert bool(_psd_test(xi)[0]) == want, (i, xi)
+        outcomes.add(want)
+    assert outcomes == {True, False}  # both sides of the boundary were tested
+    if k == 2:
+        asym = torch.tensor([[[1.0, 0.5], [0.0, 1.0]]], dtype=dtype)
+        assert not bool(_psd_test(asym)[0])
