@@ -337,6 +337,14 @@ def _doubling_per_element(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tenso
 _TRACED_MAX_HALVINGS = 32
 
 
+#: K_max of the per-element series by dtype, looked up while tracing (dynamo warns about, and
+#: traces through, the ``lru_cache`` of :func:`_element_thresholds`).
+_TRACED_SERIES_LENGTH = {
+    dtype: len(_element_thresholds(dtype, _THETA_ELEMENT))
+    for dtype in (torch.float16, torch.bfloat16, torch.float32, torch.float64)
+}
+
+
 def _doubling_traced(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
     """:func:`_doubling_per_element` without value-dependent control flow, for tracing.
 
@@ -355,7 +363,7 @@ def _doubling_traced(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tensor | N
     Fb = F.expand(*batch, n, n).reshape(N, n, n)
     dtf = dt.expand(batch).reshape(N)
     theta = _THETA_ELEMENT
-    K_max = len(_element_thresholds(dtype, theta))
+    K_max = _TRACED_SERIES_LENGTH[dtype]
     with torch.no_grad():
         x_full = torch.nan_to_num(_frobenius_norm(Fb) * dtf, nan=0.0, posinf=0.0)
         halvings = torch.ceil(torch.log2((x_full / theta).clamp_min(1.0))).clamp_max(_TRACED_MAX_HALVINGS)
