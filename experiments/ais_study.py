@@ -668,7 +668,7 @@ def imm_section(paired_seeds: dict[int, dict[str, tuple[float, float, float, flo
         lines.append(f"| {seed} | " + " | ".join(f"{row[k][0]:+.3f} [{row[k][1]:+.3f}, {row[k][2]:+.3f}]"
                                                  for k in others) + " |")
     r = results["imm"]
-    lines += ["", f"IMM mean posterior mode probabilities on test reports (moored, underway): "
+    lines += ["", "IMM mean posterior mode probabilities on test reports (moored, underway): "
               + ", ".join(f"{p:.3f}" for p in r.get("mean_p_mode", [])),
               "Share inside 2σ for the IMM is the Monte Carlo 86.5 % highest-density region of its predictive "
               "mixture (1000 draws per report, seeded); for single models the 2σ ellipse.",
@@ -787,7 +787,7 @@ def report(data: ais.AISData, dts: dict[str, float], sizes: list[int], results: 
     gap = results[best]["nll"] - base["nll"]
     lines += [
         "",
-        f"Forecast pairs per horizon: " + ", ".join(f"{h:g} min: {base[f'fc_n_{h:g}']}" for h in HORIZONS_MIN) + ".",
+        "Forecast pairs per horizon: " + ", ".join(f"{h:g} min: {base[f'fc_n_{h:g}']}" for h in HORIZONS_MIN) + ".",
         "",
         f"Best learned model by validation NLL: **{best}**; test NLL {results[best]['nll']:.3f} vs "
         f"{base['nll']:.3f} for the tuned baseline ({'better' if gap < 0 else 'NOT better'} by {abs(gap):.3f} "

@@ -123,7 +123,7 @@ def scipy_discretize(F: np.ndarray, L: np.ndarray, Qc: np.ndarray, dt, B: np.nda
 def numpy_kalman_filter(y, A, Q, H, R, m0, P0, c=None, Du=None):
     """One track. y (T, m) with NaN = missing; A, Q (T, n, n); H (m, n); R (m, m); c (T, n)
     control term; Du (T, m) feedthrough (y_k = H x_k + D u_k + r_k)."""
-    T, n = y.shape[0], A.shape[-1]
+    T = y.shape[0]
     m, P = m0.copy(), P0.copy()
     out = {k: [] for k in ("mean", "cov", "pred_mean", "pred_cov", "ll")}
     for k in range(T):

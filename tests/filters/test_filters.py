@@ -6,7 +6,6 @@ explicit solve, standard covariance update) written independently of torchsde_lt
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest

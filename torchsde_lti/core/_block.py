@@ -42,6 +42,7 @@ from torchsde_lti.core._steps import (
     _doubling_steps,
     _frobenius_norm,
     _Layout,
+    _truncation_order,
     _unsort_from_batch_first,
     _unsort_from_batch_first_last,
 )
@@ -59,19 +60,9 @@ _MAX_SCALE_EXPONENT = 60
 
 
 @lru_cache(maxsize=None)
-def _taylor_degree(dtype: torch.dtype) -> int:
-    """Smallest m with θ^m / (m+1)! < eps / 8: the remainder relative to ‖C‖ ≤ θ."""
-    eps = torch.finfo(dtype).eps
-    m = 1
-    while _THETA**m / math.factorial(m + 1) >= eps / 8.0:
-        m += 1
-    return m
-
-
-@lru_cache(maxsize=None)
 def _ps_table(dtype: torch.dtype, device: torch.device) -> Tensor:
     """(J, q) coefficients of expm(C) − I = Σ_{k=1}^m C^k/k! = Σ_j (Σ_i a_ji C^i) (C^q)^j."""
-    m, q = _taylor_degree(dtype), _PS_POWERS
+    m, q = _truncation_order(dtype, _THETA), _PS_POWERS  # remainder relative to ‖C‖ ≤ θ
     J = m // q + 1
     a = torch.zeros(J, q, dtype=torch.float64)
     for k in range(1, m + 1):

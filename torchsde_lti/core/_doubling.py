@@ -32,6 +32,7 @@ from torchsde_lti.core._steps import (
     _operator_norm_bound,
     _Permutation,
     _prefix_counts,
+    _truncation_order,
     _unsort_batch_first,
     _unsort_batch_last,
     _unsort_from_batch_first,
@@ -45,14 +46,10 @@ __all__ = ["doubling"]
 # relative error below (2θ)^K / (K+1)!, which _series_length makes smaller than eps/8.
 _THETA = 1.0
 
-@lru_cache(maxsize=None)
+
 def _series_length(dtype: torch.dtype) -> int:
-    """Number of Taylor terms K with (2θ)^K / (K+1)! < eps / 8."""
-    eps = torch.finfo(dtype).eps
-    k = 1
-    while (2.0 * _THETA) ** k / math.factorial(k + 1) > eps / 8.0:
-        k += 1
-    return k + 1
+    """Number of Taylor terms K of the shared path: one past the truncation order for 2θ."""
+    return _truncation_order(dtype, 2.0 * _THETA) + 1
 
 
 

@@ -7,6 +7,9 @@ sorted by s_i so that step j only touches a prefix. Two layouts (:class:`_Layout
 
 from __future__ import annotations
 
+import math
+from functools import lru_cache
+
 import torch
 from torch import Tensor
 
@@ -17,6 +20,17 @@ def _operator_norm_bound(F: Tensor) -> Tensor:
     """max(‖F‖₁, ‖F‖∞): bounds ‖F‖ and ‖𝓛‖/2 in the induced 1-norm. Shape (...)."""
     absF = F.abs()
     return torch.maximum(absF.sum(-2).amax(-1), absF.sum(-1).amax(-1))
+
+
+@lru_cache(maxsize=None)
+def _truncation_order(dtype: torch.dtype, bound: float) -> int:
+    """Smallest m ≥ 1 with bound^m / (m+1)! < eps/8: where a Taylor series in an operator of
+    norm ≤ ``bound`` can stop (its remainder below eps/8 relative to the leading term)."""
+    eps = torch.finfo(dtype).eps
+    m = 1
+    while bound**m / math.factorial(m + 1) >= eps / 8.0:
+        m += 1
+    return m
 
 
 def _frobenius_norm(F: Tensor) -> Tensor:
