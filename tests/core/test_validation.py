@@ -131,7 +131,7 @@ def test_closed_form_psd_test_equals_cholesky_test(k: int, dtype: torch.dtype) -
     """The 1×1 / 2×2 PSD test (closed-form Cholesky pivots) decides as LAPACK's factorisation
     of the same shifted matrices, on matrices whose smallest eigenvalue straddles the
     tolerance (−10 … +10 tolerances of the scale), huge and tiny scales, and asymmetry."""
-    from torchsde_lti.core.validation import _psd_test, psd_tolerance
+    from torchsde_lti.core.validation import _CLOSED_FORM_MIN_2X2, _psd_test, psd_tolerance
 
     g = torch.Generator().manual_seed(k)
     N = 4000
@@ -150,9 +150,10 @@ def test_closed_form_psd_test_equals_cholesky_test(k: int, dtype: torch.dtype) -
         xi = x[i : i + 1]
         shifted = xi + tol * xi.abs().amax().clamp_min(tiny) * torch.eye(k, dtype=dtype)
         want = bool(torch.linalg.cholesky_ex(shifted).info == 0)
-        assert bool(_psd_test(xi)[0]) == want, (i, xi)
+        copies = xi.expand(_CLOSED_FORM_MIN_2X2, k, k)  # a batch large enough for the closed form
+        assert bool(_psd_test(copies)[0]) == want, (i, xi)
         outcomes.add(want)
     assert outcomes == {True, False}  # both sides of the boundary were tested
     if k == 2:
         asym = torch.tensor([[[1.0, 0.5], [0.0, 1.0]]], dtype=dtype)
-        assert not bool(_psd_test(asym)[0])
+        assert not bool(_psd_test(asym.expand(_CLOSED_FORM_MIN_2X2, 2, 2))[0])
