@@ -1,8 +1,11 @@
-r"""The doubling recursion shared by the doubling paths (private).
+r"""What the doubling paths share (private).
 
 After the sub-step series (``_doubling`` per-term Horner, ``_block`` Van Loan block), every
 element i is doubled s_i times: ``Q ← A Q Aᵀ + Q``, ``G ← A G + G``, ``A ← A A``, on tensors
-sorted by s_i so that step j only touches a prefix. Two layouts (:class:`_Layout`).
+sorted by s_i so that step j only touches a prefix (:func:`_doubling_steps`). Also here: the
+two layouts (:class:`_Layout`), the scales (:func:`_frobenius_norm`,
+:func:`_operator_norm_bound`), the truncation rule (:func:`_truncation_order`), the sort and
+its inverse (:class:`_Permutation`, :func:`_doubling_order`, the ``_unsort_*`` helpers).
 """
 
 from __future__ import annotations
