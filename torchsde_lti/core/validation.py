@@ -156,10 +156,10 @@ def _psd_test(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         # matrices, 2 threads; its dozen small ops lose to them below ≈ 100 2×2 matrices)
         a = x[..., 0, 0] + tol * scale
         if k == 1:
-            return ~(a <= 0).any(), torch.zeros_like(scale), scale
+            return (a > 0).all(), torch.zeros_like(scale), scale
         b, c = x[..., 1, 0], x[..., 1, 1] + tol * scale
         asym = (x[..., 0, 1] - b).abs() / scale
-        pivot = c - b * (b / a)  # second pivot squared (a > 0; no overflow: |b| ≤ scale)
+        pivot = c - b * (b / a)  # second pivot squared (PSD x: b²/a ≤ c, no overflow)
         return ~((asym > tol) | ~(a > 0) | ~(pivot > 0)).any(), asym, scale
     asym = (x - x.mT).abs().amax(dim=(-2, -1)) / scale
     shifted = x + (tol * scale)[..., None, None] * torch.eye(k, dtype=x.dtype, device=x.device)
