@@ -139,3 +139,61 @@ def test_per_element_gradients_through_sort_and_layouts(N: int) -> None:
 
     assert torch.autograd.gradcheck(fn, (a, b, L), eps=1e-6, atol=1e-6, rtol=1e-5)
     assert torch.autograd.gradgradcheck(fn, (a, b, L), eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.filterwarnings("ignore:.*torch.jit.script.*:DeprecationWarning")  # inside torch.func
+@pytest.mark.parametrize("n, N", [(2, 300), (2, 1500), (5, 1500)])  # fused multiply-adds; gathers
+def test_per_element_paths_under_torch_func_and_forward_mode(n: int, N: int) -> None:
+    """torch.func.grad / jvp and forward-mode AD through the per-element paths' custom
+    autograd Functions equal reverse-mode autograd. (vmap does not apply: the number of
+    halvings is data-dependent control flow; the batch dimensions are the vectorisation.)"""
+    import torch.autograd.forward_ad as fwAD
+
+    import torchsde_lti as tl
+
+    g = torch.Generator().manual_seed(7)
+    F = -torch.eye(n, dtype=F64) - 0.3 * torch.randn(N, n, n, generator=g, dtype=F64)
+    L, Qc = torch.ones(n, 1, dtype=F64), torch.ones(1, 1, dtype=F64)
+    dt = torch.rand(N, generator=g, dtype=F64) * 10
+    V = torch.randn(N, n, n, generator=g, dtype=F64)
+
+    def loss(F: torch.Tensor) -> torch.Tensor:
+        d = tl.discretize(F, L, Qc, dt)
+        return d.Q.sum() + d.A.sum()
+
+    Fr = F.clone().requires_grad_()
+    (want,) = torch.autograd.grad(loss(Fr), Fr)
+    assert torch.allclose(torch.func.grad(loss)(F), want, rtol=1e-12, atol=1e-12)
+    directional = (want * V).sum()
+    assert torch.allclose(torch.func.jvp(loss, (F,), (V,))[1], directional, rtol=1e-10)
+    with fwAD.dual_level():
+        tangent = fwAD.unpack_dual(loss(fwAD.make_dual(F, V))).tangent
+    assert torch.allclose(tangent, directional, rtol=1e-10)
+
+
+@pytest.mark.parametrize("N", [1, 100, 1500])  # block path; block path per element; Horner
+@pytest.mark.parametrize("dtype, scale", [(torch.float32, 1e20), (torch.float64, 1e160)])
+def test_huge_entries_and_huge_steps(N: int, dtype: torch.dtype, scale: float) -> None:
+    """Finite parameters at the edge of the float range: F and Qc ~ 1e20 (float32) / 1e160
+    (float64) with ‖F‖ dt ≈ 3 (the squares in the norms overflow), and dt near the largest
+    float (‖F‖ dt overflows: A → 0, Q → P∞), per element and shared, against scipy / the
+    stationary covariance."""
+    import torchsde_lti as tl
+
+    F0 = np.array([[-1.0, 0.5], [0.0, -2.0]])
+    tol = 1e-12 if dtype == F64 else 2e-5
+    F = torch.tensor(F0 * scale, dtype=dtype).expand(N, 2, 2)
+    eye = torch.eye(2, dtype=dtype)
+    d = tl.discretize(F, eye, eye * scale, torch.full((N,), 3.0 / scale, dtype=dtype))
+    C = np.block([[F0, np.eye(2)], [np.zeros((2, 2)), -F0.T]]) * 3.0
+    E = scipy.linalg.expm(C)
+    A, Q = E[:2, :2], E[:2, 2:] @ E[:2, :2].T  # s = u / scale: the scales cancel in Q
+    assert np.abs(d.A.double().numpy() - A).max() < tol
+    assert np.abs(d.Q.double().numpy() - Q).max() < tol * np.abs(Q).max()
+
+    huge = torch.full((N,), torch.finfo(dtype).max / 2, dtype=dtype)
+    P = tl.stationary_covariance(torch.tensor(F0, dtype=dtype), eye, eye)
+    for Fi in (torch.tensor(F0, dtype=dtype).expand(N, 2, 2), torch.tensor(F0, dtype=dtype)):
+        d = tl.discretize(Fi, eye, eye, huge)
+        assert float(d.A.abs().max()) == 0.0
+        assert float((d.Q - P).abs().max()) < 10 * tol

@@ -40,6 +40,7 @@ from torch import Tensor
 from torchsde_lti.core._steps import (
     _doubling_order,
     _doubling_steps,
+    _finite_or_max,
     _frobenius_norm,
     _Layout,
     _truncation_order,
@@ -115,19 +116,19 @@ def block_doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tens
 
     with torch.no_grad():  # Frobenius norms (submultiplicative: bound the Taylor remainder)
         f = _frobenius_norm(Fb)
-        sq = f * f
+        norm = f  # ‖C‖_F / h, accumulated by hypot (no overflow of the squares)
         sigma = beta = None
         if d > n:  # similarity scales σ (W block), β (B block): powers of two, ≤ 1
             bound = torch.maximum(f, 0.25 / dtf.clamp_min(torch.finfo(dtype).tiny))
         if Wb is not None:
             w_norm = _frobenius_norm(Wb)
             sigma = _power_of_two_scale(w_norm, bound)
-            sq = 2.0 * sq + (sigma * w_norm) ** 2  # F and −Fᵀ blocks, σW
+            norm = torch.hypot(math.sqrt(2.0) * f, sigma * w_norm)  # F and −Fᵀ blocks, σW
         if Bb is not None:
             b_norm = _frobenius_norm(Bb)
             beta = _power_of_two_scale(b_norm, bound)
-            sq = sq + (beta * b_norm) ** 2
-        c = torch.nan_to_num(sq.sqrt() * dtf, nan=0.0, posinf=0.0)  # ‖C‖_F at the full step
+            norm = torch.hypot(norm, beta * b_norm)
+        c = _finite_or_max(norm * dtf)  # ‖C‖_F at the full step
         halvings = torch.ceil(torch.log2(c / _THETA)).clamp_min(0.0)
     h = dtf * torch.exp2(-halvings)
     hc = h[:, None, None]

@@ -27,6 +27,7 @@ from torchsde_lti.core._block import block_doubling
 from torchsde_lti.core._steps import (
     _doubling_order,
     _doubling_steps,
+    _finite_or_max,
     _frobenius_norm,
     _Layout,
     _operator_norm_bound,
@@ -54,7 +55,8 @@ def _series_length(dtype: torch.dtype) -> int:
 
 
 def _nilpotency_index(F: Tensor) -> int | None:
-    """Smallest k ≤ n with F^k = 0 exactly for every batch element, else None."""
+    """Smallest k ≤ n with F^k = 0 exactly for every batch element, else None (also None for a
+    non-zero trace, even where a power underflows to 0, e.g. F = 1e-200 I)."""
     n = F.shape[-1]
     with torch.no_grad():
         # a nilpotent F has trace 0: one test settles the common case (any stable F) without
@@ -173,10 +175,10 @@ def _halvings(F: Tensor, dt: Tensor) -> tuple[Tensor, int, Tensor | None]:
     if nil is not None:
         return nu, 3 * nil, None
     with torch.no_grad():
-        ratio = nu * dt / _THETA
-        halvings = torch.ceil(torch.log2(ratio.clamp_min(1.0)))
-        # non-finite dt (only reachable with value checks off) gives non-finite output
-        halvings = torch.nan_to_num(halvings, nan=0.0, posinf=0.0).to(torch.int64)
+        # NaN (only reachable with value checks off) takes no halvings and gives NaN output;
+        # ν dt beyond the float range takes the most halvings (non-finite dt: non-finite output)
+        ratio = _finite_or_max(nu * dt / _THETA)
+        halvings = torch.ceil(torch.log2(ratio.clamp_min(1.0))).to(torch.int64)
     return nu, _series_length(F.dtype), halvings
 
 
@@ -219,6 +221,12 @@ _BLOCK_MAX_ROWS = 4096
 _BLOCK_MAX_SHARED = 64
 
 
+def _halvings_for(x: Tensor, theta: float) -> Tensor:
+    """ceil(log2(x / θ)), at least 0, for x = ‖F‖ dt ≥ 0 (float; finite up to the largest float:
+    the division is taken as a difference of logarithms so it cannot overflow)."""
+    return torch.ceil(torch.log2(x.clamp_min(theta)) - math.log2(theta))
+
+
 @lru_cache(maxsize=None)
 def _element_thresholds(dtype: torch.dtype, theta: float) -> tuple[float, ...]:
     """x_K, K = 0 … K_max − 1: the Horner series of length K (terms 0 … K) is accurate for
@@ -245,8 +253,9 @@ def _doubling_per_element(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tenso
         φ₁(M) = Σ_k M^k/(k+1)!,   E = A − I = M φ₁(M),   G = h φ₁(M) B,
         Q = h Σ_k h^k 𝓛^k(W)/(k+1)!,   𝓛(X) = F X + X Fᵀ,
 
-    then :func:`_doubling_steps`. The elements are sorted by ν dt (descending), so the
-    elements that need term k and doubling j are prefixes and no work is spent on the others.
+    then :func:`_doubling_steps`. The elements are sorted by (halvings, terms) (descending),
+    so the elements that need term k and doubling j are prefixes and no work is spent on the
+    others.
     """
     F, W, B, dt, batch = x
     n = F.shape[-1]
@@ -259,8 +268,8 @@ def _doubling_per_element(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tenso
     K_max = len(thresholds)
     with torch.no_grad():
         nu = _frobenius_norm(Fb)
-        x_full = torch.nan_to_num(nu * dtf, nan=0.0, posinf=0.0)
-        halvings = torch.ceil(torch.log2((x_full / _THETA_ELEMENT).clamp_min(1.0))).to(torch.int64)
+        x_full = _finite_or_max(nu * dtf)
+        halvings = _halvings_for(x_full, _THETA_ELEMENT).to(torch.int64)
         x_sub = x_full * torch.exp2(-halvings.to(dtype))
         terms = torch.bucketize(x_sub, torch.tensor(thresholds, dtype=dtype, device=device), right=True)
         terms = torch.where(halvings > 0, K_max, terms)
@@ -367,8 +376,8 @@ def _doubling_traced(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tensor | N
     theta = _THETA_ELEMENT
     K_max = _TRACED_SERIES_LENGTH[dtype]
     with torch.no_grad():
-        x_full = torch.nan_to_num(_frobenius_norm(Fb) * dtf, nan=0.0, posinf=0.0)
-        halvings = torch.ceil(torch.log2((x_full / theta).clamp_min(1.0))).clamp_max(_TRACED_MAX_HALVINGS)
+        x_full = _finite_or_max(_frobenius_norm(Fb) * dtf)
+        halvings = _halvings_for(x_full, theta).clamp_max(_TRACED_MAX_HALVINGS)
 
     def layout(x: Tensor, cols: int) -> Tensor:  # (..., n, c) -> (N, n, c) or (n, c, N)
         x = x.expand(*batch, n, cols).reshape(N, n, cols)
@@ -382,10 +391,11 @@ def _doubling_traced(x: SDEInputs, batch_last: bool) -> tuple[Tensor, Tensor | N
     W_l = None if W is None else layout(W, n)
     W_half = None if W_l is None else 0.5 * W_l
     Z = W_l
-    for k in range(K_max, 0, -1):
-        Y = lo.mm(M, Y, eye, 1.0 / (k + 1))
+    for k in range(K_max, 0, -1):  # the scale as a tensor op: a Python float α would be a
+        # guard per term for dynamo (recompiles of ``mm`` under torch.compile with gradients)
+        Y = lo.mm(M, Y * (1.0 / (k + 1)), eye)
         if Z is not None and W_half is not None:
-            T = lo.mm(M, Z, W_half, 1.0 / (k + 1))
+            T = lo.mm(M, Z * (1.0 / (k + 1)), W_half)
             Z = T + lo.t(T)
     X = lo.mm(M, Y)  # E = A − I
     Q = None if Z is None else Z * hc

@@ -143,6 +143,11 @@ _CONCAT_MAX_ENTRIES = 16384
 _CLOSED_FORM_MIN_2X2 = 128
 
 
+def _lapack_dtype(x: Tensor) -> Tensor:
+    """x in float32 if it is a half-precision float (LAPACK has no float16/bfloat16 kernels)."""
+    return x if x.dtype in (torch.float32, torch.float64) else x.to(torch.float32)
+
+
 def _psd_test(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """(passes, asym, scale) without synchronising: ``passes`` (0-dim bool) says x is
     symmetric within tol and x + tol·scale·I has a Cholesky factor (⇒ λ_min > −tol·scale up
@@ -163,7 +168,7 @@ def _psd_test(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         return ~((asym > tol) | ~(a > 0) | ~(pivot > 0)).any(), asym, scale
     asym = (x - x.mT).abs().amax(dim=(-2, -1)) / scale
     shifted = x + (tol * scale)[..., None, None] * torch.eye(k, dtype=x.dtype, device=x.device)
-    passes = ~((asym > tol) | (torch.linalg.cholesky_ex(shifted).info != 0)).any()
+    passes = ~((asym > tol) | (torch.linalg.cholesky_ex(_lapack_dtype(shifted)).info != 0)).any()
     return passes, asym, scale
 
 
@@ -181,7 +186,7 @@ def check_symmetric_psd(x: Tensor, name: str) -> None:
             raise ValueError(
                 f"{name} must be symmetric, got relative asymmetry {float(asym.max()):.3g} (shape {shape_str(x)})"
             )
-        eig_min = torch.linalg.eigvalsh(sym(x)).amin(dim=-1) / scale
+        eig_min = torch.linalg.eigvalsh(_lapack_dtype(sym(x))).amin(dim=-1) / scale
         if bool((eig_min < -psd_tolerance(x)).any()):
             raise ValueError(
                 f"{name} must be positive semi-definite, got smallest eigenvalue "
