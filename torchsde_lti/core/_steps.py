@@ -16,7 +16,7 @@ from functools import lru_cache
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import bl_matmul
+from torchsde_lti.core.linalg import _plain_ops_required, bl_matmul
 from torchsde_lti.core.validation import tracing
 
 
@@ -192,30 +192,18 @@ def _prefix_counts(sorted_values: Tensor, top: int) -> list[int]:
 class _Gather(torch.autograd.Function):
     """``x[index]`` along dim 0 for a permutation ``index`` whose inverse is ``inverse``. The
     backward is the gather ``g[inverse]`` (plain indexing would scatter-add); differentiable
-    twice (the backward is this function again), forward-mode (jvp) and ``torch.func``
-    transforms (vmap rule generated from the forward)."""
-
-    generate_vmap_rule = True
+    twice (the backward is this function again). Reverse mode only (see
+    :func:`~torchsde_lti.core.linalg._plain_ops_required`)."""
 
     @staticmethod
-    def forward(x: Tensor, index: Tensor, inverse: Tensor) -> Tensor:  # type: ignore[override]
-        return x[index]
-
-    @staticmethod
-    def setup_context(ctx, inputs: tuple[Tensor, Tensor, Tensor], output: Tensor) -> None:  # type: ignore[override]
-        _, index, inverse = inputs
+    def forward(ctx, x: Tensor, index: Tensor, inverse: Tensor) -> Tensor:  # type: ignore[override]
         ctx.save_for_backward(index, inverse)
-        ctx.save_for_forward(index)
-        ctx.index = index
+        return x[index]
 
     @staticmethod
     def backward(ctx, g: Tensor) -> tuple[Tensor, None, None]:  # type: ignore[override]
         index, inverse = ctx.saved_tensors
         return _Gather.apply(g, inverse, index), None, None
-
-    @staticmethod
-    def jvp(ctx, x_t: Tensor, index_t: None, inverse_t: None) -> Tensor:  # type: ignore[override]
-        return x_t[ctx.index]
 
 
 #: From this many elements on, sorting and unsorting go through :class:`_Gather` (both
@@ -244,7 +232,7 @@ class _Permutation:
         return self._inverse
 
     def _gathers(self, x: Tensor) -> bool:
-        return x.requires_grad and self.order.numel() >= _GATHER_MIN_BATCH
+        return x.requires_grad and self.order.numel() >= _GATHER_MIN_BATCH and not _plain_ops_required()
 
     def sort(self, x: Tensor) -> Tensor:
         """Rows (dim 0) of x into sorted order."""
@@ -255,7 +243,7 @@ class _Permutation:
         gather (measured 1–9× faster than ``index_copy_`` into a batch-first result from a
         batch-last source, n = 2 … 8, N = 1e4, ``profile_small_calls.py`` section 6)."""
         if self.order.numel() >= _GATHER_MIN_BATCH:
-            return _Gather.apply(x, self.inverse, self.order) if x.requires_grad else x[self.inverse]
+            return _Gather.apply(x, self.inverse, self.order) if self._gathers(x) else x[self.inverse]
         out = torch.empty(x.shape, dtype=x.dtype, device=x.device)
         return out.index_copy_(0, self.order, x)  # out[order[i]] = x[i]; its backward is a gather
 

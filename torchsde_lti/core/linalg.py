@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor
+from torch.autograd import forward_ad
 
 __all__ = [
     "SMALL",
@@ -176,23 +177,16 @@ def _fma_matmul(a: Tensor, b: Tensor, c: Tensor | None, alpha: float = 1.0) -> T
 
 class _FmaMatmul(torch.autograd.Function):
     """c + α a b on batch-last matrices with one flat batch dimension; the backward calls
-    :func:`bl_matmul` again, so it is differentiable twice (double backward works); forward
-    mode (jvp) and ``torch.func`` transforms (vmap rule generated from the forward) too."""
-
-    generate_vmap_rule = True
-
-    @staticmethod
-    def forward(a: Tensor, b: Tensor, c: Tensor | None, alpha: float) -> Tensor:  # type: ignore[override]
-        return _fma_matmul(a, b, c, alpha)
+    :func:`bl_matmul` again, so it is differentiable twice (double backward works). Reverse
+    mode only: under forward-mode AD or a ``torch.func`` transform :func:`bl_matmul` uses
+    plain ops instead (:func:`_plain_ops_required`)."""
 
     @staticmethod
-    def setup_context(ctx, inputs: tuple, output: Tensor) -> None:  # type: ignore[override]
-        a, b, c, alpha = inputs
+    def forward(ctx, a: Tensor, b: Tensor, c: Tensor | None, alpha: float) -> Tensor:  # type: ignore[override]
         ctx.save_for_backward(a, b)
-        ctx.save_for_forward(a, b)
-        ctx.a, ctx.b = a, b
         ctx.has_c = c is not None
         ctx.alpha = alpha
+        return _fma_matmul(a, b, c, alpha)
 
     @staticmethod
     def backward(ctx, g: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None, None]:  # type: ignore[override]
@@ -201,17 +195,18 @@ class _FmaMatmul(torch.autograd.Function):
         gb = bl_matmul(a.transpose(0, 1), g, alpha=ctx.alpha) if ctx.needs_input_grad[1] else None
         return ga, gb, (g if ctx.has_c and ctx.needs_input_grad[2] else None), None
 
-    @staticmethod
-    def jvp(ctx, a_t: Tensor | None, b_t: Tensor | None, c_t: Tensor | None, alpha_t: None) -> Tensor:  # type: ignore[override]
-        # d(c + α a b) = c_t + α (a_t b + a b_t)
-        out = c_t
-        if a_t is not None:
-            out = bl_matmul(a_t, ctx.b, out, ctx.alpha)
-        if b_t is not None:
-            out = bl_matmul(ctx.a, b_t, out, ctx.alpha)
-        if out is None:
-            return torch.zeros_like(_fma_matmul(ctx.a, ctx.b, None, ctx.alpha))
-        return out
+
+def _plain_ops_required() -> bool:
+    """Whether the core's custom autograd Functions must step aside for plain ops: while
+    tracing (compile/export: plain ops are traced and differentiated whole), under
+    forward-mode AD (a dual level) or inside a ``torch.func`` transform (classic Functions
+    support neither). Falls back to True if torch's internals move."""
+    if torch.compiler.is_compiling() or torch.compiler.is_exporting():
+        return True
+    try:
+        return forward_ad._current_level >= 0 or torch._C._functorch.peek_interpreter_stack() is not None
+    except AttributeError:  # pragma: no cover - a torch release without these internals
+        return True
 
 
 def _records_graph(*tensors: Tensor | None) -> bool:
@@ -232,11 +227,9 @@ def bl_matmul(a: Tensor, b: Tensor, c: Tensor | None = None, alpha: float = 1.0)
             out = (a.permute(2, 0, 1) @ b.permute(2, 0, 1)).permute(1, 2, 0)
             return _scaled_add(out, c, alpha)
         if a.shape[-1] > _CHAIN_MIN_BATCH:
-            if _records_graph(a, b, c) and not (torch.compiler.is_compiling() or torch.compiler.is_exporting()):
+            if _records_graph(a, b, c) and not _plain_ops_required():
                 return _FmaMatmul.apply(a, b, c, alpha)
-            # no graph to record (the autograd.Function's dispatch costs ≈ 20 µs a call), or
-            # tracing (plain ops are traced and differentiated whole)
-            return _fma_matmul(a, b, c, alpha)
+            return _fma_matmul(a, b, c, alpha)  # no graph to record (skip the Function's dispatch)
     return _scaled_add(torch.linalg.vecdot(a.unsqueeze(2), b.unsqueeze(0), dim=1), c, alpha)
 
 
