@@ -197,3 +197,22 @@ def test_huge_entries_and_huge_steps(N: int, dtype: torch.dtype, scale: float) -
         d = tl.discretize(Fi, eye, eye, huge)
         assert float(d.A.abs().max()) == 0.0
         assert float((d.Q - P).abs().max()) < 10 * tol
+
+
+def test_inference_mode_first_then_autograd() -> None:
+    """A first call under torch.inference_mode (filling the block path's cached coefficient
+    table) does not break a later call with gradients."""
+    import subprocess
+    import sys
+
+    code = (
+        "import torch, torchsde_lti as tl\n"
+        "F = torch.randn(5, 3, 3, dtype=torch.float64) - 2 * torch.eye(3, dtype=torch.float64)\n"
+        "I = torch.eye(3, dtype=torch.float64)\n"
+        "with torch.inference_mode():\n"
+        "    tl.discretize(F, I, I, torch.rand(5, dtype=torch.float64))\n"
+        "F.requires_grad_()\n"
+        "tl.discretize(F, I, I, torch.rand(5, dtype=torch.float64)).Q.sum().backward()\n"
+        "assert torch.isfinite(F.grad).all()\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)  # a fresh process: an empty cache

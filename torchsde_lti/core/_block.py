@@ -62,13 +62,15 @@ _MAX_SCALE_EXPONENT = 60
 
 @lru_cache(maxsize=None)
 def _ps_table(dtype: torch.dtype, device: torch.device) -> Tensor:
-    """(J, q) coefficients of expm(C) − I = Σ_{k=1}^m C^k/k! = Σ_j (Σ_i a_ji C^i) (C^q)^j."""
+    """(J, q) coefficients of expm(C) − I = Σ_{k=1}^m C^k/k! = Σ_j (Σ_i a_ji C^i) (C^q)^j.
+    Cached, so built outside inference mode (an inference tensor cannot join a later graph)."""
     m, q = _truncation_order(dtype, _THETA), _PS_POWERS  # remainder relative to ‖C‖ ≤ θ
     J = m // q + 1
-    a = torch.zeros(J, q, dtype=torch.float64)
-    for k in range(1, m + 1):
-        a[k // q, k % q] = 1.0 / math.factorial(k)
-    return a.to(dtype=dtype, device=device)
+    with torch.inference_mode(False):
+        a = torch.zeros(J, q, dtype=torch.float64)
+        for k in range(1, m + 1):
+            a[k // q, k % q] = 1.0 / math.factorial(k)
+        return a.to(dtype=dtype, device=device)
 
 
 def _expm_minus_identity(C: Tensor) -> Tensor:
