@@ -18,11 +18,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
 import time
 
 import torch
 from bench_per_element import make_problem, naive_van_loan
+from profile_small_calls import median_us
 
 import torchsde_lti as tl
 from torchsde_lti.core._block import _ps_table
@@ -161,16 +161,6 @@ def build():
 
     return load_inline("probe_fused_discretize_omp", cpp_sources=CPP, functions=["fused"],
                        extra_cflags=["-O3", "-fopenmp"], extra_ldflags=["-fopenmp"], verbose=False)
-
-
-def median_us(fn, repeats: int) -> float:
-    fn()
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts) * 1e6
 
 
 def main() -> None:

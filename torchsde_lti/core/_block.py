@@ -42,6 +42,7 @@ from torchsde_lti.core._steps import (
     _doubling_steps,
     _finite_or_max,
     _frobenius_norm,
+    _halvings_for,
     _Layout,
     _truncation_order,
     _unsort_from_batch_first,
@@ -131,7 +132,7 @@ def block_doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tens
             beta = _power_of_two_scale(b_norm, bound)
             norm = torch.hypot(norm, beta * b_norm)
         c = _finite_or_max(norm * dtf)  # ‖C‖_F at the full step
-        halvings = torch.ceil(torch.log2(c / _THETA)).clamp_min(0.0)
+        halvings = _halvings_for(c, _THETA)
     h = dtf * torch.exp2(-halvings)
     hc = h[:, None, None]
     Fh = Fb * hc

@@ -29,6 +29,7 @@ from torchsde_lti.core._steps import (
     _doubling_steps,
     _finite_or_max,
     _frobenius_norm,
+    _halvings_for,
     _Layout,
     _operator_norm_bound,
     _Permutation,
@@ -177,8 +178,7 @@ def _halvings(F: Tensor, dt: Tensor) -> tuple[Tensor, int, Tensor | None]:
     with torch.no_grad():
         # NaN (only reachable with value checks off) takes no halvings and gives NaN output;
         # ν dt beyond the float range takes the most halvings (non-finite dt: non-finite output)
-        ratio = _finite_or_max(nu * dt / _THETA)
-        halvings = torch.ceil(torch.log2(ratio.clamp_min(1.0))).to(torch.int64)
+        halvings = _halvings_for(_finite_or_max(nu * dt), _THETA).to(torch.int64)
     return nu, _series_length(F.dtype), halvings
 
 
@@ -219,12 +219,6 @@ _BLOCK_MAX_ROWS = 4096
 # shared 468–604 µs for a Matérn-3/2, 202–512 vs 360–497 µs for a Singer model; the shared
 # path wins at N = 256).
 _BLOCK_MAX_SHARED = 64
-
-
-def _halvings_for(x: Tensor, theta: float) -> Tensor:
-    """ceil(log2(x / θ)), at least 0, for x = ‖F‖ dt ≥ 0 (float; finite up to the largest float:
-    the division is taken as a difference of logarithms so it cannot overflow)."""
-    return torch.ceil(torch.log2(x.clamp_min(theta)) - math.log2(theta))
 
 
 @lru_cache(maxsize=None)

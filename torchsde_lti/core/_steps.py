@@ -58,6 +58,12 @@ def _finite_or_max(x: Tensor) -> Tensor:
     return torch.nan_to_num(x, nan=0.0, posinf=torch.finfo(x.dtype).max)
 
 
+def _halvings_for(x: Tensor, theta: float) -> Tensor:
+    """ceil(log2(x / θ)), at least 0, for x = ‖F‖ dt ≥ 0 (float; finite up to the largest float:
+    the division is taken as a difference of logarithms so it cannot overflow)."""
+    return torch.ceil(torch.log2(x.clamp_min(theta)) - math.log2(theta))
+
+
 class _Layout:
     """Batch layout of the doubling/Horner loops: batch-last (r, c, N), whose products are
     fused multiply-adds over the contiguous batch (:func:`bl_matmul`; small n, large N), or

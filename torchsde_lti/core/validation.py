@@ -159,10 +159,11 @@ def _psd_test(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         # the same test in closed form: the pivots of the shifted Cholesky factor (LAPACK's
         # per-matrix call and the strided x − xᵀ dominated: ≈ 0.6 of 0.7 ms at 1e4 2×2
         # matrices, 2 threads; its dozen small ops lose to them below ≈ 100 2×2 matrices)
-        a = x[..., 0, 0] + tol * scale
+        shift = tol * scale
+        a = x[..., 0, 0] + shift
         if k == 1:
             return (a > 0).all(), torch.zeros_like(scale), scale
-        b, c = x[..., 1, 0], x[..., 1, 1] + tol * scale
+        b, c = x[..., 1, 0], x[..., 1, 1] + shift
         asym = (x[..., 0, 1] - b).abs() / scale
         pivot = c - b * (b / a)  # second pivot squared (PSD x: b²/a ≤ c, no overflow)
         return ~((asym > tol) | ~(a > 0) | ~(pivot > 0)).any(), asym, scale
