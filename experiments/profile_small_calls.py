@@ -14,11 +14,15 @@ Sections (medians of repeats; shared machine, noisy):
 6. Kernel choices of the per-element path at N = 1e4, 1 and 2 threads: the finiteness test
    (isfinite of the concatenation vs one sum per tensor), the scale (max(‖F‖₁, ‖F‖∞) vs
    ‖F‖_F), the unsort to batch-first (index_copy_ vs the gather).
+8. The batch-size thresholds of two kernel choices (1 thread, float64): the closed-form 2×2
+   PSD test vs LAPACK's (``validation._CLOSED_FORM_MIN_2X2``), and the sort + unsort through
+   ``_steps._Gather`` vs builtin indexing, forward + backward (``_steps._GATHER_MIN_BATCH``),
+   each path forced by setting the threshold.
 7. Would compiled kernels close the small-call gap? ``torch.compile`` (inductor, C++) of
    ``discretize`` (the traced path: masked doubling steps) and of the naive block
    exponential, per-element problem, B = 1 and 100, warm calls; first-call compile time.
 
-    python experiments/profile_small_calls.py [--threads 1] [--sections 1 2 3 4 5 6 7]
+    python experiments/profile_small_calls.py [--threads 1] [--sections 1 2 3 4 5 6 7 8]
 """
 
 from __future__ import annotations
@@ -202,14 +206,44 @@ def compiled_small_calls() -> None:
             print(f"| {n} | {B} | {compile_s:.1f} | " + " | ".join(f"{v:.0f}" for v in row) + " |", flush=True)
 
 
+def thresholds() -> None:
+    import torchsde_lti.core._steps as steps
+    import torchsde_lti.core.validation as checks
+
+    torch.set_num_threads(1)
+    print("\n### 8. Kernel-choice thresholds, float64, 1 thread (µs)\n")
+    print("| N | PSD test 2×2: closed form | LAPACK | sort, batch-last, unsort (4×4), fwd+bwd: gathers | builtin |")
+    print("|---|---|---|---|---|")
+    saved = checks._CLOSED_FORM_MIN_2X2, steps._GATHER_MIN_BATCH
+    g = torch.Generator().manual_seed(0)
+    try:
+        for N in (16, 64, 100, 256, 1000, 10_000):
+            C = torch.randn(N, 2, 2, generator=g, dtype=torch.float64)
+            x = C @ C.mT
+            timings = []
+            for bound in (0, 10**9):  # closed form always / never
+                checks._CLOSED_FORM_MIN_2X2 = bound
+                timings.append(median_us(lambda: checks._psd_test(x), 200))
+            y = torch.randn(N, 4, 4, generator=g, dtype=torch.float64, requires_grad=True)
+            perm = steps._Permutation(torch.randperm(N, generator=g))
+            for bound in (0, 10**9):  # gathers always / never
+                steps._GATHER_MIN_BATCH = bound
+                # the per-element path's pattern: sort batch-first, work batch-last, unsort
+                timings.append(median_us(lambda: perm.unsort(
+                    (perm.sort(y).permute(1, 2, 0).contiguous() * 2.0).permute(2, 0, 1)).sum().backward(), 200))
+            print(f"| {N} | " + " | ".join(f"{t:.0f}" for t in timings) + " |", flush=True)
+    finally:
+        checks._CLOSED_FORM_MIN_2X2, steps._GATHER_MIN_BATCH = saved
+
+
 SECTIONS = {1: one_call, 2: lambda: per_element_paths((torch.float64, torch.float32)), 3: shared_small,
-            4: threads_and_split, 6: kernel_choices, 7: compiled_small_calls}
+            4: threads_and_split, 6: kernel_choices, 7: compiled_small_calls, 8: thresholds}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--threads", type=int, default=1, help="threads for sections 1–3 and 5 (4 and 6 run 1 and 2)")
-    ap.add_argument("--sections", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6, 7])
+    ap.add_argument("--sections", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6, 7, 8])
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     print(f"# small-call profile (torch {torch.__version__}, {args.threads} thread(s), load "
