@@ -42,7 +42,7 @@ import torchsde_lti.filters.sequential as sequential
 from torchsde_lti.core._block import block_doubling
 from torchsde_lti.core._doubling import _doubling_per_element, _doubling_shared
 from torchsde_lti.core._steps import _frobenius_norm, _operator_norm_bound
-from torchsde_lti.core.validation import sde_inputs, validation
+from torchsde_lti.core.validation import sde_inputs
 
 
 def median_us(fn, repeats: int = 50) -> float:
@@ -63,9 +63,8 @@ def one_call() -> None:
         F, L, Qc, dt = make_problem(n, 1, torch.float64)
         total = median_us(lambda: tl.discretize(F, L, Qc, dt))
         inputs = median_us(lambda: sde_inputs(F, L, Qc, dt))
-        with validation(False):
-            inputs_off = median_us(lambda: sde_inputs(F, L, Qc, dt))
-            total_off = median_us(lambda: tl.discretize(F, L, Qc, dt))
+        inputs_off = median_us(lambda: sde_inputs(F, L, Qc, dt, validate_args=False))
+        total_off = median_us(lambda: tl.discretize(F, L, Qc, dt, validate_args=False))
         naive = median_us(lambda: naive_van_loan(F, L, Qc, dt))
         print(f"| {n} | {total:.0f} | {inputs:.0f} | {inputs_off:.0f} | {total_off:.0f} | {naive:.0f} |", flush=True)
 
@@ -74,17 +73,16 @@ def per_element_paths(dtypes: tuple[torch.dtype, ...]) -> None:
     print("\n### 2. Per-element parameters: block path vs per-term Horner vs naive (µs, value checks off)\n")
     print("| dtype | n | N | block | Horner | naive | Horner / block |")
     print("|---|---|---|---|---|---|---|")
-    with validation(False):
-        for dtype in dtypes:
-            for n in (2, 4, 8):
-                for N in (1, 10, 100, 300, 1000, 3000):
-                    F, L, Qc, dt = make_problem(n, N, dtype)
-                    x = sde_inputs(F, L, Qc, dt)
-                    r = 30 if N <= 300 else 7
-                    b = median_us(lambda: block_doubling(x), r)
-                    h = median_us(lambda: _doubling_per_element(x, False), r)
-                    v = median_us(lambda: naive_van_loan(F, L, Qc, dt), r)
-                    print(f"| {str(dtype)[6:]} | {n} | {N} | {b:.0f} | {h:.0f} | {v:.0f} | {h / b:.2f} |", flush=True)
+    for dtype in dtypes:
+        for n in (2, 4, 8):
+            for N in (1, 10, 100, 300, 1000, 3000):
+                F, L, Qc, dt = make_problem(n, N, dtype)
+                x = sde_inputs(F, L, Qc, dt, validate_args=False)
+                r = 30 if N <= 300 else 7
+                b = median_us(lambda: block_doubling(x), r)
+                h = median_us(lambda: _doubling_per_element(x, False), r)
+                v = median_us(lambda: naive_van_loan(F, L, Qc, dt), r)
+                print(f"| {str(dtype)[6:]} | {n} | {N} | {b:.0f} | {h:.0f} | {v:.0f} | {h / b:.2f} |", flush=True)
 
 
 def shared_small() -> None:
@@ -97,15 +95,14 @@ def shared_small() -> None:
         "singer": tl.models.singer(alpha=0.5, q=1.0, dtype=f64),
     }
     g = torch.Generator().manual_seed(0)
-    with validation(False):
-        for name, sde in models.items():
-            F, L, Qc = sde.F.detach(), sde.L.detach(), sde.Qc.detach()
-            for N in (1, 4, 16, 64, 256):
-                x = sde_inputs(F, L, Qc, torch.rand(N, generator=g, dtype=f64) * 2 + 0.05)
-                b = median_us(lambda: block_doubling(x))
-                p = median_us(lambda: _doubling_per_element(x, False))
-                s = median_us(lambda: _doubling_shared(x.F, x.W, x.B, x.dt, x.batch, torch.Size(), False))
-                print(f"| {name} | {N} | {b:.0f} | {p:.0f} | {s:.0f} |", flush=True)
+    for name, sde in models.items():
+        F, L, Qc = sde.F.detach(), sde.L.detach(), sde.Qc.detach()
+        for N in (1, 4, 16, 64, 256):
+            x = sde_inputs(F, L, Qc, torch.rand(N, generator=g, dtype=f64) * 2 + 0.05, validate_args=False)
+            b = median_us(lambda: block_doubling(x))
+            p = median_us(lambda: _doubling_per_element(x, False))
+            s = median_us(lambda: _doubling_shared(x.F, x.W, x.B, x.dt, x.batch, torch.Size(), False))
+            print(f"| {name} | {N} | {b:.0f} | {p:.0f} | {s:.0f} |", flush=True)
 
 
 def threads_and_split() -> None:
@@ -113,24 +110,23 @@ def threads_and_split() -> None:
     print("| n | threads | Horner | two Python threads × half | naive |")
     print("|---|---|---|---|---|")
     pool = ThreadPoolExecutor(2)
-    with validation(False):
-        for n in (2, 4):
-            F, L, Qc, dt = make_problem(n, 10_000, torch.float64)
-            half = F.shape[0] // 2
-            parts = [(F[:half], Qc[:half], dt[:half]), (F[half:], Qc[half:], dt[half:])]
+    for n in (2, 4):
+        F, L, Qc, dt = make_problem(n, 10_000, torch.float64)
+        half = F.shape[0] // 2
+        parts = [(F[:half], Qc[:half], dt[:half]), (F[half:], Qc[half:], dt[half:])]
 
-            def split() -> None:
-                futures = [pool.submit(lambda p: _doubling_per_element(sde_inputs(p[0], L, p[1], p[2]), False), p)
-                           for p in parts]
-                for f in futures:
-                    f.result()
+        def split() -> None:
+            futures = [pool.submit(lambda p: _doubling_per_element(sde_inputs(p[0], L, p[1], p[2], validate_args=False), False), p)
+                       for p in parts]
+            for f in futures:
+                f.result()
 
-            for threads in (1, 2):
-                torch.set_num_threads(threads)
-                one = median_us(lambda: _doubling_per_element(sde_inputs(F, L, Qc, dt), False), 9) / 1e3
-                two = median_us(split, 9) / 1e3 if threads == 2 else float("nan")
-                naive = median_us(lambda: naive_van_loan(F, L, Qc, dt), 9) / 1e3
-                print(f"| {n} | {threads} | {one:.1f} | {two:.1f} | {naive:.1f} |", flush=True)
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            one = median_us(lambda: _doubling_per_element(sde_inputs(F, L, Qc, dt, validate_args=False), False), 9) / 1e3
+            two = median_us(split, 9) / 1e3 if threads == 2 else float("nan")
+            naive = median_us(lambda: naive_van_loan(F, L, Qc, dt), 9) / 1e3
+            print(f"| {n} | {threads} | {one:.1f} | {two:.1f} | {naive:.1f} |", flush=True)
     pool.shutdown()
 
 

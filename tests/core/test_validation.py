@@ -114,15 +114,26 @@ def test_type_errors() -> None:
         tl.discretize(F, L, Qc, "one second")
 
 
-def test_validation_can_be_switched_off_for_hot_loops() -> None:
+def test_value_checks_can_be_skipped_for_checked_arguments() -> None:
+    """validate_args=False (inner calls on already-checked arguments) skips the value checks
+    of every core function; the default checks them."""
     F, L, Qc, _ = good()
-    from torchsde_lti.core.validation import validation
-
-    with validation(False):
-        d = tl.discretize(F, L, Qc, torch.tensor(float("nan"), dtype=f64))
+    nan = torch.tensor(float("nan"), dtype=f64)
+    d = tl.discretize(F, L, Qc, nan, validate_args=False)
     assert torch.isnan(d.A).any()
-    with pytest.raises(ValueError):
-        tl.discretize(F, L, Qc, torch.tensor(float("nan"), dtype=f64))
+    for call in (
+        lambda v: tl.discretize(F, L, Qc, nan, validate_args=v),
+        lambda v: tl.transition_matrix(F, nan, validate_args=v),
+        lambda v: tl.process_noise(F, L, Qc, nan, validate_args=v),
+        lambda v: tl.zero_order_hold(F, L, nan, validate_args=v),
+        lambda v: tl.propagate(torch.zeros(2, dtype=f64), torch.eye(2, dtype=f64), F, L, Qc, nan, validate_args=v),
+    ):
+        call(False)
+        with pytest.raises(ValueError, match="dt"):
+            call(True)
+    with pytest.raises(ValueError, match="Hurwitz"):
+        tl.stationary_covariance(torch.eye(2, dtype=f64), L, Qc)
+    tl.stationary_covariance(torch.eye(2, dtype=f64), L, Qc, validate_args=False)
 
 
 @pytest.mark.parametrize("k", [1, 2])

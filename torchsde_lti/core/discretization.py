@@ -81,6 +81,8 @@ def discretize(
     dt: Tensor | float,
     B: Tensor | None = None,
     method: str = "doubling",
+    *,
+    validate_args: bool = True,
 ) -> Discrete:
     r"""Exact discretisation (A, Q, G) of ``dx = F x dt + B u dt + L dβ`` over steps dt.
 
@@ -92,6 +94,8 @@ def discretize(
         B: optional (..., n, p) input matrix; u is held constant over each step.
         method: ``"doubling"`` (default; accurate and PSD for stiff F and large dt) or
             ``"matrix_exp"`` (torch.matrix_exp of Van Loan's block; alias ``"van_loan"``).
+        validate_args: check the values (finite, dt ≥ 0, Qc symmetric PSD); shapes are
+            always checked. Inner calls on already-checked arguments pass False.
 
     All leading dimensions broadcast (numpy rules, right-aligned): F (n, n) with dt (B, T)
     gives (B, T, n, n); F (B, 1, n, n) with dt (B, T) gives (B, T, n, n).
@@ -100,7 +104,7 @@ def discretize(
         :class:`Discrete` with A (..., n, n), Q (..., n, n) symmetric PSD and
         G (..., n, p) or None. Differentiable with respect to F, L, Qc, B and dt.
     """
-    A, Q, G = _run(sde_inputs(F, L, Qc, dt, B), method)
+    A, Q, G = _run(sde_inputs(F, L, Qc, dt, B, validate_args=validate_args), method)
     assert Q is not None
     return Discrete(A, Q, G)
 
@@ -113,6 +117,8 @@ def discretize_series(
     B: Tensor | None = None,
     method: str = "doubling",
     unique: bool = False,
+    *,
+    validate_args: bool = True,
 ) -> Discrete:
     """:func:`discretize` of a time series dt (..., T), laid out for a filter's time loop.
 
@@ -127,7 +133,7 @@ def discretize_series(
     and a dt that does not require grad, and otherwise falls back to the plain path. It
     pays off for quantised gaps and models that need doubling.
     """
-    inputs = sde_inputs(F, L, Qc, dt, B)
+    inputs = sde_inputs(F, L, Qc, dt, B, validate_args=validate_args)
     dt_t = inputs.dt
     assert dt_t is not None
     params = [inputs.F.shape[:-2]] + [x.shape[:-2] for x in (inputs.W, inputs.B) if x is not None]
@@ -166,22 +172,27 @@ def _discretize_unique(inputs: SDEInputs) -> Discrete:
     return Discrete(gather(A), gather(Q), None if G is None else gather(G))
 
 
-def transition_matrix(F: Tensor, dt: Tensor | float, method: str = "doubling") -> Tensor:
+def transition_matrix(
+    F: Tensor, dt: Tensor | float, method: str = "doubling", *, validate_args: bool = True
+) -> Tensor:
     """A = expm(F dt).
 
     Args:
         F: (..., n, n) drift matrix.
         dt: (...) non-negative step lengths.
         method: ``"doubling"`` or ``"matrix_exp"`` (:func:`torch.matrix_exp` of F dt).
+        validate_args: as in :func:`discretize`.
 
     Returns:
         (..., n, n), batch broadcast from F and dt.
     """
-    A, _, _ = _run(sde_inputs(F, None, None, dt, None), method)
+    A, _, _ = _run(sde_inputs(F, None, None, dt, None, validate_args=validate_args), method)
     return A
 
 
-def zero_order_hold(F: Tensor, B: Tensor, dt: Tensor | float, method: str = "doubling") -> tuple[Tensor, Tensor]:
+def zero_order_hold(
+    F: Tensor, B: Tensor, dt: Tensor | float, method: str = "doubling", *, validate_args: bool = True
+) -> tuple[Tensor, Tensor]:
     """(A, G) with A = expm(F dt) and G = ∫_0^dt expm(F s) ds B.
 
     Equivalent to the blocks of expm([[F, B], [0, 0]] dt) = [[A, G], [0, I]] (which is what
@@ -189,25 +200,32 @@ def zero_order_hold(F: Tensor, B: Tensor, dt: Tensor | float, method: str = "dou
 
     Args:
         F: (..., n, n); B: (..., n, p); dt: (...).
+        method, validate_args: as in :func:`discretize`.
 
     Returns:
         A (..., n, n), G (..., n, p).
     """
-    A, _, G = _run(sde_inputs(F, None, None, dt, B), method)
+    A, _, G = _run(sde_inputs(F, None, None, dt, B, validate_args=validate_args), method)
     assert G is not None
     return A, G
 
 
 def process_noise(
-    F: Tensor, L: Tensor, Qc: Tensor, dt: Tensor | float, method: str = "doubling"
+    F: Tensor,
+    L: Tensor,
+    Qc: Tensor,
+    dt: Tensor | float,
+    method: str = "doubling",
+    *,
+    validate_args: bool = True,
 ) -> Tensor:
     """Q = ∫_0^dt expm(F s) L Qc Lᵀ expm(F s)ᵀ ds, the discrete process-noise covariance.
 
     Args:
         F: (..., n, n); L: (..., n, s); Qc: (..., s, s) symmetric PSD; dt: (...).
-        method: as in :func:`discretize`.
+        method, validate_args: as in :func:`discretize`.
 
     Returns:
         (..., n, n) symmetric PSD.
     """
-    return discretize(F, L, Qc, dt, method=method).Q
+    return discretize(F, L, Qc, dt, method=method, validate_args=validate_args).Q

@@ -13,7 +13,15 @@ from torch import Tensor
 
 from torchsde_lti.core.discretization import discretize
 from torchsde_lti.core.linalg import matvec, sym
-from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, check_symmetric_psd, check_vector, shape_str
+from torchsde_lti.core.validation import (
+    as_float_tensor,
+    check_finite,
+    check_matrix,
+    check_symmetric_psd,
+    check_vector,
+    checks_values,
+    shape_str,
+)
 
 __all__ = ["predict_moments", "propagate"]
 
@@ -45,6 +53,8 @@ def propagate(
     B: Tensor | None = None,
     u: Tensor | None = None,
     method: str = "doubling",
+    *,
+    validate_args: bool = True,
 ) -> tuple[Tensor, Tensor]:
     """Moments after a horizon dt: ``m = A m0 + G u``, ``P = A P0 Aᵀ + Q``.
 
@@ -52,7 +62,8 @@ def propagate(
 
     Args:
         m0: (..., n) mean at the start. P0: (..., n, n) covariance at the start.
-        F, L, Qc, dt, B, method: as in :func:`~torchsde_lti.discretize`.
+        F, L, Qc, dt, B, method, validate_args: as in :func:`~torchsde_lti.discretize`
+            (``validate_args`` also checks m0, P0 and u).
         u: (..., p) input held constant over the horizon; requires B.
 
     Returns:
@@ -60,17 +71,19 @@ def propagate(
     """
     if u is not None and B is None:
         raise ValueError(f"u was given (shape {shape_str(torch.as_tensor(u))}) but the SDE has no input matrix B")
-    d = discretize(F, L, Qc, dt, B=B, method=method)
+    d = discretize(F, L, Qc, dt, B=B, method=method, validate_args=validate_args)
     n = d.A.shape[-1]
     m0 = as_float_tensor(m0, "m0", d.A.dtype, d.A.device)
     P0 = as_float_tensor(P0, "P0", d.A.dtype, d.A.device)
     check_vector(m0, "m0", n)
     check_matrix(P0, "P0", rows=n, cols=n)
-    check_finite(m0, "m0")
-    check_symmetric_psd(P0, "P0")
+    if checks_values(validate_args):
+        check_finite(m0, "m0")
+        check_symmetric_psd(P0, "P0")
     if u is not None:
         assert d.G is not None
         u = as_float_tensor(u, "u", d.A.dtype, d.A.device)
         check_vector(u, "u", d.G.shape[-1])
-        check_finite(u, "u")
+        if checks_values(validate_args):
+            check_finite(u, "u")
     return predict_moments(m0, P0, d.A, d.Q, d.G, u)

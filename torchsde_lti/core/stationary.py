@@ -6,12 +6,12 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import sym
-from torchsde_lti.core.validation import sde_inputs, value_checks_enabled
+from torchsde_lti.core.validation import checks_values, sde_inputs
 
 __all__ = ["stationary_covariance"]
 
 
-def stationary_covariance(F: Tensor, L: Tensor, Qc: Tensor) -> Tensor:
+def stationary_covariance(F: Tensor, L: Tensor, Qc: Tensor, *, validate_args: bool = True) -> Tensor:
     r"""P∞ solving ``F P∞ + P∞ Fᵀ + L Qc Lᵀ = 0`` for Hurwitz-stable F.
 
     Solved as the linear system ``(F ⊗ I + I ⊗ F) vec(P∞) = -vec(L Qc Lᵀ)`` (row-major vec),
@@ -21,18 +21,19 @@ def stationary_covariance(F: Tensor, L: Tensor, Qc: Tensor) -> Tensor:
     Args:
         F: (..., n, n) drift; every eigenvalue must have a negative real part.
         L: (..., n, s); Qc: (..., s, s) symmetric PSD.
+        validate_args: check the values (finite, Qc PSD, F Hurwitz); shapes are always checked.
 
     Returns:
         (..., n, n) symmetric PSD, batch broadcast from F, L, Qc.
 
     Raises:
-        ValueError: when F is not Hurwitz (naming its rightmost eigenvalue).
+        ValueError: (with ``validate_args``) when F is not Hurwitz (naming its rightmost eigenvalue).
     """
-    inputs = sde_inputs(F, L, Qc)
+    inputs = sde_inputs(F, L, Qc, validate_args=validate_args)
     F, W = inputs.F, inputs.W
     assert W is not None
     n = F.shape[-1]
-    if value_checks_enabled():
+    if checks_values(validate_args):
         with torch.no_grad():
             rightmost = torch.linalg.eigvals(F).real.amax(dim=-1)
             if bool((rightmost >= 0).any()):

@@ -2,23 +2,22 @@
 
 Every check raises ``ValueError`` (or ``TypeError`` for non-numeric input) naming the
 argument and the shapes it saw, so that a wrong call fails at the boundary and not deep
-inside a matrix exponential. Checks that need the values (finiteness, signs, PSD) cost
-one device synchronisation each; they can be switched off for hot loops whose inputs are
-valid by construction (e.g. parametrised modules) with :func:`validation`.
+inside a matrix exponential. Checks that need the values (finiteness, signs, PSD) cost a
+device synchronisation; they run once, at the public boundary: public functions take
+``validate_args`` (default True) and inner calls pass already-checked arguments with
+``validate_args=False``. While torch.compile / torch.export trace a call the values are
+symbolic and only shape checks run.
 """
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Sequence
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import sym
-
-_VALUE_CHECKS_ENABLED = True
 
 
 def tracing() -> bool:
@@ -27,26 +26,10 @@ def tracing() -> bool:
     return torch.compiler.is_compiling() or torch.compiler.is_exporting()
 
 
-def value_checks_enabled() -> bool:
-    """Whether value checks (finite, non-negative, PSD) run; shape checks always run.
-    Off while :func:`tracing` (torch.compile / torch.export), which cannot branch on values."""
-    return _VALUE_CHECKS_ENABLED and not tracing()
-
-
-@contextlib.contextmanager
-def validation(enabled: bool) -> Iterator[None]:
-    """Context manager switching value checks on or off (shape checks always run).
-
-    >>> with validation(False):
-    ...     d = discretize(F, L, Qc, dt)   # no device sync for NaN/PSD checks
-    """
-    global _VALUE_CHECKS_ENABLED
-    previous = _VALUE_CHECKS_ENABLED
-    _VALUE_CHECKS_ENABLED = enabled
-    try:
-        yield
-    finally:
-        _VALUE_CHECKS_ENABLED = previous
+def checks_values(validate_args: bool) -> bool:
+    """Whether value checks (finite, non-negative, PSD) run: ``validate_args`` and not
+    :func:`tracing`. Shape checks always run."""
+    return validate_args and not tracing()
 
 
 def shape_str(x: Tensor) -> str:
@@ -121,13 +104,13 @@ def check_vector(x: Tensor, name: str, size: int) -> None:
 def check_finite(x: Tensor, name: str) -> None:
     """ValueError if ``x`` holds NaN or ±Inf. Tested on the sum first (non-finite if any entry
     is; one reduction), elementwise only where the sum is not finite (or overflowed)."""
-    if value_checks_enabled() and not bool(x.sum().isfinite()) and not bool(torch.isfinite(x).all()):
+    if not tracing() and not bool(x.sum().isfinite()) and not bool(torch.isfinite(x).all()):
         raise ValueError(f"{name} contains NaN or Inf (shape {shape_str(x)})")
 
 
 def check_nonnegative(x: Tensor, name: str) -> None:
     check_finite(x, name)
-    if value_checks_enabled() and bool((x < 0).any()):
+    if not tracing() and bool((x < 0).any()):
         raise ValueError(f"{name} must be non-negative, got min {float(x.min()):.3g} (shape {shape_str(x)})")
 
 
@@ -178,7 +161,7 @@ def check_symmetric_psd(x: Tensor, name: str) -> None:
     """Check ``x`` (..., k, k) is symmetric positive semi-definite up to rounding."""
     check_matrix(x, name, square=True)
     check_finite(x, name)
-    if not value_checks_enabled() or x.numel() == 0:
+    if tracing() or x.numel() == 0:
         return
     with torch.no_grad():
         passes, asym, scale = _psd_test(x)
@@ -241,11 +224,13 @@ def sde_inputs(
     Qc: Tensor | None,
     dt: Tensor | float | None = None,
     B: Tensor | None = None,
+    *,
+    validate_args: bool = True,
 ) -> SDEInputs:
     """Validate and convert SDE arguments (common float dtype, F's device); W = L Qc Lᵀ.
 
     Raises ValueError naming the argument and the shapes for non-square F, mismatched L,
-    Qc, B, non-PSD Qc, NaN/Inf values and negative dt (value checks: see :func:`validation`).
+    Qc, B, and (with ``validate_args``) for non-PSD Qc, NaN/Inf values and negative dt.
     """
     F = as_float_tensor(F, "F")
     dtype = common_float_dtype(
@@ -284,7 +269,7 @@ def sde_inputs(
         checked.append(("dt", dt_t))
         named.append(("dt", dt_t.shape))
     batch = broadcast_batch(named)
-    if value_checks_enabled():
+    if checks_values(validate_args):
         # one synchronisation when everything is valid; otherwise the detailed checks name
         # the culprit (finiteness first, then dt ≥ 0, then Qc symmetric PSD)
         with torch.no_grad():

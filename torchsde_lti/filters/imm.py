@@ -44,9 +44,9 @@ from torchsde_lti.core.validation import (
     as_float_tensors,
     check_finite,
     check_matrix,
-    shape_str,
-    value_checks_enabled,
     check_symmetric_psd,
+    checks_values,
+    shape_str,
 )
 from torchsde_lti.filters.inputs import check_mask
 from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, solve_lower, sym
@@ -141,7 +141,7 @@ def _mix(prob: Tensor, Pi: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor, T
 
 def _check_inputs(
     y: Tensor, A: Tensor, Q: Tensor, H: Tensor, R: Tensor, Pi: Tensor, m0: Tensor, P0: Tensor,
-    mode_prob0: Tensor, mask: Tensor | None,
+    mode_prob0: Tensor, mask: Tensor | None, validate_args: bool = True,
 ) -> tuple[Tensor, ...]:
     t = as_float_tensors(y=y, A=A, Q=Q, H=H, R=R, Pi=Pi, m0=m0, P0=P0, mode_prob0=mode_prob0)
     y, A, Q, H, R, Pi, m0, P0, mode_prob0 = (t[k] for k in ("y", "A", "Q", "H", "R", "Pi", "m0", "P0", "mode_prob0"))
@@ -173,7 +173,7 @@ def _check_inputs(
     mask = check_mask(mask, T, m, device)
     if bool(torch.isinf(y).any()):
         raise ValueError(f"y contains Inf (shape {shape_str(y)}); mark missing values with NaN or mask")
-    if value_checks_enabled():
+    if checks_values(validate_args):
         for name, x in (("A", A), ("H", H), ("Pi", Pi), ("m0", m0), ("mode_prob0", mode_prob0)):
             check_finite(x, name)
         for name, x in (("Q", Q), ("R", R), ("P0", P0)):
@@ -196,6 +196,7 @@ def imm_filter(
     P0: Tensor,
     mode_prob0: Tensor,
     mask: Tensor | None = None,
+    validate_args: bool = True,
 ) -> IMMResult:
     r"""IMM filter over T steps (see the module docstring for the cycle and the shapes).
 
@@ -208,11 +209,13 @@ def imm_filter(
         m0: (..., M, n) per-mode prior means; P0: (..., M, n, n) covariances.
         mode_prob0: (..., M) prior mode probabilities (before step 0).
         mask: optional bool (..., T) or (..., T, m); False = not observed.
+        validate_args: check the values (finite, PSD covariances, stochastic Pi and
+            mode_prob0); shapes are always checked.
 
     Returns:
         :class:`IMMResult`; every output broadcasts to the full batch ``...``.
     """
-    y, A, Q, H, R, Pi, m0, P0, prob, mask = _check_inputs(y, A, Q, H, R, Pi, m0, P0, mode_prob0, mask)
+    y, A, Q, H, R, Pi, m0, P0, prob, mask = _check_inputs(y, A, Q, H, R, Pi, m0, P0, mode_prob0, mask, validate_args)
     T, m = y.shape[-2], y.shape[-1]
     M, n = prob.shape[-1], A.shape[-1]
     dtype, device = y.dtype, y.device

@@ -32,9 +32,9 @@ from torchsde_lti.core.validation import (
     check_finite,
     check_matrix,
     check_symmetric_psd,
+    checks_values,
     shape_str,
     tracing,
-    value_checks_enabled,
 )
 from torchsde_lti.filters.results import FilterResult
 
@@ -99,8 +99,9 @@ def check_mask(mask: Tensor | None, T: int, m: int, device: torch.device) -> Ten
     return mask
 
 
-def _check_arguments(args: FilterInputs) -> _Checked:
-    """Shapes (and, with value checks on, values) of every argument; c = G u."""
+def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked:
+    """Shapes (and, with ``validate_args``, values) of every argument; c = G u."""
+    values = checks_values(validate_args)
     t = as_float_tensors(**{k: v for k, v in args._asdict().items() if k != "mask"})
     mask = args.mask
     y, A, Q, H, R, m0, P0, G, u, D = (t[k] for k in ("y", "A", "Q", "H", "R", "m0", "P0", "G", "u", "D"))
@@ -143,8 +144,9 @@ def _check_arguments(args: FilterInputs) -> _Checked:
             raise ValueError(f"u must have shape (..., T={T}, {pD}) to match D {shape_str(D)}, got shape {shape_str(u)}")
         if D.dim() >= 3 and D.shape[-3] not in (1, T):
             raise ValueError(f"D has {D.shape[-3]} steps on its time axis (shape {shape_str(D)}) but y has T={T}")
-        check_finite(D, "D")
-        check_finite(u, "u")
+        if values:
+            check_finite(D, "D")
+            check_finite(u, "u")
         y = y - matvec(D, u)
     c = None
     if G is not None and u is not None:
@@ -152,7 +154,8 @@ def _check_arguments(args: FilterInputs) -> _Checked:
         p = G.shape[-1]
         if u.dim() < 2 or u.shape[-1] != p:
             raise ValueError(f"u must have shape (..., T, {p}) to match G {shape_str(G)}, got shape {shape_str(u)}")
-        check_finite(u, "u")
+        if values:
+            check_finite(u, "u")
         c = matvec(G, u)  # (..., T, n)
     mask = check_mask(mask, T, m, device)
 
@@ -166,7 +169,7 @@ def _check_arguments(args: FilterInputs) -> _Checked:
     if c is not None and c.shape[-2] not in (1, T):
         raise ValueError(f"u has {c.shape[-2]} steps but y has T={T}")
 
-    if value_checks_enabled():
+    if values:
         check_finite(A, "A")
         check_finite(H, "H")
         check_finite(m0, "m0")
@@ -217,7 +220,7 @@ def whiten(H: Tensor, R: Tensor, y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return Hw, yw, torch.log(torch.diagonal(LR, dim1=-2, dim2=-1)).sum(-1)
 
 
-def prepare_inputs(args: FilterInputs) -> PreparedInputs:
+def prepare_inputs(args: FilterInputs, validate_args: bool = True) -> PreparedInputs:
     """Check, mask, broadcast and whiten the filter arguments (shapes: :mod:`torchsde_lti.filters`).
 
     With a feedthrough D (..., [T,] m, p) and inputs u, the observations become ``y − D u``.
@@ -225,7 +228,7 @@ def prepare_inputs(args: FilterInputs) -> PreparedInputs:
     The covariance path's batch excludes y (and u) unless data are missing, so with a shared
     dt grid and no missing data the covariance recursion runs once for all tracks.
     """
-    checked = _check_arguments(args)
+    checked = _check_arguments(args, validate_args)
     y, A, Q, H, R, m0, P0 = checked.args[:7]
     c = checked.c
     T, n = checked.T, checked.n

@@ -43,6 +43,7 @@ def kalman_filter(
     *,
     parallel: bool = False,
     chunk: int | None = None,
+    validate_args: bool = True,
 ) -> FilterResult:
     r"""Kalman filter over T steps of the discrete model of :mod:`torchsde_lti.filters`.
 
@@ -71,6 +72,9 @@ def kalman_filter(
             dominates (few tracks, long series).
         chunk: with ``parallel``, time steps per scan chunk (None: the largest chunk with
             batch · chunk ≤ :data:`~torchsde_lti.filters.parallel.SCAN_MAX_ELEMENTS`).
+        validate_args: check the values (finite A, H, m0, u, D; Q, P0 symmetric PSD; R
+            positive definite); shapes are always checked. Modules that assemble already
+            valid matrices pass False.
 
     Returns:
         :class:`FilterResult`; every output broadcasts to the full batch ``...``.
@@ -79,8 +83,8 @@ def kalman_filter(
     if parallel:
         if square_root:
             raise ValueError("square_root=True needs the sequential filter, got parallel=True")
-        return chunked_scan(args, chunk)
-    prep = prepare_inputs(args)
+        return chunked_scan(args, chunk, validate_args)
+    prep = prepare_inputs(args, validate_args)
     if square_root:
         return square_root_filter(prep)
     return sequential_filter(prep, compile_step)

@@ -185,7 +185,7 @@ def _time_slice(x: Tensor | None, axis: int, T: int, start: int, stop: int) -> T
     return x.narrow(x.dim() + axis, start, stop - start)
 
 
-def chunked_scan(args: FilterInputs, chunk: int | None = None) -> FilterResult:
+def chunked_scan(args: FilterInputs, chunk: int | None = None, validate_args: bool = True) -> FilterResult:
     """:func:`scan_filter` over consecutive time chunks of ``chunk`` steps, each chunk's prior
     the previous chunk's last filtered state (exact: the filter is Markov).
 
@@ -198,7 +198,7 @@ def chunked_scan(args: FilterInputs, chunk: int | None = None) -> FilterResult:
     if chunk is None:
         chunk = max(2, SCAN_MAX_ELEMENTS // max(1, batch.numel()))
     if chunk >= T:
-        return scan_filter(prepare_inputs(args))
+        return scan_filter(prepare_inputs(args, validate_args))
     m_dim = y.shape[-1]
     mask_axis = -1
     if mask is not None and mask.dim() >= 2 and mask.shape[-2] == T and mask.shape[-1] == m_dim:
@@ -212,7 +212,7 @@ def chunked_scan(args: FilterInputs, chunk: int | None = None) -> FilterResult:
             y[..., start:stop, :], sl(A, -3), sl(Q, -3), sl(H, -3), sl(R, -3), m, P,
             sl(G, -3), sl(u, -2), sl(mask, mask_axis), sl(D, -3),
         )
-        out = scan_filter(prepare_inputs(piece))
+        out = scan_filter(prepare_inputs(piece, validate_args))
         parts.append(out)
         m, P = out.mean[..., -1, :], out.cov[..., -1, :, :]
     axes = FilterResult(-2, -3, -2, -3, -2, -3, 0, -1, -3, -3, -2)

@@ -40,7 +40,7 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from torchsde_lti.core.linalg import sym
-from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, check_nonnegative, parse_learn, shape_str, validation
+from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, check_nonnegative, parse_learn, shape_str
 from torchsde_lti.core.discretization import Discrete, discretize
 from torchsde_lti.filters.imm import IMMPrediction, IMMResult, combine, imm_filter, imm_predict
 from torchsde_lti.nn._register import register_tensor
@@ -217,22 +217,24 @@ class IMMFilter(nn.Module):
         W = torch.stack([mm.L @ mm.Qc @ mm.L.mT for mm in mats])
         return F, sym(W)
 
-    def discretize(self, dt: Tensor) -> tuple[Discrete, Tensor]:
+    def discretize(self, dt: Tensor, validate_args: bool = True) -> tuple[Discrete, Tensor]:
         """Every mode over every gap, in ONE batched discretisation, and the chain's transitions.
 
-        dt: (...) gaps. Returns ``Discrete`` with A, Q (..., M, n, n) and Pi (..., M, M) =
+        dt: (...) gaps (``validate_args=False``: already checked). Returns ``Discrete`` with A, Q (..., M, n, n) and Pi (..., M, M) =
         ``expm(Λ dt)``.
         """
         F, W = self.bank()
         eye = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device)
         if self.unique_dt and not dt.requires_grad and dt.numel() > 0:
             values, inverse = torch.unique(dt, return_inverse=True)
-            d, Pi = self._discretize_flat(F, W, eye, values)
+            d, Pi = self._discretize_flat(F, W, eye, values, validate_args)
             return Discrete(d.A[inverse], d.Q[inverse], None), Pi[inverse]
-        return self._discretize_flat(F, W, eye, dt)
+        return self._discretize_flat(F, W, eye, dt, validate_args)
 
-    def _discretize_flat(self, F: Tensor, W: Tensor, eye: Tensor, dt: Tensor) -> tuple[Discrete, Tensor]:
-        d = discretize(F, eye, W, dt.unsqueeze(-1), method=self.method)  # F (M,·,·) with dt (..., 1)
+    def _discretize_flat(
+        self, F: Tensor, W: Tensor, eye: Tensor, dt: Tensor, validate_args: bool
+    ) -> tuple[Discrete, Tensor]:
+        d = discretize(F, eye, W, dt.unsqueeze(-1), method=self.method, validate_args=validate_args)  # F (M,·,·) with dt (..., 1)
         Pi = torch.matrix_exp(self.rates * dt[..., None, None]).clamp_min(0.0)
         return d, Pi
 
@@ -271,9 +273,9 @@ class IMMFilter(nn.Module):
         rates, m0, P0, p0 = self.rates, self.m0, self.P0, self.mode_prob0
         for name, value in (("H", H), ("R", R), ("rates", rates), ("m0", m0), ("P0", P0), ("mode_prob0", p0)):
             check_finite(value, name)
-        with validation(False):  # valid by construction (parametrisations, PSD doubling)
-            d, Pi = self.discretize(dt)
-            return imm_filter(y, d.A, d.Q, H, R, Pi, m0, P0, p0.expand(self.num_modes), mask=mask)
+        # valid by construction (parametrisations, PSD doubling) and dt checked above
+        d, Pi = self.discretize(dt, validate_args=False)
+        return imm_filter(y, d.A, d.Q, H, R, Pi, m0, P0, p0.expand(self.num_modes), mask=mask, validate_args=False)
 
     def forecast(
         self,
@@ -302,7 +304,7 @@ class IMMFilter(nn.Module):
         dt = self._check_dt(dt)
         if dt.dim() == 0:
             dt = dt.reshape(1)
-        d, Pi = self.discretize(dt)  # (..., K, M, n, n), (..., K, M, M)
+        d, Pi = self.discretize(dt, validate_args=False)  # (..., K, M, n, n), (..., K, M, M)
         p: IMMPrediction = imm_predict(prob, mean, cov, d.A, d.Q, Pi)
         H, R = self._obs_model()
         ym = (H @ p.mode_mean.unsqueeze(-1)).squeeze(-1)  # (..., K, M, m)

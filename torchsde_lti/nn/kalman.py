@@ -53,8 +53,7 @@ from torchsde_lti.core.validation import (
     check_nonnegative,
     parse_learn,
     shape_str,
-    validation,
-    value_checks_enabled,
+    tracing,
 )
 from torchsde_lti.filters import (
     FilterResult,
@@ -304,7 +303,7 @@ class KalmanFilter(nn.Module):
                 f"y has {y.shape[-1]} components (shape {shape_str(y)}) but H has {m} rows "
                 f"(shape {shape_str(self.H)})"
             )
-        if value_checks_enabled() and bool(torch.isinf(y).any()):
+        if not tracing() and bool(torch.isinf(y).any()):
             raise ValueError(f"y contains Inf (shape {shape_str(y)}); mark missing values with NaN or mask")
         T = y.shape[-2]
         dt = as_float_tensor(dt, "dt", dtype, device)
@@ -391,13 +390,12 @@ class KalmanFilter(nn.Module):
             D = D.unsqueeze(-3)
         # Matrices are valid by construction (parametrisations, PSD doubling): no value checks.
         scan = self.uses_scan(y.shape[:-2], dt.shape[:-1], y.shape[-2], y.device)
-        with validation(False):
-            d = self._discretize(dt, mats, scan)  # one batched discretisation: A, Q (..., T, n, n)
-            G = d.G if u is not None else None
-            return kalman_filter(
-                y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, D=D,
-                square_root=self.square_root, compile_step=compile_step, parallel=scan,
-            )
+        d = self._discretize(dt, mats, scan, validate_args=False)  # one batched discretisation: A, Q (..., T, n, n)
+        G = d.G if u is not None else None
+        return kalman_filter(
+            y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, D=D,
+            square_root=self.square_root, compile_step=compile_step, parallel=scan, validate_args=False,
+        )
 
     def uses_scan(self, *batch_shapes_T_device: object) -> bool:
         """Whether a call with these batch shapes, T and device runs the associative scan:
@@ -416,12 +414,15 @@ class KalmanFilter(nn.Module):
         """The method used for every step: :attr:`method`, else the SDE's."""
         return self.method or self.sde.method
 
-    def _discretize(self, dt: Tensor, mats: SDEMatrices | None = None, scan: bool | None = None) -> Discrete:
+    def _discretize(
+        self, dt: Tensor, mats: SDEMatrices | None = None, scan: bool | None = None, validate_args: bool = True
+    ) -> Discrete:
         """All steps' (A, Q, G) in one batched call, laid out for the sequential filter.
 
         For one parameter set the doubling method returns batch-first views of batch-last
         storage, so the filter loop's per-step moves to (n, n, batch) are cheap row copies
-        (:func:`~torchsde_lti.core.discretize_series`).
+        (:func:`~torchsde_lti.core.discretize_series`). ``validate_args=False`` for a dt
+        already checked (the parameters are valid by construction).
         """
         if mats is None:
             mats = self.sde.matrices()
@@ -430,9 +431,10 @@ class KalmanFilter(nn.Module):
         if scan is None:
             scan = bool(self.parallel)
         if scan and not self.unique_dt:  # the scan wants plain batch-first tensors
-            return discretize(m.F, m.L, m.Qc, dt, B=m.B, method=self.discretization_method)
+            return discretize(m.F, m.L, m.Qc, dt, B=m.B, method=self.discretization_method, validate_args=validate_args)
         return discretize_series(
-            m.F, m.L, m.Qc, dt, m.B, method=self.discretization_method, unique=self.unique_dt
+            m.F, m.L, m.Qc, dt, m.B, method=self.discretization_method, unique=self.unique_dt,
+            validate_args=validate_args,
         )
 
     def smooth(self, out: FilterResult) -> SmootherResult:
