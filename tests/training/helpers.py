@@ -3,12 +3,14 @@
 :class:`SignalAt` sends this process a signal at an exact point of a run, so the signal tests
 interrupt training where they mean to (mid-epoch, mid-validation) without timing races;
 :class:`Sleep` slows a run down so that a test can signal it from outside. Configured like any
-callback: ``+callbacks.kill._target_=tests.training.helpers.SignalAt``.
+callback: ``+callbacks.kill._target_=tests.training.helpers.SignalAt``. :class:`SummarisedTracks`
+and :class:`SummaryAttributeTracks` are datamodules that offer a data summary.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import time
@@ -16,6 +18,8 @@ from pathlib import Path
 from typing import Any
 
 from lightning.pytorch import Callback
+
+from torchsde_lti.data.modules import SimulatedTracks
 
 
 def _reject(constant: str) -> Any:
@@ -39,16 +43,17 @@ class Sleep(Callback):
 
 class SignalAt(Callback):
     """Send ``signum`` to this process after batch ``batch`` of epoch ``epoch`` of ``stage``
-    ("train" or "validation"), once."""
+    ("train", "validation", or "test": there after batch ``batch`` of the test, whatever the epoch), once."""
 
     def __init__(self, epoch: int, batch: int = 0, signum: int = int(signal.SIGTERM), stage: str = "train") -> None:
-        if stage not in ("train", "validation"):
-            raise ValueError(f"stage must be 'train' or 'validation', got {stage!r}")
+        if stage not in ("train", "validation", "test"):
+            raise ValueError(f"stage must be 'train', 'validation' or 'test', got {stage!r}")
         self.epoch, self.batch, self.signum, self.stage = int(epoch), int(batch), int(signum), stage
         self.sent = False
 
     def _maybe_send(self, trainer: Any, batch_idx: int, stage: str) -> None:
-        if not self.sent and stage == self.stage and trainer.current_epoch == self.epoch and batch_idx == self.batch:
+        epoch_matches = stage == "test" or trainer.current_epoch == self.epoch
+        if not self.sent and stage == self.stage and epoch_matches and batch_idx == self.batch:
             self.sent = True
             os.kill(os.getpid(), self.signum)
 
@@ -59,3 +64,26 @@ class SignalAt(Callback):
                                 dataloader_idx: int = 0) -> None:
         if not trainer.sanity_checking:
             self._maybe_send(trainer, batch_idx, "validation")
+
+    def on_test_batch_end(self, trainer: Any, pl_module: Any, outputs: Any, batch: Any, batch_idx: int,
+                          dataloader_idx: int = 0) -> None:
+        self._maybe_send(trainer, batch_idx, "test")
+
+
+def _track_counts(dm: Any) -> dict[str, Any]:
+    return {"tracks": {k: int(v.y.shape[0]) for k, v in dm.tracks.items()}, "undefined": math.nan}
+
+
+class SummarisedTracks(SimulatedTracks):
+    """SimulatedTracks with a ``summary()`` method, as a datamodule that reports its data does."""
+
+    def summary(self) -> dict[str, Any]:
+        return _track_counts(self)
+
+
+class SummaryAttributeTracks(SimulatedTracks):
+    """SimulatedTracks with a ``summary`` attribute filled in by ``setup``."""
+
+    def setup(self, stage: str | None = None) -> None:
+        super().setup(stage)
+        self.summary = _track_counts(self)

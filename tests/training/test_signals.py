@@ -96,7 +96,13 @@ def test_interrupted_twice_then_resumed_equals_the_uninterrupted_run(tmp_path: P
     summary = load_strict_json(run / "metrics.json")
     assert summary["status"] == "completed" and summary["epochs"] == EPOCHS and summary["interruption"] is None
     assert [r["epoch"] for r in summary["resumed_from"]] == [1, 4]
-    assert summary["table"] == load_strict_json(reference / "metrics.json")["table"]
+    # the resume point carries the best checkpoint's state after its epoch, not before it
+    state = next(v for k, v in torch.load(last, weights_only=True)["callbacks"].items() if "'monitor': 'val/nll'" in k)
+    assert float(state["best_model_score"]) == min(float(r["val/nll"]) for r in _csv_rows(run) if r["val/nll"])
+    ref_summary = load_strict_json(reference / "metrics.json")
+    assert summary["table"] == ref_summary["table"] and summary["best"] == ref_summary["best"]
+    assert torch.equal(*(torch.load(r / "checkpoints" / "best.ckpt", weights_only=True)["state_dict"]["kf.sde.parametrizations.k.original"]
+                         for r in (run, reference)))
     history = next(c for c in objects["callbacks"] if type(c).__name__ == "ParameterHistory").history
     assert [r["epoch"] for r in history] == [float(e) for e in range(EPOCHS)]
 
@@ -110,6 +116,24 @@ def test_interrupted_before_any_epoch_has_nothing_to_resume(tmp_path: Path) -> N
     assert summary["status"] == "interrupted" and summary["epochs"] == 0
     assert summary["interruption"]["resume_checkpoint"] is None
     assert "nothing to resume" in str(info.value) and "run again" in (run / "results.md").read_text()
+
+
+def test_interrupted_while_testing_resumes_to_the_same_report(tmp_path: Path) -> None:
+    """A signal during the test (after the last epoch): the resumed run trains nothing, tests again,
+    and reports what a run that never stopped reports (epoch metrics kept from the first process)."""
+    with_test = [*COMMON[:1], f"trainer.max_epochs={EPOCHS}", "test=true"]
+    train(_cfg(tmp_path / "reference", *with_test))
+    run = tmp_path / "run"
+    with pytest.raises(RunInterrupted) as info:
+        train(_cfg(run, *with_test, *_signal_at(0, stage="test")))
+    assert info.value.phase == "test"
+    assert load_strict_json(run / "metrics.json")["epochs"] == EPOCHS
+    train(_cfg(run, *with_test, f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}"))
+    got, ref = load_strict_json(run / "metrics.json"), load_strict_json(tmp_path / "reference" / "metrics.json")
+    drop = {"wall_time"}
+    assert {k: v for k, v in got["metrics"].items() if k not in drop} == {k: v for k, v in ref["metrics"].items() if k not in drop}
+    assert got["table"] == ref["table"] and got["best"] == ref["best"] and got["status"] == "completed"
+    assert _csv_rows(run) == _csv_rows(tmp_path / "reference")
 
 
 def test_signal_guard_stops_at_once_outside_graceful_phases_and_restores_handlers() -> None:

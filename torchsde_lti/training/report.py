@@ -83,8 +83,13 @@ class RunReport:
     ) -> None:
         self.run_dir = Path(run_dir)
         self.overrides = list(overrides) if overrides is not None else None
-        previous = self._previous()
-        history = list(previous.get("resumed_from") or []) if resumed_from is not None else []
+        previous = self._previous() if resumed_from is not None else {}
+        history = list(previous.get("resumed_from") or [])
+        #: epoch-level metrics the run reported before this resume (test/* excluded: it tests again)
+        self.previous_metrics: dict[str, float] = {
+            k: float(v) for k, v in (previous.get("metrics") or {}).items()
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and not k.startswith("test/")
+        }
         if resumed_from is not None:
             history.append({"checkpoint": str(Path(resumed_from[0]).resolve()), "epoch": int(resumed_from[1])})
         self.base: dict[str, Any] = {

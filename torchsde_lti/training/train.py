@@ -141,7 +141,7 @@ def _overrides() -> list[str] | None:
 
 
 def _build(cfg: DictConfig, guard: SignalGuard) -> dict[str, Any]:
-    """Data, filter, Lightning module, callbacks, loggers and trainer of ``cfg``."""
+    """Data, filter, Lightning module, callbacks, loggers and trainer of ``cfg`` (and "truth")."""
     if cfg.get("num_threads"):
         torch.set_num_threads(int(cfg.num_threads))
     pl.seed_everything(int(cfg.seed), workers=True, verbose=False)
@@ -159,6 +159,9 @@ def _build(cfg: DictConfig, guard: SignalGuard) -> dict[str, Any]:
     restart_learner(kf, float(cfg.get("init_jitter") or 0.0), int(cfg.get("restart") or 0))
     module = instantiate_node(cfg, "module", kf=kf, truth=truth)
     callbacks = [*_instantiate_dict(cfg, "callbacks"), StopOnSignal(guard)]
+    # the best-so-far checkpoint saves before the last-epoch one at each epoch end, so that
+    # last.ckpt (the resume point) holds the best's state after this epoch, not before it
+    callbacks.sort(key=lambda c: isinstance(c, ModelCheckpoint) and c.monitor is None)
     loggers = _instantiate_dict(cfg, "logger")
     trainer: pl.Trainer = instantiate_node(cfg, "trainer", callbacks=callbacks, logger=loggers or False)
     return {"cfg": cfg, "datamodule": datamodule, "module": module, "trainer": trainer,
@@ -200,27 +203,35 @@ def _floats(values: dict[str, Any]) -> dict[str, float]:
     return {k: float(v) for k, v in values.items()}
 
 
-def _finish(cfg: DictConfig, objects: dict[str, Any], report: RunReport | None, wall: float) -> dict[str, Any]:
-    """Test, collect the metrics and tables, write the report and plots of a completed fit."""
-    trainer, module, datamodule, callbacks = objects["trainer"], objects["module"], objects["datamodule"], objects["callbacks"]
-    truth = objects["truth"]
-    metrics: dict[str, Any] = _floats(trainer.callback_metrics)
+def _evaluate(cfg: DictConfig, objects: dict[str, Any], previous: dict[str, float], wall: float) -> dict[str, Any]:
+    """Test (``cfg.test``) and collect the metrics and the table of the final weights.
+
+    ``previous``: the epoch-level metrics an earlier process of this run reported; a run
+    resumed after its last epoch (interrupted while testing) trains no epoch here, and keeps them.
+    """
+    trainer, module, truth = objects["trainer"], objects["module"], objects["truth"]
+    metrics: dict[str, Any] = {**previous, **objects["fit_metrics"]}
     if cfg.get("test") and not trainer.fast_dev_run:
-        for r in trainer.test(module, datamodule=datamodule, verbose=False):
+        for r in trainer.test(module, datamodule=objects["datamodule"], verbose=False):
             metrics.update(_floats(r))
-    last, best = _checkpoint_files(callbacks)
+    last, best = _checkpoint_files(objects["callbacks"])
     metrics["wall_time"] = wall
     metrics["param_errors"] = module.parameter_errors()
     metrics["skipped_steps"] = float(module.skipped_steps)
-    note = module.identifiability_note() if truth else ""
     if module.skipped_steps:
         warnings.warn(f"{module.skipped_steps} optimizer steps were skipped (non-finite loss or gradient)", stacklevel=3)
     metrics["table"] = parameter_table(module, truth)  # without a truth: what was learned
     metrics["best_model_path"] = best or ""
     metrics["checkpoints"] = {"last": last, "best": best}
     metrics["status"] = "completed"
-    if not trainer.is_global_zero or report is None:
-        return metrics
+    return metrics
+
+
+def _report_completed(cfg: DictConfig, objects: dict[str, Any], report: RunReport, metrics: dict[str, Any]) -> None:
+    """Write metrics.json / results.md of a completed run: the final weights (``last.ckpt``) and
+    the best epoch (``best.ckpt``, its own table); print results.md."""
+    trainer, module, truth, callbacks = objects["trainer"], objects["module"], objects["truth"], objects["callbacks"]
+    last, best = metrics["checkpoints"]["last"], metrics["checkpoints"]["best"]
     best_info = None
     if best:
         ckpt = read_checkpoint(best)
@@ -233,14 +244,12 @@ def _finish(cfg: DictConfig, objects: dict[str, Any], report: RunReport | None, 
                 "description": "the final weights, at the end of the last epoch"
                                + ("" if last else " (not checkpointed: no ModelCheckpoint without a monitor ran)")}
     title = f"{cfg.model.get('name')}: {'true vs learned' if truth else 'learned values'}"
-    epochs = int(trainer.current_epoch)
-    report.completed(title=title, wall_time=wall, epochs=epochs, reported=reported,
+    report.completed(title=title, wall_time=metrics["wall_time"], epochs=int(trainer.current_epoch), reported=reported,
                      metrics={k: v for k, v in metrics.items() if isinstance(v, float)},
                      param_errors=metrics["param_errors"], skipped_steps=module.skipped_steps,
-                     identifiability=note, table=metrics["table"], best=best_info,
-                     data_summary=data_summary(datamodule))
+                     identifiability=module.identifiability_note() if truth else "", table=metrics["table"],
+                     best=best_info, data_summary=data_summary(objects["datamodule"]))
     print("\n" + (report.run_dir / "results.md").read_text())
-    return metrics
 
 
 def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -291,15 +300,19 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                     warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
                 trainer.fit(module, datamodule=objects["datamodule"], ckpt_path=ckpt_path, weights_only=True)
             wall = time.perf_counter() - start
+            objects["fit_metrics"] = _floats(trainer.callback_metrics)  # the test replaces callback_metrics
             guard.stop_if_received()
             with guard.graceful("test"):
-                metrics = _finish(cfg, objects, report, wall)
+                metrics = _evaluate(cfg, objects, report.previous_metrics if report is not None else {}, wall)
             guard.stop_if_received()
             if trainer.is_global_zero and cfg.get("plots") and not trainer.fast_dev_run:
                 history = next((c for c in objects["callbacks"] if isinstance(c, ParameterHistory)), None)
                 with guard.graceful("plots"):
                     plot_run(out_dir, module, objects["datamodule"], history.history if history else [], objects["truth"])
             guard.stop_if_received()
+            if report is not None:
+                with guard.graceful("outputs"):  # complete: a signal now no longer stops anything
+                    _report_completed(cfg, objects, report, metrics)
         except (StopRun, SystemExit) as stop:
             signum = guard.received or _signal_of(stop)
             if signum is None:
@@ -310,6 +323,8 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                 report.failed(err)
             log.error("run failed: %s: %s", type(err).__name__, err)
             raise
+    if guard.received is not None:
+        log.warning("received %s after the run completed; its outputs are complete", guard.received.name)
     log.info("run completed: %s", out_dir.resolve())
     return metrics, objects
 
@@ -330,7 +345,8 @@ def _interrupted(objects: dict[str, Any], report: RunReport | None, signum: int,
     epochs = (_epoch_of(last) + 1) if last else 0
     if report is not None:
         trainer = objects.get("trainer")
-        metrics = _floats(trainer.callback_metrics) if trainer is not None else {}
+        metrics = objects.get("fit_metrics") or (_floats(trainer.callback_metrics) if trainer is not None else {})
+        metrics = {**report.previous_metrics, **metrics}
         report.interrupted(signum, phase, epochs=epochs, checkpoint=last, metrics=metrics,
                            data_summary=data_summary(objects.get("datamodule")))
     stop = RunInterrupted(signum, phase, str(out_dir.resolve()), str(Path(last).resolve()) if last else None)
