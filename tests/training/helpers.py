@@ -87,3 +87,12 @@ class SummaryAttributeTracks(SimulatedTracks):
     def setup(self, stage: str | None = None) -> None:
         super().setup(stage)
         self.summary = _track_counts(self)
+
+
+class SignalOnInit(SimulatedTracks):
+    """SimulatedTracks that sends this process SIGTERM while it is being built (before Lightning runs)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(1)  # the handler runs at the next bytecode; it raises before this returns

@@ -136,6 +136,15 @@ def test_interrupted_while_testing_resumes_to_the_same_report(tmp_path: Path) ->
     assert _csv_rows(run) == _csv_rows(tmp_path / "reference")
 
 
+def test_interrupted_while_building_says_so(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    with pytest.raises(RunInterrupted) as info:
+        train(_cfg(run, *COMMON, "data._target_=tests.training.helpers.SignalOnInit"))
+    assert info.value.phase == "setup" and info.value.exit_code == 143
+    summary = load_strict_json(run / "metrics.json")
+    assert summary["status"] == "interrupted" and summary["interruption"]["phase"] == "setup" and summary["epochs"] == 0
+
+
 def test_signal_guard_stops_at_once_outside_graceful_phases_and_restores_handlers() -> None:
     before = signal.getsignal(signal.SIGTERM)
     with SignalGuard() as guard:

@@ -27,8 +27,10 @@ key                       value
                           of ``best.ckpt`` (lowest val/nll), or null
 ``data_summary``          the datamodule's ``summary`` (null when it has none)
 ``resumed_from``          [{``checkpoint``, ``epoch``}] for every resume of this run, oldest first
-``interruption``          null, or {``signal``, ``phase``, ``epochs_completed``,
-                          ``resume_checkpoint``, ``resume_command``}
+``interruption``          null, or {``signal`` ("SIGTERM" / "SIGINT"), ``phase`` ("setup",
+                          "fit", "test" or "plots"), ``epochs_completed``,
+                          ``resume_checkpoint`` (null when no epoch completed),
+                          ``resume_command``}
 ``error``                 null, or ``"<ExceptionType>: <message>"`` of a failed run
 ========================  ================================================================
 """

@@ -31,6 +31,7 @@ its initial value, so :func:`train` warns about it.
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import sys
 import time
@@ -286,9 +287,7 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                 log.info("resuming from %s (epoch %d) %s", ckpt_path, resume["epoch"],
                          "in the same run directory" if same_dir else f"into the new run directory {out_dir}")
             if trainer.is_global_zero:
-                report = RunReport(out_dir, model=cfg.model.get("name"), noise=cfg.data.get("noise"),
-                                   max_epochs=cfg.trainer.get("max_epochs"), overrides=_overrides(),
-                                   resumed_from=(ckpt_path, int(resume["epoch"])) if resume is not None else None)
+                report = _new_report(cfg, out_dir, resume)
                 report.running()
                 for lg in objects["loggers"]:
                     if same_dir:
@@ -317,6 +316,8 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             signum = guard.received or _signal_of(stop)
             if signum is None:
                 raise
+            if report is None and "trainer" not in objects and int(os.environ.get("LOCAL_RANK", "0")) == 0:
+                report = _new_report(cfg, out_dir, resume)  # stopped while building: still say so
             raise _interrupted(objects, report, signum, guard.received_during or guard.phase, out_dir) from None
         except Exception as err:
             if report is not None:
@@ -327,6 +328,12 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         log.warning("received %s after the run completed; its outputs are complete", guard.received.name)
     log.info("run completed: %s", out_dir.resolve())
     return metrics, objects
+
+
+def _new_report(cfg: DictConfig, out_dir: Path, resume: dict[str, Any] | None) -> RunReport:
+    return RunReport(out_dir, model=cfg.model.get("name"), noise=cfg.data.get("noise"),
+                     max_epochs=cfg.trainer.get("max_epochs"), overrides=_overrides(),
+                     resumed_from=(cfg.ckpt_path, int(resume["epoch"])) if resume is not None else None)
 
 
 def _signal_of(stop: BaseException) -> int | None:
