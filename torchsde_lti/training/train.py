@@ -36,6 +36,7 @@ import signal
 import sys
 import time
 import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -268,66 +269,79 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         RunInterrupted: SIGTERM / SIGINT stopped the run (after it wrote its report).
     """
     check_config(cfg)
-    ckpt_path = cfg.get("ckpt_path")
-    resume = read_checkpoint(ckpt_path, require=RESUME_KEYS) if ckpt_path else None
+    resume = read_checkpoint(cfg.ckpt_path, require=RESUME_KEYS) if cfg.get("ckpt_path") else None
     out_dir = Path(cfg.output_dir)
     log.info("run directory: %s", out_dir.resolve())
     log.info("config:\n%s", _config_text(cfg))
+    state = _RunState()
     with SignalGuard() as guard:
-        objects: dict[str, Any] = {}
-        report: RunReport | None = None
         try:
-            objects = _build(cfg, guard)
-            trainer, module = objects["trainer"], objects["module"]
-            same_dir = False
-            if resume is not None:
-                check_state_dict(ckpt_path, resume["state_dict"], module)
-                _warn_if_schedule_ends_early(ckpt_path, cfg.trainer.get("max_epochs"), resume)
-                same_dir = Path(ckpt_path).resolve().parent.parent == out_dir.resolve()
-                log.info("resuming from %s (epoch %d) %s", ckpt_path, resume["epoch"],
-                         "in the same run directory" if same_dir else f"into the new run directory {out_dir}")
-            if trainer.is_global_zero:
-                report = _new_report(cfg, out_dir, resume)
-                report.running()
-                for lg in objects["loggers"]:
-                    if same_dir:
-                        continue_csv_log(lg, int(resume["epoch"]))
-                    lg.log_hyperparams(OmegaConf.to_container(cfg, resolve=True))
-            start = time.perf_counter()
-            with guard.graceful("fit"), warnings.catch_warnings():
-                if same_dir:
-                    warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
-                trainer.fit(module, datamodule=objects["datamodule"], ckpt_path=ckpt_path, weights_only=True)
-            wall = time.perf_counter() - start
-            objects["fit_metrics"] = _floats(trainer.callback_metrics)  # the test replaces callback_metrics
-            guard.stop_if_received()
-            with guard.graceful("test"):
-                metrics = _evaluate(cfg, objects, report.previous_metrics if report is not None else {}, wall)
-            guard.stop_if_received()
-            if trainer.is_global_zero and cfg.get("plots") and not trainer.fast_dev_run:
-                history = next((c for c in objects["callbacks"] if isinstance(c, ParameterHistory)), None)
-                with guard.graceful("plots"):
-                    plot_run(out_dir, module, objects["datamodule"], history.history if history else [], objects["truth"])
-            guard.stop_if_received()
-            if report is not None:
-                with guard.graceful("outputs"):  # complete: a signal now no longer stops anything
-                    _report_completed(cfg, objects, report, metrics)
+            metrics = _run(cfg, guard, resume, out_dir, state)
         except (StopRun, SystemExit) as stop:
             signum = guard.received or _signal_of(stop)
             if signum is None:
                 raise
-            if report is None and "trainer" not in objects and int(os.environ.get("LOCAL_RANK", "0")) == 0:
-                report = _new_report(cfg, out_dir, resume)  # stopped while building: still say so
-            raise _interrupted(objects, report, signum, guard.received_during or guard.phase, out_dir) from None
+            if state.report is None and "trainer" not in state.objects and int(os.environ.get("LOCAL_RANK", "0")) == 0:
+                state.report = _new_report(cfg, out_dir, resume)  # stopped while building: still say so
+            raise _interrupted(state.objects, state.report, signum, guard.received_during or guard.phase, out_dir) from None
         except Exception as err:
-            if report is not None:
-                report.failed(err)
+            if state.report is not None:
+                state.report.failed(err)
             log.error("run failed: %s: %s", type(err).__name__, err)
             raise
     if guard.received is not None:
         log.warning("received %s after the run completed; its outputs are complete", guard.received.name)
     log.info("run completed: %s", out_dir.resolve())
-    return metrics, objects
+    return metrics, state.objects
+
+
+@dataclass
+class _RunState:
+    """What a run has built so far (for the report of an interrupted or failed run)."""
+
+    objects: dict[str, Any] = field(default_factory=dict)
+    report: RunReport | None = None
+
+
+def _run(cfg: DictConfig, guard: SignalGuard, resume: dict[str, Any] | None, out_dir: Path, state: _RunState) -> dict[str, Any]:
+    """Build, fit, test, plot and report, phase by phase (``guard`` stops between them)."""
+    ckpt_path = cfg.get("ckpt_path")
+    state.objects = objects = _build(cfg, guard)
+    trainer, module = objects["trainer"], objects["module"]
+    same_dir = False
+    if resume is not None:
+        check_state_dict(ckpt_path, resume["state_dict"], module)
+        _warn_if_schedule_ends_early(ckpt_path, cfg.trainer.get("max_epochs"), resume)
+        same_dir = Path(ckpt_path).resolve().parent.parent == out_dir.resolve()
+        log.info("resuming from %s (epoch %d) %s", ckpt_path, resume["epoch"],
+                 "in the same run directory" if same_dir else f"into the new run directory {out_dir}")
+    if trainer.is_global_zero:
+        state.report = _new_report(cfg, out_dir, resume)
+        state.report.running()
+        for lg in objects["loggers"]:
+            if same_dir:
+                continue_csv_log(lg, int(resume["epoch"]))
+            lg.log_hyperparams(OmegaConf.to_container(cfg, resolve=True))
+    start = time.perf_counter()
+    with guard.graceful("fit"), warnings.catch_warnings():
+        if same_dir:
+            warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
+        trainer.fit(module, datamodule=objects["datamodule"], ckpt_path=ckpt_path, weights_only=True)
+    wall = time.perf_counter() - start
+    objects["fit_metrics"] = _floats(trainer.callback_metrics)  # the test replaces callback_metrics
+    guard.stop_if_received()
+    with guard.graceful("test"):
+        metrics = _evaluate(cfg, objects, state.report.previous_metrics if state.report is not None else {}, wall)
+    guard.stop_if_received()
+    if trainer.is_global_zero and cfg.get("plots") and not trainer.fast_dev_run:
+        history = next((c for c in objects["callbacks"] if isinstance(c, ParameterHistory)), None)
+        with guard.graceful("plots"):
+            plot_run(out_dir, module, objects["datamodule"], history.history if history else [], objects["truth"])
+    guard.stop_if_received()
+    if state.report is not None:
+        with guard.graceful("outputs"):  # complete: a signal now no longer stops anything
+            _report_completed(cfg, objects, state.report, metrics)
+    return metrics
 
 
 def _new_report(cfg: DictConfig, out_dir: Path, resume: dict[str, Any] | None) -> RunReport:
