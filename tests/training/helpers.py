@@ -43,17 +43,23 @@ class Sleep(Callback):
 
 class SignalAt(Callback):
     """Send ``signum`` to this process after batch ``batch`` of epoch ``epoch`` of ``stage``
-    ("train", "validation", or "test": there after batch ``batch`` of the test, whatever the epoch), once."""
+    ("train", "validation", or "test": there after batch ``batch`` of the test, whatever the epoch;
+    "setup": in the callbacks' setup hook, before Lightning installs its own signal handler), once."""
 
     def __init__(self, epoch: int, batch: int = 0, signum: int = int(signal.SIGTERM), stage: str = "train") -> None:
-        if stage not in ("train", "validation", "test"):
-            raise ValueError(f"stage must be 'train', 'validation' or 'test', got {stage!r}")
+        if stage not in ("train", "validation", "test", "setup"):
+            raise ValueError(f"stage must be 'train', 'validation', 'test' or 'setup', got {stage!r}")
         self.epoch, self.batch, self.signum, self.stage = int(epoch), int(batch), int(signum), stage
         self.sent = False
 
     def _maybe_send(self, trainer: Any, batch_idx: int, stage: str) -> None:
         epoch_matches = stage == "test" or trainer.current_epoch == self.epoch
         if not self.sent and stage == self.stage and epoch_matches and batch_idx == self.batch:
+            self.sent = True
+            os.kill(os.getpid(), self.signum)
+
+    def setup(self, trainer: Any, pl_module: Any, stage: str) -> None:
+        if self.stage == "setup" and not self.sent:
             self.sent = True
             os.kill(os.getpid(), self.signum)
 

@@ -107,10 +107,12 @@ def test_interrupted_twice_then_resumed_equals_the_uninterrupted_run(tmp_path: P
     assert [r["epoch"] for r in history] == [float(e) for e in range(EPOCHS)]
 
 
-def test_interrupted_before_any_epoch_has_nothing_to_resume(tmp_path: Path) -> None:
+@pytest.mark.parametrize("stage", ["train", "setup"])  # setup: before Lightning's own handler is installed
+def test_interrupted_before_any_epoch_has_nothing_to_resume(tmp_path: Path, stage: str) -> None:
     run = tmp_path / "run"
     with pytest.raises(RunInterrupted) as info:
-        train(_cfg(run, *COMMON, *_signal_at(0)))
+        train(_cfg(run, *COMMON, *_signal_at(0, stage=stage)))
+    assert info.value.phase == "fit"
     assert info.value.resume_from is None
     summary = load_strict_json(run / "metrics.json")
     assert summary["status"] == "interrupted" and summary["epochs"] == 0
