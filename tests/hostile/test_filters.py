@@ -87,6 +87,11 @@ def _imm_one_mode():
                         torch.zeros(1, 1, dtype=f64), P0=torch.eye(4, dtype=f64), learn=("R",))
 
 
+def _smooth_one_step() -> tl.SmootherResult:
+    kf = _cv()
+    return kf.smooth(kf(_y()[:, :1], _dt()[:, :1]))
+
+
 SMOOTHER_TUPLE = "AttributeError: 'tuple' object has no attribute 'transition' instead of a TypeError naming the argument"
 
 CASES = [
@@ -152,7 +157,7 @@ CASES = [
          xfail="KalmanFilter(P0='diffuse', diffuse_variance=nan) is accepted; the first call raises ValueError 'P0 contains NaN or Inf', naming P0, not diffuse_variance"),
     # smoothing and forecasting
     Case("smooth-ok", lambda: _cv().smooth(_out()), Finite()),
-    Case("smooth-T-1", lambda: (lambda kf: kf.smooth(kf(_y()[:, :1], _dt()[:, :1])))(_cv()), Finite()),
+    Case("smooth-T-1", lambda: _smooth_one_step(), Finite()),
     Case("smooth-tuple", lambda: _cv().smooth(tuple(_out())), Raises(TypeError, r"FilterResult|\bout\b|result"),
          xfail="AttributeError: 'tuple' object has no attribute 'mean' (KalmanFilter.smooth) instead of a TypeError naming the argument"),
     Case("rts-tuple", lambda: tl.rts_smoother(tuple(_out())), Raises(TypeError, r"FilterResult|result"), xfail=SMOOTHER_TUPLE),

@@ -91,7 +91,7 @@ def test_interrupted_twice_then_resumed_equals_the_uninterrupted_run(tmp_path: P
     assert summary["status"] == "interrupted" and summary["epochs"] == 5
     assert [r["epoch"] for r in summary["resumed_from"]] == [1]
     # 3. resumed to the end: the same weights, the same log, each epoch once
-    metrics, objects = train(_cfg(run, *COMMON, f"ckpt_path={last}"))
+    _, objects = train(_cfg(run, *COMMON, f"ckpt_path={last}"))
     _assert_same(run, reference)
     summary = load_strict_json(run / "metrics.json")
     assert summary["status"] == "completed" and summary["epochs"] == EPOCHS and summary["interruption"] is None

@@ -47,8 +47,8 @@ __all__ = [
     "parameter_errors",
     "parameter_table",
     "plot_run",
-    "read_checkpoint",
     "raw_f_identifiable",
+    "read_checkpoint",
     "restart_learner",
     "train",
 ]
