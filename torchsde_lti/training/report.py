@@ -137,7 +137,7 @@ class RunReport:
         self._write()
         write_text(self.run_dir / "results.md", f"# {self.base['model']}: running\n\nThis run has not finished "
                    "(no final results yet). If nothing is running any more, it was killed without a chance to "
-                   "say so; resume it from `checkpoints/last.ckpt` (see metrics.json).\n")
+                   "say so; resume it from `checkpoints/last.ckpt` if that exists (see metrics.json).\n")
 
     def resume_command(self, checkpoint: str) -> str:
         """The command that resumes this run from ``checkpoint`` (the original overrides, if known)."""
