@@ -20,7 +20,8 @@ import yaml
 
 
 def collect(sweep_dir: Path) -> list[dict]:
-    """One record per finished run: {"run", "overrides", "model", "noise", "metrics", "param_errors", "wall_time"}."""
+    """One record per completed run: {"run", "overrides", "model", "noise", "metrics", "param_errors", "wall_time"}
+    (metrics.json's keys; runs whose ``status`` is not "completed" are skipped)."""
     rows = []
     for run in sorted(sweep_dir.iterdir(), key=lambda p: (len(p.name), p.name)):
         metrics_file = run / "metrics.json"
@@ -29,6 +30,9 @@ def collect(sweep_dir: Path) -> list[dict]:
         overrides_file = run / ".hydra" / "overrides.yaml"
         overrides = yaml.safe_load(overrides_file.read_text()) if overrides_file.exists() else []
         m = json.loads(metrics_file.read_text())
+        if m.get("status", "completed") != "completed":  # interrupted, failed or still running: no results
+            print(f"skipping {run.name}: status {m['status']}")
+            continue
         rows.append({"run": run.name, "overrides": " ".join(overrides or []), **m})
     return rows
 
@@ -39,19 +43,23 @@ def _fmt(x: float | None, pct: bool = False) -> str:
     return f"{100 * x:.2f} %" if pct else f"{x:.4g}"
 
 
+def _seconds(x: float | None) -> str:
+    return f"{x:.1f}" if isinstance(x, (int, float)) else ""
+
+
 def summary_table(rows: list[dict]) -> str:
     lines = [
         "| run | overrides | val/nll | test/nll | max param error | per-parameter errors | wall (s) |",
         "|---|---|---:|---:|---:|---|---:|",
     ]
     for r in rows:
-        errs = r.get("param_errors", {})
+        errs = {k: v for k, v in r.get("param_errors", {}).items() if v is not None}  # null: not finite
         worst = max(errs.values()) if errs else None
         per = ", ".join(f"{k} {100 * v:.1f}%" for k, v in errs.items())
         met = r.get("metrics", {})
         lines.append(
             f"| {r['run']} | {r['overrides']} | {_fmt(met.get('val/nll'))} | {_fmt(met.get('test/nll'))} | "
-            f"{_fmt(worst, pct=True)} | {per} | {r.get('wall_time', math.nan):.1f} |"
+            f"{_fmt(worst, pct=True)} | {per} | {_seconds(r.get('wall_time'))} |"
         )
     return "\n".join(lines)
 
@@ -63,7 +71,8 @@ def plot(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     labels = [r["overrides"] or r["run"] for r in rows]
-    worst = [max(r["param_errors"].values()) * 100 if r.get("param_errors") else math.nan for r in rows]
+    worst = [max((v for v in r["param_errors"].values() if v is not None), default=math.nan) * 100
+             if r.get("param_errors") else math.nan for r in rows]
     fig, ax = plt.subplots(figsize=(max(5, 0.9 * len(rows) + 2), 4))
     ax.bar(range(len(rows)), worst)
     ax.set_xticks(range(len(rows)), labels, rotation=30, ha="right", fontsize=8)

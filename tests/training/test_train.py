@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
-from hydra.errors import ConfigCompositionException, InstantiationException
+from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
 
 from torchsde_lti.training import KalmanFilterModule, train
@@ -93,8 +93,10 @@ def test_logger_configs_instantiate(tmp_path: Path, logger: str) -> None:
 def test_callback_configs_instantiate(tmp_path: Path) -> None:
     cfg = _cfg(tmp_path)
     names = {type(instantiate(c)).__name__ for c in cfg.callbacks.values()}
-    assert names == {"ModelCheckpoint", "ParameterHistory"}
-    assert cfg.callbacks.checkpoint.monitor == "val/nll"
+    assert names == {"ModelCheckpoint", "ParameterHistory", "RunLog"}
+    # each checkpoint named for what it holds: the last epoch (no monitor), the best val/nll
+    assert cfg.callbacks.best.monitor == "val/nll" and cfg.callbacks.best.filename == "best"
+    assert cfg.callbacks.last.monitor is None and cfg.callbacks.last.filename == "last"
 
 
 @pytest.mark.parametrize("experiment", _group("experiment"))
@@ -123,7 +125,7 @@ def test_unknown_model_fails_fast(tmp_path: Path) -> None:
 @pytest.mark.parametrize(("override", "match"), [("data.noise=-0.5", "data.noise"), ("data.T=1", "data.T")])
 def test_bad_values_fail_before_training(tmp_path: Path, override: str, match: str) -> None:
     cfg = _cfg(tmp_path, *TINY, override)
-    with pytest.raises(InstantiationException, match=match):
+    with pytest.raises(ValueError, match=rf"config data .*{match}"):  # the target's ValueError, naming the node
         train(cfg)
     assert not (tmp_path / "checkpoints").exists()
 
@@ -196,9 +198,51 @@ def test_plots_and_table_written(tmp_path: Path) -> None:
     assert {r["name"] for r in summary["table"]} >= {"k", "q", "R[0,0]"}
 
 
+def test_checkpoints_are_named_for_what_they_hold_and_reports_say_which(tmp_path: Path) -> None:
+    """last.ckpt = the last epoch = what the table and test metrics report; best.ckpt = lowest val/nll."""
+    import csv
+
+    from tests.training.helpers import load_strict_json
+    from torchsde_lti.training.metrics import parameter_table
+    from torchsde_lti.training.outputs import to_jsonable
+
+    # lr 2.0 overshoots: val/nll is lowest after epoch 0 and worse later, so best and last differ
+    metrics, objects = train(_cfg(tmp_path, *TINY, "trainer.max_epochs=4", "module.optimizer.lr=2.0"))
+    last = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)
+    best = torch.load(tmp_path / "checkpoints" / "best.ckpt", weights_only=True)
+    with (tmp_path / "csv" / "metrics.csv").open() as f:
+        val = {int(r["epoch"]): float(r["val/nll"]) for r in csv.DictReader(f) if r["val/nll"]}
+    assert last["epoch"] == 3 and best["epoch"] == min(val, key=val.get) == 0
+    summary = load_strict_json(tmp_path / "metrics.json")
+    assert summary["reported"]["checkpoint"] == "checkpoints/last.ckpt" and summary["reported"]["epoch"] == 3
+    assert summary["best"]["checkpoint"] == "checkpoints/best.ckpt" and summary["best"]["epoch"] == 0
+    assert summary["best"]["val/nll"] == val[0] and summary["metrics"]["val/nll"] == val[3]
+    module, truth = objects["module"], objects["truth"]
+    trainer = objects["trainer"]
+    for ckpt, table in ((best, summary["best"]["table"]), (last, summary["table"])):  # last loaded last: the final weights
+        module.load_state_dict(ckpt["state_dict"])
+        assert to_jsonable(parameter_table(module, truth)) == table
+    tested = trainer.test(module, datamodule=objects["datamodule"], verbose=False)[0]
+    assert tested["test/nll"] == summary["metrics"]["test/nll"]  # the test metrics are last.ckpt's
+    text = (tmp_path / "results.md").read_text()
+    assert "`checkpoints/last.ckpt` (epoch 3)" in text and "`checkpoints/best.ckpt` (epoch 0" in text
+
+
+@pytest.mark.parametrize("datamodule", ["SummarisedTracks", "SummaryAttributeTracks"])
+def test_data_summary_is_logged_and_saved(tmp_path: Path, datamodule: str, caplog: pytest.LogCaptureFixture) -> None:
+    from tests.training.helpers import load_strict_json
+
+    caplog.set_level("INFO", logger="torchsde_lti.training")
+    train(_cfg(tmp_path, *TINY, "trainer.max_epochs=1", f"data._target_=tests.training.helpers.{datamodule}"))
+    expected = {"tracks": {"train": 8, "val": 4, "test": 4}, "undefined": None}
+    assert load_strict_json(tmp_path / "metrics.json")["data_summary"] == expected
+    assert f"data summary ({datamodule})" in caplog.text and '"train": 8' in caplog.text
+    assert "epoch 0/1: " in caplog.text and "val/nll=" in caplog.text and "config:" in caplog.text
+
+
 def test_resume_from_checkpoint_continues_identically(tmp_path: Path) -> None:
     # the interrupted run plans the same schedule (T_max) as the uninterrupted one
-    common = [*TINY, "test=false", "callbacks.checkpoint.save_top_k=-1", "module.scheduler.T_max=4"]
+    common = [*TINY, "test=false", "module.scheduler.T_max=4"]
     _, full = train(_cfg(tmp_path / "full", *common, "trainer.max_epochs=4"))
     _, part = train(_cfg(tmp_path / "part", *common, "trainer.max_epochs=2"))
     ckpt = tmp_path / "part" / "checkpoints" / "last.ckpt"

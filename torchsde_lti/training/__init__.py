@@ -2,14 +2,20 @@
 
 The only part of the package that imports Lightning, Hydra or matplotlib.
 
-    module.py     KalmanFilterModule: NLL loss, robust optimizer steps, logged metrics
-    metrics.py    parameter errors (identifiable quantities), tables, masked Gaussian NLL
-    callbacks.py  ParameterHistory (Lightning), BestRun (Hydra, best of a multirun)
-    plots.py      loss / parameter / track figures of a run
-    train.py      train(cfg) behind @hydra.main (``python -m torchsde_lti.train``)
+    module.py       KalmanFilterModule: NLL loss, robust optimizer steps, logged metrics
+    metrics.py      parameter errors (identifiable quantities), tables, masked Gaussian NLL
+    callbacks.py    ParameterHistory, RunLog (Lightning), BestRun (Hydra, best of a multirun)
+    plots.py        loss / parameter / track figures of a run
+    checkpoints.py  read_checkpoint / load_filter_weights: clear errors for damaged files
+    config.py       check_config: nonsense values rejected before any work, naming the key
+    outputs.py      strict JSON, atomic files, the CSV log of a resumed run, the data summary
+    report.py       metrics.json / results.md for a running, completed, interrupted, failed run
+    signals.py      SIGTERM / SIGINT: stop at a safe point, report, exit 128 + signal
+    train.py        train(cfg) behind @hydra.main (``python -m torchsde_lti.train``)
 """
 
-from torchsde_lti.training.callbacks import BestRun, ParameterHistory
+from torchsde_lti.training.callbacks import BestRun, ParameterHistory, RunLog
+from torchsde_lti.training.checkpoints import CheckpointError, load_filter_weights, read_checkpoint
 from torchsde_lti.training.metrics import (
     format_table,
     learned_values,
@@ -21,15 +27,20 @@ from torchsde_lti.training.metrics import (
 )
 from torchsde_lti.training.module import KalmanFilterModule
 from torchsde_lti.training.plots import plot_run
+from torchsde_lti.training.signals import RunInterrupted
 from torchsde_lti.training.train import config_path, main, restart_learner, train
 
 __all__ = [
     "BestRun",
+    "CheckpointError",
     "KalmanFilterModule",
     "ParameterHistory",
+    "RunInterrupted",
+    "RunLog",
     "config_path",
     "format_table",
     "learned_values",
+    "load_filter_weights",
     "main",
     "masked_gaussian_nll",
     "observed_autocovariance",
@@ -37,6 +48,7 @@ __all__ = [
     "parameter_table",
     "plot_run",
     "raw_f_identifiable",
+    "read_checkpoint",
     "restart_learner",
     "train",
 ]

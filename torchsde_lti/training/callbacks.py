@@ -1,8 +1,10 @@
-"""Callbacks: Lightning's :class:`ParameterHistory` (per-epoch values) and Hydra's :class:`BestRun`."""
+"""Callbacks: Lightning's :class:`ParameterHistory` (per-epoch values) and :class:`RunLog` (the
+run's log), and Hydra's :class:`BestRun`."""
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 from pathlib import Path
 from typing import Any
@@ -13,8 +15,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchsde_lti.training.metrics import filter_values, flat_values
 from torchsde_lti.training.module import KalmanFilterModule
+from torchsde_lti.training.outputs import data_summary, write_json
 
-__all__ = ["BestRun", "ParameterHistory"]
+__all__ = ["BestRun", "ParameterHistory", "RunLog"]
+
+log = logging.getLogger("torchsde_lti.training")
 
 
 class ParameterHistory(Callback):
@@ -47,10 +52,33 @@ class ParameterHistory(Callback):
         self.history = [dict(r) for r in state_dict.get("history", [])]
 
 
+class RunLog(Callback):
+    """Writes the run's story to the ``torchsde_lti.training`` logger (Hydra's job logging puts
+    it in ``<run>/train.log`` and on the console): the data summary when the data are set up
+    (``datamodule.summary``, when the datamodule offers one) and one line per epoch with every
+    epoch-level metric (``train/nll``, ``val/nll``, ``val/param_error``, ...)."""
+
+    def setup(self, trainer: Any, pl_module: LightningModule, stage: str) -> None:
+        summary = data_summary(trainer.datamodule) if trainer.datamodule is not None else None
+        if summary is not None and trainer.is_global_zero:
+            text = summary if isinstance(summary, str) else json.dumps(summary, indent=1)
+            log.info("data summary (%s):\n%s", type(trainer.datamodule).__name__, text)
+
+    def on_train_epoch_end(self, trainer: Any, pl_module: LightningModule) -> None:
+        if trainer.sanity_checking or not trainer.is_global_zero:
+            return
+        values = {k: float(v) for k, v in trainer.callback_metrics.items()
+                  if "/" in k and v.numel() == 1 and k != "train/skipped_steps"}  # logged after this hook
+        if isinstance(pl_module, KalmanFilterModule):
+            values["skipped_steps"] = float(pl_module.skipped_steps)
+        text = "  ".join(f"{k}={v:.6g}" for k, v in sorted(values.items()))
+        log.info("epoch %d/%s: %s", trainer.current_epoch, trainer.max_epochs, text)
+
+
 class BestRun(HydraCallback):
     """Hydra callback: after a multirun, pick the run with the best ``metric`` and report it.
 
-    Reads every job's ``metrics.json`` under the sweep directory, writes ``best_run.json``
+    Reads every completed job's ``metrics.json`` under the sweep directory, writes ``best_run.json``
     (the winner's directory, overrides, metric value, and all runs' values) there, and
     prints it. With ``experiment=restarts`` (a sweep over ``restart``) this keeps the best
     of K random restarts; the jobs themselves run through whatever Hydra launcher is
@@ -67,6 +95,8 @@ class BestRun(HydraCallback):
         runs = []
         for path in sorted(Path(sweep_dir).glob("*/metrics.json")):
             summary = json.loads(path.read_text())
+            if summary.get("status", "completed") != "completed":  # interrupted / failed runs do not compete
+                continue
             value = summary.get("metrics", {}).get(self.metric)
             if value is None or not math.isfinite(float(value)):
                 continue
@@ -83,6 +113,6 @@ class BestRun(HydraCallback):
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
         result = self.best(sweep_dir)
-        (sweep_dir / "best_run.json").write_text(json.dumps(result, indent=2))
+        write_json(sweep_dir / "best_run.json", result)
         print(f"best of {len(result['runs'])} runs by {self.metric}: {result['value']:.6g} in {result['best_dir']} "
               f"({' '.join(map(str, result['overrides']))})")

@@ -7,9 +7,20 @@
 
 Everything is built with ``hydra.utils.instantiate`` from ``_target_`` nodes; the logic
 lives here in :func:`train`, which tests call with a composed config. A run writes into its
-Hydra output directory: ``checkpoints/``, logger files, ``metrics.json`` (final metrics and
-the true-vs-learned table), ``results.md`` and the plots ``loss.png``, ``track.png``,
-``params.png``.
+Hydra output directory: ``checkpoints/last.ckpt`` (end of the last completed epoch: the
+reported weights and the resume point) and ``checkpoints/best.ckpt`` (lowest val/nll),
+logger files, ``train.log`` (the config, the data summary, one line per epoch),
+``metrics.json`` (strict JSON, schema in :mod:`torchsde_lti.training.report`),
+``results.md`` and the plots ``loss.png``, ``track.png``, ``params.png``.
+
+Interrupting: SIGTERM or SIGINT (Ctrl-C) stops the run at the next batch boundary
+(:mod:`torchsde_lti.training.signals`), marks it ``interrupted`` in ``metrics.json`` and
+``results.md`` (with the command that resumes it) and exits with ``128 + signal``
+(143 / 130). Resuming from ``<run>/checkpoints/last.ckpt`` continues in ``<run>`` itself
+(``hydra.run.dir`` follows the checkpoint); the CSV log keeps the epochs the checkpoint holds
+and the resumed run appends the rest, so no epoch appears twice, and the result equals a run
+that never stopped, bit for bit. Any other checkpoint (``best.ckpt``, a copied file) starts
+a new run directory that continues from it.
 
 Resuming restores the LR scheduler's own state, including the cosine schedule's
 ``T_max`` (= the original ``trainer.max_epochs``): a resumed run continues the same
@@ -19,42 +30,64 @@ its initial value, so :func:`train` warns about it.
 
 from __future__ import annotations
 
-import json
+import logging
+import os
+import signal
+import sys
 import time
 import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import hydra
 import lightning.pytorch as pl
 import torch
-from hydra.utils import instantiate
+from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
 from torchsde_lti.training.callbacks import ParameterHistory
-from torchsde_lti.training.metrics import format_table, parameter_table
+from torchsde_lti.training.checkpoints import RESUME_KEYS, check_state_dict, read_checkpoint
+from torchsde_lti.training.config import check_config, instantiate_node
+from torchsde_lti.training.metrics import parameter_table
+from torchsde_lti.training.outputs import continue_csv_log, data_summary
 from torchsde_lti.training.plots import plot_run
+from torchsde_lti.training.report import RunReport
+from torchsde_lti.training.signals import RunInterrupted, SignalGuard, StopOnSignal, StopRun
 
-__all__ = ["config_path", "main", "restart_learner", "train"]
+__all__ = ["config_path", "main", "restart_learner", "resume_run_dir", "train"]
+
+log = logging.getLogger("torchsde_lti.training")
 
 
-def _instantiate_dict(node: DictConfig | None) -> list[Any]:
+def resume_run_dir(ckpt_path: Any, default: str) -> str:
+    """The run directory a resumed run writes into: ``<run>`` for ``<run>/checkpoints/last.ckpt``
+    (an existing file), else ``default`` (a new directory).
+
+    Registered as the OmegaConf resolver ``tl_resume_dir``, which ``hydra.run.dir`` uses.
+    """
+    if not isinstance(ckpt_path, str) or not ckpt_path:
+        return default
+    path = Path(ckpt_path)
+    if path.name == "last.ckpt" and path.parent.name == "checkpoints" and path.is_file():
+        return str(path.resolve().parent.parent)
+    return default
+
+
+OmegaConf.register_new_resolver("tl_resume_dir", resume_run_dir, replace=True)
+
+
+def _instantiate_dict(cfg: DictConfig, key: str) -> list[Any]:
     """Instantiate every ``_target_`` child of a dict node (callbacks, loggers)."""
+    node = cfg.get(key)
     if node is None:
         return []
-    return [instantiate(v) for v in node.values() if isinstance(v, DictConfig) and "_target_" in v]
+    return [instantiate_node(cfg, f"{key}.{name}") for name, v in node.items()
+            if isinstance(v, DictConfig) and "_target_" in v]
 
 
-def _check_config(cfg: DictConfig) -> None:
-    """Fail fast, before any work, on values that would only break later."""
-    for key in ("model", "data", "trainer", "filter", "module"):
-        if cfg.get(key) is None:
-            raise ValueError(f"config is missing the '{key}' node")
-    if cfg.get("dtype") not in ("float32", "float64"):
-        raise ValueError(f"dtype must be 'float32' or 'float64', got {cfg.get('dtype')!r}")
-
-
-def _warn_if_schedule_ends_early(ckpt_path: str | None, max_epochs: int | None) -> None:
+def _warn_if_schedule_ends_early(ckpt_path: str | None, max_epochs: int | None, ckpt: dict[str, Any] | None = None) -> None:
     """Warn when a resumed run trains past the restored scheduler's ``T_max``.
 
     Schedulers such as CosineAnnealingLR are periodic beyond ``T_max``; the value comes
@@ -62,7 +95,8 @@ def _warn_if_schedule_ends_early(ckpt_path: str | None, max_epochs: int | None) 
     """
     if not ckpt_path or max_epochs is None or int(max_epochs) < 0:
         return
-    ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+    if ckpt is None:
+        ckpt = read_checkpoint(ckpt_path, require=())
     for state in ckpt.get("lr_schedulers", []):
         t_max = state.get("T_max") if isinstance(state, dict) else None
         if isinstance(t_max, int) and int(max_epochs) > t_max:
@@ -92,19 +126,28 @@ def restart_learner(kf: torch.nn.Module, jitter: float, seed: int) -> None:
                 p.add_(jitter * torch.randn(p.shape, generator=g, dtype=torch.float64).to(p))
 
 
-def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Train per ``cfg``; returns (metrics, objects).
+def _config_text(cfg: DictConfig) -> str:
+    try:
+        return OmegaConf.to_yaml(cfg, resolve=True)
+    except Exception:  # noqa: BLE001 - an interpolation only Hydra's runtime can resolve: log it unresolved
+        return OmegaConf.to_yaml(cfg)
 
-    metrics: final ``trainer.callback_metrics`` as floats plus ``param_errors`` (dict),
-    ``table`` (true vs learned rows), ``wall_time`` (s) and ``best_model_path``.
-    objects: "cfg", "datamodule", "module", "trainer", "callbacks", "loggers".
-    """
-    _check_config(cfg)
+
+def _overrides() -> list[str] | None:
+    """The command-line overrides of this Hydra job (None outside a Hydra run)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return None
+    return [str(o) for o in HydraConfig.get().overrides.task]
+
+
+def _build(cfg: DictConfig, guard: SignalGuard) -> dict[str, Any]:
+    """Data, filter, Lightning module, callbacks, loggers and trainer of ``cfg`` (and "truth")."""
     if cfg.get("num_threads"):
         torch.set_num_threads(int(cfg.num_threads))
     pl.seed_everything(int(cfg.seed), workers=True, verbose=False)
-    out_dir = Path(cfg.output_dir)
-    datamodule = instantiate(cfg.data)
+    datamodule = instantiate_node(cfg, "data")
     truth = getattr(datamodule, "truth", None)
     prior: dict[str, Any] = {}
     if getattr(datamodule, "m0", None) is not None and getattr(datamodule, "P0", None) is not None:
@@ -112,71 +155,239 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         prior = {"m0": datamodule.m0, "P0": datamodule.P0}
     if truth is not None and getattr(datamodule, "H", None) is not None:
         truth = {**truth, "H": datamodule.H}
-    kf = instantiate(cfg.filter)
+    kf = instantiate_node(cfg, "filter")
     if prior and int(kf.state_dim) == int(prior["m0"].shape[-1]):
-        kf = instantiate(cfg.filter, **prior)
+        kf = instantiate_node(cfg, "filter", **prior)
     restart_learner(kf, float(cfg.get("init_jitter") or 0.0), int(cfg.get("restart") or 0))
-    module = instantiate(cfg.module, kf=kf, truth=truth)
-    callbacks = _instantiate_dict(cfg.get("callbacks"))
-    loggers = _instantiate_dict(cfg.get("logger"))
-    trainer: pl.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
-    if trainer.is_global_zero and loggers:
-        for lg in loggers:
-            lg.log_hyperparams(OmegaConf.to_container(cfg, resolve=True))
+    module = instantiate_node(cfg, "module", kf=kf, truth=truth)
+    callbacks = [*_instantiate_dict(cfg, "callbacks"), StopOnSignal(guard)]
+    # the best-so-far checkpoint saves before the last-epoch one at each epoch end, so that
+    # last.ckpt (the resume point) holds the best's state after this epoch, not before it
+    callbacks.sort(key=lambda c: isinstance(c, ModelCheckpoint) and c.monitor is None)
+    loggers = _instantiate_dict(cfg, "logger")
+    trainer: pl.Trainer = instantiate_node(cfg, "trainer", callbacks=callbacks, logger=loggers or False)
+    return {"cfg": cfg, "datamodule": datamodule, "module": module, "trainer": trainer,
+            "callbacks": callbacks, "loggers": loggers, "truth": truth}
 
-    _warn_if_schedule_ends_early(cfg.get("ckpt_path"), cfg.trainer.get("max_epochs"))
-    start = time.perf_counter()
-    trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"), weights_only=True)
-    wall = time.perf_counter() - start
-    metrics: dict[str, Any] = {k: float(v) for k, v in trainer.callback_metrics.items()}
+
+def _checkpoint_files(callbacks: list[Any]) -> tuple[str | None, str | None]:
+    """(last, best) checkpoint files written by the run's ModelCheckpoints (None: none written).
+
+    ``last``: the ModelCheckpoint without a monitor (it keeps the newest epoch); ``best``: the
+    one monitoring a metric (it keeps the best epoch).
+    """
+    last = best = None
+    for cb in callbacks:
+        if isinstance(cb, ModelCheckpoint) and cb.best_model_path and Path(cb.best_model_path).is_file():
+            if cb.monitor is None:
+                last = last or cb.best_model_path
+            else:
+                best = best or cb.best_model_path
+    return last, best
+
+
+def _epoch_of(path: str | None) -> int | None:
+    return int(read_checkpoint(path, require=("epoch",))["epoch"]) if path else None
+
+
+def _table_at(module: Any, state_dict: dict[str, Any], truth: Any) -> tuple[list[dict[str, Any]], dict[str, float]]:
+    """The true-vs-learned table and parameter errors of ``module`` with the weights ``state_dict``
+    (loaded for the call, then the module's own weights are put back)."""
+    own = {k: v.detach().clone() for k, v in module.state_dict().items()}
+    try:
+        module.load_state_dict(state_dict)
+        return parameter_table(module, truth), module.parameter_errors()
+    finally:
+        module.load_state_dict(own)
+
+
+def _floats(values: dict[str, Any]) -> dict[str, float]:
+    return {k: float(v) for k, v in values.items()}
+
+
+def _evaluate(cfg: DictConfig, objects: dict[str, Any], previous: dict[str, float], wall: float) -> dict[str, Any]:
+    """Test (``cfg.test``) and collect the metrics and the table of the final weights.
+
+    ``previous``: the epoch-level metrics an earlier process of this run reported; a run
+    resumed after its last epoch (interrupted while testing) trains no epoch here, and keeps them.
+    """
+    trainer, module, truth = objects["trainer"], objects["module"], objects["truth"]
+    metrics: dict[str, Any] = {**previous, **objects["fit_metrics"]}
     if cfg.get("test") and not trainer.fast_dev_run:
-        results = trainer.test(module, datamodule=datamodule, verbose=False)
-        for r in results:
-            metrics.update({k: float(v) for k, v in r.items()})
+        for r in trainer.test(module, datamodule=objects["datamodule"], verbose=False):
+            metrics.update(_floats(r))
+    last, best = _checkpoint_files(objects["callbacks"])
     metrics["wall_time"] = wall
     metrics["param_errors"] = module.parameter_errors()
     metrics["skipped_steps"] = float(module.skipped_steps)
-    note = module.identifiability_note() if truth else ""
     if module.skipped_steps:
-        warnings.warn(f"{module.skipped_steps} optimizer steps were skipped (non-finite loss or gradient)", stacklevel=2)
+        warnings.warn(f"{module.skipped_steps} optimizer steps were skipped (non-finite loss or gradient)", stacklevel=3)
     metrics["table"] = parameter_table(module, truth)  # without a truth: what was learned
-    ckpt = next((c for c in callbacks if isinstance(c, pl.callbacks.ModelCheckpoint)), None)
-    metrics["best_model_path"] = ckpt.best_model_path if ckpt is not None else ""
-    history = next((c for c in callbacks if isinstance(c, ParameterHistory)), None)
+    metrics["best_model_path"] = best or ""
+    metrics["checkpoints"] = {"last": last, "best": best}
+    metrics["status"] = "completed"
+    return metrics
 
+
+def _report_completed(cfg: DictConfig, objects: dict[str, Any], report: RunReport, metrics: dict[str, Any]) -> None:
+    """Write metrics.json / results.md of a completed run: the final weights (``last.ckpt``) and
+    the best epoch (``best.ckpt``, its own table); print results.md."""
+    trainer, module, truth, callbacks = objects["trainer"], objects["module"], objects["truth"], objects["callbacks"]
+    last, best = metrics["checkpoints"]["last"], metrics["checkpoints"]["best"]
+    best_info = None
+    if best:
+        ckpt = read_checkpoint(best)
+        table, errors = _table_at(module, ckpt["state_dict"], truth)
+        monitored = next((c for c in callbacks if isinstance(c, ModelCheckpoint) and c.monitor), None)
+        score = monitored.best_model_score if monitored is not None else None
+        best_info = {"checkpoint": best, "epoch": int(ckpt["epoch"]), "val/nll": None if score is None else float(score),
+                     "table": table, "param_errors": errors}
+    reported = {"checkpoint": last, "epoch": _epoch_of(last),
+                "description": "the final weights, at the end of the last epoch"
+                               + ("" if last else " (not checkpointed: no ModelCheckpoint without a monitor ran)")}
+    title = f"{cfg.model.get('name')}: {'true vs learned' if truth else 'learned values'}"
+    report.completed(title=title, wall_time=metrics["wall_time"], epochs=int(trainer.current_epoch), reported=reported,
+                     metrics={k: v for k, v in metrics.items() if isinstance(v, float)},
+                     param_errors=metrics["param_errors"], skipped_steps=module.skipped_steps,
+                     identifiability=module.identifiability_note() if truth else "", table=metrics["table"],
+                     best=best_info, data_summary=data_summary(objects["datamodule"]))
+    print("\n" + (report.run_dir / "results.md").read_text())
+
+
+def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Train per ``cfg``; returns (metrics, objects).
+
+    metrics: final ``trainer.callback_metrics`` as floats plus ``param_errors`` (dict),
+    ``table`` (true vs learned rows of the final weights = ``last.ckpt``), ``wall_time`` (s),
+    ``checkpoints`` ({"last", "best"} paths), ``best_model_path`` and ``status``.
+    objects: "cfg", "datamodule", "module", "trainer", "callbacks", "loggers", "truth".
+
+    Raises:
+        ValueError / TypeError: a config value that cannot make a sensible run (naming the
+            key), before any work; FileNotFoundError / CheckpointError: a ``ckpt_path`` that
+            cannot be resumed from.
+        RunInterrupted: SIGTERM / SIGINT stopped the run (after it wrote its report).
+    """
+    check_config(cfg)
+    resume = read_checkpoint(cfg.ckpt_path, require=RESUME_KEYS) if cfg.get("ckpt_path") else None
+    out_dir = Path(cfg.output_dir)
+    log.info("run directory: %s", out_dir.resolve())
+    log.info("config:\n%s", _config_text(cfg))
+    state = _RunState()
+    with SignalGuard() as guard:
+        try:
+            metrics = _run(cfg, guard, resume, out_dir, state)
+        except (StopRun, SystemExit) as stop:
+            signum = guard.received or _signal_of(stop)
+            if signum is None:
+                raise
+            if state.report is None and "trainer" not in state.objects and int(os.environ.get("LOCAL_RANK", "0")) == 0:
+                state.report = _new_report(cfg, out_dir, resume)  # stopped while building: still say so
+            raise _interrupted(state.objects, state.report, signum, guard.received_during or guard.phase, out_dir) from None
+        except Exception as err:
+            if state.report is not None:
+                state.report.failed(err)
+            log.error("run failed: %s: %s", type(err).__name__, err)
+            raise
+    if guard.received is not None:
+        log.warning("received %s after the run completed; its outputs are complete", guard.received.name)
+    log.info("run completed: %s", out_dir.resolve())
+    return metrics, state.objects
+
+
+@dataclass
+class _RunState:
+    """What a run has built so far (for the report of an interrupted or failed run)."""
+
+    objects: dict[str, Any] = field(default_factory=dict)
+    report: RunReport | None = None
+
+
+def _run(cfg: DictConfig, guard: SignalGuard, resume: dict[str, Any] | None, out_dir: Path, state: _RunState) -> dict[str, Any]:
+    """Build, fit, test, plot and report, phase by phase (``guard`` stops between them)."""
+    ckpt_path = cfg.get("ckpt_path")
+    state.objects = objects = _build(cfg, guard)
+    trainer, module = objects["trainer"], objects["module"]
+    same_dir = False
+    if resume is not None:
+        check_state_dict(ckpt_path, resume["state_dict"], module)
+        _warn_if_schedule_ends_early(ckpt_path, cfg.trainer.get("max_epochs"), resume)
+        same_dir = Path(ckpt_path).resolve().parent.parent == out_dir.resolve()
+        log.info("resuming from %s (epoch %d) %s", ckpt_path, resume["epoch"],
+                 "in the same run directory" if same_dir else f"into the new run directory {out_dir}")
     if trainer.is_global_zero:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        summary = {
-            "model": cfg.model.get("name"),
-            "noise": cfg.data.get("noise"),
-            "wall_time": wall,
-            "epochs": trainer.current_epoch,
-            "metrics": {k: v for k, v in metrics.items() if isinstance(v, float)},
-            "param_errors": metrics["param_errors"],
-            "skipped_steps": module.skipped_steps,
-            "identifiability": note,
-            "table": metrics["table"],
-        }
-        (out_dir / "metrics.json").write_text(json.dumps(summary, indent=2, allow_nan=True))
-        if metrics["table"]:
-            title = "true vs learned" if truth else "learned values"
-            text = f"# {cfg.model.get('name')}: {title} ({wall:.1f} s)\n\n{format_table(metrics['table'])}\n"
-            text += f"\nskipped optimizer steps (non-finite loss or gradient): {module.skipped_steps}\n"
-            if note:
-                text += f"\nNot identifiable: {note}\n"
-            (out_dir / "results.md").write_text(text)
-            print("\n" + text)
-        if cfg.get("plots") and not trainer.fast_dev_run:
-            plot_run(out_dir, module, datamodule, history.history if history else [], truth)
-    objects = {
-        "cfg": cfg,
-        "datamodule": datamodule,
-        "module": module,
-        "trainer": trainer,
-        "callbacks": callbacks,
-        "loggers": loggers,
-    }
-    return metrics, objects
+        state.report = _new_report(cfg, out_dir, resume)
+        state.report.running()
+        for lg in objects["loggers"]:
+            if same_dir:
+                continue_csv_log(lg, int(resume["epoch"]))
+            lg.log_hyperparams(OmegaConf.to_container(cfg, resolve=True))
+    start = time.perf_counter()
+    with guard.graceful("fit"), warnings.catch_warnings():
+        if same_dir:
+            warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
+        trainer.fit(module, datamodule=objects["datamodule"], ckpt_path=ckpt_path, weights_only=True)
+    wall = time.perf_counter() - start
+    objects["fit_metrics"] = _floats(trainer.callback_metrics)  # the test replaces callback_metrics
+    guard.stop_if_received()
+    with guard.graceful("test"):
+        metrics = _evaluate(cfg, objects, state.report.previous_metrics if state.report is not None else {}, wall)
+    guard.stop_if_received()
+    if trainer.is_global_zero and cfg.get("plots") and not trainer.fast_dev_run:
+        history = next((c for c in objects["callbacks"] if isinstance(c, ParameterHistory)), None)
+        with guard.graceful("plots"):
+            plot_run(out_dir, module, objects["datamodule"], history.history if history else [], objects["truth"])
+    guard.stop_if_received()
+    if state.report is not None:
+        with guard.graceful("outputs"):  # complete: a signal now no longer stops anything
+            _report_completed(cfg, objects, state.report, metrics)
+    return metrics
+
+
+def _new_report(cfg: DictConfig, out_dir: Path, resume: dict[str, Any] | None) -> RunReport:
+    return RunReport(out_dir, model=cfg.model.get("name"), noise=cfg.data.get("noise"),
+                     max_epochs=cfg.trainer.get("max_epochs"), overrides=_overrides(),
+                     resumed_from=(cfg.ckpt_path, int(resume["epoch"])) if resume is not None else None)
+
+
+def _signal_of(stop: BaseException) -> int | None:
+    """The signal behind a stop: StopRun's own, SIGTERM for Lightning's SIGTERMException
+    (e.g. broadcast to this rank by another one), None for any other SystemExit."""
+    if isinstance(stop, StopRun):
+        return stop.signum
+    if isinstance(stop, SIGTERMException):
+        return signal.SIGTERM
+    return None
+
+
+def _interrupted(objects: dict[str, Any], report: RunReport | None, signum: int, phase: str, out_dir: Path) -> RunInterrupted:
+    """Write the interrupted report (rank zero) and return the exception to raise."""
+    last, _ = _checkpoint_files(objects.get("callbacks", []))
+    epochs = (_epoch_of(last) + 1) if last else 0
+    if report is not None:
+        trainer = objects.get("trainer")
+        metrics = objects.get("fit_metrics") or (_floats(trainer.callback_metrics) if trainer is not None else {})
+        metrics = {**report.previous_metrics, **metrics}
+        report.interrupted(signum, phase, epochs=epochs, checkpoint=last, metrics=metrics,
+                           data_summary=data_summary(objects.get("datamodule")))
+    stop = RunInterrupted(signum, phase, str(out_dir.resolve()), str(Path(last).resolve()) if last else None)
+    log.error("%s", stop)
+    return stop
+
+
+def _route_lightning_logs() -> None:
+    """Send Lightning's log records through the handlers Hydra configured (console and train.log).
+
+    Imported before logging is configured, Lightning gives its loggers a console handler of
+    their own and stops them propagating, which keeps its messages out of train.log.
+    """
+    if not logging.getLogger().handlers:
+        return
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+        logger = logging.getLogger(name)
+        for handler in [h for h in logger.handlers if type(h) is logging.StreamHandler]:
+            logger.removeHandler(handler)
+        logger.propagate = True
 
 
 def config_path() -> str:
@@ -199,8 +410,13 @@ def config_path() -> str:
 
 @hydra.main(version_base="1.3", config_path=config_path(), config_name="train")
 def main(cfg: DictConfig) -> float | None:
-    """Hydra entry point; returns val/nll (for Hydra sweepers)."""
-    metrics, _ = train(cfg)
+    """Hydra entry point; returns val/nll (for Hydra sweepers). An interrupted run exits with
+    ``128 + signal`` (143 for SIGTERM, 130 for SIGINT), so no scheduler records it as a success."""
+    _route_lightning_logs()
+    try:
+        metrics, _ = train(cfg)
+    except RunInterrupted as stop:
+        sys.exit(stop.exit_code)
     value = metrics.get("val/nll")
     return float(value) if value is not None else None
 
