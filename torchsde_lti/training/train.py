@@ -143,6 +143,7 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     ckpt = next((c for c in callbacks if isinstance(c, pl.callbacks.ModelCheckpoint)), None)
     metrics["best_model_path"] = ckpt.best_model_path if ckpt is not None else ""
     history = next((c for c in callbacks if isinstance(c, ParameterHistory)), None)
+    data_summary = getattr(datamodule, "summary", None)  # real tracks: what the loader kept and removed
 
     if trainer.is_global_zero:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -156,6 +157,7 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             "skipped_steps": module.skipped_steps,
             "identifiability": note,
             "table": metrics["table"],
+            "data": data_summary.as_dict() if data_summary is not None else None,
         }
         (out_dir / "metrics.json").write_text(json.dumps(summary, indent=2, allow_nan=True))
         if metrics["table"]:
@@ -164,6 +166,8 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             text += f"\nskipped optimizer steps (non-finite loss or gradient): {module.skipped_steps}\n"
             if note:
                 text += f"\nNot identifiable: {note}\n"
+            if data_summary is not None:
+                text += f"\n## Data\n\n```\n{data_summary}\n```\n"
             (out_dir / "results.md").write_text(text)
             print("\n" + text)
         if cfg.get("plots") and not trainer.fast_dev_run:
