@@ -7,7 +7,6 @@ The only place in :mod:`torchsde_lti.data` that imports Lightning; both yield
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import os

@@ -390,9 +390,9 @@ def _csv_header(path: Path, skip: int) -> list[str]:
 
 def _object_ids(ids: np.ndarray, ok: np.ndarray) -> np.ndarray:
     """int64 when every readable id is an integer (MMSI), else the strings (call signs)."""
-    if ok.any() and np.char.isdigit(np.char.lstrip(ids[ok], "-")).all():
-        try:
-            return np.where(ok, ids, "0").astype(np.int64)
-        except (ValueError, OverflowError):
-            pass
-    return ids
+    if not ok.any():
+        return ids
+    try:
+        return np.where(ok, ids, "0").astype(np.int64)
+    except (ValueError, OverflowError):
+        return ids

@@ -405,6 +405,7 @@ def _reject_jumps(t: np.ndarray, lat: np.ndarray, lon: np.ndarray, start: np.nda
     first = np.flatnonzero(start)
     bounds = np.concatenate([first, [len(t)]])
     flagged = np.unique(np.searchsorted(first, np.flatnonzero(fast) + 1, side="right") - 1)
+    step_ok = np.concatenate([[True], ~fast])  # step_ok[i]: the step (i - 1 -> i) is plausible
     dropped = cuts = 0
 
     def speed(a: int, b: int) -> float:
@@ -414,7 +415,7 @@ def _reject_jumps(t: np.ndarray, lat: np.ndarray, lon: np.ndarray, start: np.nda
         a, b = int(bounds[s]), int(bounds[s + 1])
         last = a
         for i in range(a + 1, b):
-            if speed(last, i) <= v_max:
+            if (step_ok[i] if last == i - 1 else speed(last, i) <= v_max):
                 last = i
             elif i + 1 < b and speed(last, i + 1) <= v_max:
                 keep[i] = False  # a lone outlier
