@@ -281,6 +281,8 @@ def forecast_mixture(model: tl.KalmanFilter | tl.IMMFilter, out: object, b: Tens
 
 def collect(model: tl.KalmanFilter | tl.IMMFilter, batch: TrackBatch, curve_min: tuple[float, ...]) -> dict[str, Tensor]:
     """Per-report (reports 2..T) and per-forecast-pair arrays of one batch (see :func:`summarise`)."""
+    if batch.sog is None:  # no SOG/COG in the file (.traj): velocity and SOG metrics become NaN
+        batch = batch._replace(sog=torch.full_like(batch.dt, math.nan), vel=torch.full_like(batch.y, math.nan))
     with torch.no_grad():
         out, w, ym, S = predictive_mixture(model, batch)
         m = batch.mask.clone()

@@ -62,11 +62,12 @@ class EpochTimer(pl.Callback):
 
 
 SETUP = r"""
-import json, resource, sys, time
-def rss_mb():
+import json, sys, time
+def status_mb(key):  # VmRSS now, VmHWM the peak (unlike ru_maxrss, not inherited from the parent across exec)
     for line in open("/proc/self/status"):
-        if line.startswith("VmRSS"):
+        if line.startswith(key):
             return int(line.split()[1]) / 1024
+rss_mb = lambda: status_mb("VmRSS")
 from torchsde_lti.data.modules import TrackDataModule
 import pymap3d, pyarrow  # noqa: F401  (imports counted before the clock starts)
 before = rss_mb()
@@ -76,7 +77,7 @@ dm.setup()
 wall = time.perf_counter() - start
 print(json.dumps({"seconds": wall, "reports_read": dm.tracks.summary.rows, "reports": dm.tracks.num_reports,
                   "windows": sum(len(w) for w in dm.windows.values()), "rss_before_mb": before,
-                  "rss_after_mb": rss_mb(), "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  "rss_after_mb": rss_mb(), "peak_rss_mb": status_mb("VmHWM"),
                   **{f"waste_{k}": v["padding_waste"] for k, v in dm.summary.splits.items()}}))
 """
 
