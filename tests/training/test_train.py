@@ -41,7 +41,7 @@ def _group(name: str) -> list[str]:
 # --------------------------------------------------------------------------- composition
 
 
-@pytest.mark.parametrize("model", [m for m in _group("model") if m != "imm"])  # imm: test_imm_training.py
+@pytest.mark.parametrize("model", [m for m in _group("model") if not m.startswith("imm")])  # imm*: test_imm_training.py, test_real_data.py
 def test_model_configs_instantiate_filter_and_data(tmp_path: Path, model: str) -> None:
     cfg = _cfg(tmp_path, f"model={model}", *TINY)
     dm = instantiate(cfg.data)
