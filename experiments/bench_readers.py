@@ -5,7 +5,8 @@
 Each case runs in a fresh subprocess (so import time and peak memory are the library's own):
 read the MarineCadastre AIS columns (MMSI, BaseDateTime, LAT, LON, SOG, COG) of a file into
 numpy arrays (int64 ids, datetime64 times, float64 values), as the loader needs them.
-Files: the NY Harbor hour shipped by tracktable-data (8.7k rows), and a 40x copy of it with
+pyarrow imports pandas (when installed) at its first conversion to numpy: it runs once as is and
+once with pandas hidden, as in an install without pandas. Files: the NY Harbor hour shipped by tracktable-data (8.7k rows), and a 40x copy of it with
 shifted MMSIs (348k rows) as CSV and as Parquet, written into a temporary directory.
 Figures: median of ``--repeat`` runs (seconds to import the library, seconds to read, peak RSS of
 the process: VmHWM).
@@ -29,6 +30,14 @@ start = time.perf_counter()
 lib, path = sys.argv[1], sys.argv[2]
 cols = ["MMSI", "BaseDateTime", "LAT", "LON", "SOG", "COG"]
 import numpy as np
+if lib == "pyarrow, no pandas":  # pyarrow imports pandas, when installed, at its first conversion to numpy
+    import importlib.abc
+    class NoPandas(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path=None, target=None):
+            if name.split(".")[0] == "pandas":
+                raise ImportError("pandas hidden for this case")
+    sys.meta_path.insert(0, NoPandas())
+    lib = "pyarrow"
 if lib == "pyarrow":
     import pyarrow.compute as pc, pyarrow.csv as pcsv, pyarrow.parquet as pq
 elif lib == "pandas":
@@ -91,7 +100,7 @@ def main(argv: list[str] | None = None) -> str:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for path in make_files(Path(tmp), args.copies):
-            for lib in ("pyarrow", "pandas", "polars"):
+            for lib in ("pyarrow", "pyarrow, no pandas", "pandas", "polars"):
                 runs = [run_case(lib, path) for _ in range(args.repeat)]
                 rows.append((path.name, runs[0]["rows"], lib, statistics.median(r["import_s"] for r in runs),
                              statistics.median(r["read_s"] for r in runs),

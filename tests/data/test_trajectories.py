@@ -149,7 +149,7 @@ def test_rules_count_everything() -> None:
         assert np.all(np.diff(seg["t"]) > 0)
         assert np.all(np.linalg.norm(np.diff(seg["pos"], axis=0), axis=1) / np.diff(seg["t"]) <= 50.0)
     text = str(s)
-    for phrase in ("repeated timestamps dropped", "jumps > 50.0 m/s", "cuts at gaps > 1800.0 s", "invalid positions"):
+    for phrase in ("repeated timestamps dropped", "jumps: > 50.0 m/s", "cuts at gaps: > 1800.0 s", "invalid positions"):
         assert phrase in text
 
 

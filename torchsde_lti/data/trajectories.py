@@ -94,15 +94,16 @@ class LoadSummary:
 
     def __str__(self) -> str:
         r = self.rules
+        off = lambda key, text: text.format(r[key]) if r.get(key) is not None else f"{key} off"  # noqa: E731
         rows = [
             ("malformed lines / rows skipped", self.malformed),
             ("invalid positions dropped", self.invalid_positions),
             ("repeated timestamps dropped", self.repeated_timestamps),
             (f"cuts at split times ({len(r.get('cut_times') or ())})", self.time_cuts),
-            (f"cuts at gaps > {r.get('max_gap')} s", self.gap_splits),
-            (f"jumps > {r.get('v_max')} m/s: reports dropped", self.jump_reports_dropped),
-            (f"jumps > {r.get('v_max')} m/s: tracks cut", self.jump_splits),
-            (f"cuts at {r.get('max_extent')} m from the track's origin", self.extent_splits),
+            (f"cuts at gaps: {off('max_gap', '> {} s')}", self.gap_splits),
+            (f"jumps: {off('v_max', '> {} m/s')}: reports dropped", self.jump_reports_dropped),
+            (f"jumps: {off('v_max', '> {} m/s')}: tracks cut", self.jump_splits),
+            (f"cuts at extent: {off('max_extent', '{} m from the origin')}", self.extent_splits),
             (f"tracks < {r.get('min_reports')} reports dropped (reports)", f"{self.short_tracks} ({self.short_reports})"),
         ]
         if self.courses_decoded:
