@@ -1,27 +1,35 @@
 """Learned motion models vs a tuned constant-velocity filter on real AIS ship tracks.
 
-    python experiments/ais_study.py            # ~ a few minutes on 2 CPU cores
+    python experiments/ais_study.py --train      # train the models through the one path, then evaluate
+    python experiments/ais_study.py              # evaluate the runs already in --runs
+    python experiments/ais_study.py --holdout NYHarbor_2020_12_08.traj --json out.json   # frozen, reserved file
 
-Data: one hour of AIS reports in New York Harbor (``torchsde_lti.data.ais``, needs the optional
-package tracktable-data), vessels split 60/20/20 into train/val/test with seed 0, positions
-in a local east/north frame (metres), each track centred on its first report.
+Training is NOT done here: every learned model is a run of the one training path,
+``python -m torchsde_lti.train experiment=ais model=<m> seed=<s>`` (Lightning + Hydra, full-batch
+L-BFGS on the training vessels, checkpoint chosen by validation NLL) or ``experiment=ais_imm``;
+``--train`` launches the missing runs into ``--runs`` (``<runs>/<model>/seed<s>``). This script
+rebuilds each run's filter from its saved Hydra config, loads its best checkpoint, and evaluates.
+
+Data: one hour of AIS reports in New York Harbor (conf/data/ais.yaml: ``tl.data.load_tracks`` of
+``NYHarbor_2020_06_30_first_hour.csv``, optional package tracktable-data), vessels split
+60/20/20 into train/val/test with the run's seed, positions in each track's own east/north frame
+(metres), each track centred on its first report.
 
 Models (all exact-discretisation Kalman filters over the irregular report times, observing
 position with noise R, a full 2x2 covariance when learned):
 
 - ``cv (grid)``: the practitioner's baseline, constant velocity with isotropic R; q and
-  R chosen by grid search on the VALIDATION vessels' predictive NLL;
+  R chosen by grid search on the VALIDATION vessels' predictive NLL (no gradient training);
 - ``cv``: constant velocity, q and R learned;
 - ``integrated_ou``: velocity with drag k (dv = -k v dt + dβ), k, q, R learned;
 - ``singer``: acceleration with drag alpha, alpha, q, R learned;
 - ``hurwitz_drag``: coupled 2-D velocity dynamics dv = F_v v dt + dβ with a learned 2x2
-  Hurwitz-stable F_v (can rotate and damp) and a full learned Qc, R.
+  Hurwitz-stable F_v (can rotate and damp) and a full learned Qc, R;
+- ``imm``: moored + underway modes with learned continuous-time switching (conf/model/imm.yaml).
 
-Learned models maximise the Kalman-filter likelihood of the TRAINING vessels (full batch,
-L-BFGS, float64). The prior sits at each track's first report: x0 ~ N(0, P0) with P0 =
-diag(100 m, 5 m/s, 0.1 m/s^2)^2 per axis (shared by all models); since the tracks are
-centred on that report, its own likelihood term is left out of training and evaluation:
-every NLL is of reports 2..T given the earlier ones.
+The prior of every model sits at each track's first report (the runs' ``filter.diffuse_variance``,
+the grid baseline the same); since the tracks are centred on that report, its own likelihood term
+is left out of evaluation: every NLL is of reports 2..T given the earlier ones.
 
 Test metrics (test vessels only): one-step predictive NLL per 2-D report (nats), one-step
 position RMSE (m, Euclidean), share of reports inside the predictive 2σ ellipse (86.5 %
@@ -30,7 +38,7 @@ for a calibrated Gaussian), forecast RMSE at 1, 5, 10 min (from every filtered s
 and RMSE of the filtered velocity against the SOG/COG velocity (m/s), for all reports and
 for reports with SOG >= 2 kn.
 
-Writes experiments/results/ais.md, ais_map.png, ais_horizon.png (and ais_metrics.json).
+Writes experiments/results/ais.md, ais_map.png, ais_horizon.png, ais_imm_modes.png (and ais_metrics.json).
 """
 
 from __future__ import annotations
@@ -38,65 +46,85 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import subprocess
+import sys
 import time
 from pathlib import Path
-from typing import Callable, NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
 import torchsde_lti as tl
-from torchsde_lti.data import TrackBatch, ais
+from torchsde_lti.data import TrackBatch, Tracks, load_tracks, pad_tracks, track_windows
 from torchsde_lti.filters import FilterResult
-from torchsde_lti.nn.parametrizations import IntegratorChain
 
 HORIZONS_MIN = (1.0, 5.0, 10.0)
 CURVE_MIN = (1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0)
-P0_STD = (100.0, 5.0, 0.1)  # per axis: position (m), velocity (m/s), acceleration (m/s^2)
 CHI2_2SIGMA = 4.0  # Mahalanobis² of the 2σ ellipse in 2-D; P(chi2_2 <= 4) = 1 - e^-2
 Q_GRID = 10.0 ** np.arange(-5.0, 0.01, 0.5)  # baseline grid for q, m²/s³, half decades
 R_STD_GRID = np.array([2.0, 3.0, 5.0, 7.0, 10.0, 15.0, 20.0, 30.0, 50.0])  # baseline grid for sqrt(R), m
+#: The runs compared: Hydra overrides of ``python -m torchsde_lti.train`` (ship-scale starts).
+RUNS: dict[str, list[str]] = {
+    "cv": ["experiment=ais", "model=cv"],
+    "integrated_ou": ["experiment=ais", "model=integrated_ou", "model.init.k=0.01"],
+    "singer": ["experiment=ais", "model=singer", "model.init.alpha=0.02", "model.init.q=1e-4"],
+    "hurwitz_drag": ["experiment=ais", "model=hurwitz_drag", "~model.init.q",
+                     "model.init.F=[[0,1,0,0],[0,-0.01,0,0],[0,0,0,1],[0,0,0,-0.01]]",
+                     "model.init.Qc=[[0.01,0],[0,0.01]]"],
+    "imm": ["experiment=ais_imm"],
+}
 
 
-class Spec(NamedTuple):
-    """A motion model: its SDE, the per-axis order of its state (2: [p, v], 3: [p, v, a])."""
-
-    name: str
-    build: Callable[[], tl.LTISDE]
-    order: int
-    about: str
-
-
-def _f64(x: float) -> Tensor:
-    return torch.tensor(x, dtype=torch.float64)
-
-
-def hurwitz_drag() -> tl.LTISDE:
-    """[x, vx, y, vy] with dx = v dt, dv = F_v v dt + dβ, F_v (2, 2) Hurwitz, Qc (2, 2) full."""
-    F = torch.tensor([[0, 1, 0, 0], [0, -0.01, 0, 0], [0, 0, 0, 1], [0, 0, 0, -0.01]], dtype=torch.float64)
-    L = torch.tensor([[0, 0], [1, 0], [0, 0], [0, 1]], dtype=torch.float64)
-    sde = tl.LTISDE(F, L, 0.01 * torch.eye(2, dtype=torch.float64), learn=("F", "Qc"),
-                    F_constraint=IntegratorChain(order=2, dim=2, drag="hurwitz"))
-    sde.position_indices = (0, 2)
-    return sde
+def train_runs(root: Path, seeds: list[int]) -> None:
+    """Launch the missing runs of :data:`RUNS` (one process each, the CLI a user types)."""
+    for name, overrides in RUNS.items():
+        for seed in seeds:
+            run = root / name / f"seed{seed}"
+            if (run / "metrics.json").is_file():
+                continue
+            cmd = [sys.executable, "-m", "torchsde_lti.train", *overrides, f"seed={seed}", "plots=false",
+                   f"hydra.run.dir={run}"]
+            print("$", " ".join(cmd[1:]), flush=True)
+            subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
 
 
-SPECS = [
-    Spec("cv", lambda: tl.models.constant_velocity(dim=2, q=_f64(0.01)), 2, "q, R"),
-    Spec("integrated_ou", lambda: tl.models.integrated_ou(k=_f64(0.01), q=_f64(0.01), dim=2), 2, "k, q, R"),
-    Spec("singer", lambda: tl.models.singer(alpha=_f64(0.02), q=_f64(1e-4), dim=2), 3, "alpha, q, R"),
-    Spec("hurwitz_drag", hurwitz_drag, 2, "F_v (2x2 Hurwitz), Qc (2x2), R"),
-]
+def load_run(run: Path) -> tuple[tl.KalmanFilter | tl.IMMFilter, object]:
+    """(filter with the run's best weights, float64, eval mode; the run's config)."""
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.load(run / ".hydra" / "config.yaml")
+    best = sorted((run / "checkpoints").glob("epoch*.ckpt")) or [run / "checkpoints" / "last.ckpt"]
+    state = torch.load(best[-1], map_location="cpu", weights_only=True)["state_dict"]
+    kf = instantiate(cfg.filter).to(torch.float64)
+    kf.load_state_dict({k.removeprefix("kf."): v for k, v in state.items() if k.startswith("kf.")})
+    return kf.eval(), cfg
 
 
-def make_filter(sde: tl.LTISDE, order: int, R: Tensor, learn_R: bool = True) -> tl.KalmanFilter:
-    """Position-observing filter with the shared prior N(0, diag(P0_STD[:order])^2 per axis)."""
+def split_batches(cfg: object) -> tuple[dict[str, TrackBatch], object]:
+    """The run's data (its config, float64) as one padded batch per split, and the DataModule."""
+    from hydra.utils import instantiate
+
+    dm = instantiate(cfg.data, dtype="float64")
+    dm.setup()
+    return {name: pad_tracks(w) for name, w in dm.windows.items()}, dm
+
+
+def make_filter(sde: tl.LTISDE, R: Tensor, P0_var: float) -> tl.KalmanFilter:
+    """Position-observing filter with the runs' prior N(0, P0_var I) at the first report."""
     H = tl.models.position_observation(sde)
-    n = H.shape[-1]
-    var = torch.tensor([s**2 for s in P0_STD[:order]] * (n // order), dtype=torch.float64)
-    return tl.KalmanFilter(sde, H, R, m0=torch.zeros(n, dtype=torch.float64), P0=torch.diag(var),
-                           learn=("R",) if learn_R else ())
+    return tl.KalmanFilter(sde, H, R, learn=(), diffuse_variance=P0_var)
+
+
+def dt_summary(tracks: Tracks) -> dict[str, float]:
+    """Count, quantiles (min, 5, 25, 50, 75, 95, max) and mean of within-track dt, seconds."""
+    starts = np.zeros(len(tracks.t), dtype=bool)
+    starts[tracks.offsets[:-1]] = True
+    dts = np.diff(tracks.t)[~starts[1:]]
+    qs = np.percentile(dts, [0, 5, 25, 50, 75, 95, 100])
+    keys = ["min", "p05", "p25", "median", "p75", "p95", "max"]
+    return {"n": int(dts.size), "mean": float(dts.mean()), **dict(zip(keys, map(float, qs)))}
 
 
 def velocity_readout(kf: tl.KalmanFilter) -> Tensor:
@@ -127,24 +155,6 @@ def run_model(model: tl.KalmanFilter | tl.IMMFilter, batch: TrackBatch) -> objec
     return run_filter(model, batch)
 
 
-def build_imm() -> tl.IMMFilter:
-    """Two-mode IMM in [x, vx, y, vy]: moored (velocity damped at rate k, position random walk)
-    and underway (integrated OU), per-mode R, learned switching rates and initial mode
-    probabilities; the modes' k, q are learned too. Prior per mode: position std 100 m,
-    velocity std 0.5 m/s (moored) / 5 m/s (underway)."""
-    moored = tl.models.moored(k=_f64(0.05), q=_f64(0.01), dim=2)
-    underway = tl.models.integrated_ou(k=_f64(0.005), q=_f64(0.01), dim=2)
-    H = tl.models.position_observation(underway)
-    eye = torch.eye(2, dtype=torch.float64)
-    R = torch.stack([5.0**2 * eye, 20.0**2 * eye])
-    rates = torch.tensor([[0.0, 1 / 1800], [1 / 1800, 0.0]], dtype=torch.float64)
-    P0 = torch.stack([torch.diag(torch.tensor([100.0**2, v**2, 100.0**2, v**2], dtype=torch.float64))
-                      for v in (0.5, P0_STD[1])])
-    return tl.IMMFilter([moored, underway], H, R, rates, m0=torch.zeros(4, dtype=torch.float64), P0=P0,
-                        mode_prob0=torch.tensor([0.5, 0.5], dtype=torch.float64),
-                        learn=("R", "rates", "mode_prob0"), unique_dt=True)
-
-
 def vessel_nll(kf: tl.KalmanFilter | tl.IMMFilter, batch: TrackBatch) -> tuple[np.ndarray, np.ndarray]:
     """Per vessel: summed -log p(y_k | y_<k) over reports 2..T, and the number of them. (B,), (B,)."""
     with torch.no_grad():
@@ -171,41 +181,15 @@ def predictive_nll(out: object, batch: TrackBatch) -> Tensor:
     return -(out.step_log_likelihood[:, 1:] * m).sum() / m.sum()
 
 
-def fit(kf: tl.KalmanFilter, batch: TrackBatch, max_iter: int) -> dict[str, float]:
-    """Maximise the training likelihood with full-batch L-BFGS (strong Wolfe line search)."""
-    params = [p for p in kf.parameters() if p.requires_grad]
-    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=max_iter, history_size=20,
-                            line_search_fn="strong_wolfe", tolerance_grad=1e-7, tolerance_change=1e-10)
-    evals = 0
-
-    def closure() -> Tensor:
-        nonlocal evals
-        evals += 1
-        opt.zero_grad()
-        loss = predictive_nll(run_model(kf, batch), batch)
-        loss.backward()
-        if not (torch.isfinite(loss) and all(torch.isfinite(p.grad).all() for p in params)):
-            # a trial point of the line search left the valid region (e.g. a singular
-            # innovation covariance): report a high loss so that the line search backtracks
-            opt.zero_grad()
-            return torch.tensor(1e6, dtype=loss.dtype)
-        return loss
-
-    start = time.perf_counter()
-    opt.step(closure)
-    with torch.no_grad():
-        final = float(predictive_nll(run_model(kf, batch), batch))
-    return {"train_nll": final, "evals": evals, "seconds": time.perf_counter() - start}
-
-
-def grid_search_cv(val: TrackBatch, q_grid: np.ndarray, r_grid: np.ndarray) -> tuple[float, float, np.ndarray]:
+def grid_search_cv(val: TrackBatch, q_grid: np.ndarray, r_grid: np.ndarray,
+                   P0_var: float) -> tuple[float, float, np.ndarray]:
     """Validation NLL of constant velocity over q x R_std; returns best q, best R std, table."""
     table = np.empty((len(q_grid), len(r_grid)))
     with torch.no_grad():
         for i, q in enumerate(q_grid):
             for j, r in enumerate(r_grid):
-                kf = make_filter(tl.models.constant_velocity(dim=2, q=_f64(q)), 2,
-                                 r**2 * torch.eye(2, dtype=torch.float64), learn_R=False)
+                kf = make_filter(tl.models.constant_velocity(dim=2, q=torch.tensor(q, dtype=torch.float64)),
+                                 r**2 * torch.eye(2, dtype=torch.float64), P0_var)
                 table[i, j] = float(predictive_nll(run_filter(kf, val), val))
     i, j = np.unravel_index(np.argmin(table), table.shape)
     return float(q_grid[i]), float(r_grid[j]), table
@@ -297,6 +281,8 @@ def forecast_mixture(model: tl.KalmanFilter | tl.IMMFilter, out: object, b: Tens
 
 def collect(model: tl.KalmanFilter | tl.IMMFilter, batch: TrackBatch, curve_min: tuple[float, ...]) -> dict[str, Tensor]:
     """Per-report (reports 2..T) and per-forecast-pair arrays of one batch (see :func:`summarise`)."""
+    if batch.sog is None:  # no SOG/COG in the file (.traj): velocity and SOG metrics become NaN
+        batch = batch._replace(sog=torch.full_like(batch.dt, math.nan), vel=torch.full_like(batch.y, math.nan))
     with torch.no_grad():
         out, w, ym, S = predictive_mixture(model, batch)
         m = batch.mask.clone()
@@ -395,7 +381,7 @@ def describe(kf: tl.KalmanFilter | tl.IMMFilter) -> str:
     return ", ".join(parts)
 
 
-def plot_map(path: Path, tracks: list[ais.AISTrack], batch: TrackBatch, filters: dict[str, tl.KalmanFilter]) -> None:
+def plot_map(path: Path, batch: TrackBatch, filters: dict[str, tl.KalmanFilter]) -> None:
     """Test tracks (grey), with one-step predictions and 2σ ellipses for a few underway vessels."""
     import matplotlib
 
@@ -409,18 +395,19 @@ def plot_map(path: Path, tracks: list[ais.AISTrack], batch: TrackBatch, filters:
     grid = fig.add_gridspec(2, 3)
     ax0 = fig.add_subplot(grid[:, 0])
     axes = [ax0] + [fig.add_subplot(grid[r, c]) for r in range(2) for c in (1, 2)][: len(moving)]
-    for tr in tracks:
-        ax0.plot(tr.pos[:, 0] / 1e3, tr.pos[:, 1] / 1e3, "-", color="0.6", lw=0.8)
-        ax0.plot(tr.pos[0, 0] / 1e3, tr.pos[0, 1] / 1e3, ".", color="0.3", ms=3)
-    ax0.set_title(f"{len(tracks)} test vessels (east/north km)")
+    for i in range(batch.y.shape[0]):  # each track in its own frame: origin at its first report
+        pos = batch.y[i, : int(batch.lengths[i])].numpy()
+        ax0.plot(pos[:, 0] / 1e3, pos[:, 1] / 1e3, "-", color="0.6", lw=0.8)
+    ax0.plot(0, 0, ".", color="0.3", ms=4)
+    ax0.set_title(f"{batch.y.shape[0]} test vessels, each from its first report (east/north km)")
     ax0.set_aspect("equal")
     colors = ["C3", "C0", "C2", "C1", "C4"]
     with torch.no_grad():
         outs = {name: run_filter(kf, batch) for name, kf in filters.items()}
     for c, (ax, i) in enumerate(zip(axes[1:], moving)):
         T = int(batch.lengths[i])
-        org = batch.origin[i].numpy()
-        y = batch.y[i, :T].numpy() + org
+        org = np.zeros(2)
+        y = batch.y[i, :T].numpy()
         ax0.plot(y[:, 0] / 1e3, y[:, 1] / 1e3, "-", color=f"C{c + 5}", lw=2)
         ax.plot(y[:, 0], y[:, 1], "k.-", lw=0.8, ms=4, label="AIS reports", zorder=5)
         for (name, out), col in zip(outs.items(), colors):
@@ -432,7 +419,7 @@ def plot_map(path: Path, tracks: list[ais.AISTrack], batch: TrackBatch, filters:
                 ang = math.degrees(math.atan2(V[1, 1], V[0, 1]))
                 ax.add_patch(Ellipse(p, 4 * math.sqrt(w[1]), 4 * math.sqrt(w[0]), angle=ang,
                                      fill=False, color=col, lw=0.7, alpha=0.7))
-        ax.set_title(f"MMSI {int(batch.track_id[i])}, median SOG {np.median(sog[i, :T]):.1f} kn")
+        ax.set_title(f"track {int(batch.track_id[i])}, median SOG {np.nanmedian(sog[i, :T]):.1f} kn")
         ax.set_aspect("equal")
         ax.set_xlabel("east (m)")
         ax.set_ylabel("north (m)")
@@ -464,105 +451,65 @@ def plot_horizon(path: Path, results: dict[str, dict[str, float]]) -> None:
     plt.close(fig)
 
 
-def fit_all(data: ais.AISData, seed: int, max_iter: int, verbose: bool = True) -> tuple[
-        dict[str, tl.KalmanFilter], dict[str, dict[str, object]], list[TrackBatch], list[list[ais.AISTrack]]]:
-    """Split vessels with ``seed``, grid-tune the baseline on val, train the learned models on train."""
-    idx = ais.split_vessels(len(data.tracks), seed=seed)
-    split_tracks = [[data.tracks[i] for i in ix] for ix in idx]
-    batches = [ais.ais_batch(s, center=True, dtype=torch.float64) for s in split_tracks]
-    train, val, _ = batches
-    filters: dict[str, tl.KalmanFilter] = {}
-    info: dict[str, dict[str, object]] = {}
-    t0 = time.perf_counter()
-    q_best, r_best, table = grid_search_cv(val, Q_GRID, R_STD_GRID)
-    filters["cv (grid)"] = make_filter(tl.models.constant_velocity(dim=2, q=_f64(q_best)), 2,
-                                       r_best**2 * torch.eye(2, dtype=torch.float64), learn_R=False)
-    info["cv (grid)"] = {"learned": f"grid: q={q_best:.3g} m²/s³, R={r_best:g}² m² I ({table.size} points)",
-                         "seconds": time.perf_counter() - t0, "q": q_best, "r_std": r_best}
-    if verbose:
-        print(f"[seed {seed}] grid search: q={q_best:.3g}, R std={r_best} ({time.perf_counter() - t0:.1f} s)",
-              flush=True)
-    for spec in SPECS:
-        torch.manual_seed(0)
-        kf = make_filter(spec.build(), spec.order, 10.0**2 * torch.eye(2, dtype=torch.float64))
-        stats = fit(kf, train, max_iter)
-        filters[spec.name] = kf
-        info[spec.name] = {**stats, "learned": describe(kf)}
-        if verbose:
-            print(f"[seed {seed}] {spec.name}: {stats} {describe(kf)}", flush=True)
-    torch.manual_seed(0)
-    imm = build_imm()
-    stats = fit(imm, train, max_iter)
-    filters["imm"] = imm
-    info["imm"] = {**stats, "learned": describe_imm(imm)}
-    if verbose:
-        print(f"[seed {seed}] imm: {stats} {describe_imm(imm)}", flush=True)
-    return filters, info, batches, split_tracks
-
-
-# ---------------------------------------------------------------------------- saved models
-def model_config(name: str, info: dict[str, object]) -> dict[str, object]:
-    """The config that rebuilds ``name`` (then ``load_state_dict`` restores the fitted values)."""
-    if name == "cv (grid)":
-        return {"kind": "cv_grid", "q": info["q"], "r_std": info["r_std"]}
-    if name == "imm":
-        return {"kind": "imm"}
-    spec = next(sp for sp in SPECS if sp.name == name)
-    return {"kind": "kf", "spec": spec.name}
-
-
-def build_from_config(cfg: dict[str, object]) -> tl.KalmanFilter | tl.IMMFilter:
-    if cfg["kind"] == "cv_grid":
-        return make_filter(tl.models.constant_velocity(dim=2, q=_f64(float(cfg["q"]))), 2,
-                           float(cfg["r_std"]) ** 2 * torch.eye(2, dtype=torch.float64), learn_R=False)
-    if cfg["kind"] == "imm":
-        return build_imm()
-    spec = next(sp for sp in SPECS if sp.name == cfg["spec"])
-    return make_filter(spec.build(), spec.order, 10.0**2 * torch.eye(2, dtype=torch.float64))
-
-
-def save_models(path: Path, filters: dict[str, object], info: dict[str, dict[str, object]]) -> None:
-    """One file ``models.pt``: {name: {"config": ..., "state_dict": ...}} (torch.load(weights_only=True) works)."""
-    torch.save({name: {"config": model_config(name, info[name]), "state_dict": m.state_dict()}
-                for name, m in filters.items()}, path)
-
-
-def load_models(path: Path) -> dict[str, tl.KalmanFilter | tl.IMMFilter]:
-    saved = torch.load(path, weights_only=True)
-    out = {}
-    for name, entry in saved.items():
-        model = build_from_config(entry["config"])
-        model.load_state_dict(entry["state_dict"])
-        out[name] = model.eval()
-    return out
-
-
-def chunks(tracks: list[ais.AISTrack], max_steps: int = 100_000) -> list[list[ais.AISTrack]]:
-    """Tracks sorted by length and grouped so that each padded batch has <= max_steps (B x T)."""
-    order = sorted(tracks, key=lambda tr: len(tr.t))
-    groups: list[list[ais.AISTrack]] = []
-    cur: list[ais.AISTrack] = []
-    for tr in order:
-        if cur and (len(cur) + 1) * len(tr.t) > max_steps:
+def chunks(lengths: list[int], max_steps: int = 100_000) -> list[list[int]]:
+    """Indices sorted by length and grouped so that each padded batch has <= max_steps (B x T)."""
+    order = sorted(range(len(lengths)), key=lambda i: lengths[i])
+    groups: list[list[int]] = []
+    cur: list[int] = []
+    for i in order:
+        if cur and (len(cur) + 1) * lengths[i] > max_steps:
             groups.append(cur)
             cur = []
-        cur.append(tr)
+        cur.append(i)
     return groups + ([cur] if cur else [])
 
 
+def baseline(val: TrackBatch, P0_var: float) -> tuple[tl.KalmanFilter, dict[str, object]]:
+    """cv (grid): constant velocity, q and isotropic R chosen on the validation vessels."""
+    t0 = time.perf_counter()
+    q, r, table = grid_search_cv(val, Q_GRID, R_STD_GRID, P0_var)
+    kf = make_filter(tl.models.constant_velocity(dim=2, q=torch.tensor(q, dtype=torch.float64)),
+                     r**2 * torch.eye(2, dtype=torch.float64), P0_var)
+    return kf, {"learned": f"grid: q={q:.3g} m²/s³, R={r:g}² m² I ({table.size} points)",
+                "seconds": time.perf_counter() - t0, "q": q, "r_std": r}
+
+
+def load_seed(root: Path, seed: int) -> tuple[dict[str, object], dict[str, dict[str, object]], dict[str, TrackBatch], object]:
+    """Every model of one vessel split: the baseline tuned on its val split and the saved runs."""
+    models: dict[str, object] = {}
+    info: dict[str, dict[str, object]] = {}
+    batches = dm = None
+    for name in RUNS:
+        run = root / name / f"seed{seed}"
+        if not (run / "metrics.json").is_file():
+            raise FileNotFoundError(f"no run {run}: train it with `python experiments/ais_study.py --train`")
+        kf, cfg = load_run(run)
+        if batches is None:
+            batches, dm = split_batches(cfg)
+            P0_var = float(cfg.filter.get("diffuse_variance", 1e4))
+            models["cv (grid)"], info["cv (grid)"] = baseline(batches["val"], P0_var)
+        summary = json.loads((run / "metrics.json").read_text())
+        models[name] = kf
+        info[name] = {"learned": describe(kf), "seconds": summary["wall_time"], "run": str(run),
+                      "epochs": summary["epochs"]}
+    return models, info, batches, dm
+
+
 def holdout(args: argparse.Namespace) -> dict[str, object]:
-    """Frozen saved models on another AIS file (CSV or tracktable .traj): metrics + bootstrap vs cv (grid)."""
+    """Frozen models of the seed-0 runs on another AIS file: metrics + bootstrap vs cv (grid)."""
     start = time.perf_counter()
-    models = load_models(Path(args.models))
+    models, _, _, dm = load_seed(Path(args.runs), args.seed)
+    load_args = {k: v for k, v in dm.load_args.items() if k not in ("cut_times", "course_encoding")}
     name = str(args.holdout)
-    data = ais.load_traj(name) if name.endswith(".traj") else ais.load_ais(None if name == "june" else name)
-    dts = ais.dt_summary(data.tracks)
-    groups = chunks(data.tracks)
-    print(f"holdout {name}: {data.counts}; {len(groups)} batches", flush=True)
+    tracks = load_tracks(name, **load_args)  # evaluation only: reserved files are fine here
+    dts = dt_summary(tracks)
+    windows = track_windows(tracks, None, dtype=torch.float64)
+    groups = chunks([int(w.dt.shape[0]) for w in windows])
+    print(f"holdout {name}:\n{tracks.summary}\n{len(groups)} batches", flush=True)
     results: dict[str, dict[str, float]] = {}
     per_vessel: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for mname, model in models.items():
-        parts = [collect(model, ais.ais_batch(g, center=True, dtype=torch.float64), CURVE_MIN) for g in groups]
+        parts = [collect(model, pad_tracks([windows[i] for i in g]), CURVE_MIN) for g in groups]
         results[mname] = summarise(parts, CURVE_MIN)
         per_vessel[mname] = (torch.cat([p["vessel_nll"] for p in parts]).numpy(),
                              torch.cat([p["vessel_n"] for p in parts]).numpy())
@@ -570,8 +517,9 @@ def holdout(args: argparse.Namespace) -> dict[str, object]:
     base = per_vessel["cv (grid)"]
     paired = {k: paired_bootstrap(v, base) for k, v in per_vessel.items() if k != "cv (grid)"}
     note = ("no SOG/COG in .traj files: velocity and SOG-split metrics are NaN; tracks are the file's "
-            "trajectory segments" if name.endswith(".traj") else "")
-    payload = {"file": name, "models": Path(args.models).name, "counts": data.counts, "dt": dts, "results": results,
+            "trajectory segments after the loader's rules" if name.endswith(".traj") else "")
+    payload = {"file": name, "runs": str(args.runs), "seed": args.seed, "counts": tracks.summary.as_dict(),
+               "dt": dts, "results": results,
                "paired_vs_cv_grid": {k: dict(zip(("delta", "lo", "hi", "p_ge_0"), v)) for k, v in paired.items()},
                "note": note, "runtime_s": time.perf_counter() - start}
     if args.json:
@@ -582,33 +530,34 @@ def holdout(args: argparse.Namespace) -> dict[str, object]:
 def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", default=str(Path(__file__).parent / "results"))
+    parser.add_argument("--runs", default="outputs/ais_study", help="the training runs, <runs>/<model>/seed<s>")
+    parser.add_argument("--train", action="store_true", help="first launch the missing runs (the one training path)")
     parser.add_argument("--seed", type=int, default=0, help="vessel split seed of the main table")
     parser.add_argument("--robustness-seeds", type=int, nargs="*", default=[1, 2, 3, 4],
                         help="further vessel splits: test NLL only")
-    parser.add_argument("--max-iter", type=int, default=100, help="L-BFGS function evaluations per model")
     parser.add_argument("--holdout", default=None,
-                        help="evaluate the SAVED models (--models) frozen on this AIS file (.csv, or a tracktable "
-                             ".traj path or file name, e.g. NYHarbor_2020_12_08.traj) instead of training")
+                        help="evaluate the seed's runs frozen on this AIS file (.csv, or a tracktable .traj path or "
+                             "file name, e.g. NYHarbor_2020_12_08.traj) instead")
     parser.add_argument("--json", default=None, help="with --holdout: write the metrics here")
-    parser.add_argument("--models", default=str(Path(__file__).parent / "results" / "ais_models.pt"),
-                        help="saved models (written by a training run)")
     args = parser.parse_args(argv)
     torch.manual_seed(0)
     torch.set_num_threads(1)  # small batched matrices: one intra-op thread is fastest
+    root = Path(args.runs)
+    if args.train:
+        train_runs(root, [args.seed, *args.robustness_seeds])
     if args.holdout is not None:
         return holdout(args)["results"]
     start = time.perf_counter()
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
 
-    data = ais.load_ais()
-    dts = ais.dt_summary(data.tracks)
-    print(f"data: {data.counts}\ndt: {dts}", flush=True)
-    filters, info, (train, val, test), split_tracks = fit_all(data, args.seed, args.max_iter)
-
+    filters, info, batches, dm = load_seed(root, args.seed)
+    tracks = dm.tracks
+    dts = dt_summary(tracks)
+    print(f"data:\n{dm.summary}\ndt: {dts}", flush=True)
+    val, test = batches["val"], batches["test"]
     results: dict[str, dict[str, float]] = {}
     per_vessel: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    save_models(Path(args.models), filters, info)
     for name, kf in filters.items():
         with torch.no_grad():
             val_nll = float(predictive_nll(run_model(kf, val), val))
@@ -629,7 +578,8 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
         args.seed: {k: (r["val_nll"], r["nll"]) for k, r in results.items()}
     }
     for seed in args.robustness_seeds:
-        f_s, _, (_, val_s, test_s), _ = fit_all(data, seed, args.max_iter, verbose=False)
+        f_s, _, b_s, _ = load_seed(root, seed)
+        val_s, test_s = b_s["val"], b_s["test"]
         with torch.no_grad():
             robust[seed] = {k: (float(predictive_nll(run_model(kf, val_s), val_s)),
                                 float(predictive_nll(run_model(kf, test_s), test_s))) for k, kf in f_s.items()}
@@ -640,16 +590,17 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
     runtime = time.perf_counter() - start
 
     shown = {k: filters[k] for k in ("cv (grid)", best_learned(results, single=True))}
-    plot_map(out_dir / "ais_map.png", split_tracks[2], test, shown)
+    plot_map(out_dir / "ais_map.png", test, shown)
     plot_horizon(out_dir / "ais_horizon.png", results)
     notes = interpretation(results, filters, dts)
-    md = report(data, dts, [len(s) for s in split_tracks], results, paired, robust, info, runtime, args, notes)
+    sizes = [len(dm.splits[s]) for s in ("train", "val", "test")]
+    md = report(tracks, dts, sizes, results, paired, robust, info, runtime, args, notes)
     plot_modes(out_dir / "ais_imm_modes.png", test, filters["imm"])
     md += imm_section(paired_seeds, results)
     (out_dir / "ais.md").write_text(md)
     (out_dir / "ais_metrics.json").write_text(json.dumps({"results": results, "paired": paired, "robustness": robust,
                                                           "paired_imm_vs": paired_seeds,
-                                                          "counts": data.counts, "dt": dts,
+                                                          "counts": tracks.summary.as_dict(), "dt": dts,
                                                           "runtime_s": runtime}, indent=1))
     print(md)
     print(f"total {time.perf_counter() - start:.1f} s")
@@ -750,20 +701,20 @@ def best_learned(results: dict[str, dict[str, float]], single: bool = False) -> 
     return min((k for k in results if k not in skip), key=lambda k: results[k]["val_nll"])
 
 
-def report(data: ais.AISData, dts: dict[str, float], sizes: list[int], results: dict[str, dict[str, float]],
+def report(tracks: Tracks, dts: dict[str, float], sizes: list[int], results: dict[str, dict[str, float]],
            paired: dict[str, tuple[float, float, float, float]], robust: dict[int, dict[str, tuple[float, float]]],
            info: dict[str, dict[str, object]], runtime: float, args: argparse.Namespace, notes: list[str]) -> str:
-    c = data.counts
+    c = tracks.summary
     hz = " | ".join(f"fc RMSE {h:g} min (m)" for h in HORIZONS_MIN)
     lines = [
         "# AIS study: learned motion models vs tuned constant velocity (NY Harbor, 2020-06-30 00:00-01:00)",
         "",
-        "Command: `python experiments/ais_study.py` "
-        f"(seed {args.seed}, L-BFGS max {args.max_iter} evaluations per model); runtime {runtime:.0f} s.",
+        f"Command: `python experiments/ais_study.py --train --runs {args.runs}` (seed {args.seed}); every learned "
+        "model is a run of `python -m torchsde_lti.train` (experiment=ais / ais_imm: full-batch L-BFGS, "
+        f"checkpoint with the best validation NLL), see `RUNS` in the script; evaluation runtime {runtime:.0f} s.",
         "",
-        f"Data: {c['rows']} reports, {c['vessels_all']} vessels; dropped {c['exact_duplicates']} exact duplicates, "
-        f"{c['repeated_timestamps']} repeated (MMSI, time) reports and {c['vessels_dropped_short']} vessels with < 5 "
-        f"reports ({c['reports_dropped_short']} reports). Kept {c['vessels']} vessels, {c['reports']} reports; "
+        f"Data: {c.rows} reports; dropped {c.repeated_timestamps} repeated (MMSI, time) reports and {c.short_tracks} "
+        f"vessels with < 5 reports ({c.short_reports} reports). Kept {c.tracks} vessels, {c.reports} reports; "
         f"split train/val/test = {sizes[0]}/{sizes[1]}/{sizes[2]} vessels. Report gaps dt (s): "
         f"min {dts['min']:.0f}, 5 % {dts['p05']:.0f}, median {dts['median']:.0f}, 95 % {dts['p95']:.0f}, "
         f"max {dts['max']:.0f} (n = {dts['n']}).",
@@ -827,9 +778,8 @@ def report(data: ais.AISData, dts: dict[str, float], sizes: list[int], results: 
         "",
     ]
     for name, d in info.items():
-        extra = f" ({d['evals']} evaluations, {d['seconds']:.1f} s)" if "evals" in d else ""
-        about = next((f" (learns {sp.about})" for sp in SPECS if sp.name == name), "")
-        lines.append(f"- {name}{about}: {d['learned']}{extra}")
+        extra = f" ({d['epochs']} epochs, {d['seconds']:.1f} s; run `{d['run']}`)" if "run" in d else ""
+        lines.append(f"- {name}: {d['learned']}{extra}")
     lines += ["", "Plots: `ais_map.png` (test tracks; one-step predictions with 2σ ellipses for the four fastest "
               "test vessels), `ais_horizon.png` (forecast RMSE vs horizon).", ""]
     return "\n".join(lines)

@@ -23,7 +23,7 @@ sys.meta_path.insert(0, Block())
 import torch
 import torchsde_lti as tl
 from torchsde_lti.data import simulate_tracks, pad_tracks, unpad_tracks
-from torchsde_lti.data import ais
+from torchsde_lti.data import load_tracks, split_objects, track_windows
 
 torch.manual_seed(0)
 F = torch.tensor([[0.0, 1.0], [-1.0, -0.3]], dtype=torch.float64)

@@ -416,3 +416,17 @@ def test_position_observation_needs_positions() -> None:
     sde = tl.LTISDE(-torch.eye(2), torch.eye(2), torch.eye(2))
     with pytest.raises(ValueError, match="position"):
         models.position_observation(sde)
+
+
+def test_moored_discretisation_closed_form() -> None:
+    k, q, h = 0.3, 0.02, 7.0
+    sde = tl.models.moored(k=torch.tensor(k, dtype=torch.float64), q=torch.tensor(q, dtype=torch.float64))
+    with torch.no_grad():
+        d = sde(torch.tensor(h, dtype=torch.float64))
+    F = np.array([[0, 1], [0, -k]])
+    A1 = scipy.linalg.expm(F * h)
+    Q1 = np.array([[q * h, 0], [0, 0]])  # noise enters the position only: Q = q h on x
+    A = np.kron(np.eye(2), A1)
+    np.testing.assert_allclose(d.A.numpy(), A, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(d.Q.numpy(), np.kron(np.eye(2), Q1), rtol=1e-10, atol=1e-14)
+    assert sde.position_indices == (0, 2)

@@ -11,11 +11,11 @@ Layers of the package (each imports only from the ones above it):
   :class:`LTISDE`, :class:`KalmanFilter`;
 - :mod:`torchsde_lti.models`: the motion-model library;
 - :mod:`torchsde_lti.filters`: pure filter and smoother functions on discrete matrices;
-- :mod:`torchsde_lti.data`: simulation, track batches, AIS data;
+- :mod:`torchsde_lti.data`: simulation, track batches, real trajectories (``tl.data.load_tracks``);
 - :mod:`torchsde_lti.training`: Lightning module and the Hydra entry point.
 """
 
-from torchsde_lti import models
+from torchsde_lti import data, models
 from torchsde_lti.core import (
     METHODS,
     Discrete,
@@ -63,6 +63,7 @@ __all__ = [
     "StructuredSDE",
     "Transition",
     "VanLoanNoise",
+    "data",
     "discretize",
     "kalman_filter",
     "models",

@@ -258,3 +258,63 @@ def test_datamodule_splits_and_batches(dtype: str) -> None:
 def test_datamodule_rejects_bad_values(kw: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         _dm(**kw)
+
+
+# --------------------------------------------------------------------------- length bucketing
+
+
+def _bucket_loader(lengths: list[int], batch_size: int, seed: int = 0, **kw):
+    from torch.utils.data import DataLoader
+
+    from torchsde_lti.data import BucketBatchSampler, TrackDataset
+
+    tracks = [Track(y=torch.zeros(n, 2), dt=torch.ones(n), track_id=torch.tensor(i)) for i, n in enumerate(lengths)]
+    sampler = BucketBatchSampler(EpochShuffleSampler(len(tracks), seed), lengths, batch_size, seed=seed, **kw)
+    return DataLoader(TrackDataset(tracks), batch_sampler=sampler, collate_fn=collate_tracks)
+
+
+def test_bucket_batches_cover_every_item_with_little_padding() -> None:
+    from torchsde_lti.data import padding_waste
+
+    g = torch.Generator().manual_seed(0)
+    lengths = (torch.randint(5, 128, (2000,), generator=g)).tolist()
+    loader = _bucket_loader(lengths, 64)
+    sampler = loader.batch_sampler
+    batches = list(sampler)
+    assert len(batches) == len(sampler) == math.ceil(2000 / 64)
+    assert sorted(i for b in batches for i in b) == list(range(2000))
+    waste = padding_waste(batches, lengths)
+    plain = padding_waste([list(range(k, min(k + 64, 2000))) for k in range(0, 2000, 64)], lengths)
+    assert waste < 0.05 < plain  # random batches of uniform lengths waste ~33 %
+    sampler.sampler.set_epoch(1)
+    assert list(sampler) != batches and list(sampler) == list(sampler)  # a function of (seed, epoch)
+    capped = _bucket_loader(lengths, 64, max_waste=0.1, shuffle=False).batch_sampler
+    per_batch = [padding_waste([b], lengths) for b in capped]
+    assert max(per_batch) <= 0.1 and sorted(i for b in capped for i in b) == list(range(2000))
+    assert all(len(b) <= 64 for b in capped) and len(capped) == len(list(capped))
+
+
+def test_bucket_sampler_shards_by_track_under_ddp() -> None:
+    """Lightning injects its DistributedSampler into the bucketing batch sampler (as it does under
+    trainer=ddp): each process buckets its own, disjoint shard, with the same number of batches."""
+    from lightning.fabric.utilities.data import _replace_dunder_methods, _set_sampler_epoch
+    from lightning.fabric.utilities.distributed import DistributedSamplerWrapper
+    from lightning.pytorch.utilities.data import _update_dataloader
+    from torch.utils.data import BatchSampler, DataLoader
+
+    lengths = (torch.randint(5, 128, (1001,), generator=torch.Generator().manual_seed(1))).tolist()
+    with _replace_dunder_methods(DataLoader, "dataset"), _replace_dunder_methods(BatchSampler):
+        loader = _bucket_loader(lengths, 32, seed=3)
+    shards, counts = [], []
+    for rank in (0, 1):
+        dist = DistributedSamplerWrapper(loader.batch_sampler.sampler, num_replicas=2, rank=rank, shuffle=True, seed=3)
+        ddp = _update_dataloader(loader, dist)
+        _set_sampler_epoch(ddp, 2)
+        assert type(ddp.batch_sampler).__name__ == "BucketBatchSampler" and ddp.batch_sampler.sampler is dist
+        batches = list(ddp.batch_sampler)
+        counts.append(len(batches))
+        shards.append([int(i) for b in ddp for i in b.track_id])
+    assert counts[0] == counts[1] == math.ceil(501 / 32)
+    both = set(shards[0]) & set(shards[1])
+    assert len(both) <= 1  # DistributedSampler repeats one item to make 1001 split evenly
+    assert set(shards[0]) | set(shards[1]) == set(range(1001))

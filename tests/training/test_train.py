@@ -41,7 +41,7 @@ def _group(name: str) -> list[str]:
 # --------------------------------------------------------------------------- composition
 
 
-@pytest.mark.parametrize("model", [m for m in _group("model") if m != "imm"])  # imm: test_imm_training.py
+@pytest.mark.parametrize("model", [m for m in _group("model") if not m.startswith("imm")])  # imm*: test_imm_training.py, test_real_data.py
 def test_model_configs_instantiate_filter_and_data(tmp_path: Path, model: str) -> None:
     cfg = _cfg(tmp_path, f"model={model}", *TINY)
     dm = instantiate(cfg.data)
@@ -58,7 +58,7 @@ def test_model_configs_instantiate_filter_and_data(tmp_path: Path, model: str) -
 def test_data_configs_instantiate_a_datamodule(tmp_path: Path, data: str) -> None:
     import lightning.pytorch as pl
 
-    if data == "ais":
+    if data != "simulated":  # real tracks: the files come with the data extra
         pytest.importorskip("tracktable_data")
     cfg = _cfg(tmp_path, f"data={data}", *TINY) if data == "simulated" else _cfg(tmp_path, f"data={data}")
     assert isinstance(instantiate(cfg.data), pl.LightningDataModule)
@@ -101,8 +101,10 @@ def test_callback_configs_instantiate(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("experiment", _group("experiment"))
 def test_experiment_configs_compose(tmp_path: Path, experiment: str) -> None:
-    if experiment.startswith("ais"):
+    if experiment.startswith(("ais", "flights", "search_imm")):
         pytest.importorskip("tracktable_data")
+    if experiment.startswith("search"):
+        pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
     cfg = _cfg(tmp_path, f"experiment={experiment}")
     assert cfg.data._target_ and cfg.filter._target_ and cfg.module._target_
 

@@ -1,4 +1,4 @@
-"""Lightning DataModules: simulated tracks from a known LTISDE, and the AIS ship tracks.
+"""Lightning DataModules: simulated tracks from a known LTISDE, and real tracks from any file.
 
 The only place in :mod:`torchsde_lti.data` that imports Lightning; both yield
 :class:`~torchsde_lti.data.tracks.TrackBatch` batches through the one
@@ -7,20 +7,35 @@ The only place in :mod:`torchsde_lti.data` that imports Lightning; both yield
 
 from __future__ import annotations
 
+import logging
 import math
+import os
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
 from lightning.pytorch import LightningDataModule
 from torch import Tensor
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, SequentialSampler
 
-from torchsde_lti.data.ais import REFERENCE_LATLON, AISData, AISTrack, load_ais, split_vessels, to_track
 from torchsde_lti.data.simulate import ExponentialDt, isotropic_covariance, simulate_tracks
-from torchsde_lti.data.tracks import EpochShuffleSampler, TrackBatch, TrackDataset, collate_tracks, unpad_tracks
+from torchsde_lti.data.sources import RESERVED_FOR_EVALUATION
+from torchsde_lti.data.trajectories import LoadSummary, Tracks, load_tracks, split_objects, split_time, track_windows
+from torchsde_lti.data.tracks import (
+    BucketBatchSampler,
+    EpochShuffleSampler,
+    TrackBatch,
+    TrackDataset,
+    collate_tracks,
+    padding_waste,
+    unpad_tracks,
+)
 
-__all__ = ["AISDataModule", "SimulatedTracks"]
+__all__ = ["DataSummary", "SimulatedTracks", "TrackDataModule"]
+
+log = logging.getLogger(__name__)
 
 
 class SimulatedTracks(LightningDataModule):
@@ -130,72 +145,180 @@ class SimulatedTracks(LightningDataModule):
         return self._loader("test", shuffle=False)
 
 
-class AISDataModule(LightningDataModule):
-    """Train / val / test vessels of the NY Harbor AIS hour as padded, masked batches.
+@dataclass(frozen=True)
+class DataSummary:
+    """What a :class:`TrackDataModule` trains on: the loader's counts and, per split, objects,
+    tracks, windows, reports, batches and the padding waste of its batches."""
 
-    Each batch is a :class:`~torchsde_lti.data.tracks.TrackBatch` (y (B, T, 2) metres, dt (B, T) seconds, mask
-    (B, T)). ``batch_size=None`` puts a whole split in one batch (the default: the train
-    split is ~170 vessels x <= 54 reports). Shuffling of training batches uses ``seed``.
+    load: LoadSummary
+    split: str
+    max_len: int | None
+    batch_size: int | None
+    splits: dict[str, dict[str, float]]
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"load": self.load.as_dict(), "split": self.split, "max_len": self.max_len,
+                "batch_size": self.batch_size, "splits": self.splits}
+
+    def __str__(self) -> str:
+        lines = [str(self.load), f"  split by {self.split}; windows of <= {self.max_len or 'all'} reports, "
+                 f"batches of {self.batch_size or 'a whole split'}:"]
+        for name, row in self.splits.items():
+            lines.append(f"  {name:>5}: {row['objects']} objects, {row['tracks']} tracks, {row['windows']} windows, "
+                         f"{row['reports']} reports, {row['batches']} batches, padding waste "
+                         f"{100 * row['padding_waste']:.1f} %")
+        return "\n".join(lines)
+
+
+class TrackDataModule(LightningDataModule):
+    """Real tracks from any trajectory file (:func:`~torchsde_lti.data.load_tracks`) as padded,
+    masked :class:`~torchsde_lti.data.tracks.TrackBatch` es of similar-length windows.
+
+    Loading arguments (``source`` ... ``max_extent``) are those of :func:`load_tracks`. Then:
+
+    Args:
+        split: "objects" (object-disjoint train/val/test with ``fractions`` and ``seed``:
+            every track of a vessel or flight lands in one split) or "time" (``boundaries``:
+            train before the first, val before the second, test after it; tracks are cut at
+            the boundaries when loaded).
+        max_len: cut tracks into windows of at most this many reports (None: whole tracks).
+        batch_size: windows per batch, bucketed by length (:class:`BucketBatchSampler`);
+            None = a whole split in one batch (full-batch optimisers such as L-BFGS).
+        pool_batches: batches per length-sorted pool of the training sampler.
+        center: subtract each window's first position (kept in ``origin``).
+        dtype: "float32" or "float64" for the batches.
+
+    After :meth:`setup`: ``tracks`` (all kept :class:`~torchsde_lti.data.Tracks`), ``splits``
+    (name -> Tracks), ``windows`` (name -> list of Track) and ``summary``
+    (:class:`DataSummary`, logged at INFO on rank 0; the training job saves it).
+    The files in :data:`~torchsde_lti.data.sources.RESERVED_FOR_EVALUATION` are refused.
     """
 
     def __init__(
         self,
-        path: str | None = None,
+        source: str,
+        columns: Mapping[str, str | int] | str | None = None,
+        format: str | None = None,
+        time_format: str | None = None,
+        altitude_unit: str = "m",
+        dims: int | None = None,
+        frame: str = "local",
+        reference: Sequence[float] | None = None,
+        course_encoding: str = "ais",
+        max_gap: float | None = 1800.0,
+        v_max: float | None = None,
         min_reports: int = 5,
+        max_extent: float | None = 250_000.0,
+        split: str = "objects",
         fractions: Sequence[float] = (0.6, 0.2, 0.2),
+        boundaries: Sequence[str] | None = None,
         seed: int = 0,
+        max_len: int | None = None,
         batch_size: int | None = None,
+        pool_batches: int = 50,
         center: bool = True,
         dtype: str = "float32",
-        reference: Sequence[float] = REFERENCE_LATLON,
     ) -> None:
         super().__init__()
-        # plain Python values only (no OmegaConf ListConfig), so checkpoints load with
-        # torch.load(weights_only=True), as the training entry point's resume does
-        self.save_hyperparameters({
-            "path": None if path is None else str(path), "min_reports": int(min_reports),
-            "fractions": [float(f) for f in fractions], "seed": int(seed),
-            "batch_size": None if batch_size is None else int(batch_size), "center": bool(center),
-            "dtype": str(dtype), "reference": [float(r) for r in reference],
-        })
-        self.path = path
-        self.min_reports = min_reports
-        self.fractions = tuple(fractions)
-        self.seed = seed
-        self.batch_size = batch_size
-        self.center = center
-        self.dtype = getattr(torch, dtype) if isinstance(dtype, str) else dtype
-        self.reference = (float(reference[0]), float(reference[1]))
-        self.data: AISData | None = None
-        self.train_tracks: list[AISTrack] = []
-        self.val_tracks: list[AISTrack] = []
-        self.test_tracks: list[AISTrack] = []
+        if os.path.basename(str(source)) in RESERVED_FOR_EVALUATION:
+            raise ValueError(f"data.source={source!r} is reserved for evaluation (never train, tune or select "
+                             "on it): evaluate frozen models with experiments/ais_study.py --holdout")
+        if split not in ("objects", "time"):
+            raise ValueError(f"data.split must be 'objects' or 'time', got {split!r}")
+        if split == "time" and not boundaries:
+            raise ValueError("data.split='time' needs data.boundaries (1 or 2 ISO 8601 instants)")
+        if batch_size is not None and int(batch_size) < 1:
+            raise ValueError(f"data.batch_size must be >= 1 or null, got {batch_size}")
+        if dtype not in ("float32", "float64"):
+            raise ValueError(f"data.dtype must be 'float32' or 'float64', got {dtype!r}")
+        plain = lambda x: None if x is None else [float(v) for v in x]  # noqa: E731
+        self.load_args: dict[str, Any] = {
+            "columns": columns if columns is None or isinstance(columns, str) else {str(k): (v if isinstance(v, int)
+                                                                                           else str(v))
+                                                                                    for k, v in dict(columns).items()},
+            "format": format, "time_format": time_format, "altitude_unit": str(altitude_unit),
+            "dims": None if dims is None else int(dims), "frame": str(frame), "reference": plain(reference),
+            "course_encoding": str(course_encoding), "max_gap": None if max_gap is None else float(max_gap),
+            "v_max": None if v_max is None else float(v_max), "min_reports": int(min_reports),
+            "max_extent": None if max_extent is None else float(max_extent),
+            "cut_times": [str(b) for b in boundaries] if split == "time" else [],
+        }
+        self.source = str(source)
+        self.split = str(split)
+        self.fractions = [float(f) for f in fractions]
+        self.boundaries = [str(b) for b in boundaries] if boundaries else []
+        self.seed = int(seed)
+        self.max_len = None if max_len is None else int(max_len)
+        self.batch_size = None if batch_size is None else int(batch_size)
+        self.pool_batches = int(pool_batches)
+        self.center = bool(center)
+        self.dtype = getattr(torch, dtype)
+        # plain Python values only, so checkpoints load with torch.load(weights_only=True)
+        self.save_hyperparameters({"source": self.source, **self.load_args, "split": self.split,
+                                   "fractions": self.fractions, "boundaries": self.boundaries, "seed": self.seed,
+                                   "max_len": self.max_len, "batch_size": self.batch_size,
+                                   "pool_batches": self.pool_batches, "center": self.center, "dtype": str(dtype)})
+        self.tracks: Tracks | None = None
+        self.splits: dict[str, Tracks] = {}
+        self.windows: dict[str, list[Any]] = {}
+        self.summary: DataSummary | None = None
 
     def setup(self, stage: str | None = None) -> None:
-        if self.data is not None:
+        """Load, clean, split and window once (deterministic, so every DDP rank agrees)."""
+        if self.tracks is not None:
             return
-        self.data = load_ais(self.path, self.min_reports, self.reference)
-        tr, va, te = split_vessels(len(self.data.tracks), self.fractions, self.seed)
-        self.train_tracks = [self.data.tracks[i] for i in tr]
-        self.val_tracks = [self.data.tracks[i] for i in va]
-        self.test_tracks = [self.data.tracks[i] for i in te]
+        self.tracks = load_tracks(self.source, **self.load_args)
+        if self.split == "objects":
+            parts = split_objects(self.tracks, self.fractions, self.seed)
+        else:
+            parts = tuple(split_time(self.tracks, self.boundaries))
+        self.splits = {name: part for name, part in zip(("train", "val", "test"), parts) if len(part)}
+        for name in ("train", "val"):
+            if name not in self.splits:
+                raise ValueError(f"{self.source}: the {name} split is empty (split={self.split!r})")
+        self.windows = {name: track_windows(part, self.max_len, self.center, self.dtype)
+                        for name, part in self.splits.items()}
+        rows = {}
+        for name, part in self.splits.items():
+            batches = list(self._batch_sampler(name))
+            rows[name] = {"objects": len(np.unique(part.object_id)), "tracks": len(part),
+                          "windows": len(self.windows[name]), "reports": part.num_reports, "batches": len(batches),
+                          "padding_waste": padding_waste(batches, self._lengths(name))}
+        self.summary = DataSummary(self.tracks.summary, self.split if self.split == "objects" else
+                                   f"time at {', '.join(self.boundaries)}", self.max_len, self.batch_size, rows)
+        from lightning.fabric.utilities.rank_zero import rank_zero_only
 
-    def _loader(self, tracks: list[AISTrack], shuffle: bool) -> DataLoader:
-        bs = len(tracks) if self.batch_size is None else self.batch_size
-        # the order depends only on (seed, epoch), so a resumed run sees the same batches
-        sampler = EpochShuffleSampler(len(tracks), self.seed) if shuffle else None
-        return DataLoader(
-            TrackDataset([to_track(tr, self.center, self.dtype) for tr in tracks]),
-            batch_size=max(bs, 1),
-            sampler=sampler,
-            collate_fn=collate_tracks,
-        )
+        if rank_zero_only.rank == 0:
+            log.info("data: %s", self.summary)
+
+    def _lengths(self, split: str) -> list[int]:
+        return [int(w.dt.shape[0]) for w in self.windows[split]]
+
+    def _batch_sampler(self, split: str) -> BucketBatchSampler:
+        n = len(self.windows[split])
+        train = split == "train"
+        sampler = EpochShuffleSampler(n, self.seed) if train else SequentialSampler(range(n))
+        size = n if self.batch_size is None else self.batch_size
+        if train or self.batch_size is None:
+            return BucketBatchSampler(sampler, self._lengths(split), max(size, 1), pool_batches=self.pool_batches,
+                                      shuffle=train, seed=self.seed)
+        # evaluation: one sorted pool, batches closed early rather than padded by more than 10 %
+        return BucketBatchSampler(sampler, self._lengths(split), size, pool_batches=max(1, math.ceil(n / size)),
+                                  shuffle=False, max_waste=0.1)
+
+    def _loader(self, split: str) -> DataLoader:
+        if not self.windows:
+            self.setup()
+        if split not in self.windows:
+            raise ValueError(f"no {split} split in {self.source} (split={self.split!r}, boundaries={self.boundaries})")
+        return DataLoader(TrackDataset(self.windows[split]), batch_sampler=self._batch_sampler(split),
+                          collate_fn=collate_tracks)
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader(self.train_tracks, shuffle=self.batch_size is not None)
+        return self._loader("train")
 
     def val_dataloader(self) -> DataLoader:
-        return self._loader(self.val_tracks, shuffle=False)
+        return self._loader("val")
 
     def test_dataloader(self) -> DataLoader:
-        return self._loader(self.test_tracks, shuffle=False)
+        return self._loader("test")

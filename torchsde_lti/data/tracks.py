@@ -35,9 +35,19 @@ from typing import NamedTuple
 
 import torch
 from torch import Tensor
-from torch.utils.data import Dataset, Sampler
+from torch.utils.data import BatchSampler, Dataset, Sampler
 
-__all__ = ["EpochShuffleSampler", "Track", "TrackBatch", "TrackDataset", "collate_tracks", "pad_tracks", "unpad_tracks"]
+__all__ = [
+    "BucketBatchSampler",
+    "EpochShuffleSampler",
+    "Track",
+    "TrackBatch",
+    "TrackDataset",
+    "collate_tracks",
+    "pad_tracks",
+    "padding_waste",
+    "unpad_tracks",
+]
 
 
 class TrackBatch(NamedTuple):
@@ -154,3 +164,96 @@ class EpochShuffleSampler(Sampler[int]):
 
     def __len__(self) -> int:
         return self.n
+
+
+class BucketBatchSampler(BatchSampler):
+    """Batches of similar-length tracks, so that padding wastes little.
+
+    Indices drawn from ``sampler`` are taken ``pool_batches * batch_size`` at a time, sorted
+    by ``lengths`` and cut into batches of ``batch_size``; with ``shuffle`` the batches of a
+    pool are emitted in an order seeded by (``seed``, the sampler's ``epoch``). With
+    ``max_waste`` a batch is also closed early when the next (longer) item would make more than
+    that share of its steps padding: every batch then wastes at most ``max_waste``, at the price
+    of a data-dependent number of batches (for evaluation; training under DDP needs the same
+    number of batches on every process, so keep it None there). Under DDP
+    Lightning rebuilds this sampler around its distributed sampler (the ``sampler``
+    argument), so each process buckets its own shard of tracks; the order stays a function of
+    (seed, epoch), so a resumed run sees the same batches.
+
+    Args:
+        sampler: yields dataset indices (e.g. :class:`EpochShuffleSampler`).
+        lengths: (N,) length of every dataset item.
+        batch_size: items per batch; drop_last: drop a pool's last, smaller batch.
+        pool_batches: batches per sorted pool (larger: less padding, less randomness).
+        shuffle: emit each pool's batches in a seeded random order; seed: its seed.
+        max_waste: cap on each batch's padding share (None = fixed batch sizes).
+    """
+
+    def __init__(self, sampler: Sampler[int] | Sequence[int], lengths: Sequence[int], batch_size: int,
+                 drop_last: bool = False, pool_batches: int = 50, shuffle: bool = True, seed: int = 0,
+                 max_waste: float | None = None) -> None:
+        super().__init__(sampler, int(batch_size), bool(drop_last))
+        if int(pool_batches) < 1:
+            raise ValueError(f"pool_batches must be >= 1, got {pool_batches}")
+        if max_waste is not None and not 0.0 <= float(max_waste) < 1.0:
+            raise ValueError(f"max_waste must be in [0, 1) or None, got {max_waste}")
+        self.lengths = torch.as_tensor(lengths, dtype=torch.int64)
+        self.pool_batches, self.shuffle, self.seed = int(pool_batches), bool(shuffle), int(seed)
+        self.max_waste = None if max_waste is None else float(max_waste)
+
+    def _cut(self, items: list[int]) -> list[list[int]]:
+        """Length-sorted items -> batches of <= batch_size (and <= max_waste padding)."""
+        if self.max_waste is None:
+            return [items[i : i + self.batch_size] for i in range(0, len(items), self.batch_size)]
+        lengths = self.lengths[items].tolist()
+        batches: list[list[int]] = []
+        cur: list[int] = []
+        used = 0
+        for item, n in zip(items, lengths):
+            if cur and (len(cur) == self.batch_size or used + n < (1.0 - self.max_waste) * (len(cur) + 1) * n):
+                batches.append(cur)
+                cur, used = [], 0
+            cur.append(item)
+            used += n
+        return batches + ([cur] if cur else [])
+
+    def _emit(self, pool: list[int], g: torch.Generator) -> list[list[int]]:
+        order = torch.argsort(self.lengths[pool], stable=True).tolist()
+        batches = self._cut([pool[k] for k in order])
+        if self.drop_last and batches and len(batches[-1]) < self.batch_size:
+            batches.pop()
+        if self.shuffle:
+            batches = [batches[k] for k in torch.randperm(len(batches), generator=g).tolist()]
+        return batches
+
+    def __iter__(self) -> Iterator[list[int]]:
+        epoch = int(getattr(self.sampler, "epoch", 0))
+        g = torch.Generator().manual_seed(self.seed * 100_003 + epoch + 1)
+        size = self.pool_batches * self.batch_size
+        pool: list[int] = []
+        for idx in self.sampler:
+            pool.append(int(idx))
+            if len(pool) == size:
+                yield from self._emit(pool, g)
+                pool = []
+        if pool:
+            yield from self._emit(pool, g)
+
+    def __len__(self) -> int:
+        if self.max_waste is not None:
+            return sum(1 for _ in self)
+        n = len(self.sampler)  # type: ignore[arg-type]
+        full, rest = divmod(n, self.pool_batches * self.batch_size)
+        tail = rest // self.batch_size if self.drop_last else math.ceil(rest / self.batch_size)
+        return full * self.pool_batches + tail
+
+
+def padding_waste(batches: Sequence[Sequence[int]], lengths: Sequence[int]) -> float:
+    """Share of padded steps: 1 - Σ lengths / Σ (batch size x longest item), over ``batches``."""
+    lengths_t = torch.as_tensor(lengths, dtype=torch.int64)
+    used = padded = 0
+    for b in batches:
+        ls = lengths_t[list(b)]
+        used += int(ls.sum())
+        padded += len(b) * int(ls.max()) if len(b) else 0
+    return 1.0 - used / padded if padded else 0.0

@@ -148,15 +148,19 @@ class RunReport:
     def completed(self, *, title: str, wall_time: float, epochs: int, reported: dict[str, Any],
                   metrics: dict[str, Any], param_errors: dict[str, float], skipped_steps: int,
                   identifiability: str, table: list[dict[str, Any]], best: dict[str, Any] | None,
-                  data_summary: Any) -> dict[str, Any]:
-        """Write the final report; returns the metrics.json content."""
+                  data_summary: Any, data_text: str | None = None) -> dict[str, Any]:
+        """Write the final report; returns the metrics.json content. ``data_text``: the data
+        summary as the datamodule prints it, for results.md."""
         reported = {**reported, "checkpoint": _relative(reported.get("checkpoint"), self.run_dir)}
         if best is not None:
             best = {**best, "checkpoint": _relative(best.get("checkpoint"), self.run_dir)}
         summary = self._write(status="completed", wall_time=wall_time, epochs=epochs, reported=reported,
                               metrics=metrics, param_errors=param_errors, skipped_steps=skipped_steps,
                               identifiability=identifiability, table=table, best=best, data_summary=data_summary)
-        write_text(self.run_dir / "results.md", self._results_md(title, summary))
+        text = self._results_md(title, summary)
+        if data_text:
+            text += f"\n## Data\n\n```\n{data_text}\n```\n"
+        write_text(self.run_dir / "results.md", text)
         return summary
 
     def _results_md(self, title: str, s: dict[str, Any]) -> str:

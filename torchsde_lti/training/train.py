@@ -250,8 +250,16 @@ def _report_completed(cfg: DictConfig, objects: dict[str, Any], report: RunRepor
                      metrics={k: v for k, v in metrics.items() if isinstance(v, float)},
                      param_errors=metrics["param_errors"], skipped_steps=module.skipped_steps,
                      identifiability=module.identifiability_note() if truth else "", table=metrics["table"],
-                     best=best_info, data_summary=data_summary(objects["datamodule"]))
+                     best=best_info, data_summary=data_summary(objects["datamodule"]),
+                     data_text=_summary_text(objects["datamodule"]))
     print("\n" + (report.run_dir / "results.md").read_text())
+
+
+def _summary_text(datamodule: Any) -> str | None:
+    """The datamodule's summary as it prints itself (None when it offers none)."""
+    summary = getattr(datamodule, "summary", None)
+    summary = summary() if callable(summary) else summary
+    return None if summary is None else str(summary)
 
 
 def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:

@@ -1,0 +1,187 @@
+"""Reading trajectory files (torchsde_lti.data.sources): .traj, CSV, Parquet, malformed input,
+file lookup, and no global side effects.
+
+Oracles: values written into the test files here, plain-Python re-counts of the shipped files.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from torchsde_lti.data import AIS_COLUMNS, load_tracks, locate_file, read_reports
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _traj_line(obj: str, times: list[str], lonlat: list[tuple[float, float]], uuid: bool = True,
+               props: list[tuple[str, str, list[str]]] = (), trailing: str = "") -> str:
+    head = ["*T*"] + (["5e3b1b1c-0000-4000-8000-000000000000"] if uuid else []) + ["terrestrial", str(len(times)), "0"]
+    head += ["*P*", "terrestrial", "2", "1", "1", str(len(props))] + [x for name, kind, _ in props for x in (name, kind)]
+    pts = []
+    for k, (when, (lon, lat)) in enumerate(zip(times, lonlat)):
+        pts += [obj, when, repr(lon), repr(lat)] + [vals[k] for _, _, vals in props]
+    return ",".join(head + pts) + trailing
+
+
+T3 = ["2020-06-30 00:00:01", "2020-06-30 00:00:02", "2020-06-30 00:01:00"]
+P3 = [(-74.01, 40.61), (-74.02, 40.62), (-74.03, 40.63)]
+
+
+@pytest.mark.parametrize("uuid", [True, False])
+@pytest.mark.parametrize("trailing", ["", ","])
+def test_traj_layouts(tmp_path: Path, uuid: bool, trailing: str) -> None:
+    f = tmp_path / "a.traj"
+    f.write_text(_traj_line("42", T3, P3, uuid=uuid, trailing=trailing) + "\n")
+    r = read_reports(f)
+    assert r.object_id.dtype == np.int64 and list(r.object_id) == [42] * 3
+    np.testing.assert_array_equal(r.lon, [p[0] for p in P3])
+    np.testing.assert_array_equal(r.lat, [p[1] for p in P3])
+    assert (r.time[2] - r.time[0]) / np.timedelta64(1, "s") == 59.0
+    assert r.rows == 3 and r.malformed == 0 and r.alt is None and r.sog is None
+
+
+def test_traj_string_properties_with_commas_and_altitude(tmp_path: Path) -> None:
+    f = tmp_path / "b.traj"
+    props = [("altitude", "1", ["100", "200", "300"]), ("vessel-name", "2", ["A, B", "A, B", "C"])]
+    f.write_text(_traj_line("UAL1", T3, P3, props=props) + "\n")
+    r = read_reports(f)
+    assert r.object_id.dtype.kind == "U" and r.object_id[0] == "UAL1"
+    np.testing.assert_array_equal(r.alt, [100.0, 200.0, 300.0])
+    np.testing.assert_array_equal(r.lat, [p[1] for p in P3])
+
+
+def test_traj_malformed_lines_are_counted_not_silent(tmp_path: Path) -> None:
+    f = tmp_path / "c.traj"
+    good = _traj_line("1", T3, P3)
+    f.write_text("\n".join([good, "*T*,bad", good.replace("40.62", "forty"), "", _traj_line("2", T3, P3)]) + "\n")
+    r = read_reports(f)
+    assert r.malformed == 2 and len(r.malformed_examples) == 2
+    assert "line 2" in r.malformed_examples[0] and "line 3" in r.malformed_examples[1]
+    assert sorted(set(r.object_id.tolist())) == [1, 2]
+    tracks = load_tracks(f)
+    assert tracks.summary.malformed == 2 and "malformed" in str(tracks.summary)
+
+
+def test_csv_ais_header_recognised_and_values(tmp_path: Path) -> None:
+    f = tmp_path / "ais.csv"
+    f.write_text("BaseDateTime,LON,LAT,MMSI,SOG,COG,Heading\n"
+                 "2020-06-30T00:00:00,-74.0,40.6,367000001,10.0,90.0,90\n"
+                 "2020-06-30T00:01:00,-74.01,40.6,367000001,102.3,360.0,511\n"
+                 "2020-06-30T00:02:00,-74.02,40.6,367000001,,45.0,90\n")
+    r = read_reports(f)
+    assert r.object_id.dtype == np.int64 and r.sog is not None and r.rows == 3 and r.malformed == 0
+    np.testing.assert_allclose(r.lon, [-74.0, -74.01, -74.02])
+    assert np.isnan(r.sog[2]) and r.cog[1] == 360.0
+    tr = load_tracks(f)
+    # SOG 102.3 / COG 360 are AIS "not available"; an empty SOG too
+    assert np.isfinite(tr.vel[0]).all() and np.isnan(tr.vel[1:]).all()
+    np.testing.assert_allclose(tr.vel[0], [10 * 1852 / 3600, 0.0], atol=1e-9)  # due east at 10 kn
+
+
+def test_csv_named_columns_comment_header_ragged_rows_and_offsets(tmp_path: Path) -> None:
+    f = tmp_path / "points.csv"
+    f.write_text("# object_id timestamp longitude latitude altitude\n"
+                 "F1,2014-07-01 15:45:43-0000,28.8,40.9,1000\n"
+                 "F1,2014-07-01 17:46:43+0200,28.9,40.95,1100\n"
+                 "F1,2014-07-01 15:47:43-0000,29.0,,1200,extra\n"
+                 "F1,2014-07-01 15:48:43-0000,north,41.0,1300\n"
+                 "F1,2014-07-01 15:49:43-0000,29.1,41.05,1400\n")
+    r = read_reports(f, {"id": 0, "time": 1, "lon": 2, "lat": 3, "alt": 4}, altitude_unit="ft")
+    assert r.rows == 5 and r.malformed == 2  # one ragged row, one unreadable longitude
+    assert list(r.object_id) == ["F1"] * 3
+    assert (r.time[1] - r.time[0]) / np.timedelta64(1, "s") == 60.0  # +0200 converted to UTC
+    np.testing.assert_allclose(r.alt, [304.8, 335.28, 426.72])
+    assert any("fields" in e for e in r.malformed_examples) and any("lon" in e for e in r.malformed_examples)
+    with pytest.raises(ValueError, match="MarineCadastre"):
+        read_reports(f)
+    with pytest.raises(ValueError, match="missing roles"):
+        read_reports(f, {"id": 0, "time": 1})
+
+
+def test_parquet_matches_csv(tmp_path: Path) -> None:
+    pa = pytest.importorskip("pyarrow")
+    pcsv = pytest.importorskip("pyarrow.csv")
+    pq = pytest.importorskip("pyarrow.parquet")
+    hour = locate_file("NYHarbor_2020_06_30_first_hour.csv")
+    table = pcsv.read_csv(hour).slice(0, 2000)
+    pq.write_table(table, tmp_path / "h.parquet")
+    pcsv.write_csv(table, tmp_path / "h.csv")
+    a, b = read_reports(tmp_path / "h.parquet"), read_reports(tmp_path / "h.csv")
+    for field in ("object_id", "time", "lat", "lon", "sog", "cog"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    assert a.rows == b.rows == 2000 and isinstance(pa.__version__, str)
+
+
+def test_missing_file_names_path_and_where_it_looked(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError) as err:
+        load_tracks("US_coastal_2020_06_31.traj")
+    msg = str(err.value)
+    assert "US_coastal_2020_06_31.traj" in msg and str(Path.cwd()) in msg
+    if locate_file.__module__ and _has_tracktable():
+        assert "tracktable_data" in msg and "US_coastal_2020_06_30.traj" in msg  # the close match
+    with pytest.raises(FileNotFoundError, match=str(tmp_path / "nope.csv")):
+        read_reports(tmp_path / "nope.csv")
+
+
+def _has_tracktable() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("tracktable_data") is not None
+
+
+GLOBAL_STATE = r"""
+import json, logging, sys, warnings
+import numpy as np, torch
+def state():
+    root = logging.getLogger()
+    return {"tracebacklimit": getattr(sys, "tracebacklimit", None), "root_level": root.level,
+            "root_handlers": len(root.handlers), "loggers": sorted(logging.root.manager.loggerDict),
+            "warnings": len(warnings.filters), "np_err": np.geterr(), "np_print": np.get_printoptions()["precision"],
+            "dtype": str(torch.get_default_dtype()), "threads": torch.get_num_threads()}
+before = state()
+import torchsde_lti as tl
+imported = state()
+tracks = tl.data.load_tracks("NYHarbor_2020_06_30_first_hour.csv", course_encoding="ais_int12", min_reports=5)
+tl.data.load_tracks("prediction_observed_trajectories.traj")
+try:
+    tl.data.load_tracks("no_such_file.traj")
+except FileNotFoundError:
+    pass
+after = state()
+new_loggers = set(after.pop("loggers")) - set(imported.pop("loggers"))
+before.pop("loggers")
+print(json.dumps({"before": before, "imported": imported, "after": after, "tracktable_modules": sorted(
+    m for m in sys.modules if m.startswith("tracktable_data")), "new_loggers": sorted(new_loggers),
+    "reports": tracks.num_reports}))
+"""
+
+
+def test_loading_changes_no_global_state() -> None:
+    """tracktable_data.data sets sys.tracebacklimit = 0 and configures the root logger at import:
+    the loader finds the files without executing it, and changes nothing else either."""
+    pytest.importorskip("pyarrow")
+    if not _has_tracktable():
+        pytest.skip("tracktable-data not installed")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    res = subprocess.run([sys.executable, "-c", GLOBAL_STATE], capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out["imported"] == out["after"]  # loading changes nothing
+    # importing changes nothing either, except one warnings filter that sympy adds when torch.export imports it
+    assert {k: v for k, v in out["before"].items() if k != "warnings"} == {
+        k: v for k, v in out["imported"].items() if k != "warnings"}
+    assert out["after"]["tracebacklimit"] is None and out["after"]["root_handlers"] == 0
+    assert out["tracktable_modules"] in ([], ["tracktable_data"])  # the metadata-only __init__ at most
+    assert not [name for name in out["new_loggers"] if name.startswith("tracktable")]
+    assert out["reports"] == 8658
+
+
+def test_ais_columns_constant() -> None:
+    assert set(AIS_COLUMNS) == {"id", "time", "lat", "lon", "sog", "cog"}

@@ -1,0 +1,398 @@
+"""Reading trajectory files into columns of reports: tracktable ``.traj``, CSV and Parquet.
+
+One reader per format, one result type (:class:`Reports`: numpy arrays, one entry per
+report) and one rule for what cannot be read: a malformed line (``.traj``) or row (CSV,
+Parquet) is skipped and COUNTED, with the first few examples kept for the summary.
+
+- ``.traj`` (tracktable's trajectory text format): one trajectory per line,
+  ``*T*[, uuid], domain, N, n_props, (name, type, value) * n_props, *P*, domain, dim,
+  has_id, has_time, k, (name, type) * k`` followed by N points ``id, time, lon, lat, k values``.
+  A point property named ``altitude`` becomes the altitude column. Parsed with ``str.split``
+  and numpy (the lines have no fixed width, so no CSV engine reads them); the file's own
+  segmentation is kept (``segment`` = line number).
+- CSV and Parquet through pyarrow (chosen by ``experiments/bench_readers.py``). Columns are
+  named per role (``columns={"id": ..., "time": ..., "lat": ..., "lon": ..., "alt": ...,
+  "sog": ..., "cog": ...}``, header names or 0-based positions); without ``columns`` the
+  MarineCadastre AIS header (:data:`AIS_COLUMNS`) is recognised. Leading ``#`` lines
+  (tracktable's point files) are skipped. Times: ISO 8601 strings (a ``±hhmm`` offset is
+  converted to UTC), a ``time_format`` for anything else, numbers (seconds since
+  1970-01-01 UTC) or Parquet timestamps.
+
+Files are found by path, or by file name among the example files of the optional package
+``tracktable-data`` (located with ``importlib.util.find_spec``: its modules are never
+imported, since ``tracktable_data.data`` sets ``sys.tracebacklimit = 0`` and configures the
+root logger at import).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = ["AIS_COLUMNS", "RESERVED_FOR_EVALUATION", "ROLES", "Reports", "locate_file", "read_reports"]
+
+#: The roles a column can play; id, time, lat and lon are required.
+ROLES = ("id", "time", "lat", "lon", "alt", "sog", "cog")
+#: MarineCadastre AIS column names (BaseDateTime ISO 8601 UTC, LAT/LON degrees, SOG knots, COG degrees).
+AIS_COLUMNS: dict[str, str] = {"id": "MMSI", "time": "BaseDateTime", "lat": "LAT", "lon": "LON", "sog": "SOG",
+                               "cog": "COG"}
+#: tracktable-data files kept for evaluation only: never train, tune or select models on them.
+RESERVED_FOR_EVALUATION = ("NYHarbor_2020_12_08.traj", "VirginiaBeach_2020_06_04_to_06_filtered.traj")
+_EXAMPLES = 3  # malformed examples kept
+
+
+class Reports(NamedTuple):
+    """All readable reports of one file, in file order; N = number of reports.
+
+    object_id: (N,) int64 or str; time: (N,) datetime64[us] (UTC where the file says so);
+    lat, lon: (N,) float64 degrees as read; alt: (N,) metres or None; sog: (N,) knots or None;
+    cog: (N,) degrees or None; segment: (N,) int64 (a ``.traj`` line) or None (one track per id);
+    rows: lines (``.traj``: points) read; malformed: lines or rows skipped because a field could not
+    be parsed; malformed_examples: the first few of them with the reason; path: the file read.
+    """
+
+    object_id: np.ndarray
+    time: np.ndarray
+    lat: np.ndarray
+    lon: np.ndarray
+    alt: np.ndarray | None
+    sog: np.ndarray | None
+    cog: np.ndarray | None
+    segment: np.ndarray | None
+    rows: int
+    malformed: int
+    malformed_examples: tuple[str, ...]
+    path: str
+
+
+def _example_dirs() -> list[Path]:
+    """Folders of tracktable-data's example files, found without importing the package."""
+    spec = importlib.util.find_spec("tracktable_data")
+    if spec is None or not spec.submodule_search_locations:
+        return []
+    return [Path(p) for p in spec.submodule_search_locations]
+
+
+def locate_file(name: str | os.PathLike[str]) -> Path:
+    """The file ``name``: an existing path, else a file of that name shipped by ``tracktable-data``.
+
+    Raises:
+        FileNotFoundError: naming the path tried, the package folder searched, and the
+            closest shipped file names.
+    """
+    path = Path(name).expanduser()
+    if path.is_file():
+        return path
+    roots = _example_dirs()
+    shipped = {p.name: p for root in roots for p in sorted(root.rglob("*")) if p.is_file() and p.suffix != ".py"}
+    if path.name in shipped and path.parent == Path("."):
+        return shipped[path.name]
+    where = (f"tracktable-data's files under {', '.join(map(str, roots))}" if roots
+             else "tracktable-data's files (package not installed: pip install 'torchsde_lti[data]')")
+    import difflib
+
+    close = difflib.get_close_matches(path.name, list(shipped), n=3, cutoff=0.5)
+    hint = f"; did you mean {', '.join(close)}?" if close else ""
+    raise FileNotFoundError(f"no trajectory file {str(name)!r}: looked at {path.resolve()} and among {where}{hint}")
+
+
+def read_reports(source: str | os.PathLike[str], columns: Mapping[str, str | int] | str | None = None, *,
+                 format: str | None = None, time_format: str | None = None, altitude_unit: str = "m") -> Reports:
+    """Read every parseable report of a trajectory file (see the module docstring).
+
+    Args:
+        source: a path, or a file name shipped by tracktable-data (:func:`locate_file`).
+        columns: for CSV / Parquet, role -> column (header name or 0-based position) for the roles
+            in :data:`ROLES`; ``"ais"`` or None (recognised from the header) for MarineCadastre AIS.
+        format: "traj", "csv" or "parquet"; default from the file suffix.
+        time_format: strptime format of the time column when it is not ISO 8601.
+        altitude_unit: "m" or "ft" (converted to metres).
+    """
+    path = locate_file(source)
+    fmt = (format or path.suffix.lstrip(".")).lower()
+    if altitude_unit not in ("m", "ft"):
+        raise ValueError(f"altitude_unit must be 'm' or 'ft', got {altitude_unit!r}")
+    if fmt == "traj":
+        if columns not in (None, "ais"):
+            raise ValueError(f"columns are fixed by the .traj format; got columns={columns!r} for {path}")
+        reports = _read_traj(path)
+    elif fmt in ("csv", "parquet", "pq"):
+        reports = _read_table(path, "parquet" if fmt == "pq" else fmt, columns, time_format)
+    else:
+        raise ValueError(f"unknown trajectory format {fmt!r} of {path}: use format='traj', 'csv' or 'parquet'")
+    if reports.alt is not None and altitude_unit == "ft":
+        reports = reports._replace(alt=reports.alt * 0.3048)
+    return reports
+
+
+# ---------------------------------------------------------------------------- .traj
+def _traj_header(fields: list[str]) -> tuple[int, int, list[str], list[str]]:
+    """(index of the first point field, N points, point property names, their type codes)."""
+    if not fields or fields[0] != "*T*":
+        raise ValueError("line does not start with *T*")
+    i = 1 if fields[2].isdigit() else 2  # `*T*, domain, N` (old) or `*T*, uuid, domain, N`
+    n_points, n_props = int(fields[i + 1]), int(fields[i + 2])
+    i += 3 + 3 * n_props
+    if fields[i] != "*P*":
+        raise ValueError(f"expected *P* after {n_props} trajectory properties, got {fields[i]!r}")
+    domain, dim, has_id, has_time, k = fields[i + 1], fields[i + 2], fields[i + 3], fields[i + 4], int(fields[i + 5])
+    if domain not in ("terrestrial", "generic") or dim != "2":
+        raise ValueError(f"expected 2-D longitude/latitude points, got domain {domain!r} of dimension {dim}")
+    if (has_id, has_time) != ("1", "1"):
+        raise ValueError("expected points with an object id and a timestamp")
+    names = [fields[i + 6 + 2 * p] for p in range(k)]
+    types = [fields[i + 7 + 2 * p] for p in range(k)]
+    return i + 6 + 2 * k, n_points, names, types
+
+
+def _traj_points(fields: list[str], start: int, n: int, types: list[str]) -> list[list[str]]:
+    """The N points as columns of strings [ids, times, lons, lats, *values]."""
+    width = 4 + len(types)
+    body = fields[start:]
+    if body and body[-1] == "" and len(body) == n * width + 1:  # a trailing comma
+        body = body[:-1]
+    if len(body) == n * width:
+        return [body[c::width] for c in range(width)]
+    # a string value containing commas (vessel names): it runs until the next point's id and time
+    if not types or types[-1] != "2":
+        raise ValueError(f"{len(body)} point fields, expected {n} x {width}")
+    obj, rows, j = body[0], [], 0
+    for _ in range(n):
+        row = body[j : j + width - 1]
+        j += width - 1
+        stop = j
+        while stop < len(body) and not (body[stop] == obj and stop + 1 < len(body) and body[stop + 1][:2].isdigit()
+                                         and len(body[stop + 1]) >= 19 and body[stop + 1][4] == "-"):
+            stop += 1
+        rows.append(row + [",".join(body[j:stop])])
+        j = stop
+    if j < len(body) and not (j == len(body) - 1 and body[-1] == ""):
+        raise ValueError(f"{len(body) - j} fields left after {n} points")
+    return [list(col) for col in zip(*rows)] if rows else [[] for _ in range(width)]
+
+
+def _read_traj(path: Path) -> Reports:
+    ids: list[np.ndarray] = []
+    times: list[np.ndarray] = []
+    lonlat: list[np.ndarray] = []
+    alts: list[np.ndarray] = []
+    segs: list[np.ndarray] = []
+    malformed, examples, has_alt, lines, points = 0, [], None, 0, 0
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for number, line in enumerate(fh, start=1):
+            if not line.strip():
+                continue
+            lines += 1
+            try:
+                fields = line.rstrip("\r\n").split(",")
+                start, n, names, types = _traj_header(fields)
+                cols = _traj_points(fields, start, n, types)
+                if len(set(cols[0])) > 1:
+                    raise ValueError("points of one trajectory carry different object ids")
+                when = np.array(cols[1], dtype="datetime64[us]")
+                ll = np.array([cols[2], cols[3]], dtype=np.float64).T
+                alt = np.array(cols[4 + names.index("altitude")], dtype=np.float64) if "altitude" in names else None
+            except (ValueError, IndexError) as err:
+                malformed += 1
+                if len(examples) < _EXAMPLES:
+                    examples.append(f"line {number}: {err}")
+                continue
+            if has_alt is None:
+                has_alt = alt is not None
+            elif has_alt != (alt is not None):
+                alt = np.full(n, np.nan) if alt is None else None
+            points += n
+            ids.append(np.array(cols[0], dtype=str))
+            times.append(when)
+            lonlat.append(ll)
+            alts.append(alt if alt is not None else np.zeros(0))
+            segs.append(np.full(n, number, dtype=np.int64))
+    if not ids:
+        raise ValueError(f"{path}: no trajectory could be read ({lines} lines, {malformed} malformed: "
+                         f"{'; '.join(examples)})")
+    object_id = np.concatenate(ids)
+    object_id = _object_ids(object_id, np.ones(len(object_id), dtype=bool))
+    ll = np.concatenate(lonlat)
+    return Reports(object_id, np.concatenate(times), ll[:, 1].copy(), ll[:, 0].copy(),
+                   np.concatenate(alts) if has_alt else None, None, None, np.concatenate(segs),
+                   points, malformed, tuple(examples), str(path))
+
+
+# ---------------------------------------------------------------------------- CSV / Parquet
+def _resolve_columns(columns: Mapping[str, str | int] | str | None, header: list[str] | None,
+                     path: Path) -> dict[str, str | int]:
+    if columns is None or columns == "ais":
+        if header is not None and set(AIS_COLUMNS.values()) <= set(header):
+            return dict(AIS_COLUMNS)
+        if columns == "ais":
+            raise ValueError(f"{path}: columns='ais' needs the header columns {sorted(AIS_COLUMNS.values())}, "
+                             f"found {header}")
+        raise ValueError(f"{path}: not the MarineCadastre AIS header {sorted(AIS_COLUMNS.values())}; name the "
+                         f"columns, e.g. columns={{'id': ..., 'time': ..., 'lat': ..., 'lon': ...}} "
+                         f"(header names or 0-based positions); header found: {header}")
+    if isinstance(columns, str):
+        raise ValueError(f"columns must be a mapping role -> column, 'ais' or None, got {columns!r}")
+    cols = {str(k): (v if isinstance(v, int) else str(v)) for k, v in dict(columns).items() if v is not None}
+    unknown = set(cols) - set(ROLES)
+    missing = {"id", "time", "lat", "lon"} - set(cols)
+    if unknown or missing:
+        raise ValueError(f"columns: unknown roles {sorted(unknown)} / missing roles {sorted(missing)}; "
+                         f"roles are {ROLES}, got {cols}")
+    if header is not None:
+        absent = [v for v in cols.values() if isinstance(v, str) and v not in header]
+        if absent:
+            raise ValueError(f"{path}: columns {absent} not in the header {header}")
+    return cols
+
+
+def _leading_comment_lines(path: Path) -> int:
+    n = 0
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for line in fh:
+            if not line.startswith("#"):
+                break
+            n += 1
+    return n
+
+
+def _as_float(arr: object, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(values float64, ok mask): nulls and unparsable strings are not ok."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    if pa.types.is_string(arr.type) or pa.types.is_large_string(arr.type):
+        ok = pc.fill_null(pc.match_substring_regex(pc.utf8_trim_whitespace(arr),
+                                                   r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$"), False)
+        arr = pc.cast(pc.if_else(ok, arr, pa.scalar("nan")), pa.float64())
+    else:
+        ok = pc.is_valid(arr)
+        arr = pc.cast(arr, pa.float64())
+    return np.asarray(arr.to_numpy(zero_copy_only=False), dtype=np.float64), np.asarray(ok.to_numpy(
+        zero_copy_only=False), dtype=bool)
+
+
+def _as_time(arr: object, time_format: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """(datetime64[us], ok mask) from strings, numbers (seconds since the epoch) or timestamps."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    us = pa.timestamp("us")
+    if pa.types.is_timestamp(arr.type):
+        out = pc.cast(arr, pa.timestamp("us", tz=arr.type.tz)) if arr.type.tz else pc.cast(arr, us)
+    elif pa.types.is_integer(arr.type) or pa.types.is_floating(arr.type):
+        out = pc.cast(pc.cast(pc.multiply(pc.cast(arr, pa.float64()), 1e6), pa.int64()), us)
+    else:
+        arr = pc.cast(arr, pa.string())
+        out = None
+        if time_format is None:
+            for target in (us, pa.timestamp("us", tz="UTC")):
+                try:
+                    out = pc.cast(arr, target)
+                    break
+                except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+                    continue
+            formats = ["%Y-%m-%dT%H:%M:%S", "%Y-%m-%d %H:%M:%S", "%Y-%m-%d %H:%M:%S%z", "%Y-%m-%dT%H:%M:%S%z"]
+        else:
+            formats = [time_format]
+        if out is None:  # some rows do not parse: the format that reads most of them, the rest are malformed
+            best = min((pc.strptime(arr, format=f, unit="us", error_is_null=True) for f in formats),
+                       key=lambda a: a.null_count)
+            out = best
+    ok = np.asarray(pc.is_valid(out).to_numpy(zero_copy_only=False), dtype=bool)
+    values = out.cast(pa.int64()).to_numpy(zero_copy_only=False)
+    return np.where(ok, np.nan_to_num(values.astype(np.float64)), 0).astype(np.int64).astype("datetime64[us]"), ok
+
+
+def _read_table(path: Path, fmt: str, columns: Mapping[str, str | int] | str | None,
+                time_format: str | None) -> Reports:
+    try:
+        import pyarrow as pa
+        import pyarrow.compute as pc
+        import pyarrow.csv as pcsv
+        import pyarrow.parquet as pq
+    except ImportError as err:  # pragma: no cover - depends on the environment
+        raise ModuleNotFoundError("reading CSV / Parquet trajectories needs pyarrow: pip install "
+                                  "'torchsde_lti[data]'") from err
+    bad: list[str] = []
+    if fmt == "parquet":
+        header = pq.read_schema(path).names
+        cols = _resolve_columns(columns, header, path)
+        names = {role: (header[c] if isinstance(c, int) else c) for role, c in cols.items()}
+        table = pq.read_table(path, columns=sorted(set(names.values())))
+    else:
+        skip = _leading_comment_lines(path)
+        by_position = isinstance(columns, Mapping) and all(isinstance(v, int) for v in columns.values() if v is not None)
+        header = None if by_position else _csv_header(path, skip)
+        cols = _resolve_columns(columns, header, path)
+        names = {role: (f"f{c}" if isinstance(c, int) else c) for role, c in cols.items()}
+
+        def handler(row: object) -> str:
+            if len(bad) < _EXAMPLES:
+                bad.append(f"{getattr(row, 'text', '')[:80]!r}: {getattr(row, 'actual_columns', '?')} fields, "
+                           f"expected {getattr(row, 'expected_columns', '?')}")
+            else:
+                bad.append("")
+            return "skip"
+
+        read = pcsv.ReadOptions(skip_rows=skip, autogenerate_column_names=by_position)
+        string_cols = {names["id"]: pa.string(), names["time"]: pa.string()}
+        convert = pcsv.ConvertOptions(include_columns=sorted(set(names.values())), column_types=string_cols,
+                                      strings_can_be_null=True)
+        table = pcsv.read_csv(path, read_options=read, parse_options=pcsv.ParseOptions(invalid_row_handler=handler),
+                              convert_options=convert)
+    n = table.num_rows
+    ok = np.ones(n, dtype=bool)
+    reasons: dict[str, np.ndarray] = {}
+    values: dict[str, np.ndarray] = {}
+    for role in ("lat", "lon", "alt", "sog", "cog"):
+        if role in names:
+            values[role], valid = _as_float(table[names[role]].combine_chunks(), role)
+            if role in ("lat", "lon"):
+                reasons[role] = ~valid
+                ok &= valid
+    time, valid = _as_time(table[names["time"]].combine_chunks(), time_format)
+    reasons["time"] = ~valid
+    ok &= valid
+    raw_id = pc.cast(table[names["id"]].combine_chunks(), pa.string())
+    id_ok = np.asarray(raw_id.is_valid().to_numpy(zero_copy_only=False), dtype=bool)
+    reasons["id"] = ~id_ok
+    ok &= id_ok
+    object_id = _object_ids(np.asarray(raw_id.fill_null("").to_numpy(zero_copy_only=False), dtype=str), ok)
+    examples = [b for b in bad if b][:_EXAMPLES]
+    for role, mask in reasons.items():
+        for r in np.flatnonzero(mask)[: max(0, _EXAMPLES - len(examples))]:
+            examples.append(f"row {int(r) + 1}: {role} column {names[role]!r} unreadable")
+    keep = np.flatnonzero(ok)
+    take = (lambda a: a[keep]) if not ok.all() else (lambda a: a)  # noqa: E731
+    return Reports(take(object_id), take(time), take(values["lat"]), take(values["lon"]),
+                   take(values["alt"]) if "alt" in values else None, take(values["sog"]) if "sog" in values else None,
+                   take(values["cog"]) if "cog" in values else None, None, n + len(bad), int((~ok).sum()) + len(bad),
+                   tuple(examples), str(path))
+
+
+def _csv_header(path: Path, skip: int) -> list[str]:
+    """Column names in the first line after ``skip`` comment lines."""
+    import io
+
+    import pyarrow.csv as pcsv
+
+    with open(path, "rb") as fh:
+        for _ in range(skip):
+            fh.readline()
+        first = fh.readline().rstrip(b"\r\n")
+    return pcsv.read_csv(io.BytesIO(first + b"\n"), read_options=pcsv.ReadOptions()).schema.names
+
+
+def _object_ids(ids: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """int64 when every readable id is an integer (MMSI), else the strings (call signs)."""
+    if not ok.any():
+        return ids
+    try:
+        return np.where(ok, ids, "0").astype(np.int64)
+    except (ValueError, OverflowError):
+        return ids
