@@ -69,7 +69,11 @@ def bench_compile() -> None:
     # cold compiles: no inductor cache from an earlier run of this script
     torch._inductor.config.fx_graph_cache = False
     torch._inductor.config.autotune_local_cache = False
+    t0 = time.perf_counter()
+    torch.compile(lambda x: 2.0 * x)(torch.zeros(2, dtype=F64))  # inductor's start-up, once per process
+    startup = time.perf_counter() - t0
     print("\n### torch.compile(kf), B = 1: first call (compile, caches off) and steady state\n")
+    print(f"(inductor's start-up, paid once per process before the first row: {startup:.1f} s)\n")
     print("| T | algorithm | first call (s) | compiled (ms) | eager (ms) | eager / compiled |")
     print("|---|---|---|---|---|---|")
     for T in (200, 2000):

@@ -159,7 +159,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
     ) -> None:
         super().__init__()
         self.method = None if method is None else resolve_method(method)
-        self.algorithm = check_algorithm(algorithm, ALGORITHMS, "KalmanFilter")
+        self.algorithm = algorithm
         self.unique_dt = bool(unique_dt)
         self.validate_args = validate_args
         if not isinstance(sde, LTISDE):
@@ -237,6 +237,15 @@ class KalmanFilter(ValidateArgs, nn.Module):
             self.register_buffer("P0", None)
 
     # ------------------------------------------------------------------ helpers
+    @property
+    def algorithm(self) -> str:
+        """The filter algorithm, one of :data:`~torchsde_lti.filters.ALGORITHMS` (assignable)."""
+        return self._algorithm
+
+    @algorithm.setter
+    def algorithm(self, value: str) -> None:
+        self._algorithm = check_algorithm(value, ALGORITHMS, "KalmanFilter")
+
     @property
     def state_dim(self) -> int:
         return self.sde.state_dim
