@@ -5,9 +5,10 @@ Model: 2-D constant velocity (n = 4, m = 2) with R learned (a state_dict checkpo
 and loaded, as after training), irregular dt, float64, no grad.
 
 1. ``torch.compile(kf)``: wall time of the first call (compilation, inductor's caches off)
-   and the median of the following calls (no grad), for the default (``parallel=None``: the
-   scan, traced whole), the forced loop (``parallel=False``: one step compiled) and the forced
-   scan (``parallel=True``), at T = 200 and T = 2000, B = 1 — vs the same filter eager.
+   and the median of the following calls (no grad), for the default (``algorithm="auto"``:
+   under torch.compile the loop as torch's structured scan, one step compiled) and the forced
+   associative scan (``algorithm="scan"``: traced whole), at T = 200 and T = 2000, B = 1 — vs
+   the same filter eager (``"auto"`` eager runs the associative scan at B = 1).
 2. checkpoint → ``torch.export.export`` → ``torch.export.save`` → ``torch.export.load`` →
    run on new tracks of the exported shape: export / save / load times, the exported
    program's run time vs eager, and the largest |difference| of log-likelihood and means.
@@ -15,15 +16,19 @@ and loaded, as after training), irregular dt, float64, no grad.
    (``torch._inductor.aoti_compile_and_package``), loaded with ``aoti_load_package`` and run
    on new tracks: build / load / run times vs eager and vs filterpy on the same track.
 
-Shared machine (other sessions run): medians of repeats, noisy.
+Shared machine (other sessions run): medians of repeats, noisy. Prints the tables and saves
+them to experiments/results/bench_deploy.txt (``--out``).
 
-    python experiments/bench_deploy.py [--threads 1]
+    python experiments/bench_deploy.py [--threads 1] [--no-aoti]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import os
+import sys
 import statistics
 import tempfile
 import time
@@ -37,11 +42,11 @@ from bench_filter_choice import filterpy_cv  # the same filterpy contestant
 F64 = torch.float64
 
 
-def make_filter(parallel: bool | None) -> tl.KalmanFilter:
+def make_filter(algorithm: str = "auto") -> tl.KalmanFilter:
     cv = tl.models.constant_velocity(dim=2, q=1.0, dtype=F64)
     H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=F64)
     return tl.KalmanFilter(cv, H, 0.5 * torch.eye(2, dtype=F64), P0=100 * torch.eye(4, dtype=F64),
-                           learn=("R",), parallel=parallel)
+                           learn=("R",), algorithm=algorithm)
 
 
 def data(B: int, T: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -64,14 +69,18 @@ def bench_compile() -> None:
     # cold compiles: no inductor cache from an earlier run of this script
     torch._inductor.config.fx_graph_cache = False
     torch._inductor.config.autotune_local_cache = False
+    t0 = time.perf_counter()
+    torch.compile(lambda x: 2.0 * x)(torch.zeros(2, dtype=F64))  # inductor's start-up, once per process
+    startup = time.perf_counter() - t0
     print("\n### torch.compile(kf), B = 1: first call (compile, caches off) and steady state\n")
-    print("| T | parallel | first call (s) | compiled (ms) | eager (ms) | eager / compiled |")
+    print(f"(inductor's start-up, paid once per process before the first row: {startup:.1f} s)\n")
+    print("| T | algorithm | first call (s) | compiled (ms) | eager (ms) | eager / compiled |")
     print("|---|---|---|---|---|---|")
     for T in (200, 2000):
         y, dt = data(1, T, 0)
-        for parallel in (None, False):
+        for algorithm in ("auto", "scan"):
             torch._dynamo.reset()
-            kf = make_filter(parallel)
+            kf = make_filter(algorithm)
             ck = torch.compile(kf)
             with torch.no_grad():
                 t0 = time.perf_counter()
@@ -79,18 +88,18 @@ def bench_compile() -> None:
                 first = time.perf_counter() - t0
                 t_c = median_ms(lambda: ck(y, dt))
                 t_e = median_ms(lambda: kf(y, dt))
-            print(f"| {T} | {parallel} | {first:.1f} | {t_c:.2f} | {t_e:.2f} | {t_e / t_c:.2f}× |", flush=True)
+            print(f"| {T} | {algorithm} | {first:.1f} | {t_c:.2f} | {t_e:.2f} | {t_e / t_c:.2f}× |", flush=True)
 
 
 def bench_export(B: int, T: int, aoti: bool) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         ckpt, prog = Path(tmp) / "kf.ckpt", Path(tmp) / "kf.pt2"
-        trained = make_filter(None)
+        trained = make_filter()
         with torch.no_grad():
             trained.R = torch.tensor([[0.4, 0.05], [0.05, 0.6]], dtype=F64)  # "learned"
         torch.save(trained.state_dict(), ckpt)
 
-        kf = make_filter(None)  # deployment side: same architecture, weights from the checkpoint
+        kf = make_filter()  # deployment side: same architecture, weights from the checkpoint
         kf.load_state_dict(torch.load(ckpt))
         kf.eval()
         example = data(B, T, 0)
@@ -148,8 +157,30 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--no-aoti", action="store_true", help="skip the AOTInductor package (needs a C++ compiler)")
+    ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results" / "bench_deploy.txt")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    copy = io.StringIO()
+    with contextlib.redirect_stdout(Tee(sys.stdout, copy)):
+        run(args)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(copy.getvalue())
+
+
+class Tee(io.TextIOBase):
+    """Writes to several text streams (the terminal and the saved copy)."""
+
+    def __init__(self, *streams: io.TextIOBase) -> None:
+        self.streams = streams
+
+    def write(self, text: str) -> int:
+        for stream in self.streams:
+            stream.write(text)
+            stream.flush()
+        return len(text)
+
+
+def run(args: argparse.Namespace) -> None:
     print(f"# deploy benchmark (torch {torch.__version__}, {args.threads} thread(s), load "
           f"{os.getloadavg()[0]:.2f}; shared machine, noisy: medians)")
     bench_compile()

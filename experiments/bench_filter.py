@@ -7,8 +7,8 @@ repeats so machine load hits all of them alike; wall-clock medians):
 - ``ours``            tl.KalmanFilter(sde, H, R)(y, dt) — the default (automatic choice:
                       associative scan for ≤ 16 tracks on CPU, else the sequential loop),
                       including the exact discretisation of every step;
-- ``ours-loop``       the same with ``parallel=False`` (sequential loop, the old default);
-- ``ours-parallel``   the same with ``parallel=True`` (associative scan);
+- ``ours-loop``       the same with ``algorithm="sequential"`` (the loop, the old default);
+- ``ours-scan``       the same with ``algorithm="scan"`` (associative scan);
 - ``torch-kf+VL``     torch-kf, per-step (A, Q) from naive Van Loan (torch.matrix_exp of the
                       8×8 block for all B·T steps at once), predict/update loop;
 - ``torch-kf+CF``     torch-kf fed closed-form constant-velocity (A, Q) (irregular dt);
@@ -102,11 +102,11 @@ def observation(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
 # ----------------------------------------------------------------------------------------
 
 
-def ours(y: torch.Tensor, dt: torch.Tensor, regular: bool, parallel: bool | None = None) -> Callable[[], object]:
+def ours(y: torch.Tensor, dt: torch.Tensor, regular: bool, algorithm: str = "auto") -> Callable[[], object]:
     dtype = y.dtype
     cv = tl.models.constant_velocity(dim=2, q=Q_INT, dtype=dtype)
     H, R = observation(dtype)
-    kf = tl.KalmanFilter(cv, H, R, P0=P0_VAR * torch.eye(N, dtype=dtype), parallel=parallel)
+    kf = tl.KalmanFilter(cv, H, R, P0=P0_VAR * torch.eye(N, dtype=dtype), algorithm=algorithm)
     dts = dt[0] if regular else dt  # regular grid: one (T,) dt shared by all tracks
 
     def run() -> object:
@@ -307,9 +307,9 @@ def main() -> None:
                 dt = torch.tensor(dt_np, dtype=dtype)
                 big = B >= 10_000
                 fns: dict[str, Callable[[], object]] = {"ours": ours(y, dt, regular)}
-                fns["ours-loop"] = ours(y, dt, regular, parallel=False)
+                fns["ours-loop"] = ours(y, dt, regular, algorithm="sequential")
                 if not big:  # the scan does O(T) extra matrix work; at B = 10⁴ it only loses
-                    fns["ours-parallel"] = ours(y, dt, regular, parallel=True)
+                    fns["ours-scan"] = ours(y, dt, regular, algorithm="scan")
                 if regular:
                     fns["torch-kf"] = torchkf_regular(y, dt)
                     if dtype == torch.float64:

@@ -1,8 +1,8 @@
 r"""Benchmark: the filter's automatic algorithm choice (issue 10, item 3), side by side.
 
 1. Grid B ∈ {1, 10, 100, 1000} × T ∈ {200, 1e4}: 2-D constant velocity (n = 4, m = 2),
-   irregular dt, float64, no grad: ``KalmanFilter(parallel=False)`` (sequential loop),
-   ``parallel=True`` (associative scan, chunked), and the default ``parallel=None``.
+   irregular dt, float64, no grad: ``KalmanFilter(algorithm="sequential")`` (the loop),
+   ``algorithm="scan"`` (associative scan, chunked), and the default ``algorithm="auto"``.
    Reported: ms per call and default / min(loop, scan) speed ratio (≥ 0.8 wanted).
 2. One Matérn-3/2 temporal GP series, N = 4000 irregular times: the default filter's log
    marginal likelihood vs scikit-learn's exact GP (``GaussianProcessRegressor(...,
@@ -32,10 +32,10 @@ import torchsde_lti as tl
 F64 = torch.float64
 
 
-def cv_filter(parallel: bool | None) -> tl.KalmanFilter:
+def cv_filter(algorithm: str) -> tl.KalmanFilter:
     cv = tl.models.constant_velocity(dim=2, q=1.0, dtype=F64)
     H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=F64)
-    return tl.KalmanFilter(cv, H, 0.5 * torch.eye(2, dtype=F64), P0=100 * torch.eye(4, dtype=F64), parallel=parallel)
+    return tl.KalmanFilter(cv, H, 0.5 * torch.eye(2, dtype=F64), P0=100 * torch.eye(4, dtype=F64), algorithm=algorithm)
 
 
 def cv_data(B: int, T: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -69,14 +69,14 @@ def grid(threads: int, quick: bool) -> None:
         for B in (1, 10, 100, 1000):
             y, dt = cv_data(B, T)
             res = {}
-            for name, par in (("loop", False), ("scan", True), ("default", None)):
-                if par is True and B >= 100 and T > 2000:
+            for name, algorithm in (("loop", "sequential"), ("scan", "scan"), ("default", "auto")):
+                if algorithm == "scan" and B >= 100 and T > 2000:
                     res[name] = float("nan")  # ≥ 5× the loop already at B = 100, T = 200 (see row)
                     continue
-                kf = cv_filter(par)
+                kf = cv_filter(algorithm)
                 with torch.no_grad():
                     res[name] = timed(lambda: kf(y, dt), 3 if quick else 5)
-            picks = "scan" if cv_filter(None).uses_scan((B,), (B,), T, torch.device("cpu")) else "loop"
+            picks = {"scan": "scan", "sequential": "loop"}[cv_filter("auto").algorithm_for(B, T, torch.device("cpu"))]
             best = min(v for k, v in res.items() if k != "default" and not math.isnan(v))
             fmt = lambda v: "skipped" if math.isnan(v) else f"{v * 1e3:.1f}"  # noqa: E731
             print(f"| {B} | {T} | {fmt(res['loop'])} | {fmt(res['scan'])} | {fmt(res['default'])} | {picks} | "
@@ -101,8 +101,9 @@ def gp_vs_sklearn(threads: int, N: int) -> None:
     sde = tl.models.matern(1.5, lengthscale=ell, variance=var, dtype=F64)
     yt, dtt = torch.as_tensor(y)[:, None], torch.as_tensor(np.diff(t, prepend=t[0]))
     out = {}
-    for name, par in (("default", None), ("loop", False)):
-        kf = tl.KalmanFilter(sde, torch.tensor([[1.0, 0.0]], dtype=F64), torch.tensor([[noise]], dtype=F64), parallel=par)
+    for name, algorithm in (("default", "auto"), ("loop", "sequential")):
+        kf = tl.KalmanFilter(sde, torch.tensor([[1.0, 0.0]], dtype=F64), torch.tensor([[noise]], dtype=F64),
+                             algorithm=algorithm)
 
         def run(kf: tl.KalmanFilter = kf) -> float:
             with torch.no_grad():
@@ -144,7 +145,7 @@ def filterpy_cv(y: torch.Tensor, dt: torch.Tensor, R: np.ndarray, p0: float = 10
 def vs_filterpy(threads: int) -> None:
     T = 200
     y, dt = cv_data(1, T)
-    kf = cv_filter(None)
+    kf = cv_filter("auto")
     fp = filterpy_cv(y, dt, 0.5 * np.eye(2))
 
     def ours() -> None:

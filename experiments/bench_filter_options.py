@@ -1,6 +1,6 @@
 """Cost of two KalmanFilter options against the default path (prints a markdown table).
 
-* ``square_root=True`` vs the default Joseph-form filter: 2-D constant velocity, irregular dt.
+* ``algorithm="square_root"`` vs the default Joseph-form filter: 2-D constant velocity, irregular dt.
 * ``unique_dt=True`` vs discretising every step: 2-D Singer model (its F is not nilpotent, so
   every step needs scaling and doubling) with gaps quantised to whole multiples of 0.5 s,
   as real logs (AIS: whole seconds) often are.
@@ -61,8 +61,8 @@ def main() -> None:
         H = tl.models.position_observation(cv)
         R = 0.25 * torch.eye(2, dtype=dtype)
         base = forward_and_training(tl.KalmanFilter(cv, H, R), y, dt_irregular, args.repeats)
-        sqrt = forward_and_training(tl.KalmanFilter(cv, H, R, square_root=True), y, dt_irregular, args.repeats)
-        rows.append(("square_root=True (constant velocity, irregular dt)", dtype, base, sqrt))
+        sqrt = forward_and_training(tl.KalmanFilter(cv, H, R, algorithm="square_root"), y, dt_irregular, args.repeats)
+        rows.append(("algorithm=\"square_root\" (constant velocity, irregular dt)", dtype, base, sqrt))
 
         singer = tl.models.singer(alpha=0.5, q=1.0, dim=2).to(dtype)
         H = tl.models.position_observation(singer)

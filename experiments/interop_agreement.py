@@ -105,7 +105,7 @@ def main() -> None:
         shaping = tl.models.matern(1.5, lengthscale=1.5, variance=0.7, dtype=dtype)
         model = tl.models.shaped(system, shaping, C=torch.tensor([[1.0, 0.0]], dtype=dtype))
         tau = 1.0 / float(-torch.linalg.eigvals(model.F.detach().double()).real.max())
-        _, P = model.propagate(torch.zeros(4, dtype=dtype), model.start_covariance(),
+        _, P = model.propagate(torch.zeros(4, dtype=dtype), model.prior_covariance(),
                                torch.linspace(0, 10 * tau, 201, dtype=dtype))
         err = (P[:, 2:, 2:] - shaping.stationary_covariance()).abs().max().item()
         rows.append((f"shaping block |P_ff(t) - P_inf_f|, t in [0, 10 tau], {dtype}", err))

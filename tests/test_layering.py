@@ -76,18 +76,35 @@ def test_no_private_names_cross_subpackages() -> None:
     assert not offences, offences
 
 
-def test_layers_import_only_downwards() -> None:
-    """core imports nothing of the package above it; filters do not import nn/models/data/training."""
-    order = {"core": 0, "filters": 1, "nn": 2, "models": 3, "interop": 4, "data": 4, "training": 5, "train": 5}
+def _layer_of(path: Path) -> str:
+    """The layer (a name of ``LAYERS``) of a module file of the package."""
+    return path.relative_to(PACKAGE).parts[0].removesuffix(".py")
+
+
+def test_layer_order_is_the_packages_and_true_in_the_code() -> None:
+    """The one statement of the layer order, ``torchsde_lti.LAYERS``, covers every subpackage
+    and top-level module, and every import of the package goes to an earlier layer (or stays
+    inside its own); the package root only re-exports."""
+    from torchsde_lti import LAYERS
+
+    order = {name: rank for rank, (name, _) in enumerate(LAYERS)}
+    assert len(order) == len(LAYERS), "a layer is named twice"
+    files = [p for p in PACKAGE.rglob("*.py") if p.relative_to(PACKAGE).parts != ("__init__.py",)]
+    unplaced = sorted({_layer_of(p) for p in files} - set(order))
+    assert not unplaced, f"modules not placed in torchsde_lti.LAYERS: {unplaced}"
+    assert set(order) <= {_layer_of(p) for p in files}, "LAYERS names a layer that does not exist"
     offences = []
-    for path in PACKAGE.rglob("*.py"):
-        rel = path.relative_to(PACKAGE)
-        top = rel.parts[0].removesuffix(".py")
-        if top not in order:
-            continue
+    for path in files:
+        here = _layer_of(path)
         for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("torchsde_lti."):
-                target = node.module.split(".")[1]
-                if target in order and order[target] > order[top]:
-                    offences.append(f"{rel}: imports {node.module}")
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("torchsde_lti"):
+                parts = node.module.split(".")
+                targets = [parts[1]] if len(parts) > 1 else [alias.name for alias in node.names]
+            elif isinstance(node, ast.Import):
+                targets = [a.name.split(".")[1] for a in node.names if a.name.startswith("torchsde_lti.")]
+            else:
+                continue
+            for target in targets:
+                if target in order and order[target] > order[here]:
+                    offences.append(f"{path.relative_to(PACKAGE)} ({here}) imports torchsde_lti.{target}")
     assert not offences, offences

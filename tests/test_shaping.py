@@ -1,4 +1,5 @@
-"""Shaping filters (seed 003): augmented model, steady-state start, KalmanFilter prior "shaping"."""
+"""Shaping filters (seed 003): augmented model, steady-state start (the model's prior_covariance()),
+the KalmanFilter's default prior."""
 
 from __future__ import annotations
 
@@ -36,13 +37,13 @@ def test_augmented_matrices_and_start():
     np.testing.assert_allclose(model.L.detach().numpy(), [[0.0], [1.0]], atol=0)
     np.testing.assert_allclose(model.Qc.detach().numpy(), [[0.9]], atol=1e-15)
     assert model.B is None
-    np.testing.assert_allclose(model.start_covariance().detach().numpy(), [[0.0, 0.0], [0.0, 0.9 / 0.8]], atol=1e-14)
+    np.testing.assert_allclose(model.prior_covariance().detach().numpy(), [[0.0, 0.0], [0.0, 0.9 / 0.8]], atol=1e-14)
 
 
 def test_first_order_system_with_ou_input_matches_closed_form():
     a, b, q = 1.3, 0.4, 0.9
     model = first_order_with_ou_input(a, b, q)
-    P0 = model.start_covariance()
+    P0 = model.prior_covariance()
     m0 = torch.zeros(2, dtype=F64)
     for t in (0.1, 0.5, 1.0, 3.0, 7.0, 20.0):
         _, P = model.propagate(m0, P0, t)
@@ -61,7 +62,7 @@ def test_propagate_keeps_the_shaping_block_at_its_P_inf(dtype):
     shaping = tl.models.matern(1.5, lengthscale=1.5, variance=0.7, dtype=dtype)
     model = tl.models.shaped(system, shaping, C=torch.tensor([[1.0, 0.0]], dtype=dtype))
     n_s = 2
-    P0 = model.start_covariance()
+    P0 = model.prior_covariance()
     assert torch.all(P0[:n_s, :] == 0) and torch.all(P0[:, :n_s] == 0)
     P_f = shaping.stationary_covariance()
     torch.testing.assert_close(P0[n_s:, n_s:], P_f)
@@ -95,22 +96,23 @@ def test_augmented_lyapunov_residual_is_at_rounding_level_and_matches_scipy():
     np.testing.assert_allclose(P, scipy.linalg.solve_continuous_lyapunov(F, -W), rtol=1e-11, atol=1e-14)
 
 
-def test_kalman_filter_prior_mode_shaping_follows_the_parameters():
+def test_kalman_filter_default_prior_is_the_shaping_start_and_follows_the_parameters():
     model = first_order_with_ou_input(1.3, 0.4, 0.9)
     H = torch.tensor([[1.0, 0.0]], dtype=F64)
     kf = tl.KalmanFilter(model, H, torch.tensor([[0.1]], dtype=F64))
-    assert kf.prior_mode == "shaping"
-    torch.testing.assert_close(kf.initial_state()[1], model.start_covariance())
+    assert kf.prior_mode == "model"
+    torch.testing.assert_close(kf.initial_state()[1], model.prior_covariance())
     model.shaping.theta = 0.25  # a new shaping filter: P∞_f = q / (2 θ)
     np.testing.assert_allclose(kf.initial_state()[1].detach().numpy(), [[0, 0], [0, 0.9 / 0.5]], atol=1e-13)
-    # explicit modes
-    assert tl.KalmanFilter(model, H, torch.tensor([[0.1]], dtype=F64), P0="stationary").prior_mode == "stationary"
-    with pytest.raises(ValueError, match="shaped model"):
-        tl.KalmanFilter(tl.models.ornstein_uhlenbeck(1.0, 1.0, dtype=F64), H[:, :1], torch.eye(1, dtype=F64),
-                        P0="shaping")
-    with pytest.raises(ValueError, match="P0 must be a tensor or one of"):
+    # the explicit alternatives: a diffuse prior, or the whole state's P∞ as a given tensor
+    diffuse = tl.KalmanFilter(model, H, torch.tensor([[0.1]], dtype=F64), P0="diffuse")
+    assert diffuse.prior_mode == "diffuse"
+    torch.testing.assert_close(diffuse.initial_state()[1], 1e4 * torch.eye(2, dtype=F64))
+    given = tl.KalmanFilter(model, H, torch.tensor([[0.1]], dtype=F64), P0=model.stationary_covariance().detach())
+    assert given.prior_mode == "given"
+    with pytest.raises(ValueError, match="P0 must be a tensor, None .* or 'diffuse', got 'steady'"):
         tl.KalmanFilter(model, H, torch.eye(1, dtype=F64), P0="steady")
-    with pytest.raises(ValueError, match="shaping start P0 is singular"):
+    with pytest.raises(ValueError, match="the model prior covariance is singular"):
         tl.KalmanFilter(model, H, torch.eye(1, dtype=F64), learn=("P0",))
 
 
@@ -118,7 +120,7 @@ def test_gradient_of_the_start_wrt_the_shaping_parameters():
     q = 0.9
     model = first_order_with_ou_input(1.3, 0.4, q)
     raw = model.shaping.parametrizations.theta.original
-    P_ff = model.start_covariance()[1, 1]
+    P_ff = model.prior_covariance()[1, 1]
     (g_P,) = torch.autograd.grad(P_ff, raw)
     theta = model.shaping.theta
     (g_theta,) = torch.autograd.grad(theta, raw)
@@ -139,9 +141,9 @@ def test_filter_from_the_singular_start_matches_numpy_reference():
     u = rng.standard_normal((T, 1))
     F, L, Qc, B = (x.detach().numpy() for x in (model.F, model.L, model.Qc, model.B))
     A, Q, G = scipy_discretize(F, L, Qc, np.asarray(dt), B)
-    P0 = model.start_covariance().detach().numpy()
+    P0 = model.prior_covariance().detach().numpy()
     ref = numpy_kalman_filter(y, A, Q, H, R, np.zeros(3), P0, c=(G @ u[..., None])[..., 0])
-    for kw in ({}, {"parallel": True}, {"square_root": True}):
+    for kw in ({"algorithm": "sequential"}, {"algorithm": "scan"}, {"algorithm": "square_root"}):
         kf = tl.KalmanFilter(model, torch.tensor(H), torch.tensor(R), **kw)
         out = kf(torch.tensor(y), torch.tensor(dt), u=torch.tensor(u))
         np.testing.assert_allclose(out.mean.detach().numpy(), ref["mean"], atol=1e-9, rtol=0)
@@ -153,11 +155,11 @@ def test_batched_shaping_parameters_equal_loop():
     thetas = torch.tensor([0.3, 0.8, 2.0], dtype=F64)
     system = tl.models.ornstein_uhlenbeck(1.0, 1.0, dtype=F64)
     batched = tl.models.shaped(system, tl.models.ornstein_uhlenbeck(thetas, 0.5, dtype=F64))
-    P = batched.start_covariance()
+    P = batched.prior_covariance()
     assert P.shape == (3, 2, 2) and batched.F.shape == (3, 2, 2)
     for i, th in enumerate(thetas.tolist()):
         single = tl.models.shaped(system, tl.models.ornstein_uhlenbeck(th, 0.5, dtype=F64))
-        torch.testing.assert_close(P[i], single.start_covariance(), atol=1e-14, rtol=0)
+        torch.testing.assert_close(P[i], single.prior_covariance(), atol=1e-14, rtol=0)
         torch.testing.assert_close(batched.F[i], single.F, atol=1e-14, rtol=0)
 
 
@@ -173,4 +175,4 @@ def test_shaped_bad_input():
         tl.models.shaped(system, tl.models.from_transfer_function([1.0, 1.0], [1.0, 2.0], dtype=F64))
     unstable = tl.models.shaped(system, tl.models.integrated_wiener(1, 1, dtype=F64))
     with pytest.raises(ValueError, match="Hurwitz"):
-        unstable.start_covariance()
+        unstable.prior_covariance()

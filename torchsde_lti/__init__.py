@@ -3,20 +3,29 @@
 Notation (Särkkä & Solin): continuous-time F, L, Qc, B; discrete-time A, Q (= Qd), G;
 observations y = H x + v, v ~ N(0, R).
 
-Layers of the package (each imports only from the ones above it):
-
-- :mod:`torchsde_lti.core`: torch only — validation, linear-algebra kernels, exact
-  discretisation (doubling and torch.matrix_exp methods), stationary covariance, moments;
-- :mod:`torchsde_lti.nn`: the Transition / VanLoanNoise layers, parametrisations,
-  :class:`LTISDE`, :class:`KalmanFilter`;
-- :mod:`torchsde_lti.models`: the motion-model library;
-- :mod:`torchsde_lti.filters`: pure filter and smoother functions on discrete matrices;
-- :mod:`torchsde_lti.data`: simulation, track batches, real trajectories (``tl.data.load_tracks``);
-- :mod:`torchsde_lti.training`: Lightning module and the Hydra entry point.
+The package is layered: :data:`LAYERS` names each layer with its job, in import order —
+each imports only from the layers before it (enforced by tests/test_layering.py).
 """
 
-from torchsde_lti import data, models
-from torchsde_lti.core import (
+#: The layers of the package (subpackages and top-level modules) in import order, each
+#: importing only from those before it, with their jobs. Inference is kept apart from models
+#: (as in dynamax): the filters are pure functions on discrete matrices, below the nn
+#: modules that assemble those matrices from learned parameters and call them.
+LAYERS: tuple[tuple[str, str], ...] = (
+    ("core", "torch only: validation, linear-algebra kernels, exact discretisation, stationary covariance, moments"),
+    ("filters", "pure Kalman filter / smoother / IMM functions on discrete matrices, NamedTuple results"),
+    ("nn", "nn.Modules: the discretisation layers, parametrisations, LTISDE, KalmanFilter, IMMFilter"),
+    ("models", "the motion-model library (tl.models): factories of LTISDE subclasses"),
+    ("interop", "Stone Soup transition model and filterpy helper (optional peers)"),
+    ("data", "simulation, the track batch type, real trajectories (tl.data.load_tracks), the Lightning DataModules"),
+    ("training", "the Lightning module, metrics, callbacks, plots and the Hydra entry point"),
+    ("train", "the `python -m torchsde_lti.train` shim"),
+)
+if __doc__ is not None:  # (python -OO strips docstrings)
+    __doc__ += "\n" + "\n".join(f"- :mod:`torchsde_lti.{name}` — {job}." for name, job in LAYERS) + "\n"
+
+from torchsde_lti import data, models  # noqa: E402 — after LAYERS, which the docstring reads
+from torchsde_lti.core import (  # noqa: E402
     METHODS,
     Discrete,
     discretize,
@@ -26,15 +35,14 @@ from torchsde_lti.core import (
     transition_matrix,
     zero_order_hold,
 )
-from torchsde_lti.filters import (
+from torchsde_lti.filters import (  # noqa: E402
+    ALGORITHMS,
     FilterResult,
     SmootherResult,
     kalman_filter,
-    parallel_kalman_filter,
-    parallel_rts_smoother,
     rts_smoother,
 )
-from torchsde_lti.nn import (
+from torchsde_lti.nn import (  # noqa: E402
     LTISDE,
     DeployedFilter,
     Discretization,
@@ -46,9 +54,11 @@ from torchsde_lti.nn import (
     Transition,
     VanLoanNoise,
 )
-from torchsde_lti.nn import parametrizations
+from torchsde_lti.nn import parametrizations  # noqa: E402
 
 __all__ = [
+    "ALGORITHMS",
+    "LAYERS",
     "METHODS",
     "DeployedFilter",
     "Discrete",
@@ -67,8 +77,6 @@ __all__ = [
     "discretize",
     "kalman_filter",
     "models",
-    "parallel_kalman_filter",
-    "parallel_rts_smoother",
     "parametrizations",
     "process_noise",
     "propagate",

@@ -52,7 +52,7 @@ def discrete_step(sde: LTISDE, dt: object, method: str = "doubling") -> tuple[np
     Args:
         sde: an unbatched :class:`~torchsde_lti.LTISDE` (``batch_shape == ()``).
         dt: seconds (float) or a ``datetime.timedelta``; non-negative.
-        method: ``"doubling"`` or ``"van_loan"`` (see :func:`torchsde_lti.discretize`).
+        method: ``"doubling"`` or ``"matrix_exp"`` (see :func:`torchsde_lti.discretize`).
 
     Returns:
         A (n, n), Q (n, n) symmetric PSD, G (n, p) or None.
@@ -95,7 +95,7 @@ def _stonesoup_class() -> type:
         """
 
         sde: Any = Property(doc="The torchsde_lti.LTISDE (unbatched) that defines the dynamics.")
-        method: str = Property(default="doubling", doc="Discretisation method: 'doubling' or 'van_loan'.")
+        method: str = Property(default="doubling", doc="Discretisation method: 'doubling' or 'matrix_exp'.")
 
         def __init__(self, *args: Any, **kwargs: Any) -> None:
             super().__init__(*args, **kwargs)

@@ -99,15 +99,15 @@ def _quantised_case(seed: int = 3):
     return y, dt
 
 
-@pytest.mark.parametrize("parallel", [False, True])
-def test_unique_dt_equals_plain_path(parallel):
+@pytest.mark.parametrize("algorithm", ["sequential", "scan"])
+def test_unique_dt_equals_plain_path(algorithm):
     y, dt = _quantised_case()
     H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=f64)
     outs, grads = [], []
     for unique in (False, True):
         cv = tl.models.constant_velocity(dim=2, q=0.7, dtype=f64)
         kf = tl.KalmanFilter(cv, H, 0.3 * torch.eye(2, dtype=f64), P0=10 * torch.eye(4, dtype=f64),
-                             parallel=parallel, unique_dt=unique)
+                             algorithm=algorithm, unique_dt=unique)
         out = kf(y, dt)
         (-out.log_likelihood.sum()).backward()
         outs.append(out)

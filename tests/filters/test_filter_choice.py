@@ -1,4 +1,4 @@
-"""The automatic filter choice and the chunked associative scan (issue 10, item 3)."""
+"""The automatic filter choice (``algorithm="auto"``) and the chunked associative scan."""
 
 from __future__ import annotations
 
@@ -8,13 +8,7 @@ import torch
 
 import torchsde_lti as tl
 from tests.reference import random_problem, reference_batch, to_torch
-from torchsde_lti.filters import (
-    kalman_filter,
-    parallel_kalman_filter,
-    parallel_rts_smoother,
-    prefers_scan,
-    rts_smoother,
-)
+from torchsde_lti.filters import choose_algorithm, kalman_filter, prefers_scan, rts_smoother
 
 F64 = torch.float64
 
@@ -26,17 +20,19 @@ def test_chunked_scan_matches_numpy_reference(chunk):
     d = random_problem(np.random.default_rng(1), batch=(2,), T=21)
     ref = reference_batch(d)
     t = to_torch(d)
-    out = parallel_kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"],
-                                 chunk=chunk)
+    out = kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"],
+                        algorithm="scan", chunk=chunk)
     for name in ("mean", "cov", "pred_mean", "pred_cov"):
         np.testing.assert_allclose(getattr(out, name).numpy(), ref[name], rtol=0, atol=1e-9)
     np.testing.assert_allclose(out.step_log_likelihood.numpy(), ref["ll"], atol=1e-9)
     np.testing.assert_allclose(out.log_likelihood.numpy(), ref["ll"].sum(-1), atol=1e-9)
-    seq = kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"])
+    seq = kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"],
+                        algorithm="sequential")
     for name in ("innovation", "innovation_cov", "transition", "process_noise", "observed"):
         np.testing.assert_allclose(getattr(out, name).numpy(), getattr(seq, name).numpy(), atol=1e-9)
     # the smoother runs on the concatenated result
-    np.testing.assert_allclose(parallel_rts_smoother(out).mean.numpy(), rts_smoother(seq).mean.numpy(), atol=1e-8)
+    np.testing.assert_allclose(rts_smoother(out, algorithm="scan").mean.numpy(),
+                               rts_smoother(seq, algorithm="sequential").mean.numpy(), atol=1e-8)
 
 
 def test_chunked_scan_with_per_step_mask():
@@ -44,8 +40,8 @@ def test_chunked_scan_with_per_step_mask():
     t = to_torch(d)
     mask = torch.rand(3, 10, generator=torch.Generator().manual_seed(0)) > 0.3
     args = (t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"])
-    out = parallel_kalman_filter(*args, mask=mask, chunk=3)
-    seq = kalman_filter(*args, mask=mask)
+    out = kalman_filter(*args, mask=mask, algorithm="scan", chunk=3)
+    seq = kalman_filter(*args, mask=mask, algorithm="sequential")
     np.testing.assert_allclose(out.mean.numpy(), seq.mean.numpy(), atol=1e-9)
     np.testing.assert_allclose(out.log_likelihood.numpy(), seq.log_likelihood.numpy(), atol=1e-9)
 
@@ -55,6 +51,36 @@ def test_prefers_scan_rule():
     assert prefers_scan(1, 200, cpu) and prefers_scan(16, 10_000, cpu)
     assert not prefers_scan(17, 200, cpu) and not prefers_scan(1000, 200, cpu)
     assert not prefers_scan(1, 1, cpu)
+    assert choose_algorithm("auto", 1, 200, cpu) == "scan" and choose_algorithm("auto", 17, 200, cpu) == "sequential"
+    for algorithm in ("sequential", "square_root", "scan"):
+        assert choose_algorithm(algorithm, 1, 200, cpu) == algorithm
+    with pytest.raises(ValueError, match=r"kalman_filter has the algorithms .*got algorithm='parallel'"):
+        choose_algorithm("parallel", 1, 200, cpu)
+
+
+def test_functional_auto_runs_the_chosen_algorithm(monkeypatch):
+    """kalman_filter(algorithm="auto") runs the scan for few tracks and the loop for many;
+    rts_smoother likewise; unknown algorithms raise, naming the choices."""
+    import torchsde_lti.filters.kalman as kalman_module
+    import torchsde_lti.filters.smoothers as smoothers_module
+
+    ran = []
+    for name in ("chunked_scan", "sequential_filter"):
+        original = getattr(kalman_module, name)
+        monkeypatch.setattr(kalman_module, name, lambda *a, _f=original, _n=name, **k: (ran.append(_n), _f(*a, **k))[1])
+    original_scan = smoothers_module._scan_smoother
+    monkeypatch.setattr(smoothers_module, "_scan_smoother", lambda *a: (ran.append("scan smoother"), original_scan(*a))[1])
+    for B, expected in ((2, "chunked_scan"), (17, "sequential_filter")):
+        d = random_problem(np.random.default_rng(B), batch=(B,), T=6)
+        t = to_torch(d)
+        ran.clear()
+        out = kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"])
+        rts_smoother(out)
+        assert ran == [expected] + (["scan smoother"] if B <= 16 else [])
+    with pytest.raises(ValueError, match="rts_smoother has the algorithms"):
+        rts_smoother(out, algorithm="square_root")
+    with pytest.raises(ValueError, match="kalman_filter has the algorithms"):
+        kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], algorithm="parallel")
 
 
 def test_kalman_filter_auto_choice_and_forcing():
@@ -65,18 +91,20 @@ def test_kalman_filter_auto_choice_and_forcing():
     for B in (3, 40):
         y = torch.randn(B, 25, 1, generator=g, dtype=F64)
         dt = torch.rand(B, 25, generator=g, dtype=F64) + 0.1
-        for parallel in (None, True, False):
-            kf = tl.KalmanFilter(cv, H, R, P0=torch.eye(2, dtype=F64), parallel=parallel)
-            expected = (B <= 16) if parallel is None else parallel
-            assert kf.uses_scan(y.shape[:-2], dt.shape[:-1], 25, y.device) == expected
+        for algorithm in ("auto", "scan", "sequential"):
+            kf = tl.KalmanFilter(cv, H, R, P0=torch.eye(2, dtype=F64), algorithm=algorithm)
+            expected = ("scan" if B <= 16 else "sequential") if algorithm == "auto" else algorithm
+            assert kf.algorithm_for(B, 25, y.device) == expected
             out = kf(y, dt)
-            results[B, parallel] = (out, kf.smooth(out))
-        for parallel in (None, True):
-            for a, b in zip(results[B, parallel], results[B, False]):
+            results[B, algorithm] = (out, kf.smooth(out))
+        for algorithm in ("auto", "scan"):
+            for a, b in zip(results[B, algorithm], results[B, "sequential"]):
                 np.testing.assert_allclose(a.mean.detach().numpy(), b.mean.detach().numpy(), atol=1e-9)
                 np.testing.assert_allclose(a.cov.detach().numpy(), b.cov.detach().numpy(), atol=1e-9)
-    sq = tl.KalmanFilter(cv, H, R, square_root=True)
-    assert not sq.uses_scan((1,), (1,), 200, torch.device("cpu"))
+    sq = tl.KalmanFilter(cv, H, R, algorithm="square_root")
+    assert sq.algorithm_for(1, 200, torch.device("cpu")) == "square_root"
+    with pytest.raises(ValueError, match=r"KalmanFilter has the algorithms .*got algorithm='parallel'"):
+        tl.KalmanFilter(cv, H, R, algorithm="parallel")
 
 
 def test_auto_choice_gradients_equal_loop():
@@ -85,9 +113,10 @@ def test_auto_choice_gradients_equal_loop():
     y = torch.randn(2, 30, 1, generator=g, dtype=F64).cumsum(1)
     dt = torch.rand(2, 30, generator=g, dtype=F64) + 0.05
     grads = []
-    for parallel in (None, False):
+    for algorithm in ("auto", "sequential"):
         sde = tl.models.ornstein_uhlenbeck(0.8, 0.5, dtype=F64)  # learnable θ, q (stationary prior)
-        kf = tl.KalmanFilter(sde, torch.tensor([[1.0]], dtype=F64), torch.tensor([[0.2]], dtype=F64), parallel=parallel)
+        kf = tl.KalmanFilter(sde, torch.tensor([[1.0]], dtype=F64), torch.tensor([[0.2]], dtype=F64),
+                             algorithm=algorithm)
         (-kf(y, dt).log_likelihood.sum()).backward()
         grads.append([p.grad.clone() for p in kf.parameters() if p.grad is not None])
     assert grads[0] and len(grads[0]) == len(grads[1])

@@ -6,6 +6,7 @@ explicit solve, standard covariance update) written independently of torchsde_lt
 
 from __future__ import annotations
 
+import functools
 
 import numpy as np
 import pytest
@@ -14,15 +15,14 @@ import scipy.stats
 import torch
 
 from tests.reference import cv_matrices, numpy_kalman_filter, numpy_rts, random_problem, reference_batch, to_torch
-from torchsde_lti.filters import (
-    FilterResult,
-    kalman_filter,
-    parallel_kalman_filter,
-    parallel_rts_smoother,
-    rts_smoother,
-)
+from torchsde_lti.filters import FilterResult, kalman_filter, rts_smoother
 
 F64 = torch.float64
+# the two algorithms named, so that every test says which one it checks
+sequential_kf = functools.partial(kalman_filter, algorithm="sequential")
+scan_kf = functools.partial(kalman_filter, algorithm="scan")
+sequential_rts = functools.partial(rts_smoother, algorithm="sequential")
+scan_rts = functools.partial(rts_smoother, algorithm="scan")
 
 
 # ----------------------------------------------------------------------------------------
@@ -30,7 +30,7 @@ F64 = torch.float64
 # ----------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("fn", [kalman_filter, parallel_kalman_filter], ids=["sequential", "parallel"])
+@pytest.mark.parametrize("fn", [sequential_kf, scan_kf], ids=["sequential", "scan"])
 def test_filter_matches_numpy_reference(fn):
     rng = np.random.default_rng(0)
     d = random_problem(rng)
@@ -66,7 +66,7 @@ def test_cv_irregular_dt_with_controls_matches_reference():
     d = dict(y=y, A=A, Q=Q, H=H, R=R, m0=np.zeros((B, 4)), P0=np.tile(4 * np.eye(4), (B, 1, 1)), G=G, u=u)
     ref = reference_batch(d)
     t = to_torch(d)
-    out = kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], torch.zeros(4, dtype=F64), 4 * torch.eye(4, dtype=F64),
+    out = sequential_kf(t["y"], t["A"], t["Q"], t["H"], t["R"], torch.zeros(4, dtype=F64), 4 * torch.eye(4, dtype=F64),
                         G=t["G"], u=t["u"])
     np.testing.assert_allclose(out.mean.numpy(), ref["mean"], atol=1e-9)
     np.testing.assert_allclose(out.cov.numpy(), ref["cov"], atol=1e-9)
@@ -80,7 +80,7 @@ def test_time_varying_H_and_R_match_reference():
     W = rng.standard_normal((8, 2, 2))
     Rs = W @ np.swapaxes(W, -1, -2) + 0.3 * np.eye(2)
     t = to_torch(d)
-    out = kalman_filter(t["y"], t["A"], t["Q"], torch.as_tensor(Hs), torch.as_tensor(Rs), t["m0"], t["P0"])
+    out = sequential_kf(t["y"], t["A"], t["Q"], torch.as_tensor(Hs), torch.as_tensor(Rs), t["m0"], t["P0"])
     for b in range(2):
         m, P = d["m0"][b], d["P0"][b]
         for k in range(8):
@@ -108,14 +108,14 @@ def test_mask_equals_nan():
     y_nan = t["y"].clone()
     y_nan[~mask] = float("nan")
     args = (t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"])
-    a = kalman_filter(y_nan, *args)
-    b = kalman_filter(t["y"], *args, mask=mask)
+    a = sequential_kf(y_nan, *args)
+    b = sequential_kf(t["y"], *args, mask=mask)
     step_mask = torch.ones(t["y"].shape[:-1], dtype=torch.bool)
     step_mask[2, 4] = False
     y_step = t["y"].clone()
     y_step[2, 4] = float("nan")
-    c = kalman_filter(y_step, *args, mask=step_mask)
-    d_ = kalman_filter(y_step, *args)
+    c = sequential_kf(y_step, *args, mask=step_mask)
+    d_ = sequential_kf(y_step, *args)
     torch.testing.assert_close(a.mean, b.mean, rtol=0, atol=1e-12)
     torch.testing.assert_close(a.log_likelihood, b.log_likelihood, rtol=0, atol=1e-12)
     torch.testing.assert_close(c.mean, d_.mean, rtol=0, atol=1e-12)
@@ -162,7 +162,7 @@ def test_log_likelihood_equals_dense_joint_gaussian():
     dense = scipy.stats.multivariate_normal(mean=my[o], cov=Sy[np.ix_(o, o)]).logpdf(yf[o])
     t = to_torch(d)
     yt = torch.as_tensor(y[None])
-    for fn in (kalman_filter, parallel_kalman_filter):
+    for fn in (sequential_kf, scan_kf):
         out = fn(yt, t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"])
         assert abs(float(out.log_likelihood[0]) - dense) < 1e-9
 
@@ -172,12 +172,12 @@ def test_log_likelihood_equals_dense_joint_gaussian():
 # ----------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("smoother", [rts_smoother, parallel_rts_smoother], ids=["sequential", "parallel"])
+@pytest.mark.parametrize("smoother", [sequential_rts, scan_rts], ids=["sequential", "scan"])
 def test_rts_matches_numpy_and_shrinks_covariance(smoother):
     rng = np.random.default_rng(4)
     d = random_problem(rng, batch=(2,), T=15)
     t = to_torch(d)
-    out = kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"])
+    out = sequential_kf(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"])
     sm = smoother(out)
     for b in range(2):
         ms, Ps = numpy_rts(out.mean[b].numpy(), out.cov[b].numpy(), out.pred_mean[b].numpy(),
@@ -193,9 +193,9 @@ def test_smoother_explicit_A_Q_equal_stored():
     rng = np.random.default_rng(5)
     d = random_problem(rng, batch=(2,), T=6, missing=False)
     t = to_torch(d)
-    out = kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"])
-    a = rts_smoother(out)
-    b = rts_smoother(out, t["A"], t["Q"])
+    out = sequential_kf(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"])
+    a = sequential_rts(out)
+    b = sequential_rts(out, t["A"], t["Q"])
     torch.testing.assert_close(a.mean, b.mean)
 
 
@@ -222,7 +222,7 @@ def test_nees_is_chi_square():
         ys.append((H @ x[..., None])[..., 0] + (chol(R) @ torch.randn(B, 2, 1, generator=g, dtype=F64))[..., 0])
     xs, ys = torch.stack(xs, 1), torch.stack(ys, 1)
     ys[:, 3] = float("nan")  # a missing step for everybody
-    out = kalman_filter(ys, A, Q, H, R, m0, P0)
+    out = sequential_kf(ys, A, Q, H, R, m0, P0)
     err = xs - out.mean
     nees = (err * torch.linalg.solve(out.cov, err[..., None])[..., 0]).sum(-1)  # (B, T)
     # At each step, Σ_b NEES ~ χ²(n B) exactly (independent tracks). Bonferroni over T steps.
@@ -254,7 +254,7 @@ def test_gradcheck_all_inputs():
         Q = Wq @ Wq.mT
         R = Wr @ Wr.mT + 0.5 * torch.eye(2, dtype=F64)
         P0 = W0 @ W0.mT + torch.eye(3, dtype=F64)
-        out = kalman_filter(y, A, Q, H, R, m0, P0, G=G, u=u)
+        out = sequential_kf(y, A, Q, H, R, m0, P0, G=G, u=u)
         return out.log_likelihood, out.mean, out.cov
 
     Wq = torch.as_tensor(rng.standard_normal((1, 5, 3, 3)) * 0.3)
@@ -276,10 +276,10 @@ def test_gradients_finite_for_fully_missing_track():
     Q = t["Q"].clone().requires_grad_(True)
     R = t["R"].clone().requires_grad_(True)
     H = t["H"].clone().requires_grad_(True)
-    for fn in (kalman_filter, parallel_kalman_filter):
+    for fn in (sequential_kf, scan_kf):
         out = fn(y, A, Q, H, R, t["m0"], t["P0"])
         assert float(out.step_log_likelihood[1].detach().abs().max()) == 0.0
-        loss = out.log_likelihood.sum() + out.mean.sum() + rts_smoother(out).mean.sum()
+        loss = out.log_likelihood.sum() + out.mean.sum() + sequential_rts(out).mean.sum()
         grads = torch.autograd.grad(loss, (y, A, Q, R, H))
         for g in grads:
             assert torch.isfinite(g).all()
@@ -290,19 +290,19 @@ def test_batched_equals_loop_and_leading_dims():
     rng = np.random.default_rng(10)
     d = random_problem(rng, batch=(2, 3), T=7)
     t = to_torch(d)
-    out = kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"])
+    out = sequential_kf(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"])
     assert out.mean.shape == (2, 3, 7, 4) and out.cov.shape == (2, 3, 7, 4, 4)
     assert out.log_likelihood.shape == (2, 3) and out.step_log_likelihood.shape == (2, 3, 7)
-    sm = rts_smoother(out)
+    sm = sequential_rts(out)
     assert sm.cov.shape == (2, 3, 7, 4, 4)
     for i in range(2):
         for j in range(3):
-            single = kalman_filter(t["y"][i, j], t["A"][i, j], t["Q"][i, j], t["H"], t["R"], t["m0"][i, j],
+            single = sequential_kf(t["y"][i, j], t["A"][i, j], t["Q"][i, j], t["H"], t["R"], t["m0"][i, j],
                                    t["P0"][i, j], G=t["G"][i, j], u=t["u"][i, j])
             torch.testing.assert_close(out.mean[i, j], single.mean, rtol=0, atol=1e-12)
             torch.testing.assert_close(out.cov[i, j], single.cov, rtol=0, atol=1e-12)
             torch.testing.assert_close(out.log_likelihood[i, j], single.log_likelihood, rtol=0, atol=1e-12)
-            torch.testing.assert_close(sm.mean[i, j], rts_smoother(single).mean, rtol=0, atol=1e-12)
+            torch.testing.assert_close(sm.mean[i, j], sequential_rts(single).mean, rtol=0, atol=1e-12)
 
 
 def test_shared_grid_broadcasts_over_tracks():
@@ -315,7 +315,7 @@ def test_shared_grid_broadcasts_over_tracks():
     R = 0.5 * np.eye(2)
     y = rng.standard_normal((5, T, 2))
     tA, tQ, tH, tR = (torch.as_tensor(x) for x in (A, Q, H, R))
-    out = kalman_filter(torch.as_tensor(y), tA, tQ, tH, tR, torch.zeros(4, dtype=F64), torch.eye(4, dtype=F64))
+    out = sequential_kf(torch.as_tensor(y), tA, tQ, tH, tR, torch.zeros(4, dtype=F64), torch.eye(4, dtype=F64))
     assert out.cov.shape == (5, T, 4, 4)
     for b in range(5):
         ref = numpy_kalman_filter(y[b], A, Q, H, R, np.zeros(4), np.eye(4))
@@ -324,16 +324,16 @@ def test_shared_grid_broadcasts_over_tracks():
 
 
 @pytest.mark.parametrize("T", [1, 2, 7, 16])
-def test_parallel_equals_sequential(T):
+def test_scan_equals_sequential(T):
     rng = np.random.default_rng(12 + T)
     d = random_problem(rng, batch=(2, 3), T=T, missing=T > 7)
     t = to_torch(d)
     args = (t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"])
-    a = kalman_filter(*args, G=t["G"], u=t["u"])
-    b = parallel_kalman_filter(*args, G=t["G"], u=t["u"])
+    a = sequential_kf(*args, G=t["G"], u=t["u"])
+    b = scan_kf(*args, G=t["G"], u=t["u"])
     for name in ("mean", "cov", "pred_mean", "pred_cov", "innovation", "innovation_cov", "step_log_likelihood"):
         torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=0, atol=1e-9, msg=name)
-    sa, sb = rts_smoother(a), parallel_rts_smoother(a)
+    sa, sb = sequential_rts(a), scan_rts(a)
     torch.testing.assert_close(sa.mean, sb.mean, rtol=0, atol=1e-9)
     torch.testing.assert_close(sa.cov, sb.cov, rtol=0, atol=1e-9)
 
@@ -342,8 +342,8 @@ def test_float32_matches_float64():
     rng = np.random.default_rng(13)
     d = random_problem(rng, batch=(3,), T=10)
     t64, t32 = to_torch(d), to_torch(d, torch.float32)
-    a = kalman_filter(*(t64[k] for k in ("y", "A", "Q", "H", "R", "m0", "P0")))
-    b = kalman_filter(*(t32[k] for k in ("y", "A", "Q", "H", "R", "m0", "P0")))
+    a = sequential_kf(*(t64[k] for k in ("y", "A", "Q", "H", "R", "m0", "P0")))
+    b = sequential_kf(*(t32[k] for k in ("y", "A", "Q", "H", "R", "m0", "P0")))
     assert b.mean.dtype == torch.float32 and b.log_likelihood.dtype == torch.float32
     torch.testing.assert_close(b.mean.double(), a.mean, rtol=1e-3, atol=1e-3)
     torch.testing.assert_close(b.log_likelihood.double(), a.log_likelihood, rtol=1e-4, atol=1e-3)
@@ -377,7 +377,7 @@ def test_float32_psd_over_10k_steps_stiff_irregular():
     y = torch.as_tensor(rng.standard_normal((2, T, 2)), dtype=f32)
     y[0, torch.as_tensor(rng.random(T) < 0.3)] = float("nan")
     y[1, torch.as_tensor(rng.random(T) < 0.1), 1] = float("nan")
-    out = kalman_filter(y, A, Q, H, R, torch.zeros(4, dtype=f32), 1e2 * torch.eye(4, dtype=f32))
+    out = sequential_kf(y, A, Q, H, R, torch.zeros(4, dtype=f32), 1e2 * torch.eye(4, dtype=f32))
     for P in (out.cov, out.pred_cov):
         assert torch.isfinite(P).all()
         assert torch.equal(P, P.mT)
@@ -416,18 +416,18 @@ def test_bad_input_raises(change, match):
     t = _ok()
     change(t)
     with pytest.raises(ValueError, match=match):
-        kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"])
+        sequential_kf(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"])
 
 
 def test_bad_mask_raises():
     t = _ok()
     with pytest.raises(ValueError, match="mask"):
-        kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], mask=torch.ones(2, 3, dtype=torch.bool))
+        sequential_kf(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], mask=torch.ones(2, 3, dtype=torch.bool))
     with pytest.raises(ValueError, match="mask"):
-        kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], mask=torch.ones(2, 5))
+        sequential_kf(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], mask=torch.ones(2, 5))
 
 
 def test_result_is_namedtuple():
     t = _ok()
-    out = kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"])
+    out = sequential_kf(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"])
     assert isinstance(out, FilterResult)

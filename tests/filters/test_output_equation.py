@@ -39,11 +39,11 @@ M0 = np.array([0.3, -0.1, 0.2])
 P0 = np.diag([1.0, 0.5, 2.0])
 
 
-@pytest.mark.parametrize("variant", ["sequential", "parallel", "square_root"])
+@pytest.mark.parametrize("variant", ["sequential", "scan", "square_root"])
 def test_filter_with_feedthrough_matches_numpy_reference(variant):
     rng = np.random.default_rng(0)
     dt, y, u = problem(rng)
-    kw = {"parallel": variant == "parallel", "square_root": variant == "square_root"}
+    kw = {"algorithm": variant}
     kf = tl.KalmanFilter(make_sde(), torch.tensor(H_NP), torch.tensor(R_NP), m0=torch.tensor(M0),
                          P0=torch.tensor(P0), D=torch.tensor(D_NP), **kw)
     out = kf(torch.tensor(y), torch.tensor(dt), u=torch.tensor(u))
@@ -174,4 +174,4 @@ def test_bad_D_or_u_shapes_raise_naming_them():
     with pytest.raises(ValueError, match="D must have"):
         tl.kalman_filter(*args, u=torch.zeros(4, 2, dtype=F64), D=torch.zeros(3, 2, dtype=F64))
     with pytest.raises(ValueError, match="D has 3 steps"):
-        tl.parallel_kalman_filter(*args, u=torch.zeros(4, 2, dtype=F64), D=torch.zeros(3, 2, 2, dtype=F64))
+        tl.kalman_filter(*args, u=torch.zeros(4, 2, dtype=F64), D=torch.zeros(3, 2, 2, dtype=F64), algorithm="scan")

@@ -1,4 +1,4 @@
-"""Square-root (Cholesky-factor) filter: ``kalman_filter(..., square_root=True)``.
+"""Square-root (Cholesky-factor) filter: ``kalman_filter(..., algorithm="square_root")``.
 
 Oracles: the independent numpy textbook filter of tests/test_filtering.py (float64, 1e-9),
 the standard Joseph-form path (same model, same inputs), float64 runs for the float32
@@ -40,7 +40,7 @@ def test_random_problem_matches_numpy_reference():
     ref = reference_batch(d)
     t = to_torch(d)
     out = kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"],
-                        square_root=True)
+                        algorithm="square_root")
     _assert_matches_reference(out, ref, d)
 
 
@@ -64,7 +64,7 @@ def test_cv_irregular_dt_zero_first_gap_mask_and_controls_match_reference():
     t = to_torch(d)
     out = kalman_filter(torch.as_tensor(y), t["A"], t["Q"], t["H"], t["R"], torch.zeros(4, dtype=F64),
                         4 * torch.eye(4, dtype=F64), G=t["G"], u=t["u"], mask=torch.as_tensor(mask),
-                        square_root=True)
+                        algorithm="square_root")
     _assert_matches_reference(out, ref, d)
     assert out.observed.numpy().tolist() == mask.tolist()
 
@@ -83,8 +83,8 @@ def test_broadcast_shapes_and_time_varying_H_R_equal_standard_filter():
     y[0, 4] = float("nan")
     y[2, 6, 1] = float("nan")
     args = (y, torch.as_tensor(A), torch.as_tensor(Q), Hs, Rs, torch.zeros(n, dtype=F64), 2 * torch.eye(n, dtype=F64))
-    std = kalman_filter(*args)
-    sq = kalman_filter(*args, square_root=True)
+    std = kalman_filter(*args, algorithm="sequential")
+    sq = kalman_filter(*args, algorithm="square_root")
     for name in FIELDS + ("innovation", "innovation_cov", "step_log_likelihood", "log_likelihood"):
         a, b = getattr(std, name), getattr(sq, name)
         assert a.shape == b.shape, name
@@ -123,7 +123,7 @@ def test_gradcheck_float64():
 
     def f(A, Wq, H, Wr, m0, W0, y):
         out = kalman_filter(y, A, Wq @ Wq.mT, H, Wr @ Wr.mT + 0.5 * eye_m, m0, W0 @ W0.mT + eye_n, mask=mask,
-                            square_root=True)
+                            algorithm="square_root")
         return out.log_likelihood, out.mean, out.cov, out.pred_cov
 
     assert torch.autograd.gradcheck(f, (A, Wq, H, Wr, m0, W0, y), atol=1e-6, rtol=1e-5)
@@ -131,8 +131,8 @@ def test_gradcheck_float64():
 
 def _cv_filter(square_root: bool, dtype=F64, **kw) -> tl.KalmanFilter:
     sde = M.constant_velocity(2, 0.8, dtype=dtype)
-    return tl.KalmanFilter(sde, M.position_observation(sde), 0.2 * torch.eye(2, dtype=dtype), square_root=square_root,
-                           **kw)
+    return tl.KalmanFilter(sde, M.position_observation(sde), 0.2 * torch.eye(2, dtype=dtype),
+                           algorithm="square_root" if square_root else "sequential", **kw)
 
 
 def test_module_equals_standard_filter_values_and_gradients_with_zero_gap():
@@ -160,12 +160,11 @@ def test_module_equals_standard_filter_values_and_gradients_with_zero_gap():
     torch.testing.assert_close(sm.cov, rts_smoother(outs[0]).cov, rtol=0, atol=1e-9)
 
 
-def test_module_flag_stored_and_parallel_rejected():
-    assert _cv_filter(False).square_root is False
+def test_module_algorithm_stored_and_shown():
+    assert _cv_filter(False).algorithm == "sequential"
     kf = _cv_filter(True)
-    assert kf.square_root is True and "square_root=True" in repr(kf)
-    with pytest.raises(ValueError, match="parallel"):
-        _cv_filter(True, parallel=True)
+    assert kf.algorithm == "square_root" and "algorithm='square_root'" in repr(kf)
+    assert kf.algorithm_for(1, 200, torch.device("cpu")) == "square_root"  # never the scan
 
 
 # ----------------------------------------------------------------------------------------
@@ -193,7 +192,7 @@ def _extreme_case(B: int, T: int, still: bool):
     outs = {}
     for sq in (False, True):
         kf = tl.KalmanFilter(M.constant_velocity(2, 10.0), H.float(), 1e-4 * torch.eye(2), P0=torch.eye(4),
-                             square_root=sq)
+                             algorithm="square_root" if sq else "sequential")
         outs[sq] = kf(y32, dt32)
     return ref, outs
 

@@ -31,7 +31,7 @@ def _filters() -> dict[str, tl.KalmanFilter]:
     matern = tl.models.matern(1.5, lengthscale=0.7, variance=2.0, dtype=F64)  # stationary prior, doubling
     return {
         "cv-scan": tl.KalmanFilter(cv, H, R, P0=50 * torch.eye(4, dtype=F64)),  # auto: scan (B = 2)
-        "cv-loop": tl.KalmanFilter(cv, H, R, P0=50 * torch.eye(4, dtype=F64), parallel=False),
+        "cv-loop": tl.KalmanFilter(cv, H, R, P0=50 * torch.eye(4, dtype=F64), algorithm="sequential"),
         "matern": tl.KalmanFilter(matern, torch.tensor([[1.0, 0.0]], dtype=F64), torch.tensor([[0.1]], dtype=F64)),
     }
 
@@ -125,14 +125,48 @@ def test_aoti_package_matches_eager(tmp_path):
 
 @pytest.mark.slow  # inductor compiles the whole scan: ≈ 20–60 s
 def test_compiled_forced_scan_matches_eager():
-    """torch.compile(KalmanFilter(parallel=True)) traces the associative scan whole (the
+    """torch.compile(KalmanFilter(algorithm="scan")) traces the associative scan whole (the
     doubling's while_loop without a gradient) and equals eager to 1e-10."""
     cv = tl.models.constant_velocity(dim=2, q=0.8, dtype=F64)
     H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=F64)
-    kf = tl.KalmanFilter(cv, H, 0.3 * torch.eye(2, dtype=F64), P0=50 * torch.eye(4, dtype=F64), parallel=True)
+    kf = tl.KalmanFilter(cv, H, 0.3 * torch.eye(2, dtype=F64), P0=50 * torch.eye(4, dtype=F64), algorithm="scan")
     compiled = torch.compile(kf)
     y, dt = _data(2, 12, 2, seed=1)
     with torch.no_grad():
         out, ref = compiled(y, dt), kf(y, dt)
     torch.testing.assert_close(out.log_likelihood, ref.log_likelihood, rtol=0, atol=1e-10)
     torch.testing.assert_close(out.mean, ref.mean, rtol=0, atol=1e-10)
+
+
+@pytest.mark.slow  # compiles one step of the loop: ≈ 5–20 s
+def test_compiled_default_runs_the_loop_as_a_structured_scan_and_matches_eager():
+    """torch.compile(kf) with algorithm="auto" runs the loop as torch's structured scan (never
+    the scan traced whole), equal to eager with and without gradients; the functional
+    kalman_filter under torch.compile does the same."""
+    import torchsde_lti.filters.sequential as sequential
+
+    cv = tl.models.constant_velocity(dim=2, q=0.8, dtype=F64)
+    H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=F64)
+    kf = tl.KalmanFilter(cv, H, 0.3 * torch.eye(2, dtype=F64), P0=50 * torch.eye(4, dtype=F64))
+    y, dt = _data(1, 30, 2, seed=1)
+    calls = []
+    original = sequential._run_compiled_loop
+    sequential._run_compiled_loop = lambda *a: (calls.append(1), original(*a))[1]
+    try:
+        compiled = torch.compile(kf)
+        with torch.no_grad():
+            out, ref = compiled(y, dt), kf(y, dt)
+        torch.testing.assert_close(out.log_likelihood, ref.log_likelihood, rtol=0, atol=1e-10)
+        torch.testing.assert_close(out.mean, ref.mean, rtol=0, atol=1e-10)
+        (g_c,) = torch.autograd.grad(compiled(y, dt).log_likelihood.sum(), kf.parametrizations.R.original)
+        (g_e,) = torch.autograd.grad(kf(y, dt).log_likelihood.sum(), kf.parametrizations.R.original)
+        torch.testing.assert_close(g_c, g_e, rtol=1e-9, atol=1e-10)
+        d = cv(dt, series=True)
+        args = (H, 0.3 * torch.eye(2, dtype=F64), torch.zeros(4, dtype=F64), 50 * torch.eye(4, dtype=F64))
+        fn = torch.compile(lambda y, A, Q: tl.kalman_filter(y, A, Q, *args).log_likelihood)
+        with torch.no_grad():
+            torch.testing.assert_close(fn(y, d.A, d.Q), tl.kalman_filter(y, d.A, d.Q, *args).log_likelihood,
+                                       rtol=0, atol=1e-10)
+    finally:
+        sequential._run_compiled_loop = original
+    assert len(calls) == 3  # the module (no grad, grad) and the function: the loop each time

@@ -13,8 +13,8 @@ sklearn_gp = pytest.importorskip("sklearn.gaussian_process")
 kernels = pytest.importorskip("sklearn.gaussian_process.kernels")
 
 
-@pytest.mark.parametrize("parallel", [None, False, True])
-def test_matern32_kalman_log_likelihood_equals_sklearn_exact_gp(parallel):
+@pytest.mark.parametrize("algorithm", ["auto", "sequential", "scan"])
+def test_matern32_kalman_log_likelihood_equals_sklearn_exact_gp(algorithm):
     rng = np.random.default_rng(0)
     N, ell, var, noise = 300, 0.7, 1.9, 0.05
     t = np.sort(rng.uniform(0.0, 60.0, N))
@@ -27,8 +27,8 @@ def test_matern32_kalman_log_likelihood_equals_sklearn_exact_gp(parallel):
     sde = tl.models.matern(1.5, lengthscale=ell, variance=var, dtype=torch.float64)
     H = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
     # default prior: the stationary covariance P∞ (the GP prior at the first time, dt[0] = 0)
-    kf = tl.KalmanFilter(sde, H, torch.tensor([[noise]], dtype=torch.float64), parallel=parallel)
-    assert kf.prior_mode == "stationary"
+    kf = tl.KalmanFilter(sde, H, torch.tensor([[noise]], dtype=torch.float64), algorithm=algorithm)
+    assert kf.prior_mode == "model"
     dt = torch.as_tensor(np.diff(t, prepend=t[0]))
     out = kf(torch.as_tensor(y)[:, None], dt)
     assert abs(float(out.log_likelihood.detach()) - exact) < 1e-8, (float(out.log_likelihood.detach()), exact)

@@ -63,7 +63,7 @@ def test_filter_and_smoother_match_numpy_with_irregular_dt_missing_and_inputs():
 def test_default_prior_is_stationary_for_hurwitz_and_diffuse_otherwise():
     F, L, Qc, _ = damped_model(with_input=False)
     kf = tl.KalmanFilter(make_sde(F, L, Qc), torch.tensor(H_NP), torch.tensor(R_NP))
-    assert kf.prior_mode == "stationary"
+    assert kf.prior_mode == "model"
     P_inf = scipy.linalg.solve_continuous_lyapunov(F, -L @ Qc @ L.T)
     np.testing.assert_allclose(kf.initial_state()[1].detach().numpy(), P_inf, atol=1e-10)
     cv = tl.models.constant_velocity(dim=2, q=1.0, dtype=F64)
@@ -112,13 +112,13 @@ def test_gradcheck_wrt_F_Qc_H_R_m0_P0_dt():
     assert torch.autograd.gradcheck(f, (dt, *params), eps=1e-6, atol=1e-6)
 
 
-def test_parallel_module_equals_sequential_and_batch_equals_loop():
+def test_scan_module_equals_sequential_and_batch_equals_loop():
     rng = np.random.default_rng(3)
     F, L, Qc, B = damped_model()
     sde = make_sde(F, L, Qc, B)
     H, R = torch.tensor(H_NP), torch.tensor(R_NP)
-    seq = tl.KalmanFilter(sde, H, R)
-    par = tl.KalmanFilter(sde, H, R, parallel=True)
+    seq = tl.KalmanFilter(sde, H, R, algorithm="sequential")
+    par = tl.KalmanFilter(sde, H, R, algorithm="scan")
     y = torch.tensor(rng.standard_normal((2, 3, 11, 2)))
     y[1, 2, 4] = float("nan")
     dt = torch.tensor(rng.exponential(0.5, size=(2, 3, 11)))

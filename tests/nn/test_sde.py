@@ -69,7 +69,7 @@ def test_learn_everything_and_nothing(mats) -> None:
 
 
 # ----------------------------------------------------------------------------- computations vs scipy
-@pytest.mark.parametrize("method", ["doubling", "van_loan"])
+@pytest.mark.parametrize("method", ["doubling", "matrix_exp"])
 def test_forward_matches_scipy(mats, method: str) -> None:
     F, L, Qc, B = mats
     sde = tl.LTISDE(t(F), t(L), t(Qc), t(B), F_constraint="hurwitz")

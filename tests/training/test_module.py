@@ -23,7 +23,7 @@ def test_one_step_ahead_loss_equals_prediction_error_decomposition() -> None:
     module = KalmanFilterModule(kf, k_step=1, k_step_weight=1.0)
     out = kf(tr.y, tr.dt)
     observed = ~torch.isnan(tr.y)
-    got = module.k_step_nll(out, tr.y, tr.dt, None, observed)
+    got = module.k_step_nll(out, tr.y, observed)
     ref = -out.step_log_likelihood[..., 1:].sum()
     assert torch.allclose(got, ref, rtol=1e-10)
 

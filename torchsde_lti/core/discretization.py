@@ -13,7 +13,7 @@ and the Hydra configs that sit on top):
 PSD terms (private module ``_doubling``). Accurate to rounding and PSD for stiff F and
 large dt, in float32 too; F, L, Qc, B shared by a batch of dt are expanded once.
 
-``"matrix_exp"`` (alias ``"van_loan"``): :func:`torch.matrix_exp` — A = expm(F dt), G from
+``"matrix_exp"``: :func:`torch.matrix_exp` — A = expm(F dt), G from
 the ZOH block ``[[F, B], [0, 0]]``, Q from Van Loan's block exponential (private module
 ``_matrix_exp``). Exact in exact arithmetic; the ``−Fᵀ`` block grows like ``e^{|λ| dt}``,
 so Q loses accuracy for stiff F or large dt.
@@ -41,8 +41,8 @@ __all__ = [
     "zero_order_hold",
 ]
 
-#: Discretisation methods; ``"van_loan"`` is an alias of ``"matrix_exp"``.
-METHODS = ("doubling", "matrix_exp", "van_loan")
+#: Discretisation methods.
+METHODS = ("doubling", "matrix_exp")
 
 
 class Discrete(NamedTuple):
@@ -59,9 +59,7 @@ class Discrete(NamedTuple):
 
 
 def resolve_method(method: str) -> str:
-    """Canonical method name (``"doubling"`` or ``"matrix_exp"``); ValueError for others."""
-    if method == "van_loan":
-        return "matrix_exp"
+    """``method`` if it is one of :data:`METHODS`; ValueError naming it otherwise."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     return method
@@ -93,7 +91,7 @@ def discretize(
         dt: (...) non-negative step lengths; a Python float is a scalar.
         B: optional (..., n, p) input matrix; u is held constant over each step.
         method: ``"doubling"`` (default; accurate and PSD for stiff F and large dt) or
-            ``"matrix_exp"`` (torch.matrix_exp of Van Loan's block; alias ``"van_loan"``).
+            ``"matrix_exp"`` (torch.matrix_exp of Van Loan's block).
         validate_args: check the values (finite, dt ≥ 0, Qc symmetric PSD); shapes are
             always checked. Inner calls on already-checked arguments pass False.
 

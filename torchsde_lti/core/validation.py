@@ -114,6 +114,23 @@ def check_nonnegative(x: Tensor, name: str) -> None:
         raise ValueError(f"{name} must be non-negative, got min {float(x.min()):.3g} (shape {shape_str(x)})")
 
 
+def check_hurwitz(F: Tensor, name: str = "F") -> None:
+    """ValueError unless every eigenvalue of ``F`` (..., n, n) has a negative real part
+    (naming the rightmost one; NaN/Inf in F named as such). One synchronisation; no-op
+    while tracing."""
+    if tracing() or F.numel() == 0:
+        return
+    with torch.no_grad():
+        rightmost = torch.linalg.eigvals(torch.nan_to_num(F)).real.amax(dim=-1)  # LAPACK crashes on NaN
+        if bool((rightmost < 0).all() & torch.isfinite(F).all()):
+            return
+    check_finite(F, name)
+    raise ValueError(
+        f"{name} must be Hurwitz-stable (all eigenvalues with negative real part); got an eigenvalue with "
+        f"real part {float(rightmost.max()):.3g} ({name} shape {shape_str(F)})"
+    )
+
+
 def psd_tolerance(x: Tensor) -> float:
     """Relative tolerance for symmetry/PSD checks: a few hundred ulps per dimension."""
     return 100.0 * x.shape[-1] * torch.finfo(x.dtype).eps

@@ -14,30 +14,31 @@ y_k; pass A_0 = I, Q_0 = 0 to put the prior at the first observation).
 :class:`torchsde_lti.KalmanFilter` builds (A_k, Q_k, G_k) from an SDE and calls them.
 Shapes and missing-data rules: :mod:`torchsde_lti.filters.inputs`.
 
-- :func:`kalman_filter` (``sequential``): Joseph-form loop, or ``square_root=True``
-  (``square_root``: QR predict, Givens update, PSD by construction);
-- :func:`parallel_kalman_filter` (``parallel``): associative scan, O(log T) depth;
-  ``chunk=`` scans in memory-bounded time chunks; :func:`prefers_scan`
-  is the automatic choice of :class:`~torchsde_lti.KalmanFilter`;
-- :func:`rts_smoother`, :func:`parallel_rts_smoother` (``smoothers``);
+- :func:`kalman_filter` (``kalman``), ``algorithm=`` one of :data:`ALGORITHMS`: the Joseph-form
+  loop (``sequential``), the Cholesky-factor loop (``square_root``: QR predict, Givens update,
+  PSD by construction), the associative scan (``scan``: O(log T) depth, ``chunk=`` scans in
+  memory-bounded time chunks) or ``"auto"`` (:func:`choose_algorithm`, built on
+  :func:`prefers_scan`);
+- :func:`rts_smoother` (``smoothers``), ``algorithm="sequential"`` or ``"scan"`` (or ``"auto"``);
 - :func:`imm_filter` (``imm``): interacting multiple models over a bank of per-mode matrices.
 """
 
 from torchsde_lti.filters.imm import IMMResult, imm_filter
-from torchsde_lti.filters.kalman import kalman_filter, parallel_kalman_filter
-from torchsde_lti.filters.parallel import associative_scan, prefers_scan
+from torchsde_lti.filters.kalman import ALGORITHMS, choose_algorithm, kalman_filter
+from torchsde_lti.filters.scan import associative_scan, prefers_scan
 from torchsde_lti.filters.results import FilterResult, SmootherResult
-from torchsde_lti.filters.smoothers import parallel_rts_smoother, rts_smoother
+from torchsde_lti.filters.smoothers import SMOOTHER_ALGORITHMS, rts_smoother
 
 __all__ = [
+    "ALGORITHMS",
     "FilterResult",
     "IMMResult",
+    "SMOOTHER_ALGORITHMS",
     "SmootherResult",
     "associative_scan",
+    "choose_algorithm",
     "imm_filter",
     "kalman_filter",
-    "parallel_kalman_filter",
-    "parallel_rts_smoother",
     "prefers_scan",
     "rts_smoother",
 ]

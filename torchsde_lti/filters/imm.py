@@ -171,9 +171,9 @@ def _check_inputs(
     if m0.dim() < 1 or m0.shape[-1] != n or (m0.dim() >= 2 and m0.shape[-2] not in (1, M)):
         raise ValueError(f"m0 must have shape (..., {M}, {n}) or (..., 1, {n}) or ({n},), got shape {shape_str(m0)}")
     mask = check_mask(mask, T, m, device)
-    if bool(torch.isinf(y).any()):
-        raise ValueError(f"y contains Inf (shape {shape_str(y)}); mark missing values with NaN or mask")
     if checks_values(validate_args):
+        if bool(torch.isinf(y).any()):
+            raise ValueError(f"y contains Inf (shape {shape_str(y)}); mark missing values with NaN or mask")
         for name, x in (("A", A), ("H", H), ("Pi", Pi), ("m0", m0), ("mode_prob0", mode_prob0)):
             check_finite(x, name)
         for name, x in (("Q", Q), ("R", R), ("P0", P0)):
@@ -209,8 +209,8 @@ def imm_filter(
         m0: (..., M, n) per-mode prior means; P0: (..., M, n, n) covariances.
         mode_prob0: (..., M) prior mode probabilities (before step 0).
         mask: optional bool (..., T) or (..., T, m); False = not observed.
-        validate_args: check the values (finite, PSD covariances, stochastic Pi and
-            mode_prob0); shapes are always checked.
+        validate_args: check the values (y without Inf; finite, PSD covariances, stochastic Pi
+            and mode_prob0); shapes are always checked.
 
     Returns:
         :class:`IMMResult`; every output broadcasts to the full batch ``...``.

@@ -1,4 +1,4 @@
-r"""Input preparation shared by the sequential, square-root and parallel filters.
+r"""Input preparation shared by the sequential, square-root and scan filters.
 
 Conventions of every filter in :mod:`torchsde_lti.filters` (batch dims ``...`` lead and
 broadcast, numpy rules, right-aligned)::
@@ -313,4 +313,5 @@ def assemble_result(
         transition=prep.A,
         process_noise=prep.Q,
         observed=observed,
+        control=(mean.new_zeros(()) if prep.c is None else prep.c).expand(*mb, T, n),
     )

@@ -1,29 +1,56 @@
-r"""The public Kalman filter functions: one signature, three algorithms.
+r"""The public Kalman filter function: one signature, one ``algorithm=`` argument.
 
 :func:`kalman_filter` checks, masks and whitens its arguments once
-(:mod:`~torchsde_lti.filters.inputs`) and runs one of
+(:mod:`~torchsde_lti.filters.inputs`) and runs one of :data:`ALGORITHMS`:
 
-- the sequential loop (:mod:`~torchsde_lti.filters.sequential`, default): Joseph form, O(T) depth;
-- the square-root loop (:mod:`~torchsde_lti.filters.square_root`, ``square_root=True``);
-- the associative scan (:mod:`~torchsde_lti.filters.parallel`, ``parallel=True``), O(log T)
-  depth, in memory-bounded time chunks.
-
-:func:`parallel_kalman_filter` is ``kalman_filter(..., parallel=True)``.
+- ``"sequential"``: the Joseph-form loop (:mod:`~torchsde_lti.filters.sequential`), O(T) depth;
+  under ``torch.compile`` (not ``torch.export``) it runs as torch's structured scan (one step
+  compiled, T not unrolled);
+- ``"square_root"``: the Cholesky-factor loop (:mod:`~torchsde_lti.filters.square_root`);
+- ``"scan"``: the associative scan (:mod:`~torchsde_lti.filters.scan`), O(log T) depth, in
+  memory-bounded time chunks;
+- ``"auto"`` (default): :func:`choose_algorithm`.
 """
 
 from __future__ import annotations
 
-from typing import Any
-
+import torch
 from torch import Tensor
 
 from torchsde_lti.filters.inputs import FilterInputs, prepare_inputs
-from torchsde_lti.filters.parallel import chunked_scan
+from torchsde_lti.filters.scan import chunked_scan, prefers_scan
 from torchsde_lti.filters.results import FilterResult
 from torchsde_lti.filters.sequential import sequential_filter
 from torchsde_lti.filters.square_root import square_root_filter
 
-__all__ = ["kalman_filter", "parallel_kalman_filter"]
+__all__ = ["ALGORITHMS", "check_algorithm", "choose_algorithm", "kalman_filter", "run_filter"]
+
+#: The algorithms of :func:`kalman_filter` (and of :class:`~torchsde_lti.KalmanFilter`).
+ALGORITHMS = ("auto", "sequential", "square_root", "scan")
+
+
+def check_algorithm(algorithm: str, allowed: tuple[str, ...] = ALGORITHMS, owner: str = "kalman_filter") -> str:
+    """``algorithm`` if it is among ``allowed``; ValueError naming ``owner`` and the choices otherwise."""
+    if algorithm not in allowed:
+        raise ValueError(f"{owner} has the algorithms {allowed}, got algorithm={algorithm!r}")
+    return algorithm
+
+
+def choose_algorithm(algorithm: str, batch_size: int, T: int, device: torch.device) -> str:
+    """The algorithm a call runs: ``algorithm`` itself unless it is ``"auto"``.
+
+    ``"auto"``: under ``torch.compile`` (not ``torch.export``) the sequential loop, which
+    then runs as torch's structured scan (one step compiled: seconds to compile; the
+    associative scan traced whole takes minutes); otherwise the associative scan where
+    :func:`~torchsde_lti.filters.prefers_scan` says so (few tracks on CPU, any batch on
+    other devices), else the sequential loop. ``batch_size``: tracks in the call.
+    """
+    check_algorithm(algorithm)
+    if algorithm != "auto":
+        return algorithm
+    if torch.compiler.is_compiling() and not torch.compiler.is_exporting():
+        return "sequential"
+    return "scan" if prefers_scan(batch_size, T, device) else "sequential"
 
 
 def kalman_filter(
@@ -37,11 +64,9 @@ def kalman_filter(
     G: Tensor | None = None,
     u: Tensor | None = None,
     mask: Tensor | None = None,
-    square_root: bool = False,
     D: Tensor | None = None,
-    compile_step: bool = False,
     *,
-    parallel: bool = False,
+    algorithm: str = "auto",
     chunk: int | None = None,
     validate_args: bool = True,
 ) -> FilterResult:
@@ -58,20 +83,17 @@ def kalman_filter(
         m0: (..., n) prior mean. P0: (..., n, n) prior covariance (before step 0).
         G: optional (..., T, n, p) input matrices; u: (..., T, p) inputs (u needs G or D).
         mask: optional bool (..., T) or (..., T, m); False = not observed.
-        square_root: propagate factors ``P = S Sᵀ`` (QR predict, Givens update, see
-            :func:`~torchsde_lti.filters.square_root.square_root_filter`) instead of
-            covariances; same results up to rounding, covariances PSD by construction and
-            accurate in float32 when predicted and measurement variances differ by more than
-            1/eps. Slower (a batched LAPACK QR per step); off by default; loop only.
         D: optional (..., [T,] m, p) feedthrough, ``y_k = H_k x_k + D u_k + r_k``: the update
             uses ``y_k − D u_k`` (so innovations are ``y_k − D u_k − H_k m⁻_k``); needs u.
-        compile_step: run the loop as torch's structured scan through ``torch.compile`` (one
-            step's graph compiled once, the T steps not unrolled).
-        parallel: the associative scan (Särkkä & García-Fernández 2021) instead of the loop:
-            O(log T) depth, same results up to rounding; wins when per-step overhead
-            dominates (few tracks, long series).
-        chunk: with ``parallel``, time steps per scan chunk (None: the largest chunk with
-            batch · chunk ≤ :data:`~torchsde_lti.filters.parallel.SCAN_MAX_ELEMENTS`).
+        algorithm: one of :data:`ALGORITHMS`, same results up to rounding:
+            ``"sequential"`` (Joseph-form loop, O(T) depth), ``"square_root"`` (propagates
+            factors ``P = S Sᵀ``: QR predict, Givens update, covariances PSD by construction
+            and accurate in float32 when predicted and measurement variances differ by more
+            than 1/eps; slower), ``"scan"`` (associative scan, Särkkä & García-Fernández
+            2021: O(log T) depth, wins when per-step overhead dominates: few tracks, long
+            series) or ``"auto"`` (:func:`choose_algorithm`).
+        chunk: with the scan, time steps per scan chunk (None: the largest chunk with
+            batch · chunk ≤ :data:`~torchsde_lti.filters.scan.SCAN_MAX_ELEMENTS`).
         validate_args: check the values (finite A, H, m0, u, D; Q, P0 symmetric PSD; R
             positive definite); shapes are always checked. Modules that assemble already
             valid matrices pass False.
@@ -80,21 +102,29 @@ def kalman_filter(
         :class:`FilterResult`; every output broadcasts to the full batch ``...``.
     """
     args = FilterInputs(y, A, Q, H, R, m0, P0, G, u, mask, D)
-    if parallel:
-        if square_root:
-            raise ValueError("square_root=True needs the sequential filter, got parallel=True")
+    if algorithm == "auto":
+        y_t, A_t = torch.as_tensor(y), torch.as_tensor(A)
+        batch = max(y_t.shape[:-2].numel(), A_t.shape[:-3].numel())
+        T = y_t.shape[-2] if y_t.dim() >= 2 else 1
+        algorithm = choose_algorithm(algorithm, batch, T, y_t.device)
+    return run_filter(args, algorithm, chunk=chunk, validate_args=validate_args)
+
+
+def run_filter(
+    args: FilterInputs, algorithm: str, *, chunk: int | None = None, validate_args: bool = True,
+    compiled_loop: bool = False,
+) -> FilterResult:
+    """:func:`kalman_filter` on an argument bundle with a chosen algorithm (not ``"auto"``).
+
+    ``compiled_loop``: run the sequential loop as torch's structured scan compiled on its own
+    also outside a ``torch.compile`` trace (what :class:`~torchsde_lti.KalmanFilter` runs under
+    ``torch.compile``, with its discretisation eager); inside a trace it always does.
+    """
+    check_algorithm(algorithm, ALGORITHMS[1:])
+    if algorithm == "scan":
         return chunked_scan(args, chunk, validate_args)
     prep = prepare_inputs(args, validate_args)
-    if square_root:
+    if algorithm == "square_root":
         return square_root_filter(prep)
-    return sequential_filter(prep, compile_step)
-
-
-def parallel_kalman_filter(*args: Any, **kwargs: Any) -> FilterResult:
-    r"""``kalman_filter(..., parallel=True)``: the associative-scan Kalman filter, O(log T) depth.
-
-    Same arguments and results as :func:`kalman_filter` (up to rounding); ``chunk=`` bounds
-    the memory of long series. Step elements and their combination:
-    :func:`~torchsde_lti.filters.parallel.scan_filter`.
-    """
-    return kalman_filter(*args, parallel=True, **kwargs)
+    structured = compiled_loop or (torch.compiler.is_compiling() and not torch.compiler.is_exporting())
+    return sequential_filter(prep, structured)

@@ -10,7 +10,7 @@ __all__ = ["FilterResult", "SmootherResult"]
 
 
 class FilterResult(NamedTuple):
-    """Output of :func:`kalman_filter` / :func:`parallel_kalman_filter`.
+    """Output of :func:`kalman_filter` (every algorithm).
 
     mean: (..., T, n) filtered means E[x_k | y_{0:k}].
     cov: (..., T, n, n) filtered covariances.
@@ -24,6 +24,8 @@ class FilterResult(NamedTuple):
     transition: (..., T, n, n) the A_k used (a broadcast view), kept for smoothing.
     process_noise: (..., T, n, n) the Q_k used (a broadcast view), kept for smoothing.
     observed: (..., T, m) bool, the components that entered the update.
+    control: (..., T, n) the input term ``G_k u_k`` of the predictions (zeros without
+        inputs), kept with A_k and Q_k for multi-step predictions.
     """
 
     mean: Tensor
@@ -37,10 +39,11 @@ class FilterResult(NamedTuple):
     transition: Tensor
     process_noise: Tensor
     observed: Tensor
+    control: Tensor
 
 
 class SmootherResult(NamedTuple):
-    """Output of :func:`rts_smoother` / :func:`parallel_rts_smoother`.
+    """Output of :func:`rts_smoother` (every algorithm).
 
     mean: (..., T, n) smoothed means E[x_k | y_{0:T-1}].
     cov: (..., T, n, n) smoothed covariances (≤ the filtered ones in the PSD order).

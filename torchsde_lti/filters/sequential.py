@@ -32,14 +32,15 @@ from torchsde_lti.filters.results import FilterResult
 __all__ = ["sequential_filter"]
 
 
-def sequential_filter(prep: PreparedInputs, compile_step: bool = False) -> FilterResult:
+def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterResult:
     r"""The sequential loop on prepared inputs (what :func:`~torchsde_lti.filters.kalman_filter`
     runs by default): step k predicts ``m⁻ = A_k m + G_k u_k``, ``P⁻ = A_k P A_kᵀ + Q_k``, then
     updates with the observed components of y_k (whitened scalar updates in Joseph form).
 
-    ``compile_step``: run the loop as torch's structured scan (``torch._higher_order_ops.scan``)
-    through ``torch.compile``: one step's graph is compiled (once), the T steps are not
-    unrolled. What ``torch.compile(KalmanFilter)`` uses.
+    ``structured``: run the loop as torch's structured scan (``torch._higher_order_ops.scan``)
+    through its own ``torch.compile``: one step's graph is compiled (once), the T steps are not
+    unrolled; inside a caller's ``torch.compile`` trace the loop is a graph break (inductor
+    cannot yet lower the scan inside a larger graph). What ``torch.compile(kf)`` uses.
     """
     m_dim = prep.yw.shape[-1]
     # Batch-last layout: per-step tensors (n, n, *batch) keep the batch as the contiguous
@@ -76,14 +77,14 @@ def sequential_filter(prep: PreparedInputs, compile_step: bool = False) -> Filte
     pc_buf = P.new_empty((prep.T, n_state, n_state, *P.shape[2:])) if buffers else None
     fc_buf = P.new_empty((prep.T, n_state, n_state, *P.shape[2:])) if buffers else None
     nd = len(prep.mean_batch)
-    if compile_step:
+    if structured:
         # The whole loop as torch's structured scan, compiled once: one step's graph, no
         # unrolling, no Python per step.
         T = prep.T
         c_all = (
             to_batch_last(prep.c, 1, time=True) if prep.c is not None else torch.zeros_like(mean).unsqueeze(0)
         )
-        pm_bl, pc_bl, fm_bl, fc_bl, e_bl, s_bl = _compiled_loop()(
+        pm_bl, pc_bl, fm_bl, fc_bl, e_bl, s_bl = _run_compiled_loop(
             to_batch_last(A_bf, 2, time=True), to_batch_last(Q_bf, 2, time=True),
             H_s.expand(T, *H_s.shape[1:]), yw_bl, c_all.expand(T, *c_all.shape[1:]),
             _row_major(mean), _row_major(P),
@@ -222,6 +223,12 @@ def _scan_loop(
 
 
 _COMPILED_LOOP: Callable[..., tuple[Tensor, ...]] | None = None
+
+
+@torch.compiler.disable
+def _run_compiled_loop(*args: Tensor) -> tuple[Tensor, ...]:
+    """:func:`_compiled_loop` called from eager code (a graph break inside a caller's trace)."""
+    return _compiled_loop()(*args)
 
 
 def _compiled_loop() -> Callable[..., tuple[Tensor, ...]]:

@@ -1,4 +1,4 @@
-r"""Rauch–Tung–Striebel smoothers over a filter result: sequential and associative scan."""
+r"""The Rauch–Tung–Striebel smoother over a filter result: sequential loop or associative scan."""
 
 from __future__ import annotations
 
@@ -7,10 +7,14 @@ from torch import Tensor
 
 from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, sym
 from torchsde_lti.core.validation import check_matrix
-from torchsde_lti.filters.parallel import Elems, associative_scan
+from torchsde_lti.filters.kalman import check_algorithm
+from torchsde_lti.filters.scan import Elems, associative_scan, prefers_scan
 from torchsde_lti.filters.results import FilterResult, SmootherResult
 
-__all__ = ["parallel_rts_smoother", "rts_smoother"]
+__all__ = ["SMOOTHER_ALGORITHMS", "rts_smoother"]
+
+#: The algorithms of :func:`rts_smoother` ("auto" chooses per call).
+SMOOTHER_ALGORITHMS = ("auto", "sequential", "scan")
 
 
 def _smoother_elements(result: FilterResult, A: Tensor | None, Q: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
@@ -47,8 +51,10 @@ def _smoother_elements(result: FilterResult, A: Tensor | None, Q: Tensor | None)
     return E_all, g_all, C_all
 
 
-def rts_smoother(result: FilterResult, A: Tensor | None = None, Q: Tensor | None = None) -> SmootherResult:
-    r"""Rauch–Tung–Striebel smoother for time-varying (A_k, Q_k), sequential backward pass.
+def rts_smoother(
+    result: FilterResult, A: Tensor | None = None, Q: Tensor | None = None, *, algorithm: str = "auto"
+) -> SmootherResult:
+    r"""Rauch–Tung–Striebel smoother for time-varying (A_k, Q_k).
 
     ``m^s_k = m_k + E_k (m^s_{k+1} − m⁻_{k+1})``, ``P^s_k = P_k + E_k (P^s_{k+1} − P⁻_{k+1}) E_kᵀ``,
     evaluated as ``m^s_k = g_k + E_k m^s_{k+1}``, ``P^s_k = C_k + E_k P^s_{k+1} E_kᵀ`` with the
@@ -58,11 +64,21 @@ def rts_smoother(result: FilterResult, A: Tensor | None = None, Q: Tensor | None
         result: a :class:`FilterResult` (mean, cov, pred_mean, pred_cov over T steps).
         A, Q: (..., T, n, n) the transitions/noises the filter used; default: those stored
             in ``result`` (``result.transition``, ``result.process_noise``).
+        algorithm: one of :data:`SMOOTHER_ALGORITHMS`, same results up to rounding:
+            ``"sequential"`` (backward loop), ``"scan"`` (reverse associative scan of
+            (E, g, C), Särkkä & García-Fernández 2021, O(log T) depth) or ``"auto"`` (the
+            scan where :func:`~torchsde_lti.filters.prefers_scan` says so).
 
     Returns:
         :class:`SmootherResult` with mean (..., T, n), cov (..., T, n, n), gain (..., T, n, n).
     """
+    check_algorithm(algorithm, SMOOTHER_ALGORITHMS, "rts_smoother")
     E, g, C = _smoother_elements(result, A, Q)
+    if algorithm == "auto":
+        T = g.shape[-2]
+        algorithm = "scan" if prefers_scan(result.mean.shape[:-2].numel(), T, result.mean.device) else "sequential"
+    if algorithm == "scan":
+        return _scan_smoother(result, E, g, C)
     T = g.shape[-2]
     Es, gs, Cs = E.unbind(-3), g.unbind(-2), C.unbind(-3)
     ms, Ps = gs[-1], Cs[-1]
@@ -86,12 +102,8 @@ def _smoother_combine(a: Elems, b: Elems) -> Elems:
     return Ei @ Ej, matvec(Ei, gj) + gi, sym(Ei @ Cj @ Ei.mT + Ci)
 
 
-def parallel_rts_smoother(result: FilterResult, A: Tensor | None = None, Q: Tensor | None = None) -> SmootherResult:
-    """RTS smoother by a reverse associative scan of (E, g, C) (Särkkä & García-Fernández 2021).
-
-    Same arguments and results as :func:`rts_smoother` (up to rounding), O(log T) depth.
-    """
-    E, g, C = _smoother_elements(result, A, Q)
+def _scan_smoother(result: FilterResult, E: Tensor, g: Tensor, C: Tensor) -> SmootherResult:
+    """The smoother by a reverse associative scan of the smoothing elements (E, g, C)."""
     T, n = g.shape[-2], g.shape[-1]
     batch = torch.broadcast_shapes(E.shape[:-3], g.shape[:-2], C.shape[:-3])
     moved = (E.expand(*batch, T, n, n).movedim(-3, 0), g.expand(*batch, T, n).movedim(-2, 0),

@@ -2,7 +2,7 @@ r"""The square-root (Cholesky-factor) sequential Kalman filter: P = S Sᵀ is ne
 
 QR predict, Givens scalar updates: PSD by construction and accurate in float32 beyond the
 Joseph form's range (predicted/measured variance ratios > 1/eps), at 2–5× the cost.
-Reached through ``kalman_filter(..., square_root=True)``.
+Reached through ``kalman_filter(..., algorithm="square_root")``.
 """
 
 from __future__ import annotations

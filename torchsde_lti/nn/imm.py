@@ -39,11 +39,13 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from torchsde_lti.core.linalg import sym
-from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, check_nonnegative, parse_learn, shape_str
 from torchsde_lti.core.discretization import Discrete, discretize
+from torchsde_lti.core.linalg import sym
+from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str
 from torchsde_lti.filters.imm import IMMPrediction, IMMResult, combine, imm_filter, imm_predict
+from torchsde_lti.filters.kalman import check_algorithm
 from torchsde_lti.nn._register import register_tensor
+from torchsde_lti.nn._validate import ValidateArgs, check_values
 from torchsde_lti.nn.kalman import FilterMode
 from torchsde_lti.nn.parametrizations import Generator, ModeProbabilities, PositiveDefinite, generator_from_rates
 from torchsde_lti.nn.sde import LTISDE
@@ -51,6 +53,8 @@ from torchsde_lti.nn.sde import LTISDE
 __all__ = ["IMMFilter", "IMMForecast"]
 
 _LEARNABLE = ("H", "R", "rates", "mode_prob0", "m0", "P0")
+#: The algorithms of :class:`IMMFilter`: the IMM cycle is a sequential loop.
+IMM_ALGORITHMS = ("auto", "sequential")
 
 
 class IMMForecast(NamedTuple):
@@ -74,7 +78,7 @@ class IMMForecast(NamedTuple):
     mode_obs_cov: Tensor
 
 
-class IMMFilter(nn.Module):
+class IMMFilter(ValidateArgs, nn.Module):
     r"""IMM filter over M continuous-time motion models with a learned switching generator.
 
     Args:
@@ -94,6 +98,12 @@ class IMMFilter(nn.Module):
         unique_dt: discretise only the distinct values of dt and gather (same values and
             gradients; used when dt does not require grad). Pays off for quantised gaps.
         method: discretisation method passed to :func:`torchsde_lti.discretize`.
+        algorithm: ``"auto"`` or ``"sequential"`` (the IMM cycle is a loop over steps; the
+            algorithms of :class:`~torchsde_lti.KalmanFilter` that it does not have raise a
+            ValueError).
+        validate_args: check the values of every call's arguments and the current
+            parameters (one fused test; shapes are always checked); None: the class default
+            :attr:`default_validate_args` (True).
         mode_names: optional M distinct names of the modes (default ``"mode0"``, ``"mode1"``, …),
             used by :meth:`modes` and in reports (``"moored/k"``, ``"rate[moored->underway]"``).
     """
@@ -113,8 +123,12 @@ class IMMFilter(nn.Module):
         unique_dt: bool = False,
         method: str = "doubling",
         mode_names: Sequence[str] | None = None,
+        algorithm: str = "auto",
+        validate_args: bool | None = None,
     ) -> None:
         super().__init__()
+        self.algorithm = check_algorithm(algorithm, IMM_ALGORITHMS, "IMMFilter")
+        self.validate_args = validate_args
         models = list(models)
         if len(models) < 1:
             raise ValueError("models must contain at least one LTISDE, got 0")
@@ -217,13 +231,17 @@ class IMMFilter(nn.Module):
         W = torch.stack([mm.L @ mm.Qc @ mm.L.mT for mm in mats])
         return F, sym(W)
 
-    def discretize(self, dt: Tensor, validate_args: bool = True) -> tuple[Discrete, Tensor]:
+    def discretize(self, dt: Tensor, validate_args: bool | None = None) -> tuple[Discrete, Tensor]:
         """Every mode over every gap, in ONE batched discretisation, and the chain's transitions.
 
-        dt: (...) gaps (``validate_args=False``: already checked). Returns ``Discrete`` with A, Q (..., M, n, n) and Pi (..., M, M) =
-        ``expm(Λ dt)``.
+        dt: (...) gaps (``validate_args``: check them, default :attr:`validate_args`; False for
+        a dt already checked). Returns ``Discrete`` with A, Q (..., M, n, n) and Pi (..., M, M)
+        = ``expm(Λ dt)``.
         """
-        F, W = self.bank()
+        return self._discretize_bank(*self.bank(), dt, self._validates(validate_args))
+
+    def _discretize_bank(self, F: Tensor, W: Tensor, dt: Tensor, validate_args: bool) -> tuple[Discrete, Tensor]:
+        """:meth:`discretize` for the stacked bank (F, W) already read."""
         eye = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device)
         if self.unique_dt and not dt.requires_grad and dt.numel() > 0:
             values, inverse = torch.unique(dt, return_inverse=True)
@@ -237,11 +255,6 @@ class IMMFilter(nn.Module):
         d = discretize(F, eye, W, dt.unsqueeze(-1), method=self.method, validate_args=validate_args)  # F (M,·,·) with dt (..., 1)
         Pi = torch.matrix_exp(self.rates * dt[..., None, None]).clamp_min(0.0)
         return d, Pi
-
-    def _check_dt(self, dt: Tensor | float, name: str = "dt") -> Tensor:
-        dt = as_float_tensor(dt, name, self.models[0].dtype, self.models[0].device)
-        check_nonnegative(dt, name)
-        return dt
 
     def _obs_model(self) -> tuple[Tensor, Tensor]:
         """H (M or 1, m, n), R (M or 1, m, m)."""
@@ -260,22 +273,24 @@ class IMMFilter(nn.Module):
         """
         if u is not None:
             raise ValueError(f"u was given (shape {shape_str(torch.as_tensor(u))}) but IMMFilter has no inputs")
-        dtype = self.models[0].dtype
-        y = as_float_tensor(y, "y", dtype, self.models[0].device)
-        if y.dim() < 2 or y.shape[-1] != self.obs_dim:
-            raise ValueError(f"y must have shape (..., T, m={self.obs_dim}) to match H {shape_str(self.H)}, "
-                             f"got shape {shape_str(y)}")
-        dt = self._check_dt(dt)
-        if dt.dim() < 1 or dt.shape[-1] != y.shape[-2]:
-            raise ValueError(f"dt must have shape (..., T={y.shape[-2]}) to match y {shape_str(y)}, "
-                             f"got shape {shape_str(dt)}")
-        H, R = self._obs_model()
-        rates, m0, P0, p0 = self.rates, self.m0, self.P0, self.mode_prob0
-        for name, value in (("H", H), ("R", R), ("rates", rates), ("m0", m0), ("P0", P0), ("mode_prob0", p0)):
-            check_finite(value, name)
-        # valid by construction (parametrisations, PSD doubling) and dt checked above
-        d, Pi = self.discretize(dt, validate_args=False)
-        return imm_filter(y, d.A, d.Q, H, R, Pi, m0, P0, p0.expand(self.num_modes), mask=mask, validate_args=False)
+        with parametrize.cached():  # each parametrisation evaluated once per call
+            F, W = self.bank()
+            y = as_float_tensor(y, "y", F.dtype, F.device)
+            if y.dim() < 2 or y.shape[-1] != self.obs_dim:
+                raise ValueError(f"y must have shape (..., T, m={self.obs_dim}) to match H {shape_str(self.H)}, "
+                                 f"got shape {shape_str(y)}")
+            dt = as_float_tensor(dt, "dt", F.dtype, F.device)
+            if dt.dim() < 1 or dt.shape[-1] != y.shape[-2]:
+                raise ValueError(f"dt must have shape (..., T={y.shape[-2]}) to match y {shape_str(y)}, "
+                                 f"got shape {shape_str(dt)}")
+            H, R = self._obs_model()
+            rates, m0, P0, p0 = self.rates, self.m0, self.P0, self.mode_prob0
+            if self.validate_args:
+                check_values(finite=[("F", F), ("W", W), ("H", H), ("R", R), ("rates", rates), ("m0", m0),
+                                     ("P0", P0), ("mode_prob0", p0)], nonnegative=[("dt", dt)], no_inf=[("y", y)])
+            # the bank is valid by construction (parametrisations, PSD doubling) and dt checked above
+            d, Pi = self._discretize_bank(F, W, dt, validate_args=False)
+            return imm_filter(y, d.A, d.Q, H, R, Pi, m0, P0, p0.expand(self.num_modes), mask=mask, validate_args=False)
 
     def forecast(
         self,
@@ -301,12 +316,17 @@ class IMMFilter(nn.Module):
         if prob.shape[-1] != M or mean.shape[-2:] != (M, n) or cov.shape[-3:] != (M, n, n):
             raise ValueError(f"state must be (mode_prob (..., {M}), mode_mean (..., {M}, {n}), mode_cov "
                              f"(..., {M}, {n}, {n})), got {shape_str(prob)}, {shape_str(mean)}, {shape_str(cov)}")
-        dt = self._check_dt(dt)
-        if dt.dim() == 0:
-            dt = dt.reshape(1)
-        d, Pi = self.discretize(dt, validate_args=False)  # (..., K, M, n, n), (..., K, M, M)
+        with parametrize.cached():
+            F, W = self.bank()
+            dt = as_float_tensor(dt, "dt", F.dtype, F.device)
+            if dt.dim() == 0:
+                dt = dt.reshape(1)
+            H, R = self._obs_model()
+            if self.validate_args:
+                check_values(finite=[("F", F), ("W", W), ("H", H), ("R", R), ("rates", self.rates)],
+                             nonnegative=[("dt", dt)])
+            d, Pi = self._discretize_bank(F, W, dt, validate_args=False)  # (..., K, M, n, n), (..., K, M, M)
         p: IMMPrediction = imm_predict(prob, mean, cov, d.A, d.Q, Pi)
-        H, R = self._obs_model()
         ym = (H @ p.mode_mean.unsqueeze(-1)).squeeze(-1)  # (..., K, M, m)
         S = H @ p.mode_cov @ H.mT + R
         S = sym(S)

@@ -12,20 +12,26 @@ The module assembles parameters and calls the pure functions of
 
 Timing convention: the prior N(m0, P0) sits at t₀; step k predicts over dt[..., k] and
 then updates with y[..., k]; ``dt[..., 0] = 0`` puts the prior at the first observation.
-All steps' (A_k, Q_k, G_k) come from ONE batched ``sde(dt, series=True)`` call (exact
-discretisation) before the time loop, so a parameter batch in the SDE (e.g. F (S, n, n))
-lines up with the series batch of dt (S, T).
+All steps' (A_k, Q_k, G_k) come from ONE batched exact discretisation of the SDE before the
+time loop, so a parameter batch in the SDE (e.g. F (S, n, n)) lines up with the series batch
+of dt (S, T).
 
 Observation: ``y_k = H x_k + D u_k + v_k``; the feedthrough D (optional, (..., m, p)) acts
 on the same known inputs u as the SDE's B (an SDE without B may still have a D).
 
-Prior: ``m0`` defaults to zeros; ``P0`` defaults to the steady-state start of a shaped
-model (:func:`torchsde_lti.models.shaped`, prior mode ``"shaping"``: system blocks 0, the
-shaping-filter block at its own P∞, recomputed at every call), else to the stationary
-covariance P∞ of the SDE when F is Hurwitz at construction (recomputed at every call, so it follows a learned
-F — it raises if training makes F unstable, give P0 or use ``F_constraint="hurwitz"``),
-otherwise to a broad prior ``diffuse_variance · I`` (default 1e4, in squared state units:
-choose it larger than the squared spread of your positions/velocities).
+Prior: ``m0`` defaults to zeros; ``P0`` defaults to the motion model's own
+:meth:`~torchsde_lti.LTISDE.prior_covariance` (the stationary covariance P∞ for a Hurwitz
+F, the steady-state start of a :func:`~torchsde_lti.models.shaped` model), recomputed from the
+current parameters at every call (it raises if training makes F unstable: give P0 or use
+``F_constraint="hurwitz"``); when the model has none at construction (F not Hurwitz), a
+broad prior ``diffuse_variance · I`` (default 1e4, in squared state units: choose it larger
+than the squared spread of your positions/velocities).
+
+Validation: the constructor checks its arguments; each call checks the values it is given
+(y without Inf, dt finite and ≥ 0, u finite) and the current parameters (finite) once, in one
+fused test, when :attr:`validate_args` is True (per instance, class default True); the
+discretisation and the filter functions then run on the checked tensors without checking
+again. Shapes are always checked.
 
 Learnable: any of ``"H"``, ``"D"``, ``"R"``, ``"m0"``, ``"P0"`` (the SDE's own ``learn`` controls
 F, L, Qc, B). R and a learnable P0 are parametrised symmetric positive definite by
@@ -45,32 +51,18 @@ from torch.nn.utils import parametrize
 from torchsde_lti.core.discretization import Discrete, discretize, discretize_series, resolve_method
 from torchsde_lti.core.linalg import matvec, sym
 from torchsde_lti.core.moments import predict_moments
-from torchsde_lti.core.stationary import stationary_covariance
-from torchsde_lti.core.validation import (
-    as_float_tensor,
-    check_finite,
-    check_matrix,
-    check_nonnegative,
-    parse_learn,
-    shape_str,
-    tracing,
-)
-from torchsde_lti.filters import (
-    FilterResult,
-    SmootherResult,
-    kalman_filter,
-    parallel_rts_smoother,
-    prefers_scan,
-    rts_smoother,
-)
+from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str
+from torchsde_lti.filters import FilterResult, SmootherResult, choose_algorithm, rts_smoother
+from torchsde_lti.filters.inputs import FilterInputs
+from torchsde_lti.filters.kalman import ALGORITHMS, check_algorithm, run_filter
 from torchsde_lti.nn._register import register_tensor
+from torchsde_lti.nn._validate import ValidateArgs, check_values
 from torchsde_lti.nn.parametrizations import PositiveDefinite
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
 
 __all__ = ["FilterMode", "Forecast", "KalmanFilter"]
 
 _LEARNABLE = ("H", "D", "R", "m0", "P0")
-_PRIOR_MODES = ("stationary", "diffuse", "shaping")
 
 
 class Forecast(NamedTuple):
@@ -84,7 +76,6 @@ class Forecast(NamedTuple):
     cov: Tensor
     obs_mean: Tensor
     obs_cov: Tensor
-
 
 
 class FilterMode(NamedTuple):
@@ -103,7 +94,7 @@ class FilterMode(NamedTuple):
     R: Tensor
 
 
-class KalmanFilter(nn.Module):
+class KalmanFilter(ValidateArgs, nn.Module):
     r"""Kalman filter / RTS smoother for ``dx = F x dt + B u dt + L dβ``, ``y = H x + D u + r``.
 
     Args:
@@ -112,20 +103,25 @@ class KalmanFilter(nn.Module):
         H: (..., m, n) observation matrix.
         R: (..., m, m) observation-noise covariance, symmetric positive definite.
         m0: optional (..., n) prior mean (default zeros).
-        P0: optional (..., n, n) prior covariance, or a prior mode recomputed from the current
-            parameters at every call: ``"shaping"`` (a shaped model's
-            ``start_covariance()``, seed 003's steady-state start), ``"stationary"`` (P∞ of
-            the whole state) or ``"diffuse"`` (``diffuse_variance · I``). Default: "shaping"
-            for a shaped model, else "stationary" if F is Hurwitz, else "diffuse".
+        P0: optional (..., n, n) prior covariance, or ``"diffuse"`` (``diffuse_variance · I``).
+            Default (None): the model's ``sde.prior_covariance()``, recomputed from the
+            current parameters at every call, or diffuse when the model has none (F not
+            Hurwitz at construction). :attr:`prior_mode` says which: ``"given"``,
+            ``"model"`` or ``"diffuse"``.
         D: optional (..., m, p) feedthrough of the known inputs, ``y = H x + D u + r``
             (p = the SDE's input dimension when it has a B).
         learn: which of ``"H", "D", "R", "m0", "P0"`` are ``nn.Parameter`` (default ``("R",)``).
-        parallel: ``None`` (default) chooses per call (:func:`~torchsde_lti.filters.prefers_scan`):
-            on CPU the associative scan (O(log T) depth, in memory-bounded time chunks,
-            ``kalman_filter(..., parallel=True)``) for at most
-            ``SCAN_MAX_BATCH_CPU`` = 16 tracks, where per-step Python overhead dominates the
-            loop, else the sequential loop; on other devices the scan. ``True`` / ``False``
-            force the scan / the loop (experiments/bench_filter_choice.py).
+        algorithm: one of :data:`~torchsde_lti.filters.ALGORITHMS` (see
+            :func:`~torchsde_lti.kalman_filter`): ``"auto"`` (default) chooses per call
+            (:func:`~torchsde_lti.filters.choose_algorithm`): on CPU the associative scan for
+            at most ``SCAN_MAX_BATCH_CPU`` = 16 tracks, where per-step Python overhead
+            dominates the loop, else the sequential loop; on other devices the scan; under
+            ``torch.compile`` the loop as a structured scan. ``"sequential"``, ``"scan"``
+            force one (experiments/bench_filter_choice.py); ``"square_root"`` propagates
+            Cholesky factors (QR predict, Givens update): same results up to rounding, and in
+            float32 PSD, accurate covariances when predicted and measurement variances differ
+            by more than 1/eps (long gaps, precise sensors), where the Joseph form can go
+            negative; slower.
         diffuse_variance: variance of the broad default prior for non-Hurwitz F.
         unique_dt: discretise only the distinct values of dt (``torch.unique``) and gather
             the per-step matrices; same values and gradients as the plain path. Pays off
@@ -137,14 +133,12 @@ class KalmanFilter(nn.Module):
             gather; and a loss when all gaps are distinct (the sort costs more than the
             discretisation), hence off by default. Used only for one parameter set (no SDE
             batch) and when dt does not require grad; otherwise the plain path runs.
-        square_root: propagate Cholesky factors (QR predict, Givens update, see
-            ``kalman_filter(..., square_root=True)``): same results up to rounding, and in
-            float32 PSD, accurate covariances when predicted and measurement variances
-            differ by more than 1/eps (long gaps, precise sensors), where the Joseph form
-            can go negative. Slower; sequential filter only (ValueError with ``parallel=True``).
         method: discretisation method of every step, ``"doubling"`` or ``"matrix_exp"``
             (torch.matrix_exp of Van Loan's block); default None = the SDE's own
             :attr:`~torchsde_lti.LTISDE.method` (``"doubling"`` unless set).
+        validate_args: check the values of every call's arguments and the current
+            parameters (one fused test; shapes are always checked); None: the class default
+            :attr:`default_validate_args` (True).
     """
 
     def __init__(
@@ -157,23 +151,21 @@ class KalmanFilter(nn.Module):
         P0: Tensor | str | None = None,
         D: Tensor | None = None,
         learn: Iterable[str] | str = ("R",),
-        parallel: bool | None = None,
+        algorithm: str = "auto",
         diffuse_variance: float = 1e4,
         unique_dt: bool = False,
-        square_root: bool = False,
         method: str | None = None,
+        validate_args: bool | None = None,
     ) -> None:
         super().__init__()
         self.method = None if method is None else resolve_method(method)
+        self.algorithm = algorithm
         self.unique_dt = bool(unique_dt)
-        if square_root and parallel:
-            raise ValueError("square_root=True needs the sequential filter, got parallel=True")
-        self.square_root = bool(square_root)
+        self.validate_args = validate_args
         if not isinstance(sde, LTISDE):
             raise TypeError(f"sde must be an LTISDE, got {type(sde).__name__}")
         names = parse_learn(learn, _LEARNABLE)
         self.sde = sde
-        self.parallel = None if parallel is None else bool(parallel)
         self.diffuse_variance = float(diffuse_variance)
         dtype, device = sde.dtype, sde.device
         n = sde.state_dim
@@ -209,21 +201,16 @@ class KalmanFilter(nn.Module):
             raise ValueError(f"m0 must have shape (..., {n}), got shape {shape_str(m0_t)}")
         check_finite(m0_t, "m0")
         register_tensor(self, "m0", m0_t.detach().clone(), "m0" in names)
+        self._init_prior(P0, "P0" in names, n, dtype, device)
 
-        # Prior covariance mode: given / shaping / stationary / diffuse.
-        self.prior_mode: str
+    def _init_prior(self, P0: Tensor | str | None, learned: bool, n: int, dtype: torch.dtype,
+                    device: torch.device) -> None:
+        """:attr:`prior_mode` and the P0 parameter/buffer (None unless the mode is "given")."""
+        diffuse = self.diffuse_variance * torch.eye(n, dtype=dtype, device=device)
         if isinstance(P0, str):
-            if P0 not in _PRIOR_MODES:
-                raise ValueError(f"P0 must be a tensor or one of {_PRIOR_MODES}, got {P0!r}")
-            if P0 == "shaping" and not callable(getattr(sde, "start_covariance", None)):
-                raise ValueError(
-                    f"P0='shaping' needs a shaped model (tl.models.shaped), got {type(sde).__name__}"
-                )
-            self.prior_mode = P0
-            with torch.no_grad():
-                P0_t = self._prior(sde.matrices())[1].detach().clone()  # raises now if not computable
-            if "P0" in names and self.prior_mode != "shaping":
-                self.prior_mode = "given"  # learnable, initialised at that mode's value
+            if P0 != "diffuse":
+                raise ValueError(f"P0 must be a tensor, None (the model's prior_covariance()) or 'diffuse', got {P0!r}")
+            self.prior_mode, P0_t = "diffuse", diffuse
         elif P0 is not None:
             P0_t = as_float_tensor(P0, "P0", dtype, device).detach().clone()
             check_matrix(P0_t, "P0", rows=n, cols=n)
@@ -231,29 +218,34 @@ class KalmanFilter(nn.Module):
         else:
             try:
                 with torch.no_grad():
-                    if callable(getattr(sde, "start_covariance", None)):
-                        P0_t = sde.start_covariance().detach().clone()
-                        self.prior_mode = "shaping"
-                    else:
-                        P0_t = sde.stationary_covariance().detach().clone()
-                        self.prior_mode = "stationary"
+                    P0_t = self.sde.prior_covariance(validate_args=True).detach().clone()
+                self.prior_mode = "model"
             except ValueError:
-                P0_t = self.diffuse_variance * torch.eye(n, dtype=dtype, device=device)
-                self.prior_mode = "diffuse"
-            if "P0" in names and self.prior_mode != "shaping":
-                self.prior_mode = "given"  # learnable, initialised at the default
-        if "P0" in names and self.prior_mode == "shaping":
-            raise ValueError(
-                "learn contains 'P0', but the shaping start P0 is singular (every entry involving a system "
-                "state is 0) and a learnable P0 is parametrised positive definite; pass an initial P0 tensor"
-            )
+                self.prior_mode, P0_t = "diffuse", diffuse
+        if learned:
+            if bool((torch.linalg.cholesky_ex(P0_t).info != 0).any()):
+                raise ValueError(
+                    f"learn contains 'P0', but the {self.prior_mode} prior covariance is singular (e.g. a shaped "
+                    "model's steady-state start: every entry involving a system state is 0) and a learnable P0 is "
+                    "parametrised positive definite; pass an initial P0 tensor"
+                )
+            self.prior_mode = "given"  # learnable, initialised at that prior's value
         if self.prior_mode == "given":
-            register_tensor(self, "P0", P0_t, "P0" in names)
+            register_tensor(self, "P0", P0_t, learned)
             parametrize.register_parametrization(self, "P0", PositiveDefinite(name="P0", size=n).to(dtype=dtype, device=device))
         else:
             self.register_buffer("P0", None)
 
     # ------------------------------------------------------------------ helpers
+    @property
+    def algorithm(self) -> str:
+        """The filter algorithm, one of :data:`~torchsde_lti.filters.ALGORITHMS` (assignable)."""
+        return self._algorithm
+
+    @algorithm.setter
+    def algorithm(self, value: str) -> None:
+        self._algorithm = check_algorithm(value, ALGORITHMS, "KalmanFilter")
+
     @property
     def state_dim(self) -> int:
         return self.sde.state_dim
@@ -268,30 +260,29 @@ class KalmanFilter(nn.Module):
 
     def initial_state(self) -> tuple[Tensor, Tensor]:
         """Prior (m0 (..., n), P0 (..., n, n)) at t₀ for the current parameters."""
-        return self._prior(self.sde.matrices())
+        return self._prior(self.sde.matrices(), self.validate_args)
 
-    def _prior(self, mats: SDEMatrices) -> tuple[Tensor, Tensor]:
-        """:meth:`initial_state` from already evaluated SDE matrices."""
+    def _prior(self, mats: SDEMatrices, validate_args: bool) -> tuple[Tensor, Tensor]:
+        """:meth:`initial_state` from already evaluated (and checked) SDE matrices."""
         if self.prior_mode == "given":
             P0 = self.P0
-        elif self.prior_mode == "shaping":
-            P0 = self.sde.start_covariance(mats)  # type: ignore[operator]
-        elif self.prior_mode == "stationary":
+        elif self.prior_mode == "model":
             try:
-                P0 = stationary_covariance(mats.F, mats.L, mats.Qc)
+                P0 = self.sde.prior_covariance(mats, validate_args=validate_args)
             except ValueError as err:
                 raise ValueError(
-                    "the default prior P0 is the stationary covariance, but F is no longer Hurwitz; "
+                    "the default prior P0 is the model's prior_covariance(), but its F is no longer Hurwitz; "
                     "pass P0 explicitly or constrain F (F_constraint='hurwitz')"
                 ) from err
         else:
-            n = self.state_dim
-            P0 = self.diffuse_variance * torch.eye(n, dtype=self.sde.dtype, device=self.sde.device)
+            F = mats.F
+            P0 = self.diffuse_variance * torch.eye(F.shape[-1], dtype=F.dtype, device=F.device)
         return self.m0, P0
 
     def _check_inputs(
         self, y: Tensor, dt: Tensor, u: Tensor | None, mats: SDEMatrices
     ) -> tuple[Tensor, Tensor, Tensor | None]:
+        """y, dt, u converted to the model's dtype and device, their shapes checked."""
         dtype, device = mats.F.dtype, mats.F.device
         p = mats.B.shape[-1] if mats.B is not None else (self.D.shape[-1] if self.D is not None else 0)
         y = as_float_tensor(y, "y", dtype, device)
@@ -303,32 +294,33 @@ class KalmanFilter(nn.Module):
                 f"y has {y.shape[-1]} components (shape {shape_str(y)}) but H has {m} rows "
                 f"(shape {shape_str(self.H)})"
             )
-        if not tracing() and bool(torch.isinf(y).any()):
-            raise ValueError(f"y contains Inf (shape {shape_str(y)}); mark missing values with NaN or mask")
         T = y.shape[-2]
         dt = as_float_tensor(dt, "dt", dtype, device)
         if dt.dim() < 1 or dt.shape[-1] != T:
             raise ValueError(f"dt must have shape (..., T={T}) to match y {shape_str(y)}, got shape {shape_str(dt)}")
-        check_nonnegative(dt, "dt")
         if u is not None:
-            if p == 0:
-                raise ValueError(
-                    f"u was given (shape {shape_str(torch.as_tensor(u))}) but the SDE has no input matrix B "
-                    "and the filter no feedthrough D"
-                )
-            u = as_float_tensor(u, "u", dtype, device)
-            if u.dim() < 2 or u.shape[-1] != p or u.shape[-2] not in (1, T):
-                raise ValueError(f"u must have shape (..., T={T}, p={p}), got shape {shape_str(u)}")
-            check_finite(u, "u")
+            u = self._check_u(u, p, T, "T", dtype, device)
         return y, dt, u
 
-    @staticmethod
-    def _check_parameters(mats: SDEMatrices, **named: Tensor) -> None:
-        """NaN/Inf in any model matrix (e.g. after a diverged optimiser step) fails loudly here,
-        once per call on n×n matrices, so the unchecked discretisation cannot hide it."""
-        for name, value in (*zip(("F", "L", "Qc", "B"), mats), *named.items()):
-            if value is not None:
-                check_finite(value, name)
+    def _check_u(self, u: Tensor, p: int, T: int, axis: str, dtype: torch.dtype, device: torch.device) -> Tensor:
+        """Inputs u (..., T or 1, p) converted; ValueError without B and D, or for a wrong shape."""
+        if p == 0:
+            raise ValueError(
+                f"u was given (shape {shape_str(torch.as_tensor(u))}) but the SDE has no input matrix B "
+                "and the filter no feedthrough D"
+            )
+        u = as_float_tensor(u, "u", dtype, device)
+        if u.dim() < 2 or u.shape[-1] != p or u.shape[-2] not in (1, T):
+            raise ValueError(f"u must have shape (..., {axis}={T}, p={p}), got shape {shape_str(u)}")
+        return u
+
+    def _check_values(self, mats: SDEMatrices, dt: Tensor, **named: Tensor | None) -> None:
+        """One fused value check of a call: dt finite and ≥ 0, the model's matrices and the
+        ``named`` tensors finite (NaN/Inf after a diverged optimiser step fails loudly here,
+        so the unchecked discretisation cannot hide it); y (if named) without Inf."""
+        y = named.pop("y", None)
+        finite = [*zip(("F", "L", "Qc", "B"), mats), *named.items()]
+        check_values(finite=finite, nonnegative=[("dt", dt)], no_inf=[("y", y)])
 
     # ------------------------------------------------------------------ API
     def forward(
@@ -351,96 +343,88 @@ class KalmanFilter(nn.Module):
             :class:`~torchsde_lti.FilterResult` (mean, cov, pred_mean, pred_cov,
             innovation, innovation_cov, log_likelihood (...), step_log_likelihood (..., T), …).
 
-        Under ``torch.compile(kf)`` the associative scan, where it runs (``parallel=True``,
-        or the automatic choice without a gradient, e.g. under ``torch.no_grad()``), is
-        traced whole: O(log T) levels, one graph per (batch, T) shape (measured at B = 1:
-        17 / 25 s first call at T = 200 / 2000, then 1.6× / 1.3× the eager scan). The
-        sequential loop is never traced whole (T unrolled steps take minutes to compile): it
-        runs as torch's structured scan with ONE step compiled
-        (``kalman_filter(..., compile_step=True)``: 2–4 s first call at T = 200 and 2000,
-        then 2.6–2.8× the eager loop at B = 1, any T); the automatic scan with a gradient
-        (a compiled training step) runs eagerly. ``torch.export`` traces the call whole
-        (value checks off), since an exported program is one graph.
+        Under ``torch.compile(kf)`` the sequential loop (the ``"auto"`` choice there, and
+        ``"sequential"``) is never traced whole (T unrolled steps take minutes to compile):
+        the discretisation runs eagerly and the loop as torch's structured scan with ONE step
+        compiled (any T); ``algorithm="scan"`` traces the associative scan whole (O(log T)
+        levels, one graph per (batch, T) shape, minutes to compile); ``"square_root"`` runs
+        eagerly. ``torch.export`` traces the call whole (value checks off), since an exported
+        program is one graph.
         """
-        if torch.compiler.is_compiling() and not torch.compiler.is_exporting():
-            scan = self.uses_scan(y.shape[:-2], dt.shape[:-1], y.shape[-2], y.device)
-            if not (scan and (self.parallel is True or not torch.is_grad_enabled())):
-                return self._forward_compiled_steps(y, dt, u, mask)
-        return self._forward(y, dt, u, mask, compile_step=False)
+        if torch.compiler.is_compiling() and not torch.compiler.is_exporting() and self.algorithm != "scan":
+            return self._forward_compiled_loop(y, dt, u, mask)
+        return self._forward(y, dt, u, mask, self.algorithm)
 
     @torch.compiler.disable
-    def _forward_compiled_steps(
+    def _forward_compiled_loop(
         self, y: Tensor, dt: Tensor, u: Tensor | None, mask: Tensor | None
     ) -> FilterResult:
-        return self._forward(y, dt, u, mask, compile_step=True)
+        algorithm = "square_root" if self.algorithm == "square_root" else "sequential"
+        return self._forward(y, dt, u, mask, algorithm, compiled_loop=True)
 
     def _forward(
-        self, y: Tensor, dt: Tensor, u: Tensor | None, mask: Tensor | None, compile_step: bool
+        self, y: Tensor, dt: Tensor, u: Tensor | None, mask: Tensor | None, algorithm: str,
+        compiled_loop: bool = False,
     ) -> FilterResult:
-        mats = self.sde.matrices()  # each parametrisation evaluated once per call
-        y, dt, u = self._check_inputs(y, dt, u, mats)  # dt checked (finite, ≥ 0) once, here
-        m0, P0 = self._prior(mats)
-        H, R = self.H, self.R
-        D = self.D if u is not None else None  # no known input: D u = 0
-        self._check_parameters(mats, H=H, R=R, m0=m0, P0=P0, **({} if D is None else {"D": D}))
-        # A batch of observation models (..., m, n) is constant over time: insert the T axis.
-        H = H.unsqueeze(-3) if H.dim() > 2 else H
-        R = R.unsqueeze(-3) if R.dim() > 2 else R
-        if D is not None and D.dim() > 2:
-            D = D.unsqueeze(-3)
-        # Matrices are valid by construction (parametrisations, PSD doubling): no value checks.
-        scan = self.uses_scan(y.shape[:-2], dt.shape[:-1], y.shape[-2], y.device)
-        d = self._discretize(dt, mats, scan, validate_args=False)  # one batched discretisation: A, Q (..., T, n, n)
-        G = d.G if u is not None else None
-        return kalman_filter(
-            y, d.A, d.Q, H, R, m0, P0, G=G, u=u, mask=mask, D=D,
-            square_root=self.square_root, compile_step=compile_step, parallel=scan, validate_args=False,
-        )
+        with parametrize.cached():  # each parametrisation evaluated once per call
+            mats = self.sde.matrices()
+            y, dt, u = self._check_inputs(y, dt, u, mats)
+            H, R, m0 = self.H, self.R, self.m0
+            D = self.D if u is not None else None  # no known input: D u = 0
+            validate = self.validate_args
+            if validate:
+                self._check_values(mats, dt, y=y, u=u, H=H, R=R, m0=m0, D=D, P0=self.P0)
+            _, P0 = self._prior(mats, validate)
+            # A batch of observation models (..., m, n) is constant over time: insert the T axis.
+            H = H.unsqueeze(-3) if H.dim() > 2 else H
+            R = R.unsqueeze(-3) if R.dim() > 2 else R
+            if D is not None and D.dim() > 2:
+                D = D.unsqueeze(-3)
+            T = y.shape[-2]
+            if algorithm == "auto":
+                batch = torch.broadcast_shapes(y.shape[:-2], dt.shape[:-1])
+                algorithm = choose_algorithm(algorithm, batch.numel(), T, y.device)
+            # one batched discretisation of every step: A, Q (..., T, n, n), laid out for the algorithm
+            d = self._discretize(dt, mats, series_layout=algorithm != "scan")
+            G = d.G if u is not None else None
+            args = FilterInputs(y, d.A, d.Q, H, R, m0, P0, G, u, mask, D)
+            return run_filter(args, algorithm, validate_args=False, compiled_loop=compiled_loop)
 
-    def uses_scan(self, *batch_shapes_T_device: object) -> bool:
-        """Whether a call with these batch shapes, T and device runs the associative scan:
-        ``uses_scan(y_batch, dt_batch, T, device)``; :attr:`parallel` when set, else
-        :func:`~torchsde_lti.filters.prefers_scan` (never with ``square_root``)."""
-        *shapes, T, device = batch_shapes_T_device
-        if self.square_root:
-            return False
-        if self.parallel is not None:
-            return self.parallel
-        batch = torch.broadcast_shapes(*(tuple(s) for s in shapes))  # type: ignore[arg-type]
-        return prefers_scan(batch.numel(), int(T), device)  # type: ignore[arg-type]
+    def algorithm_for(self, batch_size: int, T: int, device: torch.device) -> str:
+        """The algorithm a call with ``batch_size`` tracks of T steps on ``device`` runs:
+        :attr:`algorithm` unless ``"auto"``, then :func:`~torchsde_lti.filters.choose_algorithm`."""
+        return choose_algorithm(self.algorithm, batch_size, T, device)
 
     @property
     def discretization_method(self) -> str:
         """The method used for every step: :attr:`method`, else the SDE's."""
         return self.method or self.sde.method
 
-    def _discretize(
-        self, dt: Tensor, mats: SDEMatrices | None = None, scan: bool | None = None, validate_args: bool = True
-    ) -> Discrete:
-        """All steps' (A, Q, G) in one batched call, laid out for the sequential filter.
+    def _discretize(self, dt: Tensor, mats: SDEMatrices | None = None, series_layout: bool = True) -> Discrete:
+        """All steps' (A, Q, G) over a checked dt (..., T) in one batched call (no value checks:
+        the matrices come from the SDE's parametrisations, checked by the caller).
 
-        For one parameter set the doubling method returns batch-first views of batch-last
-        storage, so the filter loop's per-step moves to (n, n, batch) are cheap row copies
-        (:func:`~torchsde_lti.core.discretize_series`). ``validate_args=False`` for a dt
-        already checked (the parameters are valid by construction).
+        ``series_layout``: for one parameter set the doubling method returns batch-first
+        views of batch-last storage, so the sequential loop's per-step moves to (n, n, batch)
+        are cheap row copies (:func:`~torchsde_lti.core.discretize_series`); the scan wants
+        plain batch-first tensors (``series_layout=False``, unless ``unique_dt``).
         """
         if mats is None:
             mats = self.sde.matrices()
         # a length-1 time axis in the matrices lines a parameter batch up with dt (..., T)
         m = SDEMatrices(*(None if x is None else x.unsqueeze(-3) for x in mats))
-        if scan is None:
-            scan = bool(self.parallel)
-        if scan and not self.unique_dt:  # the scan wants plain batch-first tensors
-            return discretize(m.F, m.L, m.Qc, dt, B=m.B, method=self.discretization_method, validate_args=validate_args)
+        if not series_layout and not self.unique_dt:
+            return discretize(m.F, m.L, m.Qc, dt, B=m.B, method=self.discretization_method, validate_args=False)
         return discretize_series(
-            m.F, m.L, m.Qc, dt, m.B, method=self.discretization_method, unique=self.unique_dt,
-            validate_args=validate_args,
+            m.F, m.L, m.Qc, dt, m.B, method=self.discretization_method, unique=self.unique_dt, validate_args=False
         )
 
     def smooth(self, out: FilterResult) -> SmootherResult:
-        """RTS smoother over the filter output (uses the A_k, Q_k stored in ``out``)."""
-        scan = self.uses_scan(out.mean.shape[:-2], out.mean.shape[-2], out.mean.device)
-        return parallel_rts_smoother(out) if scan else rts_smoother(out)
+        """RTS smoother over the filter output (uses the A_k, Q_k stored in ``out``): the
+        sequential backward pass after ``"sequential"`` and ``"square_root"``, the reverse
+        associative scan after ``"scan"``, the automatic choice after ``"auto"``."""
+        algorithm = {"square_root": "sequential"}.get(self.algorithm, self.algorithm)
+        return rts_smoother(out, algorithm=algorithm)
 
     def forecast(
         self,
@@ -466,39 +450,34 @@ class KalmanFilter(nn.Module):
             mean, cov = state.mean[..., -1, :], state.cov[..., -1, :, :]
         else:
             mean, cov = state
-        dtype, device = self.sde.dtype, self.sde.device
-        dt = as_float_tensor(dt, "dt", dtype, device)
-        if dt.dim() == 0:
-            dt = dt.reshape(1)
-        check_nonnegative(dt, "dt")
-        n = self.state_dim
-        if mean.shape[-1] != n or cov.shape[-2:] != (n, n):
-            raise ValueError(f"state must be (mean (..., {n}), cov (..., {n}, {n})), got "
-                             f"{shape_str(mean)}, {shape_str(cov)}")
-        d = self.sde(dt, method=self.discretization_method, series=True)
-        if u is not None:
-            if d.G is None and self.D is None:
-                raise ValueError(
-                    f"u was given (shape {shape_str(torch.as_tensor(u))}) but the SDE has no input matrix B "
-                    "and the filter no feedthrough D"
-                )
-            u = as_float_tensor(u, "u", dtype, device)
-            p = d.G.shape[-1] if d.G is not None else self.D.shape[-1]  # type: ignore[union-attr]
-            if u.dim() < 2 or u.shape[-1] != p or u.shape[-2] not in (1, dt.shape[-1]):
-                raise ValueError(f"u must have shape (..., K={dt.shape[-1]}, p={p}), got shape {shape_str(u)}")
+        with parametrize.cached():
+            mats = self.sde.matrices()
+            F = mats.F
+            dt = as_float_tensor(dt, "dt", F.dtype, F.device)
+            if dt.dim() == 0:
+                dt = dt.reshape(1)
+            n = F.shape[-1]
+            if mean.shape[-1] != n or cov.shape[-2:] != (n, n):
+                raise ValueError(f"state must be (mean (..., {n}), cov (..., {n}, {n})), got "
+                                 f"{shape_str(mean)}, {shape_str(cov)}")
+            if u is not None:
+                p = mats.B.shape[-1] if mats.B is not None else (self.D.shape[-1] if self.D is not None else 0)
+                u = self._check_u(u, p, dt.shape[-1], "K", F.dtype, F.device)
+            H, R, D = self.H, self.R, self.D
+            if self.validate_args:
+                self._check_values(mats, dt, u=u, H=H, R=R, D=D)
+            d = self._discretize(dt, mats, series_layout=False)
         m, P = predict_moments(mean.unsqueeze(-2), cov.unsqueeze(-3), d.A, d.Q, d.G, u)
-        H, R = self.H, self.R
         Hk = H.unsqueeze(-3) if H.dim() > 2 else H
         Rk = R.unsqueeze(-3) if R.dim() > 2 else R
         obs_mean = matvec(Hk, m)
-        if u is not None and self.D is not None:
-            obs_mean = obs_mean + matvec(self.D.unsqueeze(-3) if self.D.dim() > 2 else self.D, u)
+        if u is not None and D is not None:
+            obs_mean = obs_mean + matvec(D.unsqueeze(-3) if D.dim() > 2 else D, u)
         return Forecast(m, P, obs_mean, sym(Hk @ P @ Hk.mT + Rk))
 
     def extra_repr(self) -> str:
         return (
-            f"obs_dim={self.obs_dim}, prior={self.prior_mode}, parallel={self.parallel}, unique_dt={self.unique_dt}"
-            + (", square_root=True" if getattr(self, "square_root", False) else "")
+            f"obs_dim={self.obs_dim}, prior={self.prior_mode}, algorithm={self.algorithm!r}, unique_dt={self.unique_dt}"
             + (f", method={self.method!r}" if self.method else "")
         )
 

@@ -12,8 +12,9 @@ input, dt included::
 
 ``method="matrix_exp"`` evaluates :func:`torch.matrix_exp` (A = expm(F dt), G from the ZOH
 block, Q from Van Loan's block exponential); ``method="doubling"`` (default) the scaling-and-
-doubling series, accurate and PSD for stiff F and large dt (``"van_loan"`` is an alias of
-``"matrix_exp"``). See :mod:`torchsde_lti.core.discretization`.
+doubling series, accurate and PSD for stiff F and large dt. See
+:mod:`torchsde_lti.core.discretization`. ``validate_args`` (per layer, default True) checks
+the values of every call (finite, dt ≥ 0, Qc symmetric PSD); shapes are always checked.
 """
 
 from __future__ import annotations
@@ -28,14 +29,16 @@ from torchsde_lti.core.discretization import (
     transition_matrix,
     zero_order_hold,
 )
+from torchsde_lti.nn._validate import ValidateArgs
 
 __all__ = ["Discretization", "Transition", "VanLoanNoise"]
 
 
-class _MethodLayer(nn.Module):
-    def __init__(self, method: str = "doubling") -> None:
+class _MethodLayer(ValidateArgs, nn.Module):
+    def __init__(self, method: str = "doubling", *, validate_args: bool | None = None) -> None:
         super().__init__()
         self.method = method
+        self.validate_args = validate_args
 
     @property
     def method(self) -> str:
@@ -55,6 +58,7 @@ class Transition(_MethodLayer):
 
     Args:
         method: ``"doubling"`` (default) or ``"matrix_exp"``.
+        validate_args: value checks of every call (None: the class default, True).
 
     ``forward(F, dt, B=None)``: F (..., n, n), dt (...), B (..., n, p) -> A (..., n, n), or
     the pair (A, G (..., n, p)) when B is given; batch dims broadcast.
@@ -62,8 +66,8 @@ class Transition(_MethodLayer):
 
     def forward(self, F: Tensor, dt: Tensor | float, B: Tensor | None = None) -> Tensor | tuple[Tensor, Tensor]:
         if B is None:
-            return transition_matrix(F, dt, method=self.method)
-        return zero_order_hold(F, B, dt, method=self.method)
+            return transition_matrix(F, dt, method=self.method, validate_args=self.validate_args)
+        return zero_order_hold(F, B, dt, method=self.method, validate_args=self.validate_args)
 
 
 class VanLoanNoise(_MethodLayer):
@@ -77,7 +81,7 @@ class VanLoanNoise(_MethodLayer):
     """
 
     def forward(self, F: Tensor, L: Tensor, Qc: Tensor, dt: Tensor | float) -> Tensor:
-        return process_noise(F, L, Qc, dt, method=self.method)
+        return process_noise(F, L, Qc, dt, method=self.method, validate_args=self.validate_args)
 
 
 class Discretization(_MethodLayer):
@@ -88,4 +92,4 @@ class Discretization(_MethodLayer):
     """
 
     def forward(self, F: Tensor, L: Tensor, Qc: Tensor, dt: Tensor | float, B: Tensor | None = None) -> Discrete:
-        return discretize(F, L, Qc, dt, B=B, method=self.method)
+        return discretize(F, L, Qc, dt, B=B, method=self.method, validate_args=self.validate_args)

@@ -11,6 +11,10 @@ the raw parameters keeps working. Matrices named in ``learn`` are ``nn.Parameter
 others are buffers. Both move with ``.to()`` and are saved in ``state_dict`` (under
 ``parametrizations.<name>.original``).
 
+Value checks (``validate_args``, per instance with a class default as in torch.distributions):
+the constructor always checks its matrices; with ``validate_args`` every call also checks the
+values it is given (dt finite and ≥ 0, …), once, at that call.
+
 - Qc is always symmetric positive definite: ``C Cᵀ`` with a Cholesky factor C whose
   diagonal is ``softplus + floor`` (:class:`~torchsde_lti.nn.parametrizations.PositiveDefinite`).
 - ``F_constraint="hurwitz"`` keeps F Hurwitz-stable for any raw values through
@@ -36,18 +40,20 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
+from torchsde_lti.core.discretization import Discrete, discretize, resolve_method
+from torchsde_lti.core.moments import propagate
+from torchsde_lti.core.stationary import stationary_covariance
 from torchsde_lti.core.validation import (
     as_float_tensor,
     broadcast_batch,
     check_finite,
+    check_hurwitz,
     check_matrix,
     common_float_dtype,
     parse_learn,
     shape_str,
 )
-from torchsde_lti.core.discretization import Discrete, discretize, resolve_method
-from torchsde_lti.core.moments import propagate
-from torchsde_lti.core.stationary import stationary_covariance
+from torchsde_lti.nn._validate import ValidateArgs
 from torchsde_lti.nn.layers import Transition
 from torchsde_lti.nn.parametrizations import Hurwitz, IntegratorChain, Positive, PositiveDefinite, Unconstrained
 
@@ -70,7 +76,7 @@ class SDEMatrices(NamedTuple):
     B: Tensor | None
 
 
-class LTISDE(nn.Module):
+class LTISDE(ValidateArgs, nn.Module):
     r"""Linear time-invariant SDE ``dx = F x dt + B u dt + L dβ``, ``E[dβ dβᵀ] = Qc dt``.
 
     Args:
@@ -86,6 +92,8 @@ class LTISDE(nn.Module):
             :class:`~torchsde_lti.nn.parametrizations.IntegratorChain`).
         method: default discretisation method, ``"doubling"`` (robust, default) or
             ``"matrix_exp"`` (torch.matrix_exp of Van Loan's block); see :attr:`method`.
+        validate_args: check the values given to every call (dt finite and ≥ 0, m0, P0, u);
+            None: the class default :attr:`default_validate_args` (True).
 
     Leading (batch) dimensions of the matrices may differ and broadcast (e.g. 16 different
     F's with one shared Qc); ``batch_shape`` is their broadcast.
@@ -107,9 +115,11 @@ class LTISDE(nn.Module):
         learn: Iterable[str] | str = ("F", "Qc"),
         F_constraint: str | nn.Module | None = None,
         method: str = "doubling",
+        validate_args: bool | None = None,
     ) -> None:
         super().__init__()
         self.method = method
+        self.validate_args = validate_args
         names = parse_learn(learn, MATRIX_NAMES)
         if B is None and "B" in names:
             raise ValueError("learn contains 'B' but B is None")
@@ -171,7 +181,7 @@ class LTISDE(nn.Module):
     @property
     def method(self) -> str:
         """Default discretisation method of :meth:`forward` and :meth:`propagate`:
-        ``"doubling"`` or ``"matrix_exp"`` (assignable; ``"van_loan"`` is an alias)."""
+        ``"doubling"`` or ``"matrix_exp"`` (assignable)."""
         return self._method
 
     @method.setter
@@ -235,16 +245,30 @@ class LTISDE(nn.Module):
             A (..., n, n), Q (..., n, n), G (..., n, p) or None.
         """
         m = self._aligned(series)
-        return discretize(m.F, m.L, m.Qc, dt, B=m.B, method=method or self.method)
+        return discretize(m.F, m.L, m.Qc, dt, B=m.B, method=method or self.method, validate_args=self.validate_args)
 
     def transition_matrix(self, dt: Tensor | float, *, series: bool = False) -> Tensor:
         """A = expm(F dt), (..., n, n), through the :class:`~torchsde_lti.Transition` layer."""
-        return Transition(self.method)(self._aligned(series).F, dt)
+        return Transition(self.method, validate_args=self.validate_args)(self._aligned(series).F, dt)
 
     def stationary_covariance(self) -> Tensor:
         """P∞ (..., n, n) solving F P∞ + P∞ Fᵀ + L Qc Lᵀ = 0 (ValueError if F is not Hurwitz)."""
         m = self.matrices()
-        return stationary_covariance(m.F, m.L, m.Qc)
+        return stationary_covariance(m.F, m.L, m.Qc, validate_args=self.validate_args)
+
+    def prior_covariance(self, mats: SDEMatrices | None = None, *, validate_args: bool | None = None) -> Tensor:
+        """The covariance a filter starts from when it is given none: P∞ (..., n, n), the
+        stationary covariance (the process has run for all past time).
+
+        Subclasses override it (a shaped model: seed 003's steady-state start). ``mats``: the
+        matrices already evaluated by the caller (read once per call; they are valid by
+        construction). ValueError when F is not Hurwitz (checked with ``validate_args``,
+        default :attr:`validate_args`): a filter then starts from a diffuse prior.
+        """
+        m = self.matrices() if mats is None else mats
+        if self._validates(validate_args):
+            check_hurwitz(m.F, "F")
+        return stationary_covariance(m.F, m.L, m.Qc, validate_args=False)
 
     def propagate(
         self,
@@ -256,7 +280,8 @@ class LTISDE(nn.Module):
     ) -> tuple[Tensor, Tensor]:
         """Moments after horizon dt: ``m = A m0 + G u`` (..., n), ``P = A P0 Aᵀ + Q`` (..., n, n)."""
         m = self.matrices()
-        return propagate(m0, P0, m.F, m.L, m.Qc, dt, B=m.B, u=u, method=method or self.method)
+        return propagate(m0, P0, m.F, m.L, m.Qc, dt, B=m.B, u=u, method=method or self.method,
+                         validate_args=self.validate_args)
 
     def _aligned(self, series: bool) -> SDEMatrices:
         m = self.matrices()
@@ -279,6 +304,7 @@ class LTISDE(nn.Module):
             learn=learn,
             F_constraint=F_constraint,
             method=self.method,
+            validate_args=self.__dict__.get("_validate_args"),
         )
         if free.position_indices is None and self.position_indices is not None:
             free.position_indices = tuple(self.position_indices)
@@ -308,14 +334,15 @@ def _derived_matrix(name: str) -> property:
 class StructuredSDE(LTISDE):
     """An :class:`LTISDE` whose matrices are derived from named scalar parameters.
 
-    Subclasses call :meth:`_init_structure` and implement :meth:`_build`. Positive scalars
+    Subclasses call ``super().__init__(validate_args)`` and implement :meth:`_build`. Positive scalars
     are registered with :class:`~torchsde_lti.nn.parametrizations.Positive`; free ones as plain
     parameters. Constant structure matrices are non-persistent buffers (they follow
     ``.to()`` but are not in ``state_dict``).
     """
 
-    def __init__(self) -> None:  # noqa: D107 — LTISDE.__init__ (free matrices) is bypassed on purpose
+    def __init__(self, validate_args: bool | None = None) -> None:  # noqa: D107 — LTISDE.__init__ (free matrices) is bypassed on purpose
         nn.Module.__init__(self)
+        self.validate_args = validate_args
 
     def _add_positive(self, name: str, value: Scalar, dtype: torch.dtype, device: torch.device | None) -> None:
         v = as_float_tensor(value, name, dtype, device).detach().clone()

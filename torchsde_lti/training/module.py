@@ -131,23 +131,21 @@ class KalmanFilterModule(LightningModule):
             obs = obs & mask.unsqueeze(-1)
         return obs
 
-    def k_step_nll(self, out: Any, y: Tensor, dt: Tensor, u: Tensor | None, observed: Tensor) -> Tensor:
+    def k_step_nll(self, out: Any, y: Tensor, observed: Tensor) -> Tensor:
         """Σ of the k-step-ahead predictive NLL of y_{t+k} given the filtered state at t.
 
-        Uses each step's exact (A_j, Q_j, G_j): m ← A m + G u, P ← A P Aᵀ + Q for
-        j = t+1 .. t+k (zero-dt padding steps are identities). Returns a scalar.
+        Uses each step's exact (A_j, Q_j) and input term G_j u_j, as the filter used them
+        (``out.transition``, ``out.process_noise``, ``out.control``): m ← A m + G u,
+        P ← A P Aᵀ + Q for j = t+1 .. t+k (zero-dt padding steps are identities). Returns a scalar.
         """
         k, T = self.k_step, y.shape[-2]
         if k < 1 or T <= k:
             return y.new_zeros(())
-        A, Q = out.transition, out.process_noise  # (B, T, n, n): the steps the filter used
-        G = self.kf.sde(dt, series=True).G if u is not None else None
+        A, Q, c = out.transition, out.process_noise, out.control  # (B, T, n, n), (B, T, n)
         m, P = out.mean[..., : T - k, :], out.cov[..., : T - k, :, :]
         for j in range(1, k + 1):
             Aj, Qj = A[..., j : T - k + j, :, :], Q[..., j : T - k + j, :, :]
-            m = (Aj @ m.unsqueeze(-1)).squeeze(-1)
-            if u is not None and G is not None:
-                m = m + (G[..., j : T - k + j, :, :] @ u[..., j : T - k + j, :].unsqueeze(-1)).squeeze(-1)
+            m = (Aj @ m.unsqueeze(-1)).squeeze(-1) + c[..., j : T - k + j, :]
             P = Aj @ P @ Aj.mT + Qj
         H, R = self.kf.H, self.kf.R
         obs_k = observed[..., k:, :]
@@ -167,7 +165,7 @@ class KalmanFilterModule(LightningModule):
         nll = -out.log_likelihood.sum() / count
         loss = nll
         if self.k_step > 0 and self.k_step_weight > 0:
-            loss = loss + self.k_step_weight * self.k_step_nll(out, y, dt, u, observed) / count
+            loss = loss + self.k_step_weight * self.k_step_nll(out, y, observed) / count
         return loss, nll, out, {"y": y, "x": x, "observed": observed, "mask": mask, "count": count}
 
     # ---------------------------------------------------------------- Lightning hooks

@@ -215,7 +215,7 @@ def chunked_scan(args: FilterInputs, chunk: int | None = None, validate_args: bo
         out = scan_filter(prepare_inputs(piece, validate_args))
         parts.append(out)
         m, P = out.mean[..., -1, :], out.cov[..., -1, :, :]
-    axes = FilterResult(-2, -3, -2, -3, -2, -3, 0, -1, -3, -3, -2)
+    axes = FilterResult(-2, -3, -2, -3, -2, -3, 0, -1, -3, -3, -2, -2)
     fields = []
     for name, axis in zip(FilterResult._fields, axes):
         if name == "log_likelihood":
