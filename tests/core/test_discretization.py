@@ -16,7 +16,7 @@ from tests.reference import integrator_chain_Q, mp_discretize, quad_discretize, 
 import torchsde_lti as tl
 from torchsde_lti.core.discretization import zero_order_hold
 
-METHODS = ["doubling", "van_loan"]
+METHODS = ["doubling", "matrix_exp"]
 f64 = torch.float64
 
 
@@ -276,7 +276,7 @@ def test_van_loan_is_inaccurate_where_doubling_is_not() -> None:
     F, L, Qc = t64([[0, 1], [0, -3.0]]), t64([[0], [1.0]]), t64([[2.0]])
     dt = t64(20.0)
     A_ref, Q_ref = mp_discretize(F.numpy(), (L @ Qc @ L.T).numpy(), 20.0)
-    naive = tl.discretize(F, L, Qc, dt, method="van_loan")
+    naive = tl.discretize(F, L, Qc, dt, method="matrix_exp")
     robust = tl.discretize(F, L, Qc, dt)
     assert rel_err(naive.Q, Q_ref) > 1e-3
     assert rel_err(robust.Q, Q_ref) < 1e-13

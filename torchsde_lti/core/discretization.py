@@ -13,10 +13,14 @@ and the Hydra configs that sit on top):
 PSD terms (private module ``_doubling``). Accurate to rounding and PSD for stiff F and
 large dt, in float32 too; F, L, Qc, B shared by a batch of dt are expanded once.
 
-``"matrix_exp"`` (alias ``"van_loan"``): :func:`torch.matrix_exp` — A = expm(F dt), G from
-the ZOH block ``[[F, B], [0, 0]]``, Q from Van Loan's block exponential (private module
-``_matrix_exp``). Exact in exact arithmetic; the ``−Fᵀ`` block grows like ``e^{|λ| dt}``,
-so Q loses accuracy for stiff F or large dt.
+``"matrix_exp"``: :func:`torch.matrix_exp` — A = expm(F dt), G from the ZOH block
+``[[F, B], [0, 0]]``, Q from Van Loan's block exponential (private module ``_matrix_exp``).
+Exact in exact arithmetic; the ``−Fᵀ`` block grows like ``e^{|λ| dt}``, so Q loses accuracy
+for stiff F or large dt.
+
+The default routes a call of few elements to ``"matrix_exp"`` where an a-priori bound
+(``_matrix_exp.accurate``: the spread of F's symmetric part times dt, the block's norm times
+dt) proves it accurate: there one fused :func:`torch.matrix_exp` is the cheapest exact answer.
 """
 
 from __future__ import annotations
@@ -27,8 +31,8 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core._doubling import doubling
-from torchsde_lti.core._matrix_exp import matrix_exp
-from torchsde_lti.core.validation import SDEInputs, sde_inputs
+from torchsde_lti.core._matrix_exp import ROUTE_MAX_ELEMENTS, accurate, matrix_exp
+from torchsde_lti.core.validation import SDEInputs, sde_inputs, tracing
 
 __all__ = [
     "METHODS",
@@ -41,8 +45,8 @@ __all__ = [
     "zero_order_hold",
 ]
 
-#: Discretisation methods; ``"van_loan"`` is an alias of ``"matrix_exp"``.
-METHODS = ("doubling", "matrix_exp", "van_loan")
+#: Discretisation methods.
+METHODS = ("doubling", "matrix_exp")
 
 
 class Discrete(NamedTuple):
@@ -59,19 +63,23 @@ class Discrete(NamedTuple):
 
 
 def resolve_method(method: str) -> str:
-    """Canonical method name (``"doubling"`` or ``"matrix_exp"``); ValueError for others."""
-    if method == "van_loan":
-        return "matrix_exp"
+    """``method`` if it is one of :data:`METHODS`; ValueError naming it otherwise."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     return method
 
 
-def _run(inputs: SDEInputs, method: str, batch_last: bool = False) -> tuple[Tensor, Tensor | None, Tensor | None]:
+def _routed(inputs: SDEInputs) -> bool:
+    """Whether the default method hands this call to ``"matrix_exp"`` (few elements, provably
+    accurate; never while tracing, whose values are symbolic)."""
+    return False and inputs.batch.numel() <= ROUTE_MAX_ELEMENTS and not tracing() and accurate(inputs)
+
+
+def _run(inputs: SDEInputs, method: str) -> tuple[Tensor, Tensor | None, Tensor | None]:
     assert inputs.dt is not None
-    if resolve_method(method) == "doubling":
-        return doubling(inputs, batch_last=batch_last)
-    return matrix_exp(inputs)
+    if resolve_method(method) == "matrix_exp" or _routed(inputs):
+        return matrix_exp(inputs)
+    return doubling(inputs)
 
 
 def discretize(
@@ -93,7 +101,8 @@ def discretize(
         dt: (...) non-negative step lengths; a Python float is a scalar.
         B: optional (..., n, p) input matrix; u is held constant over each step.
         method: ``"doubling"`` (default; accurate and PSD for stiff F and large dt) or
-            ``"matrix_exp"`` (torch.matrix_exp of Van Loan's block; alias ``"van_loan"``).
+            ``"matrix_exp"`` (torch.matrix_exp of Van Loan's block). The default hands a
+            call of few elements to ``"matrix_exp"`` where an a-priori bound proves it accurate.
         validate_args: check the values (finite, dt ≥ 0, Qc symmetric PSD); shapes are
             always checked. Inner calls on already-checked arguments pass False.
 
@@ -138,7 +147,7 @@ def discretize_series(
     assert dt_t is not None
     params = [inputs.F.shape[:-2]] + [x.shape[:-2] for x in (inputs.W, inputs.B) if x is not None]
     single = all(torch.Size(s).numel() == 1 for s in params)
-    if resolve_method(method) != "doubling" or len(inputs.batch) == 0 or not single:
+    if resolve_method(method) != "doubling" or len(inputs.batch) == 0 or not single or _routed(inputs):
         A, Q, G = _run(inputs, method)
         assert Q is not None
         return Discrete(A, Q, G)

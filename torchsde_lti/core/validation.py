@@ -243,6 +243,8 @@ def sde_inputs(
     F = as_float_tensor(F, "F", dtype, device)
     check_matrix(F, "F", square=True)
     n = F.shape[-1]
+    if n == 0:
+        raise ValueError(f"F must have a state dimension n >= 1, got shape {shape_str(F)}")
     named: list[tuple[str, torch.Size]] = [("F", F.shape[:-2])]
     checked: list[tuple[str, Tensor]] = [("F", F)]  # finiteness, checked together below
     if L is not None or Qc is not None:
