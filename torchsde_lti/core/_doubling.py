@@ -255,7 +255,7 @@ def per_element_doubling(
     (with ``batch_last`` contiguous (n, n, *batch), …). ``masked``: the schedule without
     data-dependent control flow (default: while torch.compile / torch.export trace).
     """
-    F, W, B, dt, batch = x
+    F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
     assert dt is not None
     n, N = F.shape[-1], batch.numel()
     p = 0 if B is None else B.shape[-1]
@@ -442,7 +442,7 @@ def doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | N
     ONE parameter set for at least :data:`SHARED_MIN_ELEMENTS` elements takes
     :func:`shared_doubling` (not while tracing); everything else :func:`per_element_doubling`.
     """
-    F, W, B, dt, batch = x
+    F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
     assert dt is not None
     one_set = all(t is None or t.shape[:-2].numel() == 1 for t in (F, W, B))
     if one_set and batch.numel() >= SHARED_MIN_ELEMENTS and not tracing():

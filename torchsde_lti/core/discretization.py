@@ -19,8 +19,9 @@ Exact in exact arithmetic; the ``−Fᵀ`` block grows like ``e^{|λ| dt}``, so 
 for stiff F or large dt.
 
 The default routes a call of few elements to ``"matrix_exp"`` where an a-priori bound
-(``_matrix_exp.accurate``: the spread of F's symmetric part times dt, the block's norm times
-dt) proves it accurate: there one fused :func:`torch.matrix_exp` is the cheapest exact answer.
+(``_matrix_exp.accurate``: ‖F‖ dt and the block's norm times dt small, W = L Qc Lᵀ well
+conditioned) proves it accurate: there one fused :func:`torch.matrix_exp` is the cheapest
+exact answer.
 """
 
 from __future__ import annotations
@@ -72,7 +73,7 @@ def resolve_method(method: str) -> str:
 def _routed(inputs: SDEInputs) -> bool:
     """Whether the default method hands this call to ``"matrix_exp"`` (few elements, provably
     accurate; never while tracing, whose values are symbolic)."""
-    return False and inputs.batch.numel() <= ROUTE_MAX_ELEMENTS and not tracing() and accurate(inputs)
+    return inputs.batch.numel() <= ROUTE_MAX_ELEMENTS and not tracing() and accurate(inputs)
 
 
 def _run(inputs: SDEInputs, method: str) -> tuple[Tensor, Tensor | None, Tensor | None]:
@@ -156,7 +157,7 @@ def discretize_series(
     batch = inputs.batch
     lead = batch[:-1]
     dt_tm = dt_t.expand(batch).movedim(-1, 0)  # (T, *lead)
-    A, Q, G = doubling(inputs._replace(dt=dt_tm, batch=dt_tm.shape), batch_last=True)
+    A, Q, G = doubling(inputs._replace(dt=dt_tm, batch=dt_tm.shape, host=None), batch_last=True)
     assert Q is not None
     perm = [*range(3, 3 + len(lead)), 2, 0, 1]  # (r, c, T, *lead) -> (*lead, T, r, c)
     return Discrete(A.permute(perm), Q.permute(perm), None if G is None else G.permute(perm))
@@ -169,7 +170,7 @@ def _discretize_unique(inputs: SDEInputs) -> Discrete:
     assert dt is not None
     dt = dt.expand(inputs.batch)
     values, inverse = torch.unique(dt, return_inverse=True)
-    A, Q, G = doubling(inputs._replace(dt=values, batch=values.shape), batch_last=True)  # (r, c, U)
+    A, Q, G = doubling(inputs._replace(dt=values, batch=values.shape, host=None), batch_last=True)  # (r, c, U)
     lead, T = dt.shape[:-1], dt.shape[-1]
     idx = inverse.movedim(-1, 0).reshape(-1)  # time-major
 
