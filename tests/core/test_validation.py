@@ -148,7 +148,7 @@ def test_closed_form_psd_test_equals_cholesky_test(k: int, dtype: torch.dtype) -
     g = torch.Generator().manual_seed(k)
     N = 4000
     V = torch.linalg.qr(torch.randn(N, k, k, generator=g, dtype=f64)).Q
-    top = torch.ones(N, 1, dtype=f64)
+    top = torch.ones(N, max(k - 1, 1), dtype=f64)
     tol = psd_tolerance(torch.zeros(1, k, dtype=dtype))
     low = torch.empty(N, 1, dtype=f64).uniform_(-10 * tol, 10 * tol, generator=g)
     lam = torch.cat([low, top], -1)[:, :k]
