@@ -226,3 +226,34 @@ def test_inference_mode_first_then_autograd() -> None:
         "assert torch.isfinite(F.grad).all()\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)  # a fresh process: an empty cache
+
+
+@pytest.mark.parametrize("order", [2, 3])
+def test_shared_nilpotent_series_gradients(order: int) -> None:
+    """The terminating series of an integrator chain, with F requiring grad: gradcheck in
+    float64, the same gradient as the per-element algorithm (which doubles), and finite
+    values and gradients in float32 at a step whose unneeded coefficients overflow."""
+    F0 = torch.diag(torch.ones(order - 1, dtype=F64), 1)
+    L = torch.zeros(order, 1, dtype=F64)
+    L[-1] = 1.0
+    Qc = torch.tensor([[0.7]], dtype=F64)
+    dt = torch.tensor([0.0, 1e-3, 0.4, 2.5, 30.0] * 8, dtype=F64)
+
+    def shared(F):
+        x = sde_inputs(F, L, Qc, dt)
+        return shared_doubling(x.F, x.W, x.B, dt)[:2]
+
+    F = F0.clone().requires_grad_()
+    assert torch.autograd.gradcheck(shared, (F,), eps=1e-7, atol=1e-5, rtol=1e-6)
+    weights = torch.randn(2, 40, order, order, dtype=F64, generator=torch.Generator().manual_seed(1))
+    (g_shared,) = torch.autograd.grad(sum((w * t).sum() for w, t in zip(weights, shared(F))), F)
+    A, Q, _ = per_element_doubling(sde_inputs(F, L, Qc, dt))
+    (g_element,) = torch.autograd.grad((weights[0] * A).sum() + (weights[1] * Q).sum(), F)
+    assert _rel(g_shared, g_element) < 1e-10
+
+    F32 = F0.float().requires_grad_()
+    x = sde_inputs(F32, L.float(), Qc.float(), torch.full((40,), 3e7))
+    A, Q, _ = shared_doubling(x.F, x.W, x.B, x.dt)
+    assert torch.isfinite(A).all() and torch.isfinite(Q).all()  # CA: Q_00 ≈ 8.5e35 fits
+    (g,) = torch.autograd.grad(A.sum(), F32)
+    assert torch.isfinite(g).all()

@@ -361,70 +361,83 @@ def shared_doubling(F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor,
     r"""(A, Q, G) for ONE parameter set, F (n, n), W (n, n) or None, B (n, p) or None, over
     dt (*batch); shapes as :func:`per_element_doubling`.
 
-    With F = ν F̃ (ν = ‖F‖_F), the series terms F̃^k, 𝓛̃^k(W), F̃^k B are computed once and
-    every element combines them with its rows ``r_k = (ν h)^k / k!``::
+    With F = ν F̃ (ν = max(‖F‖₁, ‖F‖∞), which bounds ‖F‖ and ‖𝓛‖/2 in the induced 1-norm),
+    the series terms F̃^k, 𝓛̃^k(W), F̃^k B are computed once and every element combines them
+    with its rows ``r_k = (ν h)^k / k!``::
 
         E_h = Σ_{k≥1} r_k F̃^k,   Q_h = h Σ_k r_k 𝓛̃^k(W) / (k+1),   G_h = h Σ_k r_k F̃^k B / (k+1)
 
-    (one matrix product per quantity for the whole batch, batch-last), then the sorted doubling.
-    A nilpotent F (index m, F not requiring grad) takes its terminating series at the full step:
-    m terms for A and G, 2m − 1 for Q (𝓛^k(W) = 0 beyond), so no coefficient multiplies an
-    exact zero (no inf·0 where a large dt overflows a coefficient the result does not need).
+    (one matrix product for the whole batch, batch-last), then the sorted doubling. A nilpotent
+    F of index m takes its terminating series at the full step: m terms for A and G and
+    2m − 1 for Q (exact), and with a gradient for F the 2m, 3m − 1, 2m terms whose derivative
+    is not zero; the coefficients of terms that vanish in the forward pass are clamped to the
+    float range, so a step whose unneeded coefficients overflow gives no inf · 0.
     """
     batch = dt.shape
     N, n = dt.numel(), F.shape[-1]
     p = 0 if B is None else B.shape[-1]
     dtype = F.dtype
     with torch.no_grad():
-        nu = frobenius_norm(F)
+        absF = F.abs()
+        nu = torch.maximum(absF.sum(-2).amax(-1), absF.sum(-1).amax(-1))
         nu = torch.where(nu > 0, nu, torch.ones_like(nu))
-    needs_f_grad = torch.is_grad_enabled() and F.requires_grad  # the full series' F-gradient
-    index = None if needs_f_grad else nilpotency_index(F)
+    index = nilpotency_index(F)
     dtf = dt.reshape(N)
+    order: Tensor | None = None
+    counts: list[int] = []
+    h = dtf
     if index is None:
-        K = series_terms(dtype, THETA_SHARED, n)
-        counts_A = counts_Q = counts_G = K
+        exact = full = (series_terms(dtype, THETA_SHARED, n),) * 3
         with torch.no_grad():
             steps = halvings_for(nu, dtf, THETA_SHARED).to(torch.int64)
             top = int(steps.max()) if N else 0
+            if top:
+                order = torch.argsort(steps, descending=True)
+                steps = steps[order]
+                counts = (N - torch.cumsum(torch.bincount(steps, minlength=top + 1), 0))[:top].tolist()
+        if top:
+            h = dtf[order] * torch.exp2(-steps.to(dtype))
     else:
-        counts_A, counts_Q, counts_G = index, 2 * index - 1, index
-        steps, top = None, 0
-    order: Tensor | None = None
-    counts: list[int] = []
-    if top:
-        assert steps is not None
-        with torch.no_grad():
-            order = torch.argsort(steps, descending=True)
-            steps = steps[order]
-            counts = (N - torch.cumsum(torch.bincount(steps, minlength=top + 1), 0))[:top].tolist()
-        dtf = dtf[order]
-        h = dtf * torch.exp2(-steps.to(dtype))
-    else:
-        h = dtf
+        exact = (index, 2 * index - 1, index)
+        full = (2 * index, 3 * index - 1, 2 * index) if torch.is_grad_enabled() and F.requires_grad else exact
     Ft = F / nu
     x = nu * h  # ‖F‖ h: ≤ θ with doubling; the full ‖F‖ dt for a nilpotent F
-    K = max(counts_A, counts_Q, counts_G)
     rows = [torch.ones_like(x)]
-    for k in range(1, K):
+    for k in range(1, max(full)):
         rows.append(rows[-1] * x * (1.0 / k))
     R = torch.stack(rows)  # (K, N): r_k = x^k / k!
-    k1 = torch.arange(1, K + 1, dtype=dtype, device=F.device)[:, None]
-    Rh = R * (h / k1)  # h r_k / (k+1)
-
-    def combine(terms: Tensor, coeff: Tensor, shape: tuple[int, int]) -> Tensor:
-        return (terms.reshape(terms.shape[0], -1).mT @ coeff).reshape(*shape, N)  # batch-last
-
-    powers = _power_terms(Ft, torch.eye(n, dtype=dtype, device=F.device), counts_A)
-    X = combine(powers[1:], R[1:counts_A], (n, n))  # E = A − I
-    Q = None if W is None else combine(_lyapunov_terms(Ft, W, counts_Q), Rh[:counts_Q], (n, n))
-    G = None if B is None else combine(_power_terms(Ft, B, counts_G), Rh[:counts_G], (n, p))
-    lo = _Layout(batch_first=False)
-    eye = lo.eye(n, X)
-    if counts:
-        A, Q, G = _double_sorted(X + eye, X, Q, G, counts, lo)
+    k1 = torch.arange(1, max(full) + 1, dtype=dtype, device=F.device)[:, None, None]
+    eye = torch.eye(n, dtype=dtype, device=F.device)
+    stacks = [  # (count, n, c) terms whose coefficients are r_k (Q and G: times h)
+        torch.cat([torch.zeros_like(eye)[None], _power_terms(Ft, eye, full[0])[1:]]),
+        None if W is None else _lyapunov_terms(Ft, W, full[1]) / k1[: full[1]],
+        None if B is None else _power_terms(Ft, B, full[2]) / k1[: full[2]],
+    ]
+    shapes = [(n, n), (n, n), (n, p)]
+    present = [i for i, t in enumerate(stacks) if t is not None]
+    out: list[Tensor | None] = [None, None, None]
+    if full == exact and len(set(full)) == 1:  # one product for the whole batch
+        flat = torch.cat([stacks[i].reshape(full[0], -1) for i in present], -1)  # type: ignore[union-attr]
+        parts = (flat.mT @ R).split([math.prod(shapes[i]) for i in present])
+        for i, part in zip(present, parts):
+            out[i] = part.reshape(*shapes[i], N)
     else:
-        A = X + eye
+        big = torch.finfo(dtype).max
+        for i in present:
+            coeff = R[: full[i]]
+            if full[i] > exact[i]:  # terms that vanish in the forward pass: finite coefficients
+                coeff = torch.cat([coeff[: exact[i]], coeff[exact[i] :].clamp(-big, big)])
+            out[i] = (stacks[i].reshape(full[i], -1).mT @ coeff).reshape(*shapes[i], N)  # type: ignore[union-attr]
+    X, Q, G = out
+    assert X is not None
+    Q = None if Q is None else Q * h
+    G = None if G is None else G * h
+    lo = _Layout(batch_first=False)
+    eyel = lo.eye(n, X)
+    if counts:
+        A, Q, G = _double_sorted(X + eyel, X, Q, G, counts, lo)
+    else:
+        A = X + eyel
     if Q is not None:
         Q = torch.lerp(Q, Q.transpose(0, 1), 0.5)
     return (
