@@ -30,25 +30,17 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import bl_matmul
+from torchsde_lti.core.thresholds import (
+    BATCH_LAST_MAX_DIM,
+    BATCH_LAST_MIN_ELEMENTS,
+    SHARED_MIN_ELEMENTS,
+    THETA_PER_ELEMENT,
+    THETA_SHARED,
+    TRACED_MAX_HALVINGS,
+)
 from torchsde_lti.core.validation import SDEInputs, tracing
 
-__all__ = ["SHARED_MIN_ELEMENTS", "doubling", "per_element_doubling", "shared_doubling"]
-
-#: Sub-step bounds ‖F‖_F h ≤ θ: per element a longer series costs more than the doubling it
-#: saves beyond 0.5; with one parameter set the series terms are computed once, so the longer
-#: sub-step (fewer doublings of every element) is cheaper.
-THETA_PER_ELEMENT = 0.5
-THETA_SHARED = 1.0
-#: Batch-last fused multiply-adds (:func:`~torchsde_lti.core.linalg.bl_matmul`) for n up to
-#: this and more than BATCH_LAST_MIN_ELEMENTS elements; one batch-first ``bmm`` otherwise.
-BATCH_LAST_MAX_DIM = 4
-BATCH_LAST_MIN_ELEMENTS = 256
-#: One parameter set and at least this many elements: :func:`shared_doubling`.
-SHARED_MIN_ELEMENTS = 32
-#: Halvings the traced path takes at most: ‖F‖ dt ≤ θ 2^32 (beyond, the result is that of
-#: dt = θ 2^32 / ‖F‖, where A and Q have long converged).
-TRACED_MAX_HALVINGS = 32
-
+__all__ = ["doubling", "per_element_doubling", "shared_doubling"]
 
 _TERMS: dict[tuple[torch.dtype, float, int], int] = {}
 
@@ -137,16 +129,18 @@ class _Layout:
 
     def take(self, x: Tensor, order: Tensor | None, batch: torch.Size, batch_last: bool) -> Tensor:
         """This layout, elements in sorted ``order`` (or None) -> (*batch, r, c) in the elements'
-        order, or contiguous (r, c, *batch) with ``batch_last``."""
-        dim = 0 if self.batch_first else -1
+        order, or contiguous (r, c, *batch) with ``batch_last`` (one copy)."""
+        inverse = None
         if order is not None:
             inverse = torch.empty_like(order)
             inverse[order] = torch.arange(order.numel(), device=order.device)
-            x = x.index_select(dim, inverse)
-        if self.batch_first:
-            x = x.reshape(*batch, *x.shape[1:])
-            return x.movedim((-2, -1), (0, 1)).contiguous() if batch_last else x
-        return x.reshape(*x.shape[:2], *batch) if batch_last else x.permute(2, 0, 1).reshape(*batch, *x.shape[:2])
+        if self.batch_first or not batch_last:
+            xb = x if self.batch_first else x.permute(2, 0, 1)
+            xb = xb.contiguous() if inverse is None else xb.index_select(0, inverse)
+            xb = xb.reshape(*batch, *xb.shape[1:])
+            return xb.movedim((-2, -1), (0, 1)).contiguous() if batch_last else xb
+        x = x if inverse is None else x.index_select(-1, inverse)
+        return x.reshape(*x.shape[:2], *batch)
 
 
 def _double(A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, near: Tensor | None,
@@ -421,13 +415,23 @@ def shared_doubling(F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor,
         parts = (flat.mT @ R).split([math.prod(shapes[i]) for i in present])
         for i, part in zip(present, parts):
             out[i] = part.reshape(*shapes[i], N)
-    else:
+    else:  # a nilpotent F: no doubling, so each product goes straight to the output layout
         big = torch.finfo(dtype).max
         for i in present:
             coeff = R[: full[i]]
             if full[i] > exact[i]:  # terms that vanish in the forward pass: finite coefficients
                 coeff = torch.cat([coeff[: exact[i]], coeff[exact[i] :].clamp(-big, big)])
-            out[i] = (stacks[i].reshape(full[i], -1).mT @ coeff).reshape(*shapes[i], N)  # type: ignore[union-attr]
+            terms = stacks[i].reshape(full[i], -1)  # type: ignore[union-attr]
+            if batch_last:
+                out[i] = (terms.mT @ coeff).reshape(*shapes[i], *batch)
+            else:
+                out[i] = (coeff.mT @ terms).reshape(*batch, *shapes[i])
+        A = out[0] + (eye.reshape(n, n, *([1] * len(batch))) if batch_last else eye)
+        Q = None if out[1] is None else out[1] * (h.reshape(batch) if batch_last else h.reshape(*batch, 1, 1))
+        G = None if out[2] is None else out[2] * (h.reshape(batch) if batch_last else h.reshape(*batch, 1, 1))
+        if Q is not None:
+            Q = torch.lerp(Q, Q.transpose(0, 1) if batch_last else Q.mT, 0.5)
+        return A, Q, G
     X, Q, G = out
     assert X is not None
     Q = None if Q is None else Q * h

@@ -20,17 +20,10 @@ import math
 import torch
 from torch import Tensor
 
+from torchsde_lti.core.thresholds import ROUTE_BOUNDS
 from torchsde_lti.core.validation import SDEInputs, cholesky_succeeds
 
-__all__ = ["ROUTE_MAX_ELEMENTS", "accurate", "matrix_exp"]
-
-#: The default method routes calls of at most this many elements here when :func:`accurate`
-#: holds (beyond, the doubling's batched series are cheaper than torch's per-matrix kernel).
-ROUTE_MAX_ELEMENTS = 512
-#: Bounds of :func:`accurate` per dtype: (‖F‖_F dt, ‖C‖_F dt of the whole block,
-#: λ_min(W) / ‖W‖_F).
-ROUTE_BOUNDS = {torch.float64: (1.0, 2.0, 1e-3), torch.float32: (0.5, 1.0, 1e-2)}
-
+__all__ = ["accurate", "matrix_exp"]
 
 def matrix_exp(x: SDEInputs) -> tuple[Tensor, Tensor | None, Tensor | None]:
     """(A, Q, G) of shapes (*batch, n, n), (*batch, n, n) or None, (*batch, n, p) or None.

@@ -32,7 +32,9 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core._doubling import doubling
-from torchsde_lti.core._matrix_exp import ROUTE_MAX_ELEMENTS, accurate, matrix_exp
+from torchsde_lti.core._matrix_exp import accurate, matrix_exp
+from torchsde_lti.core.thresholds import ROUTE_MAX_ELEMENTS
+from torchsde_lti.core.threads import intra_op_threads
 from torchsde_lti.core.validation import SDEInputs, sde_inputs, tracing
 
 __all__ = [
@@ -78,9 +80,16 @@ def _routed(inputs: SDEInputs) -> bool:
 
 def _run(inputs: SDEInputs, method: str) -> tuple[Tensor, Tensor | None, Tensor | None]:
     assert inputs.dt is not None
-    if resolve_method(method) == "matrix_exp" or _routed(inputs):
-        return matrix_exp(inputs)
-    return doubling(inputs)
+    with intra_op_threads(_work(inputs)):
+        if resolve_method(method) == "matrix_exp" or _routed(inputs):
+            return matrix_exp(inputs)
+        return doubling(inputs)
+
+
+def _work(inputs: SDEInputs) -> int:
+    """Matrix entries a call produces: the size that sets its intra-op threads."""
+    n = inputs.F.shape[-1]
+    return inputs.batch.numel() * n * (n + (0 if inputs.B is None else inputs.B.shape[-1]))
 
 
 def discretize(
@@ -157,7 +166,8 @@ def discretize_series(
     batch = inputs.batch
     lead = batch[:-1]
     dt_tm = dt_t.expand(batch).movedim(-1, 0)  # (T, *lead)
-    A, Q, G = doubling(inputs._replace(dt=dt_tm, batch=dt_tm.shape, host=None), batch_last=True)
+    with intra_op_threads(_work(inputs)):
+        A, Q, G = doubling(inputs._replace(dt=dt_tm, batch=dt_tm.shape, host=None), batch_last=True)
     assert Q is not None
     perm = [*range(3, 3 + len(lead)), 2, 0, 1]  # (r, c, T, *lead) -> (*lead, T, r, c)
     return Discrete(A.permute(perm), Q.permute(perm), None if G is None else G.permute(perm))
@@ -170,7 +180,8 @@ def _discretize_unique(inputs: SDEInputs) -> Discrete:
     assert dt is not None
     dt = dt.expand(inputs.batch)
     values, inverse = torch.unique(dt, return_inverse=True)
-    A, Q, G = doubling(inputs._replace(dt=values, batch=values.shape, host=None), batch_last=True)  # (r, c, U)
+    with intra_op_threads(_work(inputs)):
+        A, Q, G = doubling(inputs._replace(dt=values, batch=values.shape, host=None), batch_last=True)  # (r, c, U)
     lead, T = dt.shape[:-1], dt.shape[-1]
     idx = inverse.movedim(-1, 0).reshape(-1)  # time-major
 

@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import sym
+from torchsde_lti.core.thresholds import PYTHON_CHECK_MAX_VALUES
 
 
 def tracing() -> bool:
@@ -145,11 +146,6 @@ def _psd_test(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     shifted = x + (tol * scale)[..., None, None] * torch.eye(k, dtype=x.dtype, device=x.device)
     passes = ~((asym > tol) | (torch.linalg.cholesky_ex(_lapack_dtype(shifted)).info != 0)).any()
     return passes, asym, scale
-
-
-#: Up to this many values in all, the value checks run on Python floats after one transfer:
-#: on so few numbers every tensor op costs more than the arithmetic.
-PYTHON_CHECK_MAX_VALUES = 256
 
 
 def cholesky_succeeds(m: Sequence[float], k: int, shift: float) -> bool:
