@@ -170,3 +170,19 @@ def test_closed_form_psd_test_equals_cholesky_test(k: int, dtype: torch.dtype) -
         asym = torch.tensor([[[1.0, 0.5], [0.0, 1.0]]], dtype=dtype)
         assert not bool(_psd_test(asym.expand(200, 2, 2))[0])
         assert not _psd_values(asym.reshape(-1).tolist(), 2, tol)
+
+
+@pytest.mark.parametrize("dtype, dt", [(torch.float64, 1000.0), (torch.float32, 100.0)])
+def test_overflowing_results_raise_naming_the_cause(dtype: torch.dtype, dt: float) -> None:
+    """An unstable F over a long step: the exact A = e^{dt} exceeds the dtype's range. Public
+    calls raise instead of returning inf/NaN; inner calls (validate_args=False) do not check."""
+    F, L, Qc = torch.eye(2, dtype=dtype), torch.eye(2, dtype=dtype), torch.eye(2, dtype=dtype)
+    step = torch.tensor(dt, dtype=dtype)
+    for call in (lambda v: tl.discretize(F, L, Qc, step, validate_args=v),
+                 lambda v: tl.transition_matrix(F, step, validate_args=v),
+                 lambda v: tl.zero_order_hold(F, L, step, validate_args=v),
+                 lambda v: tl.core.discretize_series(F, L, Qc, step.expand(40), validate_args=v)):
+        with pytest.raises(ValueError, match=r"overflows .*A.*rightmost eigenvalue has real part 1"):
+            call(True)
+        call(False)
+    assert torch.isfinite(tl.discretize(F, L, Qc, torch.tensor(5.0, dtype=dtype)).Q).all()

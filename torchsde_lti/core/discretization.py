@@ -35,7 +35,7 @@ from torchsde_lti.core._doubling import doubling
 from torchsde_lti.core._matrix_exp import accurate, matrix_exp
 from torchsde_lti.core.thresholds import ROUTE_MAX_ELEMENTS
 from torchsde_lti.core.threads import intra_op_threads
-from torchsde_lti.core.validation import SDEInputs, sde_inputs, tracing
+from torchsde_lti.core.validation import SDEInputs, checks_values, sde_inputs, tracing
 
 __all__ = [
     "METHODS",
@@ -86,6 +86,26 @@ def _run(inputs: SDEInputs, method: str) -> tuple[Tensor, Tensor | None, Tensor 
         return doubling(inputs)
 
 
+def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | None) -> None:
+    """ValueError when a result is not finite although the (checked) arguments are: the exact
+    values exceed the dtype's range (an unstable F over a long step, a huge noise or input),
+    never silently inf or NaN."""
+    with torch.no_grad():
+        parts = [t for t in (A, Q, G) if t is not None and t.numel()]
+        if not parts or bool(torch.stack([t.sum() for t in parts]).isfinite().all()):
+            return
+        bad = [name for name, t in zip("AQG", (A, Q, G)) if t is not None and not bool(torch.isfinite(t).all())]
+        if not bad:  # a finite result whose sum overflowed
+            return
+        rightmost = float(torch.linalg.eigvals(inputs.F.double()).real.max())
+        dt_max = float(inputs.dt.max()) if inputs.dt is not None and inputs.dt.numel() else 0.0
+    raise ValueError(
+        f"the discretisation overflows {inputs.F.dtype}: {', '.join(bad)} not finite for dt up to {dt_max:.3g} "
+        f"(F's rightmost eigenvalue has real part {rightmost:.3g}; an unstable F grows like e^(Re λ dt)); "
+        "shorten dt, rescale the state, or use float64"
+    )
+
+
 def _work(inputs: SDEInputs) -> int:
     """Matrix entries a call produces: the size that sets its intra-op threads."""
     n = inputs.F.shape[-1]
@@ -123,7 +143,10 @@ def discretize(
         :class:`Discrete` with A (..., n, n), Q (..., n, n) symmetric PSD and
         G (..., n, p) or None. Differentiable with respect to F, L, Qc, B and dt.
     """
-    A, Q, G = _run(sde_inputs(F, L, Qc, dt, B, validate_args=validate_args), method)
+    inputs = sde_inputs(F, L, Qc, dt, B, validate_args=validate_args)
+    A, Q, G = _run(inputs, method)
+    if checks_values(validate_args):
+        _check_result(inputs, A, Q, G)
     assert Q is not None
     return Discrete(A, Q, G)
 
@@ -158,19 +181,20 @@ def discretize_series(
     params = [inputs.F.shape[:-2]] + [x.shape[:-2] for x in (inputs.W, inputs.B) if x is not None]
     single = all(torch.Size(s).numel() == 1 for s in params)
     if resolve_method(method) != "doubling" or len(inputs.batch) == 0 or not single or _routed(inputs):
-        A, Q, G = _run(inputs, method)
+        d = Discrete(*_run(inputs, method))
+    elif unique and not dt_t.requires_grad:
+        d = _discretize_unique(inputs)
+    else:
+        lead = inputs.batch[:-1]
+        dt_tm = dt_t.expand(inputs.batch).movedim(-1, 0)  # (T, *lead)
+        with intra_op_threads(_work(inputs)):
+            A, Q, G = doubling(inputs._replace(dt=dt_tm, batch=dt_tm.shape, host=None), batch_last=True)
+        perm = [*range(3, 3 + len(lead)), 2, 0, 1]  # (r, c, T, *lead) -> (*lead, T, r, c)
         assert Q is not None
-        return Discrete(A, Q, G)
-    if unique and not dt_t.requires_grad:
-        return _discretize_unique(inputs)
-    batch = inputs.batch
-    lead = batch[:-1]
-    dt_tm = dt_t.expand(batch).movedim(-1, 0)  # (T, *lead)
-    with intra_op_threads(_work(inputs)):
-        A, Q, G = doubling(inputs._replace(dt=dt_tm, batch=dt_tm.shape, host=None), batch_last=True)
-    assert Q is not None
-    perm = [*range(3, 3 + len(lead)), 2, 0, 1]  # (r, c, T, *lead) -> (*lead, T, r, c)
-    return Discrete(A.permute(perm), Q.permute(perm), None if G is None else G.permute(perm))
+        d = Discrete(A.permute(perm), Q.permute(perm), None if G is None else G.permute(perm))
+    if checks_values(validate_args):
+        _check_result(inputs, d.A, d.Q, d.G)
+    return d
 
 
 def _discretize_unique(inputs: SDEInputs) -> Discrete:
@@ -207,7 +231,10 @@ def transition_matrix(
     Returns:
         (..., n, n), batch broadcast from F and dt.
     """
-    A, _, _ = _run(sde_inputs(F, None, None, dt, None, validate_args=validate_args), method)
+    inputs = sde_inputs(F, None, None, dt, None, validate_args=validate_args)
+    A, _, _ = _run(inputs, method)
+    if checks_values(validate_args):
+        _check_result(inputs, A, None, None)
     return A
 
 
@@ -226,7 +253,10 @@ def zero_order_hold(
     Returns:
         A (..., n, n), G (..., n, p).
     """
-    A, _, G = _run(sde_inputs(F, None, None, dt, B, validate_args=validate_args), method)
+    inputs = sde_inputs(F, None, None, dt, B, validate_args=validate_args)
+    A, _, G = _run(inputs, method)
+    if checks_values(validate_args):
+        _check_result(inputs, A, None, G)
     assert G is not None
     return A, G
 
