@@ -86,7 +86,7 @@ def _run(inputs: SDEInputs, method: str) -> tuple[Tensor, Tensor | None, Tensor 
         return doubling(inputs)
 
 
-def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | None) -> None:
+def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | None, method: str = "doubling") -> None:
     """ValueError when a result is not finite although the (checked) arguments are: the exact
     values exceed the dtype's range (an unstable F over a long step, a huge noise or input),
     never silently inf or NaN."""
@@ -99,10 +99,14 @@ def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | No
             return
         rightmost = float(torch.linalg.eigvals(inputs.F.double()).real.max())
         dt_max = float(inputs.dt.max()) if inputs.dt is not None and inputs.dt.numel() else 0.0
+    if method == "matrix_exp" and rightmost < 0:
+        cause = ("method='matrix_exp' overflows for this stable F: the −Fᵀ block of Van Loan's exponential grows "
+                 "like e^(|λ| dt); the default method='doubling' does not")
+    else:
+        cause = (f"F's rightmost eigenvalue has real part {rightmost:.3g}; an unstable F grows like e^(Re λ dt); "
+                 "shorten dt, rescale the state, or use float64")
     raise ValueError(
-        f"the discretisation overflows {inputs.F.dtype}: {', '.join(bad)} not finite for dt up to {dt_max:.3g} "
-        f"(F's rightmost eigenvalue has real part {rightmost:.3g}; an unstable F grows like e^(Re λ dt)); "
-        "shorten dt, rescale the state, or use float64"
+        f"the discretisation overflows {inputs.F.dtype}: {', '.join(bad)} not finite for dt up to {dt_max:.3g} ({cause})"
     )
 
 
@@ -146,7 +150,7 @@ def discretize(
     inputs = sde_inputs(F, L, Qc, dt, B, validate_args=validate_args)
     A, Q, G = _run(inputs, method)
     if checks_values(validate_args):
-        _check_result(inputs, A, Q, G)
+        _check_result(inputs, A, Q, G, resolve_method(method))
     assert Q is not None
     return Discrete(A, Q, G)
 
@@ -193,7 +197,7 @@ def discretize_series(
         assert Q is not None
         d = Discrete(A.permute(perm), Q.permute(perm), None if G is None else G.permute(perm))
     if checks_values(validate_args):
-        _check_result(inputs, d.A, d.Q, d.G)
+        _check_result(inputs, d.A, d.Q, d.G, resolve_method(method))
     return d
 
 
@@ -234,7 +238,7 @@ def transition_matrix(
     inputs = sde_inputs(F, None, None, dt, None, validate_args=validate_args)
     A, _, _ = _run(inputs, method)
     if checks_values(validate_args):
-        _check_result(inputs, A, None, None)
+        _check_result(inputs, A, None, None, resolve_method(method))
     return A
 
 
@@ -256,7 +260,7 @@ def zero_order_hold(
     inputs = sde_inputs(F, None, None, dt, B, validate_args=validate_args)
     A, _, G = _run(inputs, method)
     if checks_values(validate_args):
-        _check_result(inputs, A, None, G)
+        _check_result(inputs, A, None, G, resolve_method(method))
     assert G is not None
     return A, G
 

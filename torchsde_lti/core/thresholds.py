@@ -32,7 +32,7 @@ PYTHON_CHECK_MAX_VALUES = 256
 # ---- scaling and doubling (core/_doubling.py)
 #: Sub-step bounds ‖F‖ h ≤ θ: per element (its own series on every element) and for one
 #: parameter set (series terms once, so fewer doublings pay).
-THETA_PER_ELEMENT = 0.5
+THETA_PER_ELEMENT = 0.25
 THETA_SHARED = 1.0
 #: Per-element layout: batch-last fused multiply-adds for n up to this and more than
 #: BATCH_LAST_MIN_ELEMENTS elements; batch-first ``bmm`` otherwise.
