@@ -129,18 +129,20 @@ class _Layout:
 
     def take(self, x: Tensor, order: Tensor | None, batch: torch.Size, batch_last: bool) -> Tensor:
         """This layout, elements in sorted ``order`` (or None) -> (*batch, r, c) in the elements'
-        order, or contiguous (r, c, *batch) with ``batch_last`` (one copy)."""
-        inverse = None
-        if order is not None:
+        order, or contiguous (r, c, *batch) with ``batch_last`` (one gather or copy)."""
+        if not self.batch_first and batch_last:
+            if order is not None:  # out[..., order[i]] = x[..., i]
+                x = torch.empty_like(x).index_copy_(-1, order, x)
+            return x.reshape(*x.shape[:2], *batch)
+        xb = x if self.batch_first else x.permute(2, 0, 1)
+        if order is None:
+            xb = xb.contiguous()
+        else:
             inverse = torch.empty_like(order)
             inverse[order] = torch.arange(order.numel(), device=order.device)
-        if self.batch_first or not batch_last:
-            xb = x if self.batch_first else x.permute(2, 0, 1)
-            xb = xb.contiguous() if inverse is None else xb.index_select(0, inverse)
-            xb = xb.reshape(*batch, *xb.shape[1:])
-            return xb.movedim((-2, -1), (0, 1)).contiguous() if batch_last else xb
-        x = x if inverse is None else x.index_select(-1, inverse)
-        return x.reshape(*x.shape[:2], *batch)
+            xb = xb[inverse]
+        xb = xb.reshape(*batch, *xb.shape[1:])
+        return xb.movedim((-2, -1), (0, 1)).contiguous() if batch_last else xb
 
 
 def _double(A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, near: Tensor | None,
@@ -415,23 +417,8 @@ def shared_doubling(F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor,
         parts = (flat.mT @ R).split([math.prod(shapes[i]) for i in present])
         for i, part in zip(present, parts):
             out[i] = part.reshape(*shapes[i], N)
-    else:  # a nilpotent F: no doubling, so each product goes straight to the output layout
-        big = torch.finfo(dtype).max
-        for i in present:
-            coeff = R[: full[i]]
-            if full[i] > exact[i]:  # terms that vanish in the forward pass: finite coefficients
-                coeff = torch.cat([coeff[: exact[i]], coeff[exact[i] :].clamp(-big, big)])
-            terms = stacks[i].reshape(full[i], -1)  # type: ignore[union-attr]
-            if batch_last:
-                out[i] = (terms.mT @ coeff).reshape(*shapes[i], *batch)
-            else:
-                out[i] = (coeff.mT @ terms).reshape(*batch, *shapes[i])
-        A = out[0] + (eye.reshape(n, n, *([1] * len(batch))) if batch_last else eye)
-        Q = None if out[1] is None else out[1] * (h.reshape(batch) if batch_last else h.reshape(*batch, 1, 1))
-        G = None if out[2] is None else out[2] * (h.reshape(batch) if batch_last else h.reshape(*batch, 1, 1))
-        if Q is not None:
-            Q = torch.lerp(Q, Q.transpose(0, 1) if batch_last else Q.mT, 0.5)
-        return A, Q, G
+    else:  # a nilpotent F: no doubling, so each product writes its result in the output layout
+        return _full_step(stacks, R, exact, full, h, eye, batch, batch_last)
     X, Q, G = out
     assert X is not None
     Q = None if Q is None else Q * h
@@ -449,6 +436,42 @@ def shared_doubling(F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor,
         None if Q is None else lo.take(Q, order, batch, batch_last),
         None if G is None else lo.take(G, order, batch, batch_last),
     )
+
+
+def _full_step(stacks: list[Tensor | None], R: Tensor, exact: tuple[int, ...], full: tuple[int, ...], h: Tensor,
+               eye: Tensor, batch: torch.Size, batch_last: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """The terminating series of a nilpotent F at the full step: A = I + Σ_k r_k F̃^k,
+    Q = Σ_k (h r_k) 𝓛̃^k(W)/(k+1), G likewise, one product each, h folded into the coefficient
+    rows and Q formed on its n(n+1)/2 distinct entries (exactly symmetric). Coefficients of the
+    terms that vanish in the forward pass (kept for the gradient) are clamped to the float range."""
+    n, N = eye.shape[0], h.numel()
+    big = torch.finfo(R.dtype).max
+    iu = torch.triu_indices(n, n, device=R.device)
+    mirror = torch.empty(n, n, dtype=torch.int64, device=R.device)
+    mirror[iu[0], iu[1]] = mirror[iu[1], iu[0]] = torch.arange(iu.shape[1], device=R.device)
+    out: list[Tensor | None] = []
+    for i, terms in enumerate(stacks):
+        if terms is None:
+            out.append(None)
+            continue
+        coeff = R[: full[i]] if i == 0 else R[: full[i]] * h  # E and A: r_k; Q, G: h r_k
+        if full[i] > exact[i]:
+            coeff = torch.cat([coeff[: exact[i]], coeff[exact[i] :].clamp(-big, big)])
+        if i == 0:
+            terms = terms.clone()
+            terms[0] = eye  # A = Σ_{k≥0} r_k F̃^k
+        cols = terms.shape[-1]
+        flat = terms[:, iu[0], iu[1]] if i == 1 else terms.reshape(full[i], -1)
+        if batch_last:
+            res = flat.mT @ coeff
+            res = res.index_select(0, mirror.reshape(-1)) if i == 1 else res
+            out.append(res.reshape(n, cols, *batch))
+        else:
+            res = coeff.mT @ flat
+            res = res.index_select(1, mirror.reshape(-1)) if i == 1 else res
+            out.append(res.reshape(*batch, n, cols))
+    assert out[0] is not None
+    return out[0], out[1], out[2]
 
 
 def doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | None, Tensor | None]:
