@@ -90,11 +90,11 @@ def default_discretize(
     return d.A, d.Q
 
 
-def library_van_loan(
+def library_matrix_exp(
     F: torch.Tensor, L: torch.Tensor, Qc: torch.Tensor, dt: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The library's ``method="van_loan"`` (accuracy table only)."""
-    d = tl.discretize(F, L, Qc, dt, method="van_loan")
+    """The library's ``method="matrix_exp"`` (accuracy table only)."""
+    d = tl.discretize(F, L, Qc, dt, method="matrix_exp")
     return d.A, d.Q
 
 
@@ -353,7 +353,7 @@ def _contestant_Q(name: str, case: Case, dtype: torch.dtype) -> np.ndarray | Non
     if name == "filterpy":
         G = case.L @ np.linalg.cholesky(case.Qc)
         return filterpy_loop(case.F, G, dt)[1][0]
-    fn = {"default": default_discretize, "naive": naive_van_loan, "van_loan": library_van_loan}[name]
+    fn = {"default": default_discretize, "naive": naive_van_loan, "matrix_exp": library_matrix_exp}[name]
     args = [torch.as_tensor(x, dtype=dtype) for x in (case.F, case.L, case.Qc, dt)]
     try:
         _, Q = fn(*args)
@@ -375,7 +375,7 @@ def judge(Q: np.ndarray, ref: np.ndarray, eps: float) -> tuple[float, bool]:
 
 def run_accuracy() -> list[dict[str, object]]:
     rows = []
-    names = ("default", "van_loan", "naive", "scipy", "filterpy")
+    names = ("default", "matrix_exp", "naive", "scipy", "filterpy")
     for case in stiff_cases():
         ref = reference_Q(case)
         for dtype in (torch.float32, torch.float64):
@@ -434,7 +434,7 @@ def throughput_tables(cells: list[Cell]) -> str:
 
 
 def accuracy_table(rows: list[dict[str, object]]) -> str:
-    names = ("default", "van_loan", "naive", "scipy", "filterpy")
+    names = ("default", "matrix_exp", "naive", "scipy", "filterpy")
     out = ["### Accuracy on stiff cases: relative Frobenius error of Q vs mpmath (50 digits); ✓ = PSD, ✗ = not PSD\n"]
     head = "| case | dtype | " + " | ".join(names) + " |"
     out += [head, "|" + "---|" * (len(names) + 2)]
@@ -448,7 +448,7 @@ def accuracy_table(rows: list[dict[str, object]]) -> str:
                 err, psd = v  # type: ignore[misc]
                 cells.append(("non-finite" if not math.isfinite(err) else f"{err:.1e}") + (" ✓" if psd else " ✗"))
         out.append(f"| {r['case']} | {r['dtype']} | " + " | ".join(cells) + " |")
-    out.append("\n`default` = torchsde_lti.discretize (doubling); `van_loan` = its method=\"van_loan\"; "
+    out.append("\n`default` = torchsde_lti.discretize (doubling); `matrix_exp` = its method=\"matrix_exp\"; "
                "`naive` = torch.matrix_exp of the 2n block; `scipy` = scipy.linalg.expm of the 2n block; "
                "`filterpy` = filterpy.common.van_loan_discretization.\n")
     return "\n".join(out)

@@ -1,8 +1,8 @@
 r"""Probe: what would a fused (compiled) kernel buy the small per-element calls? (issue 10)
 
-The default method's few-element path (``core/_block.py``: Van Loan's block on the sub-step,
-its Taylor polynomial by Paterson–Stockmeyer with the package's coefficient table, PSD
-doubling with the decayed-A switch) written as ONE C++ loop over the elements
+The few-element algorithm the default method had until issue 19 (Van Loan's block on the
+sub-step, its Taylor polynomial by Paterson–Stockmeyer, PSD doubling with the decayed-A
+switch) written as ONE C++ loop over the elements
 (``at::parallel_for``; the block kept as its three n × n blocks, n ∈ {2, 4, 8} unrolled by
 templates), forward only, built at run time with
 ``torch.utils.cpp_extension.load_inline`` (needs a C++ compiler; not part of the package).
@@ -22,10 +22,24 @@ import time
 
 import torch
 from bench_per_element import make_problem, naive_van_loan
-from profile_small_calls import median_us
+from thresholds import cpu_us as median_us
 
 import torchsde_lti as tl
-from torchsde_lti.core._block import _ps_table
+
+
+def _ps_table(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """(J, 4) Paterson–Stockmeyer coefficients of expm(C) − I = Σ_{k=1}^m C^k/k! for ‖C‖_F ≤ 1
+    (m = 18 in float64, 11 in float32: the remainder below eps/8), in powers C⁰ … C³ of C⁴."""
+    import math
+
+    eps = torch.finfo(dtype).eps
+    m = 1
+    while 1.0 / math.factorial(m + 1) >= eps / 8.0:
+        m += 1
+    a = torch.zeros(m // 4 + 1, 4, dtype=torch.float64)
+    for k in range(1, m + 1):
+        a[k // 4, k % 4] = 1.0 / math.factorial(k)
+    return a.to(dtype=dtype, device=device)
 
 CPP = r"""
 #include <torch/extension.h>
@@ -176,7 +190,7 @@ def main() -> None:
     print("| dtype | n | B | fused (µs) | default (µs) | naive (µs) | naive / fused | naive / default | max rel. dev. fused vs default |")
     print("|---|---|---|---|---|---|---|---|---|")
     for dtype in (torch.float64, torch.float32):
-        coef = _ps_table(dtype, torch.device("cpu"))  # the package's Paterson–Stockmeyer table
+        coef = _ps_table(dtype, torch.device("cpu"))
         for n in (2, 4, 8):
             for B in (1, 100, 10_000):
                 F, L, Qc, dt = make_problem(n, B, dtype)

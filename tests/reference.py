@@ -212,3 +212,46 @@ def reference_batch(d):
         outs.append(numpy_kalman_filter(d["y"][idx], d["A"][idx], d["Q"][idx], d["H"], d["R"],
                                         d["m0"][idx], d["P0"][idx], c[..., 0]))
     return {k: np.stack([o[k] for o in outs]).reshape(batch + outs[0][k].shape) for k in outs[0]}
+
+
+def mp_doubling(F: np.ndarray, W: np.ndarray, B: np.ndarray | None, dt: float, dps: int = 60):
+    """(A, Q, G) at ``dps`` digits for ANY step (including dt ≫ 1/‖F‖): mpmath's expm of the
+    Van Loan and ZOH blocks on a sub-step h = dt / 2^s with ‖F‖_F h ≤ 1/4 (no cancellation at
+    that step), then s doublings Q ← A Q Aᵀ + Q, G ← A G + G, A ← A A in mpmath (2^s ulps of
+    60 digits are far below float64's). Returns float64 arrays (inf where the value overflows)."""
+    n = F.shape[0]
+    with mpmath.workdps(dps):
+        Fm, Wm = mp_matrix(F), mp_matrix(W)
+        norm = mpmath.sqrt(sum(mpmath.mpf(float(v)) ** 2 for v in np.ravel(F)))
+        dtm = mpmath.mpf(float(dt))
+        s = 0 if norm * dtm <= mpmath.mpf(0.25) else int(mpmath.ceil(mpmath.log(norm * dtm / mpmath.mpf(0.25), 2)))
+        h = dtm / mpmath.mpf(2) ** s
+        Z = mpmath.zeros(n, n)
+        E = mpmath.expm(mpmath.matrix([[Fm[i, j] if j < n else Wm[i, j - n] for j in range(2 * n)] for i in range(n)]
+                                      + [[Z[i, j] if j < n else -Fm[j - n, i] for j in range(2 * n)] for i in range(n)]) * h)
+        A = E[:n, :n]
+        Q = E[:n, n:] * A.T
+        G = None
+        if B is not None:
+            p = B.shape[1]
+            Bm = mp_matrix(B)
+            blk = mpmath.zeros(n + p, n + p)
+            for i in range(n):
+                for j in range(n):
+                    blk[i, j] = Fm[i, j]
+                for j in range(p):
+                    blk[i, n + j] = Bm[i, j]
+            G = mpmath.expm(blk * h)[:n, n:]
+        for _ in range(s):
+            Q = A * Q * A.T + Q
+            if G is not None:
+                G = A * G + G
+            A = A * A
+        Q = (Q + Q.T) / 2
+
+        def f64(m: mpmath.matrix) -> np.ndarray:
+            big = mpmath.mpf(np.finfo(np.float64).max)
+            return np.array([[float(m[i, j]) if abs(m[i, j]) <= big else math.copysign(math.inf, float(mpmath.sign(m[i, j])))
+                              for j in range(m.cols)] for i in range(m.rows)])
+
+        return f64(A), f64(Q), None if G is None else f64(G)

@@ -1,9 +1,10 @@
-"""The doubling method's internal paths agree with each other and with independent references.
+"""The doubling method's algorithm and its one specialisation agree with each other and with
+independent references.
 
-``doubling`` dispatches by batch size and parameter sharing to Van Loan's block
-(``_block``: few elements), the per-term Horner (``_doubling_per_element``: many elements
-with their own parameters) and the shared series (``_doubling_shared``). Every path must give
-the same (A, Q, G) to rounding, on benign and stiff elements, with gradients.
+``doubling`` runs the general per-element algorithm (``per_element_doubling``: Horner series on
+the sub-step, sorted doubling when eager, masked doubling when traced) or, for ONE parameter
+set, ``shared_doubling`` (series terms once, one product per quantity for the batch). Both must
+give the same (A, Q, G) to rounding, on benign and stiff elements, with gradients.
 """
 
 from __future__ import annotations
@@ -13,8 +14,7 @@ import pytest
 import scipy.linalg
 import torch
 
-from torchsde_lti.core._block import block_doubling
-from torchsde_lti.core._doubling import _doubling_per_element, _doubling_shared
+from torchsde_lti.core._doubling import per_element_doubling, shared_doubling
 from torchsde_lti.core.validation import sde_inputs
 
 F64 = torch.float64
@@ -40,69 +40,80 @@ def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).abs().amax() / b.abs().amax().clamp_min(1e-300))
 
 
+def _vs_scipy(F, W, B, dt):
+    """(A, Q, G) of one element from scipy's expm of the Van Loan and ZOH blocks (accurate
+    where the element is benign)."""
+    n = F.shape[0]
+    E = scipy.linalg.expm(np.block([[F, W], [np.zeros((n, n)), -F.T]]) * dt)
+    Z = scipy.linalg.expm(np.block([[F, B], [np.zeros((B.shape[1], n + B.shape[1]))]]) * dt)
+    return E[:n, :n], E[:n, n:] @ E[:n, :n].T, Z[:n, n:]
+
+
 @pytest.mark.parametrize("kind", ["random", "stiff", "nilpotent", "big_noise"])
 @pytest.mark.parametrize("p", [0, 2])
-def test_block_path_equals_horner_path(kind: str, p: int) -> None:
+def test_sorted_and_masked_doubling_agree_and_equal_one_element_calls(kind: str, p: int) -> None:
+    """The eager (sorted prefixes) and the traced (masked, every element every step) schedules
+    of the same algorithm agree, and a batch equals its elements called one at a time."""
     for n in (1, 2, 3, 5):
         F, L, Qc, dt, B = _problem(n, p, 9, kind, seed=n)
         x = sde_inputs(F, L, Qc, dt, B)
-        A1, Q1, G1 = block_doubling(x)
-        A2, Q2, G2 = _doubling_per_element(x, False)
+        A1, Q1, G1 = per_element_doubling(x)
+        A2, Q2, G2 = per_element_doubling(x, masked=True)
         for i in range(9):  # per element: decayed A of a stiff element is small but exact
-            assert _rel(A1[i], A2[i]) < 1e-12
-            assert _rel(Q1[i], Q2[i]) < 1e-12
-            if p:
-                assert _rel(G1[i], G2[i]) < 1e-12
+            xi = sde_inputs(F[i], L[i], Qc[i], dt[i], None if B is None else B[i])
+            Ai, Qi, Gi = per_element_doubling(xi)
+            for a, b, c in ((A1, A2, Ai), (Q1, Q2, Qi)) + (((G1, G2, Gi),) if p else ()):
+                assert _rel(a[i], b[i]) < 1e-12
+                assert _rel(a[i], c) < 1e-12
         assert torch.equal(Q1, Q1.mT)
 
 
-def test_block_path_against_scipy_van_loan() -> None:
+def test_per_element_against_scipy_van_loan() -> None:
     """Benign elements (‖F‖ dt ≤ 5, where scipy's full-step Van Loan is accurate)."""
     F, L, Qc, dt, B = _problem(3, 1, 12, "random", seed=3)
-    A, Q, G = block_doubling(sde_inputs(F, L, Qc, dt, B))
+    A, Q, G = per_element_doubling(sde_inputs(F, L, Qc, dt, B))
     for i in range(12):
         if float(dt[i] * F[i].abs().sum(0).max()) > 5.0:
             continue
         W = (L[i] @ Qc[i] @ L[i].T).numpy()
-        Fi, Bi, h = F[i].numpy(), B[i].numpy(), float(dt[i])
-        E = scipy.linalg.expm(np.block([[Fi, W], [np.zeros((3, 3)), -Fi.T]]) * h)
-        Z = scipy.linalg.expm(np.block([[Fi, Bi], [np.zeros((1, 4))]]) * h)
-        assert _rel(A[i], torch.as_tensor(E[:3, :3])) < 1e-12
-        assert _rel(Q[i], torch.as_tensor(E[:3, 3:] @ E[:3, :3].T)) < 1e-11
-        assert _rel(G[i], torch.as_tensor(Z[:3, 3:])) < 1e-12
+        A_r, Q_r, G_r = _vs_scipy(F[i].numpy(), W, B[i].numpy(), float(dt[i]))
+        assert _rel(A[i], torch.as_tensor(A_r)) < 1e-12
+        assert _rel(Q[i], torch.as_tensor(Q_r)) < 1e-11
+        assert _rel(G[i], torch.as_tensor(G_r)) < 1e-12
 
 
-def test_block_path_equals_shared_path_for_one_parameter_set() -> None:
-    F, L, Qc, _, B = _problem(4, 1, 1, "random", seed=5)
-    dt = torch.tensor([0.0, 1e-4, 0.3, 2.0, 40.0], dtype=F64)
+@pytest.mark.parametrize("kind", ["random", "nilpotent"])
+def test_shared_path_equals_per_element_path_for_one_parameter_set(kind: str) -> None:
+    F, L, Qc, _, B = _problem(4, 1, 1, kind, seed=5)
+    dt = torch.tensor([0.0, 1e-4, 0.3, 2.0, 40.0] * 8, dtype=F64)
     x = sde_inputs(F[0], L[0], Qc[0], dt, B[0])
-    shared = _doubling_shared(x.F, x.W, x.B, x.dt, x.batch, torch.Size(), False)
-    for a, b in zip(block_doubling(x), shared):
-        assert _rel(a, b) < 1e-12
+    shared = shared_doubling(x.F, x.W, x.B, dt)
+    for batch_last in (False, True):
+        for a, b in zip(per_element_doubling(x, batch_last), shared_doubling(x.F, x.W, x.B, dt, batch_last)):
+            assert _rel(a, b) < 1e-12
+    assert all(a.shape == b.shape for a, b in zip(shared, per_element_doubling(x)))
 
 
-def test_block_path_float32_psd_and_as_accurate_as_horner() -> None:
+def test_float32_psd_and_close_to_float64() -> None:
     F, L, Qc, dt, _ = _problem(4, 0, 40, "stiff", seed=7, dtype=torch.float32)
-    x = sde_inputs(F, L, Qc, dt)
-    A, Q, _ = block_doubling(x)
-    A_h, Q_h, _ = _doubling_per_element(x, False)
-    A64, Q64, _ = _doubling_per_element(sde_inputs(F.double(), L.double(), Qc.double(), dt.double()), False)
-    assert _rel(A.double(), A64) <= 2 * _rel(A_h.double(), A64) + 1e-6
-    assert _rel(Q.double(), Q64) <= 2 * _rel(Q_h.double(), Q64) + 1e-6
-    assert _rel(Q.double(), Q64) < 1e-4
+    A, Q, _ = per_element_doubling(sde_inputs(F, L, Qc, dt))
+    A64, Q64, _ = per_element_doubling(sde_inputs(F.double(), L.double(), Qc.double(), dt.double()))
+    for i in range(40):
+        assert _rel(A[i].double(), A64[i]) < 1e-4
+        assert _rel(Q[i].double(), Q64[i]) < 1e-4
     eig = torch.linalg.eigvalsh(Q.double())
     assert bool((eig >= -1e-6 * eig.abs().amax(-1, keepdim=True)).all())
 
 
-def test_block_path_gradcheck_with_doubling_and_switch() -> None:
-    """Gradients through the sub-step polynomial, the sorted doubling and the E → A switch."""
+def test_gradcheck_with_doubling_and_switch() -> None:
+    """Gradients through the sub-step series, the sorted doubling and the E → A switch."""
     F, L, Qc, _, B = _problem(3, 1, 1, "random", seed=4)
     F = (F[0] - 0.5 * torch.eye(3, dtype=F64)).requires_grad_()
     L, B = L[0].requires_grad_(), B[0].requires_grad_()
     dt = torch.tensor([0.3, 1.7, 6.0, 25.0], dtype=F64, requires_grad=True)
 
     def fn(F, L, B, dt):
-        return block_doubling(sde_inputs(F, L, Qc[0], dt, B))
+        return per_element_doubling(sde_inputs(F, L, Qc[0], dt, B))
 
     assert torch.autograd.gradcheck(fn, (F, L, B, dt), eps=1e-6, atol=1e-6, rtol=1e-5)
 
@@ -118,12 +129,11 @@ def test_empty_batches() -> None:
     assert d.A.shape == (0, 3, 2, 2) and d.G is not None and d.G.shape == (0, 3, 2, 1)
 
 
-# batch-first bmm layout; batch-last fused multiply-adds; the same with the gathers' sort
+# batch-first bmm layout; batch-last fused multiply-adds
 @pytest.mark.parametrize("N", [5, 300, 1500])
 def test_per_element_gradients_through_sort_and_layouts(N: int) -> None:
-    """First and second derivatives through the per-term Horner: the sort by (halvings,
-    terms), both layouts' products and the unsort to the elements' order (index_copy_ for
-    few elements, ``_steps._Gather`` both ways for many)."""
+    """First and second derivatives through the per-element algorithm: the sort by halvings,
+    both layouts' products and the unsort to the elements' order."""
     F0, L0, Qc, dt0, B = _problem(2, 1, N, "stiff", seed=5)
     shift = torch.linalg.eigvals(F0).real.amax(-1).clamp_min(0.0) + 0.1  # stable: bounded values
     F0 = F0 - shift[:, None, None] * torch.eye(2, dtype=F64)
@@ -134,7 +144,7 @@ def test_per_element_gradients_through_sort_and_layouts(N: int) -> None:
     L = L0[:1].clone().requires_grad_()  # shared by all elements
 
     def fn(a, b, L):
-        out = _doubling_per_element(sde_inputs(F0 * a, L, Qc, dt0 * b, B), False)
+        out = per_element_doubling(sde_inputs(F0 * a, L, Qc, dt0 * b, B))
         return tuple((x * w).sum() for x, w in zip(out, weights))
 
     assert torch.autograd.gradcheck(fn, (a, b, L), eps=1e-6, atol=1e-6, rtol=1e-5)
@@ -142,10 +152,10 @@ def test_per_element_gradients_through_sort_and_layouts(N: int) -> None:
 
 
 @pytest.mark.filterwarnings("ignore:.*torch.jit.script.*:DeprecationWarning")  # inside torch.func
-@pytest.mark.parametrize("n, N", [(2, 300), (2, 1500), (5, 1500)])  # fused multiply-adds; gathers
+@pytest.mark.parametrize("n, N", [(2, 300), (2, 1500), (5, 1500)])  # bmm; fused multiply-adds
 def test_per_element_paths_under_torch_func_and_forward_mode(n: int, N: int) -> None:
-    """torch.func.grad / jvp and forward-mode AD through the per-element paths' custom
-    autograd Functions equal reverse-mode autograd. (vmap does not apply: the number of
+    """torch.func.grad / jvp and forward-mode AD through the per-element algorithm (its fused
+    multiply-adds' custom autograd Function steps aside there) equal reverse-mode autograd. (vmap does not apply: the number of
     halvings is data-dependent control flow; the batch dimensions are the vectorisation.)"""
     import torch.autograd.forward_ad as fwAD
 
@@ -171,7 +181,7 @@ def test_per_element_paths_under_torch_func_and_forward_mode(n: int, N: int) -> 
     assert torch.allclose(tangent, directional, rtol=1e-10)
 
 
-@pytest.mark.parametrize("N", [1, 100, 1500])  # block path; block path per element; Horner
+@pytest.mark.parametrize("N", [1, 100, 1500])  # one element; bmm; fused multiply-adds
 @pytest.mark.parametrize("dtype, scale", [(torch.float32, 1e20), (torch.float64, 1e160)])
 def test_huge_entries_and_huge_steps(N: int, dtype: torch.dtype, scale: float) -> None:
     """Finite parameters at the edge of the float range: F and Qc ~ 1e20 (float32) / 1e160
@@ -200,8 +210,8 @@ def test_huge_entries_and_huge_steps(N: int, dtype: torch.dtype, scale: float) -
 
 
 def test_inference_mode_first_then_autograd() -> None:
-    """A first call under torch.inference_mode (filling the block path's cached coefficient
-    table) does not break a later call with gradients."""
+    """A first call under torch.inference_mode (filling any cache of the core) does not break
+    a later call with gradients."""
     import subprocess
     import sys
 
@@ -216,3 +226,34 @@ def test_inference_mode_first_then_autograd() -> None:
         "assert torch.isfinite(F.grad).all()\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)  # a fresh process: an empty cache
+
+
+@pytest.mark.parametrize("order", [2, 3])
+def test_shared_nilpotent_series_gradients(order: int) -> None:
+    """The terminating series of an integrator chain, with F requiring grad: gradcheck in
+    float64, the same gradient as the per-element algorithm (which doubles), and finite
+    values and gradients in float32 at a step whose unneeded coefficients overflow."""
+    F0 = torch.diag(torch.ones(order - 1, dtype=F64), 1)
+    L = torch.zeros(order, 1, dtype=F64)
+    L[-1] = 1.0
+    Qc = torch.tensor([[0.7]], dtype=F64)
+    dt = torch.tensor([0.0, 1e-3, 0.4, 2.5, 30.0] * 8, dtype=F64)
+
+    def shared(F):
+        x = sde_inputs(F, L, Qc, dt)
+        return shared_doubling(x.F, x.W, x.B, dt)[:2]
+
+    F = F0.clone().requires_grad_()
+    assert torch.autograd.gradcheck(shared, (F,), eps=1e-7, atol=1e-5, rtol=1e-6)
+    weights = torch.randn(2, 40, order, order, dtype=F64, generator=torch.Generator().manual_seed(1))
+    (g_shared,) = torch.autograd.grad(sum((w * t).sum() for w, t in zip(weights, shared(F))), F)
+    A, Q, _ = per_element_doubling(sde_inputs(F, L, Qc, dt))
+    (g_element,) = torch.autograd.grad((weights[0] * A).sum() + (weights[1] * Q).sum(), F)
+    assert _rel(g_shared, g_element) < 1e-10
+
+    F32 = F0.float().requires_grad_()
+    x = sde_inputs(F32, L.float(), Qc.float(), torch.full((40,), 3e7))
+    A, Q, _ = shared_doubling(x.F, x.W, x.B, x.dt)
+    assert torch.isfinite(A).all() and torch.isfinite(Q).all()  # CA: Q_00 ≈ 8.5e35 fits
+    (g,) = torch.autograd.grad(A.sum(), F32)
+    assert torch.isfinite(g).all()

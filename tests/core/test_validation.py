@@ -136,18 +136,19 @@ def test_value_checks_can_be_skipped_for_checked_arguments() -> None:
     tl.stationary_covariance(torch.eye(2, dtype=f64), L, Qc, validate_args=False)
 
 
-@pytest.mark.parametrize("k", [1, 2])
+@pytest.mark.parametrize("k", [1, 2, 3, 5])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_closed_form_psd_test_equals_cholesky_test(k: int, dtype: torch.dtype) -> None:
     """The 1×1 / 2×2 PSD test (closed-form Cholesky pivots) decides as LAPACK's factorisation
     of the same shifted matrices, on matrices whose smallest eigenvalue straddles the
-    tolerance (−10 … +10 tolerances of the scale), huge and tiny scales, and asymmetry."""
-    from torchsde_lti.core.validation import _CLOSED_FORM_MIN_2X2, _psd_test, psd_tolerance
+    tolerance (−10 … +10 tolerances of the scale), huge and tiny scales, and asymmetry; so
+    does the same test on Python floats (the path of small calls)."""
+    from torchsde_lti.core.validation import _psd_test, _psd_values, psd_tolerance
 
     g = torch.Generator().manual_seed(k)
     N = 4000
     V = torch.linalg.qr(torch.randn(N, k, k, generator=g, dtype=f64)).Q
-    top = torch.ones(N, 1, dtype=f64)
+    top = torch.ones(N, max(k - 1, 1), dtype=f64)
     tol = psd_tolerance(torch.zeros(1, k, dtype=dtype))
     low = torch.empty(N, 1, dtype=f64).uniform_(-10 * tol, 10 * tol, generator=g)
     lam = torch.cat([low, top], -1)[:, :k]
@@ -161,10 +162,27 @@ def test_closed_form_psd_test_equals_cholesky_test(k: int, dtype: torch.dtype) -
         xi = x[i : i + 1]
         shifted = xi + tol * xi.abs().amax().clamp_min(tiny) * torch.eye(k, dtype=dtype)
         want = bool(torch.linalg.cholesky_ex(shifted).info == 0)
-        copies = xi.expand(_CLOSED_FORM_MIN_2X2, k, k)  # a batch large enough for the closed form
-        assert bool(_psd_test(copies)[0]) == want, (i, xi)
+        assert bool(_psd_test(xi.expand(200, k, k))[0]) == want, (i, xi)
+        assert _psd_values(xi.reshape(-1).tolist(), k, tol) == want, (i, xi)
         outcomes.add(want)
     assert outcomes == {True, False}  # both sides of the boundary were tested
     if k == 2:
         asym = torch.tensor([[[1.0, 0.5], [0.0, 1.0]]], dtype=dtype)
-        assert not bool(_psd_test(asym.expand(_CLOSED_FORM_MIN_2X2, 2, 2))[0])
+        assert not bool(_psd_test(asym.expand(200, 2, 2))[0])
+        assert not _psd_values(asym.reshape(-1).tolist(), 2, tol)
+
+
+@pytest.mark.parametrize("dtype, dt", [(torch.float64, 1000.0), (torch.float32, 100.0)])
+def test_overflowing_results_raise_naming_the_cause(dtype: torch.dtype, dt: float) -> None:
+    """An unstable F over a long step: the exact A = e^{dt} exceeds the dtype's range. Public
+    calls raise instead of returning inf/NaN; inner calls (validate_args=False) do not check."""
+    F, L, Qc = torch.eye(2, dtype=dtype), torch.eye(2, dtype=dtype), torch.eye(2, dtype=dtype)
+    step = torch.tensor(dt, dtype=dtype)
+    for call in (lambda v: tl.discretize(F, L, Qc, step, validate_args=v),
+                 lambda v: tl.transition_matrix(F, step, validate_args=v),
+                 lambda v: tl.zero_order_hold(F, L, step, validate_args=v),
+                 lambda v: tl.core.discretize_series(F, L, Qc, step.expand(40), validate_args=v)):
+        with pytest.raises(ValueError, match=r"overflows .*A.*rightmost eigenvalue has real part 1"):
+            call(True)
+        call(False)
+    assert torch.isfinite(tl.discretize(F, L, Qc, torch.tensor(5.0, dtype=dtype)).Q).all()

@@ -47,10 +47,8 @@ def test_transition_layer_matrix_exp_calls_torch_and_agrees(count_matrix_exp: li
     assert len(count_matrix_exp) == 1 and count_matrix_exp[0][-2:] == (3, 3)
     A_me2, G_me = tl.Transition(method="matrix_exp")(F, dt, B=B)
     assert len(count_matrix_exp) == 2 and count_matrix_exp[1][-2:] == (5, 5)  # ZOH block n + p
-    n_calls = len(count_matrix_exp)
-    A_db = tl.Transition()(F, dt)
+    A_db = tl.Transition()(F, dt)  # small calls may be routed to torch.matrix_exp (test_routing.py)
     A_db2, G_db = tl.Transition(method="doubling")(F, dt, B=B)
-    assert len(count_matrix_exp) == n_calls  # the doubling path never calls torch.matrix_exp
     for a, b in ((A_me, A_db), (A_me2, A_db2), (G_me, G_db)):
         assert torch.allclose(a, b, rtol=1e-12, atol=1e-12)
     A_ref, _, G_ref = zip(*(scipy_discretize(F[i].numpy(), np.zeros((3, 1)), np.zeros((1, 1)), float(dt[i]), B[i].numpy())
@@ -64,7 +62,6 @@ def test_van_loan_noise_layer_matrix_exp_calls_torch_and_agrees(count_matrix_exp
     Q_me = tl.VanLoanNoise(method="matrix_exp")(F, L, Qc, dt)
     assert len(count_matrix_exp) == 1 and count_matrix_exp[0][-2:] == (6, 6)  # Van Loan block 2n
     Q_db = tl.VanLoanNoise()(F, L, Qc, dt)
-    assert len(count_matrix_exp) == 1
     assert torch.allclose(Q_me, Q_db, rtol=1e-12, atol=1e-12)
     assert torch.equal(Q_me, Q_me.mT)
     Q_ref = np.stack([scipy_discretize(F[i].numpy(), L[i].numpy(), Qc[i].numpy(), float(dt[i]))[1] for i in range(5)])

@@ -5,22 +5,25 @@ r"""The ``"matrix_exp"`` discretisation method: :func:`torch.matrix_exp` of bloc
 - with noise (Van Loan 1978): ``expm([[F, W, B], [0, −Fᵀ, 0], [0, 0, 0]] dt)`` has blocks
   ``[[A, X, G], [0, A⁻ᵀ, 0], [0, 0, I]]`` and ``Q = X Aᵀ`` (W = L Qc Lᵀ).
 
-Exact in exact arithmetic and the fastest path for benign inputs. In floating point the
-``−Fᵀ`` block holds ``e^{|λ| dt}`` for stable F and Q is recovered by cancellation, so it
-loses accuracy (asymmetric or indefinite Q, overflow) for stiff F or large dt; the doubling
-method is the robust default.
+Exact in exact arithmetic and one fused call, the cheapest for a few elements. In floating
+point the ``−Fᵀ`` block holds ``e^{−Fᵀ dt}`` and Q is recovered by cancellation: its relative
+error grows like ``κ = ‖e^{F dt}‖ ‖e^{−F dt}‖ ≤ e^{(μ(F) − μ̌(F)) dt}`` (μ, μ̌ the largest and
+smallest eigenvalue of the symmetric part of F), and torch's own squarings (their number set
+by the block's norm) round away the slow modes of A. :func:`accurate` is the a-priori bound
+under which the default doubling method routes a call here.
 """
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import sym
-from torchsde_lti.core.validation import SDEInputs
+from torchsde_lti.core.thresholds import ROUTE_BOUNDS
+from torchsde_lti.core.validation import SDEInputs, cholesky_succeeds
 
-__all__ = ["matrix_exp"]
-
+__all__ = ["accurate", "matrix_exp"]
 
 def matrix_exp(x: SDEInputs) -> tuple[Tensor, Tensor | None, Tensor | None]:
     """(A, Q, G) of shapes (*batch, n, n), (*batch, n, n) or None, (*batch, n, p) or None.
@@ -29,23 +32,96 @@ def matrix_exp(x: SDEInputs) -> tuple[Tensor, Tensor | None, Tensor | None]:
     all broadcast to ``batch`` (the fields of ``x``). One :func:`torch.matrix_exp` of the
     smallest block that holds what is asked for: (n, n) for A alone, (n+p) with B, (2n+p) with W.
     """
-    F, W, B, dt, batch = x
+    F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
+    assert dt is not None
     n = F.shape[-1]
     p = 0 if B is None else B.shape[-1]
     dt_mat = dt[..., None, None]
     if W is None and B is None:
         return torch.matrix_exp((F * dt_mat).expand(*batch, n, n)), None, None
-    w = 0 if W is None else n
-    size = n + w + p
-    block = F.new_zeros(*batch, size, size)
-    block[..., :n, :n] = F * dt_mat
+    Fd = F * dt_mat
+    top = [Fd.expand(*batch, n, n)]
     if W is not None:
-        block[..., :n, n : 2 * n] = W * dt_mat
-        block[..., n : 2 * n, n : 2 * n] = -F.mT * dt_mat
+        top.append((W * dt_mat).expand(*batch, n, n))
     if B is not None:
-        block[..., :n, n + w :] = B * dt_mat
-    E = torch.matrix_exp(block)
+        top.append((B * dt_mat).expand(*batch, n, p))
+    rows = [torch.cat(top, -1)] if len(top) > 1 else top
+    if W is not None:  # [0, −Fᵀ dt, 0]
+        zeros = Fd.new_zeros(()).expand(*batch, n, n)
+        rows.append(torch.cat([zeros, -rows[0][..., :n].mT] + ([zeros[..., :p]] if B is not None else []), -1))
+    if B is not None:  # [0, 0, 0]
+        rows.append(Fd.new_zeros(()).expand(*batch, p, rows[0].shape[-1]))
+    E = torch.matrix_exp(torch.cat(rows, -2))
     A = E[..., :n, :n]
-    Q = None if W is None else sym(E[..., :n, n : 2 * n] @ A.mT)
-    G = None if B is None else E[..., :n, n + w :]
-    return A, Q, G
+    Q = None if W is None else E[..., :n, n : 2 * n] @ A.mT
+    G = None if B is None else E[..., :n, n + (0 if W is None else n) :]
+    return A, None if Q is None else torch.lerp(Q, Q.mT, 0.5), G
+
+
+def accurate(x: SDEInputs) -> bool:
+    """Whether :func:`matrix_exp` is accurate for every element, by an a-priori bound (one
+    synchronisation), with :data:`ROUTE_BOUNDS` (float32 / float64; other dtypes never):
+
+    - ‖F‖_F dt ≤ θ_F: the ``−Fᵀ`` block grows by at most ``e^{θ_F}``, so the cancellation in
+      ``Q = X Aᵀ`` costs at most a factor ``e^{2θ_F}`` over rounding;
+    - ‖C‖_F dt ≤ θ_C for the whole block (‖C‖_F² = 2‖F‖_F² + ‖W‖_F² + ‖B‖_F²): torch takes at
+      most a couple of squarings, which would round away the slow modes of A;
+    - W = L Qc Lᵀ well conditioned, λ_min(W) ≥ δ ‖W‖_F: then Q = W dt (1 + O(θ_F)) is well
+      conditioned too and a normwise-accurate Q is accurate and positive definite in every
+      direction. A rank-deficient W (an integrator chain's noise on its last state) gives a
+      graded Q — position variance q dt³/3 beside q dt — whose small entries torch's
+      norm-based Taylor degree truncates, so those calls stay with the doubling method.
+    """
+    F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
+    bounds = ROUTE_BOUNDS.get(F.dtype)
+    if bounds is None or dt is None or batch.numel() == 0:
+        return False
+    theta_f, theta_c, delta = bounds
+    if x.host is not None:
+        return _accurate_values(x.host, F, W, B, dt, bounds)
+    with torch.no_grad():
+        f_sq = F.square().sum((-2, -1))
+        c_sq = 2.0 * f_sq
+        checks = [(f_sq.sqrt() * dt).amax() <= theta_f]
+        for t in (W, B):
+            if t is not None:
+                c_sq = c_sq + t.square().sum((-2, -1))
+        checks.append((c_sq.sqrt() * dt).amax() <= theta_c)
+        if W is not None:
+            shift = delta * W.square().sum((-2, -1)).sqrt()
+            n = W.shape[-1]
+            shifted = W - shift[..., None, None] * torch.eye(n, dtype=W.dtype, device=W.device)
+            checks.append((torch.linalg.cholesky_ex(shifted).info == 0).all())
+        return bool(torch.stack(checks).all())
+
+
+def _accurate_values(values: list[float], F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor,
+                     bounds: tuple[float, float, float]) -> bool:
+    """:func:`accurate` on the concatenated values of F, W, B and dt (Python floats). Norms pair
+    with their own element's dt where the batch shapes agree, else the largest norm with the
+    largest step (an upper bound of every element's products)."""
+    theta_f, theta_c, delta = bounds
+    offset, steps = 0, values[-dt.numel():]
+    f_dt: list[float] = []  # per argument: ‖·‖_F² dt² of every element, or its bound
+    worst: list[float] = []
+    for t in (F, W, B):
+        if t is None:
+            worst.append(0.0)
+            continue
+        size = t.shape[-2] * t.shape[-1]
+        sq = [sum(v * v for v in values[offset + i * size : offset + (i + 1) * size]) for i in range(t.numel() // size)]
+        offset += t.numel()
+        if t.shape[:-2] == dt.shape:
+            prods = [q * h * h for q, h in zip(sq, steps)]
+        else:
+            prods = [max(sq) * max(steps) * max(steps)]
+        worst.append(max(prods))
+        if t is F:
+            f_dt = prods
+    if max(f_dt) ** 0.5 > theta_f or (2.0 * worst[0] + worst[1] + worst[2]) ** 0.5 > theta_c:
+        return False
+    if W is None:
+        return True
+    n, start = W.shape[-1], F.numel()
+    matrices = (values[start + i * n * n : start + (i + 1) * n * n] for i in range(W.numel() // (n * n)))
+    return all(cholesky_succeeds(m, n, -delta * sum(v * v for v in m) ** 0.5) for m in matrices)

@@ -13,10 +13,15 @@ and the Hydra configs that sit on top):
 PSD terms (private module ``_doubling``). Accurate to rounding and PSD for stiff F and
 large dt, in float32 too; F, L, Qc, B shared by a batch of dt are expanded once.
 
-``"matrix_exp"``: :func:`torch.matrix_exp` — A = expm(F dt), G from
-the ZOH block ``[[F, B], [0, 0]]``, Q from Van Loan's block exponential (private module
-``_matrix_exp``). Exact in exact arithmetic; the ``−Fᵀ`` block grows like ``e^{|λ| dt}``,
-so Q loses accuracy for stiff F or large dt.
+``"matrix_exp"``: :func:`torch.matrix_exp` — A = expm(F dt), G from the ZOH block
+``[[F, B], [0, 0]]``, Q from Van Loan's block exponential (private module ``_matrix_exp``).
+Exact in exact arithmetic; the ``−Fᵀ`` block grows like ``e^{|λ| dt}``, so Q loses accuracy
+for stiff F or large dt.
+
+The default routes a call of few elements to ``"matrix_exp"`` where an a-priori bound
+(``_matrix_exp.accurate``: ‖F‖ dt and the block's norm times dt small, W = L Qc Lᵀ well
+conditioned) proves it accurate: there one fused :func:`torch.matrix_exp` is the cheapest
+exact answer.
 """
 
 from __future__ import annotations
@@ -27,8 +32,10 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core._doubling import doubling
-from torchsde_lti.core._matrix_exp import matrix_exp
-from torchsde_lti.core.validation import SDEInputs, sde_inputs
+from torchsde_lti.core._matrix_exp import accurate, matrix_exp
+from torchsde_lti.core.thresholds import ROUTE_MAX_ELEMENTS
+from torchsde_lti.core.threads import intra_op_threads
+from torchsde_lti.core.validation import SDEInputs, checks_values, sde_inputs, tracing
 
 __all__ = [
     "METHODS",
@@ -65,11 +72,48 @@ def resolve_method(method: str) -> str:
     return method
 
 
-def _run(inputs: SDEInputs, method: str, batch_last: bool = False) -> tuple[Tensor, Tensor | None, Tensor | None]:
+def _routed(inputs: SDEInputs) -> bool:
+    """Whether the default method hands this call to ``"matrix_exp"`` (few elements, provably
+    accurate; never while tracing, whose values are symbolic)."""
+    return inputs.batch.numel() <= ROUTE_MAX_ELEMENTS and not tracing() and accurate(inputs)
+
+
+def _run(inputs: SDEInputs, method: str) -> tuple[Tensor, Tensor | None, Tensor | None]:
     assert inputs.dt is not None
-    if resolve_method(method) == "doubling":
-        return doubling(inputs, batch_last=batch_last)
-    return matrix_exp(inputs)
+    with intra_op_threads(_work(inputs)):
+        if resolve_method(method) == "matrix_exp" or _routed(inputs):
+            return matrix_exp(inputs)
+        return doubling(inputs)
+
+
+def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | None, method: str = "doubling") -> None:
+    """ValueError when a result is not finite although the (checked) arguments are: the exact
+    values exceed the dtype's range (an unstable F over a long step, a huge noise or input),
+    never silently inf or NaN."""
+    with torch.no_grad():
+        parts = [t for t in (A, Q, G) if t is not None and t.numel()]
+        if not parts or bool(torch.stack([t.sum() for t in parts]).isfinite().all()):
+            return
+        bad = [name for name, t in zip("AQG", (A, Q, G)) if t is not None and not bool(torch.isfinite(t).all())]
+        if not bad:  # a finite result whose sum overflowed
+            return
+        rightmost = float(torch.linalg.eigvals(inputs.F.double()).real.max())
+        dt_max = float(inputs.dt.max()) if inputs.dt is not None and inputs.dt.numel() else 0.0
+    if method == "matrix_exp" and rightmost < 0:
+        cause = ("method='matrix_exp' overflows for this stable F: the −Fᵀ block of Van Loan's exponential grows "
+                 "like e^(|λ| dt); the default method='doubling' does not")
+    else:
+        cause = (f"F's rightmost eigenvalue has real part {rightmost:.3g}; an unstable F grows like e^(Re λ dt); "
+                 "shorten dt, rescale the state, or use float64")
+    raise ValueError(
+        f"the discretisation overflows {inputs.F.dtype}: {', '.join(bad)} not finite for dt up to {dt_max:.3g} ({cause})"
+    )
+
+
+def _work(inputs: SDEInputs) -> int:
+    """Matrix entries a call produces: the size that sets its intra-op threads."""
+    n = inputs.F.shape[-1]
+    return inputs.batch.numel() * n * (n + (0 if inputs.B is None else inputs.B.shape[-1]))
 
 
 def discretize(
@@ -91,7 +135,8 @@ def discretize(
         dt: (...) non-negative step lengths; a Python float is a scalar.
         B: optional (..., n, p) input matrix; u is held constant over each step.
         method: ``"doubling"`` (default; accurate and PSD for stiff F and large dt) or
-            ``"matrix_exp"`` (torch.matrix_exp of Van Loan's block).
+            ``"matrix_exp"`` (torch.matrix_exp of Van Loan's block). The default hands a
+            call of few elements to ``"matrix_exp"`` where an a-priori bound proves it accurate.
         validate_args: check the values (finite, dt ≥ 0, Qc symmetric PSD); shapes are
             always checked. Inner calls on already-checked arguments pass False.
 
@@ -102,7 +147,10 @@ def discretize(
         :class:`Discrete` with A (..., n, n), Q (..., n, n) symmetric PSD and
         G (..., n, p) or None. Differentiable with respect to F, L, Qc, B and dt.
     """
-    A, Q, G = _run(sde_inputs(F, L, Qc, dt, B, validate_args=validate_args), method)
+    inputs = sde_inputs(F, L, Qc, dt, B, validate_args=validate_args)
+    A, Q, G = _run(inputs, method)
+    if checks_values(validate_args):
+        _check_result(inputs, A, Q, G, resolve_method(method))
     assert Q is not None
     return Discrete(A, Q, G)
 
@@ -136,19 +184,21 @@ def discretize_series(
     assert dt_t is not None
     params = [inputs.F.shape[:-2]] + [x.shape[:-2] for x in (inputs.W, inputs.B) if x is not None]
     single = all(torch.Size(s).numel() == 1 for s in params)
-    if resolve_method(method) != "doubling" or len(inputs.batch) == 0 or not single:
-        A, Q, G = _run(inputs, method)
+    if resolve_method(method) != "doubling" or len(inputs.batch) == 0 or not single or _routed(inputs):
+        d = Discrete(*_run(inputs, method))
+    elif unique and not dt_t.requires_grad:
+        d = _discretize_unique(inputs)
+    else:
+        lead = inputs.batch[:-1]
+        dt_tm = dt_t.expand(inputs.batch).movedim(-1, 0)  # (T, *lead)
+        with intra_op_threads(_work(inputs)):
+            A, Q, G = doubling(inputs._replace(dt=dt_tm, batch=dt_tm.shape, host=None), batch_last=True)
+        perm = [*range(3, 3 + len(lead)), 2, 0, 1]  # (r, c, T, *lead) -> (*lead, T, r, c)
         assert Q is not None
-        return Discrete(A, Q, G)
-    if unique and not dt_t.requires_grad:
-        return _discretize_unique(inputs)
-    batch = inputs.batch
-    lead = batch[:-1]
-    dt_tm = dt_t.expand(batch).movedim(-1, 0)  # (T, *lead)
-    A, Q, G = doubling(inputs._replace(dt=dt_tm, batch=dt_tm.shape), batch_last=True)
-    assert Q is not None
-    perm = [*range(3, 3 + len(lead)), 2, 0, 1]  # (r, c, T, *lead) -> (*lead, T, r, c)
-    return Discrete(A.permute(perm), Q.permute(perm), None if G is None else G.permute(perm))
+        d = Discrete(A.permute(perm), Q.permute(perm), None if G is None else G.permute(perm))
+    if checks_values(validate_args):
+        _check_result(inputs, d.A, d.Q, d.G, resolve_method(method))
+    return d
 
 
 def _discretize_unique(inputs: SDEInputs) -> Discrete:
@@ -158,7 +208,8 @@ def _discretize_unique(inputs: SDEInputs) -> Discrete:
     assert dt is not None
     dt = dt.expand(inputs.batch)
     values, inverse = torch.unique(dt, return_inverse=True)
-    A, Q, G = doubling(inputs._replace(dt=values, batch=values.shape), batch_last=True)  # (r, c, U)
+    with intra_op_threads(_work(inputs)):
+        A, Q, G = doubling(inputs._replace(dt=values, batch=values.shape, host=None), batch_last=True)  # (r, c, U)
     lead, T = dt.shape[:-1], dt.shape[-1]
     idx = inverse.movedim(-1, 0).reshape(-1)  # time-major
 
@@ -184,7 +235,10 @@ def transition_matrix(
     Returns:
         (..., n, n), batch broadcast from F and dt.
     """
-    A, _, _ = _run(sde_inputs(F, None, None, dt, None, validate_args=validate_args), method)
+    inputs = sde_inputs(F, None, None, dt, None, validate_args=validate_args)
+    A, _, _ = _run(inputs, method)
+    if checks_values(validate_args):
+        _check_result(inputs, A, None, None, resolve_method(method))
     return A
 
 
@@ -203,7 +257,10 @@ def zero_order_hold(
     Returns:
         A (..., n, n), G (..., n, p).
     """
-    A, _, G = _run(sde_inputs(F, None, None, dt, B, validate_args=validate_args), method)
+    inputs = sde_inputs(F, None, None, dt, B, validate_args=validate_args)
+    A, _, G = _run(inputs, method)
+    if checks_values(validate_args):
+        _check_result(inputs, A, None, G, resolve_method(method))
     assert G is not None
     return A, G
 

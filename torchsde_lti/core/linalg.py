@@ -22,8 +22,9 @@ import torch
 from torch import Tensor
 from torch.autograd import forward_ad
 
+from torchsde_lti.core.thresholds import FMA_MAX_INNER, FMA_MIN_BATCH, UNROLLED_MAX_DIM
+
 __all__ = [
-    "SMALL",
     "bl_matmul",
     "bl_matvec",
     "bl_sym",
@@ -37,9 +38,6 @@ __all__ = [
     "sym",
     "to_batch_last",
 ]
-
-#: Matrices up to this size use the unrolled Cholesky factor / triangular solves.
-SMALL = 4
 
 
 # ----------------------------------------------------------------------------------------
@@ -57,7 +55,7 @@ def cholesky(S: Tensor, semidefinite: bool = False) -> Tensor:
     with ``semidefinite`` any PSD S, singular allowed.
 
     Cholesky–Banachiewicz, unrolled over k and vectorised over the batch (torch.linalg.cholesky
-    for k > :data:`SMALL` when not ``semidefinite``). The semi-definite pivot rule: a pivot
+    for k > :data:`UNROLLED_MAX_DIM` when not ``semidefinite``). The semi-definite pivot rule: a pivot
     ``d_j ≤ k · eps · S_jj`` (zero up to the rounding of its own diagonal entry, e.g. every
     pivot of Q(dt = 0) = 0 or of a rank-deficient Q) gives a zero column instead of a NaN. The
     threshold is per pivot, so badly scaled matrices (a constant-velocity Q over a long gap:
@@ -66,7 +64,7 @@ def cholesky(S: Tensor, semidefinite: bool = False) -> Tensor:
     branches: no NaN in backward).
     """
     k = S.shape[-1]
-    if k > SMALL and not semidefinite:
+    if k > UNROLLED_MAX_DIM and not semidefinite:
         return torch.linalg.cholesky(S)
     zero = torch.zeros_like(S[..., 0, 0])
     if semidefinite:
@@ -96,7 +94,7 @@ def cholesky(S: Tensor, semidefinite: bool = False) -> Tensor:
 def solve_lower(L: Tensor, B: Tensor) -> Tensor:
     """X with ``L X = B``; L (..., k, k) lower triangular, B (..., k, r) -> X (..., k, r)."""
     k = L.shape[-1]
-    if k > SMALL:
+    if k > UNROLLED_MAX_DIM:
         return torch.linalg.solve_triangular(L, B, upper=False)
     xs: list[Tensor] = []
     for i in range(k):
@@ -110,7 +108,7 @@ def solve_lower(L: Tensor, B: Tensor) -> Tensor:
 def solve_upper_t(L: Tensor, B: Tensor) -> Tensor:
     """X with ``Lᵀ X = B``; L (..., k, k) lower triangular, B (..., k, r) -> X (..., k, r)."""
     k = L.shape[-1]
-    if k > SMALL:
+    if k > UNROLLED_MAX_DIM:
         return torch.linalg.solve_triangular(L.mT, B, upper=True)
     xs: list[Tensor | None] = [None] * k
     for i in reversed(range(k)):
@@ -136,17 +134,6 @@ def matvec(M: Tensor, v: Tensor) -> Tensor:
 # ----------------------------------------------------------------------------------------
 # Batch-last kernels: tensors laid out as (*event, *batch)
 # ----------------------------------------------------------------------------------------
-
-# Largest inner size for which a batch-last product with ONE flat batch dimension is summed
-# as fused multiply-adds over the contiguous batch (measured on CPU: faster than torch.bmm
-# of 4×4 … 16×16 matrices, whose per-matrix overhead dominates); beyond it, and for tiny
-# batches, the product goes through torch.matmul.
-_CHAIN_MAX_N = 16
-# For tiny batches the per-call overhead of the autograd.Function outweighs its gain, and
-# the broadcast-and-sum ``vecdot`` (one kernel, no copies) beats ``bmm`` on permuted views
-# (measured, float64, 1 thread: n = 4, N = 100: 14 vs 19 µs; n = 8, N = 100: 37 vs 363 µs).
-_CHAIN_MIN_BATCH = 256
-
 
 def to_batch_last(x: Tensor, event_ndim: int, time: bool = False) -> Tensor:
     """``(*batch, [T,] *event) -> ([T,] *event, *batch)``, contiguous."""
@@ -223,10 +210,10 @@ def bl_matmul(a: Tensor, b: Tensor, c: Tensor | None = None, alpha: float = 1.0)
     views; otherwise a broadcast-and-sum ``vecdot`` that keeps the batch innermost.
     """
     if a.dim() == 3 and b.dim() == 3 and a.shape[-1] == b.shape[-1]:
-        if a.shape[1] > _CHAIN_MAX_N:
+        if a.shape[1] > FMA_MAX_INNER:
             out = (a.permute(2, 0, 1) @ b.permute(2, 0, 1)).permute(1, 2, 0)
             return _scaled_add(out, c, alpha)
-        if a.shape[-1] > _CHAIN_MIN_BATCH:
+        if a.shape[-1] > FMA_MIN_BATCH:
             if _records_graph(a, b, c) and not _plain_ops_required():
                 return _FmaMatmul.apply(a, b, c, alpha)
             return _fma_matmul(a, b, c, alpha)  # no graph to record (skip the Function's dispatch)

@@ -11,6 +11,7 @@ symbolic and only shape checks run.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from typing import NamedTuple
 
@@ -18,6 +19,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import sym
+from torchsde_lti.core.thresholds import PYTHON_CHECK_MAX_VALUES
 
 
 def tracing() -> bool:
@@ -136,14 +138,6 @@ def psd_tolerance(x: Tensor) -> float:
     return 100.0 * x.shape[-1] * torch.finfo(x.dtype).eps
 
 
-#: Up to this many entries in all, the finiteness test sums their concatenation.
-_CONCAT_MAX_ENTRIES = 16384
-#: Batch size from which 2×2 matrices take the closed-form PSD test (``profile_small_calls.py``
-#: section 8, 1 thread: 41 vs 34 µs at 16 matrices, 41 vs 41 at 64, 41 vs 48 at 100, 45 vs 65
-#: at 256; 1×1 matrices always take it).
-_CLOSED_FORM_MIN_2X2 = 128
-
-
 def _lapack_dtype(x: Tensor) -> Tensor:
     """x in float32 if it is a half-precision float (LAPACK has no float16/bfloat16 kernels)."""
     return x if x.dtype in (torch.float32, torch.float64) else x.to(torch.float32)
@@ -156,10 +150,7 @@ def _psd_test(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     scale = x.abs().amax(dim=(-2, -1)).clamp_min(torch.finfo(x.dtype).tiny)
     tol = psd_tolerance(x)
     k = x.shape[-1]
-    if k == 1 or (k == 2 and x.numel() >= 4 * _CLOSED_FORM_MIN_2X2):
-        # the same test in closed form: the pivots of the shifted Cholesky factor (LAPACK's
-        # per-matrix call and the strided x − xᵀ cost 1.11 ms at 1e4 2×2 matrices, the closed
-        # form 0.20 ms, 1 thread; its dozen small ops lose below ≈ 100 matrices: section 8)
+    if k <= 2:  # the same test in closed form: the pivots of the shifted Cholesky factor
         shift = tol * scale
         a = x[..., 0, 0] + shift
         if k == 1:
@@ -172,6 +163,34 @@ def _psd_test(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     shifted = x + (tol * scale)[..., None, None] * torch.eye(k, dtype=x.dtype, device=x.device)
     passes = ~((asym > tol) | (torch.linalg.cholesky_ex(_lapack_dtype(shifted)).info != 0)).any()
     return passes, asym, scale
+
+
+def cholesky_succeeds(m: Sequence[float], k: int, shift: float) -> bool:
+    """Whether the row-major k × k matrix ``m`` (its lower triangle) plus ``shift`` I has a
+    Cholesky factor: every pivot positive (Python floats; for a few small matrices)."""
+    rows: list[list[float]] = []
+    for j in range(k):
+        row = [m[j * k + t] for t in range(j)]
+        for t in range(j):
+            row[t] = (row[t] - sum(row[u] * rows[t][u] for u in range(t))) / rows[t][t]
+        d = m[j * k + j] + shift - sum(v * v for v in row)
+        if not d > 0:
+            return False
+        rows.append(row + [math.sqrt(d)])
+    return True
+
+
+def _psd_values(values: Sequence[float], k: int, tol: float) -> bool:
+    """:func:`_psd_test`'s decision on row-major k × k matrices given as Python floats."""
+    tiny = 1e-300
+    for start in range(0, len(values), k * k):
+        m = values[start : start + k * k]
+        scale = max(max(abs(v) for v in m), tiny)
+        if any(abs(m[i * k + j] - m[j * k + i]) > tol * scale for i in range(k) for j in range(i)):
+            return False
+        if not cholesky_succeeds(m, k, tol * scale):
+            return False
+    return True
 
 
 def check_symmetric_psd(x: Tensor, name: str) -> None:
@@ -224,15 +243,37 @@ def parse_learn(learn: Iterable[str] | str, allowed: Sequence[str]) -> tuple[str
     return names
 
 
+def _values_valid(values: list[float], checked: list[tuple[str, Tensor]], Qc: Tensor | None) -> bool:
+    """The value checks of :func:`sde_inputs` on the concatenated values of ``checked``
+    (Python floats): all finite, dt ≥ 0, Qc symmetric PSD (the test of :func:`_psd_test`)."""
+    if not all(map(math.isfinite, values)):
+        return False
+    offset = 0
+    for name, t in checked:
+        part = values[offset : offset + t.numel()]
+        offset += t.numel()
+        if name == "dt" and part and min(part) < 0:
+            return False
+        if name == "Qc" and part and Qc is not None and not _psd_values(part, Qc.shape[-1], psd_tolerance(Qc)):
+            return False
+    return True
+
+
 class SDEInputs(NamedTuple):
     """Validated SDE arguments: F (..., n, n), W = L Qc Lᵀ (..., n, n) or None, B (..., n, p)
-    or None, dt (...) or None, and the broadcast batch shape of all of them."""
+    or None, dt (...) or None, and the broadcast batch shape of all of them.
+
+    ``host``: for a small call (at most :data:`PYTHON_CHECK_MAX_VALUES` values, not traced)
+    the values of F, W, B and dt as Python floats, read in the call's one transfer (each
+    row-major, concatenated in that order); None otherwise. Replace it (``_replace``) when a
+    field changes."""
 
     F: Tensor
     W: Tensor | None
     B: Tensor | None
     dt: Tensor | None
     batch: torch.Size
+    host: list[float] | None = None
 
 
 def sde_inputs(
@@ -260,6 +301,8 @@ def sde_inputs(
     F = as_float_tensor(F, "F", dtype, device)
     check_matrix(F, "F", square=True)
     n = F.shape[-1]
+    if n == 0:
+        raise ValueError(f"F must have a state dimension n >= 1, got shape {shape_str(F)}")
     named: list[tuple[str, torch.Size]] = [("F", F.shape[:-2])]
     checked: list[tuple[str, Tensor]] = [("F", F)]  # finiteness, checked together below
     if L is not None or Qc is not None:
@@ -286,33 +329,41 @@ def sde_inputs(
         checked.append(("dt", dt_t))
         named.append(("dt", dt_t.shape))
     batch = broadcast_batch(named)
-    if checks_values(validate_args):
-        # one synchronisation when everything is valid; otherwise the detailed checks name
-        # the culprit (finiteness first, then dt ≥ 0, then Qc symmetric PSD)
+    W = None
+    if L is not None and Qc is not None:
+        W = L @ Qc @ L.mT
+        W = torch.lerp(W, W.mT, 0.5)  # exactly symmetric
+    host: list[float] | None = None
+    values = checks_values(validate_args)
+    total = sum(t.numel() for _, t in checked) + (0 if W is None else W.numel())
+    if total <= PYTHON_CHECK_MAX_VALUES and not tracing():
+        # one transfer: the value checks and the callers' decisions on Python floats
         with torch.no_grad():
-            # a sum is non-finite if any entry is (NaN propagates, inf − inf = NaN); a finite
-            # sum that overflows only sends the check to the detailed path, which passes it.
-            # One reduction per tensor: measured 7–20× faster than isfinite(cat(...)).all() at
-            # N = 1e4 elements, n = 2 … 8 (profile_small_calls.py section 6); for a few
-            # entries one sum of the concatenation saves the per-tensor ops
-            if sum(t.numel() for _, t in checked) <= _CONCAT_MAX_ENTRIES:
-                ok = torch.cat([t.reshape(-1) for _, t in checked]).sum().isfinite()
-            else:
-                ok = torch.stack([t.sum() for _, t in checked]).isfinite().all()
+            flat = torch.cat([t.reshape(-1) for _, t in checked] + ([] if W is None else [W.reshape(-1)])).tolist()
+        valid = not values or _values_valid(flat, checked, Qc)
+        parts, offset = {}, 0
+        for name, t in checked + ([] if W is None else [("W", W)]):
+            parts[name], offset = flat[offset : offset + t.numel()], offset + t.numel()
+        host = [v for name in ("F", "W", "B", "dt") for v in parts.get(name, ())]
+    elif values:
+        # one synchronisation when everything is valid: a sum is non-finite if any entry is
+        # (NaN propagates, inf − inf = NaN); a finite sum that overflows only sends the check
+        # to the detailed path, which passes it
+        with torch.no_grad():
+            ok = torch.stack([t.sum() for _, t in checked]).isfinite().all()
             if dt_t is not None and dt_t.numel():
                 ok = ok & (dt_t.amin() >= 0)
             if Qc is not None and Qc.numel():
                 ok = ok & _psd_test(Qc)[0]
             valid = bool(ok)
-        if not valid:
-            for name, t in checked:
-                check_finite(t, name)
-            if dt_t is not None:
-                check_nonnegative(dt_t, "dt")
-            if Qc is not None:
-                check_symmetric_psd(Qc, "Qc")
-    W = None
-    if L is not None and Qc is not None:
-        W = sym(L @ Qc @ L.mT)
-    return SDEInputs(F, W, B, dt_t, batch)
+    else:
+        valid = True
+    if not valid:  # the detailed checks name the culprit: finiteness, then dt ≥ 0, then Qc PSD
+        for name, t in checked:
+            check_finite(t, name)
+        if dt_t is not None:
+            check_nonnegative(dt_t, "dt")
+        if Qc is not None:
+            check_symmetric_psd(Qc, "Qc")
+    return SDEInputs(F, W, B, dt_t, batch, host)
 
