@@ -73,6 +73,9 @@ def rts_smoother(
         :class:`SmootherResult` with mean (..., T, n), cov (..., T, n, n), gain (..., T, n, n).
     """
     check_algorithm(algorithm, SMOOTHER_ALGORITHMS, "rts_smoother")
+    if not isinstance(result, FilterResult):
+        raise TypeError(f"result must be a FilterResult (the output of kalman_filter or KalmanFilter), "
+                        f"got {type(result).__name__}")
     E, g, C = _smoother_elements(result, A, Q)
     if algorithm == "auto":
         T = g.shape[-2]

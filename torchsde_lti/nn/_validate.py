@@ -65,3 +65,30 @@ def check_values(finite: Named = (), nonnegative: Named = (), no_inf: Named = ()
     for name, value in no_inf:
         if bool(torch.isinf(value).any()):
             raise ValueError(f"{name} contains Inf (shape {shape_str(value)}); mark missing values with NaN or mask")
+
+
+def check_outcome(log_likelihood: Tensor, steps: Sequence[Tensor | None], y: Tensor, dt: Tensor, F: Tensor) -> None:
+    """ValueError when a checked call's log-likelihood is not finite although its arguments
+    were valid, saying why: the discretisation over-/underflows the dtype (an unstable F over
+    a long step) or the observations are too large for it (the squared residuals overflow).
+    One synchronisation (no-op while tracing). ``steps``: the discrete matrices the filter used."""
+    if tracing():
+        return
+    with torch.no_grad():
+        if bool(torch.isfinite(log_likelihood).all()):
+            return
+        bad = [t for t in steps if t is not None and not bool(torch.isfinite(t).all())]
+        dtype = y.dtype
+        if bad:
+            rightmost = float(torch.linalg.eigvals(torch.nan_to_num(F.detach().double())).real.max())
+            raise ValueError(
+                f"the discretisation overflows {dtype} for dt up to {float(dt.max()):.3g} (F's rightmost eigenvalue "
+                f"has real part {rightmost:.3g}; an unstable F grows like e^(Re λ dt)): shorten dt, constrain F "
+                "(F_constraint='hurwitz') or use float64"
+            )
+        top = float(torch.nan_to_num(y.detach(), nan=0.0).abs().max())
+    raise ValueError(
+        f"the log-likelihood is not finite in {dtype}: observations y up to |y| = {top:.3g} make the squared "
+        "residuals overflow; centre and scale the observations (e.g. positions relative to each track's start, "
+        "in km) or use float64"
+    )

@@ -253,7 +253,10 @@ class IMMFilter(ValidateArgs, nn.Module):
         self, F: Tensor, W: Tensor, eye: Tensor, dt: Tensor, validate_args: bool
     ) -> tuple[Discrete, Tensor]:
         d = discretize(F, eye, W, dt.unsqueeze(-1), method=self.method, validate_args=validate_args)  # F (M,·,·) with dt (..., 1)
-        Pi = torch.matrix_exp(self.rates * dt[..., None, None]).clamp_min(0.0)
+        # the chain's transitions in float64 (an M × M exponential: free), rows renormalised:
+        # a float32 exponential of Λ dt for dt ≫ 1/rate loses the row sums (and gives NaN mixing)
+        Pi = torch.matrix_exp(self.rates.double() * dt.double()[..., None, None]).clamp_min(0.0)
+        Pi = (Pi / Pi.sum(-1, keepdim=True)).to(self.rates.dtype)
         return d, Pi
 
     def _obs_model(self) -> tuple[Tensor, Tensor]:

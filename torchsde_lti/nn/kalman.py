@@ -41,6 +41,7 @@ diagonal), so ``kf.R = value`` works and any optimiser step keeps them valid.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from typing import NamedTuple
 
@@ -51,12 +52,12 @@ from torch.nn.utils import parametrize
 from torchsde_lti.core.discretization import Discrete, discretize, discretize_series, resolve_method
 from torchsde_lti.core.linalg import matvec, sym
 from torchsde_lti.core.moments import predict_moments
-from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str
+from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str, tracing
 from torchsde_lti.filters import FilterResult, SmootherResult, choose_algorithm, rts_smoother
 from torchsde_lti.filters.inputs import FilterInputs
 from torchsde_lti.filters.kalman import ALGORITHMS, check_algorithm, run_filter
 from torchsde_lti.nn._register import register_tensor
-from torchsde_lti.nn._validate import ValidateArgs, check_values
+from torchsde_lti.nn._validate import ValidateArgs, check_outcome, check_values
 from torchsde_lti.nn.parametrizations import PositiveDefinite
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
 
@@ -167,6 +168,8 @@ class KalmanFilter(ValidateArgs, nn.Module):
         names = parse_learn(learn, _LEARNABLE)
         self.sde = sde
         self.diffuse_variance = float(diffuse_variance)
+        if not (math.isfinite(self.diffuse_variance) and self.diffuse_variance > 0):
+            raise ValueError(f"diffuse_variance must be a finite positive variance, got {diffuse_variance!r}")
         dtype, device = sde.dtype, sde.device
         n = sde.state_dim
 
@@ -388,7 +391,10 @@ class KalmanFilter(ValidateArgs, nn.Module):
             d = self._discretize(dt, mats, series_layout=algorithm != "scan")
             G = d.G if u is not None else None
             args = FilterInputs(y, d.A, d.Q, H, R, m0, P0, G, u, mask, D)
-            return run_filter(args, algorithm, validate_args=False, compiled_loop=compiled_loop)
+            out = run_filter(args, algorithm, validate_args=False, compiled_loop=compiled_loop)
+            if validate and not tracing():
+                check_outcome(out.log_likelihood, d, y, dt, mats.F)
+            return out
 
     def algorithm_for(self, batch_size: int, T: int, device: torch.device) -> str:
         """The algorithm a call with ``batch_size`` tracks of T steps on ``device`` runs:
@@ -423,6 +429,8 @@ class KalmanFilter(ValidateArgs, nn.Module):
         """RTS smoother over the filter output (uses the A_k, Q_k stored in ``out``): the
         sequential backward pass after ``"sequential"`` and ``"square_root"``, the reverse
         associative scan after ``"scan"``, the automatic choice after ``"auto"``."""
+        if not isinstance(out, FilterResult):
+            raise TypeError(f"out must be the FilterResult of this filter's forward, got {type(out).__name__}")
         algorithm = {"square_root": "sequential"}.get(self.algorithm, self.algorithm)
         return rts_smoother(out, algorithm=algorithm)
 
