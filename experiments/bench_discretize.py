@@ -52,6 +52,7 @@ import torch
 from filterpy.common import van_loan_discretization
 
 import torchsde_lti as tl
+from torchsde_lti.training.outputs import write_json
 
 RESULTS = Path(__file__).resolve().parent / "results"
 CONTESTANTS = ("default", "naive", "scipy", "filterpy")
@@ -499,7 +500,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.replot:
         saved = json.loads(args.replot.read_text())
-        cells = [Cell(**{k: v for k, v in c.items()}) for c in saved["cells"]]
+        cells = [Cell(**{k: math.nan if v is None else v for k, v in c.items()}) for c in saved["cells"]]
         plot(cells, args.replot.with_suffix(".png"), saved.get("threads", 2))
         return
     if args.threads:
@@ -524,8 +525,8 @@ def main() -> None:
     print(report)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"{stem}.md").write_text(report)
-    (args.out / f"{stem}.json").write_text(json.dumps(
-        {"threads": torch.get_num_threads(), "cells": [c.__dict__ for c in cells], "accuracy": acc}, indent=1, default=str))
+    write_json(args.out / f"{stem}.json",  # strict JSON: NaN / inf as null
+               {"threads": torch.get_num_threads(), "cells": [c.__dict__ for c in cells], "accuracy": acc})
     plot(cells, args.out / f"{stem}.png")
     print(f"wrote {args.out / (stem + '.md')}, .json, .png")
 

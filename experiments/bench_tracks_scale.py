@@ -32,6 +32,8 @@ from pathlib import Path
 
 import lightning.pytorch as pl
 
+from torchsde_lti.training.outputs import write_json
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 DAY = "US_coastal_2020_06_30.traj"
@@ -229,7 +231,7 @@ def main(argv: list[str] | None = None) -> str:
               f" | {r['peak_rss_mb']:.0f} |" for label, r in memory]
     text = "\n".join(lines) + "\n"
     Path(args.out).write_text(text)
-    Path(args.out).with_suffix(".json").write_text(json.dumps(results, indent=1, default=str))
+    write_json(Path(args.out).with_suffix(".json"), results)  # strict JSON: NaN / inf as null
     print(text)
     return text
 
