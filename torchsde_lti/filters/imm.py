@@ -49,6 +49,7 @@ from torchsde_lti.core.validation import (
     shape_str,
 )
 from torchsde_lti.filters.inputs import check_mask
+from torchsde_lti.core.threads import intra_op_threads
 from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, solve_lower, sym
 
 __all__ = ["IMMResult", "imm_filter", "imm_predict", "IMMPrediction"]
@@ -216,6 +217,13 @@ def imm_filter(
         :class:`IMMResult`; every output broadcasts to the full batch ``...``.
     """
     y, A, Q, H, R, Pi, m0, P0, prob, mask = _check_inputs(y, A, Q, H, R, Pi, m0, P0, mode_prob0, mask, validate_args)
+    with intra_op_threads(y.numel() // y.shape[-1] * prob.shape[-1] * A.shape[-1] ** 2):
+        return _imm_steps(y, A, Q, H, R, Pi, m0, P0, prob, mask)
+
+
+def _imm_steps(y: Tensor, A: Tensor, Q: Tensor, H: Tensor, R: Tensor, Pi: Tensor, m0: Tensor, P0: Tensor,
+               prob: Tensor, mask: Tensor | None) -> IMMResult:
+    """:func:`imm_filter` on checked arguments."""
     T, m = y.shape[-2], y.shape[-1]
     M, n = prob.shape[-1], A.shape[-1]
     dtype, device = y.dtype, y.device

@@ -17,6 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchsde_lti.core.threads import intra_op_threads
 from torchsde_lti.filters.inputs import FilterInputs, prepare_inputs
 from torchsde_lti.filters.scan import chunked_scan, prefers_scan
 from torchsde_lti.filters.results import FilterResult
@@ -121,10 +122,17 @@ def run_filter(
     ``torch.compile``, with its discretisation eager); inside a trace it always does.
     """
     check_algorithm(algorithm, ALGORITHMS[1:])
-    if algorithm == "scan":
-        return chunked_scan(args, chunk, validate_args)
-    prep = prepare_inputs(args, validate_args)
-    if algorithm == "square_root":
-        return square_root_filter(prep)
-    structured = compiled_loop or (torch.compiler.is_compiling() and not torch.compiler.is_exporting())
-    return sequential_filter(prep, structured)
+    with intra_op_threads(_work(args)):
+        if algorithm == "scan":
+            return chunked_scan(args, chunk, validate_args)
+        prep = prepare_inputs(args, validate_args)
+        if algorithm == "square_root":
+            return square_root_filter(prep)
+        structured = compiled_loop or (torch.compiler.is_compiling() and not torch.compiler.is_exporting())
+        return sequential_filter(prep, structured)
+
+
+def _work(args: FilterInputs) -> int:
+    """Covariance entries the filter touches (tracks · T · n²): the size that sets its threads."""
+    n = args.A.shape[-1]
+    return args.y.numel() // max(args.y.shape[-1], 1) * n * n

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchsde_lti.core.threads import intra_op_threads
 from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, sym
 from torchsde_lti.core.validation import check_matrix
 from torchsde_lti.filters.kalman import check_algorithm
@@ -76,6 +77,11 @@ def rts_smoother(
     if not isinstance(result, FilterResult):
         raise TypeError(f"result must be a FilterResult (the output of kalman_filter or KalmanFilter), "
                         f"got {type(result).__name__}")
+    with intra_op_threads(result.cov.numel()):
+        return _rts(result, A, Q, algorithm)
+
+
+def _rts(result: FilterResult, A: Tensor | None, Q: Tensor | None, algorithm: str) -> SmootherResult:
     E, g, C = _smoother_elements(result, A, Q)
     if algorithm == "auto":
         T = g.shape[-2]
