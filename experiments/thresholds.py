@@ -201,8 +201,29 @@ def route_max() -> str:
                  ["n", "N", "torch.matrix_exp", "doubling"], rows)
 
 
+def parallel_min_work() -> str:
+    import torchsde_lti.core.threads as threads_mod
+
+    rows = []
+    for n, N in ((2, 10_000), (4, 10_000), (4, 100_000), (8, 10_000), (4, 1_000_000)):
+        x = sde_inputs(*per_element_problem(n, 1, seed=1)[:3], torch.rand(N, dtype=F64) * 3, validate_args=False)
+        row: list[object] = [n, N, N * n * n]
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            with patched(threads_mod, PARALLEL_MIN_WORK=0):  # the caller's threads, whatever the work
+                start = time.perf_counter()
+                for _ in range(3):
+                    doubling_mod.doubling(x)
+                row.append((time.perf_counter() - start) / 3 * 1e3)
+        torch.set_num_threads(1)
+        rows.append(row)
+    return table(f"9. PARALLEL_MIN_WORK = {thresholds.PARALLEL_MIN_WORK}: one parameter set, wall ms at 1 and 2 "
+                 "threads (needs an idle machine)", ["n", "N", "entries", "1 thread", "2 threads"],
+                 [[r[0], r[1], r[2], f"{r[3]:.1f}", f"{r[4]:.1f}"] for r in rows])
+
+
 SECTIONS = {1: unrolled_cholesky, 2: batch_last_products, 3: python_checks, 4: theta_per_element,
-            5: theta_shared, 6: layouts, 7: shared_min, 8: route_max}
+            5: theta_shared, 6: layouts, 7: shared_min, 8: route_max, 9: parallel_min_work}
 
 
 def main() -> None:
