@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import sym
-from torchsde_lti.core.validation import checks_values, sde_inputs
+from torchsde_lti.core.validation import check_hurwitz, checks_values, sde_inputs
 
 __all__ = ["stationary_covariance"]
 
@@ -34,14 +34,7 @@ def stationary_covariance(F: Tensor, L: Tensor, Qc: Tensor, *, validate_args: bo
     assert W is not None
     n = F.shape[-1]
     if checks_values(validate_args):
-        with torch.no_grad():
-            rightmost = torch.linalg.eigvals(F).real.amax(dim=-1)
-            if bool((rightmost >= 0).any()):
-                raise ValueError(
-                    "F must be Hurwitz-stable (all eigenvalues with negative real part) for a "
-                    f"stationary covariance; got an eigenvalue with real part {float(rightmost.max()):.3g} "
-                    f"(F shape {tuple(F.shape)})"
-                )
+        check_hurwitz(F)
     batch = torch.broadcast_shapes(F.shape[:-2], W.shape[:-2])
     F = F.expand(*batch, n, n)
     eye = torch.eye(n, dtype=F.dtype, device=F.device)
