@@ -1,6 +1,7 @@
 """Modules: the parameter-free discretisation layers, parametrisations, the LTISDE (and the
 StructuredSDE base of the motion models) and the KalmanFilter module."""
 
+from torchsde_lti.nn._validate import NonFiniteLikelihoodError
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import DeployedFilter, FilterMode, Forecast, KalmanFilter
 from torchsde_lti.nn.layers import Discretization, Transition, VanLoanNoise
@@ -14,6 +15,7 @@ __all__ = [
     "IMMFilter",
     "KalmanFilter",
     "LTISDE",
+    "NonFiniteLikelihoodError",
     "SDEMatrices",
     "StructuredSDE",
     "Transition",

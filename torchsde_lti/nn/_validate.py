@@ -67,8 +67,15 @@ def check_values(finite: Named = (), nonnegative: Named = (), no_inf: Named = ()
             raise ValueError(f"{name} contains Inf (shape {shape_str(value)}); mark missing values with NaN or mask")
 
 
+class NonFiniteLikelihoodError(ValueError):
+    """A checked filter call whose arguments were valid gave a non-finite log-likelihood
+    (the discretisation or the squared residuals overflow the dtype). A ``ValueError``, so
+    callers that catch bad input catch it too; a training loop that skips such batches
+    catches this class alone."""
+
+
 def check_outcome(log_likelihood: Tensor, steps: Sequence[Tensor | None], y: Tensor, dt: Tensor, F: Tensor) -> None:
-    """ValueError when a checked call's log-likelihood is not finite although its arguments
+    """:class:`NonFiniteLikelihoodError` when a checked call's log-likelihood is not finite although its arguments
     were valid, saying why: the discretisation over-/underflows the dtype (an unstable F over
     a long step) or the observations are too large for it (the squared residuals overflow).
     One synchronisation (no-op while tracing). ``steps``: the discrete matrices the filter used."""
@@ -81,13 +88,13 @@ def check_outcome(log_likelihood: Tensor, steps: Sequence[Tensor | None], y: Ten
         dtype = y.dtype
         if bad:
             rightmost = float(torch.linalg.eigvals(torch.nan_to_num(F.detach().double())).real.max())
-            raise ValueError(
+            raise NonFiniteLikelihoodError(
                 f"the discretisation overflows {dtype} for dt up to {float(dt.max()):.3g} (F's rightmost eigenvalue "
                 f"has real part {rightmost:.3g}; an unstable F grows like e^(Re λ dt)): shorten dt, constrain F "
                 "(F_constraint='hurwitz') or use float64"
             )
         top = float(torch.nan_to_num(y.detach(), nan=0.0).abs().max())
-    raise ValueError(
+    raise NonFiniteLikelihoodError(
         f"the log-likelihood is not finite in {dtype}: observations y up to |y| = {top:.3g} make the squared "
         "residuals overflow; centre and scale the observations (e.g. positions relative to each track's start, "
         "in km) or use float64"

@@ -32,6 +32,7 @@ from lightning.pytorch import LightningModule
 from torch import Tensor, nn
 
 from torchsde_lti.data.tracks import TrackBatch
+from torchsde_lti.nn import NonFiniteLikelihoodError
 from torchsde_lti.nn.kalman import KalmanFilter
 from torchsde_lti.training.metrics import masked_gaussian_nll, parameter_errors, raw_f_identifiable
 
@@ -171,7 +172,15 @@ class KalmanFilterModule(LightningModule):
     # ---------------------------------------------------------------- Lightning hooks
 
     def training_step(self, batch: Any, batch_idx: int) -> Tensor:
-        loss, nll, _, info = self._step(batch)
+        try:
+            loss, nll, _, info = self._step(batch)
+        except NonFiniteLikelihoodError:
+            if not self.skip_nonfinite:
+                raise
+            # a NaN loss on the parameters' graph: the gradient guard skips, counts and warns
+            # (and L-BFGS, seeing no gradient, ends its iteration)
+            params = [p for p in self.parameters() if p.requires_grad]
+            return sum((p.sum() * 0.0 for p in params), torch.zeros((), dtype=self.float_dtype)) + math.nan
         bs = info["y"].shape[0]
         self.log("train/nll", nll, on_step=False, on_epoch=True, prog_bar=True, batch_size=bs, sync_dist=True)
         if self.k_step > 0 and self.k_step_weight > 0:
