@@ -101,13 +101,13 @@ def test_kalman_filter_default_prior_is_the_shaping_start_and_follows_the_parame
     H = torch.tensor([[1.0, 0.0]], dtype=F64)
     kf = tl.KalmanFilter(model, H, torch.tensor([[0.1]], dtype=F64))
     assert kf.prior_mode == "model"
-    torch.testing.assert_close(kf.initial_state()[1], model.prior_covariance())
+    torch.testing.assert_close(kf.initial_state().cov, model.prior_covariance())
     model.shaping.theta = 0.25  # a new shaping filter: P∞_f = q / (2 θ)
-    np.testing.assert_allclose(kf.initial_state()[1].detach().numpy(), [[0, 0], [0, 0.9 / 0.5]], atol=1e-13)
+    np.testing.assert_allclose(kf.initial_state().cov.detach().numpy(), [[0, 0], [0, 0.9 / 0.5]], atol=1e-13)
     # the explicit alternatives: a diffuse prior, or the whole state's P∞ as a given tensor
     diffuse = tl.KalmanFilter(model, H, torch.tensor([[0.1]], dtype=F64), P0="diffuse")
     assert diffuse.prior_mode == "diffuse"
-    torch.testing.assert_close(diffuse.initial_state()[1], 1e4 * torch.eye(2, dtype=F64))
+    torch.testing.assert_close(diffuse.initial_state().cov, 1e4 * torch.eye(2, dtype=F64))
     given = tl.KalmanFilter(model, H, torch.tensor([[0.1]], dtype=F64), P0=model.stationary_covariance().detach())
     assert given.prior_mode == "given"
     with pytest.raises(ValueError, match="P0 must be a tensor, None .* or 'diffuse', got 'steady'"):

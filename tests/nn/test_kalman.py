@@ -65,11 +65,11 @@ def test_default_prior_is_stationary_for_hurwitz_and_diffuse_otherwise():
     kf = tl.KalmanFilter(make_sde(F, L, Qc), torch.tensor(H_NP), torch.tensor(R_NP))
     assert kf.prior_mode == "model"
     P_inf = scipy.linalg.solve_continuous_lyapunov(F, -L @ Qc @ L.T)
-    np.testing.assert_allclose(kf.initial_state()[1].detach().numpy(), P_inf, atol=1e-10)
+    np.testing.assert_allclose(kf.initial_state().cov.detach().numpy(), P_inf, atol=1e-10)
     cv = tl.models.constant_velocity(dim=2, q=1.0, dtype=F64)
     kf2 = tl.KalmanFilter(cv, tl.models.position_observation(cv), 0.1 * torch.eye(2, dtype=F64))
     assert kf2.prior_mode == "diffuse"
-    torch.testing.assert_close(kf2.initial_state()[1], kf2.diffuse_variance * torch.eye(4, dtype=F64))
+    torch.testing.assert_close(kf2.initial_state().cov, kf2.diffuse_variance * torch.eye(4, dtype=F64))
 
 
 def test_constant_velocity_model_matches_closed_form_reference():

@@ -174,7 +174,7 @@ def test_prior_is_a_method_of_the_model() -> None:
     kf = tl.KalmanFilter(ou, torch.eye(1, dtype=F64), torch.eye(1, dtype=F64))
     assert kf.prior_mode == "model"
     ou.theta = 0.25
-    torch.testing.assert_close(kf.initial_state()[1], torch.tensor([[4.0]], dtype=F64))
+    torch.testing.assert_close(kf.initial_state().cov, torch.tensor([[4.0]], dtype=F64))
     with torch.no_grad():
         ou.parametrizations.theta.original.fill_(float("nan"))
     with pytest.raises(ValueError, match="contains NaN or Inf"):

@@ -20,11 +20,22 @@ Shapes and missing-data rules: :mod:`torchsde_lti.filters.inputs`.
   memory-bounded time chunks) or ``"auto"`` (:func:`choose_algorithm`, built on
   :func:`prefers_scan`);
 - :func:`rts_smoother` (``smoothers``), ``algorithm="sequential"`` or ``"scan"`` (or ``"auto"``);
-- :func:`imm_filter` (``imm``): interacting multiple models over a bank of per-mode matrices.
+- :func:`imm_filter` (``imm``): interacting multiple models over a bank of per-mode matrices;
+- :func:`kalman_step`, :func:`imm_step` (``online``): one report per live track, the loops' own steps.
 """
 
 from torchsde_lti.filters.imm import IMMResult, imm_filter
 from torchsde_lti.filters.kalman import ALGORITHMS, choose_algorithm, kalman_filter
+from torchsde_lti.filters.online import (
+    IMMState,
+    IMMStep,
+    KalmanState,
+    KalmanStep,
+    imm_predict_state,
+    imm_step,
+    kalman_predict,
+    kalman_step,
+)
 from torchsde_lti.filters.scan import associative_scan, prefers_scan
 from torchsde_lti.filters.results import FilterResult, SmootherResult
 from torchsde_lti.filters.smoothers import SMOOTHER_ALGORITHMS, rts_smoother
@@ -33,11 +44,19 @@ __all__ = [
     "ALGORITHMS",
     "FilterResult",
     "IMMResult",
+    "IMMState",
+    "IMMStep",
+    "KalmanState",
+    "KalmanStep",
     "SMOOTHER_ALGORITHMS",
     "SmootherResult",
     "associative_scan",
     "choose_algorithm",
     "imm_filter",
+    "imm_predict_state",
+    "imm_step",
+    "kalman_predict",
+    "kalman_step",
     "kalman_filter",
     "prefers_scan",
     "rts_smoother",

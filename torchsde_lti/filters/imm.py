@@ -52,7 +52,7 @@ from torchsde_lti.filters.inputs import check_mask
 from torchsde_lti.core.threads import intra_op_threads
 from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, solve_lower, sym
 
-__all__ = ["IMMResult", "imm_filter", "imm_predict", "IMMPrediction"]
+__all__ = ["IMMCycle", "IMMResult", "imm_cycle", "imm_filter", "imm_predict", "IMMPrediction"]
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -138,6 +138,63 @@ def _mix(prob: Tensor, Pi: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor, T
     spread = cov.unsqueeze(-3) + d.unsqueeze(-1) * d.unsqueeze(-2)  # (..., M_i, M_j, n, n)
     P_mix = torch.einsum("...ij,...ijab->...jab", w, spread)
     return c, m_mix, sym(P_mix)
+
+
+class IMMCycle(NamedTuple):
+    """One IMM cycle's results (:func:`imm_cycle`), per track.
+
+    mode_prob: (..., M) posterior μ. mode_mean: (..., M, n), mode_cov: (..., M, n, n) the
+    mode-matched filtered moments. pred_mode_prob: (..., M) c = μ_prev Pi.
+    mode_pred_mean: (..., M, n) m⁻_j; mode_pred_cov: (..., M, n, n) P⁻_j.
+    mode_innovation: (..., M, m) y − H_j m⁻_j (0 where unobserved);
+    mode_innovation_cov: (..., M, m, m) S_j. log_likelihood: (...) the step's
+    ``log Σ_j c_j N(y; ŷ_j, S_j)`` (0 for a fully missing report).
+    """
+
+    mode_prob: Tensor
+    mode_mean: Tensor
+    mode_cov: Tensor
+    pred_mode_prob: Tensor
+    mode_pred_mean: Tensor
+    mode_pred_cov: Tensor
+    mode_innovation: Tensor
+    mode_innovation_cov: Tensor
+    log_likelihood: Tensor
+
+
+def imm_cycle(
+    prob: Tensor, mean: Tensor, cov: Tensor, Pi: Tensor, A: Tensor, Q: Tensor, Hm: Tensor, Rm: Tensor,
+    y0: Tensor, n_obs: Tensor,
+) -> IMMCycle:
+    r"""One IMM cycle (mixing, mode-matched predict and Joseph update, mode probabilities):
+    the step of :func:`imm_filter`'s loop and of the online step.
+
+    prob (..., M), mean (..., M, n), cov (..., M, n, n) before the step; Pi (..., M, M);
+    A, Q (..., M, n, n); Hm (..., M, m, n), Rm (..., M, m, m) the masked observation model
+    (zero rows and unit variances for unobserved components); y0 (..., m) the report with
+    missing entries 0; n_obs (...) the number of observed components.
+    """
+    c, m_mix, P_mix = _mix(prob, Pi, mean, cov)
+    m_pred = matvec(A, m_mix)
+    P_pred = sym(A @ P_mix @ A.mT + Q)
+    e = y0.unsqueeze(-2) - matvec(Hm, m_pred)  # (..., M, m); 0 in unobserved components
+    HP = Hm @ P_pred  # (..., M, m, n)
+    S = sym(HP @ Hm.mT + Rm)
+    LS = cholesky(S)
+    gain = cho_solve(LS, HP).mT  # K = P Hᵀ S⁻¹ (..., M, n, m)
+    mean = m_pred + matvec(gain, e)
+    IKH = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device) - gain @ Hm
+    cov = sym(IKH @ P_pred @ IKH.mT + gain @ Rm @ gain.mT)
+    z = solve_lower(LS, e.unsqueeze(-1)).squeeze(-1)
+    ll = -0.5 * (z * z).sum(-1) - torch.log(torch.diagonal(LS, dim1=-2, dim2=-1)).sum(-1)
+    ll = ll - 0.5 * n_obs[..., None] * _LOG_2PI  # (..., M): log N over observed components
+    log_c = torch.where(c > 0, torch.log(torch.where(c > 0, c, torch.ones_like(c))), torch.full_like(c, -math.inf))
+    joint = log_c + ll
+    step = torch.logsumexp(joint, dim=-1)
+    prob = torch.exp(joint - step.unsqueeze(-1))
+    # Σ_j c_j = 1 exactly in theory: a fully missing step contributes exactly 0
+    step = torch.where(n_obs > 0, step, torch.zeros_like(step))
+    return IMMCycle(prob, mean, cov, c, m_pred, P_pred, e, S, step)
 
 
 def _check_inputs(
@@ -244,37 +301,18 @@ def _imm_steps(y: Tensor, A: Tensor, Q: Tensor, H: Tensor, R: Tensor, Pi: Tensor
     Pi3 = Pi if Pi.dim() >= 3 else Pi.unsqueeze(-3)
     mean = m0 if m0.dim() >= 2 else m0.unsqueeze(-2)
     cov = P0
-    eye = torch.eye(n, dtype=dtype, device=device)
 
     def at(x: Tensor, k: int, axis: int) -> Tensor:
         return x.select(axis, 0 if x.shape[axis] == 1 else k)
 
     outs: dict[str, list[Tensor]] = {k: [] for k in ("c", "mu", "mm", "mc", "pm", "pc", "e", "S", "ll")}
     for k in range(T):
-        c, m_mix, P_mix = _mix(prob, at(Pi3, k, -3), mean, cov)
-        Ak, Qk = at(A4, k, -4), at(Q4, k, -4)
-        m_pred = matvec(Ak, m_mix)
-        P_pred = sym(Ak @ P_mix @ Ak.mT + Qk)
         Hk, Rk = at(Hm, k, -4), at(Rm, k, -4)  # (..., M, m, n), (..., M, m, m)
-        yk = y0[..., k, :].unsqueeze(-2)  # (..., 1, m)
-        e = yk - matvec(Hk, m_pred)  # (..., M, m); 0 in unobserved components
-        HP = Hk @ P_pred  # (..., M, m, n)
-        S = sym(HP @ Hk.mT + Rk)
-        LS = cholesky(S)
-        gain = cho_solve(LS, HP).mT  # K = P Hᵀ S⁻¹ (..., M, n, m)
-        mean = m_pred + matvec(gain, e)
-        IKH = eye - gain @ Hk
-        cov = sym(IKH @ P_pred @ IKH.mT + gain @ Rk @ gain.mT)
-        z = solve_lower(LS, e.unsqueeze(-1)).squeeze(-1)
-        ll = -0.5 * (z * z).sum(-1) - torch.log(torch.diagonal(LS, dim1=-2, dim2=-1)).sum(-1)
-        ll = ll - 0.5 * n_obs[..., k, None] * _LOG_2PI  # (..., M): log N over observed components
-        log_c = torch.where(c > 0, torch.log(torch.where(c > 0, c, torch.ones_like(c))),
-                            torch.full_like(c, -math.inf))
-        joint = log_c + ll
-        step = torch.logsumexp(joint, dim=-1)
-        prob = torch.exp(joint - step.unsqueeze(-1))
-        # Σ_j c_j = 1 exactly in theory: a fully missing step contributes exactly 0
-        step = torch.where(n_obs[..., k] > 0, step, torch.zeros_like(step))
+        cyc = imm_cycle(prob, mean, cov, at(Pi3, k, -3), at(A4, k, -4), at(Q4, k, -4), Hk, Rk,
+                        y0[..., k, :], n_obs[..., k])
+        prob, mean, cov = cyc.mode_prob, cyc.mode_mean, cyc.mode_cov
+        c, m_pred, P_pred, e, S, step = (cyc.pred_mode_prob, cyc.mode_pred_mean, cyc.mode_pred_cov,
+                                         cyc.mode_innovation, cyc.mode_innovation_cov, cyc.log_likelihood)
         outs["c"].append(c)
         outs["mu"].append(prob)
         outs["mm"].append(mean)

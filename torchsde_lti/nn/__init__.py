@@ -3,7 +3,8 @@ StructuredSDE base of the motion models) and the KalmanFilter module."""
 
 from torchsde_lti.nn._validate import NonFiniteLikelihoodError
 from torchsde_lti.nn.imm import IMMFilter
-from torchsde_lti.nn.kalman import DeployedFilter, FilterMode, Forecast, KalmanFilter
+from torchsde_lti.nn.deploy import DeployedFilter, OnlineStep
+from torchsde_lti.nn.kalman import FilterMode, Forecast, KalmanFilter
 from torchsde_lti.nn.layers import Discretization, Transition, VanLoanNoise
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices, StructuredSDE
 
@@ -16,6 +17,7 @@ __all__ = [
     "KalmanFilter",
     "LTISDE",
     "NonFiniteLikelihoodError",
+    "OnlineStep",
     "SDEMatrices",
     "StructuredSDE",
     "Transition",

@@ -44,6 +44,7 @@ from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str
 from torchsde_lti.filters.imm import IMMPrediction, IMMResult, combine, imm_filter, imm_predict
 from torchsde_lti.filters.kalman import check_algorithm
+from torchsde_lti.filters.online import IMMState, IMMStep, imm_predict_state, imm_step
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_values
 from torchsde_lti.nn.kalman import FilterMode
@@ -294,6 +295,79 @@ class IMMFilter(ValidateArgs, nn.Module):
             # the bank is valid by construction (parametrisations, PSD doubling) and dt checked above
             d, Pi = self._discretize_bank(F, W, dt, validate_args=False)
             return imm_filter(y, d.A, d.Q, H, R, Pi, m0, P0, p0.expand(self.num_modes), mask=mask, validate_args=False)
+
+    # ------------------------------------------------------------------ online
+    def initial_state(self, batch_shape: torch.Size | tuple[int, ...] | int = ()) -> IMMState:
+        """The prior (mode_prob0, m0, P0) for ``batch_shape`` new tracks, for :meth:`step`:
+        :class:`~torchsde_lti.IMMState` with mode_prob (*batch_shape, M), mode_mean
+        (*batch_shape, M, n), mode_cov (*batch_shape, M, n, n) (expanded views)."""
+        shape = (batch_shape,) if isinstance(batch_shape, int) else tuple(batch_shape)
+        M, n = self.num_modes, self.state_dim
+        return IMMState(self.mode_prob0.expand(*shape, M), self.m0.expand(*shape, M, n),
+                        self.P0.expand(*shape, M, n, n))
+
+    def step(
+        self, state: IMMState, y: Tensor, dt: Tensor | float, u: Tensor | None = None, mask: Tensor | None = None
+    ) -> tuple[IMMState, IMMStep]:
+        """One report per live track: one IMM cycle of each track over its own dt (...).
+
+        The cycle of :meth:`forward`'s loop: iterating it over a series gives the same
+        mode probabilities, moments and step log-likelihoods (to rounding).
+
+        Args:
+            state: :class:`~torchsde_lti.IMMState` from :meth:`initial_state` or a previous step.
+            y: (..., m) reports; NaN = missing component.
+            dt: (...) non-negative time since each track's state.
+            u: must be None (the IMM has no inputs).
+            mask: optional bool (...) or (..., m); False = not observed.
+
+        Returns:
+            (new :class:`~torchsde_lti.IMMState`, :class:`~torchsde_lti.IMMStep` with the
+            combined mean, cov, pred_mode_prob, mode_innovation (..., M, m),
+            mode_innovation_cov (..., M, m, m), log_likelihood (...), observed).
+        """
+        if u is not None:
+            raise ValueError(f"u was given (shape {shape_str(torch.as_tensor(u))}) but IMMFilter has no inputs")
+        with parametrize.cached():
+            F, W, state, dt = self._online_args(state, dt)
+            y = as_float_tensor(y, "y", F.dtype, F.device)
+            if y.dim() < 1 or y.shape[-1] != self.obs_dim:
+                raise ValueError(f"y must have shape (..., m={self.obs_dim}) to match H {shape_str(self.H)}, "
+                                 f"got shape {shape_str(y)}")
+            if mask is not None:
+                mask = torch.as_tensor(mask, device=y.device)
+                if mask.dtype != torch.bool:
+                    raise ValueError(f"mask must be a bool tensor, got dtype {mask.dtype}")
+            H, R = self._obs_model()
+            if self.validate_args:
+                check_values(finite=[("F", F), ("W", W), ("H", H), ("R", R), ("rates", self.rates),
+                                     *zip(("state.mode_prob", "state.mode_mean", "state.mode_cov"), state)],
+                             nonnegative=[("dt", dt)], no_inf=[("y", y)])
+            d, Pi = self._discretize_bank(F, W, dt, validate_args=False)
+            return imm_step(state, y, d.A, d.Q, Pi, H, R, mask)
+
+    def predict(self, state: IMMState, dt: Tensor | float) -> IMMState:
+        """Prediction only, each track over its own dt (...): mixing with ``expm(Λ dt)``, then
+        each mode's exact A_j, Q_j (the predicted :class:`~torchsde_lti.IMMState`)."""
+        with parametrize.cached():
+            F, W, state, dt = self._online_args(state, dt)
+            if self.validate_args:
+                check_values(finite=[("F", F), ("W", W), ("rates", self.rates)], nonnegative=[("dt", dt)])
+            d, Pi = self._discretize_bank(F, W, dt, validate_args=False)
+            return imm_predict_state(state, d.A, d.Q, Pi)
+
+    def _online_args(self, state: IMMState, dt: Tensor | float) -> tuple[Tensor, Tensor, IMMState, Tensor]:
+        """The bank (F, W), the state and dt of an online call, converted and shape-checked."""
+        F, W = self.bank()
+        M, n = self.num_modes, self.state_dim
+        if not isinstance(state, tuple) or len(state) != 3:
+            raise TypeError(f"state must be an IMMState (mode_prob, mode_mean, mode_cov), got {type(state).__name__}")
+        prob, mean, cov = (as_float_tensor(t, f"state.{k}", F.dtype, F.device)
+                           for k, t in zip(("mode_prob", "mode_mean", "mode_cov"), state))
+        if prob.dim() < 1 or prob.shape[-1] != M or mean.shape[-2:] != (M, n) or cov.shape[-3:] != (M, n, n):
+            raise ValueError(f"state must be (mode_prob (..., {M}), mode_mean (..., {M}, {n}), mode_cov "
+                             f"(..., {M}, {n}, {n})), got {shape_str(prob)}, {shape_str(mean)}, {shape_str(cov)}")
+        return F, W, IMMState(prob, mean, cov), as_float_tensor(dt, "dt", F.dtype, F.device)
 
     def forecast(
         self,

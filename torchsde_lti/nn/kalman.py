@@ -56,6 +56,7 @@ from torchsde_lti.core.validation import as_float_tensor, check_finite, check_ma
 from torchsde_lti.filters import FilterResult, SmootherResult, choose_algorithm, rts_smoother
 from torchsde_lti.filters.inputs import FilterInputs
 from torchsde_lti.filters.kalman import ALGORITHMS, check_algorithm, run_filter
+from torchsde_lti.filters.online import KalmanState, KalmanStep, kalman_predict, kalman_step
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_outcome, check_values
 from torchsde_lti.nn.parametrizations import PositiveDefinite
@@ -261,9 +262,18 @@ class KalmanFilter(ValidateArgs, nn.Module):
         """The filter's one motion model and observation: ``[FilterMode("", sde, H, R)]``."""
         return [FilterMode("", self.sde, self.H, self.R)]
 
-    def initial_state(self) -> tuple[Tensor, Tensor]:
-        """Prior (m0 (..., n), P0 (..., n, n)) at t₀ for the current parameters."""
-        return self._prior(self.sde.matrices(), self.validate_args)
+    def initial_state(self, batch_shape: torch.Size | tuple[int, ...] | int = ()) -> KalmanState:
+        """The prior N(m0, P0) at t₀ for ``batch_shape`` new tracks, for :meth:`step`.
+
+        Returns :class:`~torchsde_lti.KalmanState` with mean (*batch_shape, n) and cov
+        (*batch_shape, n, n) (expanded views of the current m0, P0; ``()``: one track,
+        unpacks as ``m0, P0 = kf.initial_state()``).
+        """
+        shape = (batch_shape,) if isinstance(batch_shape, int) else tuple(batch_shape)
+        with parametrize.cached():
+            m0, P0 = self._prior(self.sde.matrices(), self.validate_args)
+        n = self.state_dim
+        return KalmanState(m0.expand(*shape, n), P0.expand(*shape, n, n))
 
     def _prior(self, mats: SDEMatrices, validate_args: bool) -> tuple[Tensor, Tensor]:
         """:meth:`initial_state` from already evaluated (and checked) SDE matrices."""
@@ -425,6 +435,81 @@ class KalmanFilter(ValidateArgs, nn.Module):
             m.F, m.L, m.Qc, dt, m.B, method=self.discretization_method, unique=self.unique_dt, validate_args=False
         )
 
+    # ------------------------------------------------------------------ online
+    def step(
+        self, state: KalmanState, y: Tensor, dt: Tensor | float, u: Tensor | None = None, mask: Tensor | None = None
+    ) -> tuple[KalmanState, KalmanStep]:
+        """One report per live track: predict each track over its own dt, then update.
+
+        The same step as the sequence filter's loop: iterating it over a series gives
+        :meth:`forward`'s filtered moments and step log-likelihoods (to rounding).
+
+        Args:
+            state: :class:`~torchsde_lti.KalmanState` (mean (..., n), cov (..., n, n)), from
+                :meth:`initial_state` or a previous step.
+            y: (..., m) one report per track; NaN = missing component.
+            dt: (...) non-negative time since each track's state (a float: shared).
+            u: optional (..., p) inputs held over the step.
+            mask: optional bool (...) or (..., m); False = not observed (a pure prediction).
+
+        Returns:
+            (new :class:`~torchsde_lti.KalmanState`, :class:`~torchsde_lti.KalmanStep` with
+            pred_mean, pred_cov, innovation (..., m), innovation_cov (..., m, m),
+            log_likelihood (...), observed).
+        """
+        with parametrize.cached():
+            mats = self.sde.matrices()
+            state, dt, u = self._check_state(state, dt, u, mats)
+            y = as_float_tensor(y, "y", mats.F.dtype, mats.F.device)
+            if y.dim() < 1 or y.shape[-1] != self.obs_dim:
+                raise ValueError(f"y must have shape (..., m={self.obs_dim}) to match H {shape_str(self.H)}, "
+                                 f"got shape {shape_str(y)}")
+            if mask is not None:
+                mask = torch.as_tensor(mask, device=y.device)
+                if mask.dtype != torch.bool:
+                    raise ValueError(f"mask must be a bool tensor, got dtype {mask.dtype}")
+            H, R, D = self.H, self.R, (self.D if u is not None else None)
+            if self.validate_args:
+                self._check_values(mats, dt, y=y, u=u, H=H, R=R, D=D, mean=state.mean, cov=state.cov)
+            d = discretize(mats.F, mats.L, mats.Qc, dt, B=mats.B, method=self.discretization_method,
+                           validate_args=False)
+            c = matvec(d.G, u) if (u is not None and d.G is not None) else None
+            if D is not None:
+                y = y - matvec(D, u)
+            return kalman_step(state, y, d.A, d.Q, H, R, c, mask)
+
+    def predict(self, state: KalmanState, dt: Tensor | float, u: Tensor | None = None) -> KalmanState:
+        """Prediction only, each track over its own dt (...): ``m⁻ = A m + G u``, ``P⁻ = A P Aᵀ + Q``."""
+        with parametrize.cached():
+            mats = self.sde.matrices()
+            state, dt, u = self._check_state(state, dt, u, mats)
+            if self.validate_args:
+                self._check_values(mats, dt, u=u, mean=state.mean, cov=state.cov)
+            d = discretize(mats.F, mats.L, mats.Qc, dt, B=mats.B, method=self.discretization_method,
+                           validate_args=False)
+            c = matvec(d.G, u) if (u is not None and d.G is not None) else None
+            return kalman_predict(state, d.A, d.Q, c)
+
+    def _check_state(
+        self, state: KalmanState | tuple[Tensor, Tensor], dt: Tensor | float, u: Tensor | None, mats: SDEMatrices
+    ) -> tuple[KalmanState, Tensor, Tensor | None]:
+        """(state, dt, u) of an online call converted and their shapes checked."""
+        dtype, device = mats.F.dtype, mats.F.device
+        n = self.state_dim
+        if not isinstance(state, tuple) or len(state) != 2:
+            raise TypeError(f"state must be a KalmanState (mean, cov), got {type(state).__name__}")
+        mean = as_float_tensor(state[0], "state.mean", dtype, device)
+        cov = as_float_tensor(state[1], "state.cov", dtype, device)
+        if mean.dim() < 1 or mean.shape[-1] != n or cov.dim() < 2 or cov.shape[-2:] != (n, n):
+            raise ValueError(f"state must be (mean (..., {n}), cov (..., {n}, {n})), got mean {shape_str(mean)}, "
+                             f"cov {shape_str(cov)}")
+        dt = as_float_tensor(dt, "dt", dtype, device)
+        if u is not None:
+            p = mats.B.shape[-1] if mats.B is not None else (self.D.shape[-1] if self.D is not None else 0)
+            u = self._check_u(u.unsqueeze(-2) if isinstance(u, Tensor) and u.dim() >= 1 else u, p, 1, "1",
+                              dtype, device).squeeze(-2)
+        return KalmanState(mean, cov), dt, u
+
     def smooth(self, out: FilterResult) -> SmootherResult:
         """RTS smoother over the filter output (uses the A_k, Q_k stored in ``out``): the
         sequential backward pass after ``"sequential"`` and ``"square_root"``, the reverse
@@ -489,21 +574,3 @@ class KalmanFilter(ValidateArgs, nn.Module):
             + (f", method={self.method!r}" if self.method else "")
         )
 
-
-class DeployedFilter(nn.Module):
-    """The entry point to ship a trained :class:`KalmanFilter` with ``torch.export`` (or
-    ``torch.jit``-free serving): plain tensor outputs instead of a :class:`FilterResult`.
-
-    ``forward(y, dt)``: y (..., T, m) with NaN = missing, dt (..., T) ->
-    ``(log_likelihood (...), mean (..., T, n))``, the filter's log-likelihood and filtered means.
-    """
-
-    def __init__(self, kf: KalmanFilter) -> None:
-        super().__init__()
-        if not isinstance(kf, KalmanFilter):
-            raise TypeError(f"kf must be a KalmanFilter, got {type(kf).__name__}")
-        self.kf = kf
-
-    def forward(self, y: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
-        out = self.kf(y, dt)
-        return out.log_likelihood, out.mean

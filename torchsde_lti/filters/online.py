@@ -1,0 +1,257 @@
+r"""Online Kalman filtering: one report per track at a time, each track with its own step.
+
+A live tracker holds a :class:`KalmanState` (mean (..., n), cov (..., n, n), one entry per
+live track) and, when reports arrive, calls :func:`kalman_step` with every track's own
+discrete model (A, Q) over its own gap. The step is the SAME predict/update as the
+sequence filter's loop (the loop's step in :mod:`~torchsde_lti.filters.sequential`: predict
+``m⁻ = A m + c``, ``P⁻ = A P Aᵀ + Q``, then whitened scalar Joseph updates with the observed
+components of y), so running :func:`kalman_step` over a series reproduces
+:func:`~torchsde_lti.kalman_filter` to rounding. Missing reports (NaN in y, or mask False)
+are pure predictions and contribute 0 to the log-likelihood.
+
+:func:`imm_step` is the same for the interacting multiple model filter (the cycle of
+:func:`~torchsde_lti.filters.imm.imm_filter`), with the mode probabilities in the
+:class:`IMMState`.
+
+Tracks join and leave by indexing or concatenating the state (every field has the batch
+leading)::
+
+    state = state.index(keep)                      # drop tracks (bool mask or indices)
+    state = KalmanState.cat([state, new_tracks])   # add tracks
+
+:class:`KalmanStep` carries what gating and data association need: the innovation
+``e = y − H m⁻``, its covariance ``S = H P⁻ Hᵀ + R`` and the step log-likelihood
+``log N(e; 0, S)`` over the observed components.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchsde_lti.core.linalg import matvec, sym, to_batch_last
+from torchsde_lti.filters.inputs import LOG_2PI, mask_observation_model, observed_components, whiten
+from torchsde_lti.filters.imm import combine, imm_cycle, imm_predict
+from torchsde_lti.filters.sequential import _joseph_step
+
+__all__ = ["IMMState", "IMMStep", "KalmanState", "KalmanStep", "imm_predict_state", "imm_step", "kalman_predict", "kalman_step"]
+
+
+class KalmanState(NamedTuple):
+    """The filter's belief about live tracks, batch leading.
+
+    mean: (..., n) state means. cov: (..., n, n) state covariances.
+    """
+
+    mean: Tensor
+    cov: Tensor
+
+    def index(self, idx: Tensor | slice | int | Sequence[int]) -> KalmanState:
+        """The tracks ``idx`` of the (first) batch dimension: a bool mask, indices or a slice."""
+        return type(self)(*(t[idx] for t in self))
+
+    @classmethod
+    def cat(cls, states: Sequence[KalmanState]) -> KalmanState:
+        """The tracks of several states (each with one batch dimension) in one state."""
+        return cls(*(torch.cat(fields) for fields in zip(*states)))
+
+
+class KalmanStep(NamedTuple):
+    """What one update saw, per track.
+
+    pred_mean: (..., n) m⁻. pred_cov: (..., n, n) P⁻.
+    innovation: (..., m) ``y − H m⁻`` (0 in unobserved components).
+    innovation_cov: (..., m, m) ``S = H P⁻ Hᵀ + R`` (all components; gate with
+        ``eᵀ S⁻¹ e`` on the observed ones).
+    log_likelihood: (...) ``log N(y^obs; H^obs m⁻, S^obs)`` (0 for a fully missing report).
+    observed: (..., m) bool, the components that entered the update.
+    """
+
+    pred_mean: Tensor
+    pred_cov: Tensor
+    innovation: Tensor
+    innovation_cov: Tensor
+    log_likelihood: Tensor
+    observed: Tensor
+
+
+def kalman_predict(state: KalmanState, A: Tensor, Q: Tensor, c: Tensor | None = None) -> KalmanState:
+    """Prediction only: ``m⁻ = A m + c``, ``P⁻ = A P Aᵀ + Q``.
+
+    Args:
+        state: mean (..., n), cov (..., n, n).
+        A: (..., n, n) transitions. Q: (..., n, n) process noise. c: optional (..., n) input term G u.
+
+    Returns:
+        :class:`KalmanState` of the predictions (batch dims broadcast).
+    """
+    n = A.shape[-1]
+    cb = torch.broadcast_shapes(state.cov.shape[:-2], A.shape[:-2], Q.shape[:-2])
+    mb = torch.broadcast_shapes(cb, state.mean.shape[:-1], *(() if c is None else (c.shape[:-1],)))
+    Ab, Qb, Pb, mean_b, cbl = _batch_last(state, A, Q, c, cb, mb)
+    pm, pc, _, _, _, _ = _joseph_step(Ab, Qb, mean_b, Pb, cbl, (), (), None, None)  # no rows: predict only
+    return KalmanState(pm.permute(*range(1, 1 + len(mb)), 0), pc.permute(*range(2, 2 + len(cb)), 0, 1).expand(*mb, n, n))
+
+
+def _batch_last(
+    state: KalmanState, A: Tensor, Q: Tensor, c: Tensor | None, cb: torch.Size, mb: torch.Size
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
+    """A, Q, P (n, n, *cb), mean and c (n, *mb): the sequence loop's batch-last layout."""
+    n = A.shape[-1]
+    Ab = to_batch_last(A.expand(*cb, n, n), 2)
+    Qb = to_batch_last(Q.expand(*cb, n, n), 2)
+    Pb = to_batch_last(state.cov.expand(*cb, n, n), 2)
+    mean_b = to_batch_last(state.mean.expand(*mb, n), 1)
+    cbl = None if c is None else to_batch_last(c.expand(*mb, n), 1)
+    return Ab, Qb, Pb, mean_b, cbl
+
+
+def kalman_step(
+    state: KalmanState,
+    y: Tensor,
+    A: Tensor,
+    Q: Tensor,
+    H: Tensor,
+    R: Tensor,
+    c: Tensor | None = None,
+    mask: Tensor | None = None,
+) -> tuple[KalmanState, KalmanStep]:
+    r"""One predict + update of every track (the sequence filter's step).
+
+    Arguments are taken as checked (the modules check them once at their boundary).
+
+    Args:
+        state: mean (..., n), cov (..., n, n) before the step.
+        y: (..., m) reports; NaN = missing component.
+        A: (..., n, n) transitions over each track's gap. Q: (..., n, n) process noise.
+        H: (..., m, n) observation matrix. R: (..., m, m) noise covariance (symmetric PD).
+        c: optional (..., n) input term ``G u`` of the prediction (the feedthrough ``D u``,
+            if any, is subtracted from y by the caller).
+        mask: optional bool (...) (whole report) or (..., m); False = not observed.
+
+    Returns:
+        (:class:`KalmanState` after the update, :class:`KalmanStep`); batch dims broadcast.
+    """
+    n, m = A.shape[-1], y.shape[-1]
+    if mask is not None and mask.dim() < y.dim():
+        mask = mask.unsqueeze(-1)
+    obs, y0 = observed_components(y, mask)
+    Hw, yw, log_det = whiten(*mask_observation_model(H, R, obs), y0)
+    shapes = [state.cov.shape[:-2], A.shape[:-2], Q.shape[:-2], Hw.shape[:-2]]
+    cb = torch.broadcast_shapes(*shapes)
+    mb = torch.broadcast_shapes(cb, state.mean.shape[:-1], yw.shape[:-1], *(() if c is None else (c.shape[:-1],)))
+    # batch-last layout (event dims first, batch contiguous), as in the sequence loop
+    Ab, Qb, Pb, mean_b, cbl = _batch_last(state, A, Q, c, cb, mb)
+    h_rows = to_batch_last(Hw.expand(*cb, m, n), 2).unbind(0)
+    y_vals = to_batch_last(yw.expand(*mb, m), 1).unbind(0)
+    pm, pc, mean, P, es, ss = _joseph_step(Ab, Qb, mean_b, Pb, cbl, h_rows, y_vals, None, None)
+    core = torch.zeros((), dtype=y0.dtype, device=y0.device)
+    for e, s in zip(es, ss):
+        core = core - 0.5 * (torch.log(s) + e * e / s)
+    nd = len(mb)
+    perm1 = [*range(1, 1 + nd), 0]
+    perm2 = [*range(2, 2 + len(cb)), 0, 1]
+    pred_mean, filt_mean = pm.permute(perm1), mean.permute(perm1)
+    pred_cov, filt_cov = pc.permute(perm2).expand(*mb, n, n), P.permute(perm2).expand(*mb, n, n)
+    innovation = y0 - matvec(H, pred_mean)
+    innovation_cov = sym(H @ pred_cov @ H.mT + R)
+    if obs is None:
+        n_obs = torch.full((), float(m), dtype=y0.dtype, device=y0.device)
+        observed = torch.ones((*mb, m), dtype=torch.bool, device=y0.device)
+    else:
+        observed = obs.expand(*mb, m)
+        innovation = innovation * observed
+        n_obs = observed.to(y0.dtype).sum(-1)
+    ll = core - 0.5 * n_obs * LOG_2PI - log_det  # e_j, s_j: (*batch), batch-last = batch-first
+    return KalmanState(filt_mean, filt_cov), KalmanStep(
+        pred_mean, pred_cov.expand(*mb, n, n), innovation.expand(*mb, m), innovation_cov.expand(*mb, m, m),
+        ll.expand(mb), observed,
+    )
+
+
+class IMMState(NamedTuple):
+    """The IMM filter's belief about live tracks, batch leading.
+
+    mode_prob: (..., M) mode probabilities. mode_mean: (..., M, n), mode_cov: (..., M, n, n)
+    the mode-matched moments.
+    """
+
+    mode_prob: Tensor
+    mode_mean: Tensor
+    mode_cov: Tensor
+
+    def index(self, idx: Tensor | slice | int | Sequence[int]) -> IMMState:
+        """The tracks ``idx`` of the (first) batch dimension: a bool mask, indices or a slice."""
+        return type(self)(*(t[idx] for t in self))
+
+    @classmethod
+    def cat(cls, states: Sequence[IMMState]) -> IMMState:
+        """The tracks of several states (each with one batch dimension) in one state."""
+        return cls(*(torch.cat(fields) for fields in zip(*states)))
+
+
+class IMMStep(NamedTuple):
+    """What one IMM update saw, per track.
+
+    mean: (..., n), cov: (..., n, n) the moment-matched filtered state.
+    pred_mode_prob: (..., M) the predicted mode probabilities c.
+    mode_innovation: (..., M, m) ``y − H_j m⁻_j`` (0 in unobserved components);
+    mode_innovation_cov: (..., M, m, m) ``S_j``.
+    log_likelihood: (...) ``log Σ_j c_j N(y; ŷ_j, S_j)`` (0 for a fully missing report).
+    observed: (..., m) bool.
+    """
+
+    mean: Tensor
+    cov: Tensor
+    pred_mode_prob: Tensor
+    mode_innovation: Tensor
+    mode_innovation_cov: Tensor
+    log_likelihood: Tensor
+    observed: Tensor
+
+
+def imm_step(
+    state: IMMState, y: Tensor, A: Tensor, Q: Tensor, Pi: Tensor, H: Tensor, R: Tensor, mask: Tensor | None = None
+) -> tuple[IMMState, IMMStep]:
+    """One IMM cycle of every track (the cycle of :func:`~torchsde_lti.filters.imm.imm_filter`).
+
+    Args:
+        state: mode_prob (..., M), mode_mean (..., M, n), mode_cov (..., M, n, n).
+        y: (..., m) reports; NaN = missing component.
+        A, Q: (..., M, n, n) each mode over each track's gap. Pi: (..., M, M) mode transitions.
+        H: (..., M or 1, m, n), R: (..., M or 1, m, m) observation model.
+        mask: optional bool (...) or (..., m); False = not observed.
+
+    Returns:
+        (:class:`IMMState`, :class:`IMMStep`).
+    """
+    m = y.shape[-1]
+    if mask is not None and mask.dim() < y.dim():
+        mask = mask.unsqueeze(-1)
+    obs, y0 = observed_components(y, mask)
+    if obs is None:
+        n_obs = torch.full(y0.shape[:-1], float(m), dtype=y0.dtype, device=y0.device)
+        observed = torch.ones(y0.shape, dtype=torch.bool, device=y0.device)
+    else:
+        observed = obs.expand(*obs.shape[:-1], m)
+        n_obs = observed.to(y0.dtype).sum(-1)
+    Hm, Rm = mask_observation_model(H, R, None if obs is None else observed.unsqueeze(-2))
+    cyc = imm_cycle(*state, Pi, A, Q, Hm, Rm, y0, n_obs)
+    x, P = combine(cyc.mode_prob, cyc.mode_mean, cyc.mode_cov)
+    new = IMMState(cyc.mode_prob, cyc.mode_mean, cyc.mode_cov)
+    batch = torch.broadcast_shapes(cyc.log_likelihood.shape, observed.shape[:-1])
+    return new, IMMStep(x, P, cyc.pred_mode_prob, cyc.mode_innovation, cyc.mode_innovation_cov,
+                        cyc.log_likelihood.expand(batch), observed.expand(*batch, m))
+
+
+def imm_predict_state(state: IMMState, A: Tensor, Q: Tensor, Pi: Tensor) -> IMMState:
+    """Prediction only (mixing, then each mode's A_j, Q_j): the IMM's state at the report time.
+
+    A, Q: (..., M, n, n); Pi: (..., M, M). Returns the predicted :class:`IMMState`
+    (mode_prob = c = μ Pi).
+    """
+    p = imm_predict(*state, A.unsqueeze(-4), Q.unsqueeze(-4), Pi.unsqueeze(-3))
+    return IMMState(p.mode_probabilities.squeeze(-2), p.mode_mean.squeeze(-3), p.mode_cov.squeeze(-4))
