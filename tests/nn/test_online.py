@@ -1,0 +1,184 @@
+"""The online API (issue 21): ``initial_state``, ``step``, ``predict`` of KalmanFilter and
+IMMFilter, run report by report, equal the sequence filters over random series with missing
+reports (NaN and mask) to 1e-12 in float64; tracks join and leave by indexing the state."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchsde_lti as tl
+
+F64 = torch.float64
+H2 = [[1.0, 0, 0, 0], [0, 0, 1.0, 0]]
+
+
+def _series(B: int, T: int, seed: int, dtype: torch.dtype = F64) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    y = torch.randn(B, T, 2, generator=g, dtype=dtype).cumsum(1)
+    dt = torch.rand(B, T, generator=g, dtype=dtype) * 2.0
+    dt[:, 0] = 0.0
+    y[torch.rand(B, T, 2, generator=g) < 0.15] = float("nan")  # missing components
+    mask = torch.rand(B, T, generator=g) > 0.15  # missing reports
+    return y, dt, mask
+
+
+def _kf(dtype: torch.dtype = F64, model: str = "cv") -> tl.KalmanFilter:
+    sde = tl.models.constant_velocity(dim=2, q=0.8, dtype=dtype) if model == "cv" else \
+        tl.models.integrated_ou(0.7, 0.5, dim=2, dtype=dtype)
+    R = torch.tensor([[0.3, 0.1], [0.1, 0.5]], dtype=dtype)
+    return tl.KalmanFilter(sde, torch.tensor(H2, dtype=dtype), R, P0=20 * torch.eye(4, dtype=dtype),
+                           m0=torch.tensor([0.5, 0.0, -0.5, 0.1], dtype=dtype), algorithm="sequential")
+
+
+@pytest.mark.parametrize("model", ["cv", "iou"])
+def test_kalman_step_equals_sequence_filter(model):
+    kf = _kf(model=model)
+    y, dt, mask = _series(6, 40, seed=1)
+    with torch.no_grad():
+        ref = kf(y, dt, mask=mask)
+        state = kf.initial_state((6,))
+        for k in range(y.shape[1]):
+            state, out = kf.step(state, y[:, k], dt[:, k], mask=mask[:, k])
+            for got, want in ((state.mean, ref.mean[:, k]), (state.cov, ref.cov[:, k]),
+                              (out.pred_mean, ref.pred_mean[:, k]), (out.pred_cov, ref.pred_cov[:, k]),
+                              (out.innovation, ref.innovation[:, k]), (out.innovation_cov, ref.innovation_cov[:, k]),
+                              (out.log_likelihood, ref.step_log_likelihood[:, k]), (out.observed, ref.observed[:, k])):
+                torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+
+
+def test_kalman_step_float32_and_per_component_mask():
+    kf = _kf(torch.float32)
+    y, dt, _ = _series(3, 20, seed=2, dtype=torch.float32)
+    mask = torch.rand(3, 20, 2, generator=torch.Generator().manual_seed(3)) > 0.3
+    with torch.no_grad():
+        ref = kf(y, dt, mask=mask)
+        state = kf.initial_state(3)
+        for k in range(20):
+            state, out = kf.step(state, y[:, k], dt[:, k], mask=mask[:, k])
+        assert state.mean.dtype == torch.float32
+        torch.testing.assert_close(state.mean, ref.mean[:, -1], rtol=1e-4, atol=1e-4)
+
+
+def test_predict_equals_forecast_and_missing_report():
+    kf = _kf()
+    state = kf.initial_state((4,))
+    dt = torch.tensor([0.0, 0.5, 1.0, 3.0], dtype=F64)
+    with torch.no_grad():
+        pred = kf.predict(state, dt)
+        fc = kf.forecast((state.mean, state.cov), dt.unsqueeze(-1))
+        torch.testing.assert_close(pred.mean, fc.mean[:, 0], rtol=0, atol=1e-12)
+        torch.testing.assert_close(pred.cov, fc.cov[:, 0], rtol=0, atol=1e-12)
+        # a missing report is a pure prediction with zero log-likelihood
+        new, out = kf.step(state, torch.full((4, 2), float("nan"), dtype=F64), dt)
+        torch.testing.assert_close(new.cov, pred.cov, rtol=0, atol=1e-12)
+        assert bool((out.log_likelihood == 0).all())
+
+
+def test_tracks_join_and_leave_by_indexing():
+    kf = _kf()
+    y, dt, _ = _series(5, 12, seed=4)
+    y = torch.nan_to_num(y)
+    with torch.no_grad():
+        ref = kf(y, dt)
+        ref_late = kf(y[:2, 6:], dt[:2, 6:])  # two tracks starting at step 6
+        state = kf.initial_state((5,))
+        for k in range(6):
+            state, _ = kf.step(state, y[:, k], dt[:, k])
+        keep = torch.tensor([True, False, True, True, False])
+        state = state.index(keep)  # tracks 1 and 4 leave
+        state = tl.KalmanState.cat([state, kf.initial_state((2,))])  # two new tracks join
+        y_now = torch.cat([y[keep, 6:], y[:2, 6:]])
+        dt_now = torch.cat([dt[keep, 6:], dt[:2, 6:]])
+        for k in range(6):
+            state, _ = kf.step(state, y_now[:, k], dt_now[:, k])
+        torch.testing.assert_close(state.mean[:3], ref.mean[keep, -1], rtol=0, atol=1e-12)
+        torch.testing.assert_close(state.mean[3:], ref_late.mean[:, -1], rtol=0, atol=1e-12)
+        # the generic form for any state NamedTuple
+        sub = type(state)(*(t[[0, 4]] for t in state))
+        torch.testing.assert_close(sub.cov, state.cov[[0, 4]])
+
+
+def test_step_gating_statistic_is_chi_square():
+    kf = _kf()
+    state = kf.initial_state(())
+    state, _ = kf.step(state, torch.tensor([0.1, 0.2], dtype=F64), 0.0)
+    _, out = kf.step(state, torch.tensor([0.5, -0.1], dtype=F64), 1.0)
+    e, S = out.innovation, out.innovation_cov
+    d2 = e @ torch.linalg.solve(S, e)
+    expected_ll = -0.5 * (d2 + torch.logdet(2 * torch.pi * S))
+    torch.testing.assert_close(out.log_likelihood, expected_ll, rtol=0, atol=1e-12)
+
+
+def test_step_gradients_float64():
+    kf = _kf()
+    y = torch.tensor([[0.3, -0.2], [1.0, 0.4]], dtype=F64)
+    dt = torch.tensor([0.4, 1.3], dtype=F64, requires_grad=True)
+    state = kf.initial_state(2)
+
+    def f(dt_: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+        new, out = kf.step(tl.KalmanState(mean, state.cov), y, dt_)
+        return out.log_likelihood.sum() + new.mean.sum()
+
+    assert torch.autograd.gradcheck(f, (dt, state.mean.detach().clone().requires_grad_(True)))
+    kf.step(state, y, dt)[1].log_likelihood.sum().backward()  # R is learned (the default learn)
+    grads = [p.grad for p in kf.parameters() if p.requires_grad]
+    assert grads and all(g is not None and bool(torch.isfinite(g).all()) for g in grads)
+
+
+def test_step_validates_arguments():
+    kf = _kf()
+    state = kf.initial_state(2)
+    with pytest.raises(ValueError, match="y must have shape"):
+        kf.step(state, torch.zeros(2, 3, dtype=F64), torch.ones(2, dtype=F64))
+    with pytest.raises(ValueError, match="dt"):
+        kf.step(state, torch.zeros(2, 2, dtype=F64), torch.tensor([1.0, -1.0], dtype=F64))
+    with pytest.raises(ValueError, match="state must be"):
+        kf.step(tl.KalmanState(state.mean[:, :3], state.cov), torch.zeros(2, 2, dtype=F64), 1.0)
+    with pytest.raises(TypeError, match="KalmanState"):
+        kf.step(state.mean, torch.zeros(2, 2, dtype=F64), 1.0)
+    kf.validate_args = False  # the hot loop: no value checks (no host sync for them)
+    kf.step(state, torch.zeros(2, 2, dtype=F64), torch.tensor([1.0, 2.0], dtype=F64))
+
+
+def _imm(dtype: torch.dtype = F64) -> tl.IMMFilter:
+    cv = tl.models.constant_velocity(dim=2, q=0.5, dtype=dtype)
+    iou = tl.models.integrated_ou(1.5, 0.05, dim=2, dtype=dtype)
+    return tl.IMMFilter([cv, iou], torch.tensor(H2, dtype=dtype), 0.4 * torch.eye(2, dtype=dtype),
+                        torch.tensor([[0.0, 0.2], [0.4, 0.0]], dtype=dtype), P0=30 * torch.eye(4, dtype=dtype),
+                        mode_prob0=torch.tensor([0.3, 0.7], dtype=dtype))
+
+
+def test_imm_step_equals_sequence_filter():
+    imm = _imm()
+    y, dt, mask = _series(5, 40, seed=5)
+    with torch.no_grad():
+        ref = imm(y, dt, mask=mask)
+        state = imm.initial_state((5,))
+        for k in range(y.shape[1]):
+            state, out = imm.step(state, y[:, k], dt[:, k], mask=mask[:, k])
+            for got, want in ((state.mode_prob, ref.mode_probabilities[:, k]), (state.mode_mean, ref.mode_mean[:, k]),
+                              (state.mode_cov, ref.mode_cov[:, k]), (out.mean, ref.mean[:, k]), (out.cov, ref.cov[:, k]),
+                              (out.pred_mode_prob, ref.pred_mode_probabilities[:, k]),
+                              (out.mode_innovation, ref.mode_innovation[:, k]),
+                              (out.mode_innovation_cov, ref.mode_innovation_cov[:, k]),
+                              (out.log_likelihood, ref.step_log_likelihood[:, k]), (out.observed, ref.observed[:, k])):
+                torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+
+
+def test_imm_predict_equals_forecast_and_indexing():
+    imm = _imm()
+    y, dt, _ = _series(3, 8, seed=6)
+    with torch.no_grad():
+        state = imm.initial_state(3)
+        for k in range(8):
+            state, _ = imm.step(state, y[:, k], dt[:, k])
+        h = torch.tensor([0.5, 1.0, 2.0], dtype=F64)
+        pred = imm.predict(state, h)
+        fc = imm.forecast(tuple(state), h.unsqueeze(-1))
+        torch.testing.assert_close(pred.mode_prob, fc.mode_probabilities[:, 0], rtol=0, atol=1e-12)
+        torch.testing.assert_close(pred.mode_cov, fc.mode_cov[:, 0], rtol=0, atol=1e-12)
+        two = tl.IMMState.cat([state.index([0]), state.index(slice(2, 3))])
+        torch.testing.assert_close(two.mode_mean, state.mode_mean[[0, 2]])
+    with pytest.raises(ValueError, match="no inputs"):
+        imm.step(state, y[:, 0], dt[:, 0], u=torch.zeros(3, 1, dtype=F64))
