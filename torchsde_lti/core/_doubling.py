@@ -253,7 +253,7 @@ def per_element_doubling(
     """
     F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
     assert dt is not None
-    n, N = F.shape[-1], batch.numel()
+    n, N = F.shape[-1], math.prod(batch)  # (a symbolic size while tracing: no guard on it)
     p = 0 if B is None else B.shape[-1]
     traced = tracing() if masked is None else masked
     Fb = _flat(F, batch, n)
@@ -286,7 +286,7 @@ def per_element_doubling(
         Wb = None if Wb is None else Wb[order]
         Bb = None if Bb is None else Bb[order]
 
-    lo = _Layout(batch_first=n > BATCH_LAST_MAX_DIM or N <= BATCH_LAST_MIN_ELEMENTS)
+    lo = _Layout(batch_first=n > BATCH_LAST_MAX_DIM or tracing() or N <= BATCH_LAST_MIN_ELEMENTS)
     h = dtf * torch.exp2(-halvings)
     hc = lo.col(h)
     M = lo.put(Fb) * hc
@@ -485,7 +485,7 @@ def doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | N
     F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
     assert dt is not None
     one_set = all(t is None or t.shape[:-2].numel() == 1 for t in (F, W, B))
-    if one_set and batch.numel() >= SHARED_MIN_ELEMENTS and not tracing():
+    if one_set and not tracing() and batch.numel() >= SHARED_MIN_ELEMENTS:
         n = F.shape[-1]
         return shared_doubling(
             F.reshape(n, n),

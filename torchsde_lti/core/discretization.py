@@ -26,6 +26,7 @@ exact answer.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -75,7 +76,7 @@ def resolve_method(method: str) -> str:
 def _routed(inputs: SDEInputs) -> bool:
     """Whether the default method hands this call to ``"matrix_exp"`` (few elements, provably
     accurate; never while tracing, whose values are symbolic)."""
-    return inputs.batch.numel() <= ROUTE_MAX_ELEMENTS and not tracing() and accurate(inputs)
+    return not tracing() and inputs.batch.numel() <= ROUTE_MAX_ELEMENTS and accurate(inputs)
 
 
 def _run(inputs: SDEInputs, method: str) -> tuple[Tensor, Tensor | None, Tensor | None]:
@@ -113,7 +114,7 @@ def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | No
 def _work(inputs: SDEInputs) -> int:
     """Matrix entries a call produces: the size that sets its intra-op threads."""
     n = inputs.F.shape[-1]
-    return inputs.batch.numel() * n * (n + (0 if inputs.B is None else inputs.B.shape[-1]))
+    return math.prod(inputs.batch) * n * (n + (0 if inputs.B is None else inputs.B.shape[-1]))  # symbolic-safe
 
 
 def discretize(

@@ -213,7 +213,7 @@ def bl_matmul(a: Tensor, b: Tensor, c: Tensor | None = None, alpha: float = 1.0)
         if a.shape[1] > FMA_MAX_INNER:
             out = (a.permute(2, 0, 1) @ b.permute(2, 0, 1)).permute(1, 2, 0)
             return _scaled_add(out, c, alpha)
-        if a.shape[-1] > FMA_MIN_BATCH:
+        if not torch.compiler.is_compiling() and a.shape[-1] > FMA_MIN_BATCH:  # (traced: no guard on the batch)
             if _records_graph(a, b, c) and not _plain_ops_required():
                 return _FmaMatmul.apply(a, b, c, alpha)
             return _fma_matmul(a, b, c, alpha)  # no graph to record (skip the Function's dispatch)

@@ -49,6 +49,9 @@ def intra_op_threads(work: int) -> Iterator[None]:
     with the caller's thread count otherwise, restored on exit. (torch's thread count is
     process-wide: a torch call from another Python thread meanwhile runs with the same.)"""
     threads = torch.get_num_threads()
+    if not isinstance(work, int):  # a symbolic size (torch.export with dynamic shapes): no guard on it
+        yield
+        return
     if threads == 1 or not (work < PARALLEL_MIN_WORK or machine_busy()):
         yield
         return

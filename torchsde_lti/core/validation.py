@@ -336,7 +336,7 @@ def sde_inputs(
     host: list[float] | None = None
     values = checks_values(validate_args)
     total = sum(t.numel() for _, t in checked) + (0 if W is None else W.numel())
-    if total <= PYTHON_CHECK_MAX_VALUES and not tracing():
+    if not tracing() and total <= PYTHON_CHECK_MAX_VALUES:  # (no guard on a symbolic size)
         # one transfer: the value checks and the callers' decisions on Python floats
         with torch.no_grad():
             flat = torch.cat([t.reshape(-1) for _, t in checked] + ([] if W is None else [W.reshape(-1)])).tolist()

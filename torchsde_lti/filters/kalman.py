@@ -4,8 +4,8 @@ r"""The public Kalman filter function: one signature, one ``algorithm=`` argumen
 (:mod:`~torchsde_lti.filters.inputs`) and runs one of :data:`ALGORITHMS`:
 
 - ``"sequential"``: the Joseph-form loop (:mod:`~torchsde_lti.filters.sequential`), O(T) depth;
-  under ``torch.compile`` (not ``torch.export``) it runs as torch's structured scan (one step
-  compiled, T not unrolled);
+  under ``torch.compile`` and ``torch.export`` it runs as torch's structured scan (one step
+  traced, T not unrolled: an exported program takes a dynamic T);
 - ``"square_root"``: the Cholesky-factor loop (:mod:`~torchsde_lti.filters.square_root`);
 - ``"scan"``: the associative scan (:mod:`~torchsde_lti.filters.scan`), O(log T) depth, in
   memory-bounded time chunks;
@@ -13,6 +13,8 @@ r"""The public Kalman filter function: one signature, one ``algorithm=`` argumen
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import Tensor
@@ -40,16 +42,17 @@ def check_algorithm(algorithm: str, allowed: tuple[str, ...] = ALGORITHMS, owner
 def choose_algorithm(algorithm: str, batch_size: int, T: int, device: torch.device) -> str:
     """The algorithm a call runs: ``algorithm`` itself unless it is ``"auto"``.
 
-    ``"auto"``: under ``torch.compile`` (not ``torch.export``) the sequential loop, which
-    then runs as torch's structured scan (one step compiled: seconds to compile; the
-    associative scan traced whole takes minutes); otherwise the associative scan where
+    ``"auto"``: under ``torch.compile`` and ``torch.export`` the sequential loop, which
+    then runs as torch's structured scan (one step compiled: seconds to compile, and an
+    exported program takes any T; the associative scan traced whole takes minutes and fixes
+    T); otherwise the associative scan where
     :func:`~torchsde_lti.filters.prefers_scan` says so (few tracks on CPU, any batch on
     other devices), else the sequential loop. ``batch_size``: tracks in the call.
     """
     check_algorithm(algorithm)
     if algorithm != "auto":
         return algorithm
-    if torch.compiler.is_compiling() and not torch.compiler.is_exporting():
+    if torch.compiler.is_compiling():  # compile and export: the loop as one structured scan step
         return "sequential"
     return "scan" if prefers_scan(batch_size, T, device) else "sequential"
 
@@ -105,7 +108,7 @@ def kalman_filter(
     args = FilterInputs(y, A, Q, H, R, m0, P0, G, u, mask, D)
     if algorithm == "auto":
         y_t, A_t = torch.as_tensor(y), torch.as_tensor(A)
-        batch = max(y_t.shape[:-2].numel(), A_t.shape[:-3].numel())
+        batch = max(math.prod(y_t.shape[:-2]), math.prod(A_t.shape[:-3]))
         T = y_t.shape[-2] if y_t.dim() >= 2 else 1
         algorithm = choose_algorithm(algorithm, batch, T, y_t.device)
     return run_filter(args, algorithm, chunk=chunk, validate_args=validate_args)
@@ -128,7 +131,9 @@ def run_filter(
         prep = prepare_inputs(args, validate_args)
         if algorithm == "square_root":
             return square_root_filter(prep)
-        structured = compiled_loop or (torch.compiler.is_compiling() and not torch.compiler.is_exporting())
+        # traced (torch.compile, torch.export): the loop as torch's structured scan, one step's
+        # graph for any T (an exported program then takes any T: a dynamic time axis)
+        structured = compiled_loop or torch.compiler.is_compiling()
         return sequential_filter(prep, structured)
 
 

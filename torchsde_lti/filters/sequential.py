@@ -52,18 +52,13 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
     A_bf, Q_bf = prep.A, prep.Q  # (*cb, T, n, n)
     nb = A_bf.dim() - 3
     to_bl = list(range(nb, nb + 2)) + list(range(nb))
-    A_steps, Q_steps = A_bf.unbind(-3), Q_bf.unbind(-3)
     H_s = to_batch_last(prep.Hw, 2, time=True)  # (T or 1, m, n, *cb or broadcastable)
     # Materialise H' over the batch: products with a stride-0 (broadcast) inner dimension
     # take a slow path, same-shape ones do not.
     cb = A_bf.shape[:nb]
     H_s = H_s.expand(*H_s.shape[:3], *torch.broadcast_shapes(H_s.shape[3:], cb)).contiguous()
     h_single = H_s.shape[0] == 1
-    h_rows = H_s.reshape(-1, *H_s.shape[2:]).unbind(0)  # (T or 1)·m rows, each (n, *)
     yw_bl = to_batch_last(prep.yw, 1, time=True)  # (T, m, *mb)
-    y_rows = yw_bl.reshape(-1, *yw_bl.shape[2:]).unbind(0)  # T·m entries, each (*mb)
-    c_steps = to_batch_last(prep.c, 1, time=True).unbind(0) if prep.c is not None else None
-    c_single = c_steps is not None and len(c_steps) == 1
 
     mean = to_batch_last(prep.m0, 1)  # (n, *mb)
     P = to_batch_last(prep.P0, 2)  # (n, n, *cb)
@@ -84,7 +79,8 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
         c_all = (
             to_batch_last(prep.c, 1, time=True) if prep.c is not None else torch.zeros_like(mean).unsqueeze(0)
         )
-        pm_bl, pc_bl, fm_bl, fc_bl, e_bl, s_bl = _run_compiled_loop(
+        loop = _scan_loop if torch.compiler.is_exporting() else _run_compiled_loop
+        pm_bl, pc_bl, fm_bl, fc_bl, e_bl, s_bl = loop(
             to_batch_last(A_bf, 2, time=True), to_batch_last(Q_bf, 2, time=True),
             H_s.expand(T, *H_s.shape[1:]), yw_bl, c_all.expand(T, *c_all.shape[1:]),
             _row_major(mean), _row_major(P),
@@ -92,6 +88,11 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
         e_t = e_bl.reshape(T * m_dim, *e_bl.shape[2:])
         s_t = s_bl.reshape(T * m_dim, *s_bl.shape[2:])
     else:
+        A_steps, Q_steps = A_bf.unbind(-3), Q_bf.unbind(-3)
+        h_rows = H_s.reshape(-1, *H_s.shape[2:]).unbind(0)  # (T or 1)·m rows, each (n, *)
+        y_rows = yw_bl.reshape(-1, *yw_bl.shape[2:]).unbind(0)  # T·m entries, each (*mb)
+        c_steps = to_batch_last(prep.c, 1, time=True).unbind(0) if prep.c is not None else None
+        c_single = c_steps is not None and len(c_steps) == 1
         for k in range(prep.T):
             Ak = A_steps[k].permute(to_bl)
             Qk = Q_steps[k].permute(to_bl)

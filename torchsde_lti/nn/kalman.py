@@ -361,8 +361,9 @@ class KalmanFilter(ValidateArgs, nn.Module):
         the discretisation runs eagerly and the loop as torch's structured scan with ONE step
         compiled (any T); ``algorithm="scan"`` traces the associative scan whole (O(log T)
         levels, one graph per (batch, T) shape, minutes to compile); ``"square_root"`` runs
-        eagerly. ``torch.export`` traces the call whole (value checks off), since an exported
-        program is one graph.
+        eagerly. ``torch.export`` traces the call whole (value checks off) with the loop as
+        the structured scan, so ``torch.export.export(kf, (y, dt), dynamic_shapes=...)`` with
+        ``torch.export.Dim`` for the batch and T gives one program for every (batch, T).
         """
         if torch.compiler.is_compiling() and not torch.compiler.is_exporting() and self.algorithm != "scan":
             return self._forward_compiled_loop(y, dt, u, mask)
@@ -396,7 +397,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
             T = y.shape[-2]
             if algorithm == "auto":
                 batch = torch.broadcast_shapes(y.shape[:-2], dt.shape[:-1])
-                algorithm = choose_algorithm(algorithm, batch.numel(), T, y.device)
+                algorithm = choose_algorithm(algorithm, math.prod(batch), T, y.device)
             # one batched discretisation of every step: A, Q (..., T, n, n), laid out for the algorithm
             d = self._discretize(dt, mats, series_layout=algorithm != "scan")
             G = d.G if u is not None else None
