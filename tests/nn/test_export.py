@@ -170,3 +170,80 @@ def test_compiled_default_runs_the_loop_as_a_structured_scan_and_matches_eager()
     finally:
         sequential._run_compiled_loop = original
     assert len(calls) == 3  # the module (no grad, grad) and the function: the loop each time
+
+
+def _cv_filter() -> tl.KalmanFilter:
+    cv = tl.models.constant_velocity(dim=2, q=0.8, dtype=F64)
+    H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=F64)
+    return tl.KalmanFilter(cv, H, torch.tensor([[0.3, 0.1], [0.1, 0.4]], dtype=F64), P0=50 * torch.eye(4, dtype=F64))
+
+
+def test_export_the_module_itself_with_dynamic_batch_and_time():
+    """torch.export.export(kf, ...) on the KalmanFilter (FilterResult out) with torch.export.Dim
+    for the batch and T: ONE program, run at three (B, T) shapes, equals eager."""
+    from torch.export import Dim
+
+    kf = _cv_filter()
+    B, T = Dim("B", max=100_000), Dim("T", max=100_000)
+    ep = torch.export.export(kf, _data(3, 5, 2, seed=0), dynamic_shapes={"y": {0: B, 1: T}, "dt": {0: B, 1: T}})
+    prog = ep.module()
+    for b, t in ((1, 7), (4, 20), (50, 3)):
+        g = torch.Generator().manual_seed(b + t)
+        y = torch.randn(b, t, 2, generator=g, dtype=F64).cumsum(1)
+        y[0, 1, 0] = float("nan")  # missing data inside the program
+        dt = torch.rand(b, t, generator=g, dtype=F64) * 3.0
+        out = prog(y, dt)
+        assert isinstance(out, tl.FilterResult)
+        with torch.no_grad():
+            ref = kf(y, dt)
+        torch.testing.assert_close(out.log_likelihood, ref.log_likelihood, rtol=0, atol=1e-10)
+        torch.testing.assert_close(out.mean, ref.mean, rtol=0, atol=1e-10)
+        torch.testing.assert_close(out.innovation_cov, ref.innovation_cov, rtol=0, atol=1e-10)
+
+
+def _step_args(b: int, seed: int) -> tuple[torch.Tensor, ...]:
+    g = torch.Generator().manual_seed(seed)
+    mean = torch.randn(b, 4, generator=g, dtype=F64)
+    cov = 2.0 * torch.eye(4, dtype=F64).expand(b, 4, 4).contiguous()
+    y = torch.randn(b, 2, generator=g, dtype=F64)
+    y[0, 1] = float("nan")  # a missing component
+    return mean, cov, y, torch.rand(b, generator=g, dtype=F64) * 3.0
+
+
+def _exported_step(kf: tl.KalmanFilter) -> torch.export.ExportedProgram:
+    from torch.export import Dim
+
+    B = Dim("B", max=1_000_000)
+    with torch.no_grad():  # an inference program (no grad-mode switches inside to serialise)
+        return torch.export.export(tl.OnlineStep(kf).eval(), _step_args(3, 0), dynamic_shapes=({0: B},) * 4)
+
+
+def test_exported_online_step_any_number_of_tracks(tmp_path):
+    """OnlineStep exported once with a dynamic batch, saved and loaded, runs 1, 7 and 1000
+    tracks (each its own dt) and equals the eager step."""
+    kf = _cv_filter()
+    path = tmp_path / "step.pt2"
+    torch.export.save(_exported_step(kf), path)
+    prog = torch.export.load(path).module()
+    for b in (1, 7, 1000):
+        args = _step_args(b, seed=b)
+        got = prog(*args)
+        with torch.no_grad():
+            state, out = kf.step(tl.KalmanState(args[0], args[1]), args[2], args[3])
+        for x, ref in zip(got, (state.mean, state.cov, out.innovation, out.innovation_cov, out.log_likelihood)):
+            torch.testing.assert_close(x, ref, rtol=0, atol=1e-10)
+
+
+@pytest.mark.slow
+def test_aoti_packaged_online_step(tmp_path):
+    """The exported step through AOTInductor (compiles C++: slow) gives the eager step at 1 and 500 tracks."""
+    kf = _cv_filter()
+    path = torch._inductor.aoti_compile_and_package(_exported_step(kf), package_path=str(tmp_path / "step_aoti.pt2"))
+    runner = torch._inductor.aoti_load_package(path)
+    for b in (1, 500):
+        args = _step_args(b, seed=10 + b)
+        got = runner(*args)
+        with torch.no_grad():
+            state, out = kf.step(tl.KalmanState(args[0], args[1]), args[2], args[3])
+        for x, ref in zip(got, (state.mean, state.cov, out.innovation, out.innovation_cov, out.log_likelihood)):
+            torch.testing.assert_close(x, ref, rtol=0, atol=1e-9)
