@@ -182,3 +182,24 @@ def test_imm_predict_equals_forecast_and_indexing():
         torch.testing.assert_close(two.mode_mean, state.mode_mean[[0, 2]])
     with pytest.raises(ValueError, match="no inputs"):
         imm.step(state, y[:, 0], dt[:, 0], u=torch.zeros(3, 1, dtype=F64))
+
+
+def test_step_with_inputs_and_feedthrough_equals_sequence_filter():
+    """u enters G u (the SDE's B) and y = H x + D u, as in the sequence filter."""
+    sde = tl.models.constant_velocity(dim=1, q=0.3, dtype=F64)
+    sde = tl.LTISDE(sde.F, sde.L, sde.Qc, B=torch.tensor([[0.5], [1.0]], dtype=F64))
+    kf = tl.KalmanFilter(sde, torch.tensor([[1.0, 0.0]], dtype=F64), torch.tensor([[0.2]], dtype=F64),
+                         P0=5 * torch.eye(2, dtype=F64), D=torch.tensor([[0.3]], dtype=F64), algorithm="sequential")
+    g = torch.Generator().manual_seed(7)
+    y = torch.randn(2, 15, 1, generator=g, dtype=F64)
+    u = torch.randn(2, 15, 1, generator=g, dtype=F64)
+    dt = torch.rand(2, 15, generator=g, dtype=F64)
+    with torch.no_grad():
+        ref = kf(y, dt, u=u)
+        state = kf.initial_state(2)
+        for k in range(15):
+            state, out = kf.step(state, y[:, k], dt[:, k], u=u[:, k])
+            torch.testing.assert_close(out.log_likelihood, ref.step_log_likelihood[:, k], rtol=0, atol=1e-12)
+        torch.testing.assert_close(state.mean, ref.mean[:, -1], rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="u must have shape"):
+        kf.step(state, y[:, 0], dt[:, 0], u=torch.zeros(2, 3, dtype=F64))

@@ -507,8 +507,10 @@ class KalmanFilter(ValidateArgs, nn.Module):
         dt = as_float_tensor(dt, "dt", dtype, device)
         if u is not None:
             p = mats.B.shape[-1] if mats.B is not None else (self.D.shape[-1] if self.D is not None else 0)
-            u = self._check_u(u.unsqueeze(-2) if isinstance(u, Tensor) and u.dim() >= 1 else u, p, 1, "1",
-                              dtype, device).squeeze(-2)
+            u = as_float_tensor(u, "u", dtype, device)
+            if u.dim() < 1:
+                raise ValueError(f"u must have shape (..., p={p}), got shape {shape_str(u)}")
+            u = self._check_u(u.unsqueeze(-2), p, 1, "1", dtype, device).squeeze(-2)  # one step: (..., 1, p)
         return KalmanState(mean, cov), dt, u
 
     def smooth(self, out: FilterResult) -> SmootherResult:
