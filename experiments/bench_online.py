@@ -213,16 +213,23 @@ def main() -> None:
         yb = torch.randn(b, T, 2, generator=g, dtype=F64).cumsum(1)
         dtb = 0.2 + torch.rand(b, T, generator=g, dtype=F64)
         with torch.no_grad():
-            t_e = median_s(lambda: kf(yb, dtb), max(rep // 8, 7), warmup=2)
-            t_x = median_s(lambda: prog_seq(yb, dtb), max(rep // 8, 7), warmup=2)
+            t_e = median_s(lambda yb=yb, dtb=dtb: kf(yb, dtb), max(rep // 8, 7), warmup=2)
+            t_x = median_s(lambda yb=yb, dtb=dtb: prog_seq(yb, dtb), max(rep // 8, 7), warmup=2)
         rows += [(f"sequence B={b} T=200, eager kf(y, dt)", t_e, f"algorithm {kf.algorithm_for(b, T, yb.device)!r}"),
                  (f"sequence B={b} T=200, exported program (not AOTI)", t_x, "one program for every (B, T)")]
 
     # ---------------------------------------------------------------- Stone Soup tracker
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from stonesoup.models.transition.linear import CombinedLinearGaussianTransitionModel, ConstantVelocity
+    from stonesoup.models.transition.linear import (
+        CombinedLinearGaussianTransitionModel,
+        ConstantVelocity,
+    )
 
-    from tests.test_interop import fit_constant_velocity, run_stonesoup_tracker, stonesoup_scenario
+    from tests.test_interop import (
+        fit_constant_velocity,
+        run_stonesoup_tracker,
+        stonesoup_scenario,
+    )
     from torchsde_lti.interop import stonesoup_transition_model
 
     _, scans = stonesoup_scenario(scans=60)

@@ -231,7 +231,10 @@ def test_stonesoup_multi_target_tracker_with_a_learned_model():
     4-target scenario with clutter and missed detections end to end on a learned model through
     torchsde_lti.interop, and follows every target about as well as with its own ConstantVelocity."""
     pytest.importorskip("stonesoup")
-    from stonesoup.models.transition.linear import CombinedLinearGaussianTransitionModel, ConstantVelocity
+    from stonesoup.models.transition.linear import (
+        CombinedLinearGaussianTransitionModel,
+        ConstantVelocity,
+    )
 
     from torchsde_lti.interop import stonesoup_transition_model
 

@@ -55,7 +55,7 @@ def test_kalman_step_float32_and_per_component_mask():
         ref = kf(y, dt, mask=mask)
         state = kf.initial_state(3)
         for k in range(20):
-            state, out = kf.step(state, y[:, k], dt[:, k], mask=mask[:, k])
+            state, _ = kf.step(state, y[:, k], dt[:, k], mask=mask[:, k])
         assert state.mean.dtype == torch.float32
         torch.testing.assert_close(state.mean, ref.mean[:, -1], rtol=1e-4, atol=1e-4)
 

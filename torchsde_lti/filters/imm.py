@@ -40,6 +40,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, solve_lower, sym
+from torchsde_lti.core.threads import intra_op_threads
 from torchsde_lti.core.validation import (
     as_float_tensors,
     check_finite,
@@ -49,10 +51,8 @@ from torchsde_lti.core.validation import (
     shape_str,
 )
 from torchsde_lti.filters.inputs import check_mask
-from torchsde_lti.core.threads import intra_op_threads
-from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, solve_lower, sym
 
-__all__ = ["IMMCycle", "IMMResult", "imm_cycle", "imm_filter", "imm_predict", "IMMPrediction"]
+__all__ = ["IMMCycle", "IMMPrediction", "IMMResult", "imm_cycle", "imm_filter", "imm_predict"]
 
 _LOG_2PI = math.log(2.0 * math.pi)
 

@@ -33,8 +33,13 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import matvec, sym, to_batch_last
-from torchsde_lti.filters.inputs import LOG_2PI, mask_observation_model, observed_components, whiten
 from torchsde_lti.filters.imm import combine, imm_cycle, imm_predict
+from torchsde_lti.filters.inputs import (
+    LOG_2PI,
+    mask_observation_model,
+    observed_components,
+    whiten,
+)
 from torchsde_lti.filters.sequential import _joseph_step
 
 __all__ = ["IMMState", "IMMStep", "KalmanState", "KalmanStep", "imm_predict_state", "imm_step", "kalman_predict", "kalman_step"]

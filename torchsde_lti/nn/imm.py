@@ -41,14 +41,31 @@ from torch.nn.utils import parametrize
 
 from torchsde_lti.core.discretization import Discrete, discretize
 from torchsde_lti.core.linalg import sym
-from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str
-from torchsde_lti.filters.imm import IMMPrediction, IMMResult, combine, imm_filter, imm_predict
+from torchsde_lti.core.validation import (
+    as_float_tensor,
+    check_finite,
+    check_matrix,
+    parse_learn,
+    shape_str,
+)
+from torchsde_lti.filters.imm import (
+    IMMPrediction,
+    IMMResult,
+    combine,
+    imm_filter,
+    imm_predict,
+)
 from torchsde_lti.filters.kalman import check_algorithm
 from torchsde_lti.filters.online import IMMState, IMMStep, imm_predict_state, imm_step
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_values
 from torchsde_lti.nn.kalman import FilterMode
-from torchsde_lti.nn.parametrizations import Generator, ModeProbabilities, PositiveDefinite, generator_from_rates
+from torchsde_lti.nn.parametrizations import (
+    Generator,
+    ModeProbabilities,
+    PositiveDefinite,
+    generator_from_rates,
+)
 from torchsde_lti.nn.sde import LTISDE
 
 __all__ = ["IMMFilter", "IMMForecast"]

@@ -49,14 +49,36 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from torchsde_lti.core.discretization import Discrete, discretize, discretize_series, resolve_method
+from torchsde_lti.core.discretization import (
+    Discrete,
+    discretize,
+    discretize_series,
+    resolve_method,
+)
 from torchsde_lti.core.linalg import matvec, sym
 from torchsde_lti.core.moments import predict_moments
-from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, parse_learn, shape_str, tracing
-from torchsde_lti.filters import FilterResult, SmootherResult, choose_algorithm, rts_smoother
+from torchsde_lti.core.validation import (
+    as_float_tensor,
+    check_finite,
+    check_matrix,
+    parse_learn,
+    shape_str,
+    tracing,
+)
+from torchsde_lti.filters import (
+    FilterResult,
+    SmootherResult,
+    choose_algorithm,
+    rts_smoother,
+)
 from torchsde_lti.filters.inputs import FilterInputs
 from torchsde_lti.filters.kalman import ALGORITHMS, check_algorithm, run_filter
-from torchsde_lti.filters.online import KalmanState, KalmanStep, kalman_predict, kalman_step
+from torchsde_lti.filters.online import (
+    KalmanState,
+    KalmanStep,
+    kalman_predict,
+    kalman_step,
+)
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_outcome, check_values
 from torchsde_lti.nn.parametrizations import PositiveDefinite
