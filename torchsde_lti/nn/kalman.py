@@ -494,12 +494,10 @@ class KalmanFilter(ValidateArgs, nn.Module):
             H, R, D = self.H, self.R, (self.D if u is not None else None)
             if self.validate_args:
                 self._check_values(mats, dt, y=y, u=u, H=H, R=R, D=D, mean=state.mean, cov=state.cov)
-            d = discretize(mats.F, mats.L, mats.Qc, dt, B=mats.B, method=self.discretization_method,
-                           validate_args=False)
-            c = matvec(d.G, u) if (u is not None and d.G is not None) else None
+            A, Q, c = self._online_step_model(mats, dt, u)
             if D is not None:
                 y = y - matvec(D, u)
-            return kalman_step(state, y, d.A, d.Q, H, R, c, mask)
+            return kalman_step(state, y, A, Q, H, R, c, mask)
 
     def predict(self, state: KalmanState, dt: Tensor | float, u: Tensor | None = None) -> KalmanState:
         """Prediction only, each track over its own dt (...): ``m⁻ = A m + G u``, ``P⁻ = A P Aᵀ + Q``."""
@@ -508,10 +506,12 @@ class KalmanFilter(ValidateArgs, nn.Module):
             state, dt, u = self._check_state(state, dt, u, mats)
             if self.validate_args:
                 self._check_values(mats, dt, u=u, mean=state.mean, cov=state.cov)
-            d = discretize(mats.F, mats.L, mats.Qc, dt, B=mats.B, method=self.discretization_method,
-                           validate_args=False)
-            c = matvec(d.G, u) if (u is not None and d.G is not None) else None
-            return kalman_predict(state, d.A, d.Q, c)
+            return kalman_predict(state, *self._online_step_model(mats, dt, u))
+
+    def _online_step_model(self, mats: SDEMatrices, dt: Tensor, u: Tensor | None) -> tuple[Tensor, Tensor, Tensor | None]:
+        """(A, Q, G u or None) of each track's gap dt (...): one batched exact discretisation."""
+        d = discretize(mats.F, mats.L, mats.Qc, dt, B=mats.B, method=self.discretization_method, validate_args=False)
+        return d.A, d.Q, (matvec(d.G, u) if (u is not None and d.G is not None) else None)
 
     def _check_state(
         self, state: KalmanState | tuple[Tensor, Tensor], dt: Tensor | float, u: Tensor | None, mats: SDEMatrices
@@ -527,12 +527,10 @@ class KalmanFilter(ValidateArgs, nn.Module):
             raise ValueError(f"state must be (mean (..., {n}), cov (..., {n}, {n})), got mean {shape_str(mean)}, "
                              f"cov {shape_str(cov)}")
         dt = as_float_tensor(dt, "dt", dtype, device)
-        if u is not None:
+        if u is not None:  # one step: (..., p) checked as (..., 1, p)
             p = mats.B.shape[-1] if mats.B is not None else (self.D.shape[-1] if self.D is not None else 0)
             u = as_float_tensor(u, "u", dtype, device)
-            if u.dim() < 1:
-                raise ValueError(f"u must have shape (..., p={p}), got shape {shape_str(u)}")
-            u = self._check_u(u.unsqueeze(-2), p, 1, "1", dtype, device).squeeze(-2)  # one step: (..., 1, p)
+            u = self._check_u(u.unsqueeze(-2) if u.dim() else u.reshape(1, 1), p, 1, "1", dtype, device).squeeze(-2)
         return KalmanState(mean, cov), dt, u
 
     def smooth(self, out: FilterResult) -> SmootherResult:
