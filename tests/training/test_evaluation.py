@@ -80,12 +80,13 @@ def test_hpd_of_a_gaussian_is_the_2sigma_ellipse_and_mixture_coverage_is_nominal
     comp = torch.multinomial(w[0], N, replacement=True, generator=g)
     z = torch.randn(N, 2, generator=g, dtype=torch.float64)
     ym = mu[0][comp] + z * torch.tensor([1.0, 20.0], dtype=torch.float64)[comp, None]
-    cover = float(hpd_inside(ym, w, mu, S, samples=800, seed=3).double().mean())
+    cover = float(hpd_inside(ym, w, mu, S, samples=400, seed=3).double().mean())
     assert cover == pytest.approx(NOMINAL_2SIGMA, abs=0.025)
     # the same mixture, a component written twice, is still the same Gaussian: same region (up to MC)
-    two = hpd_inside(y, torch.full((N, 2), 0.5, dtype=torch.float64), torch.zeros(N, 2, 2, dtype=torch.float64),
-                     S1.expand(N, 2, 2, 2), samples=2000)
-    assert float((two == inside).double().mean()) > 0.97
+    n = 500
+    two = hpd_inside(y[:n], torch.full((n, 2), 0.5, dtype=torch.float64), torch.zeros(n, 2, 2, dtype=torch.float64),
+                     S1[:n].expand(n, 2, 2, 2), samples=2000)
+    assert float((two == inside[:n]).double().mean()) > 0.97
 
 
 def test_moving_windows_by_the_median_position_speed() -> None:
@@ -134,7 +135,8 @@ def test_forecast_rmse_and_nll_match_a_hand_computation() -> None:
 def test_coverage_of_the_true_model_is_nominal() -> None:
     q, r = 0.02, 4.0
     tr = simulated_cv(q, r, num=40, T=80, seed=5)
-    res = summary(evaluate_filter(cv_filter(q, r, diffuse_variance=25.0), tr, horizons=(300.0,)))
+    res = summary(evaluate_filter(cv_filter(q, r, diffuse_variance=25.0), tr, horizons=(300.0,),
+                                  forecast_coverage=True))
     assert res["cover2s"] == pytest.approx(NOMINAL_2SIGMA, abs=0.02)
     assert res["fc_cover2s_5"] == pytest.approx(NOMINAL_2SIGMA, abs=0.03)
     # a model far too confident under-covers

@@ -67,7 +67,8 @@ class EvalRecords:
     vessel: (N,) vessel index of each scored report; nll: (N,) -log p(y_k | y_<k);
     moving: (N,) bool, the report's window is moving; inside: (N,) bool, y_k in the 86.5 %
     HPD region; sq_err: (N,) squared one-step error of the predictive mean;
-    fc: horizon (s) -> (vessel (P,), squared forecast error (P,), inside (P,) bool).
+    fc: horizon (s) -> (vessel (P,), squared forecast error (P,), inside (P,): 1.0 / 0.0, NaN
+    when not tested).
     n_vessels: the number of vessels (indices 0 .. n_vessels - 1).
     """
 
@@ -91,28 +92,31 @@ def mixture_log_prob(x: Tensor, w: Tensor, mu: Tensor, S: Tensor) -> Tensor:
         w: (N, M) weights; mu: (N, M, m) means; S: (N, M, m, m) covariances (SPD).
 
     Returns:
-        (N,) or (N, S) log densities.
+        (N,) or (N, S) log densities. Elementwise over the m × m entries of the inverse
+        (no batched small solves: those dominate otherwise).
     """
     squeeze = x.dim() == 2
     if squeeze:
         x = x.unsqueeze(1)
     m = x.shape[-1]
-    L = torch.linalg.cholesky(S).unsqueeze(1)  # (N, 1, M, m, m)
-    d = (x.unsqueeze(-2) - mu.unsqueeze(1)).unsqueeze(-1)  # (N, S, M, m, 1)
-    z = torch.linalg.solve_triangular(L, d, upper=False).squeeze(-1)
-    logdet = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
-    comp = -0.5 * (z * z).sum(-1) - logdet - 0.5 * m * math.log(2 * math.pi)
+    L = torch.linalg.cholesky(S)
+    Sinv = torch.cholesky_inverse(L).unsqueeze(1)  # (N, 1, M, m, m)
+    logdet = 2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1).unsqueeze(1)  # (N, 1, M)
+    d = x.unsqueeze(-2) - mu.unsqueeze(1)  # (N, S, M, m)
+    quad = sum(d[..., i] * Sinv[..., i, j] * d[..., j] for i in range(m) for j in range(m))
+    comp = -0.5 * (quad + logdet + m * math.log(2 * math.pi))
     out = torch.logsumexp(comp + torch.log(w.clamp_min(1e-300)).unsqueeze(1), -1)
     return out.squeeze(1) if squeeze else out
 
 
 def hpd_inside(y: Tensor, w: Tensor, mu: Tensor, S: Tensor, level: float = NOMINAL_2SIGMA,
-               samples: int = 1000, seed: int = 0, chunk: int = 2000) -> Tensor:
+               samples: int = 500, seed: int = 0, chunk: int = 2000) -> Tensor:
     """Is y inside the ``level`` highest-density region of the predictive mixture? (N,) bool.
 
-    One component (M = 1) and 2-D: the 2σ ellipse for the default level, in closed form
-    (Mahalanobis² <= -2 log(1 - level)). Otherwise: y is inside when the share of ``samples``
-    seeded draws from the mixture with a higher density than y is at most ``level``.
+    One component in 2-D: the ellipse of Mahalanobis² <= -2 log(1 - level) (the 2σ ellipse
+    for the default level), in closed form.
+    Otherwise: y is inside when the share of ``samples`` seeded draws from the mixture with
+    a higher density than y is at most ``level``.
 
     Args:
         y: (N, m) observations; w: (N, M) weights; mu: (N, M, m); S: (N, M, m, m).
@@ -120,7 +124,8 @@ def hpd_inside(y: Tensor, w: Tensor, mu: Tensor, S: Tensor, level: float = NOMIN
     """
     if not 0.0 < level < 1.0:
         raise ValueError(f"level must be in (0, 1), got {level}")
-    if w.shape[-1] == 1 and y.shape[-1] == 2:
+    m_ = y.shape[-1]
+    if w.shape[-1] == 1 and m_ == 2:
         d = (y - mu[:, 0]).unsqueeze(-1)
         maha = (d.mT @ torch.linalg.solve(S[:, 0], d)).reshape(-1)
         return maha <= -2.0 * math.log1p(-level)
@@ -130,10 +135,10 @@ def hpd_inside(y: Tensor, w: Tensor, mu: Tensor, S: Tensor, level: float = NOMIN
         ww, mm, SS = w[lo:lo + chunk], mu[lo:lo + chunk], S[lo:lo + chunk]
         comp = torch.multinomial(ww.clamp_min(0), samples, replacement=True, generator=g)  # (n, samples)
         Lc = torch.linalg.cholesky(SS)
-        z = torch.randn(*comp.shape, y.shape[-1], generator=g, dtype=y.dtype)
-        m_ = y.shape[-1]
-        xs = torch.gather(mm, 1, comp[..., None].expand(-1, -1, m_)) + (
-            torch.gather(Lc, 1, comp[..., None, None].expand(-1, -1, m_, m_)) @ z.unsqueeze(-1)).squeeze(-1)
+        z = torch.randn(*comp.shape, m_, generator=g, dtype=y.dtype)
+        Lg = torch.gather(Lc.flatten(-2), 1, comp[..., None].expand(-1, -1, m_ * m_)).unflatten(-1, (m_, m_))
+        xs = torch.gather(mm, 1, comp[..., None].expand(-1, -1, m_))
+        xs = xs + sum(Lg[..., :, j] * z[..., j : j + 1] for j in range(m_))
         ly = mixture_log_prob(y[lo:lo + chunk], ww, mm, SS)
         lx = mixture_log_prob(xs, ww, mm, SS)
         out.append((lx > ly[:, None]).to(y.dtype).mean(-1) <= level)
@@ -253,8 +258,8 @@ def _batches(tracks: Tracks, max_steps: int) -> tuple[list[TrackBatch], list[np.
 
 
 def evaluate_filter(model: Model, tracks: Tracks, horizons: Sequence[float] = HORIZONS, window: float = 3600.0,
-                    moving_speed: float = 1.0, max_steps: int = 50_000, samples: int = 1000,
-                    seed: int = 0) -> EvalRecords:
+                    moving_speed: float = 1.0, max_steps: int = 50_000, samples: int = 500,
+                    seed: int = 0, forecast_coverage: bool = False) -> EvalRecords:
     """Per-report and per-forecast records of one frozen filter on whole tracks (module docstring).
 
     Args:
@@ -264,6 +269,8 @@ def evaluate_filter(model: Model, tracks: Tracks, horizons: Sequence[float] = HO
             of an ``object_id`` is one vessel of the bootstrap.
         horizons: forecast horizons (s); window, moving_speed: the moving-window rule.
         max_steps: B x T of a padded batch; samples, seed: Monte Carlo of the mixture HPD region.
+        forecast_coverage: also test the forecasts against their HPD regions (``fc_cover2s_<min>``;
+            Monte Carlo for a mixture, so off by default; NaN when off).
     """
     model = model.to(torch.float64).eval()
     _, vessel_of_track = np.unique(tracks.object_id, return_inverse=True)
@@ -293,7 +300,8 @@ def evaluate_filter(model: Model, tracks: Tracks, horizons: Sequence[float] = HO
                 fw, fm, fS = _forecast(model, out, b, k, lead)
                 yj = batch.y[b, j]
                 err = ((fw.unsqueeze(-1) * fm).sum(-2) - yj).pow(2).sum(-1)
-                ins = hpd_inside(yj, fw, fm, fS, samples=samples, seed=seed)
+                ins = hpd_inside(yj, fw, fm, fS, samples=samples, seed=seed) if forecast_coverage else \
+                    torch.full((len(b),), math.nan, dtype=torch.float64)
                 fc_parts[h].append((vessel_flat[idx[b.numpy(), k.numpy()]], err.numpy(), ins.numpy()))
     cat = {k: np.concatenate(v) if v else np.zeros(0) for k, v in parts.items()}
     fc = {h: tuple(np.concatenate([p[i] for p in v]) if v else np.zeros(0) for i in range(3))
