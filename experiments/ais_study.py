@@ -322,10 +322,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     for p in payloads:
         p["verdict"] = verdict(p)
     runtime = time.perf_counter() - start
-    md = markdown(payloads, runtime, "python experiments/ais_study.py")
     out = Path(args.out)
-    (out / "ais_moving.md").write_text(md)
+    out.mkdir(parents=True, exist_ok=True)
     write_json(Path(args.json) if args.json else out / "ais_moving.json", {"sets": payloads, "runtime_s": runtime})
+    md = markdown(payloads, runtime, "python experiments/ais_study.py")
+    (out / "ais_moving.md").write_text(md)
     print(md)
     return {"sets": payloads}
 
