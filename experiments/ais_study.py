@@ -243,7 +243,13 @@ def markdown(payloads: list[dict[str, Any]], runtime: float, cmd: str) -> str:
                   f"{p['tracks']} tracks of {p['vessels']} vessels, {p['reports']} reports; best model by validation "
                   f"NLL: **{p['best_model']}**; best single: **{p['best_single']}**; CV oracle: q = "
                   f"{p['cv_oracle']['q']:.4g} m²/s³, R = ({p['cv_oracle']['r_std']:.3g} m)² I "
-                  f"({p['cv_oracle']['grid_points']} grid points on these tracks). Runtime {p['runtime_s']:.0f} s.", "",
+                  f"({p['cv_oracle']['grid_points']} grid points on these tracks). Runtime {p['runtime_s']:.0f} s."
+                  + (" On these tracks the CV likelihood keeps rising as R → 0: the grid stopped after 20 extensions "
+                     "at the lower edge of r, so the oracle's optimum is the boundary R = 0, not an interior point."
+                     if p["cv_oracle"]["r_std"] < 1e-2 else "")
+                  + (" This day is also the validation split that chose each run's checkpoint epoch (a split in "
+                     "time, never trained on)." if p["set"] == "ny_week" and p["data"].endswith("val split") else ""),
+                  "",
                   "| model | val NLL/scalar | NLL | NLL moving | NLL moored | in 2σ | in 2σ moving | fc RMSE 5 min "
                   "| 10 min | 15 min |", "|---|" + "---:|" * 9]
         for n, r in res.items():
@@ -282,7 +288,9 @@ def markdown(payloads: list[dict[str, Any]], runtime: float, cmd: str) -> str:
         lines += ["What the fits learned (best checkpoint; SI units m, s; rates 1/s):", ""]
         for n, c in p["cards"].items():
             vals = ", ".join(f"{k}={x:.4g}" for k, x in c["learned"].items())
-            lines.append(f"- {n} (epoch {c['epoch']}, `{c['command']}`): {vals}")
+            wall = c.get("wall_time_s")
+            took = f", {wall / 60:.1f} min of training on the shared machine" if wall else ""
+            lines.append(f"- {n} (checkpoint of epoch {c['epoch']}{took}, `{c['command']}`): {vals}")
         lines.append("")
     return "\n".join(lines)
 
