@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import subprocess
 import sys
@@ -47,7 +46,6 @@ import torch
 from torchsde_lti.data import load_tracks
 from torchsde_lti.data.trajectories import Tracks, split_objects, split_time
 from torchsde_lti.training.evaluation import (
-    HORIZONS,
     EvalRecords,
     cv_filter,
     evaluate_filter,
@@ -198,7 +196,7 @@ def study(set_name: str, file: str | None, samples: int) -> dict[str, Any]:
         results[name] = res
     return {"set": set_name, "data": label, "tracks": len(tracks), "reports": tracks.num_reports,
             "vessels": int(results[best]["vessels"]), "best_model": best, "best_single": best_single,
-            "cv_oracle": oracle, "results": results,
+            "cv_oracle_tuning": oracle, "results": results,
             "cards": {n: {k: c[k] for k in ("command", "epoch", "val_nll_per_scalar", "learned", "wall_time_s")}
                       for n, c in cards.items()},
             "runtime_s": time.perf_counter() - start}
@@ -230,36 +228,36 @@ def _ci(d: dict[str, float], scale: float = 1.0, fmt: str = "+.3f") -> str:
 def markdown(payloads: list[dict[str, Any]], runtime: float, cmd: str) -> str:
     load = os.getloadavg()
     lines = ["# Learned motion models vs a tuned constant-velocity filter on moving ships (AIS, held out)", "",
-             f"Command: `{cmd}` (evaluation of the saved model cards in `experiments/results/models/`); total "
+             (f"Command: `{cmd}` (evaluation of the saved model cards in `experiments/results/models/`); total "
              f"runtime {runtime:.0f} s on {os.cpu_count()} cores (load average at the end {load[0]:.1f}, "
-             f"{load[1]:.1f}, {load[2]:.1f}: the machine was shared with other jobs).", "",
-             "NLL in nats per 2-D report (reports 2..T of each track); moving = the report's 1-h window has a "
+             f"{load[1]:.1f}, {load[2]:.1f}: the machine was shared with other jobs)."), "",
+             ("NLL in nats per 2-D report (reports 2..T of each track); moving = the report's 1-h window has a "
              "median position-derived speed >= 1 m/s; 2σ = the 86.5 % highest-density region of the one-step "
              "predictive (mixture for the IMM, Monte Carlo); forecast RMSE (m) of the predictive mean at the report "
-             "nearest 5 / 10 / 15 min ahead (±25 %). Intervals: 95 % paired bootstrap over vessels.", ""]
+             "nearest 5 / 10 / 15 min ahead (±25 %). Intervals: 95 % paired bootstrap over vessels."), ""]
     for p in payloads:
         res, v = p["results"], verdict(p)
         lines += [f"## {p['set']}: {p['data']}", "",
                   f"{p['tracks']} tracks of {p['vessels']} vessels, {p['reports']} reports; best model by validation "
                   f"NLL: **{p['best_model']}**; best single: **{p['best_single']}**; CV oracle: q = "
-                  f"{p['cv_oracle']['q']:.4g} m²/s³, R = ({p['cv_oracle']['r_std']:.3g} m)² I "
-                  f"({p['cv_oracle']['grid_points']} grid points on these tracks). Runtime {p['runtime_s']:.0f} s."
+                  f"{p['cv_oracle_tuning']['q']:.4g} m²/s³, R = ({p['cv_oracle_tuning']['r_std']:.3g} m)² I "
+                  f"({p['cv_oracle_tuning']['grid_points']} grid points on these tracks). Runtime {p['runtime_s']:.0f} s."
                   + (" On these tracks the CV likelihood keeps rising as R → 0: the grid stopped after 20 extensions "
                      "at the lower edge of r, so the oracle's optimum is the boundary R = 0, not an interior point."
-                     if p["cv_oracle"]["r_std"] < 1e-2 else "")
+                     if p["cv_oracle_tuning"]["r_std"] < 1e-2 else "")
                   + (" This day is also the validation split that chose each run's checkpoint epoch (a split in "
                      "time, never trained on)." if p["set"] == "ny_week" and p["data"].endswith("val split") else ""),
                   "",
-                  "| model | val NLL/scalar | NLL | NLL moving | NLL moored | in 2σ | in 2σ moving | fc RMSE 5 min "
-                  "| 10 min | 15 min |", "|---|" + "---:|" * 9]
+                  ("| model | val NLL/scalar | NLL | NLL moving | NLL moored | in 2σ | in 2σ moving | fc RMSE 5 min "
+                  "| 10 min | 15 min |"), "|---|" + "---:|" * 9]
         for n, r in res.items():
             val = "—" if r["val_nll_per_scalar"] is None else f"{r['val_nll_per_scalar']:.3f}"
             lines.append(f"| {n} | {val} | {r['nll']:.3f} | {r['nll_moving']:.3f} | {r['nll_moored']:.3f} | "
                          f"{100 * r['cover2s']:.1f} % | {100 * r['cover2s_moving']:.1f} % | {r['fc_rmse_5']:.0f} | "
                          f"{r['fc_rmse_10']:.0f} | {r['fc_rmse_15']:.0f} |")
         r0 = next(iter(res.values()))
-        lines += ["", f"Reports: {r0['reports']} ({r0['reports_moving']} in moving windows); forecast pairs "
-                  f"5 / 10 / 15 min: {r0['fc_n_5']} / {r0['fc_n_10']} / {r0['fc_n_15']}.", ""]
+        lines += ["", (f"Reports: {r0['reports']} ({r0['reports_moving']} in moving windows); forecast pairs "
+                  f"5 / 10 / 15 min: {r0['fc_n_5']} / {r0['fc_n_10']} / {r0['fc_n_15']}."), ""]
         for b in BASELINES:
             lines += [f"Paired differences, model − {b}" + (f" (= {p['best_single']})" if b == "best_single" else "")
                       + " (negative = better than the baseline; coverage in percentage points):", "",
@@ -275,16 +273,16 @@ def markdown(payloads: list[dict[str, Any]], runtime: float, cmd: str) -> str:
             lines.append("")
         fc = v["forecast"]
         lines += [f"Done-when items for {p['best_model']} (measured here):", "",
-                  f"- NLL on moving windows − CV oracle < 0 with the interval excluding 0: "
+                  (f"- NLL on moving windows − CV oracle < 0 with the interval excluding 0: "
                   f"**{'met' if v['nll_moving_vs_oracle'] else 'NOT met'}** "
-                  f"({_ci(res[p['best_model']]['paired']['cv_oracle']['nll_moving'])});",
+                  f"({_ci(res[p['best_model']]['paired']['cv_oracle']['nll_moving'])});"),
                   "- forecast RMSE ≤ best single and < CV oracle at 5/10/15 min, intervals vs the oracle excluding 0 at "
                   f">= 2 horizons: **{'met' if v['forecast_ok'] else 'NOT met'}** ("
                   + "; ".join(f"{h} min: ≤ best single {x['le_best_single']}, < oracle {x['lt_cv_oracle']}, "
                               f"excl. 0 {x['excl_0_oracle']}" for h, x in fc.items()) + ");",
-                  f"- 2σ coverage within 84–89 % overall and on moving windows: "
+                  (f"- 2σ coverage within 84–89 % overall and on moving windows: "
                   f"**{'met' if v['coverage_ok'] else 'NOT met'}** ("
-                  f"{100 * v['coverage']['cover2s']:.1f} %, {100 * v['coverage']['cover2s_moving']:.1f} %).", ""]
+                  f"{100 * v['coverage']['cover2s']:.1f} %, {100 * v['coverage']['cover2s_moving']:.1f} %)."), ""]
         lines += ["What the fits learned (best checkpoint; SI units m, s; rates 1/s):", ""]
         for n, c in p["cards"].items():
             vals = ", ".join(f"{k}={x:.4g}" for k, x in c["learned"].items())

@@ -18,8 +18,13 @@ from hydra import compose, initialize_config_dir
 import torchsde_lti as tl
 from torchsde_lti import models
 from torchsde_lti.training import KalmanFilterModule, train
+from torchsde_lti.training.metrics import (
+    filter_values,
+    flat_values,
+    learned_values,
+    parameter_table,
+)
 from torchsde_lti.training.module import imm_k_step_nll
-from torchsde_lti.training.metrics import filter_values, flat_values, learned_values, parameter_table
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 # an IMM learner (moored + underway) on the tiny simulated data of experiment=tiny (truth: cv)

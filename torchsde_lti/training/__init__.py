@@ -17,7 +17,11 @@ The only part of the package that imports Lightning, Hydra or matplotlib.
 """
 
 from torchsde_lti.training.callbacks import BestRun, ParameterHistory, RunLog
-from torchsde_lti.training.checkpoints import CheckpointError, load_filter_weights, read_checkpoint
+from torchsde_lti.training.checkpoints import (
+    CheckpointError,
+    load_filter_weights,
+    read_checkpoint,
+)
 from torchsde_lti.training.evaluation import (
     EvalRecords,
     evaluate_filter,

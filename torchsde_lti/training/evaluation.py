@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -191,6 +192,8 @@ def forecast_pairs(batch: TrackBatch, horizon: float, tol: float = 0.25) -> tupl
     Returns index tensors b, k, j (P,) of the pairs with ``|lead - horizon| <= tol · horizon``
     (memory O(B T): the nearest later report is one of the two neighbours ``searchsorted`` finds).
     """
+    if batch.t is None:
+        raise ValueError("forecast_pairs needs batch.t (report times), got a TrackBatch without t")
     t, mask = batch.t.contiguous(), batch.mask
     B, T = t.shape
     hi = torch.searchsorted(t, (t + horizon).contiguous())
@@ -210,23 +213,23 @@ def forecast_pairs(batch: TrackBatch, horizon: float, tol: float = 0.25) -> tupl
 Model = KalmanFilter | IMMFilter
 
 
-def _one_step(model: Model, batch: TrackBatch) -> tuple[object, Tensor, Tensor, Tensor]:
+def _one_step(model: Model, batch: TrackBatch) -> tuple[Any, Tensor, Tensor, Tensor]:
     """Filter output and the one-step predictive of y: weights (B, T, M), means (B, T, M, m), covs."""
     out = model(batch.y, batch.dt, mask=batch.mask)
     if isinstance(model, IMMFilter):
-        H, _ = model._obs_model()
+        H = model.H  # (m, n) shared or (M, m, n) per mode: broadcasts over (..., M, n, 1) either way
         return out, out.pred_mode_probabilities, (H @ out.mode_pred_mean.unsqueeze(-1)).squeeze(-1), \
             out.mode_innovation_cov
     w = torch.ones(*out.pred_mean.shape[:-1], 1, dtype=out.pred_mean.dtype)
     return out, w, (out.pred_mean @ model.H.mT).unsqueeze(-2), out.innovation_cov.unsqueeze(-3)
 
 
-def _forecast(model: Model, out: object, b: Tensor, k: Tensor, lead: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _forecast(model: Model, out: Any, b: Tensor, k: Tensor, lead: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Predictive of y at t_k + lead from the filtered state at (b, k): weights (P, M), means, covs."""
     if isinstance(model, IMMFilter):
-        fc = model.forecast((out.mode_probabilities[b, k], out.mode_mean[b, k], out.mode_cov[b, k]),
-                            lead.unsqueeze(-1))
-        return fc.mode_probabilities[:, 0], fc.mode_obs_mean[:, 0], fc.mode_obs_cov[:, 0]
+        mix = model.forecast((out.mode_probabilities[b, k], out.mode_mean[b, k], out.mode_cov[b, k]),
+                             lead.unsqueeze(-1))
+        return mix.mode_probabilities[:, 0], mix.mode_obs_mean[:, 0], mix.mode_obs_cov[:, 0]
     fc = model.forecast((out.mean[b, k], out.cov[b, k]), lead.unsqueeze(-1))
     return torch.ones(len(b), 1, dtype=lead.dtype), fc.obs_mean[:, :1], fc.obs_cov[:, :1]
 
@@ -296,7 +299,8 @@ def evaluate_filter(model: Model, tracks: Tracks, horizons: Sequence[float] = HO
                 b, k, j = forecast_pairs(batch, h)
                 if len(b) == 0:
                     continue
-                lead = batch.t[b, j] - batch.t[b, k]
+                t = batch.t if batch.t is not None else torch.cumsum(batch.dt, dim=-1)
+                lead = t[b, j] - t[b, k]
                 fw, fm, fS = _forecast(model, out, b, k, lead)
                 yj = batch.y[b, j]
                 err = ((fw.unsqueeze(-1) * fm).sum(-2) - yj).pow(2).sum(-1)
@@ -460,6 +464,6 @@ def tune_cv(tracks: Tracks, q_grid: Sequence[float] = tuple(10.0 ** np.arange(-4
     return float(10 ** bq), float(10 ** br), table
 
 
-def evaluate_models(models: Mapping[str, Model], tracks: Tracks, **kwargs: object) -> dict[str, EvalRecords]:
+def evaluate_models(models: Mapping[str, Model], tracks: Tracks, **kwargs: Any) -> dict[str, EvalRecords]:
     """:func:`evaluate_filter` of every model on the same tracks."""
     return {name: evaluate_filter(model, tracks, **kwargs) for name, model in models.items()}

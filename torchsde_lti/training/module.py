@@ -39,7 +39,11 @@ from torchsde_lti.data.tracks import TrackBatch
 from torchsde_lti.nn import NonFiniteLikelihoodError
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
-from torchsde_lti.training.metrics import masked_gaussian_nll, parameter_errors, raw_f_identifiable
+from torchsde_lti.training.metrics import (
+    masked_gaussian_nll,
+    parameter_errors,
+    raw_f_identifiable,
+)
 
 __all__ = ["KalmanFilterModule", "imm_k_step_nll"]
 
