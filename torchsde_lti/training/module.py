@@ -132,7 +132,7 @@ class KalmanFilterModule(LightningModule):
             raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
         ks = [int(k) for k in k_step] if isinstance(k_step, Sequence) else [int(k_step)]
         if not ks or any(k < 0 for k in ks) or not k_step_weight >= 0:
-            raise ValueError(f"k_step must be an int >= 0 or a non-empty list of them and k_step_weight >= 0, "
+            raise ValueError(f"k_step must be >= 0 (an int, or a non-empty list of ints) and k_step_weight >= 0, "
                              f"got {k_step}, {k_step_weight}")
         if max(ks) > 0 and k_step_weight > 0 and not isinstance(kf, (KalmanFilter, IMMFilter)):
             raise ValueError(f"the k-step loss (k_step={k_step}, k_step_weight={k_step_weight}) needs a KalmanFilter "
