@@ -18,7 +18,13 @@ from hydra import compose, initialize_config_dir
 import torchsde_lti as tl
 from torchsde_lti import models
 from torchsde_lti.training import KalmanFilterModule, train
-from torchsde_lti.training.metrics import filter_values, flat_values, learned_values, parameter_table
+from torchsde_lti.training.metrics import (
+    filter_values,
+    flat_values,
+    learned_values,
+    parameter_table,
+)
+from torchsde_lti.training.module import imm_k_step_nll
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 # an IMM learner (moored + underway) on the tiny simulated data of experiment=tiny (truth: cv)
@@ -77,10 +83,61 @@ def test_parameter_table_of_an_imm_module_without_truth() -> None:
     assert module.parameter_errors() == {} and module.identifiability_note() == ""
 
 
-def test_k_step_loss_needs_a_kalman_filter() -> None:
-    with pytest.raises(ValueError, match="k-step.*KalmanFilter.*IMMFilter"):
-        KalmanFilterModule(_imm(), k_step=3, k_step_weight=1.0)
-    KalmanFilterModule(_imm(), k_step=3, k_step_weight=0.0)  # off: fine
+def _imm_batch(B: int = 3, T: int = 25) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(3)
+    dt = torch.rand(B, T, generator=g, dtype=torch.float64) * 5 + 0.5
+    y = torch.cumsum(torch.randn(B, T, 2, generator=g, dtype=torch.float64), dim=1)
+    return y, dt
+
+
+def test_imm_k_step_loss_at_k_1_is_the_filters_step_likelihood() -> None:
+    imm = _imm()
+    y, dt = _imm_batch()
+    module = KalmanFilterModule(imm, k_step=1, k_step_weight=1.0)
+    out = imm(y, dt)
+    got = module.k_step_nll(out, y, ~torch.isnan(y), 1, dt)
+    want = -out.step_log_likelihood[:, 1:].sum()
+    torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-10)
+
+
+def test_imm_k_step_loss_is_the_forecast_mixture_at_the_lead() -> None:
+    imm = _imm()
+    y, dt = _imm_batch(B=2, T=12)
+    out = imm(y, dt)
+    k = 4
+    got = imm_k_step_nll(imm, out, y, dt, torch.ones_like(y, dtype=torch.bool), k)
+    total = 0.0
+    for bb in range(2):  # by hand: one forecast per origin, a mixture density per target
+        for tt in range(12 - k):
+            lead = dt[bb, tt + 1 : tt + k + 1].sum()
+            with torch.no_grad():
+                fc = imm.forecast((out.mode_probabilities[bb, tt], out.mode_mean[bb, tt], out.mode_cov[bb, tt]),
+                                  lead.reshape(1))
+            dens = sum(float(fc.mode_probabilities[0, j]) * math.exp(float(
+                torch.distributions.MultivariateNormal(fc.mode_obs_mean[0, j], fc.mode_obs_cov[0, j]).log_prob(
+                    y[bb, tt + k]))) for j in range(2))
+            total -= math.log(dens)
+    assert float(got) == pytest.approx(total, rel=1e-9)
+    # padding (unobserved targets) does not count; gradients reach the rates and the models
+    obs = torch.ones_like(y, dtype=torch.bool)
+    obs[0, -3:] = False
+    part = imm_k_step_nll(imm, out, y, dt, obs, k)
+    assert float(part) < float(got)
+    part.backward()
+    assert imm.parametrizations.rates.original.grad is not None
+
+
+def test_imm_k_step_loss_trains_through_the_module() -> None:
+    imm = _imm()
+    y, dt = _imm_batch()
+    module = KalmanFilterModule(imm, k_step=[2, 5], k_step_weight=0.5)
+    assert module.k_steps == [2, 5] and module.hparams.k_step == [2, 5]
+    batch = tl.data.pad_tracks([tl.data.Track(y=y[i], dt=dt[i]) for i in range(3)])
+    loss, nll, out, info = module._step(batch)
+    extra = sum(module.k_step_nll(out, info["y"], info["observed"], k, dt) for k in (2, 5))
+    torch.testing.assert_close(loss, nll + 0.5 * extra / info["count"])
+    with pytest.raises(ValueError, match="k_step"):
+        KalmanFilterModule(_imm(), k_step=[-1], k_step_weight=1.0)
 
 
 def test_imm_hydra_run_learns_and_reports(tmp_path: Path) -> None:

@@ -4,6 +4,8 @@ The only part of the package that imports Lightning, Hydra or matplotlib.
 
     module.py       KalmanFilterModule: NLL loss, robust optimizer steps, logged metrics
     metrics.py      parameter errors (identifiable quantities), tables, masked Gaussian NLL
+    evaluation.py   frozen filters on held-out tracks: NLL (moving / moored windows), HPD coverage,
+                    forecast RMSE, paired vessel bootstrap, the CV grid oracle (no Lightning)
     callbacks.py    ParameterHistory, RunLog (Lightning), BestRun (Hydra, best of a multirun)
     plots.py        loss / parameter / track figures of a run
     checkpoints.py  read_checkpoint / load_filter_weights: clear errors for damaged files
@@ -15,7 +17,18 @@ The only part of the package that imports Lightning, Hydra or matplotlib.
 """
 
 from torchsde_lti.training.callbacks import BestRun, ParameterHistory, RunLog
-from torchsde_lti.training.checkpoints import CheckpointError, load_filter_weights, read_checkpoint
+from torchsde_lti.training.checkpoints import (
+    CheckpointError,
+    load_filter_weights,
+    read_checkpoint,
+)
+from torchsde_lti.training.evaluation import (
+    EvalRecords,
+    evaluate_filter,
+    evaluate_models,
+    paired_bootstrap,
+    tune_cv,
+)
 from torchsde_lti.training.metrics import (
     format_table,
     learned_values,
@@ -33,17 +46,21 @@ from torchsde_lti.training.train import config_path, main, restart_learner, trai
 __all__ = [
     "BestRun",
     "CheckpointError",
+    "EvalRecords",
     "KalmanFilterModule",
     "ParameterHistory",
     "RunInterrupted",
     "RunLog",
     "config_path",
+    "evaluate_filter",
+    "evaluate_models",
     "format_table",
     "learned_values",
     "load_filter_weights",
     "main",
     "masked_gaussian_nll",
     "observed_autocovariance",
+    "paired_bootstrap",
     "parameter_errors",
     "parameter_table",
     "plot_run",
@@ -51,4 +68,5 @@ __all__ = [
     "read_checkpoint",
     "restart_learner",
     "train",
+    "tune_cv",
 ]

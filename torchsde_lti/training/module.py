@@ -5,9 +5,13 @@ Loss (per batch) = negative log-likelihood per observed scalar,
     loss = -Σ_tracks log p(y_1:T) / #(observed scalars in y),
 
 from the filter's prediction-error decomposition (``out.log_likelihood``), optionally
-plus ``k_step_weight`` × the k-step-ahead predictive NLL per observed scalar: from each
-filtered state (m_t, P_t) the moments are pushed k steps through the exact discrete
-model (A, Q, G u of each step) and scored against y_{t+k}.
+plus ``k_step_weight`` × the k-step-ahead predictive NLL per observed scalar (summed over
+the horizons when ``k_step`` is a list): for a KalmanFilter, from each filtered state
+(m_t, P_t) the moments are pushed k steps through the exact discrete model (A, Q, G u of
+each step) and scored against y_{t+k}; for an IMMFilter, the predictive MIXTURE of y_{t+k}
+from the filtered mode probabilities, means and covariances at t over the lead
+τ = t_{t+k} − t_t (the switching chain expm(Λ τ) and each mode's exact A_j(τ), Q_j(τ):
+``IMMFilter.forecast``), scored by ``log Σ_j c_j N(y; ŷ_j, S_j)`` on fully observed targets.
 
 Batches are dicts or NamedTuples with ``y`` (B, T, m; NaN = missing), ``dt`` (B, T),
 optional ``mask`` (B, T), ``u`` (B, T, p), ``x`` (B, T, n) — see :mod:`torchsde_lti.data`.
@@ -33,10 +37,49 @@ from torch import Tensor, nn
 
 from torchsde_lti.data.tracks import TrackBatch
 from torchsde_lti.nn import NonFiniteLikelihoodError
+from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
-from torchsde_lti.training.metrics import masked_gaussian_nll, parameter_errors, raw_f_identifiable
+from torchsde_lti.training.metrics import (
+    masked_gaussian_nll,
+    parameter_errors,
+    raw_f_identifiable,
+)
 
-__all__ = ["KalmanFilterModule"]
+__all__ = ["KalmanFilterModule", "imm_k_step_nll"]
+
+
+def imm_k_step_nll(imm: IMMFilter, out: Any, y: Tensor, dt: Tensor, observed: Tensor, k: int) -> Tensor:
+    """Σ over origins t of -log p(y_{t+k} | y_0:t) under the IMM's forecast mixture.
+
+    From the filtered (mode probabilities, mode means, mode covariances) at t, the mixture
+    at lead τ = Σ dt_{t+1..t+k} (``imm.forecast``: ``expm(Λ τ)`` and each mode's exact
+    discretisation over τ) is ``Σ_j c_j N(ŷ_j, H_j P_j H_jᵀ + R_j)``; only targets with every
+    component observed count (padding has dt = 0 and is unobserved).
+
+    Args:
+        imm: the filter; out: its IMMResult on (y, dt); y: (B, T, m); dt: (B, T);
+        observed: (B, T, m) bool; k: horizon in reports (>= 1).
+
+    Returns:
+        A scalar (0 when T <= k).
+    """
+    T = y.shape[-2]
+    if k < 1 or T <= k:
+        return y.new_zeros(())
+    cs = torch.cumsum(dt, dim=-1)
+    lead = (cs[..., k:] - cs[..., : T - k]).detach()  # (B, T - k)
+    state = (out.mode_probabilities[..., : T - k, :], out.mode_mean[..., : T - k, :, :],
+             out.mode_cov[..., : T - k, :, :, :])
+    fc = imm.forecast(state, lead.unsqueeze(-1))
+    w, mu, S = fc.mode_probabilities[..., 0, :], fc.mode_obs_mean[..., 0, :, :], fc.mode_obs_cov[..., 0, :, :, :]
+    ok = observed[..., k:, :].all(-1)  # (B, T - k)
+    target = torch.where(ok.unsqueeze(-1), y[..., k:, :], mu[..., 0, :].detach())
+    L = torch.linalg.cholesky(S)
+    z = torch.linalg.solve_triangular(L, (target.unsqueeze(-2) - mu).unsqueeze(-1), upper=False).squeeze(-1)
+    logdet = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+    comp = -0.5 * (z * z).sum(-1) - logdet - 0.5 * y.shape[-1] * math.log(2.0 * math.pi)
+    ll = torch.logsumexp(comp + torch.log(w.clamp_min(1e-300)), dim=-1)
+    return -(ll * ok).sum()
 
 
 # --------------------------------------------------------------------------- module
@@ -53,8 +96,9 @@ class KalmanFilterModule(LightningModule):
         optimizer: ``functools.partial`` of a torch optimizer (Hydra ``_partial_: true``).
         scheduler: optional partial of an LR scheduler (stepped per epoch).
         truth: optional {"sde": true LTISDE, "R": true R} for parameter errors.
-        k_step: horizon of the optional k-step-ahead predictive loss (0 = off); needs a
-            KalmanFilter (the exact per-step transitions of one model), ValueError otherwise.
+        k_step: horizon(s) in reports of the optional k-step-ahead predictive loss: an int
+            (0 = off) or a list of ints (each horizon's NLL is added). A KalmanFilter pushes
+            the exact per-step transitions; an IMMFilter scores its forecast mixture.
         k_step_weight: weight of that loss.
         dtype: "float64" or "float32": parameters and batches are kept in this dtype.
         param_names: names of the scalars to track (default: the model's own list).
@@ -75,7 +119,7 @@ class KalmanFilterModule(LightningModule):
         optimizer: Callable[..., torch.optim.Optimizer] | None = None,
         scheduler: Callable[..., Any] | None = None,
         truth: Mapping[str, Any] | None = None,
-        k_step: int = 0,
+        k_step: int | Sequence[int] = 0,
         k_step_weight: float = 0.0,
         dtype: str = "float64",
         param_names: Sequence[str] | None = None,
@@ -86,11 +130,14 @@ class KalmanFilterModule(LightningModule):
         super().__init__()
         if dtype not in ("float32", "float64"):
             raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
-        if int(k_step) < 0 or not k_step_weight >= 0:
-            raise ValueError(f"k_step must be >= 0 and k_step_weight >= 0, got {k_step}, {k_step_weight}")
-        if int(k_step) > 0 and k_step_weight > 0 and not isinstance(kf, KalmanFilter):
-            raise ValueError(f"the k-step loss (k_step={k_step}, k_step_weight={k_step_weight}) pushes one model's "
-                             f"per-step (A, Q) and needs a KalmanFilter, got {type(kf).__name__}; set k_step=0")
+        ks = [int(k) for k in k_step] if isinstance(k_step, Sequence) else [int(k_step)]
+        if not ks or any(k < 0 for k in ks) or not k_step_weight >= 0:
+            raise ValueError(f"k_step must be >= 0 (an int, or a non-empty list of ints) and k_step_weight >= 0, "
+                             f"got {k_step}, {k_step_weight}")
+        if max(ks) > 0 and k_step_weight > 0 and not isinstance(kf, (KalmanFilter, IMMFilter)):
+            raise ValueError(f"the k-step loss (k_step={k_step}, k_step_weight={k_step_weight}) needs a KalmanFilter "
+                             f"or an IMMFilter, got {type(kf).__name__}; set k_step=0")
+        k_step = ks if isinstance(k_step, Sequence) else ks[0]
         if grad_clip_norm is not None and not float(grad_clip_norm) >= 0:
             raise ValueError(f"grad_clip_norm must be >= 0 or None, got {grad_clip_norm!r}")
         # plain containers only, so checkpoints load with torch.load(weights_only=True)
@@ -103,7 +150,8 @@ class KalmanFilterModule(LightningModule):
         self.scheduler_factory = scheduler
         # a plain dict, so the true model is neither trained nor saved in checkpoints
         self._truth = dict(truth) if truth is not None else None
-        self.k_step, self.k_step_weight = int(k_step), float(k_step_weight)
+        self.k_steps = [k for k in ks if k > 0]
+        self.k_step, self.k_step_weight = max(ks), float(k_step_weight)
         self.param_names = list(param_names) if param_names is not None else None
         self.compare = tuple(compare)
         self.grad_clip_norm = float(grad_clip_norm) if grad_clip_norm else None
@@ -132,14 +180,22 @@ class KalmanFilterModule(LightningModule):
             obs = obs & mask.unsqueeze(-1)
         return obs
 
-    def k_step_nll(self, out: Any, y: Tensor, observed: Tensor) -> Tensor:
+    def k_step_nll(self, out: Any, y: Tensor, observed: Tensor, k: int | None = None,
+                   dt: Tensor | None = None) -> Tensor:
         """Σ of the k-step-ahead predictive NLL of y_{t+k} given the filtered state at t.
 
-        Uses each step's exact (A_j, Q_j) and input term G_j u_j, as the filter used them
-        (``out.transition``, ``out.process_noise``, ``out.control``): m ← A m + G u,
-        P ← A P Aᵀ + Q for j = t+1 .. t+k (zero-dt padding steps are identities). Returns a scalar.
+        KalmanFilter: each step's exact (A_j, Q_j) and input term G_j u_j, as the filter used
+        them (``out.transition``, ``out.process_noise``, ``out.control``): m ← A m + G u,
+        P ← A P Aᵀ + Q for j = t+1 .. t+k (zero-dt padding steps are identities).
+        IMMFilter: :func:`imm_k_step_nll` (needs ``dt``). ``k`` defaults to ``self.k_step``.
+        Returns a scalar.
         """
-        k, T = self.k_step, y.shape[-2]
+        k = self.k_step if k is None else int(k)
+        if isinstance(self.kf, IMMFilter):
+            if dt is None:
+                raise ValueError("the k-step loss of an IMMFilter needs dt (the leads t_{t+k} - t_t)")
+            return imm_k_step_nll(self.kf, out, y, dt, observed, k)
+        T = y.shape[-2]
         if k < 1 or T <= k:
             return y.new_zeros(())
         A, Q, c = out.transition, out.process_noise, out.control  # (B, T, n, n), (B, T, n)
@@ -165,8 +221,9 @@ class KalmanFilterModule(LightningModule):
         count = observed.sum().clamp_min(1).to(y.dtype)
         nll = -out.log_likelihood.sum() / count
         loss = nll
-        if self.k_step > 0 and self.k_step_weight > 0:
-            loss = loss + self.k_step_weight * self.k_step_nll(out, y, observed) / count
+        if self.k_steps and self.k_step_weight > 0:
+            kst = sum(self.k_step_nll(out, y, observed, k, dt) for k in self.k_steps)
+            loss = loss + self.k_step_weight * kst / count
         return loss, nll, out, {"y": y, "x": x, "observed": observed, "mask": mask, "count": count}
 
     # ---------------------------------------------------------------- Lightning hooks
@@ -183,7 +240,7 @@ class KalmanFilterModule(LightningModule):
             return sum((p.sum() * 0.0 for p in params), torch.zeros((), dtype=self.float_dtype)) + math.nan
         bs = info["y"].shape[0]
         self.log("train/nll", nll, on_step=False, on_epoch=True, prog_bar=True, batch_size=bs, sync_dist=True)
-        if self.k_step > 0 and self.k_step_weight > 0:
+        if self.k_steps and self.k_step_weight > 0:
             self.log("train/loss", loss, on_step=False, on_epoch=True, batch_size=bs, sync_dist=True)
         return loss
 

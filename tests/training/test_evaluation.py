@@ -1,0 +1,191 @@
+"""training.evaluation: the one evaluation of frozen filters (moving windows, HPD coverage,
+forecast RMSE, paired vessel bootstrap, the CV oracle), on small synthetic tracks."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import torchsde_lti as tl
+from torchsde_lti.data import ExponentialDt, simulate_tracks
+from torchsde_lti.data.trajectories import LoadSummary, Tracks
+from torchsde_lti.training.evaluation import (
+    NOMINAL_2SIGMA,
+    EvalRecords,
+    cv_filter,
+    evaluate_filter,
+    forecast_pairs,
+    hpd_inside,
+    mixture_log_prob,
+    moving_reports,
+    paired_bootstrap,
+    summary,
+    tune_cv,
+)
+
+
+def make_tracks(object_id: list[int], times: list[np.ndarray], positions: list[np.ndarray]) -> Tracks:
+    """Tracks from per-track times (s) and positions (T, 2) m (no lat/lon: zeros)."""
+    lengths = [len(t) for t in times]
+    offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
+    N = int(offsets[-1])
+    fields = {f: 0 for f in LoadSummary.__dataclass_fields__}
+    fields.update(source="synthetic", malformed_examples=(), frame="local", rules={}, dims=2)
+    return Tracks(np.asarray(object_id, dtype=np.int64), offsets, np.concatenate(times).astype(np.float64),
+                  np.concatenate(positions).astype(np.float64), np.zeros(N), np.zeros(N), None, None, None,
+                  np.zeros((len(times), 3)), np.datetime64("2020-01-01T00:00:00", "us"), "local",
+                  LoadSummary(**fields))
+
+
+def simulated_cv(q: float, r: float, num: int, T: int, seed: int, mean_dt: float = 60.0) -> Tracks:
+    """Constant-velocity tracks observed with noise r² I: one vessel per track."""
+    sde = tl.models.constant_velocity(dim=2, q=torch.tensor(q, dtype=torch.float64))
+    H = tl.models.position_observation(sde)
+    P0 = torch.diag(torch.tensor([1e-6, 25.0, 1e-6, 25.0], dtype=torch.float64))
+    b = simulate_tracks(sde, H, r**2 * torch.eye(2, dtype=torch.float64), num, T,
+                        dt_sampler=ExponentialDt(mean_dt, min_dt=5.0), P0=P0, seed=seed)
+    t = torch.cumsum(b.dt, dim=1).numpy()
+    return make_tracks(list(range(num)), [t[i] for i in range(num)], [b.y[i].numpy() for i in range(num)])
+
+
+def test_mixture_log_prob_matches_torch_distributions() -> None:
+    g = torch.Generator().manual_seed(0)
+    w = torch.tensor([[0.3, 0.7]], dtype=torch.float64)
+    mu = torch.randn(1, 2, 2, generator=g, dtype=torch.float64)
+    A = torch.randn(1, 2, 2, 2, generator=g, dtype=torch.float64)
+    S = A @ A.mT + 0.5 * torch.eye(2, dtype=torch.float64)
+    x = torch.randn(1, 2, generator=g, dtype=torch.float64)
+    want = math.log(sum(float(w[0, j]) * math.exp(float(
+        torch.distributions.MultivariateNormal(mu[0, j], S[0, j]).log_prob(x[0]))) for j in range(2)))
+    assert float(mixture_log_prob(x, w, mu, S)[0]) == pytest.approx(want, rel=1e-12)
+
+
+def test_hpd_of_a_gaussian_is_the_2sigma_ellipse_and_mixture_coverage_is_nominal() -> None:
+    g = torch.Generator().manual_seed(1)
+    N = 3000
+    S1 = torch.tensor([[4.0, 1.0], [1.0, 2.0]], dtype=torch.float64).expand(N, 1, 2, 2)
+    y = torch.randn(N, 2, generator=g, dtype=torch.float64) @ torch.linalg.cholesky(S1[0, 0]).mT
+    inside = hpd_inside(y, torch.ones(N, 1, dtype=torch.float64), torch.zeros(N, 1, 2, dtype=torch.float64), S1)
+    maha = (y.unsqueeze(-2) @ torch.linalg.solve(S1[:, 0], y.unsqueeze(-1))).reshape(-1)
+    assert torch.equal(inside, maha <= 4.0)
+    assert float(inside.double().mean()) == pytest.approx(NOMINAL_2SIGMA, abs=0.02)
+    # a two-component mixture (narrow + wide, like moored + underway): draws from it land inside
+    # its Monte Carlo HPD region at the nominal rate
+    w = torch.tensor([0.6, 0.4], dtype=torch.float64).expand(N, 2)
+    mu = torch.tensor([[0.0, 0.0], [30.0, 0.0]], dtype=torch.float64).expand(N, 2, 2)
+    S = torch.stack([torch.eye(2), 400.0 * torch.eye(2)]).double().expand(N, 2, 2, 2)
+    comp = torch.multinomial(w[0], N, replacement=True, generator=g)
+    z = torch.randn(N, 2, generator=g, dtype=torch.float64)
+    ym = mu[0][comp] + z * torch.tensor([1.0, 20.0], dtype=torch.float64)[comp, None]
+    cover = float(hpd_inside(ym, w, mu, S, samples=400, seed=3).double().mean())
+    assert cover == pytest.approx(NOMINAL_2SIGMA, abs=0.025)
+    # the same mixture, a component written twice, is still the same Gaussian: same region (up to MC)
+    n = 500
+    two = hpd_inside(y[:n], torch.full((n, 2), 0.5, dtype=torch.float64), torch.zeros(n, 2, 2, dtype=torch.float64),
+                     S1[:n].expand(n, 2, 2, 2), samples=2000)
+    assert float((two == inside[:n]).double().mean()) > 0.97
+
+
+def test_moving_windows_by_the_median_position_speed() -> None:
+    # track 0: 2 m/s for the first hour, then still; track 1: 0.5 m/s throughout (moored by the rule)
+    t0 = np.arange(0.0, 7200.0, 60.0)
+    x0 = np.where(t0 < 3600.0, 2.0 * t0, 2.0 * 3600.0)
+    t1 = np.arange(0.0, 3000.0, 100.0)
+    tr = make_tracks([7, 8], [t0, t1], [np.stack([x0, 0 * t0], -1), np.stack([0.5 * t1, 0 * t1], -1)])
+    mv = moving_reports(tr.t, tr.pos, tr.offsets)
+    n0 = len(t0)
+    assert mv[:n0][t0 < 3600].all() and not mv[:n0][t0 >= 3600].any()
+    assert not mv[n0:].any()
+    assert moving_reports(tr.t, tr.pos, tr.offsets, moving_speed=0.4)[n0:].all()
+
+
+def test_forecast_rmse_and_nll_match_a_hand_computation() -> None:
+    tr = simulated_cv(0.01, 5.0, num=3, T=40, seed=2)
+    kf = cv_filter(0.02, 6.0)
+    rec = evaluate_filter(kf, tr, horizons=(300.0,))
+    res = summary(rec)
+    sq, nll, n_fc = [], [], 0
+    for i in range(len(tr)):
+        a, b = tr.offsets[i], tr.offsets[i + 1]
+        t, y = torch.as_tensor(tr.t[a:b]), torch.as_tensor(tr.pos[a:b]) - torch.as_tensor(tr.pos[a])
+        dt = torch.cat([torch.zeros(1, dtype=torch.float64), torch.diff(t)])
+        with torch.no_grad():
+            out = kf(y, dt)
+        nll += (-out.step_log_likelihood[1:]).tolist()
+        for k in range(1, len(t)):
+            leads = t[k + 1:] - t[k]
+            if leads.numel() == 0:
+                continue
+            j = int(torch.argmin((leads - 300.0).abs()))
+            if abs(float(leads[j]) - 300.0) > 75.0:
+                continue
+            with torch.no_grad():
+                fc = kf.forecast((out.mean[k], out.cov[k]), leads[j : j + 1])
+            sq.append(float(((fc.obs_mean[0] - y[k + 1 + j]) ** 2).sum()))
+            n_fc += 1
+    assert res["fc_n_5"] == n_fc > 10
+    assert res["fc_rmse_5"] == pytest.approx(math.sqrt(np.mean(sq)), rel=1e-9)
+    assert res["nll"] == pytest.approx(np.mean(nll), rel=1e-9)
+    assert res["reports"] == len(nll) and res["vessels"] == 3
+
+
+def test_coverage_of_the_true_model_is_nominal() -> None:
+    q, r = 0.02, 4.0
+    tr = simulated_cv(q, r, num=40, T=80, seed=5)
+    res = summary(evaluate_filter(cv_filter(q, r, diffuse_variance=25.0), tr, horizons=(300.0,),
+                                  forecast_coverage=True))
+    assert res["cover2s"] == pytest.approx(NOMINAL_2SIGMA, abs=0.02)
+    assert res["fc_cover2s_5"] == pytest.approx(NOMINAL_2SIGMA, abs=0.03)
+    # a model far too confident under-covers
+    bad = summary(evaluate_filter(cv_filter(q / 100, r / 4), tr, horizons=(300.0,)))
+    assert bad["cover2s"] < 0.6
+
+
+def _records(nll: np.ndarray, vessel: np.ndarray, V: int) -> EvalRecords:
+    n = nll.size
+    return EvalRecords(vessel, nll, np.arange(n) % 2 == 0, np.ones(n, bool), np.ones(n), {}, V)
+
+
+def test_paired_bootstrap_interval_covers_the_true_difference() -> None:
+    true, hits = 0.3, 0
+    for rep in range(40):
+        rng = np.random.default_rng(rep)
+        V = 40
+        vessel = np.repeat(np.arange(V), rng.integers(5, 30, V))
+        base = rng.normal(10.0, 2.0, vessel.size)
+        effect = true + rng.normal(0.0, 0.5, V)  # vessel-level differences: reports are not independent
+        a, b = _records(base + effect[vessel], vessel, V), _records(base, vessel, V)
+        d = paired_bootstrap(a, b, metrics=["nll"], n_boot=400, seed=rep)["nll"]
+        assert d["lo"] <= d["delta"] <= d["hi"]
+        assert d["delta"] == pytest.approx(float(np.mean(effect[vessel])), rel=1e-12)
+        # effect per vessel is i.i.d. with mean `true`; weights by report count keep it unbiased
+        hits += d["lo"] <= true <= d["hi"]
+    assert hits >= 33  # nominal 95 % of 40 (binomial: P(< 34) ~ 1 %)
+    # identical models: zero difference, a zero-width interval
+    z = paired_bootstrap(b, b, n_boot=100)
+    assert all(v["delta"] == 0.0 and v["lo"] == 0.0 == v["hi"] for k, v in z.items() if math.isfinite(v["delta"]))
+    with pytest.raises(ValueError, match="same reports"):
+        paired_bootstrap(a, _records(base[:-1], vessel[:-1], V))
+
+
+def test_forecast_pairs_pick_the_nearest_lead_within_tolerance() -> None:
+    t = torch.tensor([[0.0, 100.0, 290.0, 420.0, 700.0]], dtype=torch.float64)
+    batch = tl.data.TrackBatch(torch.zeros(1, 5, 2), torch.zeros(1, 5), torch.ones(1, 5, dtype=torch.bool),
+                               torch.tensor([5]), t=t)
+    b, k, j = forecast_pairs(batch, 300.0)
+    # from 100: 420 (lead 320); from 290: nearest 700 (lead 410, off by > 25 %): none; from 420: 700 (280);
+    # never from the first report (k = 0)
+    assert list(zip(k.tolist(), j.tolist())) == [(1, 3), (3, 4)] and b.tolist() == [0, 0]
+
+
+def test_cv_oracle_grid_extends_until_the_optimum_is_inside() -> None:
+    tr = simulated_cv(0.01, 3.0, num=20, T=60, seed=7)
+    q, r, table = tune_cv(tr, q_grid=(1e2, 1e3), r_grid=(100.0, 300.0), refine=1)
+    assert 0.002 < q < 0.05 and 1.5 < r < 6.0
+    best = min(table.values())
+    assert best == pytest.approx(table[(q, r)])
+    qs = sorted({k[0] for k in table})
+    assert qs[0] < q < qs[-1]
