@@ -95,33 +95,26 @@ def accurate(x: SDEInputs) -> bool:
         return bool(torch.stack(checks).all())
 
 
-def _accurate_values(values: list[float], F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor,
+def _accurate_values(host: dict[str, list[float]], F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor,
                      bounds: tuple[float, float, float]) -> bool:
-    """:func:`accurate` on the concatenated values of F, W, B and dt (Python floats). Norms pair
-    with their own element's dt where the batch shapes agree, else the largest norm with the
-    largest step (an upper bound of every element's products)."""
+    """:func:`accurate` on Python floats (:attr:`SDEInputs.host`). Norms pair with their own
+    element's dt where the batch shapes agree, else the largest norm with the largest step."""
     theta_f, theta_c, delta = bounds
-    offset, steps = 0, values[-dt.numel():]
-    f_dt: list[float] = []  # per argument: ‖·‖_F² dt² of every element, or its bound
-    worst: list[float] = []
-    for t in (F, W, B):
+    steps = host["dt"]
+    worst = {}  # per argument: the largest ‖·‖_F² dt² over the elements, or its bound
+    for name, t in (("F", F), ("W", W), ("B", B)):
         if t is None:
-            worst.append(0.0)
             continue
-        size = t.shape[-2] * t.shape[-1]
-        sq = [sum(v * v for v in values[offset + i * size : offset + (i + 1) * size]) for i in range(t.numel() // size)]
-        offset += t.numel()
+        size, v = t.shape[-2] * t.shape[-1], host[name]
+        sq = [sum(x * x for x in v[i : i + size]) for i in range(0, len(v), size)]
         if t.shape[:-2] == dt.shape:
-            prods = [q * h * h for q, h in zip(sq, steps)]
+            worst[name] = max(q * h * h for q, h in zip(sq, steps))
         else:
-            prods = [max(sq) * max(steps) * max(steps)]
-        worst.append(max(prods))
-        if t is F:
-            f_dt = prods
-    if max(f_dt) ** 0.5 > theta_f or (2.0 * worst[0] + worst[1] + worst[2]) ** 0.5 > theta_c:
+            worst[name] = max(sq) * max(steps) * max(steps)
+    if worst["F"] > theta_f**2 or 2.0 * worst["F"] + worst.get("W", 0.0) + worst.get("B", 0.0) > theta_c**2:
         return False
     if W is None:
         return True
-    n, start = W.shape[-1], F.numel()
-    matrices = (values[start + i * n * n : start + (i + 1) * n * n] for i in range(W.numel() // (n * n)))
-    return all(cholesky_succeeds(m, n, -delta * sum(v * v for v in m) ** 0.5) for m in matrices)
+    n, v = W.shape[-1], host["W"]
+    matrices = (v[i : i + n * n] for i in range(0, len(v), n * n))
+    return all(cholesky_succeeds(m, n, -delta * sum(x * x for x in m) ** 0.5) for m in matrices)
