@@ -445,12 +445,6 @@ def doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | N
     assert dt is not None
     one_set = all(t is None or t.shape[:-2].numel() == 1 for t in (F, W, B))
     if one_set and batch.numel() >= SHARED_MIN_ELEMENTS and not tracing():
-        n = F.shape[-1]
-        return shared_doubling(
-            F.reshape(n, n),
-            None if W is None else W.reshape(n, n),
-            None if B is None else B.reshape(n, B.shape[-1]),
-            dt.expand(batch),
-            batch_last,
-        )
+        F1, W1, B1 = (None if t is None else t.reshape(t.shape[-2:]) for t in (F, W, B))
+        return shared_doubling(F1, W1, B1, dt.expand(batch), batch_last)  # type: ignore[arg-type]
     return per_element_doubling(x, batch_last)

@@ -133,9 +133,9 @@ def _lapack_dtype(x: Tensor) -> Tensor:
 
 
 def _psd_test(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """(passes, asym, scale) without synchronising: ``passes`` (0-dim bool) says x is
-    symmetric within tol and x + tol·scale·I has a Cholesky factor (⇒ λ_min > −tol·scale up
-    to rounding far below tol); asym: relative asymmetry (...); scale: max |x| (...)."""
+    """(passes, asym, scale) without synchronising: ``passes`` (0-dim bool): x is symmetric
+    within tol and x + tol·scale·I has a Cholesky factor; asym (...): relative asymmetry;
+    scale (...): max |x|."""
     scale = x.abs().amax(dim=(-2, -1)).clamp_min(torch.finfo(x.dtype).tiny)
     tol = psd_tolerance(x)
     k = x.shape[-1]
@@ -316,11 +316,8 @@ def sde_inputs(
         for name, t in named_values:
             host[name], offset = flat[offset : offset + t.numel()], offset + t.numel()
         valid = not values or _values_valid(host, Qc)
-    elif values:
-        # one synchronisation when everything is valid: a sum is non-finite if any entry is
-        # (NaN propagates, inf − inf = NaN); a finite sum that overflows only sends the check
-        # to the detailed path, which passes it
-        with torch.no_grad():
+    elif values:  # one synchronisation: a sum is non-finite if any entry is (or it overflowed:
+        with torch.no_grad():  # then the detailed checks below pass)
             ok = torch.stack([t.sum() for _, t in checked]).isfinite().all()
             if dt_t is not None and dt_t.numel():
                 ok = ok & (dt_t.amin() >= 0)
