@@ -95,15 +95,15 @@ def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | No
 
 
 def _run(inputs: SDEInputs, method: str, validate_args: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    """(A, Q, G) of checked arguments: the method (or the routed ``"matrix_exp"``) run with
-    :func:`intra_op_threads`, the result checked with ``validate_args``."""
+    """(A, Q, G) of checked arguments: the method (or the routed ``"matrix_exp"``) and, with
+    ``validate_args``, the result check, run with :func:`intra_op_threads`."""
     with intra_op_threads(_work(inputs)):
         if resolve_method(method) == "matrix_exp" or _routed(inputs):
             A, Q, G = matrix_exp(inputs)
         else:
             A, Q, G = doubling(inputs)
-    if checks_values(validate_args):
-        _check_result(inputs, A, Q, G, method)
+        if checks_values(validate_args):
+            _check_result(inputs, A, Q, G, method)
     return A, Q, G
 
 
@@ -184,6 +184,8 @@ def discretize_series(
         dt_tm, inverse = torch.unique(dt_tm, return_inverse=True)
     with intra_op_threads(_work(inputs)):
         out = doubling(inputs._replace(dt=dt_tm, batch=dt_tm.shape, host=None), batch_last=True)
+        if checks_values(validate_args):
+            _check_result(inputs, *out, method)  # type: ignore[arg-type]
     perm = [*range(3, 3 + len(lead)), 2, 0, 1]  # (r, c, T, *lead) -> (*lead, T, r, c)
 
     def layout(x: Tensor) -> Tensor:
@@ -192,8 +194,6 @@ def discretize_series(
         return x.permute(perm)
 
     A, Q, G = (None if x is None else layout(x) for x in out)
-    if checks_values(validate_args):
-        _check_result(inputs, A, Q, G, method)  # type: ignore[arg-type]
     return Discrete(A, Q, G)  # type: ignore[arg-type]
 
 

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import sym
+from torchsde_lti.core.threads import intra_op_threads
 from torchsde_lti.core.thresholds import PYTHON_CHECK_MAX_VALUES
 
 
@@ -317,7 +318,7 @@ def sde_inputs(
             host[name], offset = flat[offset : offset + t.numel()], offset + t.numel()
         valid = not values or _values_valid(host, Qc)
     elif values:  # one synchronisation: a sum is non-finite if any entry is (or it overflowed:
-        with torch.no_grad():  # then the detailed checks below pass)
+        with torch.no_grad(), intra_op_threads(total):  # then the detailed checks below pass)
             ok = torch.stack([t.sum() for _, t in checked]).isfinite().all()
             if dt_t is not None and dt_t.numel():
                 ok = ok & (dt_t.amin() >= 0)
