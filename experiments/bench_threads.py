@@ -22,17 +22,17 @@ import os
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bench_per_element  # noqa: E402
-from bench_discretize import make_call, make_problem  # noqa: E402
+import bench_per_element
+from bench_discretize import make_call, make_problem
 
-import torchsde_lti as tl  # noqa: E402
+import torchsde_lti as tl
 
 
 def per_element_call(name: str, n: int, B: int, dtype: torch.dtype, backward: bool) -> Callable[[], object]:
@@ -117,14 +117,14 @@ def main() -> None:
     cells = [c for c in cells if args.only in c[0]]
     head = (f"# issue-19 speed cells, paired: {args.clock} ms (median), threads {threads} (torch {torch.__version__}, "
             f"cpu_count {os.cpu_count()}, load at start {os.getloadavg()[0]:.2f})\n")
-    lines = [head, "| cell | default 1t | default 2t | default 2t/1t | naive 1t | naive 2t | naive 2t/1t | "
-             "default/naive speed-up 1t | 2t |", "|---|---|---|---|---|---|---|---|---|"]
+    lines = [head, ("| cell | default 1t | default 2t | default 2t/1t | naive 1t | naive 2t | naive 2t/1t | "
+                    "default/naive speed-up 1t | 2t |"), "|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(lines), flush=True)
     for label, calls in cells:
         t = paired(calls, args.repeats, args.budget, threads, clock)
         d1, d2 = t["default@1"], t.get("default@2", math.nan)
         n1, n2 = t.get("naive@1"), t.get("naive@2", math.nan)
-        fmt = lambda v: "—" if v is None else f"{v:.3g}"  # noqa: E731
+        fmt = lambda v: "—" if v is None else f"{v:.3g}"
         row = (f"| {label} | {d1:.3g} | {d2:.3g} | {d2 / d1:.2f} | {fmt(n1)} | {fmt(n2)} | "
                f"{'—' if n1 is None else f'{n2 / n1:.2f}'} | {'—' if n1 is None else f'{n1 / d1:.2f}×'} | "
                f"{'—' if n1 is None else f'{n2 / d2:.2f}×'} |")

@@ -19,6 +19,8 @@ series at the full step).
 from __future__ import annotations
 
 import math
+from typing import Any
+
 import torch
 from torch import Tensor
 
@@ -95,13 +97,13 @@ class _Layout:
         """A per-element scalar (N,) shaped to broadcast against matrices."""
         return v[:, None, None] if self.batch_first else v
 
-    def split(self, x: Tensor | None, c: int) -> tuple[Tensor | None, Tensor | None]:
+    def split(self, x: Tensor | None, c: int) -> tuple[Any, Any]:
         """The first c elements and the rest."""
         if x is None:
             return None, None
         return (x[:c], x[c:]) if self.batch_first else (x[..., :c], x[..., c:])
 
-    def cat(self, xs: list[Tensor | None]) -> Tensor | None:
+    def cat(self, xs: list[Tensor | None]) -> Any:
         return None if xs[0] is None else torch.cat(xs, 0 if self.batch_first else -1)  # type: ignore[arg-type]
 
     def eye(self, n: int, like: Tensor) -> Tensor:
@@ -191,7 +193,7 @@ def _double_masked(A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, hal
     (``torch.where``). ``max s`` steps of torch's structured while_loop, or with
     ``differentiable`` (which while_loop is not) :data:`TRACED_MAX_HALVINGS` static steps."""
     eye = lo.eye(X.shape[1], X)
-    keep = lambda mask, new, old: None if old is None else torch.where(mask, new, old)  # noqa: E731
+    keep = lambda mask, new, old: None if old is None else torch.where(mask, new, old)
 
     def step(j: Tensor | int, A: Tensor, X: Tensor, near: Tensor, Q: Tensor | None, G: Tensor | None):
         active = lo.col(halvings > j)
@@ -260,8 +262,8 @@ def per_element_doubling(
                 K = series_terms(F.dtype, 2.0 ** math.ceil(math.log2(x_max)) if x_max > 0 else 0.0, n)
             order, counts = _schedule(halvings.to(torch.int64), int(top_f))
     if order is not None:
-        Fb, dtf, halvings, Wb, Bb = (None if t is None else t[order] for t in (Fb, dtf, halvings, Wb, Bb))
-        assert Fb is not None and dtf is not None and halvings is not None
+        Fb, dtf, halvings = Fb[order], dtf[order], halvings[order]
+        Wb, Bb = (None if t is None else t[order] for t in (Wb, Bb))
 
     lo = _Layout(batch_first=n > BATCH_LAST_MAX_DIM or N <= BATCH_LAST_MIN_ELEMENTS)
     hc = lo.col(dtf * torch.exp2(-halvings))
@@ -403,7 +405,7 @@ def _full_step(stacks: list[Tensor | None], R: Tensor, exact: tuple[int, ...], f
     Q = Σ_k (h r_k) 𝓛̃^k(W)/(k+1), G likewise, one product each, h folded into the coefficient
     rows and Q formed on its n(n+1)/2 distinct entries (exactly symmetric). Coefficients of the
     terms that vanish in the forward pass (kept for the gradient) are clamped to the float range."""
-    n, N = eye.shape[0], h.numel()
+    n = eye.shape[0]
     big = torch.finfo(R.dtype).max
     iu = torch.triu_indices(n, n, device=R.device)
     mirror = torch.empty(n, n, dtype=torch.int64, device=R.device)

@@ -9,8 +9,6 @@ method routes a call here.
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 

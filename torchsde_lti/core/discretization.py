@@ -20,8 +20,8 @@ from torch import Tensor
 
 from torchsde_lti.core._doubling import doubling
 from torchsde_lti.core._matrix_exp import accurate, matrix_exp
-from torchsde_lti.core.thresholds import ROUTE_MAX_ELEMENTS
 from torchsde_lti.core.threads import intra_op_threads
+from torchsde_lti.core.thresholds import ROUTE_MAX_ELEMENTS
 from torchsde_lti.core.validation import SDEInputs, checks_values, sde_inputs, tracing
 
 __all__ = [
