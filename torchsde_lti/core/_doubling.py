@@ -392,7 +392,8 @@ def shared_doubling(F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor,
     present = [i for i, t in enumerate(stacks) if t is not None]
     flat = torch.cat([stacks[i].reshape(full[0], -1) for i in present], -1)  # type: ignore[union-attr]
     parts = dict(zip(present, (flat.mT @ R).split([math.prod(shapes[i]) for i in present])))  # one product
-    X, Q, G = (parts[i].reshape(*shapes[i], N) * (h if i else 1.0) if i in parts else None for i in range(3))
+    X, Q, G = (parts[i].reshape(*shapes[i], N) if i in parts else None for i in range(3))
+    Q, G = (None if t is None else t * h for t in (Q, G))
     assert X is not None
     lo = _Layout(batch_first=False)
     A, Q, G = _double_sorted(X + lo.eye(n, X), X, Q, G, counts, lo)
