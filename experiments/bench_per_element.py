@@ -9,7 +9,8 @@ log-uniform in [1e-3, 10]. Contestants, side by side in one process, timed round
   (the five lines a user writes).
 
 Forward = (A, Q); forward+backward = also ``(A.sum() + Q.sum()).backward()`` w.r.t. F, Qc, dt.
-Matrices/s = B / median wall time (warm-up call first). The machine is shared by other
+Matrices/s = B / median wall time (warm-up call first); each repeat calls both contestants,
+in alternating order (paired). The machine is shared by other
 sessions: medians of repeats, still noisy.
 
     python experiments/bench_per_element.py [--quick] [--threads 1 2]
@@ -60,21 +61,32 @@ def make_problem(n: int, B: int, dtype: torch.dtype, seed: int = 0):
     return F.to(dtype), L.to(dtype), Qc.to(dtype), dt.to(dtype)
 
 
-def time_call(fn, args, backward: bool, repeats: int, budget: float) -> float:
-    def once() -> float:
+CLOCKS = {"wall": time.perf_counter, "cpu": time.process_time}
+
+
+def time_pair(fns, args, backward: bool, repeats: int, budget: float, clock=time.perf_counter) -> dict[str, float]:
+    """Median wall time per contestant; each repeat calls every contestant once, alternating
+    the order, so that background load hits them alike (paired)."""
+
+    def once(fn) -> float:
         xs = [a.detach().requires_grad_(backward and a.dim() > 0 and i != 1) for i, a in enumerate(args)]
-        t0 = time.perf_counter()
+        t0 = clock()
         A, Q = fn(*xs)
         if backward:
             (A.sum() + Q.sum()).backward()
-        return time.perf_counter() - t0
+        return clock() - t0
 
-    once()
-    times = []
+    names = list(fns)
+    for name in names:
+        once(fns[name])
+    times: dict[str, list[float]] = {name: [] for name in names}
     start = time.perf_counter()
-    while len(times) < repeats and (len(times) < 3 or time.perf_counter() - start < budget):
-        times.append(once())
-    return statistics.median(times)
+    r = 0
+    while r < repeats or (time.perf_counter() - start < budget and r < 20 * repeats):
+        for name in names if r % 2 == 0 else names[::-1]:
+            times[name].append(once(fns[name]))
+        r += 1
+    return {name: statistics.median(t) for name, t in times.items()}
 
 
 def main() -> None:
@@ -84,11 +96,13 @@ def main() -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[2, 4, 8])
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 100, 10000])
     ap.add_argument("--dtypes", nargs="+", default=["float64", "float32"])
+    ap.add_argument("--clock", choices=list(CLOCKS), default="wall",
+                    help="wall time, or the process's CPU time (robust to other processes at 1 thread)")
     args = ap.parse_args()
-    repeats = 5 if args.quick else 15
-    budget = 1.0 if args.quick else 3.0
+    repeats = 5 if args.quick else 25
+    budget = 0.5 if args.quick else 2.0
     print(f"# per-element discretisation benchmark (torch {torch.__version__}, cpu_count {os.cpu_count()}, "
-          f"load {os.getloadavg()[0]:.2f}; shared machine: medians of repeats, noisy)\n")
+          f"load {os.getloadavg()[0]:.2f}; {args.clock} clock; shared machine: medians of repeats, noisy)\n")
     print("| threads | n | dtype | B | pass | default (mat/s) | naive (mat/s) | default/naive |")
     print("|---|---|---|---|---|---|---|---|")
     for threads in args.threads:
@@ -99,9 +113,7 @@ def main() -> None:
                 for B in args.batches:
                     prob = make_problem(n, B, dtype)
                     for backward in (False, True):
-                        res = {}
-                        for name, fn in CONTESTANTS.items():  # round-robin by alternating order
-                            res[name] = time_call(fn, prob, backward, repeats, budget)
+                        res = time_pair(CONTESTANTS, prob, backward, repeats, budget, CLOCKS[args.clock])
                         r = res["naive"] / res["default"]
                         print(f"| {threads} | {n} | {dtype_name} | {B} | {'fwd+bwd' if backward else 'fwd'} | "
                               f"{B / res['default']:.3g} | {B / res['naive']:.3g} | {r:.2f}× |", flush=True)

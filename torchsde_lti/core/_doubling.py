@@ -1,31 +1,26 @@
 r"""Scaling and doubling: the default, PSD-preserving discretisation method (private).
 
-Every element i takes ``s_i = ceil(log2(‖F_i‖_F dt_i / θ))`` halvings (none when
-``‖F_i‖_F dt_i ≤ θ``), sums Taylor series on the sub-step ``h_i = dt_i / 2^{s_i}``
-(``M = F h``, ``𝓛(X) = F X + X Fᵀ``, ``W = L Qc Lᵀ``)::
+Element i takes ``s_i = ceil(log2(‖F_i‖ dt_i / θ))`` halvings (none when ``‖F_i‖ dt_i ≤ θ``),
+sums Taylor series on the sub-step ``h_i = dt_i / 2^{s_i}`` (``M = F h``, ``𝓛(X) = F X + X Fᵀ``)::
 
-    E_h = A_h − I = M φ₁(M),   φ₁(M) = Σ_k M^k/(k+1)!,   G_h = h φ₁(M) B,
-    Q_h = h Σ_k h^k 𝓛^k(W)/(k+1)!,
+    E_h = A_h − I = M φ₁(M),   φ₁(M) = Σ_k M^k/(k+1)!,   G_h = h φ₁(M) B,   Q_h = h Σ_k h^k 𝓛^k(W)/(k+1)!,
 
-and doubles ``s_i`` times: ``Q ← A Q Aᵀ + Q``, ``G ← A G + G``, ``A ← A A``. Every doubling
-adds PSD terms, so Q stays PSD, and nothing grows like ``e^{|λ| dt}`` for stable F. While A
-is near the identity the recursion carries ``E = A − I`` (``E ← 2E + E²``), so the digits of
-a slow mode are not rounded away by ``s`` squarings; an element switches to carrying A once
-``‖A‖_F < 1/2``.
+and doubles ``s_i`` times: ``Q ← A Q Aᵀ + Q``, ``G ← A G + G``, ``A ← A A``. Every doubling adds
+PSD terms. While A is near the identity the recursion carries ``E = A − I`` (``E ← 2E + E²``,
+no slow mode rounded away) and switches to A once ``‖A‖_F < 1/2``.
 
-One algorithm, :func:`per_element_doubling`: every element has its own F, W, B and dt; the
-series are Horner recursions with one batched product per term; the doubling runs on the
-elements sorted by ``s`` so that step j touches only the prefix with ``s > j`` (eager), or
-on all elements with masks while torch.compile / torch.export trace (no data-dependent
-shapes). One specialisation, :func:`shared_doubling`: ONE parameter set for the whole batch
-(the training case), whose series terms are computed once on n × n matrices and combined
-for all elements by one matrix product each; a nilpotent F (integrator chains) takes its
-terminating series at the full step there, with no doubling.
+:func:`per_element_doubling` is the one algorithm (each element its own F, W, B, dt; eager
+doubling on the elements sorted by ``s``, masked while torch.compile / torch.export trace);
+:func:`shared_doubling` its one specialisation for ONE parameter set (series terms once on
+n × n matrices, one product per quantity for the batch; a nilpotent F takes its terminating
+series at the full step).
 """
 
 from __future__ import annotations
 
 import math
+from typing import Any
+
 import torch
 from torch import Tensor
 
@@ -46,11 +41,9 @@ _TERMS: dict[tuple[torch.dtype, float, int], int] = {}
 
 
 def series_terms(dtype: torch.dtype, theta: float, n: int) -> int:
-    """Taylor terms K (k = 0 … K − 1) for a sub-step with ‖F‖ h ≤ θ and n states: the first
-    omitted term of the Q series, (2θ)^K / (K+1)!, is below eps/8 relative to its leading
-    term (‖𝓛‖_F ≤ 2‖F‖_F), and K ≥ 2n − 1, so every ENTRY keeps its leading term: an entry
-    of Q that is first reached through a chain of F (an integrator chain's position variance
-    q h^{2n−1}/…) is as accurate as the large ones, not only the norm."""
+    """Taylor terms K for a sub-step with ‖F‖ h ≤ θ and n states: the first omitted term of the
+    Q series, (2θ)^K / (K+1)!, is below eps/8 of its leading term (‖𝓛‖_F ≤ 2‖F‖_F), and
+    K ≥ 2n − 1 so that every entry (an integrator chain's q h^{2n−1}/… too) keeps its leading term."""
     key = (dtype, theta, n)
     K = _TERMS.get(key)
     if K is None:
@@ -64,9 +57,8 @@ def series_terms(dtype: torch.dtype, theta: float, n: int) -> int:
 
 
 def frobenius_norm(F: Tensor) -> Tensor:
-    """‖F‖_F over the last two dims: (..., r, c) -> (...). Submultiplicative and ≥ ‖F‖₂, so it
-    bounds the Taylor remainders. Where the squares overflow (entries beyond ≈ 1e19 in float32,
-    1e154 in float64) it is recomputed scaled by the largest entry."""
+    """‖F‖_F over the last two dims: (..., r, c) -> (...); rescaled by the largest entry where
+    the squares overflow."""
     flat = F.reshape(*F.shape[:-2], F.shape[-2] * F.shape[-1])
     norm = torch.linalg.vector_norm(flat, dim=-1)
     overflow = torch.isinf(norm)
@@ -84,9 +76,8 @@ def halvings_for(norm: Tensor, dt: Tensor, theta: float) -> Tensor:
 
 
 class _Layout:
-    """Batch layout of the series and the doubling: batch-last (r, c, N), whose products are
-    fused multiply-adds over the contiguous batch (small n, many elements), or batch-first
-    (N, r, c), whose products are one ``bmm``. The methods are the same operation in either."""
+    """Batch layout of the series and the doubling: batch-last (r, c, N) (fused multiply-adds
+    over the contiguous batch) or batch-first (N, r, c) (one ``bmm`` a product)."""
 
     def __init__(self, batch_first: bool) -> None:
         self.batch_first = batch_first
@@ -106,14 +97,14 @@ class _Layout:
         """A per-element scalar (N,) shaped to broadcast against matrices."""
         return v[:, None, None] if self.batch_first else v
 
-    def head(self, x: Tensor, c: int) -> Tensor:
-        return x[:c] if self.batch_first else x[..., :c]
+    def split(self, x: Tensor | None, c: int) -> tuple[Any, Any]:
+        """The first c elements and the rest."""
+        if x is None:
+            return None, None
+        return (x[:c], x[c:]) if self.batch_first else (x[..., :c], x[..., c:])
 
-    def tail(self, x: Tensor, c: int) -> Tensor:
-        return x[c:] if self.batch_first else x[..., c:]
-
-    def cat(self, xs: list[Tensor]) -> Tensor:
-        return torch.cat(xs, 0 if self.batch_first else -1)
+    def cat(self, xs: list[Tensor | None]) -> Any:
+        return None if xs[0] is None else torch.cat(xs, 0 if self.batch_first else -1)  # type: ignore[arg-type]
 
     def eye(self, n: int, like: Tensor) -> Tensor:
         e = torch.eye(n, dtype=like.dtype, device=like.device)
@@ -127,9 +118,11 @@ class _Layout:
         """(N, r, c) -> this layout (contiguous)."""
         return x.contiguous() if self.batch_first else x.permute(1, 2, 0).contiguous()
 
-    def take(self, x: Tensor, order: Tensor | None, batch: torch.Size, batch_last: bool) -> Tensor:
+    def take(self, x: Tensor | None, order: Tensor | None, batch: torch.Size, batch_last: bool) -> Tensor | None:
         """This layout, elements in sorted ``order`` (or None) -> (*batch, r, c) in the elements'
         order, or contiguous (r, c, *batch) with ``batch_last`` (one gather or copy)."""
+        if x is None:
+            return None
         if not self.batch_first and batch_last:
             if order is not None:  # out[..., order[i]] = x[..., i]
                 x = torch.empty_like(x).index_copy_(-1, order, x)
@@ -171,14 +164,12 @@ def _double_sorted(A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, cou
     eye = lo.eye(X.shape[1], X)
     near: Tensor | None = None  # None: every element holds E; else a per-element 1/0 mask
     size = A.shape[0] if lo.batch_first else A.shape[-1]
-    done: list[tuple[Tensor, Tensor | None, Tensor | None]] = []
+    done: list[tuple[Tensor | None, ...]] = []
     for j, c in enumerate(counts):
         if c < size:
-            done.append((lo.tail(A, c), None if Q is None else lo.tail(Q, c), None if G is None else lo.tail(G, c)))
-            A, X, size = lo.head(A, c), lo.head(X, c), c
-            Q = None if Q is None else lo.head(Q, c)
-            G = None if G is None else lo.head(G, c)
-            near = None if near is None else lo.head(near, c)
+            (A, a), (Q, q), (G, g), (X, _), (near, _) = (lo.split(t, c) for t in (A, Q, G, X, near))
+            done.append((a, q, g))
+            size = c
         if j:  # after a doubling: elements whose A has decayed carry A from now on
             switch = _decayed(A, lo)
             if near is not None:
@@ -191,11 +182,8 @@ def _double_sorted(A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, cou
     if not done:
         return A, Q, G
     parts = [(A, Q, G), *done[::-1]]
-    return (
-        lo.cat([p[0] for p in parts]),
-        None if Q is None else lo.cat([p[1] for p in parts]),  # type: ignore[misc]
-        None if G is None else lo.cat([p[2] for p in parts]),  # type: ignore[misc]
-    )
+    A, Q, G = (lo.cat([p[i] for p in parts]) for i in range(3))
+    return A, Q, G  # type: ignore[return-value]
 
 
 def _double_masked(A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, halvings: Tensor,
@@ -205,7 +193,7 @@ def _double_masked(A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, hal
     (``torch.where``). ``max s`` steps of torch's structured while_loop, or with
     ``differentiable`` (which while_loop is not) :data:`TRACED_MAX_HALVINGS` static steps."""
     eye = lo.eye(X.shape[1], X)
-    keep = lambda mask, new, old: None if old is None else torch.where(mask, new, old)  # noqa: E731
+    keep = lambda mask, new, old: None if old is None else torch.where(mask, new, old)
 
     def step(j: Tensor | int, A: Tensor, X: Tensor, near: Tensor, Q: Tensor | None, G: Tensor | None):
         active = lo.col(halvings > j)
@@ -256,9 +244,8 @@ def per_element_doubling(
     n, N = F.shape[-1], math.prod(batch)  # (a symbolic size while tracing: no guard on it)
     p = 0 if B is None else B.shape[-1]
     traced = tracing() if masked is None else masked
-    Fb = _flat(F, batch, n)
+    Fb, Wb, Bb = _flat(F, batch, n), _flat(W, batch, n), _flat(B, batch, p)
     assert Fb is not None
-    Wb, Bb = _flat(W, batch, n), _flat(B, batch, p)
     dtf = dt.expand(batch).reshape(N)
     with torch.no_grad():
         nu = frobenius_norm(Fb)
@@ -269,32 +256,22 @@ def per_element_doubling(
     if traced:
         halvings = halvings.clamp_max(TRACED_MAX_HALVINGS)
     elif N:
-        with torch.no_grad():
-            steps = halvings.to(torch.int64)
-            top_f, x_max = torch.stack([steps.max().to(dtf.dtype), (nu * dtf).max()]).tolist()
-            top = int(top_f)
-            if not top:  # no element halves: the series for the largest ‖F‖ dt (a power of 2) suffices
+        with torch.no_grad():  # one synchronisation: the most halvings and the largest ‖F‖ dt
+            top_f, x_max = torch.stack([halvings.max(), (nu * dtf).max()]).tolist()
+            if not top_f:  # no element halves: the series for the largest ‖F‖ dt (a power of 2) suffices
                 K = series_terms(F.dtype, 2.0 ** math.ceil(math.log2(x_max)) if x_max > 0 else 0.0, n)
-            if top and N > 1:
-                order = torch.argsort(steps, descending=True)
-                steps = steps[order]
-            if top:
-                tally = torch.bincount(steps, minlength=top + 1)
-                counts = (N - torch.cumsum(tally, 0))[:top].tolist()
+            order, counts = _schedule(halvings.to(torch.int64), int(top_f))
     if order is not None:
         Fb, dtf, halvings = Fb[order], dtf[order], halvings[order]
-        Wb = None if Wb is None else Wb[order]
-        Bb = None if Bb is None else Bb[order]
+        Wb, Bb = (None if t is None else t[order] for t in (Wb, Bb))
 
     lo = _Layout(batch_first=n > BATCH_LAST_MAX_DIM or tracing() or N <= BATCH_LAST_MIN_ELEMENTS)
-    h = dtf * torch.exp2(-halvings)
-    hc = lo.col(h)
+    hc = lo.col(dtf * torch.exp2(-halvings))
     M = lo.put(Fb) * hc
     eye = lo.eye(n, M)
     Y = eye.expand_as(M)  # φ₁(M) by Horner: Y ← I + M Y / (k+1)
-    W_l = None if Wb is None else lo.put(Wb)
-    Z = W_l  # Q/h by Horner: Z ← W + (M Z + Z Mᵀ)/(k+1) = T + Tᵀ, T = W/2 + M Z/(k+1)
-    W_half = None if W_l is None else 0.5 * W_l
+    Z = None if Wb is None else lo.put(Wb)  # Q/h by Horner: Z ← W + (M Z + Z Mᵀ)/(k+1) = T + Tᵀ
+    W_half = None if Z is None else 0.5 * Z  # with T = W/2 + M Z/(k+1)
     for k in range(K - 1, 0, -1):
         Y = lo.mm(M, Y, eye, 1.0 / (k + 1))
         if Z is not None and W_half is not None:
@@ -306,17 +283,29 @@ def per_element_doubling(
     if traced:
         needs_grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (F, W, B, dt))
         A, Q, G = _double_masked(X + eye, X, Q, G, halvings, lo, needs_grad and not torch.compiler.is_exporting())
-    elif counts:
-        A, Q, G = _double_sorted(X + eye, X, Q, G, counts, lo)
     else:
-        A = X + eye
+        A, Q, G = _double_sorted(X + eye, X, Q, G, counts, lo)
+    return _finish(A, Q, G, lo, order, batch, batch_last)
+
+
+def _schedule(steps: Tensor, top: int) -> tuple[Tensor | None, list[int]]:
+    """The order that sorts the elements by halvings ``steps`` (N,) (descending; None for
+    fewer than two elements or no halving) and ``counts[j]``: how many have more than j, j < top."""
+    if not top:
+        return None, []
+    order = torch.argsort(steps, descending=True) if steps.numel() > 1 else None
+    tally = torch.bincount(steps, minlength=top + 1)
+    return order, (steps.numel() - torch.cumsum(tally, 0))[:top].tolist()
+
+
+def _finish(A: Tensor, Q: Tensor | None, G: Tensor | None, lo: _Layout, order: Tensor | None, batch: torch.Size,
+            batch_last: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """Q made exactly symmetric, and all three in the elements' order and the output layout."""
     if Q is not None:
-        Q = torch.lerp(Q, lo.t(Q), 0.5)  # exactly symmetric
-    return (
-        lo.take(A, order, batch, batch_last),
-        None if Q is None else lo.take(Q, order, batch, batch_last),
-        None if G is None else lo.take(G, order, batch, batch_last),
-    )
+        Q = torch.lerp(Q, lo.t(Q), 0.5)
+    A_out = lo.take(A, order, batch, batch_last)
+    assert A_out is not None
+    return A_out, lo.take(Q, order, batch, batch_last), lo.take(G, order, batch, batch_last)
 
 
 def nilpotency_index(F: Tensor) -> int | None:
@@ -335,20 +324,12 @@ def nilpotency_index(F: Tensor) -> int | None:
     return None
 
 
-def _lyapunov_terms(F: Tensor, W: Tensor, count: int) -> Tensor:
-    """𝓛^k(W) for k < count, 𝓛(X) = F X + X Fᵀ: (count, n, n)."""
-    terms = [W]
-    for _ in range(1, count):
-        FX = F @ terms[-1]
-        terms.append(FX + FX.mT)
-    return torch.stack(terms)
-
-
-def _power_terms(F: Tensor, X: Tensor, count: int) -> Tensor:
-    """F^k X for k < count: (count, n, c)."""
+def _terms(F: Tensor, X: Tensor, count: int, lyapunov: bool = False) -> Tensor:
+    """F^k X, or with ``lyapunov`` 𝓛^k(X) (𝓛(X) = F X + X Fᵀ), for k < count: (count, n, c)."""
     terms = [X]
     for _ in range(1, count):
-        terms.append(F @ terms[-1])
+        FX = F @ terms[-1]
+        terms.append(FX + FX.mT if lyapunov else FX)
     return torch.stack(terms)
 
 
@@ -378,21 +359,17 @@ def shared_doubling(F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor,
         nu = torch.maximum(absF.sum(-2).amax(-1), absF.sum(-1).amax(-1))
         nu = torch.where(nu > 0, nu, torch.ones_like(nu))
     index = nilpotency_index(F)
-    dtf = dt.reshape(N)
+    h = dtf = dt.reshape(N)
     order: Tensor | None = None
     counts: list[int] = []
-    h = dtf
     if index is None:
         exact = full = (series_terms(dtype, THETA_SHARED, n),) * 3
         with torch.no_grad():
             steps = halvings_for(nu, dtf, THETA_SHARED).to(torch.int64)
-            top = int(steps.max()) if N else 0
-            if top:
-                order = torch.argsort(steps, descending=True)
-                steps = steps[order]
-                counts = (N - torch.cumsum(torch.bincount(steps, minlength=top + 1), 0))[:top].tolist()
-        if top:
-            h = dtf[order] * torch.exp2(-steps.to(dtype))
+            order, counts = _schedule(steps, int(steps.max()) if N else 0)
+        if counts:
+            h = dtf * torch.exp2(-steps.to(dtype))
+            h = h if order is None else h[order]
     else:
         exact = (index, 2 * index - 1, index)
         full = (2 * index, 3 * index - 1, 2 * index) if torch.is_grad_enabled() and F.requires_grad else exact
@@ -405,37 +382,22 @@ def shared_doubling(F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor,
     k1 = torch.arange(1, max(full) + 1, dtype=dtype, device=F.device)[:, None, None]
     eye = torch.eye(n, dtype=dtype, device=F.device)
     stacks = [  # (count, n, c) terms whose coefficients are r_k (Q and G: times h)
-        torch.cat([torch.zeros_like(eye)[None], _power_terms(Ft, eye, full[0])[1:]]),
-        None if W is None else _lyapunov_terms(Ft, W, full[1]) / k1[: full[1]],
-        None if B is None else _power_terms(Ft, B, full[2]) / k1[: full[2]],
+        torch.cat([torch.zeros_like(eye)[None], _terms(Ft, eye, full[0])[1:]]),
+        None if W is None else _terms(Ft, W, full[1], lyapunov=True) / k1[: full[1]],
+        None if B is None else _terms(Ft, B, full[2]) / k1[: full[2]],
     ]
+    if full != exact or len(set(full)) > 1:  # a nilpotent F: no doubling, results in the output layout
+        return _full_step(stacks, R, exact, full, h, eye, batch, batch_last)
     shapes = [(n, n), (n, n), (n, p)]
     present = [i for i, t in enumerate(stacks) if t is not None]
-    out: list[Tensor | None] = [None, None, None]
-    if full == exact and len(set(full)) == 1:  # one product for the whole batch
-        flat = torch.cat([stacks[i].reshape(full[0], -1) for i in present], -1)  # type: ignore[union-attr]
-        parts = (flat.mT @ R).split([math.prod(shapes[i]) for i in present])
-        for i, part in zip(present, parts):
-            out[i] = part.reshape(*shapes[i], N)
-    else:  # a nilpotent F: no doubling, so each product writes its result in the output layout
-        return _full_step(stacks, R, exact, full, h, eye, batch, batch_last)
-    X, Q, G = out
+    flat = torch.cat([stacks[i].reshape(full[0], -1) for i in present], -1)  # type: ignore[union-attr]
+    parts = dict(zip(present, (flat.mT @ R).split([math.prod(shapes[i]) for i in present])))  # one product
+    X, Q, G = (parts[i].reshape(*shapes[i], N) if i in parts else None for i in range(3))
+    Q, G = (None if t is None else t * h for t in (Q, G))
     assert X is not None
-    Q = None if Q is None else Q * h
-    G = None if G is None else G * h
     lo = _Layout(batch_first=False)
-    eyel = lo.eye(n, X)
-    if counts:
-        A, Q, G = _double_sorted(X + eyel, X, Q, G, counts, lo)
-    else:
-        A = X + eyel
-    if Q is not None:
-        Q = torch.lerp(Q, Q.transpose(0, 1), 0.5)
-    return (
-        lo.take(A, order, batch, batch_last),
-        None if Q is None else lo.take(Q, order, batch, batch_last),
-        None if G is None else lo.take(G, order, batch, batch_last),
-    )
+    A, Q, G = _double_sorted(X + lo.eye(n, X), X, Q, G, counts, lo)
+    return _finish(A, Q, G, lo, order, batch, batch_last)
 
 
 def _full_step(stacks: list[Tensor | None], R: Tensor, exact: tuple[int, ...], full: tuple[int, ...], h: Tensor,
@@ -444,7 +406,7 @@ def _full_step(stacks: list[Tensor | None], R: Tensor, exact: tuple[int, ...], f
     Q = Σ_k (h r_k) 𝓛̃^k(W)/(k+1), G likewise, one product each, h folded into the coefficient
     rows and Q formed on its n(n+1)/2 distinct entries (exactly symmetric). Coefficients of the
     terms that vanish in the forward pass (kept for the gradient) are clamped to the float range."""
-    n, N = eye.shape[0], h.numel()
+    n = eye.shape[0]
     big = torch.finfo(R.dtype).max
     iu = torch.triu_indices(n, n, device=R.device)
     mirror = torch.empty(n, n, dtype=torch.int64, device=R.device)
@@ -486,12 +448,6 @@ def doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | N
     assert dt is not None
     one_set = all(t is None or t.shape[:-2].numel() == 1 for t in (F, W, B))
     if one_set and not tracing() and batch.numel() >= SHARED_MIN_ELEMENTS:
-        n = F.shape[-1]
-        return shared_doubling(
-            F.reshape(n, n),
-            None if W is None else W.reshape(n, n),
-            None if B is None else B.reshape(n, B.shape[-1]),
-            dt.expand(batch),
-            batch_last,
-        )
+        F1, W1, B1 = (None if t is None else t.reshape(t.shape[-2:]) for t in (F, W, B))
+        return shared_doubling(F1, W1, B1, dt.expand(batch), batch_last)  # type: ignore[arg-type]
     return per_element_doubling(x, batch_last)

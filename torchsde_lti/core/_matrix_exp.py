@@ -1,21 +1,13 @@
-r"""The ``"matrix_exp"`` discretisation method: :func:`torch.matrix_exp` of block matrices (private).
+r"""The ``"matrix_exp"`` method: :func:`torch.matrix_exp` of block matrices (private).
 
-- transition only: ``A = expm(F dt)``;
-- with B (zero-order hold): ``expm([[F, B], [0, 0]] dt) = [[A, G], [0, I]]``;
-- with noise (Van Loan 1978): ``expm([[F, W, B], [0, −Fᵀ, 0], [0, 0, 0]] dt)`` has blocks
-  ``[[A, X, G], [0, A⁻ᵀ, 0], [0, 0, I]]`` and ``Q = X Aᵀ`` (W = L Qc Lᵀ).
-
-Exact in exact arithmetic and one fused call, the cheapest for a few elements. In floating
-point the ``−Fᵀ`` block holds ``e^{−Fᵀ dt}`` and Q is recovered by cancellation: its relative
-error grows like ``κ = ‖e^{F dt}‖ ‖e^{−F dt}‖ ≤ e^{(μ(F) − μ̌(F)) dt}`` (μ, μ̌ the largest and
-smallest eigenvalue of the symmetric part of F), and torch's own squarings (their number set
-by the block's norm) round away the slow modes of A. :func:`accurate` is the a-priori bound
-under which the default doubling method routes a call here.
+A = expm(F dt); with B ``expm([[F, B], [0, 0]] dt) = [[A, G], [0, I]]``; with noise (Van Loan)
+``expm([[F, W, B], [0, −Fᵀ, 0], [0, 0, 0]] dt) = [[A, X, G], [0, A⁻ᵀ, 0], [0, 0, I]]``,
+``Q = X Aᵀ``. The ``−Fᵀ`` block makes Q a cancellation whose error grows like
+``‖e^{F dt}‖ ‖e^{−F dt}‖``; :func:`accurate` is the a-priori bound under which the default
+method routes a call here.
 """
 
 from __future__ import annotations
-
-import math
 
 import torch
 from torch import Tensor
@@ -60,17 +52,12 @@ def matrix_exp(x: SDEInputs) -> tuple[Tensor, Tensor | None, Tensor | None]:
 
 def accurate(x: SDEInputs) -> bool:
     """Whether :func:`matrix_exp` is accurate for every element, by an a-priori bound (one
-    synchronisation), with :data:`ROUTE_BOUNDS` (float32 / float64; other dtypes never):
+    synchronisation) with :data:`ROUTE_BOUNDS` (θ_F, θ_C, δ; float32 / float64 only):
 
-    - ‖F‖_F dt ≤ θ_F: the ``−Fᵀ`` block grows by at most ``e^{θ_F}``, so the cancellation in
-      ``Q = X Aᵀ`` costs at most a factor ``e^{2θ_F}`` over rounding;
-    - ‖C‖_F dt ≤ θ_C for the whole block (‖C‖_F² = 2‖F‖_F² + ‖W‖_F² + ‖B‖_F²): torch takes at
-      most a couple of squarings, which would round away the slow modes of A;
-    - W = L Qc Lᵀ well conditioned, λ_min(W) ≥ δ ‖W‖_F: then Q = W dt (1 + O(θ_F)) is well
-      conditioned too and a normwise-accurate Q is accurate and positive definite in every
-      direction. A rank-deficient W (an integrator chain's noise on its last state) gives a
-      graded Q — position variance q dt³/3 beside q dt — whose small entries torch's
-      norm-based Taylor degree truncates, so those calls stay with the doubling method.
+    - ‖F‖_F dt ≤ θ_F: the cancellation in ``Q = X Aᵀ`` costs at most ``e^{2θ_F}`` over rounding;
+    - ‖C‖_F dt ≤ θ_C, ‖C‖_F² = 2‖F‖_F² + ‖W‖_F² + ‖B‖_F²: at most a couple of squarings;
+    - λ_min(W) ≥ δ ‖W‖_F: Q = W dt (1 + O(θ_F)) is well conditioned, so a normwise-accurate Q is
+      accurate in every direction (a rank-deficient W gives a graded Q: stays with doubling).
     """
     F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
     bounds = ROUTE_BOUNDS.get(F.dtype)
@@ -95,33 +82,26 @@ def accurate(x: SDEInputs) -> bool:
         return bool(torch.stack(checks).all())
 
 
-def _accurate_values(values: list[float], F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor,
+def _accurate_values(host: dict[str, list[float]], F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor,
                      bounds: tuple[float, float, float]) -> bool:
-    """:func:`accurate` on the concatenated values of F, W, B and dt (Python floats). Norms pair
-    with their own element's dt where the batch shapes agree, else the largest norm with the
-    largest step (an upper bound of every element's products)."""
+    """:func:`accurate` on Python floats (:attr:`SDEInputs.host`). Norms pair with their own
+    element's dt where the batch shapes agree, else the largest norm with the largest step."""
     theta_f, theta_c, delta = bounds
-    offset, steps = 0, values[-dt.numel():]
-    f_dt: list[float] = []  # per argument: ‖·‖_F² dt² of every element, or its bound
-    worst: list[float] = []
-    for t in (F, W, B):
+    steps = host["dt"]
+    worst = {}  # per argument: the largest ‖·‖_F² dt² over the elements, or its bound
+    for name, t in (("F", F), ("W", W), ("B", B)):
         if t is None:
-            worst.append(0.0)
             continue
-        size = t.shape[-2] * t.shape[-1]
-        sq = [sum(v * v for v in values[offset + i * size : offset + (i + 1) * size]) for i in range(t.numel() // size)]
-        offset += t.numel()
+        size, v = t.shape[-2] * t.shape[-1], host[name]
+        sq = [sum(x * x for x in v[i : i + size]) for i in range(0, len(v), size)]
         if t.shape[:-2] == dt.shape:
-            prods = [q * h * h for q, h in zip(sq, steps)]
+            worst[name] = max(q * h * h for q, h in zip(sq, steps))
         else:
-            prods = [max(sq) * max(steps) * max(steps)]
-        worst.append(max(prods))
-        if t is F:
-            f_dt = prods
-    if max(f_dt) ** 0.5 > theta_f or (2.0 * worst[0] + worst[1] + worst[2]) ** 0.5 > theta_c:
+            worst[name] = max(sq) * max(steps) * max(steps)
+    if worst["F"] > theta_f**2 or 2.0 * worst["F"] + worst.get("W", 0.0) + worst.get("B", 0.0) > theta_c**2:
         return False
     if W is None:
         return True
-    n, start = W.shape[-1], F.numel()
-    matrices = (values[start + i * n * n : start + (i + 1) * n * n] for i in range(W.numel() // (n * n)))
-    return all(cholesky_succeeds(m, n, -delta * sum(v * v for v in m) ** 0.5) for m in matrices)
+    n, v = W.shape[-1], host["W"]
+    matrices = (v[i : i + n * n] for i in range(0, len(v), n * n))
+    return all(cholesky_succeeds(m, n, -delta * sum(x * x for x in m) ** 0.5) for m in matrices)

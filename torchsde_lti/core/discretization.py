@@ -1,27 +1,14 @@
 r"""Exact discretisation of LTI SDEs ``dx = F x dt + B u dt + L dβ`` (spectral density Qc).
 
-Over a step dt with u held constant (zero-order hold)::
+Over a step dt with u held constant (zero-order hold), ``x' = A x + G u + q``, ``q ~ N(0, Q)``::
 
-    x_{k+1} = A x_k + G u_k + q_k,        q_k ~ N(0, Q)
-    A = expm(F dt),   G = ∫_0^dt expm(F s) ds B,   Q = ∫_0^dt expm(F s) W expm(F s)ᵀ ds,
-    W = L Qc Lᵀ.
+    A = expm(F dt),   G = ∫_0^dt expm(F s) ds B,   Q = ∫_0^dt expm(F s) W expm(F s)ᵀ ds,   W = L Qc Lᵀ.
 
-Two methods, selectable in every function (and in the layers, ``LTISDE``, ``KalmanFilter``
-and the Hydra configs that sit on top):
-
-``"doubling"`` (default): scaling and doubling on Taylor series, every doubling step adds
-PSD terms (private module ``_doubling``). Accurate to rounding and PSD for stiff F and
-large dt, in float32 too; F, L, Qc, B shared by a batch of dt are expanded once.
-
-``"matrix_exp"``: :func:`torch.matrix_exp` — A = expm(F dt), G from the ZOH block
-``[[F, B], [0, 0]]``, Q from Van Loan's block exponential (private module ``_matrix_exp``).
-Exact in exact arithmetic; the ``−Fᵀ`` block grows like ``e^{|λ| dt}``, so Q loses accuracy
-for stiff F or large dt.
-
-The default routes a call of few elements to ``"matrix_exp"`` where an a-priori bound
-(``_matrix_exp.accurate``: ‖F‖ dt and the block's norm times dt small, W = L Qc Lᵀ well
-conditioned) proves it accurate: there one fused :func:`torch.matrix_exp` is the cheapest
-exact answer.
+Methods: ``"doubling"`` (default; scaling and doubling, PSD and accurate for stiff F and
+large dt in float32 too, module ``_doubling``) and ``"matrix_exp"`` (:func:`torch.matrix_exp`
+of Van Loan's block, module ``_matrix_exp``; its ``−Fᵀ`` block grows like ``e^{|λ| dt}``).
+The default hands a call of few elements to ``"matrix_exp"`` where an a-priori bound
+(``_matrix_exp.accurate``) proves it accurate.
 """
 
 from __future__ import annotations
@@ -34,8 +21,8 @@ from torch import Tensor
 
 from torchsde_lti.core._doubling import doubling
 from torchsde_lti.core._matrix_exp import accurate, matrix_exp
-from torchsde_lti.core.thresholds import ROUTE_MAX_ELEMENTS
 from torchsde_lti.core.threads import intra_op_threads
+from torchsde_lti.core.thresholds import ROUTE_MAX_ELEMENTS
 from torchsde_lti.core.validation import SDEInputs, checks_values, sde_inputs, tracing
 
 __all__ = [
@@ -79,18 +66,15 @@ def _routed(inputs: SDEInputs) -> bool:
     return not tracing() and inputs.batch.numel() <= ROUTE_MAX_ELEMENTS and accurate(inputs)
 
 
-def _run(inputs: SDEInputs, method: str) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    assert inputs.dt is not None
-    with intra_op_threads(_work(inputs)):
-        if resolve_method(method) == "matrix_exp" or _routed(inputs):
-            return matrix_exp(inputs)
-        return doubling(inputs)
+def _work(inputs: SDEInputs) -> int:
+    """Matrix entries a call produces: the size that sets its intra-op threads."""
+    n = inputs.F.shape[-1]
+    return math.prod(inputs.batch) * n * (n + (0 if inputs.B is None else inputs.B.shape[-1]))  # symbolic-safe
 
 
-def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | None, method: str = "doubling") -> None:
+def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | None, method: str) -> None:
     """ValueError when a result is not finite although the (checked) arguments are: the exact
-    values exceed the dtype's range (an unstable F over a long step, a huge noise or input),
-    never silently inf or NaN."""
+    values exceed the dtype's range (an unstable F over a long step, a huge noise or input)."""
     with torch.no_grad():
         parts = [t for t in (A, Q, G) if t is not None and t.numel()]
         if not parts or bool(torch.stack([t.sum() for t in parts]).isfinite().all()):
@@ -111,10 +95,17 @@ def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | No
     )
 
 
-def _work(inputs: SDEInputs) -> int:
-    """Matrix entries a call produces: the size that sets its intra-op threads."""
-    n = inputs.F.shape[-1]
-    return math.prod(inputs.batch) * n * (n + (0 if inputs.B is None else inputs.B.shape[-1]))  # symbolic-safe
+def _run(inputs: SDEInputs, method: str, validate_args: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """(A, Q, G) of checked arguments: the method (or the routed ``"matrix_exp"``) and, with
+    ``validate_args``, the result check, run with :func:`intra_op_threads`."""
+    with intra_op_threads(_work(inputs)):
+        if resolve_method(method) == "matrix_exp" or _routed(inputs):
+            A, Q, G = matrix_exp(inputs)
+        else:
+            A, Q, G = doubling(inputs)
+        if checks_values(validate_args):
+            _check_result(inputs, A, Q, G, method)
+    return A, Q, G
 
 
 def discretize(
@@ -129,6 +120,9 @@ def discretize(
 ) -> Discrete:
     r"""Exact discretisation (A, Q, G) of ``dx = F x dt + B u dt + L dβ`` over steps dt.
 
+    All leading dimensions broadcast (numpy rules, right-aligned): F (n, n) with dt (B, T)
+    gives (B, T, n, n); F (B, 1, n, n) with dt (B, T) gives (B, T, n, n).
+
     Args:
         F: (..., n, n) drift matrix.
         L: (..., n, s) noise-input matrix.
@@ -141,17 +135,11 @@ def discretize(
         validate_args: check the values (finite, dt ≥ 0, Qc symmetric PSD); shapes are
             always checked. Inner calls on already-checked arguments pass False.
 
-    All leading dimensions broadcast (numpy rules, right-aligned): F (n, n) with dt (B, T)
-    gives (B, T, n, n); F (B, 1, n, n) with dt (B, T) gives (B, T, n, n).
-
     Returns:
         :class:`Discrete` with A (..., n, n), Q (..., n, n) symmetric PSD and
         G (..., n, p) or None. Differentiable with respect to F, L, Qc, B and dt.
     """
-    inputs = sde_inputs(F, L, Qc, dt, B, validate_args=validate_args)
-    A, Q, G = _run(inputs, method)
-    if checks_values(validate_args):
-        _check_result(inputs, A, Q, G, resolve_method(method))
+    A, Q, G = _run(sde_inputs(F, L, Qc, dt, B, validate_args=validate_args), method, validate_args)
     assert Q is not None
     return Discrete(A, Q, G)
 
@@ -171,55 +159,43 @@ def discretize_series(
 
     Same values as ``discretize(F, L, Qc, dt, B, method)``. With the doubling method and ONE
     parameter set (all batch dims of F, L, Qc, B of size 1) the results are batch-first
-    VIEWS (..., T, n, n) of batch-last storage (n, n, T, ...): step k's matrices
-    ``A[..., k, :, :]`` permuted to (n, n, ...) are rows of contiguous batch, the layout of
-    the filter loop. Otherwise the plain batch-first result is returned.
+    VIEWS (..., T, n, n) of batch-last storage (n, n, T, ...), the layout of the filter
+    loop; otherwise the plain batch-first result.
 
-    ``unique=True`` discretises the distinct values of dt only (``torch.unique``) and gathers
-    them (same values and gradients w.r.t. the parameters); it applies to one parameter set
-    and a dt that does not require grad, and otherwise falls back to the plain path. It
-    pays off for quantised gaps and models that need doubling.
+    Args:
+        F, L, Qc, B, method, validate_args: as in :func:`discretize`.
+        dt: (..., T) step lengths.
+        unique: discretise the distinct values of dt only and gather them (same values and
+            gradients w.r.t. the parameters); applies to one parameter set and a dt that
+            does not require grad.
+
+    Returns:
+        :class:`Discrete` with A, Q (..., T, n, n) and G (..., T, n, p) or None.
     """
     inputs = sde_inputs(F, L, Qc, dt, B, validate_args=validate_args)
-    dt_t = inputs.dt
-    assert dt_t is not None
     params = [inputs.F.shape[:-2]] + [x.shape[:-2] for x in (inputs.W, inputs.B) if x is not None]
     single = all(torch.Size(s).numel() == 1 for s in params)
     if resolve_method(method) != "doubling" or len(inputs.batch) == 0 or not single or _routed(inputs):
-        d = Discrete(*_run(inputs, method))
-    elif unique and not dt_t.requires_grad:
-        d = _discretize_unique(inputs)
-    else:
-        lead = inputs.batch[:-1]
-        dt_tm = dt_t.expand(inputs.batch).movedim(-1, 0)  # (T, *lead)
-        with intra_op_threads(_work(inputs)):
-            A, Q, G = doubling(inputs._replace(dt=dt_tm, batch=dt_tm.shape, host=None), batch_last=True)
-        perm = [*range(3, 3 + len(lead)), 2, 0, 1]  # (r, c, T, *lead) -> (*lead, T, r, c)
-        assert Q is not None
-        d = Discrete(A.permute(perm), Q.permute(perm), None if G is None else G.permute(perm))
-    if checks_values(validate_args):
-        _check_result(inputs, d.A, d.Q, d.G, resolve_method(method))
-    return d
-
-
-def _discretize_unique(inputs: SDEInputs) -> Discrete:
-    """Doubling on the distinct gaps only, gathered into the series layout of
-    :func:`discretize_series` (batch-first views of (r, c, T, *lead) storage)."""
-    dt = inputs.dt
-    assert dt is not None
-    dt = dt.expand(inputs.batch)
-    values, inverse = torch.unique(dt, return_inverse=True)
+        return Discrete(*_run(inputs, method, validate_args))  # type: ignore[arg-type]
+    assert inputs.dt is not None
+    lead = inputs.batch[:-1]
+    dt_tm = inputs.dt.expand(inputs.batch).movedim(-1, 0)  # (T, *lead)
+    inverse = None
+    if unique and not dt_tm.requires_grad:
+        dt_tm, inverse = torch.unique(dt_tm, return_inverse=True)
     with intra_op_threads(_work(inputs)):
-        A, Q, G = doubling(inputs._replace(dt=values, batch=values.shape, host=None), batch_last=True)  # (r, c, U)
-    lead, T = dt.shape[:-1], dt.shape[-1]
-    idx = inverse.movedim(-1, 0).reshape(-1)  # time-major
+        out = doubling(inputs._replace(dt=dt_tm, batch=dt_tm.shape, host=None), batch_last=True)
+        if checks_values(validate_args):
+            _check_result(inputs, *out, method)  # type: ignore[arg-type]
+    perm = [*range(3, 3 + len(lead)), 2, 0, 1]  # (r, c, T, *lead) -> (*lead, T, r, c)
 
-    def gather(x: Tensor) -> Tensor:
-        store = x.index_select(-1, idx).reshape(*x.shape[:2], T, *lead)  # (r, c, T, *lead)
-        return store.permute(*range(3, 3 + len(lead)), 2, 0, 1)  # (*lead, T, r, c)
+    def layout(x: Tensor) -> Tensor:
+        if inverse is not None:  # (r, c, U) -> (r, c, T, *lead)
+            x = x.index_select(-1, inverse.reshape(-1)).reshape(*x.shape[:2], *inverse.shape)
+        return x.permute(perm)
 
-    assert Q is not None
-    return Discrete(gather(A), gather(Q), None if G is None else gather(G))
+    A, Q, G = (None if x is None else layout(x) for x in out)
+    return Discrete(A, Q, G)  # type: ignore[arg-type]
 
 
 def transition_matrix(
@@ -236,20 +212,14 @@ def transition_matrix(
     Returns:
         (..., n, n), batch broadcast from F and dt.
     """
-    inputs = sde_inputs(F, None, None, dt, None, validate_args=validate_args)
-    A, _, _ = _run(inputs, method)
-    if checks_values(validate_args):
-        _check_result(inputs, A, None, None, resolve_method(method))
-    return A
+    return _run(sde_inputs(F, None, None, dt, validate_args=validate_args), method, validate_args)[0]
 
 
 def zero_order_hold(
     F: Tensor, B: Tensor, dt: Tensor | float, method: str = "doubling", *, validate_args: bool = True
 ) -> tuple[Tensor, Tensor]:
-    """(A, G) with A = expm(F dt) and G = ∫_0^dt expm(F s) ds B.
-
-    Equivalent to the blocks of expm([[F, B], [0, 0]] dt) = [[A, G], [0, I]] (which is what
-    ``method="matrix_exp"`` evaluates).
+    """(A, G) with A = expm(F dt) and G = ∫_0^dt expm(F s) ds B: the blocks of
+    expm([[F, B], [0, 0]] dt) = [[A, G], [0, I]] (what ``method="matrix_exp"`` evaluates).
 
     Args:
         F: (..., n, n); B: (..., n, p); dt: (...).
@@ -258,10 +228,7 @@ def zero_order_hold(
     Returns:
         A (..., n, n), G (..., n, p).
     """
-    inputs = sde_inputs(F, None, None, dt, B, validate_args=validate_args)
-    A, _, G = _run(inputs, method)
-    if checks_values(validate_args):
-        _check_result(inputs, A, None, G, resolve_method(method))
+    A, _, G = _run(sde_inputs(F, None, None, dt, B, validate_args=validate_args), method, validate_args)
     assert G is not None
     return A, G
 

@@ -1,19 +1,11 @@
-r"""The small dense linear-algebra kernels every layer of the package uses (torch only).
+r"""Small dense linear-algebra kernels for every layer (torch only).
 
-Two families, one implementation each:
-
-- batch-first kernels on ``(..., k, k)`` matrices: :func:`sym`, :func:`cholesky`,
-  :func:`solve_lower`, :func:`solve_upper_t`, :func:`cho_solve`, :func:`matvec`. For the
-  1–4 dimensional blocks of tracking models the Cholesky factor and the triangular solves
-  are unrolled over the matrix size and vectorised over the batch, which beats one LAPACK
-  call per matrix by an order of magnitude and is differentiable by plain autograd; larger
-  matrices go to LAPACK.
-- batch-last kernels on ``(r, c, *batch)`` tensors (the event indices first, the batch as
-  the contiguous inner dimension), the layout of the filter's time loop and of the
-  discretisation's doubling: :func:`to_batch_last`, :func:`from_batch_last`,
-  :func:`bl_matmul`, :func:`bl_matvec`, :func:`bl_sym`, :func:`bl_sym_into`. Elementwise work
-  there runs over contiguous rows of the batch instead of through one tiny ``bmm`` per
-  matrix.
+Batch-first kernels on ``(..., k, k)`` (:func:`sym`, :func:`cholesky`, :func:`solve_lower`,
+:func:`solve_upper_t`, :func:`cho_solve`, :func:`matvec`; unrolled over k ≤
+:data:`~torchsde_lti.core.thresholds.UNROLLED_MAX_DIM`, LAPACK beyond) and batch-last kernels
+on ``(r, c, *batch)`` with the batch as the contiguous inner dimension, the layout of the
+filter loop and of the doubling (:func:`to_batch_last`, :func:`from_batch_last`,
+:func:`bl_matmul`, :func:`bl_matvec`, :func:`bl_sym_into`).
 """
 
 from __future__ import annotations
@@ -27,7 +19,6 @@ from torchsde_lti.core.thresholds import FMA_MAX_INNER, FMA_MIN_BATCH, UNROLLED_
 __all__ = [
     "bl_matmul",
     "bl_matvec",
-    "bl_sym",
     "bl_sym_into",
     "cho_solve",
     "cholesky",
@@ -40,11 +31,6 @@ __all__ = [
 ]
 
 
-# ----------------------------------------------------------------------------------------
-# Batch-first kernels
-# ----------------------------------------------------------------------------------------
-
-
 def sym(P: Tensor) -> Tensor:
     """``(P + Pᵀ) / 2`` over the last two dimensions: P (..., k, k) -> (..., k, k)."""
     return 0.5 * (P + P.mT)
@@ -54,14 +40,10 @@ def cholesky(S: Tensor, semidefinite: bool = False) -> Tensor:
     r"""Lower Cholesky factor L (L Lᵀ = S) of symmetric S (..., k, k): positive-definite S, or
     with ``semidefinite`` any PSD S, singular allowed.
 
-    Cholesky–Banachiewicz, unrolled over k and vectorised over the batch (torch.linalg.cholesky
-    for k > :data:`UNROLLED_MAX_DIM` when not ``semidefinite``). The semi-definite pivot rule: a pivot
-    ``d_j ≤ k · eps · S_jj`` (zero up to the rounding of its own diagonal entry, e.g. every
-    pivot of Q(dt = 0) = 0 or of a rank-deficient Q) gives a zero column instead of a NaN. The
-    threshold is per pivot, so badly scaled matrices (a constant-velocity Q over a long gap:
-    diagonal q dt³/3 vs q dt) keep their small pivots. No jitter is added, so ``L Lᵀ = S`` up to
-    rounding; the gradient through a dropped pivot is taken as 0 (``torch.where`` with safe
-    branches: no NaN in backward).
+    Cholesky–Banachiewicz unrolled over k, vectorised over the batch (torch.linalg.cholesky
+    for k > :data:`UNROLLED_MAX_DIM` when not ``semidefinite``). Semi-definite: a pivot
+    ``d_j ≤ k · eps · S_jj`` (zero to the rounding of its own diagonal entry, so badly scaled
+    matrices keep their small pivots) gives a zero column, with gradient 0; no jitter.
     """
     k = S.shape[-1]
     if k > UNROLLED_MAX_DIM and not semidefinite:
@@ -131,10 +113,6 @@ def matvec(M: Tensor, v: Tensor) -> Tensor:
     return (M @ v.unsqueeze(-1)).squeeze(-1)
 
 
-# ----------------------------------------------------------------------------------------
-# Batch-last kernels: tensors laid out as (*event, *batch)
-# ----------------------------------------------------------------------------------------
-
 def to_batch_last(x: Tensor, event_ndim: int, time: bool = False) -> Tensor:
     """``(*batch, [T,] *event) -> ([T,] *event, *batch)``, contiguous."""
     nd = x.dim()
@@ -164,9 +142,7 @@ def _fma_matmul(a: Tensor, b: Tensor, c: Tensor | None, alpha: float = 1.0) -> T
 
 class _FmaMatmul(torch.autograd.Function):
     """c + α a b on batch-last matrices with one flat batch dimension; the backward calls
-    :func:`bl_matmul` again, so it is differentiable twice (double backward works). Reverse
-    mode only: under forward-mode AD or a ``torch.func`` transform :func:`bl_matmul` uses
-    plain ops instead (:func:`_plain_ops_required`)."""
+    :func:`bl_matmul` again (double backward works). Reverse mode only (:func:`_plain_ops_required`)."""
 
     @staticmethod
     def forward(ctx, a: Tensor, b: Tensor, c: Tensor | None, alpha: float) -> Tensor:  # type: ignore[override]
@@ -184,10 +160,8 @@ class _FmaMatmul(torch.autograd.Function):
 
 
 def _plain_ops_required() -> bool:
-    """Whether the core's custom autograd Functions must step aside for plain ops: while
-    tracing (compile/export: plain ops are traced and differentiated whole), under
-    forward-mode AD (a dual level) or inside a ``torch.func`` transform (classic Functions
-    support neither). Falls back to True if torch's internals move."""
+    """Whether custom autograd Functions must step aside for plain ops: while tracing, under
+    forward-mode AD or inside a ``torch.func`` transform (True if torch's internals move)."""
     if torch.compiler.is_compiling() or torch.compiler.is_exporting():
         return True
     try:
@@ -204,10 +178,9 @@ def _records_graph(*tensors: Tensor | None) -> bool:
 def bl_matmul(a: Tensor, b: Tensor, c: Tensor | None = None, alpha: float = 1.0) -> Tensor:
     """``c + α a b`` on batch-last matrices: a (r, k, *B), b (k, s, *B), c (r, s, *B) -> (r, s, *B).
 
-    The batch dims ``*B`` broadcast. With one flat, equal batch dimension (the layout of the
-    discretisation's doubling and of the filter loop) the product is k fused multiply-adds
-    over the contiguous batch (small k, large batch) or one ``torch.matmul`` on permuted
-    views; otherwise a broadcast-and-sum ``vecdot`` that keeps the batch innermost.
+    With one flat, equal batch dimension: k fused multiply-adds over the contiguous batch
+    (small k, large batch) or one ``matmul`` on permuted views; otherwise (``*B`` broadcast)
+    a ``vecdot`` that keeps the batch innermost.
     """
     if a.dim() == 3 and b.dim() == 3 and a.shape[-1] == b.shape[-1]:
         if a.shape[1] > FMA_MAX_INNER:
@@ -232,14 +205,9 @@ def bl_matvec(X: Tensor, v: Tensor) -> Tensor:
     return torch.linalg.vecdot(X, v.unsqueeze(0), dim=1)
 
 
-def bl_sym(P: Tensor) -> Tensor:
-    """``(P + Pᵀ) / 2`` for batch-last P (k, k, *B)."""
-    return 0.5 * (P + P.transpose(0, 1))
-
-
 def bl_sym_into(P: Tensor, out: Tensor | None) -> Tensor:
-    """:func:`bl_sym` (P), written into ``out`` when given (no autograd there); same values."""
+    """``(P + Pᵀ) / 2`` for batch-last P (k, k, *B), written into ``out`` when given (no autograd there)."""
     if out is None:
-        return bl_sym(P)
+        return 0.5 * (P + P.transpose(0, 1))
     torch.add(P, P.transpose(0, 1), out=out)
     return out.mul_(0.5)

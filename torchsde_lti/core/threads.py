@@ -1,11 +1,8 @@
 """Intra-op threads for the library's own calls: more threads never make a call slower.
 
-torch's intra-op parallelism splits large elementwise ops and products over threads. For
-small work the fork and join cost more than they save, and on a machine whose cores are
-busy with other processes every parallel region waits for a descheduled thread (a
-scheduler time slice each: measured 2–20× slower calls at 2 threads than at 1). Library
-calls therefore run with one thread when their work is small or the machine is busy, and
-with the caller's setting otherwise; the setting is restored on exit.
+For small work the fork and join of a parallel region cost more than they save, and on a
+machine whose cores are busy every parallel region waits for a descheduled thread. Library
+calls therefore run with one thread when their work is small or the machine is busy.
 """
 
 from __future__ import annotations

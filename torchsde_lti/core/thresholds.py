@@ -1,10 +1,8 @@
 """Every tuning threshold of the core, in one table.
 
-Speed thresholds choose between implementations of the SAME result (values agree to
-rounding on both sides); the accuracy bounds choose where ``torch.matrix_exp`` is accurate
-enough to be the default's answer. The benchmark that sets each speed threshold forces each
-side over a range and prints where they cross (``experiments/thresholds.py``; its table is
-on the benchmark page of the docs).
+Speed thresholds choose between implementations of the SAME result (values agree to rounding);
+the accuracy bounds choose where ``torch.matrix_exp`` is accurate enough to be the default's
+answer. The benchmark page of the docs shows how each speed threshold is set.
 """
 
 from __future__ import annotations

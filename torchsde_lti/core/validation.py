@@ -1,16 +1,11 @@
-"""Argument checking shared by every public function.
-
-Every check raises ``ValueError`` (or ``TypeError`` for non-numeric input) naming the
-argument and the shapes it saw, so that a wrong call fails at the boundary and not deep
-inside a matrix exponential. Checks that need the values (finiteness, signs, PSD) cost a
-device synchronisation; they run once, at the public boundary: public functions take
-``validate_args`` (default True) and inner calls pass already-checked arguments with
-``validate_args=False``. While torch.compile / torch.export trace a call the values are
-symbolic and only shape checks run.
+"""Argument checks: ``ValueError`` (``TypeError`` for non-numeric input) naming the argument
+and the shapes. Value checks (finite, signs, PSD) run once, at the public boundary
+(``validate_args``); while torch.compile / torch.export trace, only shape checks run.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable, Sequence
 from typing import NamedTuple
@@ -19,6 +14,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import sym
+from torchsde_lti.core.threads import intra_op_threads
 from torchsde_lti.core.thresholds import PYTHON_CHECK_MAX_VALUES
 
 
@@ -60,16 +56,9 @@ def as_float_tensor(
 
 
 def common_float_dtype(*tensors: Tensor | None) -> torch.dtype:
-    """The promoted floating dtype of the given tensors (float32 at least)."""
-    dtype: torch.dtype | None = None
-    for t in tensors:
-        if t is None:
-            continue
-        if not t.is_floating_point():
-            continue
-        dtype = t.dtype if dtype is None else torch.promote_types(dtype, t.dtype)
-    return dtype if dtype is not None else torch.get_default_dtype()
-
+    """The promoted floating dtype of the given tensors (the default dtype if none is floating)."""
+    dtypes = [t.dtype for t in tensors if t is not None and t.is_floating_point()]
+    return functools.reduce(torch.promote_types, dtypes) if dtypes else torch.get_default_dtype()
 
 
 def as_float_tensors(**named: object) -> dict[str, Tensor | None]:
@@ -111,6 +100,7 @@ def check_finite(x: Tensor, name: str) -> None:
 
 
 def check_nonnegative(x: Tensor, name: str) -> None:
+    """ValueError if ``x`` holds NaN, ±Inf or a negative value."""
     check_finite(x, name)
     if not tracing() and bool((x < 0).any()):
         raise ValueError(f"{name} must be non-negative, got min {float(x.min()):.3g} (shape {shape_str(x)})")
@@ -144,9 +134,9 @@ def _lapack_dtype(x: Tensor) -> Tensor:
 
 
 def _psd_test(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """(passes, asym, scale) without synchronising: ``passes`` (0-dim bool) says x is
-    symmetric within tol and x + tol·scale·I has a Cholesky factor (⇒ λ_min > −tol·scale up
-    to rounding far below tol); asym: relative asymmetry (...); scale: max |x| (...)."""
+    """(passes, asym, scale) without synchronising: ``passes`` (0-dim bool): x is symmetric
+    within tol and x + tol·scale·I has a Cholesky factor; asym (...): relative asymmetry;
+    scale (...): max |x|."""
     scale = x.abs().amax(dim=(-2, -1)).clamp_min(torch.finfo(x.dtype).tiny)
     tol = psd_tolerance(x)
     k = x.shape[-1]
@@ -217,22 +207,11 @@ def check_symmetric_psd(x: Tensor, name: str) -> None:
 
 def broadcast_batch(named: Sequence[tuple[str, Sequence[int]]]) -> torch.Size:
     """Broadcast named batch shapes (numpy rules), naming them all when they do not broadcast."""
-    out: list[int] = []
-    for _, shape in named:
-        shape = tuple(shape)
-        if len(shape) > len(out):
-            out = [1] * (len(shape) - len(out)) + out
-        offset = len(out) - len(shape)
-        for i, size in enumerate(shape):
-            cur = out[offset + i]
-            if size == cur or size == 1:
-                continue
-            if cur == 1:
-                out[offset + i] = size
-                continue
-            seen = ", ".join(f"{n}: ({', '.join(map(str, s))})" for n, s in named)
-            raise ValueError(f"batch shapes do not broadcast: {seen}")
-    return torch.Size(out)
+    try:
+        return torch.broadcast_shapes(*(tuple(s) for _, s in named))
+    except RuntimeError:
+        seen = ", ".join(f"{n}: ({', '.join(map(str, s))})" for n, s in named)
+        raise ValueError(f"batch shapes do not broadcast: {seen}") from None
 
 
 def parse_learn(learn: Iterable[str] | str, allowed: Sequence[str]) -> tuple[str, ...]:
@@ -243,20 +222,14 @@ def parse_learn(learn: Iterable[str] | str, allowed: Sequence[str]) -> tuple[str
     return names
 
 
-def _values_valid(values: list[float], checked: list[tuple[str, Tensor]], Qc: Tensor | None) -> bool:
-    """The value checks of :func:`sde_inputs` on the concatenated values of ``checked``
-    (Python floats): all finite, dt ≥ 0, Qc symmetric PSD (the test of :func:`_psd_test`)."""
-    if not all(map(math.isfinite, values)):
+def _values_valid(host: dict[str, list[float]], Qc: Tensor | None) -> bool:
+    """The value checks of :func:`sde_inputs` on Python floats: all finite, dt ≥ 0, Qc
+    symmetric PSD (the test of :func:`_psd_test`)."""
+    if not all(math.isfinite(v) for part in host.values() for v in part):
         return False
-    offset = 0
-    for name, t in checked:
-        part = values[offset : offset + t.numel()]
-        offset += t.numel()
-        if name == "dt" and part and min(part) < 0:
-            return False
-        if name == "Qc" and part and Qc is not None and not _psd_values(part, Qc.shape[-1], psd_tolerance(Qc)):
-            return False
-    return True
+    if host.get("dt") and min(host["dt"]) < 0:
+        return False
+    return Qc is None or not host["Qc"] or _psd_values(host["Qc"], Qc.shape[-1], psd_tolerance(Qc))
 
 
 class SDEInputs(NamedTuple):
@@ -264,16 +237,15 @@ class SDEInputs(NamedTuple):
     or None, dt (...) or None, and the broadcast batch shape of all of them.
 
     ``host``: for a small call (at most :data:`PYTHON_CHECK_MAX_VALUES` values, not traced)
-    the values of F, W, B and dt as Python floats, read in the call's one transfer (each
-    row-major, concatenated in that order); None otherwise. Replace it (``_replace``) when a
-    field changes."""
+    each argument's values (F, L, Qc, B, dt, W; row-major Python floats), read in the
+    call's one transfer; None otherwise. Replace it (``_replace``) when a field changes."""
 
     F: Tensor
     W: Tensor | None
     B: Tensor | None
     dt: Tensor | None
     batch: torch.Size
-    host: list[float] | None = None
+    host: dict[str, list[float]] | None = None
 
 
 def sde_inputs(
@@ -333,23 +305,20 @@ def sde_inputs(
     if L is not None and Qc is not None:
         W = L @ Qc @ L.mT
         W = torch.lerp(W, W.mT, 0.5)  # exactly symmetric
-    host: list[float] | None = None
+    host: dict[str, list[float]] | None = None
     values = checks_values(validate_args)
     total = sum(t.numel() for _, t in checked) + (0 if W is None else W.numel())
     if not tracing() and total <= PYTHON_CHECK_MAX_VALUES:  # (no guard on a symbolic size)
         # one transfer: the value checks and the callers' decisions on Python floats
+        named_values = checked + ([] if W is None else [("W", W)])
         with torch.no_grad():
-            flat = torch.cat([t.reshape(-1) for _, t in checked] + ([] if W is None else [W.reshape(-1)])).tolist()
-        valid = not values or _values_valid(flat, checked, Qc)
-        parts, offset = {}, 0
-        for name, t in checked + ([] if W is None else [("W", W)]):
-            parts[name], offset = flat[offset : offset + t.numel()], offset + t.numel()
-        host = [v for name in ("F", "W", "B", "dt") for v in parts.get(name, ())]
-    elif values:
-        # one synchronisation when everything is valid: a sum is non-finite if any entry is
-        # (NaN propagates, inf − inf = NaN); a finite sum that overflows only sends the check
-        # to the detailed path, which passes it
-        with torch.no_grad():
+            flat = torch.cat([t.reshape(-1) for _, t in named_values]).tolist()
+        host, offset = {}, 0
+        for name, t in named_values:
+            host[name], offset = flat[offset : offset + t.numel()], offset + t.numel()
+        valid = not values or _values_valid(host, Qc)
+    elif values:  # one synchronisation: a sum is non-finite if any entry is (or it overflowed:
+        with torch.no_grad(), intra_op_threads(total):  # then the detailed checks below pass)
             ok = torch.stack([t.sum() for _, t in checked]).isfinite().all()
             if dt_t is not None and dt_t.numel():
                 ok = ok & (dt_t.amin() >= 0)
