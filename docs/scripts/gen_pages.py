@@ -1,0 +1,1 @@
+"""Build-time pages (mkdocs-gen-files): the benchmark result files and the example figures."""
