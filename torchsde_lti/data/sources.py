@@ -10,7 +10,7 @@ Parquet) is skipped and COUNTED, with the first few examples kept for the summar
   A point property named ``altitude`` becomes the altitude column. Parsed with ``str.split``
   and numpy (the lines have no fixed width, so no CSV engine reads them); the file's own
   segmentation is kept (``segment`` = line number).
-- CSV and Parquet through pyarrow (chosen by ``experiments/bench_readers.py``). Columns are
+- CSV and Parquet through pyarrow (one pass, malformed rows counted). Columns are
   named per role (``columns={"id": ..., "time": ..., "lat": ..., "lon": ..., "alt": ...,
   "sog": ..., "cog": ...}``, header names or 0-based positions); without ``columns`` the
   MarineCadastre AIS header (:data:`AIS_COLUMNS`) is recognised. Leading ``#`` lines
