@@ -82,6 +82,12 @@ def _example_dirs() -> list[Path]:
 def locate_file(name: str | os.PathLike[str]) -> Path:
     """The file ``name``: an existing path, else a file of that name shipped by ``tracktable-data``.
 
+    Args:
+        name: a path, or the bare name of a shipped file.
+
+    Returns:
+        Path: the file found.
+
     Raises:
         FileNotFoundError: naming the path tried, the package folder searched, and the
             closest shipped file names.
@@ -113,6 +119,9 @@ def read_reports(source: str | os.PathLike[str], columns: Mapping[str, str | int
         format: "traj", "csv" or "parquet"; default from the file suffix.
         time_format: strptime format of the time column when it is not ISO 8601.
         altitude_unit: "m" or "ft" (converted to metres).
+
+    Returns:
+        Reports: numpy columns, one entry per readable report, with the malformed ones counted.
     """
     path = locate_file(source)
     fmt = (format or path.suffix.lstrip(".")).lower()
