@@ -80,7 +80,7 @@ def main() -> None:
     lines = [
         f"# Hostile SGD on the Hurwitz parametrisation ({args.steps} steps, {args.seeds} seeds per cell)",
         "",
-        "`python experiments/hurwitz_robustness.py --steps %d --seeds %d`; worst over seeds and steps." % (args.steps, args.seeds),
+        f"`python experiments/hurwitz_robustness.py --steps {args.steps} --seeds {args.seeds}`; worst over seeds and steps.",
         "",
         "| dtype | n | lr | max Re λ(F) | max abs F | min eig Qc (computed) | round trip (f64) | steps out of reach (f64) | non-finite | exceptions |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",

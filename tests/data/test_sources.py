@@ -185,3 +185,12 @@ def test_loading_changes_no_global_state() -> None:
 
 def test_ais_columns_constant() -> None:
     assert set(AIS_COLUMNS) == {"id", "time", "lat", "lon", "sog", "cog"}
+
+
+def test_csv_numeric_times_are_epoch_seconds(tmp_path: Path) -> None:
+    """A CSV time column of numbers (read as strings) is seconds since 1970-01-01 UTC."""
+    path = tmp_path / "epoch.csv"
+    path.write_text("id,t,lat,lon\na,1600000000,40.0,-74.0\na,1600000010.5,40.01,-74.0\nb,x,41.0,-73.0\n")
+    rep = read_reports(path, {"id": "id", "time": "t", "lat": "lat", "lon": "lon"})
+    expected = np.array(["2020-09-13T12:26:40", "2020-09-13T12:26:50.5"], dtype="datetime64[us]")
+    np.testing.assert_array_equal(rep.time[:2], expected)

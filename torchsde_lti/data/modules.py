@@ -222,7 +222,7 @@ class TrackDataModule(LightningDataModule):
         super().__init__()
         if os.path.basename(str(source)) in RESERVED_FOR_EVALUATION:
             raise ValueError(f"data.source={source!r} is reserved for evaluation (never train, tune or select "
-                             "on it): evaluate frozen models with experiments/ais_study.py --holdout")
+                             "on it); evaluate frozen, already trained models on it instead")
         if split not in ("objects", "time"):
             raise ValueError(f"data.split must be 'objects' or 'time', got {split!r}")
         if split == "time" and not boundaries:

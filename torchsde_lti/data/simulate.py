@@ -100,7 +100,15 @@ class BurstDt:
 
 
 def isotropic_covariance(std: float, dim: int) -> Tensor:
-    """``std**2 * I_dim`` in float64: a noise covariance from a standard deviation."""
+    """``std**2 * I_dim`` in float64: a noise covariance from a standard deviation.
+
+    Args:
+        std: standard deviation, non-negative.
+        dim: dimension (>= 1).
+
+    Returns:
+        Tensor: (dim, dim).
+    """
     if not std >= 0:
         raise ValueError(f"std must be non-negative, got {std}")
     if int(dim) < 1:
@@ -112,8 +120,16 @@ def diagonal_covariance(std: Sequence[float] | Sequence[Sequence[float]] | Tenso
     """``diag(std²)`` in float64: covariances (..., n, n) from standard deviations (..., n).
 
     A nested list gives a stack, e.g. per-mode covariances of an IMM:
-    ``diagonal_covariance([[5, 5], [20, 20]])`` is (2, 2, 2). ValueError for a negative,
-    non-finite or 0-dimensional std.
+    ``diagonal_covariance([[5, 5], [20, 20]])`` is (2, 2, 2).
+
+    Args:
+        std: (..., n) standard deviations, finite and non-negative.
+
+    Returns:
+        Tensor: (..., n, n) diagonal covariances.
+
+    Raises:
+        ValueError: for a negative, non-finite or 0-dimensional std.
     """
     s = torch.as_tensor(std, dtype=torch.float64)
     if s.dim() < 1 or s.shape[-1] < 1:
@@ -124,7 +140,15 @@ def diagonal_covariance(std: Sequence[float] | Sequence[Sequence[float]] | Tenso
 
 
 def selection_matrix(indices: Sequence[int], n: int) -> Tensor:
-    """Observation matrix H (len(indices), n) picking state coordinates ``indices`` (float64)."""
+    """Observation matrix H (len(indices), n) picking state coordinates ``indices`` (float64).
+
+    Args:
+        indices: state coordinates observed, each in [0, n).
+        n: state dimension.
+
+    Returns:
+        Tensor: H (len(indices), n) of zeros and ones.
+    """
     idx = [int(i) for i in indices]
     if not idx or any(not 0 <= i < int(n) for i in idx):
         raise ValueError(f"indices must be a non-empty list of state indices in [0, {n}), got {idx}")
@@ -232,10 +256,25 @@ def simulate_tracks(
 ) -> TrackBatch:
     """Simulate ``num_tracks`` tracks of length ``T_min..T`` (uniform), padded to T.
 
-    ``dt_sampler(shape, generator) -> dt`` draws the step lengths (default
-    ``ExponentialDt(0.1)``); each real step loses its whole observation with probability
-    ``p_missing``; ``control_std`` draws i.i.d. N(0, control_std²) inputs per step.
-    Everything is reproducible from ``seed``. Returned tensors are float64.
+    Everything is reproducible from ``seed``; returned tensors are float64.
+
+    Args:
+        sde: an LTISDE (the true model).
+        H: (m, n) observation matrix.
+        R: (m, m) observation noise covariance.
+        num_tracks: number of tracks N (>= 1).
+        T: longest track (steps, >= 2).
+        dt_sampler: ``dt_sampler(shape, generator) -> dt`` draws the step lengths (default
+            ``ExponentialDt(0.1)``).
+        T_min: shortest track (default T).
+        p_missing: probability that a real step loses its whole observation (NaN), in [0, 1).
+        control_std: i.i.d. N(0, control_std²) inputs per step (needs the SDE's B); None = no inputs.
+        m0: (n,) prior mean (default 0).
+        P0: (n, n) prior covariance.
+        seed: the random seed.
+
+    Returns:
+        TrackBatch: y (N, T, m) with NaN = missing, dt (N, T), mask, lengths (N,), true states x (N, T, n).
     """
     if int(T) < 2:
         raise ValueError(f"T must be >= 2 (steps per track), got {T}")

@@ -10,7 +10,7 @@ Parquet) is skipped and COUNTED, with the first few examples kept for the summar
   A point property named ``altitude`` becomes the altitude column. Parsed with ``str.split``
   and numpy (the lines have no fixed width, so no CSV engine reads them); the file's own
   segmentation is kept (``segment`` = line number).
-- CSV and Parquet through pyarrow (chosen by ``experiments/bench_readers.py``). Columns are
+- CSV and Parquet through pyarrow (one pass, malformed rows counted). Columns are
   named per role (``columns={"id": ..., "time": ..., "lat": ..., "lon": ..., "alt": ...,
   "sog": ..., "cog": ...}``, header names or 0-based positions); without ``columns`` the
   MarineCadastre AIS header (:data:`AIS_COLUMNS`) is recognised. Leading ``#`` lines
@@ -44,6 +44,7 @@ AIS_COLUMNS: dict[str, str] = {"id": "MMSI", "time": "BaseDateTime", "lat": "LAT
 #: tracktable-data files kept for evaluation only: never train, tune or select models on them.
 RESERVED_FOR_EVALUATION = ("NYHarbor_2020_12_08.traj", "VirginiaBeach_2020_06_04_to_06_filtered.traj")
 _EXAMPLES = 3  # malformed examples kept
+_NUMBER = r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$"  # a decimal number, as text
 
 
 class Reports(NamedTuple):
@@ -81,6 +82,12 @@ def _example_dirs() -> list[Path]:
 def locate_file(name: str | os.PathLike[str]) -> Path:
     """The file ``name``: an existing path, else a file of that name shipped by ``tracktable-data``.
 
+    Args:
+        name: a path, or the bare name of a shipped file.
+
+    Returns:
+        Path: the file found.
+
     Raises:
         FileNotFoundError: naming the path tried, the package folder searched, and the
             closest shipped file names.
@@ -112,6 +119,9 @@ def read_reports(source: str | os.PathLike[str], columns: Mapping[str, str | int
         format: "traj", "csv" or "parquet"; default from the file suffix.
         time_format: strptime format of the time column when it is not ISO 8601.
         altitude_unit: "m" or "ft" (converted to metres).
+
+    Returns:
+        Reports: numpy columns, one entry per readable report, with the malformed ones counted.
     """
     path = locate_file(source)
     fmt = (format or path.suffix.lstrip(".")).lower()
@@ -267,13 +277,21 @@ def _as_float(arr: object, name: str) -> tuple[np.ndarray, np.ndarray]:
 
     if pa.types.is_string(arr.type) or pa.types.is_large_string(arr.type):
         ok = pc.fill_null(pc.match_substring_regex(pc.utf8_trim_whitespace(arr),
-                                                   r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$"), False)
+                                                   _NUMBER), False)
         arr = pc.cast(pc.if_else(ok, arr, pa.scalar("nan")), pa.float64())
     else:
         ok = pc.is_valid(arr)
         arr = pc.cast(arr, pa.float64())
     return np.asarray(arr.to_numpy(zero_copy_only=False), dtype=np.float64), np.asarray(ok.to_numpy(
         zero_copy_only=False), dtype=bool)
+
+
+def _epoch_seconds(seconds: object) -> object:
+    """Seconds since 1970-01-01 UTC (a float64 arrow array) as a timestamp[us] array."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    return pc.cast(pc.cast(pc.multiply(seconds, 1e6), pa.int64()), pa.timestamp("us"))
 
 
 def _as_time(arr: object, time_format: str | None) -> tuple[np.ndarray, np.ndarray]:
@@ -285,7 +303,7 @@ def _as_time(arr: object, time_format: str | None) -> tuple[np.ndarray, np.ndarr
     if pa.types.is_timestamp(arr.type):
         out = pc.cast(arr, pa.timestamp("us", tz=arr.type.tz)) if arr.type.tz else pc.cast(arr, us)
     elif pa.types.is_integer(arr.type) or pa.types.is_floating(arr.type):
-        out = pc.cast(pc.cast(pc.multiply(pc.cast(arr, pa.float64()), 1e6), pa.int64()), us)
+        out = _epoch_seconds(pc.cast(arr, pa.float64()))
     else:
         arr = pc.cast(arr, pa.string())
         out = None
@@ -300,9 +318,12 @@ def _as_time(arr: object, time_format: str | None) -> tuple[np.ndarray, np.ndarr
         else:
             formats = [time_format]
         if out is None:  # some rows do not parse: the format that reads most of them, the rest are malformed
-            best = min((pc.strptime(arr, format=f, unit="us", error_is_null=True) for f in formats),
-                       key=lambda a: a.null_count)
-            out = best
+            candidates = [pc.strptime(arr, format=f, unit="us", error_is_null=True) for f in formats]
+            if time_format is None:  # CSV columns arrive as strings: numbers are seconds since the epoch
+                numeric = pc.fill_null(pc.match_substring_regex(pc.utf8_trim_whitespace(arr), _NUMBER), False)
+                candidates.append(_epoch_seconds(pc.cast(pc.if_else(numeric, arr, pa.scalar(None, pa.string())),
+                                                         pa.float64())))
+            out = min(candidates, key=lambda a: a.null_count)
     ok = np.asarray(pc.is_valid(out).to_numpy(zero_copy_only=False), dtype=bool)
     values = out.cast(pa.int64()).to_numpy(zero_copy_only=False)
     return np.where(ok, np.nan_to_num(values.astype(np.float64)), 0).astype(np.int64).astype("datetime64[us]"), ok

@@ -118,13 +118,26 @@ def pad_tracks(tracks: Sequence[Track], length: int | None = None) -> TrackBatch
 
 
 def collate_tracks(items: Sequence[Track]) -> TrackBatch:
-    """``collate_fn`` for a DataLoader over a :class:`TrackDataset`: pads to the longest track
-    of the batch."""
+    """``collate_fn`` for a DataLoader over a :class:`TrackDataset`: pads to the longest track.
+
+    Args:
+        items: the batch's tracks (y (T_i, m), dt (T_i,), optional per-step fields).
+
+    Returns:
+        TrackBatch: y (B, T, m) NaN-padded, dt (B, T) 0-padded, mask (B, T), lengths (B,).
+    """
     return pad_tracks(items)
 
 
 def unpad_tracks(batch: TrackBatch) -> list[Track]:
-    """The tracks of a padded batch, each cut to its length (inverse of :func:`pad_tracks`)."""
+    """The tracks of a padded batch, each cut to its length (inverse of :func:`pad_tracks`).
+
+    Args:
+        batch: a padded :class:`TrackBatch` of B tracks.
+
+    Returns:
+        list[Track]: B tracks, track i with ``lengths[i]`` steps.
+    """
     out = []
     for i, Ti in enumerate(batch.lengths.tolist()):
         values = {}
@@ -249,7 +262,15 @@ class BucketBatchSampler(BatchSampler):
 
 
 def padding_waste(batches: Sequence[Sequence[int]], lengths: Sequence[int]) -> float:
-    """Share of padded steps: 1 - Σ lengths / Σ (batch size x longest item), over ``batches``."""
+    """Share of padded steps: 1 - Σ lengths / Σ (batch size x longest item), over ``batches``.
+
+    Args:
+        batches: each batch as the indices of its items.
+        lengths: the length of every item.
+
+    Returns:
+        float: in [0, 1); 0 for no batches.
+    """
     lengths_t = torch.as_tensor(lengths, dtype=torch.int64)
     used = padded = 0
     for b in batches:

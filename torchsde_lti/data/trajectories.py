@@ -269,7 +269,16 @@ def prepare_tracks(
     max_extent: float | None = 250_000.0,
     cut_times: Sequence[str | np.datetime64] = (),
 ) -> Tracks:
-    """The cleaning rules and frames of :func:`load_tracks` applied to already-read :class:`Reports`."""
+    """The cleaning rules and frames of :func:`load_tracks` applied to already-read :class:`Reports`.
+
+    Args:
+        reports: the reports of one file (:func:`~torchsde_lti.data.read_reports`).
+        dims, frame, reference, course_encoding, max_gap, v_max, min_reports, max_extent, cut_times:
+            as in :func:`load_tracks`.
+
+    Returns:
+        Tracks: with ``.summary`` counting every rule.
+    """
     _check_rules(frame, reference, course_encoding, max_gap, v_max, min_reports, max_extent, dims)
     rep = reports
     has_alt = rep.alt is not None and bool(np.any(np.isfinite(rep.alt) & (rep.alt != 0)))
@@ -453,9 +462,19 @@ def _cut_extent(lat: np.ndarray, lon: np.ndarray, start: np.ndarray, limit: floa
 # ---------------------------------------------------------------------------- splits and windows
 def split_objects(tracks: Tracks, fractions: Sequence[float] = (0.6, 0.2, 0.2),
                   seed: int = 0) -> tuple[Tracks, Tracks, Tracks]:
-    """Object-disjoint (train, val, test): the sorted distinct object ids are permuted with
-    ``seed`` and cut into val = round(f_val K), test = round(f_test K), train = the rest; every
-    track of an object goes where the object goes."""
+    """Object-disjoint (train, val, test) splits: every track of an object goes where the object goes.
+
+    The sorted distinct object ids (K of them) are permuted with ``seed`` and cut into
+    val = round(f_val K), test = round(f_test K), train = the rest.
+
+    Args:
+        tracks: the tracks to split.
+        fractions: (train, val, test) shares of the objects, non-negative, summing to 1.
+        seed: the permutation's seed.
+
+    Returns:
+        tuple[Tracks, Tracks, Tracks]: train, val and test.
+    """
     if len(fractions) != 3 or any(f < 0 for f in fractions) or not math.isclose(sum(fractions), 1.0):
         raise ValueError(f"fractions must be 3 non-negative numbers summing to 1, got {list(fractions)}")
     ids, owner = np.unique(tracks.object_id, return_inverse=True)
@@ -475,7 +494,15 @@ def split_objects(tracks: Tracks, fractions: Sequence[float] = (0.6, 0.2, 0.2),
 def split_time(tracks: Tracks, boundaries: Sequence[str | np.datetime64]) -> list[Tracks]:
     """Tracks grouped by the interval of their first report: [-inf, b1), [b1, b2), ..., [bk, inf).
 
-    Load with ``cut_times=boundaries`` so that no track spans a boundary (ValueError otherwise).
+    Args:
+        tracks: tracks loaded with ``cut_times=boundaries``, so that none spans a boundary.
+        boundaries: increasing instants (ISO 8601 strings or datetime64).
+
+    Returns:
+        list[Tracks]: k + 1 groups, in time order.
+
+    Raises:
+        ValueError: for boundaries that do not increase, or a track spanning one.
     """
     cuts = np.array([(np.datetime64(b, "us") - tracks.t0).astype("timedelta64[us]").astype(np.int64) / 1e6
                      for b in boundaries])
@@ -491,7 +518,13 @@ def split_time(tracks: Tracks, boundaries: Sequence[str | np.datetime64]) -> lis
 def window_bounds(lengths: np.ndarray, max_len: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cut tracks of ``lengths`` into ceil(L / max_len) windows of near-equal length (<= max_len).
 
-    Returns (track index, start, stop) per window, start/stop relative to the track.
+    Args:
+        lengths: (K,) track lengths.
+        max_len: the longest window (>= 2); None = one window per track.
+
+    Returns:
+        tuple[ndarray, ndarray, ndarray]: (track index, start, stop) per window, start/stop relative
+        to the track.
     """
     lengths = np.asarray(lengths, dtype=np.int64)
     if max_len is None:
@@ -510,10 +543,17 @@ def track_windows(tracks: Tracks, max_len: int | None = None, center: bool = Tru
                   dtype: torch.dtype = torch.float32) -> list[Track]:
     """Training windows as :class:`~torchsde_lti.data.tracks.Track` s (:func:`window_bounds`).
 
-    y (T, d) positions (minus the window's first report when ``center``, kept in ``origin``),
-    dt (T,) seconds from the previous report (dt[0] = 0: the prior sits at the first report),
-    t (T,) seconds since ``tracks.t0``, vel (T, 2) and sog (T,) where the file has SOG/COG,
-    track_id = the track's index in ``tracks`` (``tracks.object_id[track_id]`` is the object).
+    Args:
+        tracks: the tracks to cut.
+        max_len: the longest window (reports); None = whole tracks.
+        center: subtract each window's first report from its positions (kept in ``origin``).
+        dtype: of the returned tensors.
+
+    Returns:
+        list[Track]: per window y (T, d) positions, dt (T,) seconds from the previous report
+        (dt[0] = 0: the prior sits at the first report), t (T,) seconds since ``tracks.t0``,
+        vel (T, 2) and sog (T,) where the file has SOG/COG, and track_id, the track's index in
+        ``tracks`` (``tracks.object_id[track_id]`` is the object).
     """
     owner, a, b = window_bounds(tracks.lengths, max_len)
     a = a + tracks.offsets[owner]

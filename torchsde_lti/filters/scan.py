@@ -158,9 +158,8 @@ def scan_filter(prep: PreparedInputs) -> FilterResult:
 # ----------------------------------------------------------------------------------------
 
 #: On CPU the scan wins up to this many tracks (per-step Python overhead dominates the
-#: loop there); beyond it the loop's vectorised steps win. Measured by
-#: experiments/bench_filter_choice.py (2-D constant velocity, float64, 1 and 2 threads,
-#: T = 200 and 1e4): scan/loop time 0.28 / 0.64 at B = 1 / 10, 3.1 at B = 100.
+#: loop there); beyond it the loop's vectorised steps win (the crossover is measured in the
+#: documentation's benchmarks, "Kalman filter throughput").
 SCAN_MAX_BATCH_CPU = 16
 #: One scan holds about 30 n² numbers per track and step; longer series are scanned in
 #: chunks of at most this many track·steps (memory bound, no measurable loss at ≥ 2^16).

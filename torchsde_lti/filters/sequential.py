@@ -234,8 +234,7 @@ def _run_compiled_loop(*args: Tensor) -> tuple[Tensor, ...]:
 
 def _compiled_loop() -> Callable[..., tuple[Tensor, ...]]:
     """:func:`_scan_loop` through ``torch.compile`` (built once): torch's structured scan
-    compiles ONE step's graph however long T is (measured: ≈ 5–7 s first call at T = 200
-    and 2000), and runs the loop without Python per step."""
+    compiles ONE step's graph however long T is, and runs the loop without Python per step."""
     global _COMPILED_LOOP
     if _COMPILED_LOOP is None:
         _COMPILED_LOOP = torch.compile(_scan_loop, fullgraph=True)

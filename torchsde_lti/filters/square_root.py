@@ -1,7 +1,8 @@
 r"""The square-root (Cholesky-factor) sequential Kalman filter: P = S Sᵀ is never formed.
 
 QR predict, Givens scalar updates: PSD by construction and accurate in float32 beyond the
-Joseph form's range (predicted/measured variance ratios > 1/eps), at 2–5× the cost.
+Joseph form's range (predicted/measured variance ratios > 1/eps), at a higher cost than the
+Joseph-form loop.
 Reached through ``kalman_filter(..., algorithm="square_root")``.
 """
 

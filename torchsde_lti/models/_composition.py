@@ -91,7 +91,7 @@ class ShapedSDE(StructuredSDE):
 
 def shaped(system: LTISDE, shaping: LTISDE, C: Tensor | None = None, *,
            validate_args: bool | None = None) -> ShapedSDE:
-    r"""A system driven by coloured noise: the system plus a shaping filter driven by white noise (seed 003).
+    r"""A system driven by coloured noise: the system plus a shaping filter driven by white noise.
 
     The system ``dx_s = F_s x_s dt + B_s u dt + L_s ν dt`` has its white noise ν replaced by
     the output ``ν = C_f x_f`` of the shaping filter ``dx_f = F_f x_f dt + B_f u_f dt + L_f dβ``
@@ -104,7 +104,7 @@ def shaped(system: LTISDE, shaping: LTISDE, C: Tensor | None = None, *,
     stay submodules (``model.system``, ``model.shaping``), learned jointly; a C taken
     from the shaping model (its ``C`` property) is re-read at every evaluation.
 
-    ``model.prior_covariance()`` is the steady-state start of seed 003 (lecture 23): every
+    ``model.prior_covariance()`` is the steady-state start: every
     covariance entry that involves a system state is 0, the shaping-filter block is the
     shaping filter's own P∞ (white noise applied for all past time); with it the
     shaping-filter block stays at P∞ for all t. ``KalmanFilter`` starts from it by default.
@@ -114,6 +114,15 @@ def shaped(system: LTISDE, shaping: LTISDE, C: Tensor | None = None, *,
 
     Example (first-order system with a Gauss–Markov input, ``ẋ = −a x + f``,
     ``ḟ = −b f + w``): ``shaped(ornstein_uhlenbeck(a, 1.0), ornstein_uhlenbeck(b, q))``.
+
+    Args:
+        system: the driven system (its own Qc is not used).
+        shaping: the shaping filter whose output drives the system.
+        C: optional (s, n_f) output of the shaping filter (default: its ``C``, or the identity).
+        validate_args: value checks of every call (default: the class default).
+
+    Returns:
+        ShapedSDE: state ``[x_s, x_f]`` (n_s + n_f); learns the parts' parameters.
     """
     return ShapedSDE(system, shaping, C, validate_args=validate_args)
 
@@ -159,6 +168,13 @@ def block_diag(*sdes: LTISDE, validate_args: bool | None = None) -> BlockDiagSDE
     ``B`` is block diagonal over the parts that have an input (parts without one get a
     zero-width block); it is None when no part has an input. The parts stay submodules
     (``model.parts[i].q``), so their parameters are learned jointly.
+
+    Args:
+        *sdes: the independent parts (LTISDEs).
+        validate_args: value checks of every call (default: the class default).
+
+    Returns:
+        BlockDiagSDE: F, L, Qc (and B) block diagonal; the parts stay submodules (``model.parts``).
     """
     return BlockDiagSDE(*sdes, validate_args=validate_args)
 
@@ -168,6 +184,12 @@ def position_observation(model: LTISDE) -> Tensor:
 
     Uses ``model.position_indices`` (set by every model of this module and by
     :func:`block_diag` of such models); dtype/device follow the model.
+
+    Args:
+        model: an LTISDE with ``position_indices`` (every model of ``tl.models``).
+
+    Returns:
+        Tensor: H (k, n), one row per position component.
     """
     idx = getattr(model, "position_indices", None)
     if idx is None:

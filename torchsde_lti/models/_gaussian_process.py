@@ -84,5 +84,15 @@ def matern(nu: float, lengthscale: Scalar = 1.0, variance: Scalar = 1.0, **optio
     ``Qc = 2σ² √π λ^{2ν} Γ(ν+½)/Γ(ν)`` (2σ²λ, 4σ²λ³, 16σ²λ⁵/3). Its stationary covariance
     P∞ gives exactly the Matérn kernel: ``k(τ) = H expm(F τ) P∞ Hᵀ`` with ``H = e_1ᵀ``, e.g.
     ``σ² (1 + λτ) e^{−λτ}`` for ν = 3/2 (``model.kernel(tau)``).
+
+    Args:
+        nu: smoothness ν, one of 0.5, 1.5, 2.5.
+        lengthscale: ℓ, positive.
+        variance: σ², positive.
+        **options: ``dtype``, ``device`` (of the parameters) and ``validate_args`` (see
+            :class:`~torchsde_lti.LTISDE`).
+
+    Returns:
+        Matern: F (m, m) with m = ν + ½ states; learns lengthscale and variance.
     """
     return Matern(nu, lengthscale, variance, **options)

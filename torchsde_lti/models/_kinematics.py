@@ -100,6 +100,17 @@ def integrated_wiener(order: int, dim: int = 1, q: Scalar = 1.0, **options: Unpa
     the highest derivative, ``Qc = q I_dim``. Closed form (0-based i, j within an axis,
     a = order−1−i, b = order−1−j): ``A_ij = dt^(j−i)/(j−i)!`` (j ≥ i),
     ``Q_ij = q dt^(a+b+1) / (a! b! (a+b+1))``.
+
+    Args:
+        order: states per axis (>= 1): 1 Brownian motion, 2 constant velocity, 3 constant acceleration.
+        dim: number of spatial axes (>= 1).
+        q: spectral density of the driving white noise, positive; a float or a tensor whose shape is
+            the parameter batch (...).
+        **options: ``dtype``, ``device`` (of the parameters) and ``validate_args`` (see
+            :class:`~torchsde_lti.LTISDE`).
+
+    Returns:
+        IntegratedWiener: an LTISDE with F (dim·order, dim·order), L (dim·order, dim), Qc (dim, dim); learns q.
     """
     return IntegratedWiener(order, dim, q, **options)
 
@@ -109,6 +120,16 @@ def constant_velocity(dim: int = 2, q: Scalar = 1.0, **options: Unpack[ModelOpti
 
     Per axis ``dx = v dt``, ``dv = dβ``, ``E[dβ²] = q dt``:
     ``A = [[1, dt], [0, 1]]``, ``Q = q [[dt³/3, dt²/2], [dt²/2, dt]]``.
+
+    Args:
+        dim: number of spatial axes (>= 1).
+        q: spectral density of the driving white noise, positive; a float or a tensor whose shape is
+            the parameter batch (...).
+        **options: ``dtype``, ``device`` (of the parameters) and ``validate_args`` (see
+            :class:`~torchsde_lti.LTISDE`).
+
+    Returns:
+        IntegratedWiener: F (2·dim, 2·dim), L (2·dim, dim), Qc (dim, dim); learns q.
     """
     return IntegratedWiener(2, dim, q, **options)
 
@@ -118,6 +139,16 @@ def constant_acceleration(dim: int = 2, q: Scalar = 1.0, **options: Unpack[Model
 
     Per axis ``dx = v dt``, ``dv = a dt``, ``da = dβ``, ``E[dβ²] = q dt``:
     ``Q = q [[dt⁵/20, dt⁴/8, dt³/6], [dt⁴/8, dt³/3, dt²/2], [dt³/6, dt²/2, dt]]``.
+
+    Args:
+        dim: number of spatial axes (>= 1).
+        q: spectral density of the driving white noise, positive; a float or a tensor whose shape is
+            the parameter batch (...).
+        **options: ``dtype``, ``device`` (of the parameters) and ``validate_args`` (see
+            :class:`~torchsde_lti.LTISDE`).
+
+    Returns:
+        IntegratedWiener: F (3·dim, 3·dim), L (3·dim, dim), Qc (dim, dim); learns q.
     """
     return IntegratedWiener(3, dim, q, **options)
 
@@ -129,10 +160,22 @@ class Singer(DragSDE):
 
 
 def singer(alpha: Scalar, q: Scalar, dim: int = 1, **options: Unpack[ModelOptions]) -> Singer:
-    r"""Singer acceleration model per axis: ``dx = v dt``, ``dv = a dt``, ``da = −α a dt + dβ``,
-    ``E[dβ²] = q dt``, state ``[x, v, a]`` per axis.
+    r"""Singer acceleration model per axis, state ``[x, v, a]``.
+
+    ``dx = v dt``, ``dv = a dt``, ``da = −α a dt + dβ``, ``E[dβ²] = q dt``.
 
     Same parametrisation as Stone Soup's ``Singer(damping_coeff=α, noise_diff_coeff=q)``.
+
+    Args:
+        alpha: acceleration decay rate α (1/s), positive.
+        q: spectral density of the driving white noise, positive; a float or a tensor whose shape is
+            the parameter batch (...).
+        dim: number of spatial axes (>= 1).
+        **options: ``dtype``, ``device`` (of the parameters) and ``validate_args`` (see
+            :class:`~torchsde_lti.LTISDE`).
+
+    Returns:
+        Singer: F (3·dim, 3·dim), state ``[x, v, a]`` per axis; learns alpha and q.
     """
     return Singer(alpha, q, dim, **options)
 
@@ -147,6 +190,17 @@ def integrated_ou(k: Scalar, q: Scalar, dim: int = 1, **options: Unpack[ModelOpt
     r"""Integrated Ornstein–Uhlenbeck per axis: ``dx = v dt``, ``dv = −k v dt + dβ``, ``E[dβ²] = q dt``.
 
     Stone Soup calls this ``OrnsteinUhlenbeck(damping_coeff=k, noise_diff_coeff=q)``.
+
+    Args:
+        k: velocity drag rate (1/s), positive.
+        q: spectral density of the driving white noise, positive; a float or a tensor whose shape is
+            the parameter batch (...).
+        dim: number of spatial axes (>= 1).
+        **options: ``dtype``, ``device`` (of the parameters) and ``validate_args`` (see
+            :class:`~torchsde_lti.LTISDE`).
+
+    Returns:
+        IntegratedOU: F (2·dim, 2·dim), state ``[x, vx, y, vy, …]``; learns k and q.
     """
     return IntegratedOU(k, q, dim, **options)
 
@@ -175,6 +229,16 @@ def moored(k: Scalar = 0.1, q: Scalar = 1e-3, dim: int = 2, **options: Unpack[Mo
     random walk of spectral density q (m²/s: drift at the mooring). Same state layout as
     :func:`constant_velocity` / :func:`integrated_ou`, so it can share an IMM bank with them.
     ``L`` selects the positions, ``Qc = q I_dim``.
+
+    Args:
+        k: velocity decay rate (1/s), positive.
+        q: spectral density of the position random walk (m²/s), positive.
+        dim: number of spatial axes (>= 1).
+        **options: ``dtype``, ``device`` (of the parameters) and ``validate_args`` (see
+            :class:`~torchsde_lti.LTISDE`).
+
+    Returns:
+        Moored: F (2·dim, 2·dim), state ``[x, vx, y, vy, …]``; learns k and q.
     """
     return Moored(k, q, dim, **options)
 
@@ -207,5 +271,16 @@ def ornstein_uhlenbeck(theta: Scalar, q: Scalar, dim: int = 1, **options: Unpack
     r"""Mean-reverting position per axis: ``dx = −θ x dt + dβ``, ``E[dβ dβᵀ] = q I dt``.
 
     ``A = e^{−θ dt} I``, ``Q = q (1 − e^{−2θ dt}) / (2θ) I``, ``P∞ = q / (2θ) I``.
+
+    Args:
+        theta: mean-reversion rate θ (1/s), positive.
+        q: spectral density of the driving white noise, positive; a float or a tensor whose shape is
+            the parameter batch (...).
+        dim: number of spatial axes (>= 1).
+        **options: ``dtype``, ``device`` (of the parameters) and ``validate_args`` (see
+            :class:`~torchsde_lti.LTISDE`).
+
+    Returns:
+        OrnsteinUhlenbeck: F (dim, dim) = −θ I; learns theta and q.
     """
     return OrnsteinUhlenbeck(theta, q, dim, **options)

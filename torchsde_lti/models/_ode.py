@@ -64,11 +64,23 @@ class MassSpringDamper(OutputEquation, StructuredSDE):
 
 
 def mass_spring_damper(m: Scalar, k: Scalar, c: Scalar, q: Scalar = 1.0, **options: Unpack[ModelOptions]) -> MassSpringDamper:
-    r"""Mass–spring–damper ``m p'' = u − c p' − k p + w``: state ``[p, p']``, force input u (B),
-    random force w of spectral density q.
+    r"""Mass–spring–damper ``m p'' = u − c p' − k p + w``, state ``[p, p']``.
+
+    u is a known force input (through B), w a random force of spectral density q.
 
     ``F = [[0, 1], [−k/m, −c/m]]``, ``B = L = [0, 1/m]ᵀ``, ``Qc = q`` (spectral density of
     the random force), output ``C = [[1, 0]]`` (``output_matrix``).
+
+    Args:
+        m: mass, positive.
+        k: spring constant, positive.
+        c: damping coefficient, positive.
+        q: spectral density of the random force, positive.
+        **options: ``dtype``, ``device`` (of the parameters) and ``validate_args`` (see
+            :class:`~torchsde_lti.LTISDE`).
+
+    Returns:
+        MassSpringDamper: F (2, 2), B and L (2, 1), output ``C`` (1, 2); learns m, k, c and q.
     """
     return MassSpringDamper(m, k, c, q, **options)
 
@@ -114,14 +126,24 @@ class Companion(OutputEquation, StructuredSDE):
 
 
 def companion(a: Sequence[float] | Tensor, q: Scalar = 1.0, **options: Unpack[ModelOptions]) -> Companion:
-    r"""Order-n ODE ``a_n y⁽ⁿ⁾ + … + a_1 y' + a_0 y = u + w`` in companion form from the
-    coefficients ``a = [a_0, …, a_n]``, state ``[y, y', …, y⁽ⁿ⁻¹⁾]``.
+    r"""Order-n ODE ``a_n y⁽ⁿ⁾ + … + a_1 y' + a_0 y = u + w`` in companion form.
+
+    From the coefficients ``a = [a_0, …, a_n]``, state ``[y, y', …, y⁽ⁿ⁻¹⁾]``.
 
     F has ones on the superdiagonal and last row ``−a_0/a_n … −a_{n−1}/a_n``;
     ``B = L = [0, …, 0, 1/a_n]ᵀ``; ``Qc = q`` (spectral density of w); output
     ``C = [[1, 0, …, 0]]``. The coefficients ``a`` (..., n+1) are free (unconstrained)
     parameters — an ODE may be unstable or undamped — and a_n must stay non-zero; ``q`` is
     positive.
+
+    Args:
+        a: (..., n+1) coefficients ``[a_0, …, a_n]`` (free parameters; a_n non-zero).
+        q: spectral density of w, positive.
+        **options: ``dtype``, ``device`` (of the parameters) and ``validate_args`` (see
+            :class:`~torchsde_lti.LTISDE`).
+
+    Returns:
+        Companion: F (..., n, n), B and L (..., n, 1), output ``C`` (1, n); learns a and q.
     """
     return Companion(a, q, **options)
 
@@ -216,5 +238,15 @@ def from_transfer_function(num: Sequence[float] | Tensor, den: Sequence[float] |
     deg num = deg den; ValueError for an improper G (deg num > deg den).
 
     Example: ``from_transfer_function([1.0], [1.0, 3.0, 2.0])`` is ``1 / (s² + 3s + 2)``.
+
+    Args:
+        num: numerator coefficients, highest power first (deg num <= deg den).
+        den: denominator coefficients, highest power first (learned, free).
+        q: spectral density of the noise entering with u, positive.
+        **options: ``dtype``, ``device`` (of the parameters) and ``validate_args`` (see
+            :class:`~torchsde_lti.LTISDE`).
+
+    Returns:
+        TransferFunction: F (n, n), B = L (n, 1), ``C`` (1, n), ``D`` (1, 1) with n = deg den.
     """
     return TransferFunction(num, den, q, **options)

@@ -141,7 +141,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
             at most ``SCAN_MAX_BATCH_CPU`` = 16 tracks, where per-step Python overhead
             dominates the loop, else the sequential loop; on other devices the scan; under
             ``torch.compile`` the loop as a structured scan. ``"sequential"``, ``"scan"``
-            force one (experiments/bench_filter_choice.py); ``"square_root"`` propagates
+            force one; ``"square_root"`` propagates
             Cholesky factors (QR predict, Givens update): same results up to rounding, and in
             float32 PSD, accurate covariances when predicted and measurement variances differ
             by more than 1/eps (long gaps, precise sensors), where the Joseph form can go
@@ -150,9 +150,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
         unique_dt: discretise only the distinct values of dt (``torch.unique``) and gather
             the per-step matrices; same values and gradients as the plain path. Pays off
             for quantised gaps with a model whose F needs scaling and doubling (Singer,
-            OU, a learned Hurwitz F): measured 3.5x faster filtering and 2.8x faster
-            forward+backward for a 2-D Singer model with 162 distinct gaps in 1000 x 200
-            steps (1 thread). No gain for integrator chains (constant velocity/
+            OU, a learned Hurwitz F) when gaps repeat many times. No gain for integrator chains (constant velocity/
             acceleration), whose full-step series is already one GEMM as cheap as the
             gather; and a loss when all gaps are distinct (the sort costs more than the
             discretisation), hence off by default. Used only for one parameter set (no SDE

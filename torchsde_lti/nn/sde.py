@@ -260,7 +260,7 @@ class LTISDE(ValidateArgs, nn.Module):
         """The covariance a filter starts from when it is given none: P∞ (..., n, n), the
         stationary covariance (the process has run for all past time).
 
-        Subclasses override it (a shaped model: seed 003's steady-state start). ``mats``: the
+        Subclasses override it (a shaped model: its steady-state start). ``mats``: the
         matrices already evaluated by the caller (read once per call; they are valid by
         construction). ValueError when F is not Hurwitz (checked with ``validate_args``,
         default :attr:`validate_args`): a filter then starts from a diffuse prior.
