@@ -31,14 +31,26 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 ROOT = Path(__file__).resolve().parents[1]
 CELLS = (
-    "irregular:auto:1:200", "irregular:auto:100:200", "irregular:auto:1000:200",
-    "regular:auto:1:200", "regular:auto:1000:200",
-    "train:auto:100:200", "train:auto:1000:200",
-    "irregular:sequential:1:200", "irregular:sequential:10:200", "irregular:scan:10:200",
-    "irregular:auto:1:10000", "irregular:auto:10:10000", "gp:auto:1:4000",
+    "irregular:auto:1:200",
+    "irregular:auto:100:200",
+    "irregular:auto:1000:200",
+    "regular:auto:1:200",
+    "regular:auto:1000:200",
+    "train:auto:100:200",
+    "train:auto:1000:200",
+    "irregular:sequential:1:200",
+    "irregular:sequential:10:200",
+    "irregular:scan:10:200",
+    "irregular:auto:1:10000",
+    "irregular:auto:10:10000",
+    "gp:auto:1:4000",
 )
-KINDS = {"irregular": "filter, irregular dt", "regular": "filter, regular dt (one grid)",
-         "train": "train step (fwd+bwd), irregular dt", "gp": "Matérn-3/2 GP series"}
+KINDS = {
+    "irregular": "filter, irregular dt",
+    "regular": "filter, regular dt (one grid)",
+    "train": "train step (fwd+bwd), irregular dt",
+    "gp": "Matérn-3/2 GP series",
+}
 
 
 def run_cell(cell: str, seconds: float) -> tuple[float, int, int]:
@@ -53,8 +65,11 @@ def run_cell(cell: str, seconds: float) -> tuple[float, int, int]:
     kind, algorithm, B, T = cell.split(":")
     B, T = int(B), int(T)
     # the same filter with either API: algorithm= (this issue) or the parallel= flag before it
-    kw = {} if algorithm == "auto" else (
-        {"algorithm": algorithm} if hasattr(tl, "ALGORITHMS") else {"parallel": algorithm == "scan"})
+    kw = (
+        {}
+        if algorithm == "auto"
+        else ({"algorithm": algorithm} if hasattr(tl, "ALGORITHMS") else {"parallel": algorithm == "scan"})
+    )
     if kind == "gp":
         rng = np.random.default_rng(0)
         t = np.sort(rng.uniform(0.0, T / 5.0, T))
@@ -113,8 +128,14 @@ class Counter(TorchDispatchMode):
 
 def measure(package_root: Path, cell: str, seconds: float) -> tuple[float, int, int]:
     env = {**os.environ, "PYTHONPATH": str(package_root), "OMP_NUM_THREADS": "1"}
-    out = subprocess.run([sys.executable, __file__, "--cell", cell, "--seconds", str(seconds)], env=env,
-                         cwd=package_root, capture_output=True, text=True, check=True)
+    out = subprocess.run(
+        [sys.executable, __file__, "--cell", cell, "--seconds", str(seconds)],
+        env=env,
+        cwd=package_root,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     ms, ops, syncs = out.stdout.strip().splitlines()[-1].split()
     return float(ms), int(ops), int(syncs)
 
@@ -137,10 +158,12 @@ def main() -> None:
         base.mkdir()
         tree = subprocess.run(["git", "archive", args.base_rev], cwd=ROOT, capture_output=True, check=True).stdout
         subprocess.run(["tar", "-x", "-C", str(base)], input=tree, check=True)
-        rev = subprocess.run(["git", "rev-parse", "--short", args.base_rev], cwd=ROOT, capture_output=True,
-                             text=True, check=True).stdout.strip()
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                              check=True).stdout.strip()
+        rev = subprocess.run(
+            ["git", "rev-parse", "--short", args.base_rev], cwd=ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
         load0 = os.getloadavg()[0]
         times: dict[str, dict[str, list[float]]] = {c: {"A": [], "B": []} for c in args.cells}
         counts: dict[str, dict[str, tuple[int, int]]] = {c: {} for c in args.cells}
@@ -167,9 +190,11 @@ def main() -> None:
         kind, algorithm, B, T = cell.split(":")
         a, b = times[cell]["A"], times[cell]["B"]
         (ops_a, sync_a), (ops_b, sync_b) = counts[cell]["A"], counts[cell]["B"]
-        lines.append(f"| {KINDS[kind]} | {algorithm} | {B} | {T} | {' / '.join(f'{x:.1f}' for x in a)} | "
-                     f"{' / '.join(f'{x:.1f}' for x in b)} | {statistics.median(b) / statistics.median(a):.2f} "
-                     f"| {ops_a} → {ops_b} | {sync_a} → {sync_b} |")
+        lines.append(
+            f"| {KINDS[kind]} | {algorithm} | {B} | {T} | {' / '.join(f'{x:.1f}' for x in a)} | "
+            f"{' / '.join(f'{x:.1f}' for x in b)} | {statistics.median(b) / statistics.median(a):.2f} "
+            f"| {ops_a} → {ops_b} | {sync_a} → {sync_b} |"
+        )
     text = "\n".join(lines) + "\n"
     print("\n" + text)
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -62,16 +62,24 @@ KSTEP = ["module.k_step=[4,8,12]", "module.k_step_weight=0.3"]
 #: Model sets: the training file, the split that is held out, and each model's overrides of
 #: ``python -m torchsde_lti.train`` (plus :data:`COMMON`).
 SETS: dict[str, dict[str, Any]] = {
-    "us_coastal": {"source": "US_coastal_2020_06_30.traj", "holdout_split": "test", "runs": {
-        "imm3": ["experiment=ais_moving"],
-        "cv_train": ["experiment=ais_us_coastal", "model=cv"],
-        "integrated_ou": ["experiment=ais_us_coastal", *KSTEP],
-    }},
-    "ny_week": {"source": "NYHarbor_2020_12_first_week.traj", "holdout_split": "val", "runs": {
-        "imm3": ["experiment=ais_moving", "data=ais_ny_week", "test=false"],
-        "cv_train": ["experiment=ais_ny_week", "model=cv"],
-        "integrated_ou": ["experiment=ais_ny_week", *KSTEP],
-    }},
+    "us_coastal": {
+        "source": "US_coastal_2020_06_30.traj",
+        "holdout_split": "test",
+        "runs": {
+            "imm3": ["experiment=ais_moving"],
+            "cv_train": ["experiment=ais_us_coastal", "model=cv"],
+            "integrated_ou": ["experiment=ais_us_coastal", *KSTEP],
+        },
+    },
+    "ny_week": {
+        "source": "NYHarbor_2020_12_first_week.traj",
+        "holdout_split": "val",
+        "runs": {
+            "imm3": ["experiment=ais_moving", "data=ais_ny_week", "test=false"],
+            "cv_train": ["experiment=ais_ny_week", "model=cv"],
+            "integrated_ou": ["experiment=ais_ny_week", *KSTEP],
+        },
+    },
 }
 METRICS = ("nll", "nll_moving", "nll_moored", "cover2s", "cover2s_moving", "fc_rmse_5", "fc_rmse_10", "fc_rmse_15")
 BASELINES = ("cv_oracle", "best_single")
@@ -108,14 +116,22 @@ def save_card(set_name: str, name: str, run: Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     torch.save(state, out / f"{name}.pt")
     card = {
-        "model": name, "set": set_name,
-        "data": {"source": cfg.data.source, "split": cfg.data.split, "seed": int(cfg.seed),
-                 "fractions": list(cfg.data.get("fractions", [])), "boundaries": list(cfg.data.get("boundaries") or []),
-                 "trained_on": "train", "checkpoint_chosen_on": "val (lowest val/nll)",
-                 "held_out": SETS[set_name]["holdout_split"]},
+        "model": name,
+        "set": set_name,
+        "data": {
+            "source": cfg.data.source,
+            "split": cfg.data.split,
+            "seed": int(cfg.seed),
+            "fractions": list(cfg.data.get("fractions", [])),
+            "boundaries": list(cfg.data.get("boundaries") or []),
+            "trained_on": "train",
+            "checkpoint_chosen_on": "val (lowest val/nll)",
+            "held_out": SETS[set_name]["holdout_split"],
+        },
         "command": "python -m torchsde_lti.train " + " ".join(SETS[set_name]["runs"][name] + COMMON),
         "val_nll_per_scalar": float(metrics["best"]["val/nll"]),
-        "epoch": int(ckpt["epoch"]), "wall_time_s": metrics.get("wall_time"),
+        "epoch": int(ckpt["epoch"]),
+        "wall_time_s": metrics.get("wall_time"),
         "filter": OmegaConf.to_container(cfg.filter, resolve=True),
         "data_config": OmegaConf.to_container(cfg.data, resolve=True),
         "weights": f"{name}.pt",
@@ -138,8 +154,11 @@ def load_model(card: dict[str, Any], folder: Path) -> torch.nn.Module:
 
 def load_cards(set_name: str) -> dict[str, dict[str, Any]]:
     folder = MODELS_DIR / set_name
-    cards = {n: json.loads((folder / f"{n}.json").read_text()) for n in SETS[set_name]["runs"]
-             if (folder / f"{n}.json").is_file()}
+    cards = {
+        n: json.loads((folder / f"{n}.json").read_text())
+        for n in SETS[set_name]["runs"]
+        if (folder / f"{n}.json").is_file()
+    }
     if not cards:
         raise FileNotFoundError(f"no model cards in {folder}: run `python experiments/ais_study.py --train` first")
     return cards
@@ -191,15 +210,26 @@ def study(set_name: str, file: str | None, samples: int) -> dict[str, Any]:
     for name, rec in records.items():
         res: dict[str, Any] = summary(rec)
         res["val_nll_per_scalar"] = cards[name]["val_nll_per_scalar"] if name in cards else None
-        res["paired"] = {b: paired_bootstrap(rec, records[ref], metrics=METRICS)
-                         for b, ref in base.items() if ref != name}
+        res["paired"] = {
+            b: paired_bootstrap(rec, records[ref], metrics=METRICS) for b, ref in base.items() if ref != name
+        }
         results[name] = res
-    return {"set": set_name, "data": label, "tracks": len(tracks), "reports": tracks.num_reports,
-            "vessels": int(results[best]["vessels"]), "best_model": best, "best_single": best_single,
-            "cv_oracle_tuning": oracle, "results": results,
-            "cards": {n: {k: c[k] for k in ("command", "epoch", "val_nll_per_scalar", "learned", "wall_time_s")}
-                      for n, c in cards.items()},
-            "runtime_s": time.perf_counter() - start}
+    return {
+        "set": set_name,
+        "data": label,
+        "tracks": len(tracks),
+        "reports": tracks.num_reports,
+        "vessels": int(results[best]["vessels"]),
+        "best_model": best,
+        "best_single": best_single,
+        "cv_oracle_tuning": oracle,
+        "results": results,
+        "cards": {
+            n: {k: c[k] for k in ("command", "epoch", "val_nll_per_scalar", "learned", "wall_time_s")}
+            for n, c in cards.items()
+        },
+        "runtime_s": time.perf_counter() - start,
+    }
 
 
 def verdict(payload: dict[str, Any]) -> dict[str, Any]:
@@ -207,15 +237,27 @@ def verdict(payload: dict[str, Any]) -> dict[str, Any]:
     r = payload["results"][payload["best_model"]]
     p_or, p_bs = r["paired"]["cv_oracle"], r["paired"].get("best_single", {})
     nll_ok = p_or["nll_moving"]["delta"] < 0 and p_or["nll_moving"]["hi"] < 0
-    fc = {h: {"le_best_single": p_bs[f"fc_rmse_{h}"]["delta"] <= 0 if p_bs else True,
-              "lt_cv_oracle": p_or[f"fc_rmse_{h}"]["delta"] < 0,
-              "excl_0_oracle": p_or[f"fc_rmse_{h}"]["hi"] < 0,
-              "excl_0_best_single": (p_bs[f"fc_rmse_{h}"]["hi"] < 0) if p_bs else None} for h in (5, 10, 15)}
-    fc_ok = all(v["le_best_single"] and v["lt_cv_oracle"] for v in fc.values()) and \
-        sum(v["excl_0_oracle"] for v in fc.values()) >= 2
+    fc = {
+        h: {
+            "le_best_single": p_bs[f"fc_rmse_{h}"]["delta"] <= 0 if p_bs else True,
+            "lt_cv_oracle": p_or[f"fc_rmse_{h}"]["delta"] < 0,
+            "excl_0_oracle": p_or[f"fc_rmse_{h}"]["hi"] < 0,
+            "excl_0_best_single": (p_bs[f"fc_rmse_{h}"]["hi"] < 0) if p_bs else None,
+        }
+        for h in (5, 10, 15)
+    }
+    fc_ok = (
+        all(v["le_best_single"] and v["lt_cv_oracle"] for v in fc.values())
+        and sum(v["excl_0_oracle"] for v in fc.values()) >= 2
+    )
     cov = {k: r[k] for k in ("cover2s", "cover2s_moving")}
-    return {"nll_moving_vs_oracle": nll_ok, "forecast": fc, "forecast_ok": fc_ok,
-            "coverage": cov, "coverage_ok": all(0.84 <= v <= 0.89 for v in cov.values())}
+    return {
+        "nll_moving_vs_oracle": nll_ok,
+        "forecast": fc,
+        "forecast_ok": fc_ok,
+        "coverage": cov,
+        "coverage_ok": all(0.84 <= v <= 0.89 for v in cov.values()),
+    }
 
 
 # --------------------------------------------------------------------------- report
@@ -227,62 +269,110 @@ def _ci(d: dict[str, float], scale: float = 1.0, fmt: str = "+.3f") -> str:
 
 def markdown(payloads: list[dict[str, Any]], runtime: float, cmd: str) -> str:
     load = os.getloadavg()
-    lines = ["# Learned motion models vs a tuned constant-velocity filter on moving ships (AIS, held out)", "",
-             (f"Command: `{cmd}` (evaluation of the saved model cards in `experiments/results/models/`); total "
-             f"runtime {runtime:.0f} s on {os.cpu_count()} cores (load average at the end {load[0]:.1f}, "
-             f"{load[1]:.1f}, {load[2]:.1f}: the machine was shared with other jobs)."), "",
-             ("NLL in nats per 2-D report (reports 2..T of each track); moving = the report's 1-h window has a "
-             "median position-derived speed >= 1 m/s; 2σ = the 86.5 % highest-density region of the one-step "
-             "predictive (mixture for the IMM, Monte Carlo); forecast RMSE (m) of the predictive mean at the report "
-             "nearest 5 / 10 / 15 min ahead (±25 %). Intervals: 95 % paired bootstrap over vessels."), ""]
+    lines = [
+        "# Learned motion models vs a tuned constant-velocity filter on moving ships (AIS, held out)",
+        "",
+        (
+            f"Command: `{cmd}` (evaluation of the saved model cards in `experiments/results/models/`); total "
+            f"runtime {runtime:.0f} s on {os.cpu_count()} cores (load average at the end {load[0]:.1f}, "
+            f"{load[1]:.1f}, {load[2]:.1f}: the machine was shared with other jobs)."
+        ),
+        "",
+        (
+            "NLL in nats per 2-D report (reports 2..T of each track); moving = the report's 1-h window has a "
+            "median position-derived speed >= 1 m/s; 2σ = the 86.5 % highest-density region of the one-step "
+            "predictive (mixture for the IMM, Monte Carlo); forecast RMSE (m) of the predictive mean at the report "
+            "nearest 5 / 10 / 15 min ahead (±25 %). Intervals: 95 % paired bootstrap over vessels."
+        ),
+        "",
+    ]
     for p in payloads:
         res, v = p["results"], verdict(p)
-        lines += [f"## {p['set']}: {p['data']}", "",
-                  f"{p['tracks']} tracks of {p['vessels']} vessels, {p['reports']} reports; best model by validation "
-                  f"NLL: **{p['best_model']}**; best single: **{p['best_single']}**; CV oracle: q = "
-                  f"{p['cv_oracle_tuning']['q']:.4g} m²/s³, R = ({p['cv_oracle_tuning']['r_std']:.3g} m)² I "
-                  f"({p['cv_oracle_tuning']['grid_points']} grid points on these tracks). Runtime {p['runtime_s']:.0f} s."
-                  + (" On these tracks the CV likelihood keeps rising as R → 0: the grid stopped after 20 extensions "
-                     "at the lower edge of r, so the oracle's optimum is the boundary R = 0, not an interior point."
-                     if p["cv_oracle_tuning"]["r_std"] < 1e-2 else "")
-                  + (" This day is also the validation split that chose each run's checkpoint epoch (a split in "
-                     "time, never trained on)." if p["set"] == "ny_week" and p["data"].endswith("val split") else ""),
-                  "",
-                  ("| model | val NLL/scalar | NLL | NLL moving | NLL moored | in 2σ | in 2σ moving | fc RMSE 5 min "
-                  "| 10 min | 15 min |"), "|---|" + "---:|" * 9]
+        lines += [
+            f"## {p['set']}: {p['data']}",
+            "",
+            f"{p['tracks']} tracks of {p['vessels']} vessels, {p['reports']} reports; best model by validation "
+            f"NLL: **{p['best_model']}**; best single: **{p['best_single']}**; CV oracle: q = "
+            f"{p['cv_oracle_tuning']['q']:.4g} m²/s³, R = ({p['cv_oracle_tuning']['r_std']:.3g} m)² I "
+            f"({p['cv_oracle_tuning']['grid_points']} grid points on these tracks). Runtime {p['runtime_s']:.0f} s."
+            + (
+                " On these tracks the CV likelihood keeps rising as R → 0: the grid stopped after 20 extensions "
+                "at the lower edge of r, so the oracle's optimum is the boundary R = 0, not an interior point."
+                if p["cv_oracle_tuning"]["r_std"] < 1e-2
+                else ""
+            )
+            + (
+                " This day is also the validation split that chose each run's checkpoint epoch (a split in "
+                "time, never trained on)."
+                if p["set"] == "ny_week" and p["data"].endswith("val split")
+                else ""
+            ),
+            "",
+            (
+                "| model | val NLL/scalar | NLL | NLL moving | NLL moored | in 2σ | in 2σ moving | fc RMSE 5 min "
+                "| 10 min | 15 min |"
+            ),
+            "|---|" + "---:|" * 9,
+        ]
         for n, r in res.items():
             val = "—" if r["val_nll_per_scalar"] is None else f"{r['val_nll_per_scalar']:.3f}"
-            lines.append(f"| {n} | {val} | {r['nll']:.3f} | {r['nll_moving']:.3f} | {r['nll_moored']:.3f} | "
-                         f"{100 * r['cover2s']:.1f} % | {100 * r['cover2s_moving']:.1f} % | {r['fc_rmse_5']:.0f} | "
-                         f"{r['fc_rmse_10']:.0f} | {r['fc_rmse_15']:.0f} |")
+            lines.append(
+                f"| {n} | {val} | {r['nll']:.3f} | {r['nll_moving']:.3f} | {r['nll_moored']:.3f} | "
+                f"{100 * r['cover2s']:.1f} % | {100 * r['cover2s_moving']:.1f} % | {r['fc_rmse_5']:.0f} | "
+                f"{r['fc_rmse_10']:.0f} | {r['fc_rmse_15']:.0f} |"
+            )
         r0 = next(iter(res.values()))
-        lines += ["", (f"Reports: {r0['reports']} ({r0['reports_moving']} in moving windows); forecast pairs "
-                  f"5 / 10 / 15 min: {r0['fc_n_5']} / {r0['fc_n_10']} / {r0['fc_n_15']}."), ""]
+        lines += [
+            "",
+            (
+                f"Reports: {r0['reports']} ({r0['reports_moving']} in moving windows); forecast pairs "
+                f"5 / 10 / 15 min: {r0['fc_n_5']} / {r0['fc_n_10']} / {r0['fc_n_15']}."
+            ),
+            "",
+        ]
         for b in BASELINES:
-            lines += [f"Paired differences, model − {b}" + (f" (= {p['best_single']})" if b == "best_single" else "")
-                      + " (negative = better than the baseline; coverage in percentage points):", "",
-                      "| model | Δ NLL | Δ NLL moving | Δ NLL moored | Δ in 2σ (pp) | Δ fc RMSE 5 min (m) | 10 min | 15 min |",
-                      "|---|" + "---:|" * 7]
+            lines += [
+                f"Paired differences, model − {b}"
+                + (f" (= {p['best_single']})" if b == "best_single" else "")
+                + " (negative = better than the baseline; coverage in percentage points):",
+                "",
+                "| model | Δ NLL | Δ NLL moving | Δ NLL moored | Δ in 2σ (pp) | Δ fc RMSE 5 min (m) | 10 min | 15 min |",
+                "|---|" + "---:|" * 7,
+            ]
             for n, r in res.items():
                 if b not in r["paired"]:
                     continue
                 d = r["paired"][b]
-                lines.append(f"| {n} | {_ci(d['nll'])} | {_ci(d['nll_moving'])} | {_ci(d['nll_moored'])} | "
-                             f"{_ci(d['cover2s'], 100, '+.1f')} | {_ci(d['fc_rmse_5'], 1, '+.0f')} | "
-                             f"{_ci(d['fc_rmse_10'], 1, '+.0f')} | {_ci(d['fc_rmse_15'], 1, '+.0f')} |")
+                lines.append(
+                    f"| {n} | {_ci(d['nll'])} | {_ci(d['nll_moving'])} | {_ci(d['nll_moored'])} | "
+                    f"{_ci(d['cover2s'], 100, '+.1f')} | {_ci(d['fc_rmse_5'], 1, '+.0f')} | "
+                    f"{_ci(d['fc_rmse_10'], 1, '+.0f')} | {_ci(d['fc_rmse_15'], 1, '+.0f')} |"
+                )
             lines.append("")
         fc = v["forecast"]
-        lines += [f"Done-when items for {p['best_model']} (measured here):", "",
-                  (f"- NLL on moving windows − CV oracle < 0 with the interval excluding 0: "
-                  f"**{'met' if v['nll_moving_vs_oracle'] else 'NOT met'}** "
-                  f"({_ci(res[p['best_model']]['paired']['cv_oracle']['nll_moving'])});"),
-                  "- forecast RMSE ≤ best single and < CV oracle at 5/10/15 min, intervals vs the oracle excluding 0 at "
-                  f">= 2 horizons: **{'met' if v['forecast_ok'] else 'NOT met'}** ("
-                  + "; ".join(f"{h} min: ≤ best single {x['le_best_single']}, < oracle {x['lt_cv_oracle']}, "
-                              f"excl. 0 {x['excl_0_oracle']}" for h, x in fc.items()) + ");",
-                  (f"- 2σ coverage within 84–89 % overall and on moving windows: "
-                  f"**{'met' if v['coverage_ok'] else 'NOT met'}** ("
-                  f"{100 * v['coverage']['cover2s']:.1f} %, {100 * v['coverage']['cover2s_moving']:.1f} %)."), ""]
+        lines += [
+            f"Done-when items for {p['best_model']} (measured here):",
+            "",
+            (
+                f"- NLL on moving windows − CV oracle < 0 with the interval excluding 0: "
+                f"**{'met' if v['nll_moving_vs_oracle'] else 'NOT met'}** "
+                f"({_ci(res[p['best_model']]['paired']['cv_oracle']['nll_moving'])});"
+            ),
+            "- forecast RMSE ≤ best single and < CV oracle at 5/10/15 min, intervals vs the oracle excluding 0 at "
+            f">= 2 horizons: **{'met' if v['forecast_ok'] else 'NOT met'}** ("
+            + "; ".join(
+                f"{h} min: ≤ best single {x['le_best_single']}, < oracle {x['lt_cv_oracle']}, "
+                f"excl. 0 {x['excl_0_oracle']}"
+                for h, x in fc.items()
+            )
+            + ");",
+            (
+                f"- 2σ coverage within 84–89 % overall and on moving windows: "
+                f"**{'met' if v['coverage_ok'] else 'NOT met'}** ("
+                f"{100 * v['coverage']['cover2s']:.1f} %, {100 * v['coverage']['cover2s_moving']:.1f} %)."
+            ),
+            "",
+        ]
         lines += ["What the fits learned (best checkpoint; SI units m, s; rates 1/s):", ""]
         for n, c in p["cards"].items():
             vals = ", ".join(f"{k}={x:.4g}" for k, x in c["learned"].items())
@@ -305,8 +395,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--runs", default="outputs/ais_moving", help="training runs, <runs>/<set>/<model>")
     parser.add_argument("--train", action="store_true", help="launch the missing runs, write the model cards")
     parser.add_argument("--sets", nargs="*", default=list(SETS), help="model sets to train / evaluate")
-    parser.add_argument("--holdout", default=None, help="evaluate on this file instead (the set's own source: its "
-                        "held-out split; another file: all of it)")
+    parser.add_argument(
+        "--holdout",
+        default=None,
+        help="evaluate on this file instead (the set's own source: its held-out split; another file: all of it)",
+    )
     parser.add_argument("--models", default=None, help="with --holdout: the model set (default: by file name)")
     parser.add_argument("--json", default=None, help="write the metrics here")
     parser.add_argument("--samples", type=int, default=1000, help="Monte Carlo draws of the mixture HPD test")
@@ -321,8 +414,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         payload["verdict"] = verdict(payload)
         if args.json:
             write_json(Path(args.json), {"file": args.holdout, **payload, **payload["results"]})
-        print(markdown([payload], time.perf_counter() - start, "python experiments/ais_study.py --holdout "
-                       + args.holdout))
+        print(
+            markdown(
+                [payload], time.perf_counter() - start, "python experiments/ais_study.py --holdout " + args.holdout
+            )
+        )
         return payload
     payloads = [study(s, None, args.samples) for s in args.sets]
     for p in payloads:

@@ -28,16 +28,16 @@ import argparse
 import contextlib
 import io
 import os
-import sys
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import torch
+from bench_filter_choice import filterpy_cv  # the same filterpy contestant
 
 import torchsde_lti as tl
-from bench_filter_choice import filterpy_cv  # the same filterpy contestant
 
 F64 = torch.float64
 
@@ -45,8 +45,9 @@ F64 = torch.float64
 def make_filter(algorithm: str = "auto") -> tl.KalmanFilter:
     cv = tl.models.constant_velocity(dim=2, q=1.0, dtype=F64)
     H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=F64)
-    return tl.KalmanFilter(cv, H, 0.5 * torch.eye(2, dtype=F64), P0=100 * torch.eye(4, dtype=F64),
-                           learn=("R",), algorithm=algorithm)
+    return tl.KalmanFilter(
+        cv, H, 0.5 * torch.eye(2, dtype=F64), P0=100 * torch.eye(4, dtype=F64), learn=("R",), algorithm=algorithm
+    )
 
 
 def data(B: int, T: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -121,8 +122,11 @@ def bench_export(B: int, T: int, aoti: bool) -> None:
             t_eager = median_ms(lambda: kf(y, dt))
         d_ll = float((ll - ref.log_likelihood).abs().max())
         d_mean = float((mean - ref.mean).abs().max())
-        print(f"| {B} | {T} | {len(ep.graph.nodes)} | {t_export:.1f} | {t_save:.2f} | {t_load:.2f} | "
-              f"{t_prog:.2f} | {t_eager:.2f} | {t_eager / t_prog:.2f}× | {d_ll:.1e} / {d_mean:.1e} |", flush=True)
+        print(
+            f"| {B} | {T} | {len(ep.graph.nodes)} | {t_export:.1f} | {t_save:.2f} | {t_load:.2f} | "
+            f"{t_prog:.2f} | {t_eager:.2f} | {t_eager / t_prog:.2f}× | {d_ll:.1e} / {d_mean:.1e} |",
+            flush=True,
+        )
         if aoti:
             AOTI_ROWS.append(bench_aoti(ep, Path(tmp) / "kf_aoti.pt2", kf, B, T, t_eager))
 
@@ -130,8 +134,9 @@ def bench_export(B: int, T: int, aoti: bool) -> None:
 AOTI_ROWS: list[str] = []
 
 
-def bench_aoti(ep: torch.export.ExportedProgram, path: Path, kf: tl.KalmanFilter, B: int, T: int,
-               t_eager: float) -> str:
+def bench_aoti(
+    ep: torch.export.ExportedProgram, path: Path, kf: tl.KalmanFilter, B: int, T: int, t_eager: float
+) -> str:
     """AOTInductor: the exported program compiled ahead of time into a .pt2 package (C++
     kernels; needs a C++ compiler to build, only torch to load and run), vs eager and filterpy."""
     t0 = time.perf_counter()
@@ -149,8 +154,10 @@ def bench_aoti(ep: torch.export.ExportedProgram, path: Path, kf: tl.KalmanFilter
     d_mean = float((mean - ref.mean).abs().max())
     t_fp = median_ms(filterpy_cv(y, dt, kf.R.detach().numpy())) if B == 1 else float("nan")
     fp = f"{t_fp:.2f} | {t_fp / t_run:.2f}×" if B == 1 else "– | –"
-    return (f"| {B} | {T} | {t_build:.1f} | {t_load:.3f} | {t_run:.2f} | {t_eager:.2f} | {t_eager / t_run:.2f}× | "
-            f"{fp} | {d_ll:.1e} / {d_mean:.1e} |")
+    return (
+        f"| {B} | {T} | {t_build:.1f} | {t_load:.3f} | {t_run:.2f} | {t_eager:.2f} | {t_eager / t_run:.2f}× | "
+        f"{fp} | {d_ll:.1e} / {d_mean:.1e} |"
+    )
 
 
 def main() -> None:
@@ -181,19 +188,25 @@ class Tee(io.TextIOBase):
 
 
 def run(args: argparse.Namespace) -> None:
-    print(f"# deploy benchmark (torch {torch.__version__}, {args.threads} thread(s), load "
-          f"{os.getloadavg()[0]:.2f}; shared machine, noisy: medians)")
+    print(
+        f"# deploy benchmark (torch {torch.__version__}, {args.threads} thread(s), load "
+        f"{os.getloadavg()[0]:.2f}; shared machine, noisy: medians)"
+    )
     bench_compile()
     print("\n### checkpoint → torch.export → save → load → run (float64, no grad)\n")
-    print("| B | T | graph nodes | export (s) | save (s) | load (s) | exported run (ms) | eager (ms) | "
-          "eager / exported | max |Δ| ll / means |")
+    print(
+        "| B | T | graph nodes | export (s) | save (s) | load (s) | exported run (ms) | eager (ms) | "
+        "eager / exported | max |Δ| ll / means |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for B, T in ((1, 200), (100, 200)):
         bench_export(B, T, aoti=B == 1 and not args.no_aoti)  # B = 100: 12.8 k nodes, minutes to build
     if AOTI_ROWS:
         print("\n### exported program → AOTInductor package (torch._inductor.aoti_compile_and_package) → load → run\n")
-        print("| B | T | build (s) | load (s) | packaged run (ms) | eager (ms) | eager / packaged | filterpy (ms) | "
-              "filterpy / packaged | max |Δ| ll / means |")
+        print(
+            "| B | T | build (s) | load (s) | packaged run (ms) | eager (ms) | eager / packaged | filterpy (ms) | "
+            "filterpy / packaged | max |Δ| ll / means |"
+        )
         print("|---|---|---|---|---|---|---|---|---|---|")
         print("\n".join(AOTI_ROWS))
     print(f"\nload at end {os.getloadavg()[0]:.2f}")

@@ -163,7 +163,11 @@ def make_call(name: str, prob: Problem, batch: int, dtype: torch.dtype, backward
         return lambda: filterpy_loop(F, G, dt)
     fn = default_discretize if name == "default" else naive_van_loan
     itemsize = torch.finfo(dtype).bits // 8
-    if name == "naive" and backward and 22 * batch * (4 * prob.F.shape[0]) ** 2 * itemsize > NAIVE_BACKWARD_MEMORY_BUDGET:
+    if (
+        name == "naive"
+        and backward
+        and 22 * batch * (4 * prob.F.shape[0]) ** 2 * itemsize > NAIVE_BACKWARD_MEMORY_BUDGET
+    ):
         return None
     F, L, Qc = (x.to(dtype) for x in (prob.F, prob.L, prob.Qc))
     dt = prob.dt[:batch].to(dtype)
@@ -212,8 +216,12 @@ def bad_fraction(Q: torch.Tensor | np.ndarray) -> float:
 
 
 def time_cell(
-    cell: Cell, calls: dict[str, Callable[[], object]], warm: dict[str, Callable[[], object]],
-    repeats: int, budget_s: float, hard_s: float,
+    cell: Cell,
+    calls: dict[str, Callable[[], object]],
+    warm: dict[str, Callable[[], object]],
+    repeats: int,
+    budget_s: float,
+    hard_s: float,
 ) -> None:
     """Round-robin timing: warm-up once each, then repeat until `repeats` runs, or at least
     3 runs and `budget_s` spent, or at least 1 run and `hard_s` spent (per contestant)."""
@@ -280,22 +288,47 @@ def stiff_cases() -> list[Case]:
     cases = []
     for kdt in (20.0, 40.0, 60.0):
         k = 1.0
-        cases.append(Case(f"integrated OU k·dt={kdt:g}", np.array([[0.0, 1.0], [0.0, -k]]),
-                          np.array([[0.0], [1.0]]), np.array([[1.0]]), kdt / k, "iou"))
+        cases.append(
+            Case(
+                f"integrated OU k·dt={kdt:g}",
+                np.array([[0.0, 1.0], [0.0, -k]]),
+                np.array([[0.0], [1.0]]),
+                np.array([[1.0]]),
+                kdt / k,
+                "iou",
+            )
+        )
     for ldt in (100.0, 1000.0):
-        cases.append(Case(f"scalar OU λ·dt={ldt:g}", np.array([[-1.0]]), np.array([[1.0]]),
-                          np.array([[2.0]]), ldt, "lyapunov"))
+        cases.append(
+            Case(f"scalar OU λ·dt={ldt:g}", np.array([[-1.0]]), np.array([[1.0]]), np.array([[2.0]]), ldt, "lyapunov")
+        )
     nonnormal = np.array([[-1e-3, 1e2], [0.0, -1e3]])
     for dt in (1.0, 50.0):
         cases.append(Case(f"non-normal λ=−1e−3,−1e3 dt={dt:g}", nonnormal, np.eye(2), np.eye(2), dt, "lyapunov"))
     jordan = -np.eye(3) + np.diag([1.0, 1.0], 1)
     for dt in (30.0,):
-        cases.append(Case(f"Jordan block λ=−1 (3×3) dt={dt:g}", jordan, np.array([[0.0], [0.0], [1.0]]),
-                          np.array([[1.0]]), dt, "lyapunov"))
+        cases.append(
+            Case(
+                f"Jordan block λ=−1 (3×3) dt={dt:g}",
+                jordan,
+                np.array([[0.0], [0.0], [1.0]]),
+                np.array([[1.0]]),
+                dt,
+                "lyapunov",
+            )
+        )
     chain = np.diag([1.0, 1.0], 1)
     for dt in (1e-4, 1e3):
-        cases.append(Case(f"nilpotent chain (3×3) dt={dt:g}", chain, np.array([[0.0], [0.0], [1.0]]),
-                          np.array([[1.0]]), dt, "nilpotent"))
+        cases.append(
+            Case(
+                f"nilpotent chain (3×3) dt={dt:g}",
+                chain,
+                np.array([[0.0], [0.0], [1.0]]),
+                np.array([[1.0]]),
+                dt,
+                "nilpotent",
+            )
+        )
     return cases
 
 
@@ -409,7 +442,9 @@ def throughput_tables(cells: list[Cell]) -> str:
     for mode, names in (("fwd", CONTESTANTS), ("fwd+bwd", ("default", "naive"))):
         title = "forward" if mode == "fwd" else "forward + backward (w.r.t. F, Qc, dt)"
         out.append(f"### Matrices/s, {title}\n")
-        head = "| n | dtype | B | " + " | ".join(names) + " | " + " | ".join(f"{k}/naive" for k in names if k != "naive")
+        head = (
+            "| n | dtype | B | " + " | ".join(names) + " | " + " | ".join(f"{k}/naive" for k in names if k != "naive")
+        )
         if mode == "fwd":
             head += " | bad Q default / naive / scipy"
         out.append(head + " |")
@@ -424,12 +459,16 @@ def throughput_tables(cells: list[Cell]) -> str:
             vals = [_fmt_rate(rates[k]) + ("†" if k in few else "") for k in names]
             line = f"| {c.n} | {c.dtype} | {c.batch:g} | " + " | ".join(vals) + " | " + " | ".join(ratio)
             if mode == "fwd":
-                line += " | " + " / ".join(f"{100 * c.bad[k]:.0f}%" if k in c.bad else "—" for k in ("default", "naive", "scipy"))
+                line += " | " + " / ".join(
+                    f"{100 * c.bad[k]:.0f}%" if k in c.bad else "—" for k in ("default", "naive", "scipy")
+                )
             out.append(line + " |")
         out.append("")
     out.append("† fewer than 3 timed runs (a single call exceeded the time budget); median of those runs.")
-    out.append(f"— = not applicable (scipy/filterpy: float64 forward only, filterpy B ≤ {FILTERPY_MAX_BATCH}); naive forward+backward "
-               f"skipped where its measured memory model (22·B·(4n)²·itemsize) exceeds {NAIVE_BACKWARD_MEMORY_BUDGET / 1e9:.0f} GB.")
+    out.append(
+        f"— = not applicable (scipy/filterpy: float64 forward only, filterpy B ≤ {FILTERPY_MAX_BATCH}); naive forward+backward "
+        f"skipped where its measured memory model (22·B·(4n)²·itemsize) exceeds {NAIVE_BACKWARD_MEMORY_BUDGET / 1e9:.0f} GB."
+    )
     out.append("'bad Q': share of batch elements whose Q is non-finite or not PSD (λ_min(sym Q) < −n·eps·‖Q‖₂).\n")
     return "\n".join(out)
 
@@ -449,9 +488,11 @@ def accuracy_table(rows: list[dict[str, object]]) -> str:
                 err, psd = v  # type: ignore[misc]
                 cells.append(("non-finite" if not math.isfinite(err) else f"{err:.1e}") + (" ✓" if psd else " ✗"))
         out.append(f"| {r['case']} | {r['dtype']} | " + " | ".join(cells) + " |")
-    out.append("\n`default` = torchsde_lti.discretize (doubling); `matrix_exp` = its method=\"matrix_exp\"; "
-               "`naive` = torch.matrix_exp of the 2n block; `scipy` = scipy.linalg.expm of the 2n block; "
-               "`filterpy` = filterpy.common.van_loan_discretization.\n")
+    out.append(
+        '\n`default` = torchsde_lti.discretize (doubling); `matrix_exp` = its method="matrix_exp"; '
+        "`naive` = torch.matrix_exp of the 2n block; `scipy` = scipy.linalg.expm of the 2n block; "
+        "`filterpy` = filterpy.common.van_loan_discretization.\n"
+    )
     return "\n".join(out)
 
 
@@ -470,7 +511,11 @@ def plot(cells: list[Cell], path: Path, threads: int | None = None) -> None:
             ax = axes[i][j]
             for mode, style in (("fwd", "-"), ("fwd+bwd", "--")):
                 for name in CONTESTANTS:
-                    pts = [(c.batch, c.rate(name)) for c in cells if c.n == n and c.dtype == dt and c.mode == mode and c.rate(name)]
+                    pts = [
+                        (c.batch, c.rate(name))
+                        for c in cells
+                        if c.n == n and c.dtype == dt and c.mode == mode and c.rate(name)
+                    ]
                     if pts:
                         x, y = zip(*pts)
                         ax.loglog(x, y, style, marker="o", color=colors[name], label=f"{name} {mode}")
@@ -494,7 +539,9 @@ def main() -> None:
     warnings.filterwarnings("ignore", category=RuntimeWarning)  # overflow inside the Van Loan contestants
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="~1 minute smoke run (n ≤ 4, B ≤ 1e4)")
-    parser.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: leave torch's default)")
+    parser.add_argument(
+        "--threads", type=int, default=None, help="torch.set_num_threads (default: leave torch's default)"
+    )
     parser.add_argument("--replot", type=Path, default=None, help="only redraw the .png of an earlier run's .json")
     parser.add_argument("--out", type=Path, default=RESULTS, help="directory for .md/.png/.json")
     args = parser.parse_args()
@@ -505,7 +552,9 @@ def main() -> None:
         return
     if args.threads:
         torch.set_num_threads(args.threads)
-    stem = ("bench_discretize_quick" if args.quick else "bench_discretize") + (f"_t{args.threads}" if args.threads else "")
+    stem = ("bench_discretize_quick" if args.quick else "bench_discretize") + (
+        f"_t{args.threads}" if args.threads else ""
+    )
     start = time.perf_counter()
     header = [
         f"# discretize benchmark{' (--quick)' if args.quick else ''}\n",
@@ -525,8 +574,10 @@ def main() -> None:
     print(report)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"{stem}.md").write_text(report)
-    write_json(args.out / f"{stem}.json",  # strict JSON: NaN / inf as null
-               {"threads": torch.get_num_threads(), "cells": [c.__dict__ for c in cells], "accuracy": acc})
+    write_json(
+        args.out / f"{stem}.json",  # strict JSON: NaN / inf as null
+        {"threads": torch.get_num_threads(), "cells": [c.__dict__ for c in cells], "accuracy": acc},
+    )
     plot(cells, args.out / f"{stem}.png")
     print(f"wrote {args.out / (stem + '.md')}, .json, .png")
 

@@ -128,8 +128,9 @@ def torchkf_per_step(y: torch.Tensor, dt: torch.Tensor, matrices: str) -> Callab
     def run() -> object:
         with torch.no_grad():
             A, Q = van_loan(F, Q_INT * W, dt) if matrices == "VL" else cv_closed_form(Q_INT, dt)
-            state = torch_kf.GaussianState(torch.zeros(y.shape[0], N, 1, dtype=dtype),
-                                           P0_VAR * torch.eye(N, dtype=dtype).expand(y.shape[0], N, N))
+            state = torch_kf.GaussianState(
+                torch.zeros(y.shape[0], N, 1, dtype=dtype), P0_VAR * torch.eye(N, dtype=dtype).expand(y.shape[0], N, N)
+            )
             means, covs = [], []
             for k in range(T):
                 state = kf.predict(state, process_matrix=A[:, k], process_noise=Q[:, k])
@@ -152,8 +153,10 @@ def torchkf_regular(y: torch.Tensor, dt: torch.Tensor) -> Callable[[], object]:
 
     def run() -> object:
         with torch.no_grad():
-            state = torch_kf.GaussianState(torch.zeros(y.shape[0], N, 1, dtype=dtype),
-                                           P0_VAR * torch.eye(N, dtype=dtype).expand(y.shape[0], N, N).clone())
+            state = torch_kf.GaussianState(
+                torch.zeros(y.shape[0], N, 1, dtype=dtype),
+                P0_VAR * torch.eye(N, dtype=dtype).expand(y.shape[0], N, N).clone(),
+            )
             return kf.filter(state, meas, update_first=False, return_all=True)
 
     return run
@@ -167,8 +170,17 @@ def simdkalman_regular(y: np.ndarray, dt: np.ndarray) -> Callable[[], object]:
     kf = simdkalman.KalmanFilter(state_transition=A, process_noise=Q, observation_model=H, observation_noise=R)
 
     def run() -> object:
-        return kf.compute(y, 0, initial_value=np.zeros(N), initial_covariance=P0_VAR * np.eye(N),
-                          smoothed=False, filtered=True, states=True, covariances=True, observations=False)
+        return kf.compute(
+            y,
+            0,
+            initial_value=np.zeros(N),
+            initial_covariance=P0_VAR * np.eye(N),
+            smoothed=False,
+            filtered=True,
+            states=True,
+            covariances=True,
+            observations=False,
+        )
 
     return run
 
@@ -230,8 +242,9 @@ def torchkf_train(y: torch.Tensor, dt: torch.Tensor, matrices: str) -> Callable[
         log_q.grad = None
         q = log_q.exp()
         A, Q = van_loan(F, q * W, dt) if matrices == "VL" else cv_closed_form(q, dt)
-        state = torch_kf.GaussianState(torch.zeros(y.shape[0], N, 1, dtype=dtype),
-                                       P0_VAR * torch.eye(N, dtype=dtype).expand(y.shape[0], N, N))
+        state = torch_kf.GaussianState(
+            torch.zeros(y.shape[0], N, 1, dtype=dtype), P0_VAR * torch.eye(N, dtype=dtype).expand(y.shape[0], N, N)
+        )
         ll = 0.0
         for k in range(T):
             state = kf.predict(state, process_matrix=A[:, k], process_noise=Q[:, k])
@@ -250,8 +263,9 @@ def torchkf_train(y: torch.Tensor, dt: torch.Tensor, matrices: str) -> Callable[
 # ----------------------------------------------------------------------------------------
 
 
-def time_round_robin(fns: dict[str, Callable[[], object]], repeats: int, budget_s: float, clock: str,
-                     warmup: bool = True) -> dict[str, float]:
+def time_round_robin(
+    fns: dict[str, Callable[[], object]], repeats: int, budget_s: float, clock: str, warmup: bool = True
+) -> dict[str, float]:
     """Time per run for each contestant; contestants interleaved within each repeat.
 
     clock "wall": median wall time. clock "cpu": minimum process CPU time (single thread),
@@ -278,8 +292,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="B ≤ 1000, float64 only, fewer repeats")
     ap.add_argument("--threads", type=int, default=2, help="torch threads (clock=cpu forces 1)")
-    ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
-                    help="wall: median wall time; cpu: best single-thread CPU time (use on a loaded machine)")
+    ap.add_argument(
+        "--clock",
+        choices=("wall", "cpu"),
+        default="wall",
+        help="wall: median wall time; cpu: best single-thread CPU time (use on a loaded machine)",
+    )
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
     if args.clock == "cpu":
@@ -323,10 +341,22 @@ def main() -> None:
                 if dtype == torch.float64:
                     res_tp["filterpy (1 track)"] = fp[regular]
                 for name, tp in res_tp.items():
-                    rows.append(dict(task="filter", setting=setting, dtype=dname, B=B, contestant=name,
-                                     ms=B * T / tp * 1e3, tp=tp, ratio=res_tp["ours"] / tp))
-                print(f"{setting:9s} {dname} B={B:6d} " + "  ".join(f"{k}={v / 1e6:.3g}M/s" for k, v in res_tp.items()),
-                      flush=True)
+                    rows.append(
+                        dict(
+                            task="filter",
+                            setting=setting,
+                            dtype=dname,
+                            B=B,
+                            contestant=name,
+                            ms=B * T / tp * 1e3,
+                            tp=tp,
+                            ratio=res_tp["ours"] / tp,
+                        )
+                    )
+                print(
+                    f"{setting:9s} {dname} B={B:6d} " + "  ".join(f"{k}={v / 1e6:.3g}M/s" for k, v in res_tp.items()),
+                    flush=True,
+                )
 
     # training step (forward + backward), irregular dt
     train_batches = [100, 1000]
@@ -336,15 +366,30 @@ def main() -> None:
             y_np, dt_np = make_data(B, regular=False)
             y = torch.tensor(y_np, dtype=dtype)
             dt = torch.tensor(dt_np, dtype=dtype)
-            fns = {"ours": ours_train(y, dt), "torch-kf+VL": torchkf_train(y, dt, "VL"),
-                   "torch-kf+CF": torchkf_train(y, dt, "CF")}
+            fns = {
+                "ours": ours_train(y, dt),
+                "torch-kf+VL": torchkf_train(y, dt, "VL"),
+                "torch-kf+CF": torchkf_train(y, dt, "CF"),
+            }
             res = time_round_robin(fns, 3, 30.0, args.clock)
             res_tp = {k: B * T / v for k, v in res.items()}
             for name, tp in res_tp.items():
-                rows.append(dict(task="train step", setting="irregular", dtype=dname, B=B, contestant=name,
-                                 ms=B * T / tp * 1e3, tp=tp, ratio=res_tp["ours"] / tp))
-            print(f"train     {dname} B={B:6d} " + "  ".join(f"{k}={v / 1e6:.3g}M/s" for k, v in res_tp.items()),
-                  flush=True)
+                rows.append(
+                    dict(
+                        task="train step",
+                        setting="irregular",
+                        dtype=dname,
+                        B=B,
+                        contestant=name,
+                        ms=B * T / tp * 1e3,
+                        tp=tp,
+                        ratio=res_tp["ours"] / tp,
+                    )
+                )
+            print(
+                f"train     {dname} B={B:6d} " + "  ".join(f"{k}={v / 1e6:.3g}M/s" for k, v in res_tp.items()),
+                flush=True,
+            )
 
     write_outputs(rows, args)
 
@@ -352,22 +397,33 @@ def main() -> None:
 def write_outputs(rows: list[dict], args: argparse.Namespace) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     clock = "wall-clock medians" if args.clock == "wall" else "best-of-N process CPU time"
-    head = (f"T = {T}, 2-D constant velocity (n = 4, m = 2); {clock}, torch {torch.__version__}, "
-            f"{args.threads} thread(s), {platform.machine()}; track·steps/s (higher is better); "
-            "'ours ×' = our throughput / the contestant's. filterpy is one track in a Python loop "
-            "(its throughput does not grow with B).\n\n")
-    lines = ["| task | dt | dtype | B | contestant | time (ms) | track·steps/s | ours × |",
-             "|---|---|---|---:|---|---:|---:|---:|"]
+    head = (
+        f"T = {T}, 2-D constant velocity (n = 4, m = 2); {clock}, torch {torch.__version__}, "
+        f"{args.threads} thread(s), {platform.machine()}; track·steps/s (higher is better); "
+        "'ours ×' = our throughput / the contestant's. filterpy is one track in a Python loop "
+        "(its throughput does not grow with B).\n\n"
+    )
+    lines = [
+        "| task | dt | dtype | B | contestant | time (ms) | track·steps/s | ours × |",
+        "|---|---|---|---:|---|---:|---:|---:|",
+    ]
     for r in rows:
-        lines.append(f"| {r['task']} | {r['setting']} | {r['dtype']} | {r['B']} | {r['contestant']} | "
-                     f"{r['ms']:.1f} | {r['tp']:.3g} | {r['ratio']:.2f} |")
+        lines.append(
+            f"| {r['task']} | {r['setting']} | {r['dtype']} | {r['B']} | {r['contestant']} | "
+            f"{r['ms']:.1f} | {r['tp']:.3g} | {r['ratio']:.2f} |"
+        )
     table = "\n".join(lines)
     print()
     print(table)
     suffix = "_quick" if args.quick else ""
     (args.out / f"bench_filter{suffix}.md").write_text(
         "# Kalman filter benchmark (experiments/bench_filter.py"
-        + (" --quick" if args.quick else "") + ")\n\n" + head + table + "\n")
+        + (" --quick" if args.quick else "")
+        + ")\n\n"
+        + head
+        + table
+        + "\n"
+    )
     try:
         import matplotlib
 

@@ -79,8 +79,11 @@ def grid(threads: int, quick: bool) -> None:
             picks = {"scan": "scan", "sequential": "loop"}[cv_filter("auto").algorithm_for(B, T, torch.device("cpu"))]
             best = min(v for k, v in res.items() if k != "default" and not math.isnan(v))
             fmt = lambda v: "skipped" if math.isnan(v) else f"{v * 1e3:.1f}"  # noqa: E731
-            print(f"| {B} | {T} | {fmt(res['loop'])} | {fmt(res['scan'])} | {fmt(res['default'])} | {picks} | "
-                  f"{best / res['default']:.2f} |", flush=True)
+            print(
+                f"| {B} | {T} | {fmt(res['loop'])} | {fmt(res['scan'])} | {fmt(res['default'])} | {picks} | "
+                f"{best / res['default']:.2f} |",
+                flush=True,
+            )
 
 
 def gp_vs_sklearn(threads: int, N: int) -> None:
@@ -102,8 +105,9 @@ def gp_vs_sklearn(threads: int, N: int) -> None:
     yt, dtt = torch.as_tensor(y)[:, None], torch.as_tensor(np.diff(t, prepend=t[0]))
     out = {}
     for name, algorithm in (("default", "auto"), ("loop", "sequential")):
-        kf = tl.KalmanFilter(sde, torch.tensor([[1.0, 0.0]], dtype=F64), torch.tensor([[noise]], dtype=F64),
-                             algorithm=algorithm)
+        kf = tl.KalmanFilter(
+            sde, torch.tensor([[1.0, 0.0]], dtype=F64), torch.tensor([[noise]], dtype=F64), algorithm=algorithm
+        )
 
         def run(kf: tl.KalmanFilter = kf) -> float:
             with torch.no_grad():
@@ -165,8 +169,10 @@ def main() -> None:
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
-    print(f"# filter choice benchmark (torch {torch.__version__}, cpu_count {os.cpu_count()}, "
-          f"load {os.getloadavg()[0]:.2f}; shared machine, noisy: medians)")
+    print(
+        f"# filter choice benchmark (torch {torch.__version__}, cpu_count {os.cpu_count()}, "
+        f"load {os.getloadavg()[0]:.2f}; shared machine, noisy: medians)"
+    )
     for threads in args.threads:
         torch.set_num_threads(threads)
         grid(threads, args.quick)

@@ -62,7 +62,7 @@ def main() -> None:
         R = 0.25 * torch.eye(2, dtype=dtype)
         base = forward_and_training(tl.KalmanFilter(cv, H, R), y, dt_irregular, args.repeats)
         sqrt = forward_and_training(tl.KalmanFilter(cv, H, R, algorithm="square_root"), y, dt_irregular, args.repeats)
-        rows.append(("algorithm=\"square_root\" (constant velocity, irregular dt)", dtype, base, sqrt))
+        rows.append(('algorithm="square_root" (constant velocity, irregular dt)', dtype, base, sqrt))
 
         singer = tl.models.singer(alpha=0.5, q=1.0, dim=2).to(dtype)
         H = tl.models.position_observation(singer)
@@ -72,7 +72,9 @@ def main() -> None:
         rows.append((f"unique_dt=True (Singer, {distinct} distinct gaps)", dtype, every, unique))
 
     print(f"B = {B}, T = {T}, 1 thread, best of {args.repeats}; seconds (option / default)\n")
-    print("| option | dtype | forward: default | forward: option | ratio | fwd+bwd: default | fwd+bwd: option | ratio |")
+    print(
+        "| option | dtype | forward: default | forward: option | ratio | fwd+bwd: default | fwd+bwd: option | ratio |"
+    )
     print("|---|---|---:|---:|---:|---:|---:|---:|")
     for name, dtype, (f0, t0), (f1, t1) in rows:
         print(

@@ -87,8 +87,9 @@ def filterpy_step(f: object, z: np.ndarray, dt: float) -> None:
 
 def build_filter(validate: bool) -> tl.KalmanFilter:
     cv = tl.models.constant_velocity(dim=2, q=Q_CV, dtype=F64)
-    return tl.KalmanFilter(cv, torch.tensor(H_NP), torch.tensor(R_NP), P0=50 * torch.eye(4, dtype=F64),
-                           validate_args=validate)
+    return tl.KalmanFilter(
+        cv, torch.tensor(H_NP), torch.tensor(R_NP), P0=50 * torch.eye(4, dtype=F64), validate_args=validate
+    )
 
 
 def step_args(b: int, seed: int) -> tuple[torch.Tensor, ...]:
@@ -123,18 +124,21 @@ def main() -> None:
         d = discretize(mats.F, mats.L, mats.Qc, dt, validate_args=False)
         H, R = kf.H, kf.R
         t_kstep = median_s(lambda: tl.filters.kalman_step(state, y, d.A, d.Q, H, R), rep, inner=5)
-    rows += [("online step B=1, eager (validate_args=False)", t_eager, ""),
-             ("online step B=1, eager (validate_args=True)", t_checked, "one fused value check"),
-             ("  of which: sde.matrices()", t_mats, "parametrisations"),
-             ("  of which: exact discretisation (doubling, 1 element)", t_disc, ""),
-             ("  of which: filters.kalman_step (the loop's Joseph step)", t_kstep, "")]
+    rows += [
+        ("online step B=1, eager (validate_args=False)", t_eager, ""),
+        ("online step B=1, eager (validate_args=True)", t_checked, "one fused value check"),
+        ("  of which: sde.matrices()", t_mats, "parametrisations"),
+        ("  of which: exact discretisation (doubling, 1 element)", t_disc, ""),
+        ("  of which: filters.kalman_step (the loop's Joseph step)", t_kstep, ""),
+    ]
 
     from torch.export import Dim
 
     t0 = time.perf_counter()
     with torch.no_grad():
-        ep_step = torch.export.export(tl.OnlineStep(kf).eval(), step_args(3, 1),
-                                      dynamic_shapes=({0: Dim("B", max=1_000_000)},) * 4)
+        ep_step = torch.export.export(
+            tl.OnlineStep(kf).eval(), step_args(3, 1), dynamic_shapes=({0: Dim("B", max=1_000_000)},) * 4
+        )
     t_export_step = time.perf_counter() - t0
     prog_step = ep_step.module()
     with torch.no_grad():
@@ -146,15 +150,18 @@ def main() -> None:
     got = run_step(mean, cov, y, dt)
     with torch.no_grad():
         ref_state, ref_out = kf.step(state, y, dt)
-    assert torch.allclose(got[0], ref_state.mean, atol=1e-9) and torch.allclose(got[4], ref_out.log_likelihood, atol=1e-9)
+    assert torch.allclose(got[0], ref_state.mean, atol=1e-9) and torch.allclose(
+        got[4], ref_out.log_likelihood, atol=1e-9
+    )
     t_aoti_step = median_s(lambda: run_step(mean, cov, y, dt), rep, inner=5)
     fp = filterpy_filter()
     z, h = y[0].numpy()[:, None], float(dt[0])
     t_fp = median_s(lambda: filterpy_step(fp, z, h), rep, inner=5)
-    rows += [("online step B=1, exported program (torch.export, dynamic B)", t_exp_step,
-              f"export {t_export_step:.1f} s"),
-             ("online step B=1, AOTInductor package", t_aoti_step, f"compile {t_compile_step:.0f} s"),
-             ("filterpy predict+update B=1 (closed-form CV A, Q)", t_fp, "")]
+    rows += [
+        ("online step B=1, exported program (torch.export, dynamic B)", t_exp_step, f"export {t_export_step:.1f} s"),
+        ("online step B=1, AOTInductor package", t_aoti_step, f"compile {t_compile_step:.0f} s"),
+        ("filterpy predict+update B=1 (closed-form CV A, Q)", t_fp, ""),
+    ]
 
     # ---------------------------------------------------------------- B = 1000 tracks, own dt
     B = 1000
@@ -171,9 +178,11 @@ def main() -> None:
             filterpy_step(f, z_, h_)
 
     t_fp_B = median_s(fp_loop, 7, warmup=1)
-    rows += [("online step B=1000 (own dt), eager", t_eager_B, ""),
-             ("online step B=1000 (own dt), AOTInductor package", t_aoti_B, ""),
-             ("loop of 1000 filterpy filters (predict+update)", t_fp_B, "")]
+    rows += [
+        ("online step B=1000 (own dt), eager", t_eager_B, ""),
+        ("online step B=1000 (own dt), AOTInductor package", t_aoti_B, ""),
+        ("loop of 1000 filterpy filters (predict+update)", t_fp_B, ""),
+    ]
 
     # ---------------------------------------------------------------- sequences
     T = 200
@@ -184,8 +193,11 @@ def main() -> None:
     t0 = time.perf_counter()
     with torch.no_grad():
         # the example's sizes must not be 0 or 1 (torch.export specialises those): B = 2 here
-        ep_seq = torch.export.export(tl.DeployedFilter(kf).eval(), (y_seq.expand(2, T, 2), dt_seq.expand(2, T)),
-                                     dynamic_shapes={"y": {0: Bd, 1: Td}, "dt": {0: Bd, 1: Td}})
+        ep_seq = torch.export.export(
+            tl.DeployedFilter(kf).eval(),
+            (y_seq.expand(2, T, 2), dt_seq.expand(2, T)),
+            dynamic_shapes={"y": {0: Bd, 1: Td}, "dt": {0: Bd, 1: Td}},
+        )
         t_export_seq = time.perf_counter() - t0
         # AOTInductor cannot yet lower the structured scan with a symbolic T (inductor KeyError in
         # lower_to_while_loop): the package is built for a static (B, T) = (1, 200) bucket
@@ -205,9 +217,14 @@ def main() -> None:
             filterpy_step(f, z_, h_)
 
     t_fp_seq = median_s(fp_seq, max(rep // 4, 11), warmup=2)
-    rows += [("sequence B=1 T=200, AOTInductor package (static (1, 200) bucket)", t_aoti_seq,
-              f"export {t_export_seq:.0f} s, compile {t_compile_seq:.0f} s"),
-             ("sequence B=1 T=200, filterpy (200 predict+update)", t_fp_seq, "")]
+    rows += [
+        (
+            "sequence B=1 T=200, AOTInductor package (static (1, 200) bucket)",
+            t_aoti_seq,
+            f"export {t_export_seq:.0f} s, compile {t_compile_seq:.0f} s",
+        ),
+        ("sequence B=1 T=200, filterpy (200 predict+update)", t_fp_seq, ""),
+    ]
     prog_seq = ep_seq.module()
     for b in (1, 100):
         yb = torch.randn(b, T, 2, generator=g, dtype=F64).cumsum(1)
@@ -215,8 +232,10 @@ def main() -> None:
         with torch.no_grad():
             t_e = median_s(lambda yb=yb, dtb=dtb: kf(yb, dtb), max(rep // 8, 7), warmup=2)
             t_x = median_s(lambda yb=yb, dtb=dtb: prog_seq(yb, dtb), max(rep // 8, 7), warmup=2)
-        rows += [(f"sequence B={b} T=200, eager kf(y, dt)", t_e, f"algorithm {kf.algorithm_for(b, T, yb.device)!r}"),
-                 (f"sequence B={b} T=200, exported program (not AOTI)", t_x, "one program for every (B, T)")]
+        rows += [
+            (f"sequence B={b} T=200, eager kf(y, dt)", t_e, f"algorithm {kf.algorithm_for(b, T, yb.device)!r}"),
+            (f"sequence B={b} T=200, exported program (not AOTI)", t_x, "one program for every (B, T)"),
+        ]
 
     # ---------------------------------------------------------------- Stone Soup tracker
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -237,12 +256,19 @@ def main() -> None:
     q = float(sde.matrices().Qc[0, 0].detach())
     per_scan = {"learned": [], "stonesoup": []}
     for _ in range(3 if args.quick else 7):
-        for name, model in (("learned", stonesoup_transition_model(sde)),
-                            ("stonesoup", CombinedLinearGaussianTransitionModel([ConstantVelocity(q)] * 2))):
+        for name, model in (
+            ("learned", stonesoup_transition_model(sde)),
+            ("stonesoup", CombinedLinearGaussianTransitionModel([ConstantVelocity(q)] * 2)),
+        ):
             per_scan[name].append(run_stonesoup_tracker(model, scans)[1])
-    rows += [("Stone Soup tracker per scan, learned model via interop", statistics.median(per_scan["learned"]),
-              "4 targets, clutter, GNN"),
-             ("Stone Soup tracker per scan, its own ConstantVelocity", statistics.median(per_scan["stonesoup"]), "")]
+    rows += [
+        (
+            "Stone Soup tracker per scan, learned model via interop",
+            statistics.median(per_scan["learned"]),
+            "4 targets, clutter, GNN",
+        ),
+        ("Stone Soup tracker per scan, its own ConstantVelocity", statistics.median(per_scan["stonesoup"]), ""),
+    ]
 
     load_after = os.getloadavg()
     targets = [
@@ -250,12 +276,24 @@ def main() -> None:
         ("AOTI step ≤ 1.0× filterpy predict+update", t_aoti_step <= t_fp, f"{t_aoti_step / t_fp:.2f}×"),
         ("B=1000 eager ≥ 20× filterpy loop", t_fp_B / t_eager_B >= 20, f"{t_fp_B / t_eager_B:.1f}×"),
         ("sequence B=1 T=200 AOTI ≥ 3× filterpy", t_fp_seq / t_aoti_seq >= 3, f"{t_fp_seq / t_aoti_seq:.1f}×"),
-        ("exported ≥ 1.0× eager at B=1 and B=100",
-         all(rows_by(rows, f"sequence B={b} T=200, eager kf(y, dt)") / rows_by(rows, f"sequence B={b} T=200, exported program (not AOTI)") >= 1.0 for b in (1, 100)),
-         ", ".join(f"B={b}: {rows_by(rows, f'sequence B={b} T=200, eager kf(y, dt)') / rows_by(rows, f'sequence B={b} T=200, exported program (not AOTI)'):.2f}×" for b in (1, 100))),
-        ("Stone Soup learned ≤ its ConstantVelocity per scan",
-         statistics.median(per_scan["learned"]) <= statistics.median(per_scan["stonesoup"]),
-         f"{statistics.median(per_scan['learned']) / statistics.median(per_scan['stonesoup']):.2f}×"),
+        (
+            "exported ≥ 1.0× eager at B=1 and B=100",
+            all(
+                rows_by(rows, f"sequence B={b} T=200, eager kf(y, dt)")
+                / rows_by(rows, f"sequence B={b} T=200, exported program (not AOTI)")
+                >= 1.0
+                for b in (1, 100)
+            ),
+            ", ".join(
+                f"B={b}: {rows_by(rows, f'sequence B={b} T=200, eager kf(y, dt)') / rows_by(rows, f'sequence B={b} T=200, exported program (not AOTI)'):.2f}×"
+                for b in (1, 100)
+            ),
+        ),
+        (
+            "Stone Soup learned ≤ its ConstantVelocity per scan",
+            statistics.median(per_scan["learned"]) <= statistics.median(per_scan["stonesoup"]),
+            f"{statistics.median(per_scan['learned']) / statistics.median(per_scan['stonesoup']):.2f}×",
+        ),
     ]
     text = render(rows, targets, load_before, load_after, args.quick)
     print(text)
@@ -275,8 +313,13 @@ def fmt(seconds: float) -> str:
     return f"{seconds:.2f} s"
 
 
-def render(rows: list[tuple[str, float, str]], targets: list[tuple[str, bool, str]], load_before: tuple,
-           load_after: tuple, quick: bool) -> str:
+def render(
+    rows: list[tuple[str, float, str]],
+    targets: list[tuple[str, bool, str]],
+    load_before: tuple,
+    load_after: tuple,
+    quick: bool,
+) -> str:
     lines = [
         "# Online tracking latency (experiments/bench_online.py)",
         "",

@@ -96,13 +96,19 @@ def main() -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[2, 4, 8])
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 100, 10000])
     ap.add_argument("--dtypes", nargs="+", default=["float64", "float32"])
-    ap.add_argument("--clock", choices=list(CLOCKS), default="wall",
-                    help="wall time, or the process's CPU time (robust to other processes at 1 thread)")
+    ap.add_argument(
+        "--clock",
+        choices=list(CLOCKS),
+        default="wall",
+        help="wall time, or the process's CPU time (robust to other processes at 1 thread)",
+    )
     args = ap.parse_args()
     repeats = 5 if args.quick else 25
     budget = 0.5 if args.quick else 2.0
-    print(f"# per-element discretisation benchmark (torch {torch.__version__}, cpu_count {os.cpu_count()}, "
-          f"load {os.getloadavg()[0]:.2f}; {args.clock} clock; shared machine: medians of repeats, noisy)\n")
+    print(
+        f"# per-element discretisation benchmark (torch {torch.__version__}, cpu_count {os.cpu_count()}, "
+        f"load {os.getloadavg()[0]:.2f}; {args.clock} clock; shared machine: medians of repeats, noisy)\n"
+    )
     print("| threads | n | dtype | B | pass | default (mat/s) | naive (mat/s) | default/naive |")
     print("|---|---|---|---|---|---|---|---|")
     for threads in args.threads:
@@ -115,8 +121,11 @@ def main() -> None:
                     for backward in (False, True):
                         res = time_pair(CONTESTANTS, prob, backward, repeats, budget, CLOCKS[args.clock])
                         r = res["naive"] / res["default"]
-                        print(f"| {threads} | {n} | {dtype_name} | {B} | {'fwd+bwd' if backward else 'fwd'} | "
-                              f"{B / res['default']:.3g} | {B / res['naive']:.3g} | {r:.2f}× |", flush=True)
+                        print(
+                            f"| {threads} | {n} | {dtype_name} | {B} | {'fwd+bwd' if backward else 'fwd'} | "
+                            f"{B / res['default']:.3g} | {B / res['naive']:.3g} | {r:.2f}× |",
+                            flush=True,
+                        )
     print(f"\nload at end {os.getloadavg()[0]:.2f}")
 
 

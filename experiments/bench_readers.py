@@ -82,8 +82,14 @@ def make_files(folder: Path, copies: int) -> list[Path]:
     hour = locate_file("NYHarbor_2020_06_30_first_hour.csv")
     # times stay the file's ISO 8601 strings (every reader parses them itself)
     table = pcsv.read_csv(hour, convert_options=pcsv.ConvertOptions(column_types={"BaseDateTime": pa.string()}))
-    parts = [table.set_column(table.schema.get_field_index("MMSI"), "MMSI",
-                              pc.add(table["MMSI"], pa.scalar(k * 1_000_000_000, pa.int64()))) for k in range(copies)]
+    parts = [
+        table.set_column(
+            table.schema.get_field_index("MMSI"),
+            "MMSI",
+            pc.add(table["MMSI"], pa.scalar(k * 1_000_000_000, pa.int64())),
+        )
+        for k in range(copies)
+    ]
     big = pa.concat_tables(parts)
     csv_path, pq_path = folder / f"ais_x{copies}.csv", folder / f"ais_x{copies}.parquet"
     pcsv.write_csv(big, csv_path)
@@ -102,19 +108,31 @@ def main(argv: list[str] | None = None) -> str:
         for path in make_files(Path(tmp), args.copies):
             for lib in ("pyarrow", "pyarrow, no pandas", "pandas", "polars"):
                 runs = [run_case(lib, path) for _ in range(args.repeat)]
-                rows.append((path.name, runs[0]["rows"], lib, statistics.median(r["import_s"] for r in runs),
-                             statistics.median(r["read_s"] for r in runs),
-                             statistics.median(r["peak_rss_mb"] for r in runs)))
+                rows.append(
+                    (
+                        path.name,
+                        runs[0]["rows"],
+                        lib,
+                        statistics.median(r["import_s"] for r in runs),
+                        statistics.median(r["read_s"] for r in runs),
+                        statistics.median(r["peak_rss_mb"] for r in runs),
+                    )
+                )
                 print(rows[-1], flush=True)
     import pandas
     import polars
     import pyarrow
 
-    lines = ["# Columnar readers for trajectory files", "",
-             f"`python experiments/bench_readers.py` (median of {args.repeat} fresh processes; import + read of the "
-             f"six AIS columns into numpy; pyarrow {pyarrow.__version__}, pandas {pandas.__version__}, "
-             f"polars {polars.__version__}; 2 shared CPU cores).", "",
-             "| file | rows | library | import (s) | read (s) | peak RSS (MB) |", "|---|---:|---|---:|---:|---:|"]
+    lines = [
+        "# Columnar readers for trajectory files",
+        "",
+        f"`python experiments/bench_readers.py` (median of {args.repeat} fresh processes; import + read of the "
+        f"six AIS columns into numpy; pyarrow {pyarrow.__version__}, pandas {pandas.__version__}, "
+        f"polars {polars.__version__}; 2 shared CPU cores).",
+        "",
+        "| file | rows | library | import (s) | read (s) | peak RSS (MB) |",
+        "|---|---:|---|---:|---:|---:|",
+    ]
     lines += [f"| {f} | {n} | {lib} | {i:.3f} | {s:.3f} | {m:.0f} |" for f, n, lib, i, s, m in rows]
     text = "\n".join(lines) + "\n"
     Path(args.out).write_text(text)

@@ -67,8 +67,13 @@ def gp_call() -> Callable[[], object]:
     return call
 
 
-def paired(calls: dict[str, Callable[[], object]], repeats: int, budget: float, threads: list[int],
-           clock: Callable[[], float] = time.perf_counter) -> dict[str, float]:
+def paired(
+    calls: dict[str, Callable[[], object]],
+    repeats: int,
+    budget: float,
+    threads: list[int],
+    clock: Callable[[], float] = time.perf_counter,
+) -> dict[str, float]:
     """Median time (ms) per (name, threads), each repeat alternating the order."""
     keys = [(name, th) for name in calls for th in threads]
     for name, th in keys:
@@ -93,8 +98,12 @@ def main() -> None:
     ap.add_argument("--budget", type=float, default=3.0, help="seconds per cell beyond the repeats")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--only", default="", help="run only the cells whose label contains this")
-    ap.add_argument("--clock", choices=["wall", "cpu"], default="wall",
-                    help="cpu: process CPU time at 1 thread only (robust to other processes; no 2-thread column)")
+    ap.add_argument(
+        "--clock",
+        choices=["wall", "cpu"],
+        default="wall",
+        help="cpu: process CPU time at 1 thread only (robust to other processes; no 2-thread column)",
+    )
     args = ap.parse_args()
     threads = [1] if args.clock == "cpu" else [1, 2]
     clock = time.process_time if args.clock == "cpu" else time.perf_counter
@@ -107,27 +116,45 @@ def main() -> None:
                 calls = {k: make_call(k, prob, 100_000, dtype, backward) for k in ("default", "naive")}
                 if backward and (n > 2 or args.clock == "wall"):
                     calls.pop("naive")  # naive fwd+bwd at B = 1e5: seconds (n = 2) to tens of seconds a call
-                cells.append((f"shared F, n={n}, B=1e5, {dn}, {'fwd+bwd' if backward else 'fwd'}",
-                               {k: v for k, v in calls.items() if v is not None}))
+                cells.append(
+                    (
+                        f"shared F, n={n}, B=1e5, {dn}, {'fwd+bwd' if backward else 'fwd'}",
+                        {k: v for k, v in calls.items() if v is not None},
+                    )
+                )
         for B in (1, 100, 10_000):
             for backward in (False, True):
-                cells.append((f"per-element F, n=4, B={B}, {dn}, {'fwd+bwd' if backward else 'fwd'}",
-                              {k: per_element_call(k, 4, B, dtype, backward) for k in ("default", "naive")}))
+                cells.append(
+                    (
+                        f"per-element F, n=4, B={B}, {dn}, {'fwd+bwd' if backward else 'fwd'}",
+                        {k: per_element_call(k, 4, B, dtype, backward) for k in ("default", "naive")},
+                    )
+                )
     cells.append(("Matérn-3/2 filter, T=4000, float64", {"default": gp_call()}))
     cells = [c for c in cells if args.only in c[0]]
-    head = (f"# issue-19 speed cells, paired: {args.clock} ms (median), threads {threads} (torch {torch.__version__}, "
-            f"cpu_count {os.cpu_count()}, load at start {os.getloadavg()[0]:.2f})\n")
-    lines = [head, ("| cell | default 1t | default 2t | default 2t/1t | naive 1t | naive 2t | naive 2t/1t | "
-                    "default/naive speed-up 1t | 2t |"), "|---|---|---|---|---|---|---|---|---|"]
+    head = (
+        f"# issue-19 speed cells, paired: {args.clock} ms (median), threads {threads} (torch {torch.__version__}, "
+        f"cpu_count {os.cpu_count()}, load at start {os.getloadavg()[0]:.2f})\n"
+    )
+    lines = [
+        head,
+        (
+            "| cell | default 1t | default 2t | default 2t/1t | naive 1t | naive 2t | naive 2t/1t | "
+            "default/naive speed-up 1t | 2t |"
+        ),
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     print("\n".join(lines), flush=True)
     for label, calls in cells:
         t = paired(calls, args.repeats, args.budget, threads, clock)
         d1, d2 = t["default@1"], t.get("default@2", math.nan)
         n1, n2 = t.get("naive@1"), t.get("naive@2", math.nan)
         fmt = lambda v: "—" if v is None else f"{v:.3g}"
-        row = (f"| {label} | {d1:.3g} | {d2:.3g} | {d2 / d1:.2f} | {fmt(n1)} | {fmt(n2)} | "
-               f"{'—' if n1 is None else f'{n2 / n1:.2f}'} | {'—' if n1 is None else f'{n1 / d1:.2f}×'} | "
-               f"{'—' if n1 is None else f'{n2 / d2:.2f}×'} |")
+        row = (
+            f"| {label} | {d1:.3g} | {d2:.3g} | {d2 / d1:.2f} | {fmt(n1)} | {fmt(n2)} | "
+            f"{'—' if n1 is None else f'{n2 / n1:.2f}'} | {'—' if n1 is None else f'{n1 / d1:.2f}×'} | "
+            f"{'—' if n1 is None else f'{n2 / d2:.2f}×'} |"
+        )
         lines.append(row)
         print(row, flush=True)
     lines.append(f"\nload average at end {os.getloadavg()[0]:.2f}")

@@ -51,8 +51,9 @@ class EpochTimer(pl.Callback):
         now, cpu = time.perf_counter(), time.process_time()
         self.epochs.append({"start": now, "end": now, "cpu_start": cpu, "cpu_end": cpu, "windows": 0, "reports": 0})
 
-    def on_train_batch_end(self, trainer: pl.Trainer, module: pl.LightningModule, outputs: object, batch: object,
-                           batch_idx: int) -> None:
+    def on_train_batch_end(
+        self, trainer: pl.Trainer, module: pl.LightningModule, outputs: object, batch: object, batch_idx: int
+    ) -> None:
         e = self.epochs[-1]
         e["end"], e["cpu_end"] = time.perf_counter(), time.process_time()
         e["windows"] += int(batch.y.shape[0])
@@ -60,8 +61,15 @@ class EpochTimer(pl.Callback):
 
     def on_train_end(self, trainer: pl.Trainer, module: pl.LightningModule) -> None:
         self.out.mkdir(parents=True, exist_ok=True)
-        rows = [{"seconds": e["end"] - e["start"], "cpu_seconds": e["cpu_end"] - e["cpu_start"], "windows": e["windows"],
-                 "reports": e["reports"]} for e in self.epochs]
+        rows = [
+            {
+                "seconds": e["end"] - e["start"],
+                "cpu_seconds": e["cpu_end"] - e["cpu_start"],
+                "windows": e["windows"],
+                "reports": e["reports"],
+            }
+            for e in self.epochs
+        ]
         (self.out / f"rank{trainer.global_rank}.json").write_text(json.dumps(rows))
 
 
@@ -117,12 +125,26 @@ def scaled_files(folder: Path) -> list[tuple[str, Path]]:
 def train_run(tmp: Path, label: str, overrides: list[str]) -> dict[str, float]:
     """One `python -m torchsde_lti.train` run; the second epoch of EpochTimer (all ranks combined)."""
     out = tmp / "".join(c if c.isalnum() else "_" for c in label)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), str(HERE), os.environ.get("PYTHONPATH", "")]),
-           "PYTHONWARNINGS": "ignore"}
-    cmd = [sys.executable, "-m", "torchsde_lti.train", "experiment=ais_us_coastal", "trainer.max_epochs=2",
-           "test=false", "plots=false", "data.fractions=[0.98,0.02,0.0]", "num_threads=1",
-           "+callbacks.timer._target_=bench_tracks_scale.EpochTimer", f"+callbacks.timer.out={out / 'timer'}",
-           f"hydra.run.dir={out / 'run'}", *overrides]
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(ROOT), str(HERE), os.environ.get("PYTHONPATH", "")]),
+        "PYTHONWARNINGS": "ignore",
+    }
+    cmd = [
+        sys.executable,
+        "-m",
+        "torchsde_lti.train",
+        "experiment=ais_us_coastal",
+        "trainer.max_epochs=2",
+        "test=false",
+        "plots=false",
+        "data.fractions=[0.98,0.02,0.0]",
+        "num_threads=1",
+        "+callbacks.timer._target_=bench_tracks_scale.EpochTimer",
+        f"+callbacks.timer.out={out / 'timer'}",
+        f"hydra.run.dir={out / 'run'}",
+        *overrides,
+    ]
     start = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp)
     if proc.returncode != 0:
@@ -132,10 +154,17 @@ def train_run(tmp: Path, label: str, overrides: list[str]) -> dict[str, float]:
     seconds = max(e["seconds"] for e in epoch)
     cpu_seconds = max(e["cpu_seconds"] for e in epoch)  # the busiest process's own CPU time
     windows, reports = sum(e["windows"] for e in epoch), sum(e["reports"] for e in epoch)
-    return {"seconds": seconds, "cpu_seconds": cpu_seconds, "windows": windows, "reports": reports, "tracks_per_s": windows / seconds,
-            "reports_per_s": reports / seconds, "processes": len(ranks), "first_epoch_s": max(r[0]["seconds"]
-                                                                                              for r in ranks),
-            "wall_s": time.perf_counter() - start}
+    return {
+        "seconds": seconds,
+        "cpu_seconds": cpu_seconds,
+        "windows": windows,
+        "reports": reports,
+        "tracks_per_s": windows / seconds,
+        "reports_per_s": reports / seconds,
+        "processes": len(ranks),
+        "first_epoch_s": max(r[0]["seconds"] for r in ranks),
+        "wall_s": time.perf_counter() - start,
+    }
 
 
 def median_of(runs: list[dict[str, float]]) -> dict[str, float]:
@@ -185,39 +214,56 @@ def main(argv: list[str] | None = None) -> str:
                     print(dt, k, one_runs[-1], ddp_runs[-1], flush=True)
                 train[f"1 process, {dt}"] = median_of(one_runs)
                 train[f"DDP 2 processes, {dt}"] = median_of(ddp_runs)
-                ratios[dt] = statistics.median(d["tracks_per_s"] / o["tracks_per_s"] for o, d in zip(one_runs, ddp_runs))
+                ratios[dt] = statistics.median(
+                    d["tracks_per_s"] / o["tracks_per_s"] for o, d in zip(one_runs, ddp_runs)
+                )
                 ratios[f"{dt} cpu"] = statistics.median(
-                    o["cpu_seconds"] / d["cpu_seconds"] * d["windows"] / o["windows"] for o, d in zip(one_runs, ddp_runs))
+                    o["cpu_seconds"] / d["cpu_seconds"] * d["windows"] / o["windows"]
+                    for o, d in zip(one_runs, ddp_runs)
+                )
         results["train"], results["ddp_speedup"] = train, ratios
     load_after = os.getloadavg()
     results["loadavg"] = [load_before, load_after]
 
-    lines += [f"`python experiments/bench_tracks_scale.py --repeat {args.repeat}`; medians of {args.repeat} fresh "
-              f"processes; {os.cpu_count()} CPU cores, load average {load_before[0]:.1f} before / "
-              f"{load_after[0]:.1f} after (a shared machine).", "",
-              "| what | measured | target |", "|---|---:|---:|"]
+    lines += [
+        f"`python experiments/bench_tracks_scale.py --repeat {args.repeat}`; medians of {args.repeat} fresh "
+        f"processes; {os.cpu_count()} CPU cores, load average {load_before[0]:.1f} before / "
+        f"{load_after[0]:.1f} after (a shared machine).",
+        "",
+        "| what | measured | target |",
+        "|---|---:|---:|",
+    ]
     if memory:
         lines += [
-             f"| load + prepare `{DAY}` ({int(day['reports_read'])} reports -> {int(day['windows'])} windows; "
-             "parse, clean, frames, vessel split, windows, buckets) | "
-             f"{day['seconds']:.2f} s | ≤ 10 s |",
-             f"| peak RSS of that process (torch, Lightning, pyarrow imported) | {day['peak_rss_mb']:.0f} MB | "
-             "≤ 1.5 GB |",
-             f"| resident memory added by the data, per 100k reports (fit over 1/8 .. 4 days, R² "
-             f"{r2:.4f}) | {slope * 1e5:.1f} MB | linear |",
-             "| padding waste of the bucketed batches (train / val / test) | "
-             + " / ".join(f"{100 * day[f'waste_{k}']:.1f} %" if f"waste_{k}" in day else "–"
-                          for k in ("train", "val", "test")) + " | ≤ 10 % |"]
+            f"| load + prepare `{DAY}` ({int(day['reports_read'])} reports -> {int(day['windows'])} windows; "
+            "parse, clean, frames, vessel split, windows, buckets) | "
+            f"{day['seconds']:.2f} s | ≤ 10 s |",
+            f"| peak RSS of that process (torch, Lightning, pyarrow imported) | {day['peak_rss_mb']:.0f} MB | "
+            "≤ 1.5 GB |",
+            f"| resident memory added by the data, per 100k reports (fit over 1/8 .. 4 days, R² "
+            f"{r2:.4f}) | {slope * 1e5:.1f} MB | linear |",
+            "| padding waste of the bucketed batches (train / val / test) | "
+            + " / ".join(
+                f"{100 * day[f'waste_{k}']:.1f} %" if f"waste_{k}" in day else "–" for k in ("train", "val", "test")
+            )
+            + " | ≤ 10 % |",
+        ]
     for label, r in train.items():
-        lines.append(f"| one training epoch, {label}, batches of 64 windows ≤ 128 reports "
-                     f"({int(r['windows'])} windows, {int(r['reports'])} reports) | {r['seconds']:.1f} s "
-                     f"({r['tracks_per_s']:.0f} windows/s; first epoch {r['first_epoch_s']:.1f} s) | ≤ 60 s |")
+        lines.append(
+            f"| one training epoch, {label}, batches of 64 windows ≤ 128 reports "
+            f"({int(r['windows'])} windows, {int(r['reports'])} reports) | {r['seconds']:.1f} s "
+            f"({r['tracks_per_s']:.0f} windows/s; first epoch {r['first_epoch_s']:.1f} s) | ≤ 60 s |"
+        )
     for dt in ("float64", "float32"):
         if dt in ratios:
-            lines.append(f"| DDP speed-up, 2 processes vs 1 process at 1 thread, {dt} (windows/s, wall clock; median "
-                         f"of {args.repeat} paired runs) | {ratios[dt]:.2f}x | ≥ 1.6x |")
-            lines.append(f"| … the same from each process's own CPU time (1 process's CPU s / busiest DDP process's "
-                         f"CPU s: the speed-up when each process has a core to itself) | {ratios[dt + ' cpu']:.2f}x | |")
+            lines.append(
+                f"| DDP speed-up, 2 processes vs 1 process at 1 thread, {dt} (windows/s, wall clock; median "
+                f"of {args.repeat} paired runs) | {ratios[dt]:.2f}x | ≥ 1.6x |"
+            )
+            lines.append(
+                f"| … the same from each process's own CPU time (1 process's CPU s / busiest DDP process's "
+                f"CPU s: the speed-up when each process has a core to itself) | {ratios[dt + ' cpu']:.2f}x | |"
+            )
     if not memory:
         lines += [""]
         text = "\n".join(lines) + "\n"
@@ -225,10 +271,18 @@ def main(argv: list[str] | None = None) -> str:
         out = Path(args.out)
         out.with_name(out.stem + "_training.md").write_text(text)  # the full table stays as it was
         return text
-    lines += ["", "Memory vs reports (resident memory after setup minus before, fresh process each):", "",
-              "| input | reports | setup (s) | + RSS (MB) | peak RSS (MB) |", "|---|---:|---:|---:|---:|"]
-    lines += [f"| {label} | {int(r['reports_read'])} | {r['seconds']:.2f} | {r['rss_after_mb'] - r['rss_before_mb']:.0f}"
-              f" | {r['peak_rss_mb']:.0f} |" for label, r in memory]
+    lines += [
+        "",
+        "Memory vs reports (resident memory after setup minus before, fresh process each):",
+        "",
+        "| input | reports | setup (s) | + RSS (MB) | peak RSS (MB) |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    lines += [
+        f"| {label} | {int(r['reports_read'])} | {r['seconds']:.2f} | {r['rss_after_mb'] - r['rss_before_mb']:.0f}"
+        f" | {r['peak_rss_mb']:.0f} |"
+        for label, r in memory
+    ]
     text = "\n".join(lines) + "\n"
     Path(args.out).write_text(text)
     write_json(Path(args.out).with_suffix(".json"), results)  # strict JSON: NaN / inf as null

@@ -71,8 +71,12 @@ def plot(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     labels = [r["overrides"] or r["run"] for r in rows]
-    worst = [max((v for v in r["param_errors"].values() if v is not None), default=math.nan) * 100
-             if r.get("param_errors") else math.nan for r in rows]
+    worst = [
+        max((v for v in r["param_errors"].values() if v is not None), default=math.nan) * 100
+        if r.get("param_errors")
+        else math.nan
+        for r in rows
+    ]
     fig, ax = plt.subplots(figsize=(max(5, 0.9 * len(rows) + 2), 4))
     ax.bar(range(len(rows)), worst)
     ax.set_xticks(range(len(rows)), labels, rotation=30, ha="right", fontsize=8)

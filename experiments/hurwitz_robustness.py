@@ -34,8 +34,15 @@ def hostile_run(n: int, dtype: torch.dtype, lr: float, steps: int, seed: int, ro
     sde = tl.LTISDE(-eye, eye, eye, F_constraint="hurwitz")
     opt = torch.optim.SGD(sde.parameters(), lr=lr)
     param = sde.parametrizations.F[0]
-    out = {"max_re_lambda": -math.inf, "max_abs_F": 0.0, "min_eig_Qc": math.inf, "round_trip": 0.0,
-           "nonfinite": 0.0, "exceptions": 0.0, "out_of_reach": 0.0}
+    out = {
+        "max_re_lambda": -math.inf,
+        "max_abs_F": 0.0,
+        "min_eig_Qc": math.inf,
+        "round_trip": 0.0,
+        "nonfinite": 0.0,
+        "exceptions": 0.0,
+        "out_of_reach": 0.0,
+    }
     for _ in range(steps):
         dt = torch.rand(8, generator=g).to(dtype)
         xi = torch.randint(0, 2, (2,), generator=g).to(dtype) * 2 - 1
@@ -66,7 +73,9 @@ def hostile_run(n: int, dtype: torch.dtype, lr: float, steps: int, seed: int, ro
             except ValueError:  # reached, but beyond right_inverse's R = rI preimage
                 out["out_of_reach"] += 1
                 continue
-            out["round_trip"] = max(out["round_trip"], float(torch.linalg.matrix_norm(back - F) / torch.linalg.matrix_norm(F)))
+            out["round_trip"] = max(
+                out["round_trip"], float(torch.linalg.matrix_norm(back - F) / torch.linalg.matrix_norm(F))
+            )
     return out
 
 
@@ -99,9 +108,11 @@ def main() -> None:
                     "out_of_reach": sum(r["out_of_reach"] for r in runs),
                 }
                 rt = f"{worst['round_trip']:.1e}" if dtype == torch.float64 else "–"
-                line = (f"| {str(dtype).removeprefix('torch.')} | {n} | {lr} | {worst['max_re_lambda']:.3g} | "
-                        f"{worst['max_abs_F']:.3g} | {worst['min_eig_Qc']:.3g} | {rt} | {int(worst['out_of_reach'])} | {int(worst['nonfinite'])} | "
-                        f"{int(worst['exceptions'])} |")
+                line = (
+                    f"| {str(dtype).removeprefix('torch.')} | {n} | {lr} | {worst['max_re_lambda']:.3g} | "
+                    f"{worst['max_abs_F']:.3g} | {worst['min_eig_Qc']:.3g} | {rt} | {int(worst['out_of_reach'])} | {int(worst['nonfinite'])} | "
+                    f"{int(worst['exceptions'])} |"
+                )
                 print(line, flush=True)
                 lines.append(line)
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -44,8 +44,9 @@ def stonesoup_run(transition, measurement, m0, P0, dt, y):
         t = t + datetime.timedelta(seconds=float(dt[k]))
         state = predictor.predict(state, timestamp=t)
         if not np.isnan(y[k]).any():
-            state = updater.update(SingleHypothesis(state, Detection(y[k][:, None], timestamp=t,
-                                                                     measurement_model=measurement)))
+            state = updater.update(
+                SingleHypothesis(state, Detection(y[k][:, None], timestamp=t, measurement_model=measurement))
+            )
         means.append(np.asarray(state.state_vector, dtype=float)[:, 0])
         covs.append(np.asarray(state.covar, dtype=float))
     return np.array(means), np.array(covs), (time.perf_counter() - start) / len(dt)
@@ -66,7 +67,9 @@ def main() -> None:
     sde = tl.models.constant_velocity(dim=2, q=q, dtype=F64)
     H = tl.models.position_observation(sde)
     m0, P0 = np.zeros(4), 10.0 * np.eye(4)
-    out = tl.KalmanFilter(sde, H, torch.tensor(R), m0=torch.tensor(m0), P0=torch.tensor(P0))(torch.tensor(y), torch.tensor(dt))
+    out = tl.KalmanFilter(sde, H, torch.tensor(R), m0=torch.tensor(m0), P0=torch.tensor(P0))(
+        torch.tensor(y), torch.tensor(dt)
+    )
     meas = LinearGaussian(ndim_state=4, mapping=(0, 2), noise_covar=R)
     backed, native = [], []
     for _ in range(5):
@@ -84,8 +87,9 @@ def main() -> None:
     msd = tl.models.mass_spring_damper(m=1.5, k=2.0, c=0.4, q=0.7, dtype=F64)
     u = rng.standard_normal((T, 1))
     y1 = y[:, :1]
-    out2 = tl.KalmanFilter(msd, msd.C, torch.tensor([[0.2]], dtype=F64), m0=torch.zeros(2, dtype=F64),
-                           P0=torch.eye(2, dtype=F64))(torch.tensor(y1), torch.tensor(dt), u=torch.tensor(u))
+    out2 = tl.KalmanFilter(
+        msd, msd.C, torch.tensor([[0.2]], dtype=F64), m0=torch.zeros(2, dtype=F64), P0=torch.eye(2, dtype=F64)
+    )(torch.tensor(y1), torch.tensor(dt), u=torch.tensor(u))
     fp = FilterpyKF(dim_x=2, dim_z=1, dim_u=1)
     fp.x, fp.P, fp.H, fp.R = np.zeros((2, 1)), np.eye(2), msd.C.numpy().copy(), np.array([[0.2]])
     dev_m = dev_c = 0.0
@@ -105,8 +109,9 @@ def main() -> None:
         shaping = tl.models.matern(1.5, lengthscale=1.5, variance=0.7, dtype=dtype)
         model = tl.models.shaped(system, shaping, C=torch.tensor([[1.0, 0.0]], dtype=dtype))
         tau = 1.0 / float(-torch.linalg.eigvals(model.F.detach().double()).real.max())
-        _, P = model.propagate(torch.zeros(4, dtype=dtype), model.prior_covariance(),
-                               torch.linspace(0, 10 * tau, 201, dtype=dtype))
+        _, P = model.propagate(
+            torch.zeros(4, dtype=dtype), model.prior_covariance(), torch.linspace(0, 10 * tau, 201, dtype=dtype)
+        )
         err = (P[:, 2:, 2:] - shaping.stationary_covariance()).abs().max().item()
         rows.append((f"shaping block |P_ff(t) - P_inf_f|, t in [0, 10 tau], {dtype}", err))
 
@@ -122,8 +127,10 @@ def main() -> None:
     width = max(len(r[0]) for r in rows)
     for name, value in rows:
         print(f"{name:<{width}}  {value:.2e}")
-    print(f"Stone Soup predict+update per step, backed LTISDE CV: {1e6 * np.median(backed):.0f} us "
-          f"(median of 5; native CombinedLinearGaussian CV: {1e6 * np.median(native):.0f} us)")
+    print(
+        f"Stone Soup predict+update per step, backed LTISDE CV: {1e6 * np.median(backed):.0f} us "
+        f"(median of 5; native CombinedLinearGaussian CV: {1e6 * np.median(native):.0f} us)"
+    )
 
 
 if __name__ == "__main__":

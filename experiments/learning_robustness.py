@@ -33,7 +33,6 @@ import torchsde_lti as tl
 from torchsde_lti.data import ExponentialDt, simulate_tracks
 from torchsde_lti.training import parameter_errors, restart_learner
 
-
 RESULTS = Path(__file__).resolve().parents[1] / "experiments" / "results"
 F64 = torch.float64
 F_TRUE = torch.tensor([[0.0, 1.0], [-1.0, -0.4]], dtype=F64)
@@ -52,8 +51,14 @@ def random_hurwitz(seed: int) -> torch.Tensor:
 
 def fit(tracks, seed: int, restart: int, steps: int, lr: float, clip: float) -> dict[str, float]:
     sde = tl.LTISDE(random_hurwitz(seed), L, torch.eye(1, dtype=F64), F_constraint="hurwitz")
-    kf = tl.KalmanFilter(sde, H, 0.25 * torch.eye(1, dtype=F64), m0=torch.zeros(2, dtype=F64),
-                         P0=torch.eye(2, dtype=F64), algorithm=ALGORITHM)
+    kf = tl.KalmanFilter(
+        sde,
+        H,
+        0.25 * torch.eye(1, dtype=F64),
+        m0=torch.zeros(2, dtype=F64),
+        P0=torch.eye(2, dtype=F64),
+        algorithm=ALGORITHM,
+    )
     restart_learner(kf, 0.5 if restart else 0.0, 1000 * seed + restart)
     opt = torch.optim.Adam(kf.parameters(), lr=lr)
     count = (~torch.isnan(tracks.y)).sum()
@@ -79,8 +84,15 @@ def fit(tracks, seed: int, restart: int, steps: int, lr: float, clip: float) -> 
         truth = tl.LTISDE(F_TRUE, L, QC_TRUE, learn=())
         raw = parameter_errors(kf.sde, truth, compare=("F",))  # entrywise, as if F were identifiable
         ident = parameter_errors(kf.sde, truth, compare=("F", "Qc"), H=H)
-    return {"nll": nll, "expmF": raw["expmF"], "autocov": ident["autocov"], "skipped": skipped, "exceptions": exceptions,
-            "F": kf.sde.F.detach().clone(), "Qc": kf.sde.Qc.detach().clone()}
+    return {
+        "nll": nll,
+        "expmF": raw["expmF"],
+        "autocov": ident["autocov"],
+        "skipped": skipped,
+        "exceptions": exceptions,
+        "F": kf.sde.F.detach().clone(),
+        "Qc": kf.sde.Qc.detach().clone(),
+    }
 
 
 def autocov_vs(run: dict, reference: dict) -> float:
@@ -110,7 +122,9 @@ def main() -> None:
         for j in range(args.restarts):
             rows[s].append(fit(tracks, s, j, args.steps, args.lr, args.clip))
             row = {k: v for k, v in rows[s][-1].items() if not isinstance(v, torch.Tensor)}
-            print(f"seed {s} restart {j}: {row} F={rows[s][-1]['F'].tolist()} Qc={rows[s][-1]['Qc'].tolist()}", flush=True)
+            print(
+                f"seed {s} restart {j}: {row} F={rows[s][-1]['F'].tolist()} Qc={rows[s][-1]['Qc'].tolist()}", flush=True
+            )
     wall = time.perf_counter() - start
     best_run = min((r for runs in rows.values() for r in runs), key=lambda r: r["nll"])
     best_nll = best_run["nll"]

@@ -41,6 +41,7 @@ def _ps_table(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
         a[k // 4, k % 4] = 1.0 / math.factorial(k)
     return a.to(dtype=dtype, device=device)
 
+
 CPP = r"""
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
@@ -173,8 +174,14 @@ std::vector<torch::Tensor> fused(torch::Tensor F, torch::Tensor W, torch::Tensor
 def build():
     from torch.utils.cpp_extension import load_inline
 
-    return load_inline("probe_fused_discretize_omp", cpp_sources=CPP, functions=["fused"],
-                       extra_cflags=["-O3", "-fopenmp"], extra_ldflags=["-fopenmp"], verbose=False)
+    return load_inline(
+        "probe_fused_discretize_omp",
+        cpp_sources=CPP,
+        functions=["fused"],
+        extra_cflags=["-O3", "-fopenmp"],
+        extra_ldflags=["-fopenmp"],
+        verbose=False,
+    )
 
 
 def main() -> None:
@@ -184,10 +191,14 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     ext = build()
-    print(f"# fused-kernel probe (torch {torch.__version__}, {args.threads} thread(s), load "
-          f"{os.getloadavg()[0]:.2f}; build {time.perf_counter() - t0:.0f} s; shared machine, noisy: medians)\n")
+    print(
+        f"# fused-kernel probe (torch {torch.__version__}, {args.threads} thread(s), load "
+        f"{os.getloadavg()[0]:.2f}; build {time.perf_counter() - t0:.0f} s; shared machine, noisy: medians)\n"
+    )
     print("Forward only; the fused kernel's arguments W = L Qc Lᵀ precomputed, no value checks.\n")
-    print("| dtype | n | B | fused (µs) | default (µs) | naive (µs) | naive / fused | naive / default | max rel. dev. fused vs default |")
+    print(
+        "| dtype | n | B | fused (µs) | default (µs) | naive (µs) | naive / fused | naive / default | max rel. dev. fused vs default |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for dtype in (torch.float64, torch.float32):
         coef = _ps_table(dtype, torch.device("cpu"))
@@ -201,10 +212,15 @@ def main() -> None:
                 naive = median_us(lambda: naive_van_loan(F, L, Qc, dt), r)
                 A, Q = ext.fused(F, W, dt, coef)
                 ref = tl.discretize(F, L, Qc, dt)
-                dev = max(float((A - ref.A).abs().max() / ref.A.abs().max()),
-                          float((Q - ref.Q).abs().max() / ref.Q.abs().max()))
-                print(f"| {str(dtype)[6:]} | {n} | {B} | {fused:.0f} | {default:.0f} | {naive:.0f} | "
-                      f"{naive / fused:.2f}× | {naive / default:.2f}× | {dev:.1e} |", flush=True)
+                dev = max(
+                    float((A - ref.A).abs().max() / ref.A.abs().max()),
+                    float((Q - ref.Q).abs().max() / ref.Q.abs().max()),
+                )
+                print(
+                    f"| {str(dtype)[6:]} | {n} | {B} | {fused:.0f} | {default:.0f} | {naive:.0f} | "
+                    f"{naive / fused:.2f}× | {naive / default:.2f}× | {dev:.1e} |",
+                    flush=True,
+                )
     print(f"\nload at end {os.getloadavg()[0]:.2f}")
 
 

@@ -63,11 +63,17 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    lines = [(f"# One small discretize call, stage by stage (torch {torch.__version__}, 1 thread, thread CPU µs, "
-              f"load {os.getloadavg()[0]:.2f})\n"),
-             ("| n | dtype | B | routed | naive | default | sde_inputs | accurate | matrix_exp | doubling | "
-              "result check | bare torch.matrix_exp | ops naive / default |"),
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        (
+            f"# One small discretize call, stage by stage (torch {torch.__version__}, 1 thread, thread CPU µs, "
+            f"load {os.getloadavg()[0]:.2f})\n"
+        ),
+        (
+            "| n | dtype | B | routed | naive | default | sde_inputs | accurate | matrix_exp | doubling | "
+            "result check | bare torch.matrix_exp | ops naive / default |"
+        ),
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     print("\n".join(lines), flush=True)
     for dtype in (torch.float64, torch.float32):
         for n in (2, 4, 8):
@@ -77,8 +83,7 @@ def main() -> None:
                 A, Q, G = discretization._run(x, "doubling", False)
                 routed = discretization._routed(x)
                 W, d = L @ Qc @ L.mT, dt[:, None, None]  # the naive's Van Loan block
-                block = torch.cat([torch.cat([F * d, W * d], -1),
-                                   torch.cat([torch.zeros_like(F), -F.mT * d], -1)], -2)
+                block = torch.cat([torch.cat([F * d, W * d], -1), torch.cat([torch.zeros_like(F), -F.mT * d], -1)], -2)
                 t = {
                     "naive": cpu_us(lambda: naive_van_loan(F, L, Qc, dt)),
                     "default": cpu_us(lambda: default(F, L, Qc, dt)),
@@ -89,9 +94,11 @@ def main() -> None:
                     "check": cpu_us(lambda: discretization._check_result(x, A, Q, G, "doubling")),
                     "bare": cpu_us(lambda: torch.matrix_exp(block)),
                 }
-                row = (f"| {n} | {str(dtype)[6:]} | {B} | {'yes' if routed else 'no'} | "
-                       + " | ".join(f"{t[k]:.0f}" for k in t)
-                       + f" | {ops(lambda: naive_van_loan(F, L, Qc, dt))} / {ops(lambda: default(F, L, Qc, dt))} |")
+                row = (
+                    f"| {n} | {str(dtype)[6:]} | {B} | {'yes' if routed else 'no'} | "
+                    + " | ".join(f"{t[k]:.0f}" for k in t)
+                    + f" | {ops(lambda: naive_van_loan(F, L, Qc, dt))} / {ops(lambda: default(F, L, Qc, dt))} |"
+                )
                 lines.append(row)
                 print(row, flush=True)
     lines.append(f"\nload at end {os.getloadavg()[0]:.2f}")

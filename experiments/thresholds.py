@@ -85,6 +85,7 @@ def unrolled_cholesky() -> str:
         g = torch.Generator().manual_seed(k)
         X = torch.randn(1000, k, k, generator=g, dtype=F64)
         S = X @ X.mT + torch.eye(k, dtype=F64)
+
         def fwd_bwd() -> None:
             Sg = S.clone().requires_grad_()
             linalg.cholesky(Sg).sum().backward()
@@ -94,8 +95,11 @@ def unrolled_cholesky() -> str:
             with patched(linalg, UNROLLED_MAX_DIM=bound):
                 row += [cpu_us(lambda: linalg.cholesky(S)), cpu_us(fwd_bwd)]
         rows.append(row)
-    return table(f"1. UNROLLED_MAX_DIM = {thresholds.UNROLLED_MAX_DIM}: Cholesky of 1000 k×k, µs",
-                 ["k", "unrolled fwd", "unrolled fwd+bwd", "LAPACK fwd", "LAPACK fwd+bwd"], rows)
+    return table(
+        f"1. UNROLLED_MAX_DIM = {thresholds.UNROLLED_MAX_DIM}: Cholesky of 1000 k×k, µs",
+        ["k", "unrolled fwd", "unrolled fwd+bwd", "LAPACK fwd", "LAPACK fwd+bwd"],
+        rows,
+    )
 
 
 def batch_last_products() -> str:
@@ -108,8 +112,12 @@ def batch_last_products() -> str:
             vec = cpu_us(lambda: torch.linalg.vecdot(a.unsqueeze(2), b.unsqueeze(0), dim=1))
             bmm = cpu_us(lambda: (a.permute(2, 0, 1) @ b.permute(2, 0, 1)).permute(1, 2, 0))
             rows.append([k, N, fma, vec, bmm])
-    return table(f"2. FMA_MAX_INNER = {thresholds.FMA_MAX_INNER}, FMA_MIN_BATCH = {thresholds.FMA_MIN_BATCH}: "
-                 "batch-last k×k products, µs", ["k", "N", "fused multiply-adds", "vecdot", "bmm"], rows)
+    return table(
+        f"2. FMA_MAX_INNER = {thresholds.FMA_MAX_INNER}, FMA_MIN_BATCH = {thresholds.FMA_MIN_BATCH}: "
+        "batch-last k×k products, µs",
+        ["k", "N", "fused multiply-adds", "vecdot", "bmm"],
+        rows,
+    )
 
 
 def python_checks() -> str:
@@ -122,8 +130,11 @@ def python_checks() -> str:
         with patched(validation, PYTHON_CHECK_MAX_VALUES=-1):
             tensor = cpu_us(lambda: sde_inputs(F, L, Qc, dt), 50)
         rows.append([n, N, values, py, tensor])
-    return table(f"3. PYTHON_CHECK_MAX_VALUES = {thresholds.PYTHON_CHECK_MAX_VALUES}: sde_inputs with value checks, µs",
-                 ["n", "N", "values", "Python floats", "tensor ops"], rows)
+    return table(
+        f"3. PYTHON_CHECK_MAX_VALUES = {thresholds.PYTHON_CHECK_MAX_VALUES}: sde_inputs with value checks, µs",
+        ["n", "N", "values", "Python floats", "tensor ops"],
+        rows,
+    )
 
 
 def theta_per_element() -> str:
@@ -135,15 +146,20 @@ def theta_per_element() -> str:
             with patched(doubling_mod, THETA_PER_ELEMENT=theta):
                 row.append(cpu_us(lambda: doubling_mod.per_element_doubling(x), 5) / 1e3)
         rows.append(row)
-    return table(f"4. THETA_PER_ELEMENT = {thresholds.THETA_PER_ELEMENT}: per-element doubling, N = 1e4, ms",
-                 ["n", "θ = 0.25", "θ = 0.5", "θ = 1"], [[r[0], *(f"{v:.2f}" for v in r[1:])] for r in rows])
+    return table(
+        f"4. THETA_PER_ELEMENT = {thresholds.THETA_PER_ELEMENT}: per-element doubling, N = 1e4, ms",
+        ["n", "θ = 0.25", "θ = 0.5", "θ = 1"],
+        [[r[0], *(f"{v:.2f}" for v in r[1:])] for r in rows],
+    )
 
 
 def theta_shared() -> str:
     rows = []
-    models = {"singer (2-D)": tl.models.singer(alpha=0.6, q=2.0, dim=2, dtype=F64),
-              "integrated OU (2-D)": tl.models.integrated_ou(k=0.3, q=0.6, dim=2, dtype=F64),
-              "Matérn-5/2": tl.models.matern(2.5, lengthscale=0.7, variance=2.0, dtype=F64)}
+    models = {
+        "singer (2-D)": tl.models.singer(alpha=0.6, q=2.0, dim=2, dtype=F64),
+        "integrated OU (2-D)": tl.models.integrated_ou(k=0.3, q=0.6, dim=2, dtype=F64),
+        "Matérn-5/2": tl.models.matern(2.5, lengthscale=0.7, variance=2.0, dtype=F64),
+    }
     dt = torch.rand(100_000, generator=torch.Generator().manual_seed(0), dtype=F64) * 3
     for name, sde in models.items():
         m = sde.matrices()
@@ -153,8 +169,11 @@ def theta_shared() -> str:
             with patched(doubling_mod, THETA_SHARED=theta):
                 row.append(cpu_us(lambda: doubling_mod.shared_doubling(F, W, None, dt), 5) / 1e3)
         rows.append(row)
-    return table(f"5. THETA_SHARED = {thresholds.THETA_SHARED}: one parameter set, dt ~ U(0, 3), N = 1e5, ms",
-                 ["model", "θ = 0.5", "θ = 1", "θ = 2"], [[r[0], *(f"{v:.2f}" for v in r[1:])] for r in rows])
+    return table(
+        f"5. THETA_SHARED = {thresholds.THETA_SHARED}: one parameter set, dt ~ U(0, 3), N = 1e5, ms",
+        ["model", "θ = 0.5", "θ = 1", "θ = 2"],
+        [[r[0], *(f"{v:.2f}" for v in r[1:])] for r in rows],
+    )
 
 
 def layouts() -> str:
@@ -167,9 +186,12 @@ def layouts() -> str:
             with patched(doubling_mod, BATCH_LAST_MAX_DIM=64, BATCH_LAST_MIN_ELEMENTS=0):
                 last = cpu_us(lambda: doubling_mod.per_element_doubling(x), 9)
             rows.append([n, N, first, last])
-    return table(f"6. BATCH_LAST_MAX_DIM = {thresholds.BATCH_LAST_MAX_DIM}, BATCH_LAST_MIN_ELEMENTS = "
-                 f"{thresholds.BATCH_LAST_MIN_ELEMENTS}: per-element doubling, µs", ["n", "N", "batch-first bmm",
-                                                                                    "batch-last FMA"], rows)
+    return table(
+        f"6. BATCH_LAST_MAX_DIM = {thresholds.BATCH_LAST_MAX_DIM}, BATCH_LAST_MIN_ELEMENTS = "
+        f"{thresholds.BATCH_LAST_MIN_ELEMENTS}: per-element doubling, µs",
+        ["n", "N", "batch-first bmm", "batch-last FMA"],
+        rows,
+    )
 
 
 def shared_min() -> str:
@@ -183,8 +205,11 @@ def shared_min() -> str:
         element = cpu_us(lambda: doubling_mod.per_element_doubling(x))
         shared = cpu_us(lambda: doubling_mod.shared_doubling(x.F, x.W, None, dt))
         rows.append([N, element, shared])
-    return table(f"7. SHARED_MIN_ELEMENTS = {thresholds.SHARED_MIN_ELEMENTS}: one parameter set (2-D Singer), µs",
-                 ["N", "per element", "shared series"], rows)
+    return table(
+        f"7. SHARED_MIN_ELEMENTS = {thresholds.SHARED_MIN_ELEMENTS}: one parameter set (2-D Singer), µs",
+        ["N", "per element", "shared series"],
+        rows,
+    )
 
 
 def route_max() -> str:
@@ -197,8 +222,11 @@ def route_max() -> str:
             me = cpu_us(lambda: _matrix_exp.matrix_exp(x), 9)
             db = cpu_us(lambda: doubling_mod.doubling(x), 9)
             rows.append([n, N, me, db])
-    return table(f"8. ROUTE_MAX_ELEMENTS = {thresholds.ROUTE_MAX_ELEMENTS}: routable per-element calls, µs",
-                 ["n", "N", "torch.matrix_exp", "doubling"], rows)
+    return table(
+        f"8. ROUTE_MAX_ELEMENTS = {thresholds.ROUTE_MAX_ELEMENTS}: routable per-element calls, µs",
+        ["n", "N", "torch.matrix_exp", "doubling"],
+        rows,
+    )
 
 
 def parallel_min_work() -> str:
@@ -217,13 +245,25 @@ def parallel_min_work() -> str:
                 row.append((time.perf_counter() - start) / 3 * 1e3)
         torch.set_num_threads(1)
         rows.append(row)
-    return table(f"9. PARALLEL_MIN_WORK = {thresholds.PARALLEL_MIN_WORK}: one parameter set, wall ms at 1 and 2 "
-                 "threads (needs an idle machine)", ["n", "N", "entries", "1 thread", "2 threads"],
-                 [[r[0], r[1], r[2], f"{r[3]:.1f}", f"{r[4]:.1f}"] for r in rows])
+    return table(
+        f"9. PARALLEL_MIN_WORK = {thresholds.PARALLEL_MIN_WORK}: one parameter set, wall ms at 1 and 2 "
+        "threads (needs an idle machine)",
+        ["n", "N", "entries", "1 thread", "2 threads"],
+        [[r[0], r[1], r[2], f"{r[3]:.1f}", f"{r[4]:.1f}"] for r in rows],
+    )
 
 
-SECTIONS = {1: unrolled_cholesky, 2: batch_last_products, 3: python_checks, 4: theta_per_element,
-            5: theta_shared, 6: layouts, 7: shared_min, 8: route_max, 9: parallel_min_work}
+SECTIONS = {
+    1: unrolled_cholesky,
+    2: batch_last_products,
+    3: python_checks,
+    4: theta_per_element,
+    5: theta_shared,
+    6: layouts,
+    7: shared_min,
+    8: route_max,
+    9: parallel_min_work,
+}
 
 
 def main() -> None:
@@ -233,8 +273,10 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     buf = io.StringIO()
-    head = (f"# core thresholds (torch {torch.__version__}, 1 thread, cpu_count {os.cpu_count()}, "
-            f"load {os.getloadavg()[0]:.2f}; thread CPU time medians, shared machine)")
+    head = (
+        f"# core thresholds (torch {torch.__version__}, 1 thread, cpu_count {os.cpu_count()}, "
+        f"load {os.getloadavg()[0]:.2f}; thread CPU time medians, shared machine)"
+    )
     print(head, file=buf)
     print(head, flush=True)
     for k in args.sections:

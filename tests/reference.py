@@ -10,8 +10,8 @@ import math
 import mpmath
 import numpy as np
 import scipy.linalg
-import torch
 import scipy.stats
+import torch
 from scipy.integrate import quad_vec
 
 
@@ -61,7 +61,9 @@ def mp_discretize(F: np.ndarray, W: np.ndarray, dt: float, dps: int = 40) -> tup
 def quad_discretize(F: np.ndarray, W: np.ndarray, B: np.ndarray | None, dt: float):
     """(A, Q, G) in float64: scipy.linalg.expm for A and G, adaptive quadrature for Q."""
     A = scipy.linalg.expm(F * dt)
-    Q = quad_vec(lambda s: scipy.linalg.expm(F * s) @ W @ scipy.linalg.expm(F * s).T, 0.0, dt, epsabs=0, epsrel=1e-13)[0]
+    Q = quad_vec(lambda s: scipy.linalg.expm(F * s) @ W @ scipy.linalg.expm(F * s).T, 0.0, dt, epsabs=0, epsrel=1e-13)[
+        0
+    ]
     G = None
     if B is not None:
         n, p = B.shape
@@ -209,8 +211,11 @@ def reference_batch(d):
     outs = []
     for idx in np.ndindex(*batch):
         c = d["G"][idx] @ d["u"][idx][..., None]
-        outs.append(numpy_kalman_filter(d["y"][idx], d["A"][idx], d["Q"][idx], d["H"], d["R"],
-                                        d["m0"][idx], d["P0"][idx], c[..., 0]))
+        outs.append(
+            numpy_kalman_filter(
+                d["y"][idx], d["A"][idx], d["Q"][idx], d["H"], d["R"], d["m0"][idx], d["P0"][idx], c[..., 0]
+            )
+        )
     return {k: np.stack([o[k] for o in outs]).reshape(batch + outs[0][k].shape) for k in outs[0]}
 
 
@@ -227,8 +232,13 @@ def mp_doubling(F: np.ndarray, W: np.ndarray, B: np.ndarray | None, dt: float, d
         s = 0 if norm * dtm <= mpmath.mpf(0.25) else int(mpmath.ceil(mpmath.log(norm * dtm / mpmath.mpf(0.25), 2)))
         h = dtm / mpmath.mpf(2) ** s
         Z = mpmath.zeros(n, n)
-        E = mpmath.expm(mpmath.matrix([[Fm[i, j] if j < n else Wm[i, j - n] for j in range(2 * n)] for i in range(n)]
-                                      + [[Z[i, j] if j < n else -Fm[j - n, i] for j in range(2 * n)] for i in range(n)]) * h)
+        E = mpmath.expm(
+            mpmath.matrix(
+                [[Fm[i, j] if j < n else Wm[i, j - n] for j in range(2 * n)] for i in range(n)]
+                + [[Z[i, j] if j < n else -Fm[j - n, i] for j in range(2 * n)] for i in range(n)]
+            )
+            * h
+        )
         A = E[:n, :n]
         Q = E[:n, n:] * A.T
         G = None
@@ -251,7 +261,14 @@ def mp_doubling(F: np.ndarray, W: np.ndarray, B: np.ndarray | None, dt: float, d
 
         def f64(m: mpmath.matrix) -> np.ndarray:
             big = mpmath.mpf(np.finfo(np.float64).max)
-            return np.array([[float(m[i, j]) if abs(m[i, j]) <= big else math.copysign(math.inf, float(mpmath.sign(m[i, j])))
-                              for j in range(m.cols)] for i in range(m.rows)])
+            return np.array(
+                [
+                    [
+                        float(m[i, j]) if abs(m[i, j]) <= big else math.copysign(math.inf, float(mpmath.sign(m[i, j])))
+                        for j in range(m.cols)
+                    ]
+                    for i in range(m.rows)
+                ]
+            )
 
         return f64(A), f64(Q), None if G is None else f64(G)

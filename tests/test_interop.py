@@ -69,8 +69,9 @@ def test_stonesoup_predictor_updater_match_kalman_filter():
         if not np.isnan(y[k]).any():
             hyp = SingleHypothesis(state, Detection(y[k][:, None], timestamp=t, measurement_model=measurement))
             state = updater.update(hyp)
-        np.testing.assert_allclose(np.asarray(state.state_vector, dtype=float)[:, 0], out.mean[k].detach().numpy(),
-                                   atol=1e-9, rtol=0)
+        np.testing.assert_allclose(
+            np.asarray(state.state_vector, dtype=float)[:, 0], out.mean[k].detach().numpy(), atol=1e-9, rtol=0
+        )
         np.testing.assert_allclose(np.asarray(state.covar, dtype=float), out.cov[k].detach().numpy(), atol=1e-9, rtol=0)
 
 
@@ -189,10 +190,15 @@ def run_stonesoup_tracker(transition_model, scans: list) -> tuple[set, float]:
     deleter = CovarianceBasedDeleter(covar_trace_thresh=200.0)
     initiator = MultiMeasurementInitiator(
         prior_state=GaussianState(np.zeros((4, 1)), np.diag([1.0, 9.0, 1.0, 9.0])),
-        measurement_model=measurement, deleter=deleter, data_associator=associator, updater=updater, min_points=3,
+        measurement_model=measurement,
+        deleter=deleter,
+        data_associator=associator,
+        updater=updater,
+        min_points=3,
     )
-    tracker = MultiTargetTracker(initiator=initiator, deleter=deleter, detector=scans, data_associator=associator,
-                                 updater=updater)
+    tracker = MultiTargetTracker(
+        initiator=initiator, deleter=deleter, detector=scans, data_associator=associator, updater=updater
+    )
     tracks: set = set()
     t0 = _time.perf_counter()
     for _, current in tracker:
@@ -212,12 +218,18 @@ def fit_constant_velocity(scans: list, steps: int = 25) -> tl.LTISDE:
                 series.setdefault(id(d.groundtruth_path), []).append((t, np.asarray(d.state_vector, dtype=float)[:, 0]))
     T = min(len(s) for s in series.values())
     y = torch.tensor(np.stack([[z for _, z in s[:T]] for s in series.values()]))
-    dt = torch.tensor([[0.0] + [(b[0] - a[0]).total_seconds() for a, b in zip(s[: T - 1], s[1:T])]
-                       for s in series.values()])
+    dt = torch.tensor(
+        [[0.0] + [(b[0] - a[0]).total_seconds() for a, b in zip(s[: T - 1], s[1:T])] for s in series.values()]
+    )
     sde = tl.models.constant_velocity(dim=2, q=1.0, dtype=F64)
-    kf = tl.KalmanFilter(sde, tl.models.position_observation(sde), torch.eye(2, dtype=F64),
-                         m0=torch.cat([y[:, 0, :1], torch.zeros_like(y[:, 0, :1]), y[:, 0, 1:], torch.zeros_like(y[:, 0, :1])], -1),
-                         P0=torch.diag(torch.tensor([4.0, 9.0, 4.0, 9.0], dtype=F64)), learn=())
+    kf = tl.KalmanFilter(
+        sde,
+        tl.models.position_observation(sde),
+        torch.eye(2, dtype=F64),
+        m0=torch.cat([y[:, 0, :1], torch.zeros_like(y[:, 0, :1]), y[:, 0, 1:], torch.zeros_like(y[:, 0, :1])], -1),
+        P0=torch.diag(torch.tensor([4.0, 9.0, 4.0, 9.0], dtype=F64)),
+        learn=(),
+    )
     opt = torch.optim.Adam(sde.parameters(), lr=0.2)
     for _ in range(steps):
         opt.zero_grad()
@@ -243,8 +255,10 @@ def test_stonesoup_multi_target_tracker_with_a_learned_model():
     q = float(sde.matrices().Qc[0, 0].detach())
     assert 1e-4 < q < 0.5  # learned from the data (the truth's velocity noise is 0.05² per s), moved from 1
     results = {}
-    for name, model in (("learned", stonesoup_transition_model(sde)),
-                        ("stonesoup", CombinedLinearGaussianTransitionModel([ConstantVelocity(q), ConstantVelocity(q)]))):
+    for name, model in (
+        ("learned", stonesoup_transition_model(sde)),
+        ("stonesoup", CombinedLinearGaussianTransitionModel([ConstantVelocity(q), ConstantVelocity(q)])),
+    ):
         tracks, _ = run_stonesoup_tracker(model, scans)
         long = [tr for tr in tracks if len(tr) >= 15]
         end = scans[-1][0]

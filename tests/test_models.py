@@ -256,7 +256,9 @@ ALL_MODELS = {
     "matern": lambda: models.matern(2.5, 0.9, 1.7, dtype=F64),
     "msd": lambda: models.mass_spring_damper(1.3, 2.0, 0.4, q=0.6, dtype=F64),
     "companion": lambda: models.companion([1.0, 0.5, 2.0, 1.5], q=0.3, dtype=F64),
-    "block": lambda: models.block_diag(models.constant_velocity(1, 0.5, dtype=F64), models.matern(1.5, 0.9, 1.0, dtype=F64)),
+    "block": lambda: models.block_diag(
+        models.constant_velocity(1, 0.5, dtype=F64), models.matern(1.5, 0.9, 1.0, dtype=F64)
+    ),
 }
 
 

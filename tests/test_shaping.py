@@ -27,7 +27,12 @@ def closed_form(a, b, q, t):
     """Variance of x and covariance of x, f from the steady-state start (x(0) = 0, f stationary)."""
     s2 = q / (2 * b)
     P_xf = s2 * (1 - math.exp(-(a + b) * t)) / (a + b)
-    P_xx = 2 * s2 / (a + b) * ((1 - math.exp(-2 * a * t)) / (2 * a) - (math.exp(-(a + b) * t) - math.exp(-2 * a * t)) / (a - b))
+    P_xx = (
+        2
+        * s2
+        / (a + b)
+        * ((1 - math.exp(-2 * a * t)) / (2 * a) - (math.exp(-(a + b) * t) - math.exp(-2 * a * t)) / (a - b))
+    )
     return P_xx, P_xf, s2
 
 

@@ -95,8 +95,7 @@ def test_kalman_filter_with_the_models_C_and_D():
     out = kf(torch.tensor(y), torch.tensor(dt), u=torch.tensor(u))
     F, B, C, D = matrices(model)
     A, Q, G = scipy_discretize(F, model.L.detach().numpy(), model.Qc.detach().numpy(), np.asarray(dt), B)
-    ref = numpy_kalman_filter(y, A, Q, C, R, np.zeros(3), np.eye(3), c=(G @ u[..., None])[..., 0],
-                                        Du=u @ D.T)
+    ref = numpy_kalman_filter(y, A, Q, C, R, np.zeros(3), np.eye(3), c=(G @ u[..., None])[..., 0], Du=u @ D.T)
     np.testing.assert_allclose(out.mean.detach().numpy(), ref["mean"], atol=1e-9, rtol=0)
     np.testing.assert_allclose(out.log_likelihood.item(), ref["ll"].sum(), atol=1e-9, rtol=0)
 

@@ -59,8 +59,8 @@ from torchsde_lti.nn import (  # noqa: E402
     StructuredSDE,
     Transition,
     VanLoanNoise,
+    parametrizations,  # noqa: E402
 )
-from torchsde_lti.nn import parametrizations  # noqa: E402
 
 __all__ = [
     "ALGORITHMS",

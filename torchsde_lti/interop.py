@@ -40,13 +40,17 @@ def _seconds(time_interval: object, name: str) -> float:
     elif isinstance(time_interval, (int, float, np.floating, np.integer)) and not isinstance(time_interval, bool):
         seconds = float(time_interval)
     else:
-        raise TypeError(f"{name} must be a datetime.timedelta or a number of seconds, got {type(time_interval).__name__}")
+        raise TypeError(
+            f"{name} must be a datetime.timedelta or a number of seconds, got {type(time_interval).__name__}"
+        )
     if not np.isfinite(seconds) or seconds < 0:
         raise ValueError(f"{name} must be finite and non-negative, got {seconds!r} s")
     return seconds
 
 
-def discrete_step(sde: LTISDE, dt: object, method: str = "doubling") -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def discrete_step(
+    sde: LTISDE, dt: object, method: str = "doubling"
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """``(A, Q, G)`` of ``sde`` over one gap ``dt`` as float64 numpy arrays (G None without B).
 
     Args:

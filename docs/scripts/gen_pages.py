@@ -42,8 +42,10 @@ def results_pages() -> None:
             f.write(f"# {path.name}\n\n`experiments/results/{path.name}`, as committed.\n\n{body}")
         rows.append(f"| [{path.name}]({path.stem}.md) |")
     with mkdocs_gen_files.open("benchmarks/results/index.md", "w") as f:
-        f.write("# Result files\n\nEvery table measured by `experiments/` and committed under "
-                "`experiments/results/` (JSON files are left out).\n\n| file |\n|---|\n" + "\n".join(rows) + "\n")
+        f.write(
+            "# Result files\n\nEvery table measured by `experiments/` and committed under "
+            "`experiments/results/` (JSON files are left out).\n\n| file |\n|---|\n" + "\n".join(rows) + "\n"
+        )
 
 
 def example_figures() -> None:

@@ -11,9 +11,9 @@ import scipy.linalg
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from tests.reference import integrator_chain_Q, mp_discretize, quad_discretize, rel_err
 
 import torchsde_lti as tl
+from tests.reference import integrator_chain_Q, mp_discretize, quad_discretize, rel_err
 from torchsde_lti.core.discretization import zero_order_hold
 
 METHODS = ["doubling", "matrix_exp"]
@@ -77,7 +77,10 @@ def test_integrated_ou_closed_form(method: str, dt: float) -> None:
         A_ref = np.array([[1, float((1 - e1) / K)], [0, float(e1)]])
         Q_ref = q * np.array(
             [
-                [float((T - 2 * (1 - e1) / K + (1 - e2) / (2 * K)) / K**2), float(((1 - e1) / K - (1 - e2) / (2 * K)) / K)],
+                [
+                    float((T - 2 * (1 - e1) / K + (1 - e2) / (2 * K)) / K**2),
+                    float(((1 - e1) / K - (1 - e2) / (2 * K)) / K),
+                ],
                 [float(((1 - e1) / K - (1 - e2) / (2 * K)) / K), float((1 - e2) / (2 * K))],
             ]
         )
@@ -248,7 +251,9 @@ def test_scalar_ou_extreme_rate(lam_dt: float, dtype: torch.dtype) -> None:
     lam, q = 250.0, 3.0
     dt = lam_dt / lam
     d = tl.discretize(
-        torch.tensor([[-lam]], dtype=dtype), torch.ones(1, 1, dtype=dtype), torch.tensor([[q]], dtype=dtype),
+        torch.tensor([[-lam]], dtype=dtype),
+        torch.ones(1, 1, dtype=dtype),
+        torch.tensor([[q]], dtype=dtype),
         torch.tensor(dt, dtype=dtype),
     )
     ref = q / (2 * lam) * -math.expm1(-2 * lam_dt)

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import scipy.linalg
 import torch
-from tests.reference import integrator_chain_Q, quad_discretize
 
 import torchsde_lti as tl
+from tests.reference import integrator_chain_Q, quad_discretize
 from torchsde_lti.core import discretize_series as _discretize_series
 
 f64 = torch.float64
@@ -106,8 +106,9 @@ def test_unique_dt_equals_plain_path(algorithm):
     outs, grads = [], []
     for unique in (False, True):
         cv = tl.models.constant_velocity(dim=2, q=0.7, dtype=f64)
-        kf = tl.KalmanFilter(cv, H, 0.3 * torch.eye(2, dtype=f64), P0=10 * torch.eye(4, dtype=f64),
-                             algorithm=algorithm, unique_dt=unique)
+        kf = tl.KalmanFilter(
+            cv, H, 0.3 * torch.eye(2, dtype=f64), P0=10 * torch.eye(4, dtype=f64), algorithm=algorithm, unique_dt=unique
+        )
         out = kf(y, dt)
         (-out.log_likelihood.sum()).backward()
         outs.append(out)

@@ -11,9 +11,9 @@ import functools
 import numpy as np
 import pytest
 import torch
-from tests.reference import mp_doubling
 
 import torchsde_lti as tl
+from tests.reference import mp_doubling
 
 F64, F32 = torch.float64, torch.float32
 DTS = (1e-6, 1e-3, 0.1, 1.0, 10.0, 1e3, 1e6, 1e9)
@@ -31,14 +31,16 @@ MODELS = {
     "companion": lambda dt: tl.models.companion([2.0, 3.0, 1.5], q=0.5, dtype=dt),
     "transfer_function": lambda dt: tl.models.from_transfer_function([1.0], [1.0, 0.8, 2.0], q=0.5, dtype=dt),
     "moored": lambda dt: tl.models.moored(k=0.05, q=0.01, dim=1, dtype=dt),
-    "shaped": lambda dt: tl.models.shaped(tl.models.constant_velocity(dim=1, q=1.0, dtype=dt),
-                                          tl.models.ornstein_uhlenbeck(theta=0.5, q=1.0, dtype=dt)),
-    "block_diag": lambda dt: tl.models.block_diag(tl.models.singer(alpha=0.2, q=1.0, dtype=dt),
-                                                  tl.models.ornstein_uhlenbeck(theta=40.0, q=0.5, dtype=dt)),
+    "shaped": lambda dt: tl.models.shaped(
+        tl.models.constant_velocity(dim=1, q=1.0, dtype=dt), tl.models.ornstein_uhlenbeck(theta=0.5, q=1.0, dtype=dt)
+    ),
+    "block_diag": lambda dt: tl.models.block_diag(
+        tl.models.singer(alpha=0.2, q=1.0, dtype=dt), tl.models.ornstein_uhlenbeck(theta=40.0, q=0.5, dtype=dt)
+    ),
 }
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _reference(name: str, dtype: torch.dtype, dt: float):
     """The model's own (dtype-rounded) matrices, discretised at 60 digits."""
     sde = MODELS[name](dtype)

@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from tests.reference import mp_doubling
 
 import torchsde_lti as tl
+from tests.reference import mp_doubling
 from torchsde_lti.core import _matrix_exp
 
 F64, F32 = torch.float64, torch.float32

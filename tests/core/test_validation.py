@@ -178,10 +178,12 @@ def test_overflowing_results_raise_naming_the_cause(dtype: torch.dtype, dt: floa
     calls raise instead of returning inf/NaN; inner calls (validate_args=False) do not check."""
     F, L, Qc = torch.eye(2, dtype=dtype), torch.eye(2, dtype=dtype), torch.eye(2, dtype=dtype)
     step = torch.tensor(dt, dtype=dtype)
-    for call in (lambda v: tl.discretize(F, L, Qc, step, validate_args=v),
-                 lambda v: tl.transition_matrix(F, step, validate_args=v),
-                 lambda v: tl.zero_order_hold(F, L, step, validate_args=v),
-                 lambda v: tl.core.discretize_series(F, L, Qc, step.expand(40), validate_args=v)):
+    for call in (
+        lambda v: tl.discretize(F, L, Qc, step, validate_args=v),
+        lambda v: tl.transition_matrix(F, step, validate_args=v),
+        lambda v: tl.zero_order_hold(F, L, step, validate_args=v),
+        lambda v: tl.core.discretize_series(F, L, Qc, step.expand(40), validate_args=v),
+    ):
         with pytest.raises(ValueError, match=r"overflows .*A.*rightmost eigenvalue has real part 1"):
             call(True)
         call(False)

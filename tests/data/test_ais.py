@@ -19,8 +19,15 @@ pytest.importorskip(
 )
 pytest.importorskip("pyarrow", reason="CSV files are read with pyarrow (pip install -e .[data])")
 
-from torchsde_lti.data import TrackBatch, Tracks, load_tracks, locate_file, pad_tracks, split_objects  # noqa: E402
-from torchsde_lti.data import track_windows  # noqa: E402
+from torchsde_lti.data import (  # noqa: E402
+    TrackBatch,
+    Tracks,
+    load_tracks,
+    locate_file,
+    pad_tracks,
+    split_objects,
+    track_windows,  # noqa: E402
+)
 from torchsde_lti.data.modules import TrackDataModule  # noqa: E402
 
 HOUR = "NYHarbor_2020_06_30_first_hour.csv"
@@ -154,8 +161,12 @@ def test_padded_batch_likelihood_equals_per_track_filtering(data: Tracks) -> Non
     batch = pad_tracks(track_windows(tracks, dtype=torch.float64))
     assert batch.lengths.min() < batch.mask.shape[1]
     sde = tl.models.constant_velocity(dim=2, q=torch.tensor(0.01, dtype=torch.float64))
-    kf = tl.KalmanFilter(sde, tl.models.position_observation(sde), 400.0 * torch.eye(2, dtype=torch.float64),
-                         P0=torch.diag(torch.tensor([1e4, 25.0, 1e4, 25.0], dtype=torch.float64)))
+    kf = tl.KalmanFilter(
+        sde,
+        tl.models.position_observation(sde),
+        400.0 * torch.eye(2, dtype=torch.float64),
+        P0=torch.diag(torch.tensor([1e4, 25.0, 1e4, 25.0], dtype=torch.float64)),
+    )
     with torch.no_grad():
         ll = kf(batch.y, batch.dt, mask=batch.mask).log_likelihood
         for i in range(len(tracks)):
@@ -175,8 +186,16 @@ def test_experiment_ais_config_trains(tmp_path) -> None:
 
     conf = Path(__file__).resolve().parents[2] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose("train", overrides=[f"output_dir={tmp_path}", "experiment=ais", "+trainer.fast_dev_run=true",
-                                          "plots=false", "module.optimizer.max_iter=3"])
+        cfg = compose(
+            "train",
+            overrides=[
+                f"output_dir={tmp_path}",
+                "experiment=ais",
+                "+trainer.fast_dev_run=true",
+                "plots=false",
+                "module.optimizer.max_iter=3",
+            ],
+        )
         hcfg = compose("train", overrides=["experiment=ais"], return_hydra_config=True)
     assert cfg.data._target_ == "torchsde_lti.data.modules.TrackDataModule"
     assert set(str(hcfg.hydra.sweeper.params.model).split(",")) == {"cv", "integrated_ou", "singer"}
@@ -204,8 +223,16 @@ def test_experiment_ais_imm_config_trains(tmp_path) -> None:
 
     conf = Path(__file__).resolve().parents[2] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose("train", overrides=[f"output_dir={tmp_path}", "experiment=ais_imm", "+trainer.fast_dev_run=true",
-                                          "plots=false", "module.optimizer.max_iter=3"])
+        cfg = compose(
+            "train",
+            overrides=[
+                f"output_dir={tmp_path}",
+                "experiment=ais_imm",
+                "+trainer.fast_dev_run=true",
+                "plots=false",
+                "module.optimizer.max_iter=3",
+            ],
+        )
     assert cfg.filter._target_ == "torchsde_lti.IMMFilter" and cfg.get("truth") is None
     metrics, objects = train(cfg)
     assert len(objects["datamodule"].splits["train"]) == 169

@@ -20,10 +20,18 @@ from torchsde_lti.data import AIS_COLUMNS, load_tracks, locate_file, read_report
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _traj_line(obj: str, times: list[str], lonlat: list[tuple[float, float]], uuid: bool = True,
-               props: list[tuple[str, str, list[str]]] = (), trailing: str = "") -> str:
+def _traj_line(
+    obj: str,
+    times: list[str],
+    lonlat: list[tuple[float, float]],
+    uuid: bool = True,
+    props: list[tuple[str, str, list[str]]] = (),
+    trailing: str = "",
+) -> str:
     head = ["*T*"] + (["5e3b1b1c-0000-4000-8000-000000000000"] if uuid else []) + ["terrestrial", str(len(times)), "0"]
-    head += ["*P*", "terrestrial", "2", "1", "1", str(len(props))] + [x for name, kind, _ in props for x in (name, kind)]
+    head += ["*P*", "terrestrial", "2", "1", "1", str(len(props))] + [
+        x for name, kind, _ in props for x in (name, kind)
+    ]
     pts = []
     for k, (when, (lon, lat)) in enumerate(zip(times, lonlat)):
         pts += [obj, when, repr(lon), repr(lat)] + [vals[k] for _, _, vals in props]
@@ -71,10 +79,12 @@ def test_traj_malformed_lines_are_counted_not_silent(tmp_path: Path) -> None:
 
 def test_csv_ais_header_recognised_and_values(tmp_path: Path) -> None:
     f = tmp_path / "ais.csv"
-    f.write_text("BaseDateTime,LON,LAT,MMSI,SOG,COG,Heading\n"
-                 "2020-06-30T00:00:00,-74.0,40.6,367000001,10.0,90.0,90\n"
-                 "2020-06-30T00:01:00,-74.01,40.6,367000001,102.3,360.0,511\n"
-                 "2020-06-30T00:02:00,-74.02,40.6,367000001,,45.0,90\n")
+    f.write_text(
+        "BaseDateTime,LON,LAT,MMSI,SOG,COG,Heading\n"
+        "2020-06-30T00:00:00,-74.0,40.6,367000001,10.0,90.0,90\n"
+        "2020-06-30T00:01:00,-74.01,40.6,367000001,102.3,360.0,511\n"
+        "2020-06-30T00:02:00,-74.02,40.6,367000001,,45.0,90\n"
+    )
     r = read_reports(f)
     assert r.object_id.dtype == np.int64 and r.sog is not None and r.rows == 3 and r.malformed == 0
     np.testing.assert_allclose(r.lon, [-74.0, -74.01, -74.02])
@@ -87,12 +97,14 @@ def test_csv_ais_header_recognised_and_values(tmp_path: Path) -> None:
 
 def test_csv_named_columns_comment_header_ragged_rows_and_offsets(tmp_path: Path) -> None:
     f = tmp_path / "points.csv"
-    f.write_text("# object_id timestamp longitude latitude altitude\n"
-                 "F1,2014-07-01 15:45:43-0000,28.8,40.9,1000\n"
-                 "F1,2014-07-01 17:46:43+0200,28.9,40.95,1100\n"
-                 "F1,2014-07-01 15:47:43-0000,29.0,,1200,extra\n"
-                 "F1,2014-07-01 15:48:43-0000,north,41.0,1300\n"
-                 "F1,2014-07-01 15:49:43-0000,29.1,41.05,1400\n")
+    f.write_text(
+        "# object_id timestamp longitude latitude altitude\n"
+        "F1,2014-07-01 15:45:43-0000,28.8,40.9,1000\n"
+        "F1,2014-07-01 17:46:43+0200,28.9,40.95,1100\n"
+        "F1,2014-07-01 15:47:43-0000,29.0,,1200,extra\n"
+        "F1,2014-07-01 15:48:43-0000,north,41.0,1300\n"
+        "F1,2014-07-01 15:49:43-0000,29.1,41.05,1400\n"
+    )
     r = read_reports(f, {"id": 0, "time": 1, "lon": 2, "lat": 3, "alt": 4}, altitude_unit="ft")
     assert r.rows == 5 and r.malformed == 2  # one ragged row, one unreadable longitude
     assert list(r.object_id) == ["F1"] * 3
@@ -176,7 +188,8 @@ def test_loading_changes_no_global_state() -> None:
     assert out["imported"] == out["after"]  # loading changes nothing
     # importing changes nothing either, except one warnings filter that sympy adds when torch.export imports it
     assert {k: v for k, v in out["before"].items() if k != "warnings"} == {
-        k: v for k, v in out["imported"].items() if k != "warnings"}
+        k: v for k, v in out["imported"].items() if k != "warnings"
+    }
     assert out["after"]["tracebacklimit"] is None and out["after"]["root_handlers"] == 0
     assert out["tracktable_modules"] in ([], ["tracktable_data"])  # the metadata-only __init__ at most
     assert not [name for name in out["new_loggers"] if name.startswith("tracktable")]

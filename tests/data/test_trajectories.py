@@ -46,8 +46,10 @@ def _check_geodesics(tracks, i: int) -> tuple[float, float]:
     moved = step > 10.0  # 5-decimal positions: ~1 m quantisation, relative errors meaningless below
     _, _, radial = GEOD.inv(np.full_like(lon, lon[0]), np.full_like(lat, lat[0]), lon, lat)
     far = radial > 10.0
-    return (float(np.max(np.abs(ours[moved] - step[moved]) / step[moved])),
-            float(np.max(np.abs(np.linalg.norm(pos, axis=1)[far] - radial[far]) / radial[far])))
+    return (
+        float(np.max(np.abs(ours[moved] - step[moved]) / step[moved])),
+        float(np.max(np.abs(np.linalg.norm(pos, axis=1)[far] - radial[far]) / radial[far])),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -56,8 +58,9 @@ def coastal(tmp_path_factory) -> object:
     # Los Angeles / Long Beach (the file's first line), the westernmost Aleutian track (-173.6 E,
     # 52 N) and the northernmost track (Valdez, 60.3 N): no track of this file crosses 180 degrees
     # or goes above 70 N, so those two cases come from the flights below and a synthetic track.
-    path = _lines("US_coastal_2020_06_30.traj", {"367697580", "367569470", "367563580"},
-                  tmp_path_factory.mktemp("coastal"))
+    path = _lines(
+        "US_coastal_2020_06_30.traj", {"367697580", "367569470", "367563580"}, tmp_path_factory.mktemp("coastal")
+    )
     return load_tracks(path)
 
 
@@ -65,8 +68,15 @@ def test_local_frames_match_geodesics_on_real_ship_tracks(coastal) -> None:
     seen = set()
     for i in range(len(coastal)):
         lat, lon = coastal.track(i)["lat"], coastal.track(i)["lon"]
-        place = ("LA" if lon.mean() < -117 and lat.mean() < 34 else "Aleutians" if lon.mean() < -170
-                 else "Alaska 60N" if lat.mean() > 60 else "?")
+        place = (
+            "LA"
+            if lon.mean() < -117 and lat.mean() < 34
+            else "Aleutians"
+            if lon.mean() < -170
+            else "Alaska 60N"
+            if lat.mean() > 60
+            else "?"
+        )
         seen.add(place)
         step_err, radial_err = _check_geodesics(coastal, i)
         assert step_err < 1e-3 and radial_err < 1e-3, (place, step_err, radial_err)
@@ -110,13 +120,29 @@ def test_synthetic_bering_strait_ship_across_180() -> None:
     assert tracks.pos[1, 0] < -599 and abs(tracks.pos[1, 1]) < 1.0
 
 
-def _reports(times_s: list[float], lat: list[float], lon: list[float], ids: list[int] | None = None,
-             alt: list[float] | None = None) -> Reports:
+def _reports(
+    times_s: list[float],
+    lat: list[float],
+    lon: list[float],
+    ids: list[int] | None = None,
+    alt: list[float] | None = None,
+) -> Reports:
     n = len(times_s)
     t = np.datetime64("2020-06-30T00:00:00", "us") + (np.asarray(times_s) * 1e6).astype("timedelta64[us]")
-    return Reports(np.asarray(ids if ids is not None else [1] * n, dtype=np.int64), t, np.asarray(lat, float),
-                   np.asarray(lon, float), None if alt is None else np.asarray(alt, float), None, None, None, n, 0,
-                   (), "hand-built")
+    return Reports(
+        np.asarray(ids if ids is not None else [1] * n, dtype=np.int64),
+        t,
+        np.asarray(lat, float),
+        np.asarray(lon, float),
+        None if alt is None else np.asarray(alt, float),
+        None,
+        None,
+        None,
+        n,
+        0,
+        (),
+        "hand-built",
+    )
 
 
 DEG = 1.0 / 111_195.0  # degrees of latitude per metre (sphere of the mean radius), enough for thresholds
@@ -137,11 +163,23 @@ def test_rules_count_everything() -> None:
     tracks = prepare_tracks(rep, v_max=50.0, max_gap=1800.0, min_reports=3)
     s = tracks.summary
     assert (s.invalid_positions, s.repeated_timestamps, s.jump_reports_dropped, s.jump_splits, s.gap_splits) == (
-        1, 1, 1, 1, 1)
+        1,
+        1,
+        1,
+        1,
+        1,
+    )
     # short: the 2 reports between the gap and the teleport, and object 2's 2 valid reports
     assert (s.short_tracks, s.short_reports) == (2, 4)
-    assert s.rows == s.malformed + s.invalid_positions + s.repeated_timestamps + s.jump_reports_dropped + \
-        s.short_reports + s.reports
+    assert (
+        s.rows
+        == s.malformed
+        + s.invalid_positions
+        + s.repeated_timestamps
+        + s.jump_reports_dropped
+        + s.short_reports
+        + s.reports
+    )
     assert list(tracks.lengths) == [6, 3]
     assert s.tracks == len(tracks) and s.objects == 1
     for i in range(len(tracks)):
@@ -185,8 +223,9 @@ def test_altitude_gives_3d_tracks() -> None:
 
 
 def test_split_objects_disjoint_reproducible() -> None:
-    rep = _reports(list(range(300)), [40.0] * 300, [-74.0 + 1e-4 * k for k in range(300)],
-                   ids=[k // 3 for k in range(300)])
+    rep = _reports(
+        list(range(300)), [40.0] * 300, [-74.0 + 1e-4 * k for k in range(300)], ids=[k // 3 for k in range(300)]
+    )
     tracks = prepare_tracks(rep, min_reports=3)
     a = split_objects(tracks, (0.6, 0.2, 0.2), seed=0)
     b = split_objects(tracks, (0.6, 0.2, 0.2), seed=0)
@@ -215,7 +254,7 @@ def test_track_windows_centred_with_dt(coastal) -> None:
     assert sum(int(w.dt.shape[0]) for w in wins) == coastal.num_reports
     for w in wins:
         i = int(w.track_id)
-        k0 = int(np.searchsorted(coastal.t[coastal.offsets[i]: coastal.offsets[i + 1]], float(w.t[0])))
+        k0 = int(np.searchsorted(coastal.t[coastal.offsets[i] : coastal.offsets[i + 1]], float(w.t[0])))
         a = coastal.offsets[i] + k0
         T = w.dt.shape[0]
         assert float(w.dt[0]) == 0.0 and torch.all(w.y[0] == 0)

@@ -20,19 +20,24 @@ def test_chunked_scan_matches_numpy_reference(chunk):
     d = random_problem(np.random.default_rng(1), batch=(2,), T=21)
     ref = reference_batch(d)
     t = to_torch(d)
-    out = kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"],
-                        algorithm="scan", chunk=chunk)
+    out = kalman_filter(
+        t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"], algorithm="scan", chunk=chunk
+    )
     for name in ("mean", "cov", "pred_mean", "pred_cov"):
         np.testing.assert_allclose(getattr(out, name).numpy(), ref[name], rtol=0, atol=1e-9)
     np.testing.assert_allclose(out.step_log_likelihood.numpy(), ref["ll"], atol=1e-9)
     np.testing.assert_allclose(out.log_likelihood.numpy(), ref["ll"].sum(-1), atol=1e-9)
-    seq = kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"],
-                        algorithm="sequential")
+    seq = kalman_filter(
+        t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"], algorithm="sequential"
+    )
     for name in ("innovation", "innovation_cov", "transition", "process_noise", "observed"):
         np.testing.assert_allclose(getattr(out, name).numpy(), getattr(seq, name).numpy(), atol=1e-9)
     # the smoother runs on the concatenated result
-    np.testing.assert_allclose(rts_smoother(out, algorithm="scan").mean.numpy(),
-                               rts_smoother(seq, algorithm="sequential").mean.numpy(), atol=1e-8)
+    np.testing.assert_allclose(
+        rts_smoother(out, algorithm="scan").mean.numpy(),
+        rts_smoother(seq, algorithm="sequential").mean.numpy(),
+        atol=1e-8,
+    )
 
 
 def test_chunked_scan_with_per_step_mask():
@@ -69,7 +74,9 @@ def test_functional_auto_runs_the_chosen_algorithm(monkeypatch):
         original = getattr(kalman_module, name)
         monkeypatch.setattr(kalman_module, name, lambda *a, _f=original, _n=name, **k: (ran.append(_n), _f(*a, **k))[1])
     original_scan = smoothers_module._scan_smoother
-    monkeypatch.setattr(smoothers_module, "_scan_smoother", lambda *a: (ran.append("scan smoother"), original_scan(*a))[1])
+    monkeypatch.setattr(
+        smoothers_module, "_scan_smoother", lambda *a: (ran.append("scan smoother"), original_scan(*a))[1]
+    )
     for B, expected in ((2, "chunked_scan"), (17, "sequential_filter")):
         d = random_problem(np.random.default_rng(B), batch=(B,), T=6)
         t = to_torch(d)
@@ -115,8 +122,9 @@ def test_auto_choice_gradients_equal_loop():
     grads = []
     for algorithm in ("auto", "sequential"):
         sde = tl.models.ornstein_uhlenbeck(0.8, 0.5, dtype=F64)  # learnable θ, q (stationary prior)
-        kf = tl.KalmanFilter(sde, torch.tensor([[1.0]], dtype=F64), torch.tensor([[0.2]], dtype=F64),
-                             algorithm=algorithm)
+        kf = tl.KalmanFilter(
+            sde, torch.tensor([[1.0]], dtype=F64), torch.tensor([[0.2]], dtype=F64), algorithm=algorithm
+        )
         (-kf(y, dt).log_likelihood.sum()).backward()
         grads.append([p.grad.clone() for p in kf.parameters() if p.grad is not None])
     assert grads[0] and len(grads[0]) == len(grads[1])

@@ -66,8 +66,17 @@ def test_cv_irregular_dt_with_controls_matches_reference():
     d = dict(y=y, A=A, Q=Q, H=H, R=R, m0=np.zeros((B, 4)), P0=np.tile(4 * np.eye(4), (B, 1, 1)), G=G, u=u)
     ref = reference_batch(d)
     t = to_torch(d)
-    out = sequential_kf(t["y"], t["A"], t["Q"], t["H"], t["R"], torch.zeros(4, dtype=F64), 4 * torch.eye(4, dtype=F64),
-                        G=t["G"], u=t["u"])
+    out = sequential_kf(
+        t["y"],
+        t["A"],
+        t["Q"],
+        t["H"],
+        t["R"],
+        torch.zeros(4, dtype=F64),
+        4 * torch.eye(4, dtype=F64),
+        G=t["G"],
+        u=t["u"],
+    )
     np.testing.assert_allclose(out.mean.numpy(), ref["mean"], atol=1e-9)
     np.testing.assert_allclose(out.cov.numpy(), ref["cov"], atol=1e-9)
     np.testing.assert_allclose(out.step_log_likelihood.numpy(), ref["ll"], atol=1e-9)
@@ -145,12 +154,12 @@ def test_log_likelihood_equals_dense_joint_gaussian():
         mk = A[k] @ mk + c[k]
         mean_x.append(mk)
         lin = A[k] @ lin
-        blocks_x[k * n:(k + 1) * n, :n] = lin
+        blocks_x[k * n : (k + 1) * n, :n] = lin
         for j in range(k + 1):
             prod = np.eye(n)
             for i in range(j + 1, k + 1):
                 prod = A[i] @ prod
-            blocks_x[k * n:(k + 1) * n, (j + 1) * n:(j + 2) * n] = prod
+            blocks_x[k * n : (k + 1) * n, (j + 1) * n : (j + 2) * n] = prod
     del Phi, cols
     Sz = scipy.linalg.block_diag(P0, *Q)
     Sx = blocks_x @ Sz @ blocks_x.T
@@ -180,8 +189,9 @@ def test_rts_matches_numpy_and_shrinks_covariance(smoother):
     out = sequential_kf(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"])
     sm = smoother(out)
     for b in range(2):
-        ms, Ps = numpy_rts(out.mean[b].numpy(), out.cov[b].numpy(), out.pred_mean[b].numpy(),
-                           out.pred_cov[b].numpy(), d["A"][b])
+        ms, Ps = numpy_rts(
+            out.mean[b].numpy(), out.cov[b].numpy(), out.pred_mean[b].numpy(), out.pred_cov[b].numpy(), d["A"][b]
+        )
         np.testing.assert_allclose(sm.mean[b].numpy(), ms, atol=1e-9)
         np.testing.assert_allclose(sm.cov[b].numpy(), Ps, atol=1e-9)
     gap = torch.linalg.eigvalsh(out.cov - sm.cov)
@@ -297,8 +307,17 @@ def test_batched_equals_loop_and_leading_dims():
     assert sm.cov.shape == (2, 3, 7, 4, 4)
     for i in range(2):
         for j in range(3):
-            single = sequential_kf(t["y"][i, j], t["A"][i, j], t["Q"][i, j], t["H"], t["R"], t["m0"][i, j],
-                                   t["P0"][i, j], G=t["G"][i, j], u=t["u"][i, j])
+            single = sequential_kf(
+                t["y"][i, j],
+                t["A"][i, j],
+                t["Q"][i, j],
+                t["H"],
+                t["R"],
+                t["m0"][i, j],
+                t["P0"][i, j],
+                G=t["G"][i, j],
+                u=t["u"][i, j],
+            )
             torch.testing.assert_close(out.mean[i, j], single.mean, rtol=0, atol=1e-12)
             torch.testing.assert_close(out.cov[i, j], single.cov, rtol=0, atol=1e-12)
             torch.testing.assert_close(out.log_likelihood[i, j], single.log_likelihood, rtol=0, atol=1e-12)
@@ -368,8 +387,12 @@ def test_float32_psd_over_10k_steps_stiff_irregular():
     T = 10_000
     dt = 10.0 ** rng.uniform(-6, 3, size=T)
     F = scipy.linalg.block_diag(np.array([[0.0, 1.0], [-1e3, -2e3]]), np.array([[-1e-3, 1.0], [0.0, -5e2]]))
-    d = tl.discretize(torch.as_tensor(F), torch.eye(4, dtype=F64), torch.diag(torch.tensor([0.0, 1e4, 0.0, 1e4],
-                      dtype=F64)), torch.as_tensor(dt))
+    d = tl.discretize(
+        torch.as_tensor(F),
+        torch.eye(4, dtype=F64),
+        torch.diag(torch.tensor([0.0, 1e4, 0.0, 1e4], dtype=F64)),
+        torch.as_tensor(dt),
+    )
     f32 = torch.float32
     A, Q = d.A.to(f32), d.Q.to(f32)
     H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=f32)

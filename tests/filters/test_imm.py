@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -9,8 +11,6 @@ import torch
 import torchsde_lti as tl
 from torchsde_lti.filters.imm import imm_filter
 from torchsde_lti.nn.parametrizations import Generator
-
-import math
 
 D64 = torch.float64
 
@@ -143,10 +143,12 @@ def test_gradcheck_F_Qc_R_rates() -> None:
         p0 = torch.tensor([0.6, 0.4], dtype=D64)
         return imm_filter(y, d.A, d.Q, H, R, Pi, torch.zeros(4, dtype=D64), P0, p0).log_likelihood
 
-    args = (torch.tensor([[-0.3, 0.1], [-0.05, -0.2]], dtype=D64, requires_grad=True),
-            torch.tensor([[0.5, 0.0], [0.2, 0.4]], dtype=D64, requires_grad=True),
-            torch.tensor([[0.8, 0.0], [0.1, 0.6]], dtype=D64, requires_grad=True),
-            torch.tensor([[0.0, -1.0], [0.5, 0.0]], dtype=D64, requires_grad=True))
+    args = (
+        torch.tensor([[-0.3, 0.1], [-0.05, -0.2]], dtype=D64, requires_grad=True),
+        torch.tensor([[0.5, 0.0], [0.2, 0.4]], dtype=D64, requires_grad=True),
+        torch.tensor([[0.8, 0.0], [0.1, 0.6]], dtype=D64, requires_grad=True),
+        torch.tensor([[0.0, -1.0], [0.5, 0.0]], dtype=D64, requires_grad=True),
+    )
     assert torch.autograd.gradcheck(ll, args)
 
 
@@ -228,8 +230,12 @@ def test_generator_parametrisation() -> None:
 )
 def test_bad_module_arguments_raise(kwargs: dict, match: str) -> None:
     models = _bank()
-    args = {"H": tl.models.position_observation(models[0]), "R": torch.eye(2, dtype=D64),
-            "rates": torch.tensor([[0.0, 0.1], [0.3, 0.0]], dtype=D64), **kwargs}
+    args = {
+        "H": tl.models.position_observation(models[0]),
+        "R": torch.eye(2, dtype=D64),
+        "rates": torch.tensor([[0.0, 0.1], [0.3, 0.0]], dtype=D64),
+        **kwargs,
+    }
     with pytest.raises(ValueError, match=match):
         tl.IMMFilter(models, args.pop("H"), args.pop("R"), args.pop("rates"), **args)
 
@@ -246,16 +252,39 @@ def test_bad_call_arguments_raise() -> None:
     with pytest.raises(ValueError, match="mask"):
         imm(y, dt, mask=torch.ones(3, 4, dtype=torch.bool))
     with pytest.raises(ValueError, match="models"):
-        tl.IMMFilter([_bank()[0], tl.models.constant_acceleration(dim=2, q=torch.tensor(1.0, dtype=D64))],
-                     torch.eye(2, 4, dtype=D64), torch.eye(2, dtype=D64), torch.zeros(2, 2, dtype=D64), learn=())
+        tl.IMMFilter(
+            [_bank()[0], tl.models.constant_acceleration(dim=2, q=torch.tensor(1.0, dtype=D64))],
+            torch.eye(2, 4, dtype=D64),
+            torch.eye(2, dtype=D64),
+            torch.zeros(2, 2, dtype=D64),
+            learn=(),
+        )
     A = torch.eye(4, dtype=D64).expand(9, 2, 4, 4)
     H = torch.eye(2, 4, dtype=D64)
     with pytest.raises(ValueError, match="Pi"):
-        imm_filter(y, A, 0 * A, H, torch.eye(2, dtype=D64), torch.ones(9, 2, 2, dtype=D64),
-                   torch.zeros(4, dtype=D64), torch.eye(4, dtype=D64), torch.tensor([0.5, 0.5], dtype=D64))
+        imm_filter(
+            y,
+            A,
+            0 * A,
+            H,
+            torch.eye(2, dtype=D64),
+            torch.ones(9, 2, 2, dtype=D64),
+            torch.zeros(4, dtype=D64),
+            torch.eye(4, dtype=D64),
+            torch.tensor([0.5, 0.5], dtype=D64),
+        )
     with pytest.raises(ValueError, match="A"):
-        imm_filter(y, torch.eye(4, dtype=D64).expand(9, 3, 4, 4), 0 * A, H, torch.eye(2, dtype=D64), torch.eye(2, dtype=D64),
-                   torch.zeros(4, dtype=D64), torch.eye(4, dtype=D64), torch.tensor([0.5, 0.5], dtype=D64))
+        imm_filter(
+            y,
+            torch.eye(4, dtype=D64).expand(9, 3, 4, 4),
+            0 * A,
+            H,
+            torch.eye(2, dtype=D64),
+            torch.eye(2, dtype=D64),
+            torch.zeros(4, dtype=D64),
+            torch.eye(4, dtype=D64),
+            torch.tensor([0.5, 0.5], dtype=D64),
+        )
 
 
 def test_subnormal_mode_probability_through_zero_dt_padding_has_finite_gradients() -> None:
@@ -270,9 +299,16 @@ def test_subnormal_mode_probability_through_zero_dt_padding_has_finite_gradients
     H = models.position_observation(underway)
     R = torch.stack([1e-2 * torch.eye(1), 1.0 * torch.eye(1)]).to(D64)
     tiny = 1e-310  # subnormal in float64
-    imm = tl.IMMFilter([moored, underway], H, R, torch.tensor([[0.0, 1e-3], [1e-3, 0.0]], dtype=D64),
-                       m0=torch.zeros(2, dtype=D64), P0=torch.eye(2, dtype=D64),
-                       mode_prob0=torch.tensor([tiny, 1.0 - tiny], dtype=D64), learn=("R", "rates", "P0"))
+    imm = tl.IMMFilter(
+        [moored, underway],
+        H,
+        R,
+        torch.tensor([[0.0, 1e-3], [1e-3, 0.0]], dtype=D64),
+        m0=torch.zeros(2, dtype=D64),
+        P0=torch.eye(2, dtype=D64),
+        mode_prob0=torch.tensor([tiny, 1.0 - tiny], dtype=D64),
+        learn=("R", "rates", "P0"),
+    )
     y = torch.tensor([[math.nan], [math.nan], [0.5], [1.0]], dtype=D64)
     dt = torch.tensor([0.0, 0.0, 1.0, 1.0], dtype=D64)
     out = imm(y, dt)

@@ -44,8 +44,15 @@ def test_filter_with_feedthrough_matches_numpy_reference(variant):
     rng = np.random.default_rng(0)
     dt, y, u = problem(rng)
     kw = {"algorithm": variant}
-    kf = tl.KalmanFilter(make_sde(), torch.tensor(H_NP), torch.tensor(R_NP), m0=torch.tensor(M0),
-                         P0=torch.tensor(P0), D=torch.tensor(D_NP), **kw)
+    kf = tl.KalmanFilter(
+        make_sde(),
+        torch.tensor(H_NP),
+        torch.tensor(R_NP),
+        m0=torch.tensor(M0),
+        P0=torch.tensor(P0),
+        D=torch.tensor(D_NP),
+        **kw,
+    )
     out = kf(torch.tensor(y), torch.tensor(dt), u=torch.tensor(u))
     for b in range(y.shape[0]):
         A, Q, G = scipy_discretize(F_NP, L_NP, QC_NP, np.asarray(dt[b]), B_NP)
@@ -63,8 +70,14 @@ def test_feedthrough_without_input_matrix():
     """An SDE without B: u acts on the observation only."""
     rng = np.random.default_rng(1)
     dt, y, u = problem(rng, batch=2, T=12)
-    kf = tl.KalmanFilter(make_sde(with_B=False), torch.tensor(H_NP), torch.tensor(R_NP), m0=torch.tensor(M0),
-                         P0=torch.tensor(P0), D=torch.tensor(D_NP))
+    kf = tl.KalmanFilter(
+        make_sde(with_B=False),
+        torch.tensor(H_NP),
+        torch.tensor(R_NP),
+        m0=torch.tensor(M0),
+        P0=torch.tensor(P0),
+        D=torch.tensor(D_NP),
+    )
     out = kf(torch.tensor(y), torch.tensor(dt), u=torch.tensor(u))
     for b in range(2):
         A, Q, _ = scipy_discretize(F_NP, L_NP, QC_NP, np.asarray(dt[b]), None)
@@ -72,9 +85,12 @@ def test_feedthrough_without_input_matrix():
         np.testing.assert_allclose(out.mean[b].detach().numpy(), ref["mean"], atol=1e-9, rtol=0)
         np.testing.assert_allclose(out.log_likelihood[b].item(), ref["ll"].sum(), atol=1e-9, rtol=0)
     # no input given: D u = 0, the plain filter
-    plain = tl.KalmanFilter(make_sde(with_B=False), torch.tensor(H_NP), torch.tensor(R_NP), m0=torch.tensor(M0),
-                            P0=torch.tensor(P0))
-    torch.testing.assert_close(kf(torch.tensor(y), torch.tensor(dt)).mean, plain(torch.tensor(y), torch.tensor(dt)).mean)
+    plain = tl.KalmanFilter(
+        make_sde(with_B=False), torch.tensor(H_NP), torch.tensor(R_NP), m0=torch.tensor(M0), P0=torch.tensor(P0)
+    )
+    torch.testing.assert_close(
+        kf(torch.tensor(y), torch.tensor(dt)).mean, plain(torch.tensor(y), torch.tensor(dt)).mean
+    )
 
 
 def test_functional_filter_equals_module_and_float32_is_close():
@@ -87,8 +103,14 @@ def test_functional_filter_equals_module_and_float32_is_close():
     kf = tl.KalmanFilter(make_sde(), t(H_NP), t(R_NP), m0=t(M0), P0=t(P0), D=t(D_NP))
     ref = kf(t(y), t(dt), u=t(u))
     torch.testing.assert_close(out.mean, ref.mean, atol=1e-9, rtol=0)
-    kf32 = tl.KalmanFilter(make_sde(dtype=torch.float32), t(H_NP).float(), t(R_NP).float(), m0=t(M0).float(),
-                           P0=t(P0).float(), D=t(D_NP).float())
+    kf32 = tl.KalmanFilter(
+        make_sde(dtype=torch.float32),
+        t(H_NP).float(),
+        t(R_NP).float(),
+        m0=t(M0).float(),
+        P0=t(P0).float(),
+        D=t(D_NP).float(),
+    )
     out32 = kf32(t(y).float(), t(dt).float(), u=t(u).float())
     assert out32.mean.dtype == torch.float32
     torch.testing.assert_close(out32.mean.double(), ref.mean, atol=2e-4, rtol=2e-4)
@@ -101,7 +123,9 @@ def test_batched_D_equals_loop():
     t = lambda x: torch.tensor(x)  # noqa: E731
     batched = tl.KalmanFilter(make_sde(), t(H_NP), t(R_NP), m0=t(M0), P0=t(P0), D=Ds)(t(y), t(dt), u=t(u))
     for b in range(3):
-        single = tl.KalmanFilter(make_sde(), t(H_NP), t(R_NP), m0=t(M0), P0=t(P0), D=Ds[b])(t(y[b]), t(dt[b]), u=t(u[b]))
+        single = tl.KalmanFilter(make_sde(), t(H_NP), t(R_NP), m0=t(M0), P0=t(P0), D=Ds[b])(
+            t(y[b]), t(dt[b]), u=t(u[b])
+        )
         torch.testing.assert_close(batched.mean[b], single.mean, atol=1e-12, rtol=0)
         torch.testing.assert_close(batched.log_likelihood[b], single.log_likelihood, atol=1e-12, rtol=0)
 
@@ -162,8 +186,11 @@ def test_bad_D_or_u_shapes_raise_naming_them():
     with pytest.raises(ValueError, match="u must have shape"):
         kf(y, dt, u=torch.zeros(4, 3, dtype=F64))
     with pytest.raises(ValueError, match="u must have shape"):
-        kf.forecast((torch.zeros(3, dtype=F64), torch.eye(3, dtype=F64)), torch.ones(2, dtype=F64),
-                    u=torch.zeros(2, 5, dtype=F64))
+        kf.forecast(
+            (torch.zeros(3, dtype=F64), torch.eye(3, dtype=F64)),
+            torch.ones(2, dtype=F64),
+            u=torch.zeros(2, 5, dtype=F64),
+        )
     A = torch.eye(3, dtype=F64).expand(4, 3, 3)
     Q = 0.1 * A
     args = (y, A, Q, t(H_NP), t(R_NP), torch.zeros(3, dtype=F64), torch.eye(3, dtype=F64))

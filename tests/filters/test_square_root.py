@@ -8,11 +8,10 @@ accuracy study, and finite differences (gradcheck).
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import torch
-from tests.reference import cv_matrices, random_problem, reference_batch, to_torch
 
 import torchsde_lti as tl
+from tests.reference import cv_matrices, random_problem, reference_batch, to_torch
 from torchsde_lti import models as M
 from torchsde_lti.core.linalg import cholesky
 from torchsde_lti.data import simulate
@@ -30,8 +29,9 @@ def _assert_matches_reference(out, ref, d, atol=1e-9):
     H = d["H"]
     v_ref = np.where(np.isnan(d["y"]), 0.0, d["y"] - ref["pred_mean"] @ np.swapaxes(H, -1, -2))
     np.testing.assert_allclose(out.innovation.numpy(), v_ref, atol=atol)
-    np.testing.assert_allclose(out.innovation_cov.numpy(), H @ ref["pred_cov"] @ np.swapaxes(H, -1, -2) + d["R"],
-                               atol=atol)
+    np.testing.assert_allclose(
+        out.innovation_cov.numpy(), H @ ref["pred_cov"] @ np.swapaxes(H, -1, -2) + d["R"], atol=atol
+    )
 
 
 def test_random_problem_matches_numpy_reference():
@@ -39,8 +39,9 @@ def test_random_problem_matches_numpy_reference():
     d = random_problem(rng, batch=(3,), T=12)
     ref = reference_batch(d)
     t = to_torch(d)
-    out = kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"],
-                        algorithm="square_root")
+    out = kalman_filter(
+        t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"], algorithm="square_root"
+    )
     _assert_matches_reference(out, ref, d)
 
 
@@ -62,9 +63,19 @@ def test_cv_irregular_dt_zero_first_gap_mask_and_controls_match_reference():
     d = dict(y=y_nan, A=A, Q=Q, H=H, R=R, m0=np.zeros((B, 4)), P0=np.tile(4 * np.eye(4), (B, 1, 1)), G=G, u=u)
     ref = reference_batch(d)
     t = to_torch(d)
-    out = kalman_filter(torch.as_tensor(y), t["A"], t["Q"], t["H"], t["R"], torch.zeros(4, dtype=F64),
-                        4 * torch.eye(4, dtype=F64), G=t["G"], u=t["u"], mask=torch.as_tensor(mask),
-                        algorithm="square_root")
+    out = kalman_filter(
+        torch.as_tensor(y),
+        t["A"],
+        t["Q"],
+        t["H"],
+        t["R"],
+        torch.zeros(4, dtype=F64),
+        4 * torch.eye(4, dtype=F64),
+        G=t["G"],
+        u=t["u"],
+        mask=torch.as_tensor(mask),
+        algorithm="square_root",
+    )
     _assert_matches_reference(out, ref, d)
     assert out.observed.numpy().tolist() == mask.tolist()
 
@@ -122,8 +133,9 @@ def test_gradcheck_float64():
     eye_m, eye_n = torch.eye(m, dtype=F64), torch.eye(n, dtype=F64)
 
     def f(A, Wq, H, Wr, m0, W0, y):
-        out = kalman_filter(y, A, Wq @ Wq.mT, H, Wr @ Wr.mT + 0.5 * eye_m, m0, W0 @ W0.mT + eye_n, mask=mask,
-                            algorithm="square_root")
+        out = kalman_filter(
+            y, A, Wq @ Wq.mT, H, Wr @ Wr.mT + 0.5 * eye_m, m0, W0 @ W0.mT + eye_n, mask=mask, algorithm="square_root"
+        )
         return out.log_likelihood, out.mean, out.cov, out.pred_cov
 
     assert torch.autograd.gradcheck(f, (A, Wq, H, Wr, m0, W0, y), atol=1e-6, rtol=1e-5)
@@ -131,8 +143,13 @@ def test_gradcheck_float64():
 
 def _cv_filter(square_root: bool, dtype=F64, **kw) -> tl.KalmanFilter:
     sde = M.constant_velocity(2, 0.8, dtype=dtype)
-    return tl.KalmanFilter(sde, M.position_observation(sde), 0.2 * torch.eye(2, dtype=dtype),
-                           algorithm="square_root" if square_root else "sequential", **kw)
+    return tl.KalmanFilter(
+        sde,
+        M.position_observation(sde),
+        0.2 * torch.eye(2, dtype=dtype),
+        algorithm="square_root" if square_root else "sequential",
+        **kw,
+    )
 
 
 def test_module_equals_standard_filter_values_and_gradients_with_zero_gap():
@@ -183,16 +200,23 @@ def _extreme_case(B: int, T: int, still: bool):
         y = 0.01 * torch.randn(B, T, 2, dtype=F64)
     else:
         sde = M.constant_velocity(2, 10.0, dtype=F64)
-        _, y = simulate(sde, H, 1e-4 * torch.eye(2, dtype=F64), dt, m0=torch.zeros(4, dtype=F64),
-                        P0=torch.eye(4, dtype=F64))
+        _, y = simulate(
+            sde, H, 1e-4 * torch.eye(2, dtype=F64), dt, m0=torch.zeros(4, dtype=F64), P0=torch.eye(4, dtype=F64)
+        )
     y32, dt32 = y.float(), dt.float()
-    kf64 = tl.KalmanFilter(M.constant_velocity(2, 10.0, dtype=F64), H, 1e-4 * torch.eye(2, dtype=F64),
-                           P0=torch.eye(4, dtype=F64))
+    kf64 = tl.KalmanFilter(
+        M.constant_velocity(2, 10.0, dtype=F64), H, 1e-4 * torch.eye(2, dtype=F64), P0=torch.eye(4, dtype=F64)
+    )
     ref = kf64(y32.double(), dt32.double())
     outs = {}
     for sq in (False, True):
-        kf = tl.KalmanFilter(M.constant_velocity(2, 10.0), H.float(), 1e-4 * torch.eye(2), P0=torch.eye(4),
-                             algorithm="square_root" if sq else "sequential")
+        kf = tl.KalmanFilter(
+            M.constant_velocity(2, 10.0),
+            H.float(),
+            1e-4 * torch.eye(2),
+            P0=torch.eye(4),
+            algorithm="square_root" if sq else "sequential",
+        )
         outs[sq] = kf(y32, dt32)
     return ref, outs
 
@@ -200,9 +224,13 @@ def _extreme_case(B: int, T: int, still: bool):
 def _errors(out, ref):
     var, var64 = out.cov.diagonal(dim1=-2, dim2=-1).double(), ref.cov.diagonal(dim1=-2, dim2=-1)
     ll = (out.step_log_likelihood.double() - ref.step_log_likelihood).abs().max().item()
-    logdet = (torch.linalg.slogdet(out.innovation_cov.double())[1] - torch.linalg.slogdet(ref.innovation_cov)[1])
-    return dict(min_var=var.min().item(), var_rel=((var - var64) / var64).abs().max().item(), ll=ll,
-                logdet=logdet.abs().max().item())
+    logdet = torch.linalg.slogdet(out.innovation_cov.double())[1] - torch.linalg.slogdet(ref.innovation_cov)[1]
+    return dict(
+        min_var=var.min().item(),
+        var_rel=((var - var64) / var64).abs().max().item(),
+        ll=ll,
+        logdet=logdet.abs().max().item(),
+    )
 
 
 def test_float32_still_target_psd_and_accurate_log_likelihood():

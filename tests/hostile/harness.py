@@ -70,7 +70,9 @@ def run_case(case: Case) -> None:
         message = str(info.value)
         assert re.search(expect.match, message, flags=re.IGNORECASE), f"message does not name it: {message!r}"
         if expect.forbid is not None:
-            assert not re.search(expect.forbid, message, flags=re.IGNORECASE), f"message says {expect.forbid!r}: {message!r}"
+            assert not re.search(expect.forbid, message, flags=re.IGNORECASE), (
+                f"message says {expect.forbid!r}: {message!r}"
+            )
         return
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

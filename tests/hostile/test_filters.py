@@ -36,15 +36,25 @@ def _out() -> tl.FilterResult:
 def _functional(**changes) -> tl.FilterResult:
     """tl.kalman_filter on a random walk in 2-D (A = I, Q = I, H = I, R = I), with ``changes``."""
     eye = torch.eye(2, dtype=f64)
-    args = {"y": _y(), "A": eye.expand(B, T, 2, 2), "Q": eye.expand(B, T, 2, 2), "H": eye, "R": eye,
-            "m0": torch.zeros(2, dtype=f64), "P0": eye}
+    args = {
+        "y": _y(),
+        "A": eye.expand(B, T, 2, 2),
+        "Q": eye.expand(B, T, 2, 2),
+        "H": eye,
+        "R": eye,
+        "m0": torch.zeros(2, dtype=f64),
+        "P0": eye,
+    }
     args.update(changes)
     return tl.kalman_filter(**args)
 
 
 def _loglik(value: float, rtol: float = 1e-12):
     def check(out) -> None:
-        torch.testing.assert_close(out.log_likelihood, torch.full_like(out.log_likelihood, value), rtol=rtol, atol=1e-12)
+        torch.testing.assert_close(
+            out.log_likelihood, torch.full_like(out.log_likelihood, value), rtol=rtol, atol=1e-12
+        )
+
     return check
 
 
@@ -61,6 +71,7 @@ def _one_step_loglik(out: tl.FilterResult) -> None:
 def _shape(*shape: int):
     def check(out) -> None:
         assert tuple(out.mean.shape) == shape, out.mean.shape
+
     return check
 
 
@@ -68,8 +79,12 @@ def _imm(dtype: torch.dtype = f64, models=None, **kw) -> tl.IMMFilter:
     underway = tl.models.integrated_ou(k=0.005, q=0.01, dim=2, dtype=dtype)
     moored = tl.models.moored(k=0.05, q=0.01, dim=2, dtype=dtype)
     I2 = torch.eye(2, dtype=dtype)
-    args = {"models": [moored, underway] if models is None else models, "H": tl.models.position_observation(underway),
-            "R": torch.stack([25 * I2, 400 * I2]), "rates": torch.tensor([[0, 1 / 1800], [1 / 1800, 0]], dtype=dtype)}
+    args = {
+        "models": [moored, underway] if models is None else models,
+        "H": tl.models.position_observation(underway),
+        "R": torch.stack([25 * I2, 400 * I2]),
+        "rates": torch.tensor([[0, 1 / 1800], [1 / 1800, 0]], dtype=dtype),
+    }
     args.update(kw)
     return tl.IMMFilter(**args)
 
@@ -83,8 +98,14 @@ def _imm_one_mode_equals_kalman(out) -> None:
 
 def _imm_one_mode():
     sde = tl.models.integrated_ou(k=0.5, q=1.0, dim=2, dtype=f64)
-    return tl.IMMFilter([sde], tl.models.position_observation(sde), torch.eye(2, dtype=f64)[None],
-                        torch.zeros(1, 1, dtype=f64), P0=torch.eye(4, dtype=f64), learn=("R",))
+    return tl.IMMFilter(
+        [sde],
+        tl.models.position_observation(sde),
+        torch.eye(2, dtype=f64)[None],
+        torch.zeros(1, 1, dtype=f64),
+        P0=torch.eye(4, dtype=f64),
+        learn=("R",),
+    )
 
 
 def _smooth_one_step() -> tl.SmootherResult:
@@ -92,13 +113,14 @@ def _smooth_one_step() -> tl.SmootherResult:
     return kf.smooth(kf(_y()[:, :1], _dt()[:, :1]))
 
 
-
 CASES = [
     # KalmanFilter: shapes and sizes
     Case("kf-y-1d", lambda: _cv()(torch.zeros(T, dtype=f64), _dt()[0]), Raises(ValueError, r"y must have shape")),
     Case("kf-T-0", lambda: _cv()(_y()[:, :0], _dt()[:, :0]), Raises(ValueError, r"y must have at least one step")),
     Case("kf-m-0", lambda: _cv()(torch.zeros(B, T, 0, dtype=f64), _dt()), Raises(ValueError, r"\by\b")),
-    Case("kf-y-wrong-m", lambda: _cv()(torch.zeros(B, T, 3, dtype=f64), _dt()), Raises(ValueError, r"y has 3 components")),
+    Case(
+        "kf-y-wrong-m", lambda: _cv()(torch.zeros(B, T, 3, dtype=f64), _dt()), Raises(ValueError, r"y has 3 components")
+    ),
     Case("kf-dt-wrong-T", lambda: _cv()(_y(), _dt()[:, :2]), Raises(ValueError, r"dt must have shape")),
     Case("kf-T-1", lambda: _cv(P0=torch.eye(4, dtype=f64))(_y()[:, :1], _dt()[:, :1]), Finite(_one_step_loglik)),
     Case("kf-B-0", lambda: _cv()(_y()[:0], _dt()[:0]), Finite(_shape(0, T, 4))),
@@ -113,71 +135,178 @@ CASES = [
     Case("kf-f64-y-f32", lambda: _cv()(_y(f32), _dt(f32)), Finite(_shape(B, T, 4))),
     # NaN / Inf / missing
     Case("kf-y-all-nan", lambda: _cv()(_y() * math.nan, _dt()), Finite(_loglik(0.0))),
-    Case("kf-mask-all-false", lambda: _cv()(_y(), _dt(), mask=torch.zeros(B, T, dtype=torch.bool)), Finite(_loglik(0.0))),
+    Case(
+        "kf-mask-all-false", lambda: _cv()(_y(), _dt(), mask=torch.zeros(B, T, dtype=torch.bool)), Finite(_loglik(0.0))
+    ),
     Case("kf-y-inf", lambda: _cv()(_y() * math.inf, _dt()), Raises(ValueError, r"y contains Inf")),
     Case("kf-y-minus-inf", lambda: _cv()(-_y().abs() * math.inf, _dt()), Raises(ValueError, r"y contains Inf")),
     Case("kf-dt-negative", lambda: _cv()(_y(), -_dt()), Raises(ValueError, r"dt must be non-negative")),
     Case("kf-dt-nan", lambda: _cv()(_y(), _dt() * math.nan), Raises(ValueError, r"dt contains NaN")),
     Case("kf-dt-inf", lambda: _cv()(_y(), _dt() * math.inf), Raises(ValueError, r"dt contains NaN or Inf")),
-    Case("kf-mask-wrong-shape", lambda: _cv()(_y(), _dt(), mask=torch.ones(B, T - 1, dtype=torch.bool)), Raises(ValueError, r"mask must have shape")),
-    Case("kf-mask-float", lambda: _cv()(_y(), _dt(), mask=torch.ones(B, T)), Raises((ValueError, TypeError), r"mask must be a bool")),
-    Case("kf-u-without-B", lambda: _cv()(_y(), _dt(), u=torch.ones(B, T, 1, dtype=f64)), Raises(ValueError, r"u was given")),
+    Case(
+        "kf-mask-wrong-shape",
+        lambda: _cv()(_y(), _dt(), mask=torch.ones(B, T - 1, dtype=torch.bool)),
+        Raises(ValueError, r"mask must have shape"),
+    ),
+    Case(
+        "kf-mask-float",
+        lambda: _cv()(_y(), _dt(), mask=torch.ones(B, T)),
+        Raises((ValueError, TypeError), r"mask must be a bool"),
+    ),
+    Case(
+        "kf-u-without-B",
+        lambda: _cv()(_y(), _dt(), u=torch.ones(B, T, 1, dtype=f64)),
+        Raises(ValueError, r"u was given"),
+    ),
     # huge / tiny values
     Case("kf-y-1e20-f64", lambda: _cv()(_y(scale=1e20), _dt()), Finite()),
     Case("kf-y-1e-300-f64", lambda: _cv()(_y(scale=1e-300), _dt()), Finite()),
     Case("kf-y-1e-30-f32", lambda: _cv(f32)(_y(f32, 1e-30), _dt(f32)), Finite()),
     Case("kf-y-1e10-f32", lambda: _cv(f32)(_y(f32, 1e10), _dt(f32)), Finite()),
-    Case("kf-y-1e20-f32", lambda: _cv(f32)(_y(f32, 1e20), _dt(f32)),
-         Raises((ValueError, OverflowError, ArithmeticError), r"\by\b|float32|overflow")),
-    Case("kf-y-1e200-f64", lambda: _cv()(_y(scale=1e200), _dt()),
-         Raises((ValueError, OverflowError, ArithmeticError), r"\by\b|float64|overflow")),
+    Case(
+        "kf-y-1e20-f32",
+        lambda: _cv(f32)(_y(f32, 1e20), _dt(f32)),
+        Raises((ValueError, OverflowError, ArithmeticError), r"\by\b|float32|overflow"),
+    ),
+    Case(
+        "kf-y-1e200-f64",
+        lambda: _cv()(_y(scale=1e200), _dt()),
+        Raises((ValueError, OverflowError, ArithmeticError), r"\by\b|float64|overflow"),
+    ),
     Case("kf-dt-1e10-f64", lambda: _cv()(_y(), _dt(scale=1e10)), Finite()),
     Case("kf-dt-1e6-f32", lambda: _cv(f32)(_y(f32), _dt(f32, 1e6)), Finite()),
     Case("kf-dt-zero", lambda: _cv()(_y(), torch.zeros(B, T, dtype=f64)), Finite()),
     # KalmanFilter construction
-    Case("kf-R-negative", lambda: tl.KalmanFilter(tl.models.constant_velocity(dim=2, q=1.0, dtype=f64), torch.eye(2, 4, dtype=f64),
-                                                  -torch.eye(2, dtype=f64)), Raises(ValueError, r"R must be symmetric positive definite")),
-    Case("kf-R-nan", lambda: tl.KalmanFilter(tl.models.constant_velocity(dim=2, q=1.0, dtype=f64), torch.eye(2, 4, dtype=f64),
-                                             torch.eye(2, dtype=f64) * math.nan), Raises(ValueError, r"R contains NaN")),
-    Case("kf-H-wrong-columns", lambda: tl.KalmanFilter(tl.models.constant_velocity(dim=2, q=1.0, dtype=f64), torch.eye(3, dtype=f64),
-                                                       torch.eye(2, dtype=f64)), Raises(ValueError, r"H must have 4 columns")),
+    Case(
+        "kf-R-negative",
+        lambda: tl.KalmanFilter(
+            tl.models.constant_velocity(dim=2, q=1.0, dtype=f64), torch.eye(2, 4, dtype=f64), -torch.eye(2, dtype=f64)
+        ),
+        Raises(ValueError, r"R must be symmetric positive definite"),
+    ),
+    Case(
+        "kf-R-nan",
+        lambda: tl.KalmanFilter(
+            tl.models.constant_velocity(dim=2, q=1.0, dtype=f64),
+            torch.eye(2, 4, dtype=f64),
+            torch.eye(2, dtype=f64) * math.nan,
+        ),
+        Raises(ValueError, r"R contains NaN"),
+    ),
+    Case(
+        "kf-H-wrong-columns",
+        lambda: tl.KalmanFilter(
+            tl.models.constant_velocity(dim=2, q=1.0, dtype=f64), torch.eye(3, dtype=f64), torch.eye(2, dtype=f64)
+        ),
+        Raises(ValueError, r"H must have 4 columns"),
+    ),
     Case("kf-P0-bogus", lambda: _cv(P0="bogus"), Raises(ValueError, r"P0 must be a tensor, None .* or .diffuse.")),
     Case("kf-m0-wrong-size", lambda: _cv(m0=torch.zeros(3, dtype=f64)), Raises(ValueError, r"m0")),
-    Case("kf-sde-None", lambda: tl.KalmanFilter(None, torch.eye(2, 4, dtype=f64), torch.eye(2, dtype=f64)), Raises(TypeError, r"sde must be an LTISDE")),
-    Case("kf-sde-tensor", lambda: tl.KalmanFilter(torch.eye(4, dtype=f64), torch.eye(2, 4, dtype=f64), torch.eye(2, dtype=f64)), Raises(TypeError, r"sde must be an LTISDE")),
+    Case(
+        "kf-sde-None",
+        lambda: tl.KalmanFilter(None, torch.eye(2, 4, dtype=f64), torch.eye(2, dtype=f64)),
+        Raises(TypeError, r"sde must be an LTISDE"),
+    ),
+    Case(
+        "kf-sde-tensor",
+        lambda: tl.KalmanFilter(torch.eye(4, dtype=f64), torch.eye(2, 4, dtype=f64), torch.eye(2, dtype=f64)),
+        Raises(TypeError, r"sde must be an LTISDE"),
+    ),
     Case("kf-learn-bogus", lambda: _cv(learn=("bogus",)), Raises(ValueError, r"learn must name some of")),
-    Case("kf-diffuse-variance-negative", lambda: _cv(P0="diffuse", diffuse_variance=-1.0)(_y(), _dt()),
-         Raises(ValueError, r"diffuse_variance")),
-    Case("kf-diffuse-variance-nan", lambda: _cv(P0="diffuse", diffuse_variance=math.nan)(_y(), _dt()),
-         Raises(ValueError, r"diffuse_variance")),
+    Case(
+        "kf-diffuse-variance-negative",
+        lambda: _cv(P0="diffuse", diffuse_variance=-1.0)(_y(), _dt()),
+        Raises(ValueError, r"diffuse_variance"),
+    ),
+    Case(
+        "kf-diffuse-variance-nan",
+        lambda: _cv(P0="diffuse", diffuse_variance=math.nan)(_y(), _dt()),
+        Raises(ValueError, r"diffuse_variance"),
+    ),
     # smoothing and forecasting
     Case("smooth-ok", lambda: _cv().smooth(_out()), Finite()),
     Case("smooth-T-1", lambda: _smooth_one_step(), Finite()),
     Case("smooth-tuple", lambda: _cv().smooth(tuple(_out())), Raises(TypeError, r"FilterResult|\bout\b|result")),
     Case("rts-tuple", lambda: tl.rts_smoother(tuple(_out())), Raises(TypeError, r"FilterResult|result")),
     Case("rts-None", lambda: tl.rts_smoother(None), Raises(TypeError, r"FilterResult|result")),
-    Case("scan-rts-tuple", lambda: tl.rts_smoother(tuple(_out()), algorithm="scan"), Raises(TypeError, r"FilterResult|result")),
+    Case(
+        "scan-rts-tuple",
+        lambda: tl.rts_smoother(tuple(_out()), algorithm="scan"),
+        Raises(TypeError, r"FilterResult|result"),
+    ),
     Case("forecast-dt-negative", lambda: _cv().forecast(_out(), -1.0), Raises(ValueError, r"dt must be non-negative")),
     Case("forecast-dt-nan", lambda: _cv().forecast(_out(), math.nan), Raises(ValueError, r"dt contains NaN")),
     Case("forecast-dt-1e10", lambda: _cv().forecast(_out(), 1e10), Finite()),
-    Case("forecast-from-mean-cov", lambda: _cv().forecast((torch.zeros(4, dtype=f64), torch.eye(4, dtype=f64)), torch.tensor([0.5, 2.0], dtype=f64)), Finite()),
-    Case("forecast-state-wrong-size", lambda: _cv().forecast((torch.zeros(3, dtype=f64), torch.eye(3, dtype=f64)), 1.0), Raises(ValueError, r"\bm0\b|\bmean\b|state|shape")),
+    Case(
+        "forecast-from-mean-cov",
+        lambda: _cv().forecast(
+            (torch.zeros(4, dtype=f64), torch.eye(4, dtype=f64)), torch.tensor([0.5, 2.0], dtype=f64)
+        ),
+        Finite(),
+    ),
+    Case(
+        "forecast-state-wrong-size",
+        lambda: _cv().forecast((torch.zeros(3, dtype=f64), torch.eye(3, dtype=f64)), 1.0),
+        Raises(ValueError, r"\bm0\b|\bmean\b|state|shape"),
+    ),
     # the functional filter
     Case("fn-ok", lambda: _functional(), Finite()),
-    Case("fn-R-not-psd", lambda: _functional(R=-torch.eye(2, dtype=f64)), Raises(ValueError, r"R must be positive semi-definite")),
-    Case("fn-Q-nan", lambda: _functional(Q=torch.full((B, T, 2, 2), math.nan, dtype=f64)), Raises(ValueError, r"Q contains NaN")),
-    Case("fn-A-nan", lambda: _functional(A=torch.full((B, T, 2, 2), math.nan, dtype=f64)), Raises(ValueError, r"A contains NaN")),
-    Case("fn-H-inf", lambda: _functional(H=torch.eye(2, dtype=f64) * math.inf), Raises(ValueError, r"H contains NaN or Inf")),
-    Case("fn-A-not-square", lambda: _functional(A=torch.ones(B, T, 1, 2, dtype=f64)), Raises(ValueError, r"A must be square")),
-    Case("fn-A-wrong-T", lambda: _functional(A=torch.eye(2, dtype=f64).expand(B, T + 1, 2, 2)), Raises(ValueError, r"\bA\b")),
-    Case("fn-P0-not-psd", lambda: _functional(P0=-torch.eye(2, dtype=f64)), Raises(ValueError, r"P0 must be positive semi-definite")),
-    Case("fn-m0-wrong-size", lambda: _functional(m0=torch.zeros(3, dtype=f64)), Raises(ValueError, r"m0 must have shape")),
-    Case("fn-all-zero-noise", lambda: _functional(Q=torch.zeros(B, T, 2, 2, dtype=f64), R=torch.zeros(2, 2, dtype=f64), P0=torch.zeros(2, 2, dtype=f64)),
-         Raises(ValueError, r"\bR\b.*positive definite")),
-    Case("fn-T-0", lambda: _functional(y=_y()[:, :0], A=torch.eye(2, dtype=f64).expand(B, 0, 2, 2), Q=torch.eye(2, dtype=f64).expand(B, 0, 2, 2)),
-         Raises(ValueError, r"y must have at least one step")),
+    Case(
+        "fn-R-not-psd",
+        lambda: _functional(R=-torch.eye(2, dtype=f64)),
+        Raises(ValueError, r"R must be positive semi-definite"),
+    ),
+    Case(
+        "fn-Q-nan",
+        lambda: _functional(Q=torch.full((B, T, 2, 2), math.nan, dtype=f64)),
+        Raises(ValueError, r"Q contains NaN"),
+    ),
+    Case(
+        "fn-A-nan",
+        lambda: _functional(A=torch.full((B, T, 2, 2), math.nan, dtype=f64)),
+        Raises(ValueError, r"A contains NaN"),
+    ),
+    Case(
+        "fn-H-inf",
+        lambda: _functional(H=torch.eye(2, dtype=f64) * math.inf),
+        Raises(ValueError, r"H contains NaN or Inf"),
+    ),
+    Case(
+        "fn-A-not-square",
+        lambda: _functional(A=torch.ones(B, T, 1, 2, dtype=f64)),
+        Raises(ValueError, r"A must be square"),
+    ),
+    Case(
+        "fn-A-wrong-T",
+        lambda: _functional(A=torch.eye(2, dtype=f64).expand(B, T + 1, 2, 2)),
+        Raises(ValueError, r"\bA\b"),
+    ),
+    Case(
+        "fn-P0-not-psd",
+        lambda: _functional(P0=-torch.eye(2, dtype=f64)),
+        Raises(ValueError, r"P0 must be positive semi-definite"),
+    ),
+    Case(
+        "fn-m0-wrong-size", lambda: _functional(m0=torch.zeros(3, dtype=f64)), Raises(ValueError, r"m0 must have shape")
+    ),
+    Case(
+        "fn-all-zero-noise",
+        lambda: _functional(
+            Q=torch.zeros(B, T, 2, 2, dtype=f64), R=torch.zeros(2, 2, dtype=f64), P0=torch.zeros(2, 2, dtype=f64)
+        ),
+        Raises(ValueError, r"\bR\b.*positive definite"),
+    ),
+    Case(
+        "fn-T-0",
+        lambda: _functional(
+            y=_y()[:, :0], A=torch.eye(2, dtype=f64).expand(B, 0, 2, 2), Q=torch.eye(2, dtype=f64).expand(B, 0, 2, 2)
+        ),
+        Raises(ValueError, r"y must have at least one step"),
+    ),
     Case("fn-u-without-G", lambda: _functional(u=torch.ones(B, T, 1, dtype=f64)), Raises(ValueError, r"\bu\b|\bG\b")),
-    Case("fn-G-without-u", lambda: _functional(G=torch.ones(B, T, 2, 1, dtype=f64)), Raises(ValueError, r"\bu\b|\bG\b")),
+    Case(
+        "fn-G-without-u", lambda: _functional(G=torch.ones(B, T, 2, 1, dtype=f64)), Raises(ValueError, r"\bu\b|\bG\b")
+    ),
     # IMM
     Case("imm-ok", lambda: _imm()(_y(), _dt()), Finite()),
     Case("imm-one-mode-equals-kalman", lambda: _imm_one_mode()(_y(), _dt()), Finite(_imm_one_mode_equals_kalman)),
@@ -189,12 +318,36 @@ CASES = [
     Case("imm-dt-1e10-f32", lambda: _imm(f32)(_y(f32), torch.full((B, T), 1e10)), Finite()),
     Case("imm-dt-1e12-f32", lambda: _imm(f32)(_y(f32), torch.full((B, T), 1e12)), Finite()),
     Case("imm-no-models", lambda: _imm(models=[]), Raises(ValueError, r"models must contain at least one")),
-    Case("imm-model-not-sde", lambda: _imm(models=[torch.eye(4, dtype=f64), torch.eye(4, dtype=f64)]), Raises(TypeError, r"models")),
-    Case("imm-rates-negative", lambda: _imm(rates=torch.tensor([[0, -0.1], [0.1, 0]], dtype=f64)), Raises(ValueError, r"rates must be >= 0")),
-    Case("imm-rates-nan", lambda: _imm(rates=torch.tensor([[0, math.nan], [0.1, 0]], dtype=f64)), Raises(ValueError, r"rates")),
-    Case("imm-rates-wrong-shape", lambda: _imm(rates=torch.zeros(3, 3, dtype=f64)), Raises(ValueError, r"rates must have shape")),
-    Case("imm-mode-prob0-not-summing-to-1", lambda: _imm(mode_prob0=torch.tensor([0.5, 0.7], dtype=f64)), Raises(ValueError, r"mode_prob0")),
-    Case("imm-mode-prob0-negative", lambda: _imm(mode_prob0=torch.tensor([-0.5, 1.5], dtype=f64)), Raises(ValueError, r"mode_prob0")),
+    Case(
+        "imm-model-not-sde",
+        lambda: _imm(models=[torch.eye(4, dtype=f64), torch.eye(4, dtype=f64)]),
+        Raises(TypeError, r"models"),
+    ),
+    Case(
+        "imm-rates-negative",
+        lambda: _imm(rates=torch.tensor([[0, -0.1], [0.1, 0]], dtype=f64)),
+        Raises(ValueError, r"rates must be >= 0"),
+    ),
+    Case(
+        "imm-rates-nan",
+        lambda: _imm(rates=torch.tensor([[0, math.nan], [0.1, 0]], dtype=f64)),
+        Raises(ValueError, r"rates"),
+    ),
+    Case(
+        "imm-rates-wrong-shape",
+        lambda: _imm(rates=torch.zeros(3, 3, dtype=f64)),
+        Raises(ValueError, r"rates must have shape"),
+    ),
+    Case(
+        "imm-mode-prob0-not-summing-to-1",
+        lambda: _imm(mode_prob0=torch.tensor([0.5, 0.7], dtype=f64)),
+        Raises(ValueError, r"mode_prob0"),
+    ),
+    Case(
+        "imm-mode-prob0-negative",
+        lambda: _imm(mode_prob0=torch.tensor([-0.5, 1.5], dtype=f64)),
+        Raises(ValueError, r"mode_prob0"),
+    ),
     Case("imm-mode-names-wrong-length", lambda: _imm(mode_names=("a",)), Raises(ValueError, r"mode_names")),
     Case("imm-R-wrong-count", lambda: _imm(R=torch.eye(2, dtype=f64).expand(3, 2, 2)), Raises(ValueError, r"\bR\b")),
 ]

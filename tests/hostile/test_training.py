@@ -133,8 +133,12 @@ def ctx(tmp_path_factory: pytest.TempPathFactory) -> Context:
 def _filter() -> tl.KalmanFilter:
     """The filter the tiny run trains (integrated OU, 2-D) — for load_filter_weights."""
     sde = tl.models.integrated_ou(k=2.0, q=0.2, dim=2, dtype=torch.float64)
-    return tl.KalmanFilter(sde, tl.models.position_observation(sde), torch.eye(2, dtype=torch.float64),
-                           P0=torch.eye(4, dtype=torch.float64))
+    return tl.KalmanFilter(
+        sde,
+        tl.models.position_observation(sde),
+        torch.eye(2, dtype=torch.float64),
+        P0=torch.eye(4, dtype=torch.float64),
+    )
 
 
 def _singer_filter() -> tl.KalmanFilter:
@@ -162,28 +166,71 @@ DAMAGE = {  # kind: what the message must say
 def _entry_points(kind: str, match: str) -> list[Case]:
     return [
         Case(f"read-{kind}", lambda c: read_checkpoint(c.files[kind]), Raises(CheckpointError, match, NO_ADVICE)),
-        Case(f"load-weights-{kind}", lambda c: load_filter_weights(_filter(), c.files[kind]), Raises(CheckpointError, match, NO_ADVICE)),
-        Case(f"train-ckpt-{kind}", lambda c: c.train_before_work(f"ckpt_path={c.files[kind]}"), Raises(CheckpointError, match, NO_ADVICE)),
+        Case(
+            f"load-weights-{kind}",
+            lambda c: load_filter_weights(_filter(), c.files[kind]),
+            Raises(CheckpointError, match, NO_ADVICE),
+        ),
+        Case(
+            f"train-ckpt-{kind}",
+            lambda c: c.train_before_work(f"ckpt_path={c.files[kind]}"),
+            Raises(CheckpointError, match, NO_ADVICE),
+        ),
     ]
 
 
 CHECKPOINT_CASES = [
     *(case for kind, match in DAMAGE.items() for case in _entry_points(kind, match)),
-    Case("read-missing", lambda c: read_checkpoint(c.files["missing"]), Raises(FileNotFoundError, r"ckpt_path: no such checkpoint file: .*missing\.ckpt")),
-    Case("read-directory", lambda c: read_checkpoint(c.files["directory"]), Raises(FileNotFoundError, r"is not a file")),
+    Case(
+        "read-missing",
+        lambda c: read_checkpoint(c.files["missing"]),
+        Raises(FileNotFoundError, r"ckpt_path: no such checkpoint file: .*missing\.ckpt"),
+    ),
+    Case(
+        "read-directory", lambda c: read_checkpoint(c.files["directory"]), Raises(FileNotFoundError, r"is not a file")
+    ),
     Case("read-None", lambda c: read_checkpoint(None), Raises(TypeError, r"ckpt_path must be a path")),
     Case("read-int", lambda c: read_checkpoint(3), Raises(TypeError, r"ckpt_path must be a path")),
-    Case("read-good", lambda c: read_checkpoint(c.good)["epoch"], Finite(lambda epoch: epoch == 0 or pytest.fail(str(epoch)))),
-    Case("load-weights-missing", lambda c: load_filter_weights(_filter(), c.files["missing"]), Raises(FileNotFoundError, r"path: no such checkpoint file")),
+    Case(
+        "read-good",
+        lambda c: read_checkpoint(c.good)["epoch"],
+        Finite(lambda epoch: epoch == 0 or pytest.fail(str(epoch))),
+    ),
+    Case(
+        "load-weights-missing",
+        lambda c: load_filter_weights(_filter(), c.files["missing"]),
+        Raises(FileNotFoundError, r"path: no such checkpoint file"),
+    ),
     Case("load-weights-good", lambda c: load_filter_weights(_filter(), c.good), Finite(lambda kf: _trained(kf))),
-    Case("load-weights-other-model", lambda c: load_filter_weights(_singer_filter(), c.good),
-         Raises(CheckpointError, r"holds a different model.*missing.*alpha", NO_ADVICE)),
-    Case("train-ckpt-missing", lambda c: c.train_before_work(f"ckpt_path={c.files['missing']}"), Raises(FileNotFoundError, r"ckpt_path: no such checkpoint file")),
-    Case("train-ckpt-directory", lambda c: c.train_before_work(f"ckpt_path={c.files['directory']}"), Raises(FileNotFoundError, r"ckpt_path: .* is not a file")),
-    Case("train-ckpt-weights-only", lambda c: c.train_before_work(f"ckpt_path={c.files['weights-only']}"),
-         Raises(CheckpointError, r"not a training checkpoint \(missing 'epoch', 'global_step', 'loops', 'optimizer_states'", NO_ADVICE)),
-    Case("train-ckpt-other-model", lambda c: c.train_before_work("model=singer", f"ckpt_path={c.good}"),
-         Raises(CheckpointError, r"holds a different model from the one configured.*missing", NO_ADVICE)),
+    Case(
+        "load-weights-other-model",
+        lambda c: load_filter_weights(_singer_filter(), c.good),
+        Raises(CheckpointError, r"holds a different model.*missing.*alpha", NO_ADVICE),
+    ),
+    Case(
+        "train-ckpt-missing",
+        lambda c: c.train_before_work(f"ckpt_path={c.files['missing']}"),
+        Raises(FileNotFoundError, r"ckpt_path: no such checkpoint file"),
+    ),
+    Case(
+        "train-ckpt-directory",
+        lambda c: c.train_before_work(f"ckpt_path={c.files['directory']}"),
+        Raises(FileNotFoundError, r"ckpt_path: .* is not a file"),
+    ),
+    Case(
+        "train-ckpt-weights-only",
+        lambda c: c.train_before_work(f"ckpt_path={c.files['weights-only']}"),
+        Raises(
+            CheckpointError,
+            r"not a training checkpoint \(missing 'epoch', 'global_step', 'loops', 'optimizer_states'",
+            NO_ADVICE,
+        ),
+    ),
+    Case(
+        "train-ckpt-other-model",
+        lambda c: c.train_before_work("model=singer", f"ckpt_path={c.good}"),
+        Raises(CheckpointError, r"holds a different model from the one configured.*missing", NO_ADVICE),
+    ),
 ]
 
 
@@ -245,7 +292,11 @@ CONFIG_CASES = [
     _bad("ckpt_path", "123", r"ckpt_path must be null or the path"),
     _bad("+trainer.fast_dev_run", "-1", r"config trainer .*fast_dev_run"),
     _bad("trainer.accelerator", "abacus", r"config trainer .*abacus"),
-    Case("config-no-module-node", lambda c: c.train_before_work("~module"), Raises(ValueError, r"config is missing the 'module' node")),
+    Case(
+        "config-no-module-node",
+        lambda c: c.train_before_work("~module"),
+        Raises(ValueError, r"config is missing the 'module' node"),
+    ),
 ]
 
 
@@ -262,6 +313,7 @@ def _written(obj: Any) -> Callable[[Context], Any]:
         path = c.out_dir() / "x.json"
         write_json(path, obj)
         return load_strict_json(path)
+
     return call
 
 
@@ -270,11 +322,27 @@ def _equals(expected: Any):
 
 
 JSON_CASES = [
-    Case("json-nan-inf", _written({"a": math.nan, "b": math.inf, "c": -math.inf, "d": 1.5}), Finite(_equals({"a": None, "b": None, "c": None, "d": 1.5}))),
-    Case("json-tensor-with-nan", _written({"t": torch.tensor([1.0, math.nan, math.inf])}), Finite(_equals({"t": [1.0, None, None]}))),
+    Case(
+        "json-nan-inf",
+        _written({"a": math.nan, "b": math.inf, "c": -math.inf, "d": 1.5}),
+        Finite(_equals({"a": None, "b": None, "c": None, "d": 1.5})),
+    ),
+    Case(
+        "json-tensor-with-nan",
+        _written({"t": torch.tensor([1.0, math.nan, math.inf])}),
+        Finite(_equals({"t": [1.0, None, None]})),
+    ),
     Case("json-tensor-0d", _written(torch.tensor(2.5, dtype=torch.float64)), Finite(_equals(2.5))),
-    Case("json-numpy", _written({"x": np.float64("nan"), "y": np.arange(3), "z": np.float32(0.5)}), Finite(_equals({"x": None, "y": [0, 1, 2], "z": 0.5}))),
-    Case("json-namedtuple-path-set", _written(_Pair(math.nan, [Path("/a/b"), {3}])), Finite(_equals({"a": None, "b": ["/a/b", [3]]}))),
+    Case(
+        "json-numpy",
+        _written({"x": np.float64("nan"), "y": np.arange(3), "z": np.float32(0.5)}),
+        Finite(_equals({"x": None, "y": [0, 1, 2], "z": 0.5})),
+    ),
+    Case(
+        "json-namedtuple-path-set",
+        _written(_Pair(math.nan, [Path("/a/b"), {3}])),
+        Finite(_equals({"a": None, "b": ["/a/b", [3]]})),
+    ),
     Case("json-non-string-keys", _written({1: "x", (2, 3): math.inf}), Finite(_equals({"1": "x", "(2, 3)": None}))),
     Case("json-bool-and-none", _written([True, False, None, 0]), Finite(_equals([True, False, None, 0]))),
     Case("json-object", _written({"o": _Opaque}), Finite(lambda got: "Opaque" in got["o"] or pytest.fail(str(got)))),
@@ -340,8 +408,14 @@ def test_cli_damaged_last_checkpoint_fails_clearly_and_leaves_the_run_alone(ctx:
     last = run / "checkpoints" / "last.ckpt"
     last.write_bytes(last.read_bytes()[:-100])
     before = (run / "metrics.json").read_bytes()
-    proc = subprocess.run([sys.executable, "-m", "torchsde_lti.train", *TINY, f"ckpt_path={last}"], cwd=ctx.root,
-                          env={**os.environ, "PYTHONWARNINGS": "ignore"}, capture_output=True, text=True, timeout=240)
+    proc = subprocess.run(
+        [sys.executable, "-m", "torchsde_lti.train", *TINY, f"ckpt_path={last}"],
+        cwd=ctx.root,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
     output = proc.stdout + proc.stderr
     assert proc.returncode != 0
     assert re.search(rf"cannot read checkpoint {re.escape(str(last))}: truncated", output), output[-3000:]

@@ -98,8 +98,13 @@ def test_traced_doubling_equals_eager(dtype, rtol):
     F = M - (torch.linalg.eigvals(M).real.amax(-1) + 0.5)[:, None, None] * torch.eye(n, dtype=F64)
     dt = torch.logspace(-3, 3, N, dtype=F64)
     for F_case in (F, F[0]):
-        inp = sde_inputs(F_case.to(dtype), torch.eye(n, dtype=dtype), torch.eye(n, dtype=dtype), dt.to(dtype),
-                         B=torch.ones(n, 1, dtype=dtype))
+        inp = sde_inputs(
+            F_case.to(dtype),
+            torch.eye(n, dtype=dtype),
+            torch.eye(n, dtype=dtype),
+            dt.to(dtype),
+            B=torch.ones(n, 1, dtype=dtype),
+        )
         eager = doubling(inp)
         traced = per_element_doubling(inp, masked=True)
         for a, b in zip(eager, traced):
@@ -165,8 +170,9 @@ def test_compiled_default_runs_the_loop_as_a_structured_scan_and_matches_eager()
         args = (H, 0.3 * torch.eye(2, dtype=F64), torch.zeros(4, dtype=F64), 50 * torch.eye(4, dtype=F64))
         fn = torch.compile(lambda y, A, Q: tl.kalman_filter(y, A, Q, *args).log_likelihood)
         with torch.no_grad():
-            torch.testing.assert_close(fn(y, d.A, d.Q), tl.kalman_filter(y, d.A, d.Q, *args).log_likelihood,
-                                       rtol=0, atol=1e-10)
+            torch.testing.assert_close(
+                fn(y, d.A, d.Q), tl.kalman_filter(y, d.A, d.Q, *args).log_likelihood, rtol=0, atol=1e-10
+            )
     finally:
         sequential._run_compiled_loop = original
     assert len(calls) == 3  # the module (no grad, grad) and the function: the loop each time

@@ -44,8 +44,9 @@ def test_filter_and_smoother_match_numpy_with_irregular_dt_missing_and_inputs():
     u = rng.standard_normal((Bt, T, 1))
     m0 = np.array([0.5, 0.0, -0.2, 0.1])
     P0 = np.diag([1.0, 2.0, 0.5, 1.5])
-    kf = tl.KalmanFilter(make_sde(F, L, Qc, B), torch.tensor(H_NP), torch.tensor(R_NP), m0=torch.tensor(m0),
-                         P0=torch.tensor(P0))
+    kf = tl.KalmanFilter(
+        make_sde(F, L, Qc, B), torch.tensor(H_NP), torch.tensor(R_NP), m0=torch.tensor(m0), P0=torch.tensor(P0)
+    )
     out = kf(torch.tensor(y), torch.tensor(dt), u=torch.tensor(u))
     sm = kf.smooth(out)
     A, Q, G = scipy_discretize(F, L, Qc, dt, B)
@@ -96,8 +97,14 @@ def test_constant_velocity_model_matches_closed_form_reference():
 def test_gradcheck_wrt_F_Qc_H_R_m0_P0_dt():
     rng = np.random.default_rng(2)
     F, L, Qc, _ = damped_model(with_input=False)
-    kf = tl.KalmanFilter(make_sde(F, L, Qc, learn=("F", "Qc")), torch.tensor(H_NP), torch.tensor(R_NP),
-                         m0=torch.zeros(4, dtype=F64), P0=torch.eye(4, dtype=F64), learn=("H", "R", "m0", "P0"))
+    kf = tl.KalmanFilter(
+        make_sde(F, L, Qc, learn=("F", "Qc")),
+        torch.tensor(H_NP),
+        torch.tensor(R_NP),
+        m0=torch.zeros(4, dtype=F64),
+        P0=torch.eye(4, dtype=F64),
+        learn=("H", "R", "m0", "P0"),
+    )
     names = [n for n, _ in kf.named_parameters()]
     assert len(names) == 6, names  # F, Qc, H, R, m0, P0
     y = torch.tensor(rng.standard_normal((2, 4, 2)))

@@ -51,8 +51,12 @@ def test_transition_layer_matrix_exp_calls_torch_and_agrees(count_matrix_exp: li
     A_db2, G_db = tl.Transition(method="doubling")(F, dt, B=B)
     for a, b in ((A_me, A_db), (A_me2, A_db2), (G_me, G_db)):
         assert torch.allclose(a, b, rtol=1e-12, atol=1e-12)
-    A_ref, _, G_ref = zip(*(scipy_discretize(F[i].numpy(), np.zeros((3, 1)), np.zeros((1, 1)), float(dt[i]), B[i].numpy())
-                            for i in range(5)))
+    A_ref, _, G_ref = zip(
+        *(
+            scipy_discretize(F[i].numpy(), np.zeros((3, 1)), np.zeros((1, 1)), float(dt[i]), B[i].numpy())
+            for i in range(5)
+        )
+    )
     np.testing.assert_allclose(A_me.numpy(), np.stack(A_ref), rtol=1e-12, atol=1e-13)
     np.testing.assert_allclose(G_me.numpy(), np.stack(G_ref), rtol=1e-12, atol=1e-13)
 

@@ -24,11 +24,20 @@ def _series(B: int, T: int, seed: int, dtype: torch.dtype = F64) -> tuple[torch.
 
 
 def _kf(dtype: torch.dtype = F64, model: str = "cv") -> tl.KalmanFilter:
-    sde = tl.models.constant_velocity(dim=2, q=0.8, dtype=dtype) if model == "cv" else \
-        tl.models.integrated_ou(0.7, 0.5, dim=2, dtype=dtype)
+    sde = (
+        tl.models.constant_velocity(dim=2, q=0.8, dtype=dtype)
+        if model == "cv"
+        else tl.models.integrated_ou(0.7, 0.5, dim=2, dtype=dtype)
+    )
     R = torch.tensor([[0.3, 0.1], [0.1, 0.5]], dtype=dtype)
-    return tl.KalmanFilter(sde, torch.tensor(H2, dtype=dtype), R, P0=20 * torch.eye(4, dtype=dtype),
-                           m0=torch.tensor([0.5, 0.0, -0.5, 0.1], dtype=dtype), algorithm="sequential")
+    return tl.KalmanFilter(
+        sde,
+        torch.tensor(H2, dtype=dtype),
+        R,
+        P0=20 * torch.eye(4, dtype=dtype),
+        m0=torch.tensor([0.5, 0.0, -0.5, 0.1], dtype=dtype),
+        algorithm="sequential",
+    )
 
 
 @pytest.mark.parametrize("model", ["cv", "iou"])
@@ -40,10 +49,16 @@ def test_kalman_step_equals_sequence_filter(model):
         state = kf.initial_state((6,))
         for k in range(y.shape[1]):
             state, out = kf.step(state, y[:, k], dt[:, k], mask=mask[:, k])
-            for got, want in ((state.mean, ref.mean[:, k]), (state.cov, ref.cov[:, k]),
-                              (out.pred_mean, ref.pred_mean[:, k]), (out.pred_cov, ref.pred_cov[:, k]),
-                              (out.innovation, ref.innovation[:, k]), (out.innovation_cov, ref.innovation_cov[:, k]),
-                              (out.log_likelihood, ref.step_log_likelihood[:, k]), (out.observed, ref.observed[:, k])):
+            for got, want in (
+                (state.mean, ref.mean[:, k]),
+                (state.cov, ref.cov[:, k]),
+                (out.pred_mean, ref.pred_mean[:, k]),
+                (out.pred_cov, ref.pred_cov[:, k]),
+                (out.innovation, ref.innovation[:, k]),
+                (out.innovation_cov, ref.innovation_cov[:, k]),
+                (out.log_likelihood, ref.step_log_likelihood[:, k]),
+                (out.observed, ref.observed[:, k]),
+            ):
                 torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
 
 
@@ -86,7 +101,7 @@ def test_tracks_join_and_leave_by_indexing():
         for k in range(6):
             state, _ = kf.step(state, y[:, k], dt[:, k])
         keep = torch.tensor([True, False, True, True, False])
-        state = state.index(keep)  # tracks 1 and 4 leave
+        state = state.select(keep)  # tracks 1 and 4 leave
         state = tl.KalmanState.cat([state, kf.initial_state((2,))])  # two new tracks join
         y_now = torch.cat([y[keep, 6:], y[:2, 6:]])
         dt_now = torch.cat([dt[keep, 6:], dt[:2, 6:]])
@@ -144,9 +159,14 @@ def test_step_validates_arguments():
 def _imm(dtype: torch.dtype = F64) -> tl.IMMFilter:
     cv = tl.models.constant_velocity(dim=2, q=0.5, dtype=dtype)
     iou = tl.models.integrated_ou(1.5, 0.05, dim=2, dtype=dtype)
-    return tl.IMMFilter([cv, iou], torch.tensor(H2, dtype=dtype), 0.4 * torch.eye(2, dtype=dtype),
-                        torch.tensor([[0.0, 0.2], [0.4, 0.0]], dtype=dtype), P0=30 * torch.eye(4, dtype=dtype),
-                        mode_prob0=torch.tensor([0.3, 0.7], dtype=dtype))
+    return tl.IMMFilter(
+        [cv, iou],
+        torch.tensor(H2, dtype=dtype),
+        0.4 * torch.eye(2, dtype=dtype),
+        torch.tensor([[0.0, 0.2], [0.4, 0.0]], dtype=dtype),
+        P0=30 * torch.eye(4, dtype=dtype),
+        mode_prob0=torch.tensor([0.3, 0.7], dtype=dtype),
+    )
 
 
 def test_imm_step_equals_sequence_filter():
@@ -157,12 +177,18 @@ def test_imm_step_equals_sequence_filter():
         state = imm.initial_state((5,))
         for k in range(y.shape[1]):
             state, out = imm.step(state, y[:, k], dt[:, k], mask=mask[:, k])
-            for got, want in ((state.mode_prob, ref.mode_probabilities[:, k]), (state.mode_mean, ref.mode_mean[:, k]),
-                              (state.mode_cov, ref.mode_cov[:, k]), (out.mean, ref.mean[:, k]), (out.cov, ref.cov[:, k]),
-                              (out.pred_mode_prob, ref.pred_mode_probabilities[:, k]),
-                              (out.mode_innovation, ref.mode_innovation[:, k]),
-                              (out.mode_innovation_cov, ref.mode_innovation_cov[:, k]),
-                              (out.log_likelihood, ref.step_log_likelihood[:, k]), (out.observed, ref.observed[:, k])):
+            for got, want in (
+                (state.mode_prob, ref.mode_probabilities[:, k]),
+                (state.mode_mean, ref.mode_mean[:, k]),
+                (state.mode_cov, ref.mode_cov[:, k]),
+                (out.mean, ref.mean[:, k]),
+                (out.cov, ref.cov[:, k]),
+                (out.pred_mode_prob, ref.pred_mode_probabilities[:, k]),
+                (out.mode_innovation, ref.mode_innovation[:, k]),
+                (out.mode_innovation_cov, ref.mode_innovation_cov[:, k]),
+                (out.log_likelihood, ref.step_log_likelihood[:, k]),
+                (out.observed, ref.observed[:, k]),
+            ):
                 torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
 
 
@@ -178,7 +204,7 @@ def test_imm_predict_equals_forecast_and_indexing():
         fc = imm.forecast(tuple(state), h.unsqueeze(-1))
         torch.testing.assert_close(pred.mode_prob, fc.mode_probabilities[:, 0], rtol=0, atol=1e-12)
         torch.testing.assert_close(pred.mode_cov, fc.mode_cov[:, 0], rtol=0, atol=1e-12)
-        two = tl.IMMState.cat([state.index([0]), state.index(slice(2, 3))])
+        two = tl.IMMState.cat([state.select([0]), state.select(slice(2, 3))])
         torch.testing.assert_close(two.mode_mean, state.mode_mean[[0, 2]])
     with pytest.raises(ValueError, match="no inputs"):
         imm.step(state, y[:, 0], dt[:, 0], u=torch.zeros(3, 1, dtype=F64))
@@ -188,8 +214,14 @@ def test_step_with_inputs_and_feedthrough_equals_sequence_filter():
     """u enters G u (the SDE's B) and y = H x + D u, as in the sequence filter."""
     sde = tl.models.constant_velocity(dim=1, q=0.3, dtype=F64)
     sde = tl.LTISDE(sde.F, sde.L, sde.Qc, B=torch.tensor([[0.5], [1.0]], dtype=F64))
-    kf = tl.KalmanFilter(sde, torch.tensor([[1.0, 0.0]], dtype=F64), torch.tensor([[0.2]], dtype=F64),
-                         P0=5 * torch.eye(2, dtype=F64), D=torch.tensor([[0.3]], dtype=F64), algorithm="sequential")
+    kf = tl.KalmanFilter(
+        sde,
+        torch.tensor([[1.0, 0.0]], dtype=F64),
+        torch.tensor([[0.2]], dtype=F64),
+        P0=5 * torch.eye(2, dtype=F64),
+        D=torch.tensor([[0.3]], dtype=F64),
+        algorithm="sequential",
+    )
     g = torch.Generator().manual_seed(7)
     y = torch.randn(2, 15, 1, generator=g, dtype=F64)
     u = torch.randn(2, 15, 1, generator=g, dtype=F64)

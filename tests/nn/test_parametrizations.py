@@ -39,7 +39,9 @@ def raw_arrays(shape: tuple[int, ...], bound: float) -> st.SearchStrategy[np.nda
 # ------------------------------------------------------------------------- softplus
 def test_softplus_matches_definition_and_inverts() -> None:
     x = torch.tensor([-700.0, -50.0, -1.0, 0.0, 1e-8, 1.0, 19.0, 21.0, 50.0, 700.0], dtype=F64)
-    ref = torch.tensor([math.log1p(math.exp(v)) if v < 30 else v + math.log1p(math.exp(-v)) for v in x.tolist()], dtype=F64)
+    ref = torch.tensor(
+        [math.log1p(math.exp(v)) if v < 30 else v + math.log1p(math.exp(-v)) for v in x.tolist()], dtype=F64
+    )
     torch.testing.assert_close(softplus(x), ref, rtol=1e-15, atol=0)
     y = torch.tensor([1e-300, 1e-12, 1e-3, 1.0, 25.0, 1e6], dtype=F64)
     # conditioning: softplus(x) ≈ e^x for x ≪ 0, so the relative error is ≈ |x| eps (x = −690 for 1e-300)
@@ -161,7 +163,9 @@ def test_hurwitz_floors_are_relative(dtype: torch.dtype) -> None:
         raw = scale * torch.randn(3, 4, 4, generator=g, dtype=torch.float64)
         J, R, S = (x.to(torch.float64) for x in h.components(raw.to(dtype)))
         assert float(torch.linalg.eigvalsh(R).min()) >= 0.99 * delta * float(torch.linalg.matrix_norm(J, 2))
-        assert float(torch.linalg.eigvalsh(S).min()) >= 0.99 * delta * float(torch.linalg.eigvalsh(S).max()) / (1 + 4 * delta)
+        assert float(torch.linalg.eigvalsh(S).min()) >= 0.99 * delta * float(torch.linalg.eigvalsh(S).max()) / (
+            1 + 4 * delta
+        )
         F = h(raw.to(dtype)).to(torch.float64)
         assert float(torch.linalg.eigvals(F).real.max()) < 0
 

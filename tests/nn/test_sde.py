@@ -88,7 +88,9 @@ def test_stationary_transition_and_propagate_match_scipy(mats) -> None:
     sde = tl.LTISDE(t(F), t(L), t(Qc), t(B))
     P_inf = scipy.linalg.solve_continuous_lyapunov(F, -L @ Qc @ L.T)
     np.testing.assert_allclose(sde.stationary_covariance().detach().numpy(), P_inf, rtol=1e-10, atol=1e-13)
-    np.testing.assert_allclose(sde.transition_matrix(0.4).detach().numpy(), scipy.linalg.expm(0.4 * F), rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(
+        sde.transition_matrix(0.4).detach().numpy(), scipy.linalg.expm(0.4 * F), rtol=1e-10, atol=1e-14
+    )
     m0, P0, u = np.array([1.0, -2.0, 0.5]), np.diag([1.0, 2.0, 0.5]), np.array([0.3])
     m, P = sde.propagate(t(m0), t(P0), 0.4, u=t(u))
     A, Q, G = scipy_discretize(F, L, Qc, 0.4, B)

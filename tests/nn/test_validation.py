@@ -17,8 +17,10 @@ F64 = torch.float64
 
 
 def _filter(model: str = "cv", **kw: object) -> tl.KalmanFilter:
-    sde = {"cv": tl.models.constant_velocity(dim=2, q=0.7, dtype=F64),
-           "matern": tl.models.matern(1.5, lengthscale=0.8, variance=1.3, dtype=F64)}[model]
+    sde = {
+        "cv": tl.models.constant_velocity(dim=2, q=0.7, dtype=F64),
+        "matern": tl.models.matern(1.5, lengthscale=0.8, variance=1.3, dtype=F64),
+    }[model]
     H = tl.models.position_observation(sde) if model == "cv" else torch.tensor([[1.0, 0.0]], dtype=F64)
     return tl.KalmanFilter(sde, H, 0.4 * torch.eye(H.shape[0], dtype=F64), **kw)
 
@@ -66,9 +68,10 @@ def test_forward_checks_once_and_inner_calls_never(value_checks: dict[str, list]
     assert value_checks["inner"] and not any(value_checks["inner"])  # discretisation, prior, filter: unchecked
 
 
-@pytest.mark.filterwarnings("ignore:You are trying to `self.log\(\)`")
-def test_training_step_checks_once_and_discretises_once(value_checks: dict[str, list],
-                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.filterwarnings(r"ignore:You are trying to `self.log\(\)`")
+def test_training_step_checks_once_and_discretises_once(
+    value_checks: dict[str, list], monkeypatch: pytest.MonkeyPatch
+) -> None:
     """A training step with the k-step loss and inputs: one value check, one discretisation
     (the k-step loss reuses the filter's A, Q and G u instead of discretising again)."""
     sde = tl.models.mass_spring_damper(m=1.5, k=2.0, c=0.4, q=0.7, dtype=F64)
@@ -80,8 +83,11 @@ def test_training_step_checks_once_and_discretises_once(value_checks: dict[str, 
         monkeypatch.setattr(nn_kalman, name, lambda *a, _f=original, **k: (calls.append(1), _f(*a, **k))[1])
     monkeypatch.setattr(tl.LTISDE, "forward", lambda *a, **k: pytest.fail("the SDE was discretised again"))
     g = torch.Generator().manual_seed(1)
-    y, dt, u = torch.randn(4, 9, 1, generator=g, dtype=F64), torch.rand(4, 9, generator=g, dtype=F64), \
-        torch.randn(4, 9, 1, generator=g, dtype=F64)
+    y, dt, u = (
+        torch.randn(4, 9, 1, generator=g, dtype=F64),
+        torch.rand(4, 9, generator=g, dtype=F64),
+        torch.randn(4, 9, 1, generator=g, dtype=F64),
+    )
     mask = torch.ones(4, 9, dtype=torch.bool)
     mask[2, 6:] = False  # padding
     batch = TrackBatch(y=y, dt=dt, mask=mask, lengths=mask.sum(-1), u=u)
@@ -99,8 +105,11 @@ def test_k_step_loss_with_inputs_is_the_filters_step_likelihood_at_k_1() -> None
     kf = tl.KalmanFilter(sde, sde.C, 0.1 * torch.eye(1, dtype=F64), P0=torch.eye(2, dtype=F64))
     module = KalmanFilterModule(kf, k_step=1, k_step_weight=1.0)
     g = torch.Generator().manual_seed(2)
-    y, dt, u = torch.randn(3, 12, 1, generator=g, dtype=F64), torch.rand(3, 12, generator=g, dtype=F64) + 0.1, \
-        torch.randn(3, 12, 1, generator=g, dtype=F64)
+    y, dt, u = (
+        torch.randn(3, 12, 1, generator=g, dtype=F64),
+        torch.rand(3, 12, generator=g, dtype=F64) + 0.1,
+        torch.randn(3, 12, 1, generator=g, dtype=F64),
+    )
     y[1, 4] = float("nan")
     out = kf(y, dt, u=u)
     got = module.k_step_nll(out, y, ~torch.isnan(y))
@@ -146,10 +155,16 @@ def test_class_default_and_instance_override(monkeypatch: pytest.MonkeyPatch) ->
 def test_imm_filter_algorithms_and_checks() -> None:
     cv = tl.models.constant_velocity(dim=1, q=0.5, dtype=F64)
     ou = tl.models.integrated_ou(k=0.5, q=0.5, dtype=F64)
-    args = ([cv, ou], torch.tensor([[1.0, 0.0]], dtype=F64), 0.2 * torch.eye(1, dtype=F64),
-            torch.tensor([[0.0, 0.1], [0.1, 0.0]], dtype=F64))
+    args = (
+        [cv, ou],
+        torch.tensor([[1.0, 0.0]], dtype=F64),
+        0.2 * torch.eye(1, dtype=F64),
+        torch.tensor([[0.0, 0.1], [0.1, 0.0]], dtype=F64),
+    )
     for algorithm in ("scan", "square_root", "parallel"):
-        with pytest.raises(ValueError, match=rf"IMMFilter has the algorithms \('auto', 'sequential'\), got algorithm='{algorithm}'"):
+        with pytest.raises(
+            ValueError, match=rf"IMMFilter has the algorithms \('auto', 'sequential'\), got algorithm='{algorithm}'"
+        ):
             tl.IMMFilter(*args, algorithm=algorithm)
     imm = tl.IMMFilter(*args, algorithm="sequential")
     y, dt = torch.randn(2, 7, 1, dtype=F64), torch.rand(2, 7, dtype=F64)

@@ -34,10 +34,21 @@ def make_tracks(object_id: list[int], times: list[np.ndarray], positions: list[n
     N = int(offsets[-1])
     fields = {f: 0 for f in LoadSummary.__dataclass_fields__}
     fields.update(source="synthetic", malformed_examples=(), frame="local", rules={}, dims=2)
-    return Tracks(np.asarray(object_id, dtype=np.int64), offsets, np.concatenate(times).astype(np.float64),
-                  np.concatenate(positions).astype(np.float64), np.zeros(N), np.zeros(N), None, None, None,
-                  np.zeros((len(times), 3)), np.datetime64("2020-01-01T00:00:00", "us"), "local",
-                  LoadSummary(**fields))
+    return Tracks(
+        np.asarray(object_id, dtype=np.int64),
+        offsets,
+        np.concatenate(times).astype(np.float64),
+        np.concatenate(positions).astype(np.float64),
+        np.zeros(N),
+        np.zeros(N),
+        None,
+        None,
+        None,
+        np.zeros((len(times), 3)),
+        np.datetime64("2020-01-01T00:00:00", "us"),
+        "local",
+        LoadSummary(**fields),
+    )
 
 
 def simulated_cv(q: float, r: float, num: int, T: int, seed: int, mean_dt: float = 60.0) -> Tracks:
@@ -45,8 +56,16 @@ def simulated_cv(q: float, r: float, num: int, T: int, seed: int, mean_dt: float
     sde = tl.models.constant_velocity(dim=2, q=torch.tensor(q, dtype=torch.float64))
     H = tl.models.position_observation(sde)
     P0 = torch.diag(torch.tensor([1e-6, 25.0, 1e-6, 25.0], dtype=torch.float64))
-    b = simulate_tracks(sde, H, r**2 * torch.eye(2, dtype=torch.float64), num, T,
-                        dt_sampler=ExponentialDt(mean_dt, min_dt=5.0), P0=P0, seed=seed)
+    b = simulate_tracks(
+        sde,
+        H,
+        r**2 * torch.eye(2, dtype=torch.float64),
+        num,
+        T,
+        dt_sampler=ExponentialDt(mean_dt, min_dt=5.0),
+        P0=P0,
+        seed=seed,
+    )
     t = torch.cumsum(b.dt, dim=1).numpy()
     return make_tracks(list(range(num)), [t[i] for i in range(num)], [b.y[i].numpy() for i in range(num)])
 
@@ -58,8 +77,12 @@ def test_mixture_log_prob_matches_torch_distributions() -> None:
     A = torch.randn(1, 2, 2, 2, generator=g, dtype=torch.float64)
     S = A @ A.mT + 0.5 * torch.eye(2, dtype=torch.float64)
     x = torch.randn(1, 2, generator=g, dtype=torch.float64)
-    want = math.log(sum(float(w[0, j]) * math.exp(float(
-        torch.distributions.MultivariateNormal(mu[0, j], S[0, j]).log_prob(x[0]))) for j in range(2)))
+    want = math.log(
+        sum(
+            float(w[0, j]) * math.exp(float(torch.distributions.MultivariateNormal(mu[0, j], S[0, j]).log_prob(x[0])))
+            for j in range(2)
+        )
+    )
     assert float(mixture_log_prob(x, w, mu, S)[0]) == pytest.approx(want, rel=1e-12)
 
 
@@ -84,8 +107,13 @@ def test_hpd_of_a_gaussian_is_the_2sigma_ellipse_and_mixture_coverage_is_nominal
     assert cover == pytest.approx(NOMINAL_2SIGMA, abs=0.025)
     # the same mixture, a component written twice, is still the same Gaussian: same region (up to MC)
     n = 500
-    two = hpd_inside(y[:n], torch.full((n, 2), 0.5, dtype=torch.float64), torch.zeros(n, 2, 2, dtype=torch.float64),
-                     S1[:n].expand(n, 2, 2, 2), samples=2000)
+    two = hpd_inside(
+        y[:n],
+        torch.full((n, 2), 0.5, dtype=torch.float64),
+        torch.zeros(n, 2, 2, dtype=torch.float64),
+        S1[:n].expand(n, 2, 2, 2),
+        samples=2000,
+    )
     assert float((two == inside[:n]).double().mean()) > 0.97
 
 
@@ -116,7 +144,7 @@ def test_forecast_rmse_and_nll_match_a_hand_computation() -> None:
             out = kf(y, dt)
         nll += (-out.step_log_likelihood[1:]).tolist()
         for k in range(1, len(t)):
-            leads = t[k + 1:] - t[k]
+            leads = t[k + 1 :] - t[k]
             if leads.numel() == 0:
                 continue
             j = int(torch.argmin((leads - 300.0).abs()))
@@ -135,8 +163,9 @@ def test_forecast_rmse_and_nll_match_a_hand_computation() -> None:
 def test_coverage_of_the_true_model_is_nominal() -> None:
     q, r = 0.02, 4.0
     tr = simulated_cv(q, r, num=40, T=80, seed=5)
-    res = summary(evaluate_filter(cv_filter(q, r, diffuse_variance=25.0), tr, horizons=(300.0,),
-                                  forecast_coverage=True))
+    res = summary(
+        evaluate_filter(cv_filter(q, r, diffuse_variance=25.0), tr, horizons=(300.0,), forecast_coverage=True)
+    )
     assert res["cover2s"] == pytest.approx(NOMINAL_2SIGMA, abs=0.02)
     assert res["fc_cover2s_5"] == pytest.approx(NOMINAL_2SIGMA, abs=0.03)
     # a model far too confident under-covers
@@ -173,8 +202,9 @@ def test_paired_bootstrap_interval_covers_the_true_difference() -> None:
 
 def test_forecast_pairs_pick_the_nearest_lead_within_tolerance() -> None:
     t = torch.tensor([[0.0, 100.0, 290.0, 420.0, 700.0]], dtype=torch.float64)
-    batch = tl.data.TrackBatch(torch.zeros(1, 5, 2), torch.zeros(1, 5), torch.ones(1, 5, dtype=torch.bool),
-                               torch.tensor([5]), t=t)
+    batch = tl.data.TrackBatch(
+        torch.zeros(1, 5, 2), torch.zeros(1, 5), torch.ones(1, 5, dtype=torch.bool), torch.tensor([5]), t=t
+    )
     b, k, j = forecast_pairs(batch, 300.0)
     # from 100: 420 (lead 320); from 290: nearest 700 (lead 410, off by > 25 %): none; from 420: 700 (280);
     # never from the first report (k = 0)

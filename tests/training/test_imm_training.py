@@ -42,8 +42,15 @@ def _imm() -> tl.IMMFilter:
     H = models.position_observation(underway)
     R = torch.stack([0.1 * torch.eye(2), 2.0 * torch.eye(2)]).double()
     rates = torch.tensor([[0.0, 0.01], [0.03, 0.0]], dtype=torch.float64)
-    return tl.IMMFilter([moored, underway], H, R, rates, mode_prob0=torch.tensor([0.8, 0.2], dtype=torch.float64),
-                        learn=("R", "rates", "mode_prob0"), mode_names=("moored", "underway"))
+    return tl.IMMFilter(
+        [moored, underway],
+        H,
+        R,
+        rates,
+        mode_prob0=torch.tensor([0.8, 0.2], dtype=torch.float64),
+        learn=("R", "rates", "mode_prob0"),
+        mode_names=("moored", "underway"),
+    )
 
 
 def test_modes_of_both_filters() -> None:
@@ -111,11 +118,20 @@ def test_imm_k_step_loss_is_the_forecast_mixture_at_the_lead() -> None:
         for tt in range(12 - k):
             lead = dt[bb, tt + 1 : tt + k + 1].sum()
             with torch.no_grad():
-                fc = imm.forecast((out.mode_probabilities[bb, tt], out.mode_mean[bb, tt], out.mode_cov[bb, tt]),
-                                  lead.reshape(1))
-            dens = sum(float(fc.mode_probabilities[0, j]) * math.exp(float(
-                torch.distributions.MultivariateNormal(fc.mode_obs_mean[0, j], fc.mode_obs_cov[0, j]).log_prob(
-                    y[bb, tt + k]))) for j in range(2))
+                fc = imm.forecast(
+                    (out.mode_probabilities[bb, tt], out.mode_mean[bb, tt], out.mode_cov[bb, tt]), lead.reshape(1)
+                )
+            dens = sum(
+                float(fc.mode_probabilities[0, j])
+                * math.exp(
+                    float(
+                        torch.distributions.MultivariateNormal(fc.mode_obs_mean[0, j], fc.mode_obs_cov[0, j]).log_prob(
+                            y[bb, tt + k]
+                        )
+                    )
+                )
+                for j in range(2)
+            )
             total -= math.log(dens)
     assert float(got) == pytest.approx(total, rel=1e-9)
     # padding (unobserved targets) does not count; gradients reach the rates and the models

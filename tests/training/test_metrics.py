@@ -63,6 +63,10 @@ def test_autocovariance_is_basis_free_and_raw_f_is_not() -> None:
     raw = parameter_errors(twin, truth, compare=("F", "Qc"))  # without H: entrywise (and large)
     assert raw["expmF"] > 0.3
     # against a hand value: scalar OU dx = -a x dt + dβ (q): C(τ) = q/(2a) e^{-aτ}
-    ou = tl.LTISDE(-torch.ones(1, 1, dtype=torch.float64), torch.ones(1, 1, dtype=torch.float64), 2 * torch.ones(1, 1, dtype=torch.float64))
+    ou = tl.LTISDE(
+        -torch.ones(1, 1, dtype=torch.float64),
+        torch.ones(1, 1, dtype=torch.float64),
+        2 * torch.ones(1, 1, dtype=torch.float64),
+    )
     C = observed_autocovariance(ou, torch.ones(1, 1, dtype=torch.float64), [0.0, 1.0])
     torch.testing.assert_close(C.flatten(), torch.tensor([1.0, math.exp(-1.0)], dtype=torch.float64))

@@ -47,8 +47,14 @@ def test_nonfinite_step_is_skipped_and_counted(tmp_path: Path) -> None:
 
     module, batches = _nan_batch_module(skip=True)
     before = {k: v.clone() for k, v in module.state_dict().items()}
-    trainer = pl.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                         enable_model_summary=False, default_root_dir=tmp_path)
+    trainer = pl.Trainer(
+        max_epochs=1,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=tmp_path,
+    )
     with pytest.warns(RuntimeWarning, match="non-finite loss or gradient.*skipped"):
         trainer.fit(module, train_dataloaders=torch.utils.data.DataLoader(batches, batch_size=None))
     assert module.skipped_steps == 1

@@ -33,15 +33,19 @@ def _slice(name: str, tmp_path: Path, first: int = 40, also: str | None = None, 
     return out
 
 
-@pytest.mark.parametrize(("experiment", "source", "also"), [
-    ("ais_us_coastal", "US_coastal_2020_06_30.traj", None),
-    ("ais_ny_week", "NYHarbor_2020_12_first_week.traj", "2020-12-07"),
-    ("flights", "prediction_historical_trajectories.traj", None),
-    ("flights", "SampleTrajectories.traj", None),
-    ("flights_3d", None, None),
-])
-def test_real_data_experiment_trains_a_step(tmp_path: Path, experiment: str, source: str | None,
-                                            also: str | None) -> None:
+@pytest.mark.parametrize(
+    ("experiment", "source", "also"),
+    [
+        ("ais_us_coastal", "US_coastal_2020_06_30.traj", None),
+        ("ais_ny_week", "NYHarbor_2020_12_first_week.traj", "2020-12-07"),
+        ("flights", "prediction_historical_trajectories.traj", None),
+        ("flights", "SampleTrajectories.traj", None),
+        ("flights_3d", None, None),
+    ],
+)
+def test_real_data_experiment_trains_a_step(
+    tmp_path: Path, experiment: str, source: str | None, also: str | None
+) -> None:
     overrides = [f"experiment={experiment}", "+trainer.fast_dev_run=true", "plots=false", "data.batch_size=16"]
     if source is not None:
         overrides.append(f"data.source={_slice(source, tmp_path, also=also)}")
@@ -67,8 +71,9 @@ def test_real_data_experiment_trains_a_step(tmp_path: Path, experiment: str, sou
 def test_slurm_launcher_config_composes() -> None:
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("train", overrides=["hydra/launcher=slurm", "trainer=ddp", "trainer.num_nodes=2"],
-                      return_hydra_config=True)
+        cfg = compose(
+            "train", overrides=["hydra/launcher=slurm", "trainer=ddp", "trainer.num_nodes=2"], return_hydra_config=True
+        )
     assert cfg.hydra.launcher._target_.endswith("SlurmLauncher") and cfg.hydra.launcher.nodes == 1
     assert cfg.trainer.num_nodes == 2 and cfg.trainer.strategy.process_group_backend == "gloo"
 
@@ -77,8 +82,19 @@ def test_submitit_local_sweep_runs_each_job(tmp_path: Path) -> None:
     """hydra/launcher=local_jobs: submitit's local executor, one process per run (Slurm's path, here)."""
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
     sweep = tmp_path / "sweep"
-    proc = _run(["-m", "hydra/launcher=local_jobs", "experiment=tiny", "model=cv,integrated_ou",
-                 "trainer.max_epochs=1", "test=false", f"hydra.sweep.dir={sweep}"], tmp_path, timeout=400)
+    proc = _run(
+        [
+            "-m",
+            "hydra/launcher=local_jobs",
+            "experiment=tiny",
+            "model=cv,integrated_ou",
+            "trainer.max_epochs=1",
+            "test=false",
+            f"hydra.sweep.dir={sweep}",
+        ],
+        tmp_path,
+        timeout=400,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Submitit 'local' sweep" in proc.stdout + proc.stderr
     models = {json.loads((sweep / k / "metrics.json").read_text())["model"] for k in ("0", "1")}
@@ -88,10 +104,25 @@ def test_submitit_local_sweep_runs_each_job(tmp_path: Path) -> None:
 def test_optuna_search_runs_trials(tmp_path: Path) -> None:
     pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
     sweep = tmp_path / "search"
-    proc = _run(["-m", "experiment=search", "hydra.sweeper.n_trials=3", "hydra.sweeper.sampler.n_startup_trials=2",
-                 "data.num_tracks.train=8", "data.num_tracks.val=4", "data.num_tracks.test=4", "data.T=8",
-                 "data.T_min=5", "data.batch_size=4", "trainer.max_epochs=1", "trainer.enable_progress_bar=false",
-                 f"hydra.sweep.dir={sweep}"], tmp_path, timeout=400)
+    proc = _run(
+        [
+            "-m",
+            "experiment=search",
+            "hydra.sweeper.n_trials=3",
+            "hydra.sweeper.sampler.n_startup_trials=2",
+            "data.num_tracks.train=8",
+            "data.num_tracks.val=4",
+            "data.num_tracks.test=4",
+            "data.T=8",
+            "data.T_min=5",
+            "data.batch_size=4",
+            "trainer.max_epochs=1",
+            "trainer.enable_progress_bar=false",
+            f"hydra.sweep.dir={sweep}",
+        ],
+        tmp_path,
+        timeout=400,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     best = (sweep / "optimization_results.yaml").read_text()
     assert "best_params" in best and "module.optimizer.lr" in best and "model" in best

@@ -36,8 +36,13 @@ def _cfg(out: Path, *overrides: str):
 
 
 def _signal_at(epoch: int, *, batch: int = 0, signum: int = signal.SIGTERM, stage: str = "train") -> list[str]:
-    return ["+callbacks.kill._target_=tests.training.helpers.SignalAt", f"+callbacks.kill.epoch={epoch}",
-            f"+callbacks.kill.batch={batch}", f"+callbacks.kill.signum={int(signum)}", f"+callbacks.kill.stage={stage}"]
+    return [
+        "+callbacks.kill._target_=tests.training.helpers.SignalAt",
+        f"+callbacks.kill.epoch={epoch}",
+        f"+callbacks.kill.batch={batch}",
+        f"+callbacks.kill.signum={int(signum)}",
+        f"+callbacks.kill.stage={stage}",
+    ]
 
 
 def _csv_rows(run: Path) -> list[dict[str, str]]:
@@ -101,8 +106,14 @@ def test_interrupted_twice_then_resumed_equals_the_uninterrupted_run(tmp_path: P
     assert float(state["best_model_score"]) == min(float(r["val/nll"]) for r in _csv_rows(run) if r["val/nll"])
     ref_summary = load_strict_json(reference / "metrics.json")
     assert summary["table"] == ref_summary["table"] and summary["best"] == ref_summary["best"]
-    assert torch.equal(*(torch.load(r / "checkpoints" / "best.ckpt", weights_only=True)["state_dict"]["kf.sde.parametrizations.k.original"]
-                         for r in (run, reference)))
+    assert torch.equal(
+        *(
+            torch.load(r / "checkpoints" / "best.ckpt", weights_only=True)["state_dict"][
+                "kf.sde.parametrizations.k.original"
+            ]
+            for r in (run, reference)
+        )
+    )
     history = next(c for c in objects["callbacks"] if type(c).__name__ == "ParameterHistory").history
     assert [r["epoch"] for r in history] == [float(e) for e in range(EPOCHS)]
 
@@ -133,7 +144,9 @@ def test_interrupted_while_testing_resumes_to_the_same_report(tmp_path: Path) ->
     train(_cfg(run, *with_test, f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}"))
     got, ref = load_strict_json(run / "metrics.json"), load_strict_json(tmp_path / "reference" / "metrics.json")
     drop = {"wall_time"}
-    assert {k: v for k, v in got["metrics"].items() if k not in drop} == {k: v for k, v in ref["metrics"].items() if k not in drop}
+    assert {k: v for k, v in got["metrics"].items() if k not in drop} == {
+        k: v for k, v in ref["metrics"].items() if k not in drop
+    }
     assert got["table"] == ref["table"] and got["best"] == ref["best"] and got["status"] == "completed"
     assert _csv_rows(run) == _csv_rows(tmp_path / "reference")
 
@@ -168,9 +181,19 @@ def test_signal_guard_stops_at_once_outside_graceful_phases_and_restores_handler
 
 
 def _cli(args: list[str], cwd: Path) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONWARNINGS": "ignore", "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    return subprocess.Popen([sys.executable, "-m", "torchsde_lti.train", *args], cwd=cwd, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    env = {
+        **os.environ,
+        "PYTHONWARNINGS": "ignore",
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
+    return subprocess.Popen(
+        [sys.executable, "-m", "torchsde_lti.train", *args],
+        cwd=cwd,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
 
 
 def test_cli_sigterm_exits_143_and_resumes_in_the_same_directory(tmp_path: Path, reference: Path) -> None:

@@ -41,7 +41,9 @@ def _group(name: str) -> list[str]:
 # --------------------------------------------------------------------------- composition
 
 
-@pytest.mark.parametrize("model", [m for m in _group("model") if not m.startswith("imm")])  # imm*: test_imm_training.py, test_real_data.py
+@pytest.mark.parametrize(
+    "model", [m for m in _group("model") if not m.startswith("imm")]
+)  # imm*: test_imm_training.py, test_real_data.py
 def test_model_configs_instantiate_filter_and_data(tmp_path: Path, model: str) -> None:
     cfg = _cfg(tmp_path, f"model={model}", *TINY)
     dm = instantiate(cfg.data)
@@ -173,8 +175,12 @@ def test_restart_learner_perturbs_raw_parameters_reproducibly() -> None:
     from torchsde_lti.training import restart_learner
 
     def make() -> tl.KalmanFilter:
-        sde = tl.LTISDE(-torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64),
-                        torch.eye(2, dtype=torch.float64), F_constraint="hurwitz")
+        sde = tl.LTISDE(
+            -torch.eye(2, dtype=torch.float64),
+            torch.eye(2, dtype=torch.float64),
+            torch.eye(2, dtype=torch.float64),
+            F_constraint="hurwitz",
+        )
         return tl.KalmanFilter(sde, torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64))
 
     a, b, c = make(), make(), make()
@@ -221,7 +227,10 @@ def test_checkpoints_are_named_for_what_they_hold_and_reports_say_which(tmp_path
     assert summary["best"]["val/nll"] == val[0] and summary["metrics"]["val/nll"] == val[3]
     module, truth = objects["module"], objects["truth"]
     trainer = objects["trainer"]
-    for ckpt, table in ((best, summary["best"]["table"]), (last, summary["table"])):  # last loaded last: the final weights
+    for ckpt, table in (
+        (best, summary["best"]["table"]),
+        (last, summary["table"]),
+    ):  # last loaded last: the final weights
         module.load_state_dict(ckpt["state_dict"])
         assert to_jsonable(parameter_table(module, truth)) == table
     tested = trainer.test(module, datamodule=objects["datamodule"], verbose=False)[0]
@@ -256,7 +265,9 @@ def test_resume_from_checkpoint_continues_identically(tmp_path: Path) -> None:
     for k in a:
         assert torch.equal(a[k], b[k]), k
     # not trivially equal: training moved the parameters
-    assert not torch.equal(a["kf.sde.parametrizations.k.original"], part["module"].state_dict()["kf.sde.parametrizations.k.original"])
+    assert not torch.equal(
+        a["kf.sde.parametrizations.k.original"], part["module"].state_dict()["kf.sde.parametrizations.k.original"]
+    )
     hist = [c for c in resumed["callbacks"] if type(c).__name__ == "ParameterHistory"][0].history
     assert [r["epoch"] for r in hist] == [0.0, 1.0, 2.0, 3.0]
 
@@ -293,7 +304,9 @@ def _run(args: list[str], cwd: Path, timeout: float = 240) -> subprocess.Complet
 
 def test_multirun_launches_two_runs(tmp_path: Path) -> None:
     sweep = tmp_path / "sweep"
-    proc = _run(["--multirun", "data.noise=0.1,1.0", *TINY, "trainer.max_epochs=1", f"hydra.sweep.dir={sweep}"], tmp_path)
+    proc = _run(
+        ["--multirun", "data.noise=0.1,1.0", *TINY, "trainer.max_epochs=1", f"hydra.sweep.dir={sweep}"], tmp_path
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     runs = sorted(p for p in sweep.iterdir() if p.is_dir() and p.name.isdigit())
     assert [p.name for p in runs] == ["0", "1"]
@@ -311,8 +324,20 @@ def test_multirun_launches_two_runs(tmp_path: Path) -> None:
 def test_restarts_multirun_keeps_the_best_validation_nll(tmp_path: Path) -> None:
     sweep = tmp_path / "restarts"
     small = ["data.num_tracks.train=8", "data.num_tracks.val=4", "data.T=8", "data.T_min=5", "data.batch_size=4"]
-    proc = _run(["--multirun", "experiment=restarts", "model=hurwitz", *small, "restart=range(2)", "trainer.max_epochs=1",
-                 "test=false", "plots=false", f"hydra.sweep.dir={sweep}"], tmp_path)
+    proc = _run(
+        [
+            "--multirun",
+            "experiment=restarts",
+            "model=hurwitz",
+            *small,
+            "restart=range(2)",
+            "trainer.max_epochs=1",
+            "test=false",
+            "plots=false",
+            f"hydra.sweep.dir={sweep}",
+        ],
+        tmp_path,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     best = json.loads((sweep / "best_run.json").read_text())
     values = [json.loads((sweep / str(i) / "metrics.json").read_text())["metrics"]["val/nll"] for i in range(2)]

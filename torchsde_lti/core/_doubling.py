@@ -138,8 +138,9 @@ class _Layout:
         return xb.movedim((-2, -1), (0, 1)).contiguous() if batch_last else xb
 
 
-def _double(A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, near: Tensor | None,
-            eye: Tensor, lo: _Layout) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
+def _double(
+    A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, near: Tensor | None, eye: Tensor, lo: _Layout
+) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
     """One doubling: Q ← A Q Aᵀ + Q, G ← A G + G and A ← A A, where X holds E = A − I
     (E ← E + E A) for the elements with ``near`` = 1 and A for those with 0 (None: all E)."""
     Q = None if Q is None else lo.mm(lo.mm(A, Q), lo.t(A), Q)
@@ -157,8 +158,9 @@ def _decayed(A: Tensor, lo: _Layout) -> Tensor:
         return lo.norm_sq(A) < 0.25
 
 
-def _double_sorted(A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, counts: list[int],
-                   lo: _Layout) -> tuple[Tensor, Tensor | None, Tensor | None]:
+def _double_sorted(
+    A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, counts: list[int], lo: _Layout
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
     """Doubling of elements sorted by halvings (descending): step j doubles the first counts[j]
     (those with more than j halvings) and leaves the others final."""
     eye = lo.eye(X.shape[1], X)
@@ -183,11 +185,12 @@ def _double_sorted(A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, cou
         return A, Q, G
     parts = [(A, Q, G), *done[::-1]]
     A, Q, G = (lo.cat([p[i] for p in parts]) for i in range(3))
-    return A, Q, G  # type: ignore[return-value]
+    return A, Q, G
 
 
-def _double_masked(A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, halvings: Tensor,
-                   lo: _Layout, differentiable: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
+def _double_masked(
+    A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, halvings: Tensor, lo: _Layout, differentiable: bool
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
     """Doubling of unsorted elements without data-dependent control flow (tracing): every step
     runs on all elements and keeps the result of those with more halvings than the step
     (``torch.where``). ``max s`` steps of torch's structured while_loop, or with
@@ -207,7 +210,7 @@ def _double_masked(A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, hal
     near = lo.col(torch.ones(halvings.shape, dtype=torch.bool, device=halvings.device))
     if differentiable:
         for j in range(TRACED_MAX_HALVINGS):
-            A, X, near, Q, G = step(j, A, X, near, Q, G)  # type: ignore[assignment]
+            A, X, near, Q, G = step(j, A, X, near, Q, G)
         return A, Q, G
     from torch._higher_order_ops import while_loop
 
@@ -218,8 +221,13 @@ def _double_masked(A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, hal
         A, X, near, q, g = step(j, A, X, near, qg[0] if has_q else None, qg[-1] if has_g else None)
         return (j + 1, A, X, near, *(t for t in (q, g) if t is not None))
 
-    init = (torch.zeros((), dtype=torch.int64, device=halvings.device), A, X, near,
-            *(t for t in (Q, G) if t is not None))
+    init = (
+        torch.zeros((), dtype=torch.int64, device=halvings.device),
+        A,
+        X,
+        near,
+        *(t for t in (Q, G) if t is not None),
+    )
     out = while_loop(lambda j, *rest: j < steps, body, init)
     return out[1], (out[4] if has_q else None), (out[-1] if has_g else None)
 
@@ -298,8 +306,15 @@ def _schedule(steps: Tensor, top: int) -> tuple[Tensor | None, list[int]]:
     return order, (steps.numel() - torch.cumsum(tally, 0))[:top].tolist()
 
 
-def _finish(A: Tensor, Q: Tensor | None, G: Tensor | None, lo: _Layout, order: Tensor | None, batch: torch.Size,
-            batch_last: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
+def _finish(
+    A: Tensor,
+    Q: Tensor | None,
+    G: Tensor | None,
+    lo: _Layout,
+    order: Tensor | None,
+    batch: torch.Size,
+    batch_last: bool,
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
     """Q made exactly symmetric, and all three in the elements' order and the output layout."""
     if Q is not None:
         Q = torch.lerp(Q, lo.t(Q), 0.5)
@@ -333,8 +348,9 @@ def _terms(F: Tensor, X: Tensor, count: int, lyapunov: bool = False) -> Tensor:
     return torch.stack(terms)
 
 
-def shared_doubling(F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor,
-                    batch_last: bool = False) -> tuple[Tensor, Tensor | None, Tensor | None]:
+def shared_doubling(
+    F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor, batch_last: bool = False
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
     r"""(A, Q, G) for ONE parameter set, F (n, n), W (n, n) or None, B (n, p) or None, over
     dt (*batch); shapes as :func:`per_element_doubling`.
 
@@ -400,8 +416,16 @@ def shared_doubling(F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor,
     return _finish(A, Q, G, lo, order, batch, batch_last)
 
 
-def _full_step(stacks: list[Tensor | None], R: Tensor, exact: tuple[int, ...], full: tuple[int, ...], h: Tensor,
-               eye: Tensor, batch: torch.Size, batch_last: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
+def _full_step(
+    stacks: list[Tensor | None],
+    R: Tensor,
+    exact: tuple[int, ...],
+    full: tuple[int, ...],
+    h: Tensor,
+    eye: Tensor,
+    batch: torch.Size,
+    batch_last: bool,
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
     """The terminating series of a nilpotent F at the full step: A = I + Σ_k r_k F̃^k,
     Q = Σ_k (h r_k) 𝓛̃^k(W)/(k+1), G likewise, one product each, h folded into the coefficient
     rows and Q formed on its n(n+1)/2 distinct entries (exactly symmetric). Coefficients of the

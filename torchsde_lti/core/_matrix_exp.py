@@ -17,6 +17,7 @@ from torchsde_lti.core.validation import SDEInputs, cholesky_succeeds
 
 __all__ = ["accurate", "matrix_exp"]
 
+
 def matrix_exp(x: SDEInputs) -> tuple[Tensor, Tensor | None, Tensor | None]:
     """(A, Q, G) of shapes (*batch, n, n), (*batch, n, n) or None, (*batch, n, p) or None.
 
@@ -82,8 +83,14 @@ def accurate(x: SDEInputs) -> bool:
         return bool(torch.stack(checks).all())
 
 
-def _accurate_values(host: dict[str, list[float]], F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor,
-                     bounds: tuple[float, float, float]) -> bool:
+def _accurate_values(
+    host: dict[str, list[float]],
+    F: Tensor,
+    W: Tensor | None,
+    B: Tensor | None,
+    dt: Tensor,
+    bounds: tuple[float, float, float],
+) -> bool:
     """:func:`accurate` on Python floats (:attr:`SDEInputs.host`). Norms pair with their own
     element's dt where the batch shapes agree, else the largest norm with the largest step."""
     theta_f, theta_c, delta = bounds

@@ -85,11 +85,15 @@ def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | No
         rightmost = float(torch.linalg.eigvals(inputs.F.double()).real.max())
         dt_max = float(inputs.dt.max()) if inputs.dt is not None and inputs.dt.numel() else 0.0
     if method == "matrix_exp" and rightmost < 0:
-        cause = ("method='matrix_exp' overflows for this stable F: the −Fᵀ block of Van Loan's exponential grows "
-                 "like e^(|λ| dt); the default method='doubling' does not")
+        cause = (
+            "method='matrix_exp' overflows for this stable F: the −Fᵀ block of Van Loan's exponential grows "
+            "like e^(|λ| dt); the default method='doubling' does not"
+        )
     else:
-        cause = (f"F's rightmost eigenvalue has real part {rightmost:.3g}; an unstable F grows like e^(Re λ dt); "
-                 "shorten dt, rescale the state, or use float64")
+        cause = (
+            f"F's rightmost eigenvalue has real part {rightmost:.3g}; an unstable F grows like e^(Re λ dt); "
+            "shorten dt, rescale the state, or use float64"
+        )
     raise ValueError(
         f"the discretisation overflows {inputs.F.dtype}: {', '.join(bad)} not finite for dt up to {dt_max:.3g} ({cause})"
     )
@@ -186,7 +190,7 @@ def discretize_series(
     with intra_op_threads(_work(inputs)):
         out = doubling(inputs._replace(dt=dt_tm, batch=dt_tm.shape, host=None), batch_last=True)
         if checks_values(validate_args):
-            _check_result(inputs, *out, method)  # type: ignore[arg-type]
+            _check_result(inputs, *out, method)
     perm = [*range(3, 3 + len(lead)), 2, 0, 1]  # (r, c, T, *lead) -> (*lead, T, r, c)
 
     def layout(x: Tensor) -> Tensor:
@@ -198,9 +202,7 @@ def discretize_series(
     return Discrete(A, Q, G)  # type: ignore[arg-type]
 
 
-def transition_matrix(
-    F: Tensor, dt: Tensor | float, method: str = "doubling", *, validate_args: bool = True
-) -> Tensor:
+def transition_matrix(F: Tensor, dt: Tensor | float, method: str = "doubling", *, validate_args: bool = True) -> Tensor:
     """A = expm(F dt).
 
     Args:

@@ -145,14 +145,14 @@ class _FmaMatmul(torch.autograd.Function):
     :func:`bl_matmul` again (double backward works). Reverse mode only (:func:`_plain_ops_required`)."""
 
     @staticmethod
-    def forward(ctx, a: Tensor, b: Tensor, c: Tensor | None, alpha: float) -> Tensor:  # type: ignore[override]
+    def forward(ctx, a: Tensor, b: Tensor, c: Tensor | None, alpha: float) -> Tensor:
         ctx.save_for_backward(a, b)
         ctx.has_c = c is not None
         ctx.alpha = alpha
         return _fma_matmul(a, b, c, alpha)
 
     @staticmethod
-    def backward(ctx, g: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None, None]:  # type: ignore[override]
+    def backward(ctx, g: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None, None]:
         a, b = ctx.saved_tensors
         ga = bl_matmul(g, b.transpose(0, 1), alpha=ctx.alpha) if ctx.needs_input_grad[0] else None
         gb = bl_matmul(a.transpose(0, 1), g, alpha=ctx.alpha) if ctx.needs_input_grad[1] else None

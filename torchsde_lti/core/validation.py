@@ -71,9 +71,7 @@ def as_float_tensors(**named: object) -> dict[str, Tensor | None]:
     return {k: None if v is None else as_float_tensor(v, k, dtype, device) for k, v in named.items()}
 
 
-def check_matrix(
-    x: Tensor, name: str, rows: int | None = None, cols: int | None = None, square: bool = False
-) -> None:
+def check_matrix(x: Tensor, name: str, rows: int | None = None, cols: int | None = None, square: bool = False) -> None:
     """Check ``x`` is (..., rows, cols); ``square`` requires rows == cols."""
     if x.dim() < 2:
         raise ValueError(f"{name} must be a matrix of shape (..., r, c), got shape {shape_str(x)}")
@@ -285,9 +283,7 @@ def sde_inputs(
         check_matrix(L, "L", rows=n)
         s = L.shape[-1]
         if Qc.dim() < 2 or Qc.shape[-2:] != (s, s):
-            raise ValueError(
-                f"Qc must have shape (..., {s}, {s}) to match L {shape_str(L)}, got shape {shape_str(Qc)}"
-            )
+            raise ValueError(f"Qc must have shape (..., {s}, {s}) to match L {shape_str(L)}, got shape {shape_str(Qc)}")
         checked += [("L", L), ("Qc", Qc)]
         named += [("L", L.shape[:-2]), ("Qc", Qc.shape[:-2])]
     if B is not None:
@@ -335,4 +331,3 @@ def sde_inputs(
         if Qc is not None:
             check_symmetric_psd(Qc, "Qc")
     return SDEInputs(F, W, B, dt_t, batch, host)
-

@@ -38,8 +38,14 @@ def angular_distance(lat1: np.ndarray, lon1: np.ndarray, lat2: np.ndarray, lon2:
     return np.radians(anglesep(lon1, lat1, lon2, lat2))
 
 
-def local_positions(lat: np.ndarray, lon: np.ndarray, lat0: np.ndarray, lon0: np.ndarray,
-                    alt: np.ndarray | None = None, alt0: np.ndarray | None = None) -> np.ndarray:
+def local_positions(
+    lat: np.ndarray,
+    lon: np.ndarray,
+    lat0: np.ndarray,
+    lon0: np.ndarray,
+    alt: np.ndarray | None = None,
+    alt0: np.ndarray | None = None,
+) -> np.ndarray:
     """Positions in the frames at (lat0, lon0): (N, 2) east, north, or (N, 3) with altitude.
 
     Args:
@@ -54,8 +60,9 @@ def local_positions(lat: np.ndarray, lon: np.ndarray, lat0: np.ndarray, lon0: np
     return np.stack([east, north, np.asarray(alt, dtype=np.float64) - (0.0 if alt0 is None else alt0)], axis=-1)
 
 
-def local_velocities(speed: np.ndarray, course: np.ndarray, lat: np.ndarray, lon: np.ndarray,
-                     lat0: np.ndarray, lon0: np.ndarray) -> np.ndarray:
+def local_velocities(
+    speed: np.ndarray, course: np.ndarray, lat: np.ndarray, lon: np.ndarray, lat0: np.ndarray, lon0: np.ndarray
+) -> np.ndarray:
     """Velocity (N, 2) east, north in m/s in each report's frame at (lat0, lon0).
 
     speed (m/s) and course (degrees clockwise from true north) are taken in the report's own

@@ -22,7 +22,6 @@ from torch.utils.data import DataLoader, SequentialSampler
 
 from torchsde_lti.data.simulate import ExponentialDt, isotropic_covariance, simulate_tracks
 from torchsde_lti.data.sources import RESERVED_FOR_EVALUATION
-from torchsde_lti.data.trajectories import LoadSummary, Tracks, load_tracks, split_objects, split_time, track_windows
 from torchsde_lti.data.tracks import (
     BucketBatchSampler,
     EpochShuffleSampler,
@@ -32,6 +31,7 @@ from torchsde_lti.data.tracks import (
     padding_waste,
     unpad_tracks,
 )
+from torchsde_lti.data.trajectories import LoadSummary, Tracks, load_tracks, split_objects, split_time, track_windows
 
 __all__ = ["DataSummary", "SimulatedTracks", "TrackDataModule"]
 
@@ -127,7 +127,9 @@ class SimulatedTracks(LightningDataModule):
         if split not in self.tracks:
             self.setup()
         batch = self.tracks[split]
-        cast = {k: v.to(self.dtype) for k, v in batch._asdict().items() if isinstance(v, Tensor) and v.is_floating_point()}
+        cast = {
+            k: v.to(self.dtype) for k, v in batch._asdict().items() if isinstance(v, Tensor) and v.is_floating_point()
+        }
         return TrackDataset(unpad_tracks(batch._replace(**cast)))
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
@@ -157,16 +159,26 @@ class DataSummary:
     splits: dict[str, dict[str, float]]
 
     def as_dict(self) -> dict[str, Any]:
-        return {"load": self.load.as_dict(), "split": self.split, "max_len": self.max_len,
-                "batch_size": self.batch_size, "splits": self.splits}
+        return {
+            "load": self.load.as_dict(),
+            "split": self.split,
+            "max_len": self.max_len,
+            "batch_size": self.batch_size,
+            "splits": self.splits,
+        }
 
     def __str__(self) -> str:
-        lines = [str(self.load), f"  split by {self.split}; windows of <= {self.max_len or 'all'} reports, "
-                 f"batches of {self.batch_size or 'a whole split'}:"]
+        lines = [
+            str(self.load),
+            f"  split by {self.split}; windows of <= {self.max_len or 'all'} reports, "
+            f"batches of {self.batch_size or 'a whole split'}:",
+        ]
         for name, row in self.splits.items():
-            lines.append(f"  {name:>5}: {row['objects']} objects, {row['tracks']} tracks, {row['windows']} windows, "
-                         f"{row['reports']} reports, {row['batches']} batches, padding waste "
-                         f"{100 * row['padding_waste']:.1f} %")
+            lines.append(
+                f"  {name:>5}: {row['objects']} objects, {row['tracks']} tracks, {row['windows']} windows, "
+                f"{row['reports']} reports, {row['batches']} batches, padding waste "
+                f"{100 * row['padding_waste']:.1f} %"
+            )
         return "\n".join(lines)
 
 
@@ -221,8 +233,10 @@ class TrackDataModule(LightningDataModule):
     ) -> None:
         super().__init__()
         if os.path.basename(str(source)) in RESERVED_FOR_EVALUATION:
-            raise ValueError(f"data.source={source!r} is reserved for evaluation (never train, tune or select "
-                             "on it); evaluate frozen, already trained models on it instead")
+            raise ValueError(
+                f"data.source={source!r} is reserved for evaluation (never train, tune or select "
+                "on it); evaluate frozen, already trained models on it instead"
+            )
         if split not in ("objects", "time"):
             raise ValueError(f"data.split must be 'objects' or 'time', got {split!r}")
         if split == "time" and not boundaries:
@@ -233,13 +247,19 @@ class TrackDataModule(LightningDataModule):
             raise ValueError(f"data.dtype must be 'float32' or 'float64', got {dtype!r}")
         plain = lambda x: None if x is None else [float(v) for v in x]  # noqa: E731
         self.load_args: dict[str, Any] = {
-            "columns": columns if columns is None or isinstance(columns, str) else {str(k): (v if isinstance(v, int)
-                                                                                           else str(v))
-                                                                                    for k, v in dict(columns).items()},
-            "format": format, "time_format": time_format, "altitude_unit": str(altitude_unit),
-            "dims": None if dims is None else int(dims), "frame": str(frame), "reference": plain(reference),
-            "course_encoding": str(course_encoding), "max_gap": None if max_gap is None else float(max_gap),
-            "v_max": None if v_max is None else float(v_max), "min_reports": int(min_reports),
+            "columns": columns
+            if columns is None or isinstance(columns, str)
+            else {str(k): (v if isinstance(v, int) else str(v)) for k, v in dict(columns).items()},
+            "format": format,
+            "time_format": time_format,
+            "altitude_unit": str(altitude_unit),
+            "dims": None if dims is None else int(dims),
+            "frame": str(frame),
+            "reference": plain(reference),
+            "course_encoding": str(course_encoding),
+            "max_gap": None if max_gap is None else float(max_gap),
+            "v_max": None if v_max is None else float(v_max),
+            "min_reports": int(min_reports),
             "max_extent": None if max_extent is None else float(max_extent),
             "cut_times": [str(b) for b in boundaries] if split == "time" else [],
         }
@@ -254,10 +274,21 @@ class TrackDataModule(LightningDataModule):
         self.center = bool(center)
         self.dtype = getattr(torch, dtype)
         # plain Python values only, so checkpoints load with torch.load(weights_only=True)
-        self.save_hyperparameters({"source": self.source, **self.load_args, "split": self.split,
-                                   "fractions": self.fractions, "boundaries": self.boundaries, "seed": self.seed,
-                                   "max_len": self.max_len, "batch_size": self.batch_size,
-                                   "pool_batches": self.pool_batches, "center": self.center, "dtype": str(dtype)})
+        self.save_hyperparameters(
+            {
+                "source": self.source,
+                **self.load_args,
+                "split": self.split,
+                "fractions": self.fractions,
+                "boundaries": self.boundaries,
+                "seed": self.seed,
+                "max_len": self.max_len,
+                "batch_size": self.batch_size,
+                "pool_batches": self.pool_batches,
+                "center": self.center,
+                "dtype": str(dtype),
+            }
+        )
         self.tracks: Tracks | None = None
         self.splits: dict[str, Tracks] = {}
         self.windows: dict[str, list[Any]] = {}
@@ -276,16 +307,27 @@ class TrackDataModule(LightningDataModule):
         for name in ("train", "val"):
             if name not in self.splits:
                 raise ValueError(f"{self.source}: the {name} split is empty (split={self.split!r})")
-        self.windows = {name: track_windows(part, self.max_len, self.center, self.dtype)
-                        for name, part in self.splits.items()}
+        self.windows = {
+            name: track_windows(part, self.max_len, self.center, self.dtype) for name, part in self.splits.items()
+        }
         rows = {}
         for name, part in self.splits.items():
             batches = list(self._batch_sampler(name))
-            rows[name] = {"objects": len(np.unique(part.object_id)), "tracks": len(part),
-                          "windows": len(self.windows[name]), "reports": part.num_reports, "batches": len(batches),
-                          "padding_waste": padding_waste(batches, self._lengths(name))}
-        self.summary = DataSummary(self.tracks.summary, self.split if self.split == "objects" else
-                                   f"time at {', '.join(self.boundaries)}", self.max_len, self.batch_size, rows)
+            rows[name] = {
+                "objects": len(np.unique(part.object_id)),
+                "tracks": len(part),
+                "windows": len(self.windows[name]),
+                "reports": part.num_reports,
+                "batches": len(batches),
+                "padding_waste": padding_waste(batches, self._lengths(name)),
+            }
+        self.summary = DataSummary(
+            self.tracks.summary,
+            self.split if self.split == "objects" else f"time at {', '.join(self.boundaries)}",
+            self.max_len,
+            self.batch_size,
+            rows,
+        )
         from lightning.fabric.utilities.rank_zero import rank_zero_only
 
         if rank_zero_only.rank == 0:
@@ -300,19 +342,27 @@ class TrackDataModule(LightningDataModule):
         sampler = EpochShuffleSampler(n, self.seed) if train else SequentialSampler(range(n))
         size = n if self.batch_size is None else self.batch_size
         if train or self.batch_size is None:
-            return BucketBatchSampler(sampler, self._lengths(split), max(size, 1), pool_batches=self.pool_batches,
-                                      shuffle=train, seed=self.seed)
+            return BucketBatchSampler(
+                sampler,
+                self._lengths(split),
+                max(size, 1),
+                pool_batches=self.pool_batches,
+                shuffle=train,
+                seed=self.seed,
+            )
         # evaluation: one sorted pool, batches closed early rather than padded by more than 10 %
-        return BucketBatchSampler(sampler, self._lengths(split), size, pool_batches=max(1, math.ceil(n / size)),
-                                  shuffle=False, max_waste=0.1)
+        return BucketBatchSampler(
+            sampler, self._lengths(split), size, pool_batches=max(1, math.ceil(n / size)), shuffle=False, max_waste=0.1
+        )
 
     def _loader(self, split: str) -> DataLoader:
         if not self.windows:
             self.setup()
         if split not in self.windows:
             raise ValueError(f"no {split} split in {self.source} (split={self.split!r}, boundaries={self.boundaries})")
-        return DataLoader(TrackDataset(self.windows[split]), batch_sampler=self._batch_sampler(split),
-                          collate_fn=collate_tracks)
+        return DataLoader(
+            TrackDataset(self.windows[split]), batch_sampler=self._batch_sampler(split), collate_fn=collate_tracks
+        )
 
     def train_dataloader(self) -> DataLoader:
         return self._loader("train")

@@ -39,8 +39,14 @@ __all__ = ["AIS_COLUMNS", "RESERVED_FOR_EVALUATION", "ROLES", "Reports", "locate
 #: The roles a column can play; id, time, lat and lon are required.
 ROLES = ("id", "time", "lat", "lon", "alt", "sog", "cog")
 #: MarineCadastre AIS column names (BaseDateTime ISO 8601 UTC, LAT/LON degrees, SOG knots, COG degrees).
-AIS_COLUMNS: dict[str, str] = {"id": "MMSI", "time": "BaseDateTime", "lat": "LAT", "lon": "LON", "sog": "SOG",
-                               "cog": "COG"}
+AIS_COLUMNS: dict[str, str] = {
+    "id": "MMSI",
+    "time": "BaseDateTime",
+    "lat": "LAT",
+    "lon": "LON",
+    "sog": "SOG",
+    "cog": "COG",
+}
 #: tracktable-data files kept for evaluation only: never train, tune or select models on them.
 RESERVED_FOR_EVALUATION = ("NYHarbor_2020_12_08.traj", "VirginiaBeach_2020_06_04_to_06_filtered.traj")
 _EXAMPLES = 3  # malformed examples kept
@@ -99,8 +105,11 @@ def locate_file(name: str | os.PathLike[str]) -> Path:
     shipped = {p.name: p for root in roots for p in sorted(root.rglob("*")) if p.is_file() and p.suffix != ".py"}
     if path.name in shipped and path.parent == Path("."):
         return shipped[path.name]
-    where = (f"tracktable-data's files under {', '.join(map(str, roots))}" if roots
-             else "tracktable-data's files (package not installed: pip install 'torchsde_lti[data]')")
+    where = (
+        f"tracktable-data's files under {', '.join(map(str, roots))}"
+        if roots
+        else "tracktable-data's files (package not installed: pip install 'torchsde_lti[data]')"
+    )
     import difflib
 
     close = difflib.get_close_matches(path.name, list(shipped), n=3, cutoff=0.5)
@@ -108,8 +117,14 @@ def locate_file(name: str | os.PathLike[str]) -> Path:
     raise FileNotFoundError(f"no trajectory file {str(name)!r}: looked at {path.resolve()} and among {where}{hint}")
 
 
-def read_reports(source: str | os.PathLike[str], columns: Mapping[str, str | int] | str | None = None, *,
-                 format: str | None = None, time_format: str | None = None, altitude_unit: str = "m") -> Reports:
+def read_reports(
+    source: str | os.PathLike[str],
+    columns: Mapping[str, str | int] | str | None = None,
+    *,
+    format: str | None = None,
+    time_format: str | None = None,
+    altitude_unit: str = "m",
+) -> Reports:
     """Read every parseable report of a trajectory file (see the module docstring).
 
     Args:
@@ -176,8 +191,13 @@ def _traj_points(fields: list[str], start: int, n: int, types: list[str]) -> lis
         row = body[j : j + width - 1]
         j += width - 1
         stop = j
-        while stop < len(body) and not (body[stop] == obj and stop + 1 < len(body) and body[stop + 1][:2].isdigit()
-                                         and len(body[stop + 1]) >= 19 and body[stop + 1][4] == "-"):
+        while stop < len(body) and not (
+            body[stop] == obj
+            and stop + 1 < len(body)
+            and body[stop + 1][:2].isdigit()
+            and len(body[stop + 1]) >= 19
+            and body[stop + 1][4] == "-"
+        ):
             stop += 1
         rows.append(row + [",".join(body[j:stop])])
         j = stop
@@ -223,36 +243,53 @@ def _read_traj(path: Path) -> Reports:
             alts.append(alt if alt is not None else np.zeros(0))
             segs.append(np.full(n, number, dtype=np.int64))
     if not ids:
-        raise ValueError(f"{path}: no trajectory could be read ({lines} lines, {malformed} malformed: "
-                         f"{'; '.join(examples)})")
+        raise ValueError(
+            f"{path}: no trajectory could be read ({lines} lines, {malformed} malformed: {'; '.join(examples)})"
+        )
     object_id = np.concatenate(ids)
     object_id = _object_ids(object_id, np.ones(len(object_id), dtype=bool))
     ll = np.concatenate(lonlat)
-    return Reports(object_id, np.concatenate(times), ll[:, 1].copy(), ll[:, 0].copy(),
-                   np.concatenate(alts) if has_alt else None, None, None, np.concatenate(segs),
-                   points, malformed, tuple(examples), str(path))
+    return Reports(
+        object_id,
+        np.concatenate(times),
+        ll[:, 1].copy(),
+        ll[:, 0].copy(),
+        np.concatenate(alts) if has_alt else None,
+        None,
+        None,
+        np.concatenate(segs),
+        points,
+        malformed,
+        tuple(examples),
+        str(path),
+    )
 
 
 # ---------------------------------------------------------------------------- CSV / Parquet
-def _resolve_columns(columns: Mapping[str, str | int] | str | None, header: list[str] | None,
-                     path: Path) -> dict[str, str | int]:
+def _resolve_columns(
+    columns: Mapping[str, str | int] | str | None, header: list[str] | None, path: Path
+) -> dict[str, str | int]:
     if columns is None or columns == "ais":
         if header is not None and set(AIS_COLUMNS.values()) <= set(header):
             return dict(AIS_COLUMNS)
         if columns == "ais":
-            raise ValueError(f"{path}: columns='ais' needs the header columns {sorted(AIS_COLUMNS.values())}, "
-                             f"found {header}")
-        raise ValueError(f"{path}: not the MarineCadastre AIS header {sorted(AIS_COLUMNS.values())}; name the "
-                         f"columns, e.g. columns={{'id': ..., 'time': ..., 'lat': ..., 'lon': ...}} "
-                         f"(header names or 0-based positions); header found: {header}")
+            raise ValueError(
+                f"{path}: columns='ais' needs the header columns {sorted(AIS_COLUMNS.values())}, found {header}"
+            )
+        raise ValueError(
+            f"{path}: not the MarineCadastre AIS header {sorted(AIS_COLUMNS.values())}; name the "
+            f"columns, e.g. columns={{'id': ..., 'time': ..., 'lat': ..., 'lon': ...}} "
+            f"(header names or 0-based positions); header found: {header}"
+        )
     if isinstance(columns, str):
         raise ValueError(f"columns must be a mapping role -> column, 'ais' or None, got {columns!r}")
     cols = {str(k): (v if isinstance(v, int) else str(v)) for k, v in dict(columns).items() if v is not None}
     unknown = set(cols) - set(ROLES)
     missing = {"id", "time", "lat", "lon"} - set(cols)
     if unknown or missing:
-        raise ValueError(f"columns: unknown roles {sorted(unknown)} / missing roles {sorted(missing)}; "
-                         f"roles are {ROLES}, got {cols}")
+        raise ValueError(
+            f"columns: unknown roles {sorted(unknown)} / missing roles {sorted(missing)}; roles are {ROLES}, got {cols}"
+        )
     if header is not None:
         absent = [v for v in cols.values() if isinstance(v, str) and v not in header]
         if absent:
@@ -276,14 +313,14 @@ def _as_float(arr: object, name: str) -> tuple[np.ndarray, np.ndarray]:
     import pyarrow.compute as pc
 
     if pa.types.is_string(arr.type) or pa.types.is_large_string(arr.type):
-        ok = pc.fill_null(pc.match_substring_regex(pc.utf8_trim_whitespace(arr),
-                                                   _NUMBER), False)
+        ok = pc.fill_null(pc.match_substring_regex(pc.utf8_trim_whitespace(arr), _NUMBER), False)
         arr = pc.cast(pc.if_else(ok, arr, pa.scalar("nan")), pa.float64())
     else:
         ok = pc.is_valid(arr)
         arr = pc.cast(arr, pa.float64())
-    return np.asarray(arr.to_numpy(zero_copy_only=False), dtype=np.float64), np.asarray(ok.to_numpy(
-        zero_copy_only=False), dtype=bool)
+    return np.asarray(arr.to_numpy(zero_copy_only=False), dtype=np.float64), np.asarray(
+        ok.to_numpy(zero_copy_only=False), dtype=bool
+    )
 
 
 def _epoch_seconds(seconds: object) -> object:
@@ -321,24 +358,27 @@ def _as_time(arr: object, time_format: str | None) -> tuple[np.ndarray, np.ndarr
             candidates = [pc.strptime(arr, format=f, unit="us", error_is_null=True) for f in formats]
             if time_format is None:  # CSV columns arrive as strings: numbers are seconds since the epoch
                 numeric = pc.fill_null(pc.match_substring_regex(pc.utf8_trim_whitespace(arr), _NUMBER), False)
-                candidates.append(_epoch_seconds(pc.cast(pc.if_else(numeric, arr, pa.scalar(None, pa.string())),
-                                                         pa.float64())))
+                candidates.append(
+                    _epoch_seconds(pc.cast(pc.if_else(numeric, arr, pa.scalar(None, pa.string())), pa.float64()))
+                )
             out = min(candidates, key=lambda a: a.null_count)
     ok = np.asarray(pc.is_valid(out).to_numpy(zero_copy_only=False), dtype=bool)
     values = out.cast(pa.int64()).to_numpy(zero_copy_only=False)
     return np.where(ok, np.nan_to_num(values.astype(np.float64)), 0).astype(np.int64).astype("datetime64[us]"), ok
 
 
-def _read_table(path: Path, fmt: str, columns: Mapping[str, str | int] | str | None,
-                time_format: str | None) -> Reports:
+def _read_table(
+    path: Path, fmt: str, columns: Mapping[str, str | int] | str | None, time_format: str | None
+) -> Reports:
     try:
         import pyarrow as pa
         import pyarrow.compute as pc
         import pyarrow.csv as pcsv
         import pyarrow.parquet as pq
     except ImportError as err:  # pragma: no cover - depends on the environment
-        raise ModuleNotFoundError("reading CSV / Parquet trajectories needs pyarrow: pip install "
-                                  "'torchsde_lti[data]'") from err
+        raise ModuleNotFoundError(
+            "reading CSV / Parquet trajectories needs pyarrow: pip install 'torchsde_lti[data]'"
+        ) from err
     bad: list[str] = []
     if fmt == "parquet":
         header = pq.read_schema(path).names
@@ -347,25 +387,34 @@ def _read_table(path: Path, fmt: str, columns: Mapping[str, str | int] | str | N
         table = pq.read_table(path, columns=sorted(set(names.values())))
     else:
         skip = _leading_comment_lines(path)
-        by_position = isinstance(columns, Mapping) and all(isinstance(v, int) for v in columns.values() if v is not None)
+        by_position = isinstance(columns, Mapping) and all(
+            isinstance(v, int) for v in columns.values() if v is not None
+        )
         header = None if by_position else _csv_header(path, skip)
         cols = _resolve_columns(columns, header, path)
         names = {role: (f"f{c}" if isinstance(c, int) else c) for role, c in cols.items()}
 
         def handler(row: object) -> str:
             if len(bad) < _EXAMPLES:
-                bad.append(f"{getattr(row, 'text', '')[:80]!r}: {getattr(row, 'actual_columns', '?')} fields, "
-                           f"expected {getattr(row, 'expected_columns', '?')}")
+                bad.append(
+                    f"{getattr(row, 'text', '')[:80]!r}: {getattr(row, 'actual_columns', '?')} fields, "
+                    f"expected {getattr(row, 'expected_columns', '?')}"
+                )
             else:
                 bad.append("")
             return "skip"
 
         read = pcsv.ReadOptions(skip_rows=skip, autogenerate_column_names=by_position)
         string_cols = {names["id"]: pa.string(), names["time"]: pa.string()}
-        convert = pcsv.ConvertOptions(include_columns=sorted(set(names.values())), column_types=string_cols,
-                                      strings_can_be_null=True)
-        table = pcsv.read_csv(path, read_options=read, parse_options=pcsv.ParseOptions(invalid_row_handler=handler),
-                              convert_options=convert)
+        convert = pcsv.ConvertOptions(
+            include_columns=sorted(set(names.values())), column_types=string_cols, strings_can_be_null=True
+        )
+        table = pcsv.read_csv(
+            path,
+            read_options=read,
+            parse_options=pcsv.ParseOptions(invalid_row_handler=handler),
+            convert_options=convert,
+        )
     n = table.num_rows
     ok = np.ones(n, dtype=bool)
     reasons: dict[str, np.ndarray] = {}
@@ -390,10 +439,20 @@ def _read_table(path: Path, fmt: str, columns: Mapping[str, str | int] | str | N
             examples.append(f"row {int(r) + 1}: {role} column {names[role]!r} unreadable")
     keep = np.flatnonzero(ok)
     take = (lambda a: a[keep]) if not ok.all() else (lambda a: a)  # noqa: E731
-    return Reports(take(object_id), take(time), take(values["lat"]), take(values["lon"]),
-                   take(values["alt"]) if "alt" in values else None, take(values["sog"]) if "sog" in values else None,
-                   take(values["cog"]) if "cog" in values else None, None, n + len(bad), int((~ok).sum()) + len(bad),
-                   tuple(examples), str(path))
+    return Reports(
+        take(object_id),
+        take(time),
+        take(values["lat"]),
+        take(values["lon"]),
+        take(values["alt"]) if "alt" in values else None,
+        take(values["sog"]) if "sog" in values else None,
+        take(values["cog"]) if "cog" in values else None,
+        None,
+        n + len(bad),
+        int((~ok).sum()) + len(bad),
+        tuple(examples),
+        str(path),
+    )
 
 
 def _csv_header(path: Path, skip: int) -> list[str]:

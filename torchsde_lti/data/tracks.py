@@ -202,9 +202,17 @@ class BucketBatchSampler(BatchSampler):
         max_waste: cap on each batch's padding share (None = fixed batch sizes).
     """
 
-    def __init__(self, sampler: Sampler[int] | Sequence[int], lengths: Sequence[int], batch_size: int,
-                 drop_last: bool = False, pool_batches: int = 50, shuffle: bool = True, seed: int = 0,
-                 max_waste: float | None = None) -> None:
+    def __init__(
+        self,
+        sampler: Sampler[int] | Sequence[int],
+        lengths: Sequence[int],
+        batch_size: int,
+        drop_last: bool = False,
+        pool_batches: int = 50,
+        shuffle: bool = True,
+        seed: int = 0,
+        max_waste: float | None = None,
+    ) -> None:
         super().__init__(sampler, int(batch_size), bool(drop_last))
         if int(pool_batches) < 1:
             raise ValueError(f"pool_batches must be >= 1, got {pool_batches}")

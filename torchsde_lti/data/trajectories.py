@@ -104,15 +104,20 @@ class LoadSummary:
             (f"jumps: {off('v_max', '> {} m/s')}: reports dropped", self.jump_reports_dropped),
             (f"jumps: {off('v_max', '> {} m/s')}: tracks cut", self.jump_splits),
             (f"cuts at extent: {off('max_extent', '{} m from the origin')}", self.extent_splits),
-            (f"tracks < {r.get('min_reports')} reports dropped (reports)", f"{self.short_tracks} ({self.short_reports})"),
+            (
+                f"tracks < {r.get('min_reports')} reports dropped (reports)",
+                f"{self.short_tracks} ({self.short_reports})",
+            ),
         ]
         if self.courses_decoded:
             rows.append(("COG decoded from signed 12-bit AIS", self.courses_decoded))
         width = max(len(k) for k, _ in rows)
         lines = [f"{os.path.basename(self.source)}: {self.rows} reports read"]
         lines += [f"  {k:<{width}}  {v}" for k, v in rows]
-        lines += [f"  kept: {self.tracks} tracks of {self.objects} objects, {self.reports} reports "
-                  f"({self.dims}-D, {self.frame} frame{'s' if self.frame == 'local' else ''})"]
+        lines += [
+            f"  kept: {self.tracks} tracks of {self.objects} objects, {self.reports} reports "
+            f"({self.dims}-D, {self.frame} frame{'s' if self.frame == 'local' else ''})"
+        ]
         lines += [f"  malformed, e.g.: {e}" for e in self.malformed_examples]
         return "\n".join(lines)
 
@@ -163,8 +168,11 @@ class Tracks:
     def track(self, i: int) -> dict[str, np.ndarray]:
         """Track ``i`` as views: t, pos, lat, lon (and alt, vel, sog where present)."""
         a, b = int(self.offsets[i]), int(self.offsets[i + 1])
-        out = {k: getattr(self, k)[a:b] for k in ("t", "pos", "lat", "lon", "alt", "vel", "sog")
-               if getattr(self, k) is not None}
+        out = {
+            k: getattr(self, k)[a:b]
+            for k in ("t", "pos", "lat", "lon", "alt", "vel", "sog")
+            if getattr(self, k) is not None
+        }
         return out
 
     def subset(self, indices: Sequence[int] | np.ndarray) -> Tracks:
@@ -173,10 +181,13 @@ class Tracks:
         lengths = self.lengths[idx]
         offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
         rows = _ranges(self.offsets[idx], lengths)
-        per_report = {k: (None if getattr(self, k) is None else getattr(self, k)[rows])
-                      for k in ("t", "pos", "lat", "lon", "alt", "vel", "sog")}
-        return dataclasses.replace(self, object_id=self.object_id[idx], offsets=offsets, origin=self.origin[idx],
-                                   **per_report)
+        per_report = {
+            k: (None if getattr(self, k) is None else getattr(self, k)[rows])
+            for k in ("t", "pos", "lat", "lon", "alt", "vel", "sog")
+        }
+        return dataclasses.replace(
+            self, object_id=self.object_id[idx], offsets=offsets, origin=self.origin[idx], **per_report
+        )
 
 
 def _ranges(starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
@@ -234,13 +245,30 @@ def load_tracks(
         :class:`Tracks`, with ``.summary`` (:class:`LoadSummary`) counting every rule.
     """
     reports = read_reports(source, columns, format=format, time_format=time_format, altitude_unit=altitude_unit)
-    return prepare_tracks(reports, dims=dims, frame=frame, reference=reference, course_encoding=course_encoding,
-                          max_gap=max_gap, v_max=v_max, min_reports=min_reports, max_extent=max_extent,
-                          cut_times=cut_times)
+    return prepare_tracks(
+        reports,
+        dims=dims,
+        frame=frame,
+        reference=reference,
+        course_encoding=course_encoding,
+        max_gap=max_gap,
+        v_max=v_max,
+        min_reports=min_reports,
+        max_extent=max_extent,
+        cut_times=cut_times,
+    )
 
 
-def _check_rules(frame: str, reference: Sequence[float] | None, course_encoding: str, max_gap: float | None,
-                 v_max: float | None, min_reports: int, max_extent: float | None, dims: int | None) -> None:
+def _check_rules(
+    frame: str,
+    reference: Sequence[float] | None,
+    course_encoding: str,
+    max_gap: float | None,
+    v_max: float | None,
+    min_reports: int,
+    max_extent: float | None,
+    dims: int | None,
+) -> None:
     if frame not in ("local", "common"):
         raise ValueError(f"frame must be 'local' or 'common', got {frame!r}")
     if frame == "common" and (reference is None or len(reference) not in (2, 3)):
@@ -286,9 +314,21 @@ def prepare_tracks(
         dims = 3 if has_alt else 2
     if dims == 3 and rep.alt is None:
         raise ValueError(f"dims=3 needs an altitude column, and {rep.path} has none")
-    counts = dict.fromkeys(("invalid_positions", "repeated_timestamps", "time_cuts", "gap_splits",
-                            "jump_reports_dropped", "jump_splits", "extent_splits", "short_tracks",
-                            "short_reports", "courses_decoded"), 0)
+    counts = dict.fromkeys(
+        (
+            "invalid_positions",
+            "repeated_timestamps",
+            "time_cuts",
+            "gap_splits",
+            "jump_reports_dropped",
+            "jump_splits",
+            "extent_splits",
+            "short_tracks",
+            "short_reports",
+            "courses_decoded",
+        ),
+        0,
+    )
 
     # 1. valid positions
     valid = np.isfinite(rep.lat) & np.isfinite(rep.lon) & (np.abs(rep.lat) <= 90.0)
@@ -368,16 +408,41 @@ def prepare_tracks(
         vel = local_velocities(sog * KNOT, course, lat, lon, o[:, 0], o[:, 1])
 
     summary = LoadSummary(
-        source=rep.path, rows=int(rep.rows), malformed=int(rep.malformed), malformed_examples=rep.malformed_examples,
+        source=rep.path,
+        rows=int(rep.rows),
+        malformed=int(rep.malformed),
+        malformed_examples=rep.malformed_examples,
         objects=len(np.unique(rep.object_id[idx[first]])),
-        tracks=len(first), reports=len(t), dims=int(dims), frame=frame,
-        rules={"max_gap": max_gap, "v_max": v_max, "min_reports": int(min_reports), "max_extent": max_extent,
-               "cut_times": [str(c) for c in cut_times], "course_encoding": course_encoding,
-               "reference": None if reference is None else [float(x) for x in reference]},
+        tracks=len(first),
+        reports=len(t),
+        dims=int(dims),
+        frame=frame,
+        rules={
+            "max_gap": max_gap,
+            "v_max": v_max,
+            "min_reports": int(min_reports),
+            "max_extent": max_extent,
+            "cut_times": [str(c) for c in cut_times],
+            "course_encoding": course_encoding,
+            "reference": None if reference is None else [float(x) for x in reference],
+        },
         **counts,
     )
-    return Tracks(object_id=rep.object_id[idx[first]], offsets=offsets, t=t, pos=pos, lat=lat, lon=lon, alt=alt,
-                  vel=vel, sog=sog, origin=origin, t0=np.datetime64(t0_us, "us"), frame=frame, summary=summary)
+    return Tracks(
+        object_id=rep.object_id[idx[first]],
+        offsets=offsets,
+        t=t,
+        pos=pos,
+        lat=lat,
+        lon=lon,
+        alt=alt,
+        vel=vel,
+        sog=sog,
+        origin=origin,
+        t0=np.datetime64(t0_us, "us"),
+        frame=frame,
+        summary=summary,
+    )
 
 
 def _speed_course(sog: np.ndarray, cog: np.ndarray, encoding: str) -> tuple[np.ndarray, np.ndarray, int]:
@@ -402,8 +467,9 @@ def _speeds(t: np.ndarray, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
     return d / np.diff(t)
 
 
-def _reject_jumps(t: np.ndarray, lat: np.ndarray, lon: np.ndarray, start: np.ndarray,
-                  v_max: float) -> tuple[np.ndarray, np.ndarray, int, int]:
+def _reject_jumps(
+    t: np.ndarray, lat: np.ndarray, lon: np.ndarray, start: np.ndarray, v_max: float
+) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Rule 4 of the module docstring: (keep mask, new start flags, reports dropped, cuts)."""
     keep = np.ones(len(t), dtype=bool)
     start = start.copy()
@@ -425,7 +491,7 @@ def _reject_jumps(t: np.ndarray, lat: np.ndarray, lon: np.ndarray, start: np.nda
         a, b = int(bounds[s]), int(bounds[s + 1])
         last = a
         for i in range(a + 1, b):
-            if (step_ok[i] if last == i - 1 else speed(last, i) <= v_max):
+            if step_ok[i] if last == i - 1 else speed(last, i) <= v_max:
                 last = i
             elif i + 1 < b and speed(last, i + 1) <= v_max:
                 keep[i] = False  # a lone outlier
@@ -460,8 +526,9 @@ def _cut_extent(lat: np.ndarray, lon: np.ndarray, start: np.ndarray, limit: floa
 
 
 # ---------------------------------------------------------------------------- splits and windows
-def split_objects(tracks: Tracks, fractions: Sequence[float] = (0.6, 0.2, 0.2),
-                  seed: int = 0) -> tuple[Tracks, Tracks, Tracks]:
+def split_objects(
+    tracks: Tracks, fractions: Sequence[float] = (0.6, 0.2, 0.2), seed: int = 0
+) -> tuple[Tracks, Tracks, Tracks]:
     """Object-disjoint (train, val, test) splits: every track of an object goes where the object goes.
 
     The sorted distinct object ids (K of them) are permuted with ``seed`` and cut into
@@ -504,8 +571,9 @@ def split_time(tracks: Tracks, boundaries: Sequence[str | np.datetime64]) -> lis
     Raises:
         ValueError: for boundaries that do not increase, or a track spanning one.
     """
-    cuts = np.array([(np.datetime64(b, "us") - tracks.t0).astype("timedelta64[us]").astype(np.int64) / 1e6
-                     for b in boundaries])
+    cuts = np.array(
+        [(np.datetime64(b, "us") - tracks.t0).astype("timedelta64[us]").astype(np.int64) / 1e6 for b in boundaries]
+    )
     if np.any(np.diff(cuts) <= 0):
         raise ValueError(f"boundaries must increase, got {list(map(str, boundaries))}")
     first_t, last_t = tracks.t[tracks.offsets[:-1]], tracks.t[tracks.offsets[1:] - 1]
@@ -539,8 +607,9 @@ def window_bounds(lengths: np.ndarray, max_len: int | None) -> tuple[np.ndarray,
     return owner, (j * L) // k, ((j + 1) * L) // k
 
 
-def track_windows(tracks: Tracks, max_len: int | None = None, center: bool = True,
-                  dtype: torch.dtype = torch.float32) -> list[Track]:
+def track_windows(
+    tracks: Tracks, max_len: int | None = None, center: bool = True, dtype: torch.dtype = torch.float32
+) -> list[Track]:
     """Training windows as :class:`~torchsde_lti.data.tracks.Track` s (:func:`window_bounds`).
 
     Args:
@@ -568,7 +637,15 @@ def track_windows(tracks: Tracks, max_len: int | None = None, center: bool = Tru
     out = []
     for k, (i, j) in enumerate(zip(a.tolist(), b.tolist())):
         origin = pos[i] if center else torch.zeros_like(pos[i])
-        out.append(Track(y=pos[i:j] - origin, dt=dt[i:j], t=t[i:j],
-                         vel=None if vel is None else vel[i:j], sog=None if sog is None else sog[i:j],
-                         origin=origin.clone(), track_id=torch.tensor(int(owner[k]), dtype=torch.int64)))
+        out.append(
+            Track(
+                y=pos[i:j] - origin,
+                dt=dt[i:j],
+                t=t[i:j],
+                vel=None if vel is None else vel[i:j],
+                sog=None if sog is None else sog[i:j],
+                origin=origin.clone(),
+                track_id=torch.tensor(int(owner[k]), dtype=torch.int64),
+            )
+        )
     return out

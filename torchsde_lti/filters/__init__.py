@@ -36,8 +36,8 @@ from torchsde_lti.filters.online import (
     kalman_predict,
     kalman_step,
 )
-from torchsde_lti.filters.scan import associative_scan, prefers_scan
 from torchsde_lti.filters.results import FilterResult, SmootherResult
+from torchsde_lti.filters.scan import associative_scan, prefers_scan
 from torchsde_lti.filters.smoothers import SMOOTHER_ALGORITHMS, rts_smoother
 
 __all__ = [

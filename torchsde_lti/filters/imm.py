@@ -163,8 +163,16 @@ class IMMCycle(NamedTuple):
 
 
 def imm_cycle(
-    prob: Tensor, mean: Tensor, cov: Tensor, Pi: Tensor, A: Tensor, Q: Tensor, Hm: Tensor, Rm: Tensor,
-    y0: Tensor, n_obs: Tensor,
+    prob: Tensor,
+    mean: Tensor,
+    cov: Tensor,
+    Pi: Tensor,
+    A: Tensor,
+    Q: Tensor,
+    Hm: Tensor,
+    Rm: Tensor,
+    y0: Tensor,
+    n_obs: Tensor,
 ) -> IMMCycle:
     r"""One IMM cycle (mixing, mode-matched predict and Joseph update, mode probabilities):
     the step of :func:`imm_filter`'s loop and of the online step.
@@ -198,8 +206,17 @@ def imm_cycle(
 
 
 def _check_inputs(
-    y: Tensor, A: Tensor, Q: Tensor, H: Tensor, R: Tensor, Pi: Tensor, m0: Tensor, P0: Tensor,
-    mode_prob0: Tensor, mask: Tensor | None, validate_args: bool = True,
+    y: Tensor,
+    A: Tensor,
+    Q: Tensor,
+    H: Tensor,
+    R: Tensor,
+    Pi: Tensor,
+    m0: Tensor,
+    P0: Tensor,
+    mode_prob0: Tensor,
+    mask: Tensor | None,
+    validate_args: bool = True,
 ) -> tuple[Tensor, ...]:
     t = as_float_tensors(y=y, A=A, Q=Q, H=H, R=R, Pi=Pi, m0=m0, P0=P0, mode_prob0=mode_prob0)
     y, A, Q, H, R, Pi, m0, P0, mode_prob0 = (t[k] for k in ("y", "A", "Q", "H", "R", "Pi", "m0", "P0", "mode_prob0"))
@@ -215,15 +232,21 @@ def _check_inputs(
     for name, x, r, c in (("A", A, n, n), ("Q", Q, n, n), ("H", H, m, n), ("R", R, m, m), ("P0", P0, n, n)):
         check_matrix(x, name, rows=r, cols=c)
         if x.dim() >= 3 and x.shape[-3] not in (1, M):
-            raise ValueError(f"{name} must have its mode axis (dim -3) of size 1 or M={M} "
-                             f"(mode_prob0 {shape_str(mode_prob0)}), got shape {shape_str(x)}")
+            raise ValueError(
+                f"{name} must have its mode axis (dim -3) of size 1 or M={M} "
+                f"(mode_prob0 {shape_str(mode_prob0)}), got shape {shape_str(x)}"
+            )
     for name, x in (("A", A), ("Q", Q), ("H", H), ("R", R)):
         if x.dim() >= 4 and x.shape[-4] not in (1, T):
-            raise ValueError(f"{name} must have its time axis (dim -4) of size 1 or T={T} "
-                             f"(y {shape_str(y)}), got shape {shape_str(x)}")
+            raise ValueError(
+                f"{name} must have its time axis (dim -4) of size 1 or T={T} "
+                f"(y {shape_str(y)}), got shape {shape_str(x)}"
+            )
     if Pi.dim() < 2 or Pi.shape[-2:] != (M, M):
-        raise ValueError(f"Pi must have shape (..., T, {M}, {M}) to match mode_prob0 {shape_str(mode_prob0)}, "
-                         f"got shape {shape_str(Pi)}")
+        raise ValueError(
+            f"Pi must have shape (..., T, {M}, {M}) to match mode_prob0 {shape_str(mode_prob0)}, "
+            f"got shape {shape_str(Pi)}"
+        )
     if Pi.dim() >= 3 and Pi.shape[-3] not in (1, T):
         raise ValueError(f"Pi must have its time axis (dim -3) of size 1 or T={T}, got shape {shape_str(Pi)}")
     if m0.dim() < 1 or m0.shape[-1] != n or (m0.dim() >= 2 and m0.shape[-2] not in (1, M)):
@@ -238,8 +261,12 @@ def _check_inputs(
             check_symmetric_psd(x, name)
         if bool((Pi < 0).any()) or bool(((Pi.sum(-1) - 1).abs() > 1e3 * torch.finfo(dtype).eps * M).any()):
             raise ValueError(f"Pi must be row-stochastic (entries >= 0, rows summing to 1), shape {shape_str(Pi)}")
-        if bool((mode_prob0 < 0).any()) or bool(((mode_prob0.sum(-1) - 1).abs() > 1e3 * torch.finfo(dtype).eps * M).any()):
-            raise ValueError(f"mode_prob0 must be a probability vector over the last axis, shape {shape_str(mode_prob0)}")
+        if bool((mode_prob0 < 0).any()) or bool(
+            ((mode_prob0.sum(-1) - 1).abs() > 1e3 * torch.finfo(dtype).eps * M).any()
+        ):
+            raise ValueError(
+                f"mode_prob0 must be a probability vector over the last axis, shape {shape_str(mode_prob0)}"
+            )
     return y, A, Q, H, R, Pi, m0, P0, mode_prob0, mask
 
 
@@ -278,8 +305,18 @@ def imm_filter(
         return _imm_steps(y, A, Q, H, R, Pi, m0, P0, prob, mask)
 
 
-def _imm_steps(y: Tensor, A: Tensor, Q: Tensor, H: Tensor, R: Tensor, Pi: Tensor, m0: Tensor, P0: Tensor,
-               prob: Tensor, mask: Tensor | None) -> IMMResult:
+def _imm_steps(
+    y: Tensor,
+    A: Tensor,
+    Q: Tensor,
+    H: Tensor,
+    R: Tensor,
+    Pi: Tensor,
+    m0: Tensor,
+    P0: Tensor,
+    prob: Tensor,
+    mask: Tensor | None,
+) -> IMMResult:
     """:func:`imm_filter` on checked arguments."""
     T, m = y.shape[-2], y.shape[-1]
     M, n = prob.shape[-1], A.shape[-1]
@@ -308,11 +345,18 @@ def _imm_steps(y: Tensor, A: Tensor, Q: Tensor, H: Tensor, R: Tensor, Pi: Tensor
     outs: dict[str, list[Tensor]] = {k: [] for k in ("c", "mu", "mm", "mc", "pm", "pc", "e", "S", "ll")}
     for k in range(T):
         Hk, Rk = at(Hm, k, -4), at(Rm, k, -4)  # (..., M, m, n), (..., M, m, m)
-        cyc = imm_cycle(prob, mean, cov, at(Pi3, k, -3), at(A4, k, -4), at(Q4, k, -4), Hk, Rk,
-                        y0[..., k, :], n_obs[..., k])
+        cyc = imm_cycle(
+            prob, mean, cov, at(Pi3, k, -3), at(A4, k, -4), at(Q4, k, -4), Hk, Rk, y0[..., k, :], n_obs[..., k]
+        )
         prob, mean, cov = cyc.mode_prob, cyc.mode_mean, cyc.mode_cov
-        c, m_pred, P_pred, e, S, step = (cyc.pred_mode_prob, cyc.mode_pred_mean, cyc.mode_pred_cov,
-                                         cyc.mode_innovation, cyc.mode_innovation_cov, cyc.log_likelihood)
+        c, m_pred, P_pred, e, S, step = (
+            cyc.pred_mode_prob,
+            cyc.mode_pred_mean,
+            cyc.mode_pred_cov,
+            cyc.mode_innovation,
+            cyc.mode_innovation_cov,
+            cyc.log_likelihood,
+        )
         outs["c"].append(c)
         outs["mu"].append(prob)
         outs["mm"].append(mean)
@@ -325,8 +369,9 @@ def _imm_steps(y: Tensor, A: Tensor, Q: Tensor, H: Tensor, R: Tensor, Pi: Tensor
     # the T axis goes before each output's event dims (vector over modes: -2, (M, n): -3, ...)
     event_ndim = {"c": 1, "mu": 1, "mm": 2, "mc": 3, "pm": 2, "pc": 3, "e": 2, "S": 3, "ll": 0}
     stk = {k: torch.stack(torch.broadcast_tensors(*v), dim=-1 - event_ndim[k]) for k, v in outs.items()}
-    batch = torch.broadcast_shapes(stk["mm"].shape[:-3], stk["ll"].shape[:-1], stk["mc"].shape[:-4],
-                                   stk["mu"].shape[:-2], obs.shape[:-2])
+    batch = torch.broadcast_shapes(
+        stk["mm"].shape[:-3], stk["ll"].shape[:-1], stk["mc"].shape[:-4], stk["mu"].shape[:-2], obs.shape[:-2]
+    )
     mu = stk["mu"].expand(*batch, T, M)
     cc = stk["c"].expand(*batch, T, M)
     mm = stk["mm"].expand(*batch, T, M, n)
@@ -355,9 +400,7 @@ def _imm_steps(y: Tensor, A: Tensor, Q: Tensor, H: Tensor, R: Tensor, Pi: Tensor
     )
 
 
-def imm_predict(
-    mode_prob: Tensor, mean: Tensor, cov: Tensor, A: Tensor, Q: Tensor, Pi: Tensor
-) -> IMMPrediction:
+def imm_predict(mode_prob: Tensor, mean: Tensor, cov: Tensor, A: Tensor, Q: Tensor, Pi: Tensor) -> IMMPrediction:
     r"""One IMM prediction (mixing + mode-matched prediction) over each of K horizons.
 
     Each horizon h is measured from the state's time: ``c = μ Pi(h)``, then the mixed

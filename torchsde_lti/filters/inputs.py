@@ -38,7 +38,18 @@ from torchsde_lti.core.validation import (
 )
 from torchsde_lti.filters.results import FilterResult
 
-__all__ = ["LOG_2PI", "FilterInputs", "PreparedInputs", "assemble_result", "check_mask", "mask_observation_model", "observed_components", "pad_dims", "prepare_inputs", "whiten"]
+__all__ = [
+    "LOG_2PI",
+    "FilterInputs",
+    "PreparedInputs",
+    "assemble_result",
+    "check_mask",
+    "mask_observation_model",
+    "observed_components",
+    "pad_dims",
+    "prepare_inputs",
+    "whiten",
+]
 
 LOG_2PI = math.log(2.0 * math.pi)
 
@@ -141,7 +152,9 @@ def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked
         check_matrix(D, "D", rows=m)
         pD = D.shape[-1]
         if u.dim() < 2 or u.shape[-1] != pD or u.shape[-2] not in (1, T):
-            raise ValueError(f"u must have shape (..., T={T}, {pD}) to match D {shape_str(D)}, got shape {shape_str(u)}")
+            raise ValueError(
+                f"u must have shape (..., T={T}, {pD}) to match D {shape_str(D)}, got shape {shape_str(u)}"
+            )
         if D.dim() >= 3 and D.shape[-3] not in (1, T):
             raise ValueError(f"D has {D.shape[-3]} steps on its time axis (shape {shape_str(D)}) but y has T={T}")
         if values:

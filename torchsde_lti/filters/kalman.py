@@ -21,8 +21,8 @@ from torch import Tensor
 
 from torchsde_lti.core.threads import intra_op_threads
 from torchsde_lti.filters.inputs import FilterInputs, prepare_inputs
-from torchsde_lti.filters.scan import chunked_scan, prefers_scan
 from torchsde_lti.filters.results import FilterResult
+from torchsde_lti.filters.scan import chunked_scan, prefers_scan
 from torchsde_lti.filters.sequential import sequential_filter
 from torchsde_lti.filters.square_root import square_root_filter
 
@@ -115,7 +115,11 @@ def kalman_filter(
 
 
 def run_filter(
-    args: FilterInputs, algorithm: str, *, chunk: int | None = None, validate_args: bool = True,
+    args: FilterInputs,
+    algorithm: str,
+    *,
+    chunk: int | None = None,
+    validate_args: bool = True,
     compiled_loop: bool = False,
 ) -> FilterResult:
     """:func:`kalman_filter` on an argument bundle with a chosen algorithm (not ``"auto"``).

@@ -16,7 +16,7 @@ are pure predictions and contribute 0 to the log-likelihood.
 Tracks join and leave by indexing or concatenating the state (every field has the batch
 leading)::
 
-    state = state.index(keep)                      # drop tracks (bool mask or indices)
+    state = state.select(keep)                      # drop tracks (bool mask or indices)
     state = KalmanState.cat([state, new_tracks])   # add tracks
 
 :class:`KalmanStep` carries what gating and data association need: the innovation
@@ -42,7 +42,16 @@ from torchsde_lti.filters.inputs import (
 )
 from torchsde_lti.filters.sequential import _joseph_step
 
-__all__ = ["IMMState", "IMMStep", "KalmanState", "KalmanStep", "imm_predict_state", "imm_step", "kalman_predict", "kalman_step"]
+__all__ = [
+    "IMMState",
+    "IMMStep",
+    "KalmanState",
+    "KalmanStep",
+    "imm_predict_state",
+    "imm_step",
+    "kalman_predict",
+    "kalman_step",
+]
 
 
 class KalmanState(NamedTuple):
@@ -54,7 +63,7 @@ class KalmanState(NamedTuple):
     mean: Tensor
     cov: Tensor
 
-    def index(self, idx: Tensor | slice | int | Sequence[int]) -> KalmanState:
+    def select(self, idx: Tensor | slice | int | Sequence[int]) -> KalmanState:
         """The tracks ``idx`` of the (first) batch dimension: a bool mask, indices or a slice."""
         return type(self)(*(t[idx] for t in self))
 
@@ -98,7 +107,9 @@ def kalman_predict(state: KalmanState, A: Tensor, Q: Tensor, c: Tensor | None = 
     mb = torch.broadcast_shapes(cb, state.mean.shape[:-1], *(() if c is None else (c.shape[:-1],)))
     Ab, Qb, Pb, mean_b, cbl = _batch_last(state, A, Q, c, cb, mb)
     pm, pc, _, _, _, _ = _joseph_step(Ab, Qb, mean_b, Pb, cbl, (), (), None, None)  # no rows: predict only
-    return KalmanState(pm.permute(*range(1, 1 + len(mb)), 0), pc.permute(*range(2, 2 + len(cb)), 0, 1).expand(*mb, n, n))
+    return KalmanState(
+        pm.permute(*range(1, 1 + len(mb)), 0), pc.permute(*range(2, 2 + len(cb)), 0, 1).expand(*mb, n, n)
+    )
 
 
 def _batch_last(
@@ -172,8 +183,12 @@ def kalman_step(
         n_obs = observed.to(y0.dtype).sum(-1)
     ll = core - 0.5 * n_obs * LOG_2PI - log_det  # e_j, s_j: (*batch), batch-last = batch-first
     return KalmanState(filt_mean, filt_cov), KalmanStep(
-        pred_mean, pred_cov.expand(*mb, n, n), innovation.expand(*mb, m), innovation_cov.expand(*mb, m, m),
-        ll.expand(mb), observed,
+        pred_mean,
+        pred_cov.expand(*mb, n, n),
+        innovation.expand(*mb, m),
+        innovation_cov.expand(*mb, m, m),
+        ll.expand(mb),
+        observed,
     )
 
 
@@ -188,7 +203,7 @@ class IMMState(NamedTuple):
     mode_mean: Tensor
     mode_cov: Tensor
 
-    def index(self, idx: Tensor | slice | int | Sequence[int]) -> IMMState:
+    def select(self, idx: Tensor | slice | int | Sequence[int]) -> IMMState:
         """The tracks ``idx`` of the (first) batch dimension: a bool mask, indices or a slice."""
         return type(self)(*(t[idx] for t in self))
 
@@ -248,8 +263,15 @@ def imm_step(
     x, P = combine(cyc.mode_prob, cyc.mode_mean, cyc.mode_cov)
     new = IMMState(cyc.mode_prob, cyc.mode_mean, cyc.mode_cov)
     batch = torch.broadcast_shapes(cyc.log_likelihood.shape, observed.shape[:-1])
-    return new, IMMStep(x, P, cyc.pred_mode_prob, cyc.mode_innovation, cyc.mode_innovation_cov,
-                        cyc.log_likelihood.expand(batch), observed.expand(*batch, m))
+    return new, IMMStep(
+        x,
+        P,
+        cyc.pred_mode_prob,
+        cyc.mode_innovation,
+        cyc.mode_innovation_cov,
+        cyc.log_likelihood.expand(batch),
+        observed.expand(*batch, m),
+    )
 
 
 def imm_predict_state(state: IMMState, A: Tensor, Q: Tensor, Pi: Tensor) -> IMMState:

@@ -138,7 +138,9 @@ def scan_filter(prep: PreparedInputs) -> FilterResult:
     # Predictions batched over steps, then the log-likelihood from whitened innovations.
     prev_m = torch.cat([prep.m0.unsqueeze(-2), mean[..., :-1, :]], dim=-2)
     lead_c = torch.broadcast_shapes(prep.P0.shape[:-2], cov.shape[:-3])
-    prev_P = torch.cat([prep.P0.expand(*lead_c, n, n).unsqueeze(-3), cov[..., :-1, :, :].expand(*lead_c, T - 1, n, n)], dim=-3)
+    prev_P = torch.cat(
+        [prep.P0.expand(*lead_c, n, n).unsqueeze(-3), cov[..., :-1, :, :].expand(*lead_c, T - 1, n, n)], dim=-3
+    )
     pred_mean = matvec(A_, prev_m)
     if prep.c is not None:
         pred_mean = pred_mean + prep.c
@@ -208,8 +210,17 @@ def chunked_scan(args: FilterInputs, chunk: int | None = None, validate_args: bo
         stop = min(T, start + chunk)
         sl = lambda x, axis: _time_slice(x, axis, T, start, stop)  # noqa: E731
         piece = FilterInputs(
-            y[..., start:stop, :], sl(A, -3), sl(Q, -3), sl(H, -3), sl(R, -3), m, P,
-            sl(G, -3), sl(u, -2), sl(mask, mask_axis), sl(D, -3),
+            y[..., start:stop, :],
+            sl(A, -3),
+            sl(Q, -3),
+            sl(H, -3),
+            sl(R, -3),
+            m,
+            P,
+            sl(G, -3),
+            sl(u, -2),
+            sl(mask, mask_axis),
+            sl(D, -3),
         )
         out = scan_filter(prepare_inputs(piece, validate_args))
         parts.append(out)

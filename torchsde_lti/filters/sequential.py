@@ -76,14 +76,16 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
         # The whole loop as torch's structured scan, compiled once: one step's graph, no
         # unrolling, no Python per step.
         T = prep.T
-        c_all = (
-            to_batch_last(prep.c, 1, time=True) if prep.c is not None else torch.zeros_like(mean).unsqueeze(0)
-        )
+        c_all = to_batch_last(prep.c, 1, time=True) if prep.c is not None else torch.zeros_like(mean).unsqueeze(0)
         loop = _scan_loop if torch.compiler.is_exporting() else _run_compiled_loop
         pm_bl, pc_bl, fm_bl, fc_bl, e_bl, s_bl = loop(
-            to_batch_last(A_bf, 2, time=True), to_batch_last(Q_bf, 2, time=True),
-            H_s.expand(T, *H_s.shape[1:]), yw_bl, c_all.expand(T, *c_all.shape[1:]),
-            _row_major(mean), _row_major(P),
+            to_batch_last(A_bf, 2, time=True),
+            to_batch_last(Q_bf, 2, time=True),
+            H_s.expand(T, *H_s.shape[1:]),
+            yw_bl,
+            c_all.expand(T, *c_all.shape[1:]),
+            _row_major(mean),
+            _row_major(P),
         )
         e_t = e_bl.reshape(T * m_dim, *e_bl.shape[2:])
         s_t = s_bl.reshape(T * m_dim, *s_bl.shape[2:])
@@ -101,8 +103,15 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
             ck = None if c_steps is None else c_steps[0 if c_single else k]
             hk0 = 0 if h_single else k * m_dim
             pm, pc, mean, P, e_k, s_k = _joseph_step(
-                Ak, Qk, mean, P, ck, h_rows[hk0 : hk0 + m_dim], y_rows[k * m_dim : (k + 1) * m_dim],
-                None if pc_buf is None else pc_buf[k], None if fc_buf is None else fc_buf[k],
+                Ak,
+                Qk,
+                mean,
+                P,
+                ck,
+                h_rows[hk0 : hk0 + m_dim],
+                y_rows[k * m_dim : (k + 1) * m_dim],
+                None if pc_buf is None else pc_buf[k],
+                None if fc_buf is None else fc_buf[k],
             )
             pmeans.append(pm)
             pcovs.append(pc)
@@ -212,9 +221,7 @@ def _scan_body(
     return (mean, P), (pm.clone(), pc.clone(), mean.clone(), P.clone(), e, torch.stack(ss))
 
 
-def _scan_loop(
-    A: Tensor, Q: Tensor, H: Tensor, y: Tensor, c: Tensor, mean: Tensor, P: Tensor
-) -> tuple[Tensor, ...]:
+def _scan_loop(A: Tensor, Q: Tensor, H: Tensor, y: Tensor, c: Tensor, mean: Tensor, P: Tensor) -> tuple[Tensor, ...]:
     """The sequential loop over the leading T axis of A, Q (T, n, n, *), H' (T, m, n, *),
     y' (T, m, *), c (T, n, *): stacked (pred mean, pred cov, mean, cov, e, s)."""
     from torch._higher_order_ops import scan

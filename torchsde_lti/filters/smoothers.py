@@ -5,12 +5,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.threads import intra_op_threads
 from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, sym
+from torchsde_lti.core.threads import intra_op_threads
 from torchsde_lti.core.validation import check_matrix
 from torchsde_lti.filters.kalman import check_algorithm
-from torchsde_lti.filters.scan import Elems, associative_scan, prefers_scan
 from torchsde_lti.filters.results import FilterResult, SmootherResult
+from torchsde_lti.filters.scan import Elems, associative_scan, prefers_scan
 
 __all__ = ["SMOOTHER_ALGORITHMS", "rts_smoother"]
 
@@ -75,8 +75,9 @@ def rts_smoother(
     """
     check_algorithm(algorithm, SMOOTHER_ALGORITHMS, "rts_smoother")
     if not isinstance(result, FilterResult):
-        raise TypeError(f"result must be a FilterResult (the output of kalman_filter or KalmanFilter), "
-                        f"got {type(result).__name__}")
+        raise TypeError(
+            f"result must be a FilterResult (the output of kalman_filter or KalmanFilter), got {type(result).__name__}"
+        )
     with intra_op_threads(result.cov.numel()):
         return _rts(result, A, Q, algorithm)
 
@@ -115,8 +116,11 @@ def _scan_smoother(result: FilterResult, E: Tensor, g: Tensor, C: Tensor) -> Smo
     """The smoother by a reverse associative scan of the smoothing elements (E, g, C)."""
     T, n = g.shape[-2], g.shape[-1]
     batch = torch.broadcast_shapes(E.shape[:-3], g.shape[:-2], C.shape[:-3])
-    moved = (E.expand(*batch, T, n, n).movedim(-3, 0), g.expand(*batch, T, n).movedim(-2, 0),
-             C.expand(*batch, T, n, n).movedim(-3, 0))
+    moved = (
+        E.expand(*batch, T, n, n).movedim(-3, 0),
+        g.expand(*batch, T, n).movedim(-2, 0),
+        C.expand(*batch, T, n, n).movedim(-3, 0),
+    )
     Es, gs, Cs = associative_scan(_smoother_combine, moved, reverse=True)
     mean = gs.movedim(0, -2)
     cov = Cs.movedim(0, -3)

@@ -73,7 +73,10 @@ def square_root_filter(prep: PreparedInputs) -> FilterResult:
             for j in range(n):
                 r = torch.hypot(x, f[j])
                 cj, sj = x / r, f[j] / r
-                kbar, cols[j] = cj[..., None] * kbar + sj[..., None] * cols[j], cj[..., None] * cols[j] - sj[..., None] * kbar
+                kbar, cols[j] = (
+                    cj[..., None] * kbar + sj[..., None] * cols[j],
+                    cj[..., None] * cols[j] - sj[..., None] * kbar,
+                )
                 x = r
             e = (yw_steps[k][..., i] - torch.linalg.vecdot(Hk[..., i, :], mean)) / x
             mean = mean + kbar * e[..., None]

@@ -17,8 +17,9 @@ __all__ = ["block_diag", "position_observation", "shaped"]
 class ShapedSDE(StructuredSDE):
     """A system driven by coloured noise (see :func:`shaped`)."""
 
-    def __init__(self, system: LTISDE, shaping: LTISDE, C: Tensor | None = None, *,
-                 validate_args: bool | None = None) -> None:
+    def __init__(
+        self, system: LTISDE, shaping: LTISDE, C: Tensor | None = None, *, validate_args: bool | None = None
+    ) -> None:
         super().__init__(validate_args)
         for name, value in (("system", system), ("shaping", shaping)):
             if not isinstance(value, LTISDE):
@@ -89,8 +90,7 @@ class ShapedSDE(StructuredSDE):
         return f"system_dim={self.system_dim}, shaping_dim={int(self.shaping_output.shape[-1])}"
 
 
-def shaped(system: LTISDE, shaping: LTISDE, C: Tensor | None = None, *,
-           validate_args: bool | None = None) -> ShapedSDE:
+def shaped(system: LTISDE, shaping: LTISDE, C: Tensor | None = None, *, validate_args: bool | None = None) -> ShapedSDE:
     r"""A system driven by coloured noise: the system plus a shaping filter driven by white noise.
 
     The system ``dx_s = F_s x_s dt + B_s u dt + L_s ν dt`` has its white noise ν replaced by
@@ -193,9 +193,7 @@ def position_observation(model: LTISDE) -> Tensor:
     """
     idx = getattr(model, "position_indices", None)
     if idx is None:
-        raise ValueError(
-            f"model ({type(model).__name__}) does not declare position_indices; build H by hand"
-        )
+        raise ValueError(f"model ({type(model).__name__}) does not declare position_indices; build H by hand")
     with torch.no_grad():
         F = model.matrices().F
     n = F.shape[-1]
@@ -203,4 +201,3 @@ def position_observation(model: LTISDE) -> Tensor:
     for row, col in enumerate(idx):
         H[row, col] = 1.0
     return H
-

@@ -40,9 +40,7 @@ class Matern(StructuredSDE):
         chain, top = integrator_chain(m, 1, dt_, dev)  # one axis: [f, f', …], top = e_m
         self.register_buffer("_chain", chain, persistent=False)
         self.register_buffer("_top", top, persistent=False)
-        self.register_buffer(
-            "_binom", torch.tensor([float(math.comb(m, j)) for j in range(m)], **kw), persistent=False
-        )
+        self.register_buffer("_binom", torch.tensor([float(math.comb(m, j)) for j in range(m)], **kw), persistent=False)
         self.register_buffer("_powers", torch.arange(m, 0, -1, **kw), persistent=False)  # m−j
         self.position_indices = (0,)
         self._qc_const = 2.0 * math.sqrt(math.pi) * math.gamma(self.nu + 0.5) / math.gamma(self.nu)

@@ -63,7 +63,9 @@ class MassSpringDamper(OutputEquation, StructuredSDE):
         return self._scalar_repr(["m", "k", "c", "q"])
 
 
-def mass_spring_damper(m: Scalar, k: Scalar, c: Scalar, q: Scalar = 1.0, **options: Unpack[ModelOptions]) -> MassSpringDamper:
+def mass_spring_damper(
+    m: Scalar, k: Scalar, c: Scalar, q: Scalar = 1.0, **options: Unpack[ModelOptions]
+) -> MassSpringDamper:
     r"""Mass–spring–damper ``m p'' = u − c p' − k p + w``, state ``[p, p']``.
 
     u is a known force input (through B), w a random force of spectral density q.
@@ -93,7 +95,9 @@ class Companion(OutputEquation, StructuredSDE):
         dt_, dev = scalar_dtype_device([a, q], options)
         coeffs = as_float_tensor(a, "a", dt_, dev).detach().clone()
         if coeffs.dim() < 1 or coeffs.shape[-1] < 2:
-            raise ValueError(f"a must hold coefficients a_0..a_n with n >= 1, shape (..., n+1); got shape {shape_str(coeffs)}")
+            raise ValueError(
+                f"a must hold coefficients a_0..a_n with n >= 1, shape (..., n+1); got shape {shape_str(coeffs)}"
+            )
         check_finite(coeffs, "a")
         if bool((coeffs[..., -1] == 0).any()):
             raise ValueError(f"a: the leading coefficient a_n must be non-zero (shape {shape_str(coeffs)})")
@@ -169,8 +173,13 @@ class TransferFunction(Companion):
     D are recomputed from the current ``a``.
     """
 
-    def __init__(self, num: Sequence[float] | Tensor, den: Sequence[float] | Tensor, q: Scalar = 1.0,
-                 **options: Unpack[ModelOptions]) -> None:
+    def __init__(
+        self,
+        num: Sequence[float] | Tensor,
+        den: Sequence[float] | Tensor,
+        q: Scalar = 1.0,
+        **options: Unpack[ModelOptions],
+    ) -> None:
         dt_, dev = scalar_dtype_device([num, den, q], options)
         b = as_float_tensor(num, "num", dt_, dev).detach().clone()
         a = as_float_tensor(den, "den", dt_, dev).detach().clone()
@@ -218,7 +227,9 @@ class TransferFunction(Companion):
         return self._output()[1]
 
     def extra_repr(self) -> str:
-        return f"order={self.order}, num: {shape_str(self.numerator)}, a: {shape_str(self.a)}, " + self._scalar_repr(["q"])
+        return f"order={self.order}, num: {shape_str(self.numerator)}, a: {shape_str(self.a)}, " + self._scalar_repr(
+            ["q"]
+        )
 
 
 def _strip_leading_zeros(coeffs: Tensor) -> Tensor:
@@ -228,8 +239,9 @@ def _strip_leading_zeros(coeffs: Tensor) -> Tensor:
     return coeffs
 
 
-def from_transfer_function(num: Sequence[float] | Tensor, den: Sequence[float] | Tensor, q: Scalar = 1.0,
-                           **options: Unpack[ModelOptions]) -> TransferFunction:
+def from_transfer_function(
+    num: Sequence[float] | Tensor, den: Sequence[float] | Tensor, q: Scalar = 1.0, **options: Unpack[ModelOptions]
+) -> TransferFunction:
     r"""State-space model of ``G(s) = num(s) / den(s)`` (coefficients highest power first, as in scipy).
 
     Controllable canonical (companion) form, state ``[z, z', …]``: ``ẋ = F x + B u + L w``,

@@ -2,8 +2,8 @@
 StructuredSDE base of the motion models) and the KalmanFilter module."""
 
 from torchsde_lti.nn._validate import NonFiniteLikelihoodError
-from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.deploy import DeployedFilter, OnlineStep
+from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import FilterMode, Forecast, KalmanFilter
 from torchsde_lti.nn.layers import Discretization, Transition, VanLoanNoise
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices, StructuredSDE

@@ -53,7 +53,11 @@ def check_values(finite: Named = (), nonnegative: Named = (), no_inf: Named = ()
     nonnegative = [(k, v) for k, v in nonnegative if v is not None and v.numel()]
     no_inf = [(k, v) for k, v in no_inf if v is not None]
     with torch.no_grad():
-        flags = [torch.stack([v.sum() for _, v in (*finite, *nonnegative)]).isfinite().all()] if finite or nonnegative else []
+        flags = (
+            [torch.stack([v.sum() for _, v in (*finite, *nonnegative)]).isfinite().all()]
+            if finite or nonnegative
+            else []
+        )
         flags += [v.amin() >= 0 for _, v in nonnegative]
         flags += [~torch.isinf(v).any() for _, v in no_inf]
         if not flags or bool(torch.stack(flags).all()):

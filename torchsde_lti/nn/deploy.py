@@ -16,7 +16,6 @@ from torchsde_lti.nn.kalman import KalmanFilter
 __all__ = ["DeployedFilter", "OnlineStep"]
 
 
-
 class DeployedFilter(nn.Module):
     """The entry point to ship a trained :class:`KalmanFilter` with ``torch.export`` (or
     ``torch.jit``-free serving): plain tensor outputs instead of a :class:`FilterResult`.

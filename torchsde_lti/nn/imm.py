@@ -152,8 +152,9 @@ class IMMFilter(ValidateArgs, nn.Module):
             raise ValueError("models must contain at least one LTISDE, got 0")
         names_m = [f"mode{j}" for j in range(len(models))] if mode_names is None else [str(s) for s in mode_names]
         if len(names_m) != len(models) or len(set(names_m)) != len(names_m) or not all(names_m):
-            raise ValueError(f"mode_names must be {len(models)} distinct non-empty names (one per model), "
-                             f"got {list(names_m)}")
+            raise ValueError(
+                f"mode_names must be {len(models)} distinct non-empty names (one per model), got {list(names_m)}"
+            )
         self.mode_names = tuple(names_m)
         for i, sde in enumerate(models):
             if not isinstance(sde, LTISDE):
@@ -169,8 +170,10 @@ class IMMFilter(ValidateArgs, nn.Module):
             with torch.no_grad():
                 F = sde.matrices().F
             if F.shape != (n, n):
-                raise ValueError(f"models[{i}] has F of shape {shape_str(F)}; every mode needs an unbatched "
-                                 f"({n}, {n}) F (the common state of models[0])")
+                raise ValueError(
+                    f"models[{i}] has F of shape {shape_str(F)}; every mode needs an unbatched "
+                    f"({n}, {n}) F (the common state of models[0])"
+                )
             if F.dtype != dtype:
                 raise ValueError(f"models[{i}] has dtype {F.dtype}, models[0] has {dtype}")
 
@@ -182,11 +185,14 @@ class IMMFilter(ValidateArgs, nn.Module):
         m = H.shape[-2]
         R = as_float_tensor(R, "R", dtype, device).detach().clone()
         if R.dim() not in (2, 3) or R.shape[-2:] != (m, m) or (R.dim() == 3 and R.shape[0] != M):
-            raise ValueError(f"R must have shape ({m}, {m}) or (M={M}, {m}, {m}) to match H {shape_str(H)}, "
-                             f"got shape {shape_str(R)}")
+            raise ValueError(
+                f"R must have shape ({m}, {m}) or (M={M}, {m}, {m}) to match H {shape_str(H)}, got shape {shape_str(R)}"
+            )
         register_tensor(self, "H", H, "H" in names)
         register_tensor(self, "R", R, "R" in names)
-        parametrize.register_parametrization(self, "R", PositiveDefinite(name="R", size=m).to(dtype=dtype, device=device))
+        parametrize.register_parametrization(
+            self, "R", PositiveDefinite(name="R", size=m).to(dtype=dtype, device=device)
+        )
 
         rates_t = as_float_tensor(rates, "rates", dtype, device).detach().clone()
         if rates_t.shape != (M, M):
@@ -201,27 +207,34 @@ class IMMFilter(ValidateArgs, nn.Module):
         else:
             self.register_buffer("rates", generator_from_rates(rates_t))
 
-        p0 = torch.full((M,), 1.0 / M, dtype=dtype, device=device) if mode_prob0 is None else \
-            as_float_tensor(mode_prob0, "mode_prob0", dtype, device).detach().clone()
+        p0 = (
+            torch.full((M,), 1.0 / M, dtype=dtype, device=device)
+            if mode_prob0 is None
+            else as_float_tensor(mode_prob0, "mode_prob0", dtype, device).detach().clone()
+        )
         if p0.shape != (M,) or bool((p0 < 0).any()) or abs(float(p0.sum()) - 1.0) > 1e-6:
             raise ValueError(f"mode_prob0 must be a probability vector of shape ({M},), got {p0.tolist()}")
         p0 = p0 / p0.sum()
         register_tensor(self, "mode_prob0", p0, "mode_prob0" in names)
         if "mode_prob0" in names:
-            parametrize.register_parametrization(self, "mode_prob0",
-                                                 ModeProbabilities().to(dtype=dtype, device=device))
+            parametrize.register_parametrization(self, "mode_prob0", ModeProbabilities().to(dtype=dtype, device=device))
 
         m0_t = torch.zeros(n, dtype=dtype, device=device) if m0 is None else as_float_tensor(m0, "m0", dtype, device)
         if m0_t.shape not in ((n,), (M, n)):
             raise ValueError(f"m0 must have shape ({n},) or (M={M}, {n}), got shape {shape_str(m0_t)}")
         check_finite(m0_t, "m0")
         register_tensor(self, "m0", m0_t.detach().clone(), "m0" in names)
-        P0_t = diffuse_variance * torch.eye(n, dtype=dtype, device=device) if P0 is None else \
-            as_float_tensor(P0, "P0", dtype, device).detach().clone()
+        P0_t = (
+            diffuse_variance * torch.eye(n, dtype=dtype, device=device)
+            if P0 is None
+            else as_float_tensor(P0, "P0", dtype, device).detach().clone()
+        )
         if P0_t.shape not in ((n, n), (M, n, n)):
             raise ValueError(f"P0 must have shape ({n}, {n}) or (M={M}, {n}, {n}), got shape {shape_str(P0_t)}")
         register_tensor(self, "P0", P0_t, "P0" in names)
-        parametrize.register_parametrization(self, "P0", PositiveDefinite(name="P0", size=n).to(dtype=dtype, device=device))
+        parametrize.register_parametrization(
+            self, "P0", PositiveDefinite(name="P0", size=n).to(dtype=dtype, device=device)
+        )
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -239,8 +252,10 @@ class IMMFilter(ValidateArgs, nn.Module):
     def modes(self) -> list[FilterMode]:
         """Each mode's motion model and observation: ``FilterMode(name, sde, H_j, R_j)`` (H_j (m, n), R_j (m, m))."""
         H, R = self._obs_model()
-        return [FilterMode(name, sde, H[min(j, H.shape[0] - 1)], R[min(j, R.shape[0] - 1)])
-                for j, (name, sde) in enumerate(zip(self.mode_names, self.models))]
+        return [
+            FilterMode(name, sde, H[min(j, H.shape[0] - 1)], R[min(j, R.shape[0] - 1)])
+            for j, (name, sde) in enumerate(zip(self.mode_names, self.models))
+        ]
 
     def bank(self) -> tuple[Tensor, Tensor]:
         """Stacked mode matrices: F (M, n, n) and noise intensity ``L Qc Lᵀ`` (M, n, n)."""
@@ -270,7 +285,9 @@ class IMMFilter(ValidateArgs, nn.Module):
     def _discretize_flat(
         self, F: Tensor, W: Tensor, eye: Tensor, dt: Tensor, validate_args: bool
     ) -> tuple[Discrete, Tensor]:
-        d = discretize(F, eye, W, dt.unsqueeze(-1), method=self.method, validate_args=validate_args)  # F (M,·,·) with dt (..., 1)
+        d = discretize(
+            F, eye, W, dt.unsqueeze(-1), method=self.method, validate_args=validate_args
+        )  # F (M,·,·) with dt (..., 1)
         # the chain's transitions in float64 (an M × M exponential: free), rows renormalised:
         # a float32 exponential of Λ dt for dt ≫ 1/rate loses the row sums (and gives NaN mixing)
         Pi = torch.matrix_exp(self.rates.double() * dt.double()[..., None, None]).clamp_min(0.0)
@@ -298,17 +315,32 @@ class IMMFilter(ValidateArgs, nn.Module):
             F, W = self.bank()
             y = as_float_tensor(y, "y", F.dtype, F.device)
             if y.dim() < 2 or y.shape[-1] != self.obs_dim:
-                raise ValueError(f"y must have shape (..., T, m={self.obs_dim}) to match H {shape_str(self.H)}, "
-                                 f"got shape {shape_str(y)}")
+                raise ValueError(
+                    f"y must have shape (..., T, m={self.obs_dim}) to match H {shape_str(self.H)}, "
+                    f"got shape {shape_str(y)}"
+                )
             dt = as_float_tensor(dt, "dt", F.dtype, F.device)
             if dt.dim() < 1 or dt.shape[-1] != y.shape[-2]:
-                raise ValueError(f"dt must have shape (..., T={y.shape[-2]}) to match y {shape_str(y)}, "
-                                 f"got shape {shape_str(dt)}")
+                raise ValueError(
+                    f"dt must have shape (..., T={y.shape[-2]}) to match y {shape_str(y)}, got shape {shape_str(dt)}"
+                )
             H, R = self._obs_model()
             rates, m0, P0, p0 = self.rates, self.m0, self.P0, self.mode_prob0
             if self.validate_args:
-                check_values(finite=[("F", F), ("W", W), ("H", H), ("R", R), ("rates", rates), ("m0", m0),
-                                     ("P0", P0), ("mode_prob0", p0)], nonnegative=[("dt", dt)], no_inf=[("y", y)])
+                check_values(
+                    finite=[
+                        ("F", F),
+                        ("W", W),
+                        ("H", H),
+                        ("R", R),
+                        ("rates", rates),
+                        ("m0", m0),
+                        ("P0", P0),
+                        ("mode_prob0", p0),
+                    ],
+                    nonnegative=[("dt", dt)],
+                    no_inf=[("y", y)],
+                )
             # the bank is valid by construction (parametrisations, PSD doubling) and dt checked above
             d, Pi = self._discretize_bank(F, W, dt, validate_args=False)
             return imm_filter(y, d.A, d.Q, H, R, Pi, m0, P0, p0.expand(self.num_modes), mask=mask, validate_args=False)
@@ -320,8 +352,9 @@ class IMMFilter(ValidateArgs, nn.Module):
         (*batch_shape, M, n), mode_cov (*batch_shape, M, n, n) (expanded views)."""
         shape = (batch_shape,) if isinstance(batch_shape, int) else tuple(batch_shape)
         M, n = self.num_modes, self.state_dim
-        return IMMState(self.mode_prob0.expand(*shape, M), self.m0.expand(*shape, M, n),
-                        self.P0.expand(*shape, M, n, n))
+        return IMMState(
+            self.mode_prob0.expand(*shape, M), self.m0.expand(*shape, M, n), self.P0.expand(*shape, M, n, n)
+        )
 
     def step(
         self, state: IMMState, y: Tensor, dt: Tensor | float, u: Tensor | None = None, mask: Tensor | None = None
@@ -349,17 +382,28 @@ class IMMFilter(ValidateArgs, nn.Module):
             F, W, state, dt = self._online_args(state, dt)
             y = as_float_tensor(y, "y", F.dtype, F.device)
             if y.dim() < 1 or y.shape[-1] != self.obs_dim:
-                raise ValueError(f"y must have shape (..., m={self.obs_dim}) to match H {shape_str(self.H)}, "
-                                 f"got shape {shape_str(y)}")
+                raise ValueError(
+                    f"y must have shape (..., m={self.obs_dim}) to match H {shape_str(self.H)}, "
+                    f"got shape {shape_str(y)}"
+                )
             if mask is not None:
                 mask = torch.as_tensor(mask, device=y.device)
                 if mask.dtype != torch.bool:
                     raise ValueError(f"mask must be a bool tensor, got dtype {mask.dtype}")
             H, R = self._obs_model()
             if self.validate_args:
-                check_values(finite=[("F", F), ("W", W), ("H", H), ("R", R), ("rates", self.rates),
-                                     *zip(("state.mode_prob", "state.mode_mean", "state.mode_cov"), state)],
-                             nonnegative=[("dt", dt)], no_inf=[("y", y)])
+                check_values(
+                    finite=[
+                        ("F", F),
+                        ("W", W),
+                        ("H", H),
+                        ("R", R),
+                        ("rates", self.rates),
+                        *zip(("state.mode_prob", "state.mode_mean", "state.mode_cov"), state),
+                    ],
+                    nonnegative=[("dt", dt)],
+                    no_inf=[("y", y)],
+                )
             d, Pi = self._discretize_bank(F, W, dt, validate_args=False)
             return imm_step(state, y, d.A, d.Q, Pi, H, R, mask)
 
@@ -379,11 +423,15 @@ class IMMFilter(ValidateArgs, nn.Module):
         M, n = self.num_modes, self.state_dim
         if not isinstance(state, tuple) or len(state) != 3:
             raise TypeError(f"state must be an IMMState (mode_prob, mode_mean, mode_cov), got {type(state).__name__}")
-        prob, mean, cov = (as_float_tensor(t, f"state.{k}", F.dtype, F.device)
-                           for k, t in zip(("mode_prob", "mode_mean", "mode_cov"), state))
+        prob, mean, cov = (
+            as_float_tensor(t, f"state.{k}", F.dtype, F.device)
+            for k, t in zip(("mode_prob", "mode_mean", "mode_cov"), state)
+        )
         if prob.dim() < 1 or prob.shape[-1] != M or mean.shape[-2:] != (M, n) or cov.shape[-3:] != (M, n, n):
-            raise ValueError(f"state must be (mode_prob (..., {M}), mode_mean (..., {M}, {n}), mode_cov "
-                             f"(..., {M}, {n}, {n})), got {shape_str(prob)}, {shape_str(mean)}, {shape_str(cov)}")
+            raise ValueError(
+                f"state must be (mode_prob (..., {M}), mode_mean (..., {M}, {n}), mode_cov "
+                f"(..., {M}, {n}, {n})), got {shape_str(prob)}, {shape_str(mean)}, {shape_str(cov)}"
+            )
         return F, W, IMMState(prob, mean, cov), as_float_tensor(dt, "dt", F.dtype, F.device)
 
     def forecast(
@@ -402,14 +450,19 @@ class IMMFilter(ValidateArgs, nn.Module):
             dt: (..., K) non-negative horizons (a float or (K,) is shared by the batch).
         """
         if isinstance(state, IMMResult):
-            prob, mean, cov = state.mode_probabilities[..., -1, :], state.mode_mean[..., -1, :, :], \
-                state.mode_cov[..., -1, :, :, :]
+            prob, mean, cov = (
+                state.mode_probabilities[..., -1, :],
+                state.mode_mean[..., -1, :, :],
+                state.mode_cov[..., -1, :, :, :],
+            )
         else:
             prob, mean, cov = state
         M, n = self.num_modes, self.state_dim
         if prob.shape[-1] != M or mean.shape[-2:] != (M, n) or cov.shape[-3:] != (M, n, n):
-            raise ValueError(f"state must be (mode_prob (..., {M}), mode_mean (..., {M}, {n}), mode_cov "
-                             f"(..., {M}, {n}, {n})), got {shape_str(prob)}, {shape_str(mean)}, {shape_str(cov)}")
+            raise ValueError(
+                f"state must be (mode_prob (..., {M}), mode_mean (..., {M}, {n}), mode_cov "
+                f"(..., {M}, {n}, {n})), got {shape_str(prob)}, {shape_str(mean)}, {shape_str(cov)}"
+            )
         with parametrize.cached():
             F, W = self.bank()
             dt = as_float_tensor(dt, "dt", F.dtype, F.device)
@@ -417,8 +470,9 @@ class IMMFilter(ValidateArgs, nn.Module):
                 dt = dt.reshape(1)
             H, R = self._obs_model()
             if self.validate_args:
-                check_values(finite=[("F", F), ("W", W), ("H", H), ("R", R), ("rates", self.rates)],
-                             nonnegative=[("dt", dt)])
+                check_values(
+                    finite=[("F", F), ("W", W), ("H", H), ("R", R), ("rates", self.rates)], nonnegative=[("dt", dt)]
+                )
             d, Pi = self._discretize_bank(F, W, dt, validate_args=False)  # (..., K, M, n, n), (..., K, M, M)
         p: IMMPrediction = imm_predict(prob, mean, cov, d.A, d.Q, Pi)
         ym = (H @ p.mode_mean.unsqueeze(-1)).squeeze(-1)  # (..., K, M, m)

@@ -218,7 +218,9 @@ class KalmanFilter(ValidateArgs, nn.Module):
                 )
             register_tensor(self, "D", D_t, "D" in names)
         register_tensor(self, "R", R, "R" in names)
-        parametrize.register_parametrization(self, "R", PositiveDefinite(name="R", size=m).to(dtype=dtype, device=device))
+        parametrize.register_parametrization(
+            self, "R", PositiveDefinite(name="R", size=m).to(dtype=dtype, device=device)
+        )
 
         m0_t = torch.zeros(n, dtype=dtype, device=device) if m0 is None else as_float_tensor(m0, "m0", dtype, device)
         if m0_t.dim() < 1 or m0_t.shape[-1] != n:
@@ -227,8 +229,9 @@ class KalmanFilter(ValidateArgs, nn.Module):
         register_tensor(self, "m0", m0_t.detach().clone(), "m0" in names)
         self._init_prior(P0, "P0" in names, n, dtype, device)
 
-    def _init_prior(self, P0: Tensor | str | None, learned: bool, n: int, dtype: torch.dtype,
-                    device: torch.device) -> None:
+    def _init_prior(
+        self, P0: Tensor | str | None, learned: bool, n: int, dtype: torch.dtype, device: torch.device
+    ) -> None:
         """:attr:`prior_mode` and the P0 parameter/buffer (None unless the mode is "given")."""
         diffuse = self.diffuse_variance * torch.eye(n, dtype=dtype, device=device)
         if isinstance(P0, str):
@@ -256,7 +259,9 @@ class KalmanFilter(ValidateArgs, nn.Module):
             self.prior_mode = "given"  # learnable, initialised at that prior's value
         if self.prior_mode == "given":
             register_tensor(self, "P0", P0_t, learned)
-            parametrize.register_parametrization(self, "P0", PositiveDefinite(name="P0", size=n).to(dtype=dtype, device=device))
+            parametrize.register_parametrization(
+                self, "P0", PositiveDefinite(name="P0", size=n).to(dtype=dtype, device=device)
+            )
         else:
             self.register_buffer("P0", None)
 
@@ -324,8 +329,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
         m = self.obs_dim
         if y.shape[-1] != m:
             raise ValueError(
-                f"y has {y.shape[-1]} components (shape {shape_str(y)}) but H has {m} rows "
-                f"(shape {shape_str(self.H)})"
+                f"y has {y.shape[-1]} components (shape {shape_str(y)}) but H has {m} rows (shape {shape_str(self.H)})"
             )
         T = y.shape[-2]
         dt = as_float_tensor(dt, "dt", dtype, device)
@@ -390,14 +394,17 @@ class KalmanFilter(ValidateArgs, nn.Module):
         return self._forward(y, dt, u, mask, self.algorithm)
 
     @torch.compiler.disable
-    def _forward_compiled_loop(
-        self, y: Tensor, dt: Tensor, u: Tensor | None, mask: Tensor | None
-    ) -> FilterResult:
+    def _forward_compiled_loop(self, y: Tensor, dt: Tensor, u: Tensor | None, mask: Tensor | None) -> FilterResult:
         algorithm = "square_root" if self.algorithm == "square_root" else "sequential"
         return self._forward(y, dt, u, mask, algorithm, compiled_loop=True)
 
     def _forward(
-        self, y: Tensor, dt: Tensor, u: Tensor | None, mask: Tensor | None, algorithm: str,
+        self,
+        y: Tensor,
+        dt: Tensor,
+        u: Tensor | None,
+        mask: Tensor | None,
+        algorithm: str,
         compiled_loop: bool = False,
     ) -> FilterResult:
         with parametrize.cached():  # each parametrisation evaluated once per call
@@ -483,8 +490,10 @@ class KalmanFilter(ValidateArgs, nn.Module):
             state, dt, u = self._check_state(state, dt, u, mats)
             y = as_float_tensor(y, "y", mats.F.dtype, mats.F.device)
             if y.dim() < 1 or y.shape[-1] != self.obs_dim:
-                raise ValueError(f"y must have shape (..., m={self.obs_dim}) to match H {shape_str(self.H)}, "
-                                 f"got shape {shape_str(y)}")
+                raise ValueError(
+                    f"y must have shape (..., m={self.obs_dim}) to match H {shape_str(self.H)}, "
+                    f"got shape {shape_str(y)}"
+                )
             if mask is not None:
                 mask = torch.as_tensor(mask, device=y.device)
                 if mask.dtype != torch.bool:
@@ -506,7 +515,9 @@ class KalmanFilter(ValidateArgs, nn.Module):
                 self._check_values(mats, dt, u=u, mean=state.mean, cov=state.cov)
             return kalman_predict(state, *self._online_step_model(mats, dt, u))
 
-    def _online_step_model(self, mats: SDEMatrices, dt: Tensor, u: Tensor | None) -> tuple[Tensor, Tensor, Tensor | None]:
+    def _online_step_model(
+        self, mats: SDEMatrices, dt: Tensor, u: Tensor | None
+    ) -> tuple[Tensor, Tensor, Tensor | None]:
         """(A, Q, G u or None) of each track's gap dt (...): one batched exact discretisation."""
         d = discretize(mats.F, mats.L, mats.Qc, dt, B=mats.B, method=self.discretization_method, validate_args=False)
         return d.A, d.Q, (matvec(d.G, u) if (u is not None and d.G is not None) else None)
@@ -522,8 +533,10 @@ class KalmanFilter(ValidateArgs, nn.Module):
         mean = as_float_tensor(state[0], "state.mean", dtype, device)
         cov = as_float_tensor(state[1], "state.cov", dtype, device)
         if mean.dim() < 1 or mean.shape[-1] != n or cov.dim() < 2 or cov.shape[-2:] != (n, n):
-            raise ValueError(f"state must be (mean (..., {n}), cov (..., {n}, {n})), got mean {shape_str(mean)}, "
-                             f"cov {shape_str(cov)}")
+            raise ValueError(
+                f"state must be (mean (..., {n}), cov (..., {n}, {n})), got mean {shape_str(mean)}, "
+                f"cov {shape_str(cov)}"
+            )
         dt = as_float_tensor(dt, "dt", dtype, device)
         if u is not None:  # one step: (..., p) checked as (..., 1, p)
             p = mats.B.shape[-1] if mats.B is not None else (self.D.shape[-1] if self.D is not None else 0)
@@ -572,8 +585,9 @@ class KalmanFilter(ValidateArgs, nn.Module):
                 dt = dt.reshape(1)
             n = F.shape[-1]
             if mean.shape[-1] != n or cov.shape[-2:] != (n, n):
-                raise ValueError(f"state must be (mean (..., {n}), cov (..., {n}, {n})), got "
-                                 f"{shape_str(mean)}, {shape_str(cov)}")
+                raise ValueError(
+                    f"state must be (mean (..., {n}), cov (..., {n}, {n})), got {shape_str(mean)}, {shape_str(cov)}"
+                )
             if u is not None:
                 p = mats.B.shape[-1] if mats.B is not None else (self.D.shape[-1] if self.D is not None else 0)
                 u = self._check_u(u, p, dt.shape[-1], "K", F.dtype, F.device)
@@ -594,4 +608,3 @@ class KalmanFilter(ValidateArgs, nn.Module):
             f"obs_dim={self.obs_dim}, prior={self.prior_mode}, algorithm={self.algorithm!r}, unique_dt={self.unique_dt}"
             + (f", method={self.method!r}" if self.method else "")
         )
-

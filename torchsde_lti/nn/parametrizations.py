@@ -136,9 +136,7 @@ class Positive(_Parametrization):
         v = self._as_raw_tensor(value, self.name)
         check_finite(v, self.name)
         if bool((v <= 0).any()):
-            raise ValueError(
-                f"{self.name} must be positive, got min {float(v.min()):.3g} (shape {shape_str(v)})"
-            )
+            raise ValueError(f"{self.name} must be positive, got min {float(v.min()):.3g} (shape {shape_str(v)})")
         floor = self._floor(v.dtype)
         return softplus_inverse((v - floor).clamp_min(torch.finfo(v.dtype).tiny))
 
@@ -159,9 +157,7 @@ def _cholesky_raw(value: Tensor, floor: float, name: str) -> Tensor:
         raise ValueError(f"{name} must be symmetric (shape {shape_str(value)})")
     chol, info = torch.linalg.cholesky_ex(sym(value))
     if bool((info != 0).any()):
-        raise ValueError(
-            f"{name} must be symmetric positive definite (Cholesky failed; shape {shape_str(value)})"
-        )
+        raise ValueError(f"{name} must be symmetric positive definite (Cholesky failed; shape {shape_str(value)})")
     diag = torch.diagonal(chol, dim1=-2, dim2=-1)
     raw_diag = softplus_inverse((diag - floor).clamp_min(torch.finfo(value.dtype).tiny))
     return torch.tril(chol, -1) + torch.diag_embed(raw_diag)
@@ -474,8 +470,10 @@ class Generator(_Parametrization):
         check_finite(v, self.name)
         off = ~torch.eye(v.shape[-1], dtype=torch.bool, device=v.device)
         if bool((v[..., off] <= 0).any()):
-            raise ValueError(f"{self.name}: learnable off-diagonal rates must be > 0, got min "
-                             f"{float(v[..., off].min()):.3g} (shape {shape_str(v)})")
+            raise ValueError(
+                f"{self.name}: learnable off-diagonal rates must be > 0, got min "
+                f"{float(v[..., off].min()):.3g} (shape {shape_str(v)})"
+            )
         raw = softplus_inverse((v - self._floor(v.dtype)).clamp_min(torch.finfo(v.dtype).tiny))
         return torch.where(off, raw, torch.zeros_like(raw))
 

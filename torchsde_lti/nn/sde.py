@@ -149,7 +149,9 @@ class LTISDE(ValidateArgs, nn.Module):
             f_param: nn.Module = Unconstrained("F", (n, n))
         elif isinstance(F_constraint, str):
             if F_constraint != "hurwitz":
-                raise ValueError(f"F_constraint must be None, 'hurwitz' or a parametrisation module, got {F_constraint!r}")
+                raise ValueError(
+                    f"F_constraint must be None, 'hurwitz' or a parametrisation module, got {F_constraint!r}"
+                )
             f_param = Hurwitz(name="F", size=n)
         elif isinstance(F_constraint, nn.Module):
             f_param = F_constraint
@@ -280,8 +282,9 @@ class LTISDE(ValidateArgs, nn.Module):
     ) -> tuple[Tensor, Tensor]:
         """Moments after horizon dt: ``m = A m0 + G u`` (..., n), ``P = A P0 Aᵀ + Q`` (..., n, n)."""
         m = self.matrices()
-        return propagate(m0, P0, m.F, m.L, m.Qc, dt, B=m.B, u=u, method=method or self.method,
-                         validate_args=self.validate_args)
+        return propagate(
+            m0, P0, m.F, m.L, m.Qc, dt, B=m.B, u=u, method=method or self.method, validate_args=self.validate_args
+        )
 
     def _aligned(self, series: bool) -> SDEMatrices:
         m = self.matrices()

@@ -67,8 +67,11 @@ class RunLog(Callback):
     def on_train_epoch_end(self, trainer: Any, pl_module: LightningModule) -> None:
         if trainer.sanity_checking or not trainer.is_global_zero:
             return
-        values = {k: float(v) for k, v in trainer.callback_metrics.items()
-                  if "/" in k and v.numel() == 1 and k != "train/skipped_steps"}  # logged after this hook
+        values = {
+            k: float(v)
+            for k, v in trainer.callback_metrics.items()
+            if "/" in k and v.numel() == 1 and k != "train/skipped_steps"
+        }  # logged after this hook
         if isinstance(pl_module, KalmanFilterModule):
             values["skipped_steps"] = float(pl_module.skipped_steps)
         text = "  ".join(f"{k}={v:.6g}" for k, v in sorted(values.items()))
@@ -107,12 +110,19 @@ class BestRun(HydraCallback):
             raise ValueError(f"no run under {sweep_dir} logged a finite {self.metric}")
         pick = min if self.mode == "min" else max
         winner = pick(runs, key=lambda r: r["value"])
-        return {"metric": self.metric, "best_dir": winner["dir"], "overrides": winner["overrides"],
-                "value": winner["value"], "runs": runs}
+        return {
+            "metric": self.metric,
+            "best_dir": winner["dir"],
+            "overrides": winner["overrides"],
+            "value": winner["value"],
+            "runs": runs,
+        }
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
         result = self.best(sweep_dir)
         write_json(sweep_dir / "best_run.json", result)
-        print(f"best of {len(result['runs'])} runs by {self.metric}: {result['value']:.6g} in {result['best_dir']} "
-              f"({' '.join(map(str, result['overrides']))})")
+        print(
+            f"best of {len(result['runs'])} runs by {self.metric}: {result['value']:.6g} in {result['best_dir']} "
+            f"({' '.join(map(str, result['overrides']))})"
+        )

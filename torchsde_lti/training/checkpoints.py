@@ -51,7 +51,9 @@ def _damage(path: Path) -> str:
     return f"corrupted ({size} bytes: an archive whose records do not read back)"
 
 
-def read_checkpoint(path: str | Path, *, require: Iterable[str] = ("state_dict",), name: str = "ckpt_path") -> dict[str, Any]:
+def read_checkpoint(
+    path: str | Path, *, require: Iterable[str] = ("state_dict",), name: str = "ckpt_path"
+) -> dict[str, Any]:
     """Load a checkpoint with ``torch.load(weights_only=True)`` on the CPU and check its keys.
 
     Args:
@@ -101,7 +103,9 @@ def read_checkpoint(path: str | Path, *, require: Iterable[str] = ("state_dict",
             f"it holds {', '.join(map(repr, list(ckpt)[:8])) or 'nothing'})"
         )
     if "state_dict" in ckpt and not isinstance(ckpt["state_dict"], Mapping):
-        raise CheckpointError(f"cannot read checkpoint {path}: its 'state_dict' is a {type(ckpt['state_dict']).__name__}, not a dict")
+        raise CheckpointError(
+            f"cannot read checkpoint {path}: its 'state_dict' is a {type(ckpt['state_dict']).__name__}, not a dict"
+        )
     return dict(ckpt)
 
 
@@ -122,11 +126,13 @@ def check_state_dict(path: str | Path, saved: Mapping[str, Any], module: nn.Modu
         if isinstance(theirs[k], torch.Tensor) and theirs[k].shape != own[k].shape
     )
     if missing or unexpected or shapes:
-        parts = [f"missing {missing[:5]}" if missing else "", f"unexpected {unexpected[:5]}" if unexpected else "",
-                 f"shapes (checkpoint vs model) {shapes[:5]}" if shapes else ""]
+        parts = [
+            f"missing {missing[:5]}" if missing else "",
+            f"unexpected {unexpected[:5]}" if unexpected else "",
+            f"shapes (checkpoint vs model) {shapes[:5]}" if shapes else "",
+        ]
         raise CheckpointError(
-            f"checkpoint {path} holds a different model from the one configured: "
-            + "; ".join(p for p in parts if p)
+            f"checkpoint {path} holds a different model from the one configured: " + "; ".join(p for p in parts if p)
         )
 
 

@@ -99,7 +99,9 @@ def check_config(cfg: DictConfig) -> None:
         _integer(cfg, "trainer.max_steps", 1, note=" (or -1: no step limit)")
     if max_epochs is None:
         if not (_is_int(max_steps) and max_steps >= 1):
-            raise ValueError("trainer.max_epochs must be an integer >= 1 (null only with trainer.max_steps >= 1), got None")
+            raise ValueError(
+                "trainer.max_epochs must be an integer >= 1 (null only with trainer.max_steps >= 1), got None"
+            )
     elif not _is_int(max_epochs) or max_epochs < 1:
         forever = " (-1 means 'train forever' in Lightning; give a number of epochs)" if max_epochs == -1 else ""
         raise ValueError(f"trainer.max_epochs must be an integer >= 1{forever}, got {max_epochs!r}")
@@ -110,7 +112,9 @@ def check_config(cfg: DictConfig) -> None:
 
     batch_size = _value(cfg, "data.batch_size")
     if batch_size is not None and (not _is_int(batch_size) or batch_size < 1):
-        raise ValueError(f"data.batch_size must be null (a whole split per batch) or an integer >= 1, got {batch_size!r}")
+        raise ValueError(
+            f"data.batch_size must be null (a whole split per batch) or an integer >= 1, got {batch_size!r}"
+        )
 
     if _value(cfg, "module.optimizer") is not None:
         lr = _value(cfg, "module.optimizer.lr")

@@ -110,8 +110,16 @@ def mixture_log_prob(x: Tensor, w: Tensor, mu: Tensor, S: Tensor) -> Tensor:
     return out.squeeze(1) if squeeze else out
 
 
-def hpd_inside(y: Tensor, w: Tensor, mu: Tensor, S: Tensor, level: float = NOMINAL_2SIGMA,
-               samples: int = 500, seed: int = 0, chunk: int = 2000) -> Tensor:
+def hpd_inside(
+    y: Tensor,
+    w: Tensor,
+    mu: Tensor,
+    S: Tensor,
+    level: float = NOMINAL_2SIGMA,
+    samples: int = 500,
+    seed: int = 0,
+    chunk: int = 2000,
+) -> Tensor:
     """Is y inside the ``level`` highest-density region of the predictive mixture? (N,) bool.
 
     One component in 2-D: the ellipse of Mahalanobis² <= -2 log(1 - level) (the 2σ ellipse
@@ -133,21 +141,22 @@ def hpd_inside(y: Tensor, w: Tensor, mu: Tensor, S: Tensor, level: float = NOMIN
     g = torch.Generator().manual_seed(seed)
     out = []
     for lo in range(0, y.shape[0], chunk):
-        ww, mm, SS = w[lo:lo + chunk], mu[lo:lo + chunk], S[lo:lo + chunk]
+        ww, mm, SS = w[lo : lo + chunk], mu[lo : lo + chunk], S[lo : lo + chunk]
         comp = torch.multinomial(ww.clamp_min(0), samples, replacement=True, generator=g)  # (n, samples)
         Lc = torch.linalg.cholesky(SS)
         z = torch.randn(*comp.shape, m_, generator=g, dtype=y.dtype)
         Lg = torch.gather(Lc.flatten(-2), 1, comp[..., None].expand(-1, -1, m_ * m_)).unflatten(-1, (m_, m_))
         xs = torch.gather(mm, 1, comp[..., None].expand(-1, -1, m_))
         xs = xs + sum(Lg[..., :, j] * z[..., j : j + 1] for j in range(m_))
-        ly = mixture_log_prob(y[lo:lo + chunk], ww, mm, SS)
+        ly = mixture_log_prob(y[lo : lo + chunk], ww, mm, SS)
         lx = mixture_log_prob(xs, ww, mm, SS)
         out.append((lx > ly[:, None]).to(y.dtype).mean(-1) <= level)
     return torch.cat(out) if out else torch.zeros(0, dtype=torch.bool)
 
 
-def moving_reports(t: np.ndarray, pos: np.ndarray, offsets: np.ndarray, window: float = 3600.0,
-                   moving_speed: float = 1.0) -> np.ndarray:
+def moving_reports(
+    t: np.ndarray, pos: np.ndarray, offsets: np.ndarray, window: float = 3600.0, moving_speed: float = 1.0
+) -> np.ndarray:
     """Is each report's window moving? (N,) bool over the flat reports of tracks.
 
     Each track (reports ``offsets[i]:offsets[i+1]``) is cut into windows of ``window`` s from
@@ -218,8 +227,12 @@ def _one_step(model: Model, batch: TrackBatch) -> tuple[Any, Tensor, Tensor, Ten
     out = model(batch.y, batch.dt, mask=batch.mask)
     if isinstance(model, IMMFilter):
         H = model.H  # (m, n) shared or (M, m, n) per mode: broadcasts over (..., M, n, 1) either way
-        return out, out.pred_mode_probabilities, (H @ out.mode_pred_mean.unsqueeze(-1)).squeeze(-1), \
-            out.mode_innovation_cov
+        return (
+            out,
+            out.pred_mode_probabilities,
+            (H @ out.mode_pred_mean.unsqueeze(-1)).squeeze(-1),
+            out.mode_innovation_cov,
+        )
     w = torch.ones(*out.pred_mean.shape[:-1], 1, dtype=out.pred_mean.dtype)
     return out, w, (out.pred_mean @ model.H.mT).unsqueeze(-2), out.innovation_cov.unsqueeze(-3)
 
@@ -227,8 +240,9 @@ def _one_step(model: Model, batch: TrackBatch) -> tuple[Any, Tensor, Tensor, Ten
 def _forecast(model: Model, out: Any, b: Tensor, k: Tensor, lead: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Predictive of y at t_k + lead from the filtered state at (b, k): weights (P, M), means, covs."""
     if isinstance(model, IMMFilter):
-        mix = model.forecast((out.mode_probabilities[b, k], out.mode_mean[b, k], out.mode_cov[b, k]),
-                             lead.unsqueeze(-1))
+        mix = model.forecast(
+            (out.mode_probabilities[b, k], out.mode_mean[b, k], out.mode_cov[b, k]), lead.unsqueeze(-1)
+        )
         return mix.mode_probabilities[:, 0], mix.mode_obs_mean[:, 0], mix.mode_obs_cov[:, 0]
     fc = model.forecast((out.mean[b, k], out.cov[b, k]), lead.unsqueeze(-1))
     return torch.ones(len(b), 1, dtype=lead.dtype), fc.obs_mean[:, :1], fc.obs_cov[:, :1]
@@ -260,9 +274,17 @@ def _batches(tracks: Tracks, max_steps: int) -> tuple[list[TrackBatch], list[np.
     return batches, index
 
 
-def evaluate_filter(model: Model, tracks: Tracks, horizons: Sequence[float] = HORIZONS, window: float = 3600.0,
-                    moving_speed: float = 1.0, max_steps: int = 50_000, samples: int = 500,
-                    seed: int = 0, forecast_coverage: bool = False) -> EvalRecords:
+def evaluate_filter(
+    model: Model,
+    tracks: Tracks,
+    horizons: Sequence[float] = HORIZONS,
+    window: float = 3600.0,
+    moving_speed: float = 1.0,
+    max_steps: int = 50_000,
+    samples: int = 500,
+    seed: int = 0,
+    forecast_coverage: bool = False,
+) -> EvalRecords:
     """Per-report and per-forecast records of one frozen filter on whole tracks (module docstring).
 
     Args:
@@ -304,14 +326,27 @@ def evaluate_filter(model: Model, tracks: Tracks, horizons: Sequence[float] = HO
                 fw, fm, fS = _forecast(model, out, b, k, lead)
                 yj = batch.y[b, j]
                 err = ((fw.unsqueeze(-1) * fm).sum(-2) - yj).pow(2).sum(-1)
-                ins = hpd_inside(yj, fw, fm, fS, samples=samples, seed=seed) if forecast_coverage else \
-                    torch.full((len(b),), math.nan, dtype=torch.float64)
+                ins = (
+                    hpd_inside(yj, fw, fm, fS, samples=samples, seed=seed)
+                    if forecast_coverage
+                    else torch.full((len(b),), math.nan, dtype=torch.float64)
+                )
                 fc_parts[h].append((vessel_flat[idx[b.numpy(), k.numpy()]], err.numpy(), ins.numpy()))
     cat = {k: np.concatenate(v) if v else np.zeros(0) for k, v in parts.items()}
-    fc = {h: tuple(np.concatenate([p[i] for p in v]) if v else np.zeros(0) for i in range(3))
-          for h, v in fc_parts.items()}
-    return EvalRecords(cat["vessel"].astype(np.int64), cat["nll"], cat["moving"].astype(bool),
-                       cat["inside"].astype(bool), cat["sq_err"], fc, int(vessel_of_track.max(initial=-1)) + 1)
+
+    def joined(v: list[tuple[np.ndarray, np.ndarray, np.ndarray]], i: int) -> np.ndarray:
+        return np.concatenate([p[i] for p in v]) if v else np.zeros(0)
+
+    fc = {h: (joined(v, 0), joined(v, 1), joined(v, 2)) for h, v in fc_parts.items()}
+    return EvalRecords(
+        cat["vessel"].astype(np.int64),
+        cat["nll"],
+        cat["moving"].astype(bool),
+        cat["inside"].astype(bool),
+        cat["sq_err"],
+        fc,
+        int(vessel_of_track.max(initial=-1)) + 1,
+    )
 
 
 # --------------------------------------------------------------------------- metrics
@@ -365,8 +400,14 @@ def summary(rec: EvalRecords) -> dict[str, float]:
     return res
 
 
-def paired_bootstrap(a: EvalRecords, b: EvalRecords, metrics: Sequence[str] | None = None, n_boot: int = 2000,
-                     seed: int = 0, level: float = 0.95) -> dict[str, dict[str, float]]:
+def paired_bootstrap(
+    a: EvalRecords,
+    b: EvalRecords,
+    metrics: Sequence[str] | None = None,
+    n_boot: int = 2000,
+    seed: int = 0,
+    level: float = 0.95,
+) -> dict[str, dict[str, float]]:
     """Metric of a minus metric of b, with a percentile interval from resampling VESSELS (paired).
 
     Both records must score the same reports (same data, so the same vessels and pairs).
@@ -374,8 +415,10 @@ def paired_bootstrap(a: EvalRecords, b: EvalRecords, metrics: Sequence[str] | No
     ``level`` percentile interval; p_ge_0 the share of resamples with a - b >= 0).
     """
     if a.n_vessels != b.n_vessels or a.nll.shape != b.nll.shape:
-        raise ValueError(f"a and b must score the same reports: {a.n_vessels} vs {b.n_vessels} vessels, "
-                         f"{a.nll.size} vs {b.nll.size} reports")
+        raise ValueError(
+            f"a and b must score the same reports: {a.n_vessels} vs {b.n_vessels} vessels, "
+            f"{a.nll.size} vs {b.nll.size} reports"
+        )
     sa, sb = vessel_sums(a), vessel_sums(b)
     names = list(sa) if metrics is None else list(metrics)
     V = a.n_vessels
@@ -391,9 +434,13 @@ def paired_bootstrap(a: EvalRecords, b: EvalRecords, metrics: Sequence[str] | No
         if kind == "rmse":
             ra, rb = np.sqrt(ra), np.sqrt(rb)
         diff = (ra - rb)[np.isfinite(ra - rb)]
-        lo, hi = (np.percentile(diff, [q, 100 - q]) if diff.size else (math.nan, math.nan))
-        res[name] = {"delta": est, "lo": float(lo), "hi": float(hi),
-                     "p_ge_0": float((diff >= 0).mean()) if diff.size else math.nan}
+        lo, hi = np.percentile(diff, [q, 100 - q]) if diff.size else (math.nan, math.nan)
+        res[name] = {
+            "delta": est,
+            "lo": float(lo),
+            "hi": float(hi),
+            "p_ge_0": float((diff >= 0).mean()) if diff.size else math.nan,
+        }
     return res
 
 
@@ -405,14 +452,25 @@ def cv_filter(q: float, r_std: float, diffuse_variance: float = 100.0) -> Kalman
     from torchsde_lti.models import constant_velocity, position_observation
 
     sde = constant_velocity(dim=2, q=torch.tensor(float(q), dtype=torch.float64))
-    return KalmanFilter(sde, position_observation(sde), float(r_std) ** 2 * torch.eye(2, dtype=torch.float64),
-                        learn=(), diffuse_variance=diffuse_variance, unique_dt=True)
+    return KalmanFilter(
+        sde,
+        position_observation(sde),
+        float(r_std) ** 2 * torch.eye(2, dtype=torch.float64),
+        learn=(),
+        diffuse_variance=diffuse_variance,
+        unique_dt=True,
+    )
 
 
-def tune_cv(tracks: Tracks, q_grid: Sequence[float] = tuple(10.0 ** np.arange(-4.0, 0.1, 1.0)),
-            r_grid: Sequence[float] = (3.0, 10.0, 30.0, 100.0), diffuse_variance: float = 100.0,
-            max_steps: int = 100_000, refine: int = 2,
-            log: Callable[[str], None] | None = None) -> tuple[float, float, dict[tuple[float, float], float]]:
+def tune_cv(
+    tracks: Tracks,
+    q_grid: Sequence[float] = tuple(10.0 ** np.arange(-4.0, 0.1, 1.0)),
+    r_grid: Sequence[float] = (3.0, 10.0, 30.0, 100.0),
+    diffuse_variance: float = 100.0,
+    max_steps: int = 100_000,
+    refine: int = 2,
+    log: Callable[[str], None] | None = None,
+) -> tuple[float, float, dict[tuple[float, float], float]]:
     """Constant velocity with (q, R = r² I) minimising the mean one-step NLL on ``tracks``.
 
     A log-spaced grid over q and r, extended by a factor of the grid step beyond any edge
@@ -441,7 +499,7 @@ def tune_cv(tracks: Tracks, q_grid: Sequence[float] = tuple(10.0 ** np.arange(-4
     dq = float(np.diff(qs).min()) if len(qs) > 1 else 1.0
     dr = float(np.diff(rs).min()) if len(rs) > 1 else 0.5
     for _ in range(20):  # extend until the optimum is inside
-        vals = np.array([[score(10 ** a, 10 ** c) for c in rs] for a in qs])
+        vals = np.array([[score(10**a, 10**c) for c in rs] for a in qs])
         i, j = np.unravel_index(np.argmin(vals), vals.shape)
         grow = False
         if i == 0:
@@ -460,8 +518,8 @@ def tune_cv(tracks: Tracks, q_grid: Sequence[float] = tuple(10.0 ** np.arange(-4
         cand = [(bq + a * dq, br + c * dr) for a in (-1, 0, 1) for c in (-1, 0, 1)]
         bq, br = min(cand, key=lambda p: score(10 ** p[0], 10 ** p[1]))
     if log is not None:
-        log(f"cv oracle: q={10 ** bq:.4g}, r={10 ** br:.4g} m ({len(table)} grid points)")
-    return float(10 ** bq), float(10 ** br), table
+        log(f"cv oracle: q={10**bq:.4g}, r={10**br:.4g} m ({len(table)} grid points)")
+    return float(10**bq), float(10**br), table
 
 
 def evaluate_models(models: Mapping[str, Model], tracks: Tracks, **kwargs: Any) -> dict[str, EvalRecords]:

@@ -65,9 +65,7 @@ def _scalar_names(sde: nn.Module) -> list[str]:
     return names
 
 
-def learned_values(
-    sde: nn.Module, R: Tensor | None = None, names: Sequence[str] | None = None
-) -> dict[str, Tensor]:
+def learned_values(sde: nn.Module, R: Tensor | None = None, names: Sequence[str] | None = None) -> dict[str, Tensor]:
     """Current values of a model's interpretable parameters, detached.
 
     Named scalars (``names`` or the model's own list) come from ``getattr(sde, name)``;
@@ -93,6 +91,7 @@ def _rel(a: Tensor, b: Tensor) -> float:
 
 def same_model(learned: nn.Module, truth: nn.Module) -> bool:
     """Whether learner and truth are the same kind of model, so their named scalars pair up."""
+
     def kind(m: nn.Module) -> str:
         return type(m).__name__.removeprefix("Parametrized")
 

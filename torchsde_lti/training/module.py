@@ -68,8 +68,11 @@ def imm_k_step_nll(imm: IMMFilter, out: Any, y: Tensor, dt: Tensor, observed: Te
         return y.new_zeros(())
     cs = torch.cumsum(dt, dim=-1)
     lead = (cs[..., k:] - cs[..., : T - k]).detach()  # (B, T - k)
-    state = (out.mode_probabilities[..., : T - k, :], out.mode_mean[..., : T - k, :, :],
-             out.mode_cov[..., : T - k, :, :, :])
+    state = (
+        out.mode_probabilities[..., : T - k, :],
+        out.mode_mean[..., : T - k, :, :],
+        out.mode_cov[..., : T - k, :, :, :],
+    )
     fc = imm.forecast(state, lead.unsqueeze(-1))
     w, mu, S = fc.mode_probabilities[..., 0, :], fc.mode_obs_mean[..., 0, :, :], fc.mode_obs_cov[..., 0, :, :, :]
     ok = observed[..., k:, :].all(-1)  # (B, T - k)
@@ -132,11 +135,15 @@ class KalmanFilterModule(LightningModule):
             raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
         ks = [int(k) for k in k_step] if isinstance(k_step, Sequence) else [int(k_step)]
         if not ks or any(k < 0 for k in ks) or not k_step_weight >= 0:
-            raise ValueError(f"k_step must be >= 0 (an int, or a non-empty list of ints) and k_step_weight >= 0, "
-                             f"got {k_step}, {k_step_weight}")
+            raise ValueError(
+                f"k_step must be >= 0 (an int, or a non-empty list of ints) and k_step_weight >= 0, "
+                f"got {k_step}, {k_step_weight}"
+            )
         if max(ks) > 0 and k_step_weight > 0 and not isinstance(kf, (KalmanFilter, IMMFilter)):
-            raise ValueError(f"the k-step loss (k_step={k_step}, k_step_weight={k_step_weight}) needs a KalmanFilter "
-                             f"or an IMMFilter, got {type(kf).__name__}; set k_step=0")
+            raise ValueError(
+                f"the k-step loss (k_step={k_step}, k_step_weight={k_step_weight}) needs a KalmanFilter "
+                f"or an IMMFilter, got {type(kf).__name__}; set k_step=0"
+            )
         k_step = ks if isinstance(k_step, Sequence) else ks[0]
         if grad_clip_norm is not None and not float(grad_clip_norm) >= 0:
             raise ValueError(f"grad_clip_norm must be >= 0 or None, got {grad_clip_norm!r}")
@@ -180,8 +187,9 @@ class KalmanFilterModule(LightningModule):
             obs = obs & mask.unsqueeze(-1)
         return obs
 
-    def k_step_nll(self, out: Any, y: Tensor, observed: Tensor, k: int | None = None,
-                   dt: Tensor | None = None) -> Tensor:
+    def k_step_nll(
+        self, out: Any, y: Tensor, observed: Tensor, k: int | None = None, dt: Tensor | None = None
+    ) -> Tensor:
         """Σ of the k-step-ahead predictive NLL of y_{t+k} given the filtered state at t.
 
         KalmanFilter: each step's exact (A_j, Q_j) and input term G_j u_j, as the filter used

@@ -89,7 +89,8 @@ class RunReport:
         history = list(previous.get("resumed_from") or [])
         #: epoch-level metrics the run reported before this resume (test/* excluded: it tests again)
         self.previous_metrics: dict[str, float] = {
-            k: float(v) for k, v in (previous.get("metrics") or {}).items()
+            k: float(v)
+            for k, v in (previous.get("metrics") or {}).items()
             if isinstance(v, (int, float)) and not isinstance(v, bool) and not k.startswith("test/")
         }
         if resumed_from is not None:
@@ -135,9 +136,12 @@ class RunReport:
     def running(self) -> None:
         """``status: "running"`` and a results.md that says the run has not finished."""
         self._write()
-        write_text(self.run_dir / "results.md", f"# {self.base['model']}: running\n\nThis run has not finished "
-                   "(no final results yet). If nothing is running any more, it was killed without a chance to "
-                   "say so; resume it from `checkpoints/last.ckpt` if that exists (see metrics.json).\n")
+        write_text(
+            self.run_dir / "results.md",
+            f"# {self.base['model']}: running\n\nThis run has not finished "
+            "(no final results yet). If nothing is running any more, it was killed without a chance to "
+            "say so; resume it from `checkpoints/last.ckpt` if that exists (see metrics.json).\n",
+        )
 
     def resume_command(self, checkpoint: str) -> str:
         """The command that resumes this run from ``checkpoint`` (the original overrides, if known)."""
@@ -145,18 +149,40 @@ class RunReport:
         args = [*overrides, f"ckpt_path={Path(checkpoint).resolve()}"]
         return " ".join([Path(sys.executable).name, "-m", "torchsde_lti.train", *map(shlex.quote, args)])
 
-    def completed(self, *, title: str, wall_time: float, epochs: int, reported: dict[str, Any],
-                  metrics: dict[str, Any], param_errors: dict[str, float], skipped_steps: int,
-                  identifiability: str, table: list[dict[str, Any]], best: dict[str, Any] | None,
-                  data_summary: Any, data_text: str | None = None) -> dict[str, Any]:
+    def completed(
+        self,
+        *,
+        title: str,
+        wall_time: float,
+        epochs: int,
+        reported: dict[str, Any],
+        metrics: dict[str, Any],
+        param_errors: dict[str, float],
+        skipped_steps: int,
+        identifiability: str,
+        table: list[dict[str, Any]],
+        best: dict[str, Any] | None,
+        data_summary: Any,
+        data_text: str | None = None,
+    ) -> dict[str, Any]:
         """Write the final report; returns the metrics.json content. ``data_text``: the data
         summary as the datamodule prints it, for results.md."""
         reported = {**reported, "checkpoint": _relative(reported.get("checkpoint"), self.run_dir)}
         if best is not None:
             best = {**best, "checkpoint": _relative(best.get("checkpoint"), self.run_dir)}
-        summary = self._write(status="completed", wall_time=wall_time, epochs=epochs, reported=reported,
-                              metrics=metrics, param_errors=param_errors, skipped_steps=skipped_steps,
-                              identifiability=identifiability, table=table, best=best, data_summary=data_summary)
+        summary = self._write(
+            status="completed",
+            wall_time=wall_time,
+            epochs=epochs,
+            reported=reported,
+            metrics=metrics,
+            param_errors=param_errors,
+            skipped_steps=skipped_steps,
+            identifiability=identifiability,
+            table=table,
+            best=best,
+            data_summary=data_summary,
+        )
         text = self._results_md(title, summary)
         if data_text:
             text += f"\n## Data\n\n```\n{data_text}\n```\n"
@@ -165,11 +191,19 @@ class RunReport:
 
     def _results_md(self, title: str, s: dict[str, Any]) -> str:
         rep = s["reported"]
-        where = f"`{rep['checkpoint']}` (epoch {rep['epoch']})" if rep.get("checkpoint") else "the final weights (no checkpoint written)"
+        where = (
+            f"`{rep['checkpoint']}` (epoch {rep['epoch']})"
+            if rep.get("checkpoint")
+            else "the final weights (no checkpoint written)"
+        )
         text = f"# {title} ({s['wall_time']:.1f} s)\n\n"
         text += f"Completed {s['epochs']} epochs. The table, the parameter errors and the metrics are those of {where}: {rep['description']}.\n"
         if s["resumed_from"]:
-            text += f"Resumed {len(s['resumed_from'])}× (from " + ", ".join(f"epoch {r['epoch']}" for r in s["resumed_from"]) + ").\n"
+            text += (
+                f"Resumed {len(s['resumed_from'])}× (from "
+                + ", ".join(f"epoch {r['epoch']}" for r in s["resumed_from"])
+                + ").\n"
+            )
         if s["table"]:
             text += f"\n{format_table(s['table'])}\n"
         best = s["best"]
@@ -177,7 +211,9 @@ class RunReport:
             val = best.get("val/nll")
             score = f", val/nll {val:.6g}" if isinstance(val, float) else ""
             if best.get("epoch") == rep.get("epoch"):
-                text += f"\nThe lowest val/nll is this epoch's too: `{best['checkpoint']}` holds the same weights{score}.\n"
+                text += (
+                    f"\nThe lowest val/nll is this epoch's too: `{best['checkpoint']}` holds the same weights{score}.\n"
+                )
             elif best.get("table"):
                 text += f"\nLowest val/nll: `{best['checkpoint']}` (epoch {best['epoch']}{score}):\n\n{format_table(best['table'])}\n"
         text += f"\nskipped optimizer steps (non-finite loss or gradient): {s['skipped_steps']}\n"
@@ -185,21 +221,36 @@ class RunReport:
             text += f"\nNot identifiable: {s['identifiability']}\n"
         return text
 
-    def interrupted(self, signum: int, phase: str, *, epochs: int, checkpoint: str | None,
-                    metrics: dict[str, Any], data_summary: Any) -> dict[str, Any]:
+    def interrupted(
+        self,
+        signum: int,
+        phase: str,
+        *,
+        epochs: int,
+        checkpoint: str | None,
+        metrics: dict[str, Any],
+        data_summary: Any,
+    ) -> dict[str, Any]:
         """Write the report of a run stopped by ``signum`` during ``phase``; returns metrics.json's content."""
         name = signal.Signals(signum).name
         command = self.resume_command(checkpoint) if checkpoint else None
-        interruption = {"signal": name, "phase": phase, "epochs_completed": epochs,
-                        "resume_checkpoint": str(Path(checkpoint).resolve()) if checkpoint else None,
-                        "resume_command": command}
-        summary = self._write(status="interrupted", epochs=epochs, metrics=metrics, interruption=interruption,
-                              data_summary=data_summary)
+        interruption = {
+            "signal": name,
+            "phase": phase,
+            "epochs_completed": epochs,
+            "resume_checkpoint": str(Path(checkpoint).resolve()) if checkpoint else None,
+            "resume_command": command,
+        }
+        summary = self._write(
+            status="interrupted", epochs=epochs, metrics=metrics, interruption=interruption, data_summary=data_summary
+        )
         text = f"# {self.base['model']}: INTERRUPTED by {name} during {phase}\n\n"
         text += f"{epochs} of {self.base['max_epochs']} epochs completed; no final results.\n"
         if command:
-            text += (f"\n`checkpoints/last.ckpt` holds epoch {epochs - 1}. Resume (continues in this directory, "
-                     f"same result as a run that never stopped):\n\n    {command}\n")
+            text += (
+                f"\n`checkpoints/last.ckpt` holds epoch {epochs - 1}. Resume (continues in this directory, "
+                f"same result as a run that never stopped):\n\n    {command}\n"
+            )
         else:
             text += "\nNo epoch completed, so there is no checkpoint to resume from: run again.\n"
         write_text(self.run_dir / "results.md", text)

@@ -83,11 +83,16 @@ def _instantiate_dict(cfg: DictConfig, key: str) -> list[Any]:
     node = cfg.get(key)
     if node is None:
         return []
-    return [instantiate_node(cfg, f"{key}.{name}") for name, v in node.items()
-            if isinstance(v, DictConfig) and "_target_" in v]
+    return [
+        instantiate_node(cfg, f"{key}.{name}")
+        for name, v in node.items()
+        if isinstance(v, DictConfig) and "_target_" in v
+    ]
 
 
-def _warn_if_schedule_ends_early(ckpt_path: str | None, max_epochs: int | None, ckpt: dict[str, Any] | None = None) -> None:
+def _warn_if_schedule_ends_early(
+    ckpt_path: str | None, max_epochs: int | None, ckpt: dict[str, Any] | None = None
+) -> None:
     """Warn when a resumed run trains past the restored scheduler's ``T_max``.
 
     Schedulers such as CosineAnnealingLR are periodic beyond ``T_max``; the value comes
@@ -166,8 +171,15 @@ def _build(cfg: DictConfig, guard: SignalGuard) -> dict[str, Any]:
     callbacks.sort(key=lambda c: isinstance(c, ModelCheckpoint) and c.monitor is None)
     loggers = _instantiate_dict(cfg, "logger")
     trainer: pl.Trainer = instantiate_node(cfg, "trainer", callbacks=callbacks, logger=loggers or False)
-    return {"cfg": cfg, "datamodule": datamodule, "module": module, "trainer": trainer,
-            "callbacks": callbacks, "loggers": loggers, "truth": truth}
+    return {
+        "cfg": cfg,
+        "datamodule": datamodule,
+        "module": module,
+        "trainer": trainer,
+        "callbacks": callbacks,
+        "loggers": loggers,
+        "truth": truth,
+    }
 
 
 def _checkpoint_files(callbacks: list[Any]) -> tuple[str | None, str | None]:
@@ -221,7 +233,9 @@ def _evaluate(cfg: DictConfig, objects: dict[str, Any], previous: dict[str, floa
     metrics["param_errors"] = module.parameter_errors()
     metrics["skipped_steps"] = float(module.skipped_steps)
     if module.skipped_steps:
-        warnings.warn(f"{module.skipped_steps} optimizer steps were skipped (non-finite loss or gradient)", stacklevel=3)
+        warnings.warn(
+            f"{module.skipped_steps} optimizer steps were skipped (non-finite loss or gradient)", stacklevel=3
+        )
     metrics["table"] = parameter_table(module, truth)  # without a truth: what was learned
     metrics["best_model_path"] = best or ""
     metrics["checkpoints"] = {"last": last, "best": best}
@@ -240,18 +254,34 @@ def _report_completed(cfg: DictConfig, objects: dict[str, Any], report: RunRepor
         table, errors = _table_at(module, ckpt["state_dict"], truth)
         monitored = next((c for c in callbacks if isinstance(c, ModelCheckpoint) and c.monitor), None)
         score = monitored.best_model_score if monitored is not None else None
-        best_info = {"checkpoint": best, "epoch": int(ckpt["epoch"]), "val/nll": None if score is None else float(score),
-                     "table": table, "param_errors": errors}
-    reported = {"checkpoint": last, "epoch": _epoch_of(last),
-                "description": "the final weights, at the end of the last epoch"
-                               + ("" if last else " (not checkpointed: no ModelCheckpoint without a monitor ran)")}
+        best_info = {
+            "checkpoint": best,
+            "epoch": int(ckpt["epoch"]),
+            "val/nll": None if score is None else float(score),
+            "table": table,
+            "param_errors": errors,
+        }
+    reported = {
+        "checkpoint": last,
+        "epoch": _epoch_of(last),
+        "description": "the final weights, at the end of the last epoch"
+        + ("" if last else " (not checkpointed: no ModelCheckpoint without a monitor ran)"),
+    }
     title = f"{cfg.model.get('name')}: {'true vs learned' if truth else 'learned values'}"
-    report.completed(title=title, wall_time=metrics["wall_time"], epochs=int(trainer.current_epoch), reported=reported,
-                     metrics={k: v for k, v in metrics.items() if isinstance(v, float)},
-                     param_errors=metrics["param_errors"], skipped_steps=module.skipped_steps,
-                     identifiability=module.identifiability_note() if truth else "", table=metrics["table"],
-                     best=best_info, data_summary=data_summary(objects["datamodule"]),
-                     data_text=_summary_text(objects["datamodule"]))
+    report.completed(
+        title=title,
+        wall_time=metrics["wall_time"],
+        epochs=int(trainer.current_epoch),
+        reported=reported,
+        metrics={k: v for k, v in metrics.items() if isinstance(v, float)},
+        param_errors=metrics["param_errors"],
+        skipped_steps=module.skipped_steps,
+        identifiability=module.identifiability_note() if truth else "",
+        table=metrics["table"],
+        best=best_info,
+        data_summary=data_summary(objects["datamodule"]),
+        data_text=_summary_text(objects["datamodule"]),
+    )
     print("\n" + (report.run_dir / "results.md").read_text())
 
 
@@ -291,7 +321,9 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                 raise
             if state.report is None and "trainer" not in state.objects and int(os.environ.get("LOCAL_RANK", "0")) == 0:
                 state.report = _new_report(cfg, out_dir, resume)  # stopped while building: still say so
-            raise _interrupted(state.objects, state.report, signum, guard.received_during or guard.phase, out_dir) from None
+            raise _interrupted(
+                state.objects, state.report, signum, guard.received_during or guard.phase, out_dir
+            ) from None
         except Exception as err:
             if state.report is not None:
                 state.report.failed(err)
@@ -311,7 +343,9 @@ class _RunState:
     report: RunReport | None = None
 
 
-def _run(cfg: DictConfig, guard: SignalGuard, resume: dict[str, Any] | None, out_dir: Path, state: _RunState) -> dict[str, Any]:
+def _run(
+    cfg: DictConfig, guard: SignalGuard, resume: dict[str, Any] | None, out_dir: Path, state: _RunState
+) -> dict[str, Any]:
     """Build, fit, test, plot and report, phase by phase (``guard`` stops between them)."""
     ckpt_path = cfg.get("ckpt_path")
     state.objects = objects = _build(cfg, guard)
@@ -321,8 +355,12 @@ def _run(cfg: DictConfig, guard: SignalGuard, resume: dict[str, Any] | None, out
         check_state_dict(ckpt_path, resume["state_dict"], module)
         _warn_if_schedule_ends_early(ckpt_path, cfg.trainer.get("max_epochs"), resume)
         same_dir = Path(ckpt_path).resolve().parent.parent == out_dir.resolve()
-        log.info("resuming from %s (epoch %d) %s", ckpt_path, resume["epoch"],
-                 "in the same run directory" if same_dir else f"into the new run directory {out_dir}")
+        log.info(
+            "resuming from %s (epoch %d) %s",
+            ckpt_path,
+            resume["epoch"],
+            "in the same run directory" if same_dir else f"into the new run directory {out_dir}",
+        )
     if trainer.is_global_zero:
         state.report = _new_report(cfg, out_dir, resume)
         state.report.running()
@@ -353,9 +391,14 @@ def _run(cfg: DictConfig, guard: SignalGuard, resume: dict[str, Any] | None, out
 
 
 def _new_report(cfg: DictConfig, out_dir: Path, resume: dict[str, Any] | None) -> RunReport:
-    return RunReport(out_dir, model=cfg.model.get("name"), noise=cfg.data.get("noise"),
-                     max_epochs=cfg.trainer.get("max_epochs"), overrides=_overrides(),
-                     resumed_from=(cfg.ckpt_path, int(resume["epoch"])) if resume is not None else None)
+    return RunReport(
+        out_dir,
+        model=cfg.model.get("name"),
+        noise=cfg.data.get("noise"),
+        max_epochs=cfg.trainer.get("max_epochs"),
+        overrides=_overrides(),
+        resumed_from=(cfg.ckpt_path, int(resume["epoch"])) if resume is not None else None,
+    )
 
 
 def _signal_of(stop: BaseException) -> int | None:
@@ -368,7 +411,9 @@ def _signal_of(stop: BaseException) -> int | None:
     return None
 
 
-def _interrupted(objects: dict[str, Any], report: RunReport | None, signum: int, phase: str, out_dir: Path) -> RunInterrupted:
+def _interrupted(
+    objects: dict[str, Any], report: RunReport | None, signum: int, phase: str, out_dir: Path
+) -> RunInterrupted:
     """Write the interrupted report (rank zero) and return the exception to raise."""
     last, _ = _checkpoint_files(objects.get("callbacks", []))
     epochs = (_epoch_of(last) + 1) if last else 0
@@ -376,8 +421,14 @@ def _interrupted(objects: dict[str, Any], report: RunReport | None, signum: int,
         trainer = objects.get("trainer")
         metrics = objects.get("fit_metrics") or (_floats(trainer.callback_metrics) if trainer is not None else {})
         metrics = {**report.previous_metrics, **metrics}
-        report.interrupted(signum, phase, epochs=epochs, checkpoint=last, metrics=metrics,
-                           data_summary=data_summary(objects.get("datamodule")))
+        report.interrupted(
+            signum,
+            phase,
+            epochs=epochs,
+            checkpoint=last,
+            metrics=metrics,
+            data_summary=data_summary(objects.get("datamodule")),
+        )
     stop = RunInterrupted(signum, phase, str(out_dir.resolve()), str(Path(last).resolve()) if last else None)
     log.error("%s", stop)
     return stop
