@@ -9,7 +9,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.validation import check_finite, check_nonnegative, shape_str, tracing
+from torchsde_lti.core.validation import as_float_tensor, check_finite, check_nonnegative, shape_str, tracing
 
 Named = Sequence[tuple[str, Tensor | None]]
 
@@ -103,3 +103,28 @@ def check_outcome(log_likelihood: Tensor, steps: Sequence[Tensor | None], y: Ten
         "residuals overflow; centre and scale the observations (e.g. positions relative to each track's start, "
         "in km) or use float64"
     )
+
+
+def online_report(
+    y: Tensor, mask: Tensor | None, H: Tensor, dtype: torch.dtype, device: torch.device
+) -> tuple[Tensor, Tensor | None]:
+    """(y, mask) of an online step converted and their shapes checked against H (..., m, n).
+
+    Args:
+        y: (..., m) one report per live track; NaN = missing component.
+        mask: optional bool (...) or (..., m); False = not observed.
+        H: the filter's observation matrix, whose m the reports must have.
+        dtype: the filter's float dtype. device: its device.
+
+    Returns:
+        y as a tensor of ``dtype`` on ``device`` and mask as a bool tensor (or None).
+    """
+    y = as_float_tensor(y, "y", dtype, device)
+    m = H.shape[-2]
+    if y.dim() < 1 or y.shape[-1] != m:
+        raise ValueError(f"y must have shape (..., m={m}) to match H {shape_str(H)}, got shape {shape_str(y)}")
+    if mask is not None:
+        mask = torch.as_tensor(mask, device=y.device)
+        if mask.dtype != torch.bool:
+            raise ValueError(f"mask must be a bool tensor, got dtype {mask.dtype}")
+    return y, mask

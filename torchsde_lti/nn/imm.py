@@ -58,7 +58,7 @@ from torchsde_lti.filters.imm import (
 from torchsde_lti.filters.kalman import check_algorithm
 from torchsde_lti.filters.online import IMMState, IMMStep, imm_predict_state, imm_step
 from torchsde_lti.nn._register import register_tensor
-from torchsde_lti.nn._validate import ValidateArgs, check_values
+from torchsde_lti.nn._validate import ValidateArgs, check_values, online_report
 from torchsde_lti.nn.kalman import FilterMode
 from torchsde_lti.nn.parametrizations import (
     Generator,
@@ -380,16 +380,7 @@ class IMMFilter(ValidateArgs, nn.Module):
             raise ValueError(f"u was given (shape {shape_str(torch.as_tensor(u))}) but IMMFilter has no inputs")
         with parametrize.cached():
             F, W, state, dt = self._online_args(state, dt)
-            y = as_float_tensor(y, "y", F.dtype, F.device)
-            if y.dim() < 1 or y.shape[-1] != self.obs_dim:
-                raise ValueError(
-                    f"y must have shape (..., m={self.obs_dim}) to match H {shape_str(self.H)}, "
-                    f"got shape {shape_str(y)}"
-                )
-            if mask is not None:
-                mask = torch.as_tensor(mask, device=y.device)
-                if mask.dtype != torch.bool:
-                    raise ValueError(f"mask must be a bool tensor, got dtype {mask.dtype}")
+            y, mask = online_report(y, mask, self.H, F.dtype, F.device)
             H, R = self._obs_model()
             if self.validate_args:
                 check_values(

@@ -80,7 +80,7 @@ from torchsde_lti.filters.online import (
     kalman_step,
 )
 from torchsde_lti.nn._register import register_tensor
-from torchsde_lti.nn._validate import ValidateArgs, check_outcome, check_values
+from torchsde_lti.nn._validate import ValidateArgs, check_outcome, check_values, online_report
 from torchsde_lti.nn.parametrizations import PositiveDefinite
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
 
@@ -488,16 +488,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
         with parametrize.cached():
             mats = self.sde.matrices()
             state, dt, u = self._check_state(state, dt, u, mats)
-            y = as_float_tensor(y, "y", mats.F.dtype, mats.F.device)
-            if y.dim() < 1 or y.shape[-1] != self.obs_dim:
-                raise ValueError(
-                    f"y must have shape (..., m={self.obs_dim}) to match H {shape_str(self.H)}, "
-                    f"got shape {shape_str(y)}"
-                )
-            if mask is not None:
-                mask = torch.as_tensor(mask, device=y.device)
-                if mask.dtype != torch.bool:
-                    raise ValueError(f"mask must be a bool tensor, got dtype {mask.dtype}")
+            y, mask = online_report(y, mask, self.H, mats.F.dtype, mats.F.device)
             H, R, D = self.H, self.R, (self.D if u is not None else None)
             if self.validate_args:
                 self._check_values(mats, dt, y=y, u=u, H=H, R=R, D=D, mean=state.mean, cov=state.cov)
