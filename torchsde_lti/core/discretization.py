@@ -7,8 +7,6 @@ Over a step dt with u held constant (zero-order hold), ``x' = A x + G u + q``, `
 Methods: ``"doubling"`` (default; scaling and doubling, PSD and accurate for stiff F and
 large dt in float32 too, module ``_doubling``) and ``"matrix_exp"`` (:func:`torch.matrix_exp`
 of Van Loan's block, module ``_matrix_exp``; its ``−Fᵀ`` block grows like ``e^{|λ| dt}``).
-The default hands a call of few elements to ``"matrix_exp"`` where an a-priori bound
-(``_matrix_exp.accurate``) proves it accurate.
 """
 
 from __future__ import annotations
@@ -20,9 +18,8 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core._doubling import doubling
-from torchsde_lti.core._matrix_exp import accurate, matrix_exp
+from torchsde_lti.core._matrix_exp import matrix_exp
 from torchsde_lti.core.threads import intra_op_threads
-from torchsde_lti.core.thresholds import ROUTE_MAX_ELEMENTS
 from torchsde_lti.core.validation import SDEInputs, checks_values, sde_inputs, tracing
 
 __all__ = [
@@ -60,16 +57,26 @@ def resolve_method(method: str) -> str:
     return method
 
 
-def _routed(inputs: SDEInputs) -> bool:
-    """Whether the default method hands this call to ``"matrix_exp"`` (few elements, provably
-    accurate; never while tracing, whose values are symbolic)."""
-    return not tracing() and inputs.batch.numel() <= ROUTE_MAX_ELEMENTS and accurate(inputs)
-
-
 def _work(inputs: SDEInputs) -> int:
     """Matrix entries a call produces: the size that sets its intra-op threads."""
     n = inputs.F.shape[-1]
     return math.prod(inputs.batch) * n * (n + (0 if inputs.B is None else inputs.B.shape[-1]))  # symbolic-safe
+
+
+def _overflow_impossible(x: SDEInputs) -> bool:
+    """Whether the host values (:attr:`SDEInputs.host`) bound the results and every intermediate
+    of either method below the dtype's maximum: ‖A‖ ≤ e^{‖F‖ dt}, ‖Q‖ ≤ ‖W‖ dt e^{2‖F‖ dt},
+    ‖G‖ ≤ ‖B‖ dt e^{‖F‖ dt} (Frobenius norms bounded by the largest entries), with a margin."""
+    host = x.host
+    if host is None or not host.get("dt"):
+        return False
+    top = {name: max(map(abs, v), default=0.0) for name, v in host.items()}
+    n = x.F.shape[-1]
+    # ‖L Qc Lᵀ‖_F ≤ ‖L‖_F² ‖Qc‖_F ≤ n s² max|L|² max|Qc| (s² ≤ the number of Qc values)
+    w = n * len(host.get("Qc", ())) * top.get("L", 0.0) ** 2 * top.get("Qc", 0.0)
+    b = n * len(host.get("B", ())) * top.get("B", 0.0)
+    with_margin = 2.0 * n * top["F"] * top["dt"] + math.log(max(1.0, (w + b) * top["dt"], float(n))) + 4.0
+    return with_margin < math.log(torch.finfo(x.F.dtype).max)
 
 
 def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | None, method: str) -> None:
@@ -100,14 +107,14 @@ def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | No
 
 
 def _run(inputs: SDEInputs, method: str, validate_args: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    """(A, Q, G) of checked arguments: the method (or the routed ``"matrix_exp"``) and, with
-    ``validate_args``, the result check, run with :func:`intra_op_threads`."""
+    """(A, Q, G) of checked arguments by ``method`` and, with ``validate_args``, the result
+    check, run with :func:`intra_op_threads`."""
     with intra_op_threads(_work(inputs)):
-        if resolve_method(method) == "matrix_exp" or _routed(inputs):
+        if resolve_method(method) == "matrix_exp":
             A, Q, G = matrix_exp(inputs)
         else:
             A, Q, G = doubling(inputs)
-        if checks_values(validate_args):
+        if checks_values(validate_args) and not _overflow_impossible(inputs):
             _check_result(inputs, A, Q, G, method)
     return A, Q, G
 
@@ -134,8 +141,7 @@ def discretize(
         dt: (...) non-negative step lengths; a Python float is a scalar.
         B: optional (..., n, p) input matrix; u is held constant over each step.
         method: ``"doubling"`` (default; accurate and PSD for stiff F and large dt) or
-            ``"matrix_exp"`` (torch.matrix_exp of Van Loan's block). The default hands a
-            call of few elements to ``"matrix_exp"`` where an a-priori bound proves it accurate.
+            ``"matrix_exp"`` (torch.matrix_exp of Van Loan's block).
         validate_args: check the values (finite, dt ≥ 0, Qc symmetric PSD); shapes are
             always checked. Inner calls on already-checked arguments pass False.
 
@@ -179,7 +185,7 @@ def discretize_series(
     inputs = sde_inputs(F, L, Qc, dt, B, validate_args=validate_args)
     params = [inputs.F.shape[:-2]] + [x.shape[:-2] for x in (inputs.W, inputs.B) if x is not None]
     single = all(torch.Size(s).numel() == 1 for s in params)
-    if resolve_method(method) != "doubling" or len(inputs.batch) == 0 or not single or _routed(inputs):
+    if resolve_method(method) != "doubling" or len(inputs.batch) == 0 or not single:
         return Discrete(*_run(inputs, method, validate_args))  # type: ignore[arg-type]
     assert inputs.dt is not None
     lead = inputs.batch[:-1]

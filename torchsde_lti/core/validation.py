@@ -205,8 +205,22 @@ def check_symmetric_psd(x: Tensor, name: str) -> None:
 
 def broadcast_batch(named: Sequence[tuple[str, Sequence[int]]]) -> torch.Size:
     """Broadcast named batch shapes (numpy rules), naming them all when they do not broadcast."""
+    shapes = [tuple(s) for _, s in named]
+    if not tracing():  # (plain ints: the rules in Python, cheaper than torch's reference version)
+        out = [1] * max(map(len, shapes), default=0)
+        for shape in shapes:
+            for i, d in enumerate(shape, len(out) - len(shape)):
+                if d != 1 and out[i] != d:
+                    if out[i] != 1:
+                        break
+                    out[i] = d
+            else:
+                continue
+            break
+        else:
+            return torch.Size(out)
     try:
-        return torch.broadcast_shapes(*(tuple(s) for _, s in named))
+        return torch.broadcast_shapes(*shapes)
     except RuntimeError:
         seen = ", ".join(f"{n}: ({', '.join(map(str, s))})" for n, s in named)
         raise ValueError(f"batch shapes do not broadcast: {seen}") from None
@@ -235,8 +249,8 @@ class SDEInputs(NamedTuple):
     or None, dt (...) or None, and the broadcast batch shape of all of them.
 
     ``host``: for a small call (at most :data:`PYTHON_CHECK_MAX_VALUES` values, not traced)
-    each argument's values (F, L, Qc, B, dt, W; row-major Python floats), read in the
-    call's one transfer; None otherwise. Replace it (``_replace``) when a field changes."""
+    the values of F, L, Qc, B and dt (row-major Python floats, read in the call's one
+    transfer) by name; None otherwise. Replace it (``_replace``) when a field changes."""
 
     F: Tensor
     W: Tensor | None
@@ -301,16 +315,14 @@ def sde_inputs(
     if L is not None and Qc is not None:
         W = L @ Qc @ L.mT
         W = torch.lerp(W, W.mT, 0.5)  # exactly symmetric
-    host: dict[str, list[float]] | None = None
     values = checks_values(validate_args)
-    total = sum(t.numel() for _, t in checked) + (0 if W is None else W.numel())
-    if not tracing() and total <= PYTHON_CHECK_MAX_VALUES:  # (no guard on a symbolic size)
-        # one transfer: the value checks and the callers' decisions on Python floats
-        named_values = checked + ([] if W is None else [("W", W)])
+    total = sum(t.numel() for _, t in checked)
+    host: dict[str, list[float]] | None = None
+    if not tracing() and total <= PYTHON_CHECK_MAX_VALUES:  # one transfer: checks and decisions on Python floats
         with torch.no_grad():
-            flat = torch.cat([t.reshape(-1) for _, t in named_values]).tolist()
+            flat = torch.cat([t.reshape(-1) for _, t in checked]).tolist()
         host, offset = {}, 0
-        for name, t in named_values:
+        for name, t in checked:
             host[name], offset = flat[offset : offset + t.numel()], offset + t.numel()
         valid = not values or _values_valid(host, Qc)
     elif values:  # one synchronisation: a sum is non-finite if any entry is (or it overflowed:

@@ -1,0 +1,293 @@
+r"""Scaling and doubling for few elements, and while torch.compile / torch.export trace (private).
+
+Every element takes the same number of halvings ``s = ⌈log₂(max ‖F‖_F dt / θ)⌉`` (from the host
+values of a small call, else one synchronisation; a tensor while tracing), sums the Taylor
+series of :func:`_series` on its sub-step ``h = dt / 2^s`` and doubles s times (``Q ← A Q Aᵀ + Q``,
+``G ← A G + G``, ``A ← A A``), carrying ``E = A − I`` until ``‖A‖_F < 1/2``. Few torch calls: the
+powers of the series come from ⌈log₂ K⌉ products, one product doubles A, Q and G together.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchsde_lti.core.thresholds import THETA_PER_ELEMENT, TRACED_MAX_HALVINGS
+from torchsde_lti.core.validation import SDEInputs, tracing
+
+__all__ = ["few_elements_doubling", "frobenius_norm", "halvings_for"]
+
+
+def _flat(x: Tensor | None, batch: torch.Size, cols: int) -> Tensor | None:
+    """(..., n, c) broadcast to (*batch, n, c), flattened to (N, n, c)."""
+    return None if x is None else x.expand(*batch, x.shape[-2], cols).reshape(-1, x.shape[-2], cols)
+
+
+_POWER_TERMS: dict[tuple[torch.dtype, float, int], int] = {}
+
+
+def power_terms(dtype: torch.dtype, theta: float, n: int) -> int:
+    """Powers K of :func:`_series` for a sub-step with ‖F‖_F h ≤ θ and n states: the omitted
+    terms, at most θ^K/K! e^{2θ} relative, are below eps/8; and K ≥ n, so that a nilpotent F's
+    series (an integrator chain's) is exact and every entry keeps its leading term."""
+    key = (dtype, theta, n)
+    K = _POWER_TERMS.get(key)
+    if K is None:
+        eps, K = torch.finfo(dtype).eps, 1
+        while theta**K / math.factorial(K) * math.exp(2.0 * theta) >= eps / 8.0:
+            K += 1
+        K = max(K, n)
+        if not tracing():
+            _POWER_TERMS[key] = K
+    return K
+
+
+def frobenius_norm(F: Tensor) -> Tensor:
+    """‖F‖_F over the last two dims: (..., r, c) -> (...); rescaled by the largest entry where
+    the squares overflow."""
+    flat = F.reshape(*F.shape[:-2], F.shape[-2] * F.shape[-1])
+    norm = torch.linalg.vector_norm(flat, dim=-1)
+    overflow = torch.isinf(norm)
+    if tracing() or bool(overflow.any()):
+        top = flat.abs().amax(-1).clamp_min(torch.finfo(F.dtype).tiny)
+        norm = torch.where(overflow, top * torch.linalg.vector_norm(flat / top[..., None], dim=-1), norm)
+    return norm
+
+
+def halvings_for(norm: Tensor, dt: Tensor, theta: float) -> Tensor:
+    """s = ceil(log2(‖F‖ dt / θ)), at least 0 (float, broadcast shape). ‖F‖ dt beyond the float
+    range takes the most halvings (A → 0, Q → P∞ for a stable F); NaN takes none."""
+    x = torch.nan_to_num(norm * dt, nan=0.0, posinf=torch.finfo(dt.dtype).max)
+    return torch.ceil(torch.log2(x.clamp_min(theta)) - math.log2(theta))
+
+
+def _scaled(dt: Tensor, s: int) -> Tensor:
+    """dt · 2^−s without underflow of the factor (2^−s is applied in pieces of at most 2^−100)."""
+    while s > 0:
+        dt, s = dt * 2.0 ** -min(s, 100), s - 100
+    return dt
+
+
+def _weights(K: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    """Coefficients over the powers j < K: 1/j! for j ≥ 1 (E), 1/(j+1)! (G) and
+    H_jl = 1/(j! l! (j+l+1)) (Q); cached per (K, dtype, device) except while tracing."""
+    key = (K, dtype, device)
+    found = _WEIGHTS.get(key)
+    if found is not None:
+        return found
+    j = torch.arange(K, dtype=torch.float64, device=device)
+    inv_fact = torch.exp(-torch.lgamma(j + 1.0))
+    e = torch.cat([inv_fact.new_zeros(1), inv_fact[1:]])
+    g = torch.exp(-torch.lgamma(j + 2.0))
+    H = inv_fact[:, None] * inv_fact[None, :] / (j[:, None] + j[None, :] + 1.0)
+    out = (e.to(dtype), g.to(dtype), H.to(dtype))
+    if not tracing() and not torch.is_inference_mode_enabled():  # (an inference tensor cannot enter autograd later)
+        _WEIGHTS[key] = out
+    return out
+
+
+_WEIGHTS: dict[tuple[int, torch.dtype, torch.device], tuple[Tensor, Tensor, Tensor]] = {}
+
+
+def _series(M: Tensor, W: Tensor | None, B: Tensor | None, K: int) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    r"""Taylor series on a sub-step, M = F h (N, n, n), W (N, n, n) or None, B (N, n, p) or None::
+
+        E_h = Σ_{1≤j<K} M^j/j!,   Q_h/h = Σ_{j,l<K} (M^j W)(M^l)ᵀ / (j! l! (j+l+1)),   G_h/h = Σ_{j<K} M^j B/(j+1)!
+
+    (the exact integrals of the truncated series of expm(F s)). The powers M^j [I, W, B] for
+    j < K come from ⌈log₂ K⌉ rounds of two products (``[S, M^{2^i} S]``, ``M^{2^{i+1}}``); the
+    three sums are contractions over the power index j.
+    """
+    N, n = M.shape[0], M.shape[-1]
+    eye = _eye(n, M).expand(N, n, n)
+    S = torch.cat([eye, *(t for t in (W, B) if t is not None)], -1)  # power 0: (N, n, c)
+    c = S.shape[-1]
+    power, k = M, 1
+    while k < K:
+        take = min(k, K - k)
+        S = torch.cat([S, torch.bmm(power, S[..., : take * c])], -1)
+        k += take
+        if k < K:
+            power = torch.bmm(power, power)
+    S = S.view(N, n, K, c).transpose(-1, -2)  # [a, r, col, j] = (M^j [I, W, B])[r, col]
+    e, g, H = _weights(K, M.dtype, M.device)
+    P = S[:, :, :n].reshape(N, n, n * K)  # [a, r, (b, l)] = (M^l)[r, b]
+    E = P.view(N, n, n, K) @ e
+    Q = G = None
+    if W is not None:  # Σ_{j,l} (M^j W)[i, b] H_jl (M^l)[r, b]
+        V = (S[:, :, n : 2 * n].reshape(N * n * n, K) @ H).view(N, n, n * K)
+        Q = torch.bmm(V, P.mT)
+    if B is not None:
+        G = S[:, :, c - B.shape[-1] :] @ g
+    return E, Q, G
+
+
+def _eye(n: int, like: Tensor) -> Tensor:
+    """The (n, n) identity of ``like``'s dtype and device (cached except while tracing)."""
+    key = (n, like.dtype, like.device)
+    eye = _EYES.get(key)
+    if eye is None:
+        eye = torch.eye(n, dtype=like.dtype, device=like.device)
+        if not tracing() and not torch.is_inference_mode_enabled():
+            _EYES[key] = eye
+    return eye
+
+
+_EYES: dict[tuple[int, torch.dtype, torch.device], Tensor] = {}
+
+
+def _double_step(
+    A: Tensor, X: Tensor, near: Tensor | None, Q: Tensor | None, G: Tensor | None, eye: Tensor
+) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
+    """One doubling of every element: Q ← A Q Aᵀ + Q, G ← A G + G, A ← A A, where X holds
+    E = A − I (E ← E + A E) for the elements with ``near`` = 1 and A for those with 0 (None: all
+    E). One product A [X, Q, G] for the three. Returns (A, X, Q, G)."""
+    n = X.shape[-1]
+    parts = [X, *(t for t in (Q, G) if t is not None)]
+    R = torch.bmm(A, torch.cat(parts, -1) if len(parts) > 1 else X)
+    if Q is not None:
+        Q = torch.baddbmm(Q, R[..., n : 2 * n], A.mT)
+    if G is not None:
+        G = R[..., R.shape[-1] - G.shape[-1] :] + G
+    if near is None:
+        X = R[..., :n] + X
+        return X + eye, X, Q, G
+    X = torch.addcmul(R[..., :n], near, X)
+    return torch.addcmul(X, near, eye), X, Q, G
+
+
+def _has_decayed(A: Tensor) -> Tensor:
+    """Per element (bool (N, 1, 1)): ‖A‖_F < 1/2 — A has decayed and E = A − I no longer resolves it."""
+    with torch.no_grad():
+        return A.square().sum((-2, -1), keepdim=True) < 0.25
+
+
+def _double_eager(
+    E: Tensor, Q: Tensor | None, G: Tensor | None, steps: int
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """``steps`` doublings of every element from E = A − I; an element switches from carrying E
+    to carrying A once its A has decayed (one synchronisation a doubling)."""
+    eye = _eye(E.shape[-1], E)
+    A, X, near = E + eye, E, None
+    for j in range(steps):
+        if j:
+            switch = _has_decayed(A) if near is None else _has_decayed(A) & (near > 0)
+            if bool(switch.any()):
+                sw = switch.to(A.dtype)
+                X = torch.addcmul(X, sw, eye)  # A where switched
+                near = 1.0 - sw if near is None else near * (1.0 - sw)
+        A, X, Q, G = _double_step(A, X, near, Q, G, eye)
+    return A, Q, G
+
+
+def _double_traced(
+    E: Tensor, Q: Tensor | None, G: Tensor | None, steps: Tensor, differentiable: bool
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """:func:`_double_eager` without data-dependent control flow (torch.compile / torch.export):
+    the switch is a mask, and the ``steps`` (0-dim) doublings are a structured while_loop, or with
+    ``differentiable`` (which while_loop is not) :data:`TRACED_MAX_HALVINGS` static steps of
+    which those beyond ``steps`` keep their input."""
+    eye = _eye(E.shape[-1], E)
+
+    def step(j: Tensor | int, A: Tensor, X: Tensor, near: Tensor, Q: Tensor | None, G: Tensor | None):
+        first = j == 0 if isinstance(j, int) else (j == 0).reshape(())
+        switch = (near > 0) & _has_decayed(A) & ~torch.as_tensor(first)
+        X = torch.where(switch, A, X)
+        near = torch.where(switch, 0.0, near)
+        A, X, Q, G = _double_step(A, X, near, Q, G, eye)
+        return A, X, near, Q, G
+
+    near = E.new_ones(E.shape[0], 1, 1)
+    A, X = E + eye, E
+    Q, G = (None if t is None else t.contiguous() for t in (Q, G))
+    if differentiable:
+        for j in range(TRACED_MAX_HALVINGS):
+            active = steps > j
+            new = step(j, A, X, near, Q, G)
+            A, X, near, Q, G = (None if o is None else torch.where(active, a, o) for a, o in zip(new, (A, X, near, Q, G)))  # type: ignore[misc]
+        return A, Q, G
+    from torch._higher_order_ops import while_loop
+
+    has_q, has_g = Q is not None, G is not None
+
+    def body(j: Tensor, A: Tensor, X: Tensor, near: Tensor, *qg: Tensor):
+        A, X, near, q, g = step(j, A, X, near, qg[0] if has_q else None, qg[-1] if has_g else None)
+        return (j + 1, A, X, near, *(t for t in (q, g) if t is not None))
+
+    init = (torch.zeros((), dtype=torch.int64, device=A.device), A, X, near, *(t for t in (Q, G) if t is not None))
+    out = while_loop(lambda j, *rest: j < steps, body, init)
+    return out[1], (out[4] if has_q else None), (out[-1] if has_g else None)
+
+
+def _largest_reach(x: SDEInputs) -> float:
+    """max ‖F‖_F dt over the elements (one synchronisation; none from :attr:`SDEInputs.host`,
+    which pairs norms with steps where F's batch shape is dt's, else bounds by max ‖F‖ max dt)."""
+    F, dt, host = x.F, x.dt, x.host
+    assert dt is not None
+    if host is None:
+        with torch.no_grad():
+            return float((F.square().sum((-2, -1)).sqrt() * dt).max())
+    size, v = F.shape[-1] ** 2, host["F"]
+    norms = [math.sqrt(sum(t * t for t in v[i : i + size])) for i in range(0, len(v), size)]
+    if F.shape[:-2] == dt.shape:
+        return max(a * b for a, b in zip(norms, host["dt"]))
+    return max(norms) * max(host["dt"])
+
+
+def few_elements_doubling(
+    x: SDEInputs, batch_last: bool = False, masked: bool | None = None
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """(A, Q, G) when every element has its own F, W, B and dt (the general algorithm).
+
+    F: (..., n, n); W: (..., n, n) or None; B: (..., n, p) or None; dt: (...), broadcast to
+    ``x.batch``. Returns (*batch, n, n), (*batch, n, n) or None, (*batch, n, p) or None
+    (with ``batch_last`` contiguous (n, n, *batch), …). Every element takes the same number of
+    halvings s = ⌈log₂(max ‖F‖_F dt / θ)⌉ (one synchronisation; ``masked``, the default while
+    torch.compile / torch.export trace: none, s a tensor).
+    """
+    F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
+    assert dt is not None
+    n, N = F.shape[-1], math.prod(batch)  # (a symbolic size while tracing: no guard on it)
+    p = 0 if B is None else B.shape[-1]
+    traced = tracing() if masked is None else masked
+    theta = THETA_PER_ELEMENT
+    Fb, Wb, Bb = _flat(F, batch, n), _flat(W, batch, n), _flat(B, batch, p)
+    assert Fb is not None
+    dtf = dt.expand(batch).reshape(N)
+    if traced:  # s from the largest reach; a reach beyond θ 2^TRACED_MAX_HALVINGS takes the step at that limit
+        with torch.no_grad():
+            reach = frobenius_norm(Fb) * dtf
+            limit = theta * 2.0**TRACED_MAX_HALVINGS
+            steps = halvings_for(reach.amax() if N else reach.new_zeros(()), reach.new_ones(()), theta)
+            steps = steps.clamp_max(TRACED_MAX_HALVINGS)
+            shrink = torch.where(reach > limit, limit / reach.clamp_min(limit), 1.0)
+        h = dtf * shrink * torch.exp2(-steps)
+        K = power_terms(F.dtype, theta, n)
+    else:
+        top = _largest_reach(x) if N else 0.0
+        if not math.isfinite(top):  # the squares overflowed (or a NaN passed unchecked)
+            with torch.no_grad():
+                top = float(torch.nan_to_num(frobenius_norm(Fb).double() * dtf.double(), nan=0.0).max())
+        if math.isinf(top):
+            s = 2 * torch.finfo(F.dtype).maxexp
+        else:
+            s = math.ceil(math.log2(top) - math.log2(theta)) if top > theta else 0
+        bound = theta if s else (2.0 ** math.ceil(math.log2(top)) if top > 0 else 0.0)  # (few cache keys)
+        K = power_terms(F.dtype, bound, n)
+        h = _scaled(dtf, s)
+    hc = h[:, None, None]
+    E, Q, G = _series(Fb * hc, Wb, Bb, K)
+    Q, G = (None if t is None else t * hc for t in (Q, G))
+    if traced:
+        needs_grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (F, W, B, dt))
+        A, Q, G = _double_traced(E, Q, G, steps, needs_grad and not torch.compiler.is_exporting())
+    else:
+        A, Q, G = _double_eager(E, Q, G, s)
+    if Q is not None:
+        Q = torch.lerp(Q, Q.mT, 0.5)
+    out = [None if t is None else t.reshape(*batch, *t.shape[1:]) for t in (A, Q, G)]
+    if batch_last:
+        out = [None if t is None else t.movedim((-2, -1), (0, 1)).contiguous() for t in out]
+    return out[0], out[1], out[2]  # type: ignore[return-value]
