@@ -1,8 +1,8 @@
 # ruff: noqa: B023  (the closures are timed inside the loop that binds them)
 r"""Where the time of one small ``discretize`` call goes (B = 1 and 100), beside the naive Van Loan.
 
-Each stage of the default's routed call (argument checks and conversion ``sde_inputs``, the
-routing bound ``accurate``, the block exponential ``matrix_exp``, the result check) is timed
+Each stage of the default's call (argument checks and conversion ``sde_inputs``, the
+doubling, the result check where the host values cannot rule out an overflow) is timed
 alone, as median thread CPU time over repeats (``time.thread_time``: robust to other
 processes on a shared machine), torch at one thread, next to the naive five lines and a bare
 ``torch.matrix_exp`` of the (2n, 2n) block. Aten operations per call are counted too.
@@ -26,7 +26,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_per_element import default, make_problem, naive_van_loan
 
-from torchsde_lti.core import _doubling, _matrix_exp, discretization
+from torchsde_lti.core import _doubling, discretization
 from torchsde_lti.core.validation import sde_inputs
 
 
@@ -69,10 +69,10 @@ def main() -> None:
             f"load {os.getloadavg()[0]:.2f})\n"
         ),
         (
-            "| n | dtype | B | routed | naive | default | sde_inputs | accurate | matrix_exp | doubling | "
+            "| n | dtype | B | naive | default | sde_inputs | doubling | "
             "result check | bare torch.matrix_exp | ops naive / default |"
         ),
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     print("\n".join(lines), flush=True)
     for dtype in (torch.float64, torch.float32):
@@ -81,21 +81,18 @@ def main() -> None:
                 F, L, Qc, dt = make_problem(n, B, dtype)
                 x = sde_inputs(F, L, Qc, dt)
                 A, Q, G = discretization._run(x, "doubling", False)
-                routed = discretization._routed(x)
                 W, d = L @ Qc @ L.mT, dt[:, None, None]  # the naive's Van Loan block
                 block = torch.cat([torch.cat([F * d, W * d], -1), torch.cat([torch.zeros_like(F), -F.mT * d], -1)], -2)
                 t = {
                     "naive": cpu_us(lambda: naive_van_loan(F, L, Qc, dt)),
                     "default": cpu_us(lambda: default(F, L, Qc, dt)),
                     "sde_inputs": cpu_us(lambda: sde_inputs(F, L, Qc, dt)),
-                    "accurate": cpu_us(lambda: _matrix_exp.accurate(x)),
-                    "matrix_exp": cpu_us(lambda: _matrix_exp.matrix_exp(x)),
                     "doubling": cpu_us(lambda: _doubling.doubling(x)),
                     "check": cpu_us(lambda: discretization._check_result(x, A, Q, G, "doubling")),
                     "bare": cpu_us(lambda: torch.matrix_exp(block)),
                 }
                 row = (
-                    f"| {n} | {str(dtype)[6:]} | {B} | {'yes' if routed else 'no'} | "
+                    f"| {n} | {str(dtype)[6:]} | {B} | "
                     + " | ".join(f"{t[k]:.0f}" for k in t)
                     + f" | {ops(lambda: naive_van_loan(F, L, Qc, dt))} / {ops(lambda: default(F, L, Qc, dt))} |"
                 )

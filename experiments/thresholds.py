@@ -27,9 +27,10 @@ import torch
 
 import torchsde_lti as tl
 import torchsde_lti.core._doubling as doubling_mod
+import torchsde_lti.core._power_series as series_mod
 import torchsde_lti.core.linalg as linalg
 import torchsde_lti.core.validation as validation
-from torchsde_lti.core import _matrix_exp, thresholds
+from torchsde_lti.core import thresholds
 from torchsde_lti.core.validation import sde_inputs
 
 F64 = torch.float64
@@ -140,16 +141,23 @@ def python_checks() -> str:
 def theta_per_element() -> str:
     rows = []
     for n in (2, 4, 8):
-        x = sde_inputs(*per_element_problem(n, 10_000), validate_args=False)
         row: list[object] = [n]
-        for theta in (0.25, 0.5, 1.0):
-            with patched(doubling_mod, THETA_PER_ELEMENT=theta):
-                row.append(cpu_us(lambda: doubling_mod.per_element_doubling(x), 5) / 1e3)
+        for N, module, name in (
+            (1, series_mod, "THETA_PER_ELEMENT"),
+            (100, series_mod, "THETA_PER_ELEMENT"),
+            (10_000, doubling_mod, "THETA_SORTED"),
+        ):
+            x = sde_inputs(*per_element_problem(n, N), validate_args=False)
+            for theta in (0.25, 0.5, 1.0, 2.0):
+                with patched(module, **{name: theta}):
+                    row.append(cpu_us(lambda: doubling_mod.per_element_doubling(x), 5 if N > 100 else 15))
         rows.append(row)
+    heads = [f"N = {N}, θ = {t}" for N in ("1", "100", "1e4") for t in (0.25, 0.5, 1, 2)]
     return table(
-        f"4. THETA_PER_ELEMENT = {thresholds.THETA_PER_ELEMENT}: per-element doubling, N = 1e4, ms",
-        ["n", "θ = 0.25", "θ = 0.5", "θ = 1"],
-        [[r[0], *(f"{v:.2f}" for v in r[1:])] for r in rows],
+        f"4. THETA_PER_ELEMENT = {thresholds.THETA_PER_ELEMENT} (few elements), THETA_SORTED = "
+        f"{thresholds.THETA_SORTED} (sorted): per-element doubling, µs",
+        ["n", *heads],
+        [[r[0], *(f"{v:.0f}" for v in r[1:])] for r in rows],
     )
 
 
@@ -181,14 +189,14 @@ def layouts() -> str:
     for n in (2, 4, 8):
         for N in (64, 256, 1024, 4096):
             x = sde_inputs(*per_element_problem(n, N), validate_args=False)
-            with patched(doubling_mod, BATCH_LAST_MAX_DIM=0):
+            with patched(doubling_mod, BATCH_LAST_MAX_DIM=0, FEW_ENTRIES=0):
                 first = cpu_us(lambda: doubling_mod.per_element_doubling(x), 9)
-            with patched(doubling_mod, BATCH_LAST_MAX_DIM=64, BATCH_LAST_MIN_ELEMENTS=0):
+            with patched(doubling_mod, BATCH_LAST_MAX_DIM=64, BATCH_LAST_MIN_ELEMENTS=0, FEW_ENTRIES=0):
                 last = cpu_us(lambda: doubling_mod.per_element_doubling(x), 9)
             rows.append([n, N, first, last])
     return table(
         f"6. BATCH_LAST_MAX_DIM = {thresholds.BATCH_LAST_MAX_DIM}, BATCH_LAST_MIN_ELEMENTS = "
-        f"{thresholds.BATCH_LAST_MIN_ELEMENTS}: per-element doubling, µs",
+        f"{thresholds.BATCH_LAST_MIN_ELEMENTS}: sorted per-element doubling, µs",
         ["n", "N", "batch-first bmm", "batch-last FMA"],
         rows,
     )
@@ -212,19 +220,19 @@ def shared_min() -> str:
     )
 
 
-def route_max() -> str:
+def few_elements() -> str:
     rows = []
     for n in (2, 4, 8):
-        for N in (1, 16, 64, 256, 512, 1024, 4096):
-            F, L, Qc, dt = per_element_problem(n, N, dt_max=1e-2)  # within the routing bound
-            x = sde_inputs(F, L, Qc, dt, validate_args=False)
-            assert _matrix_exp.accurate(x)
-            me = cpu_us(lambda: _matrix_exp.matrix_exp(x), 9)
-            db = cpu_us(lambda: doubling_mod.doubling(x), 9)
-            rows.append([n, N, me, db])
+        for N in (16, 64, 256, 1024, 4096):
+            x = sde_inputs(*per_element_problem(n, N), validate_args=False)
+            with patched(doubling_mod, FEW_ENTRIES=N * n * n):
+                few = cpu_us(lambda: doubling_mod.per_element_doubling(x), 9)
+            with patched(doubling_mod, FEW_ENTRIES=0):
+                sorted_ = cpu_us(lambda: doubling_mod.per_element_doubling(x), 9)
+            rows.append([n, N, few, sorted_])
     return table(
-        f"8. ROUTE_MAX_ELEMENTS = {thresholds.ROUTE_MAX_ELEMENTS}: routable per-element calls, µs",
-        ["n", "N", "torch.matrix_exp", "doubling"],
+        f"8. FEW_ENTRIES = {thresholds.FEW_ENTRIES} (N n²): per-element doubling, one schedule vs sorted, µs",
+        ["n", "N", "one schedule (power series)", "sorted (Horner)"],
         rows,
     )
 
@@ -261,7 +269,7 @@ SECTIONS = {
     5: theta_shared,
     6: layouts,
     7: shared_min,
-    8: route_max,
+    8: few_elements,
     9: parallel_min_work,
 }
 

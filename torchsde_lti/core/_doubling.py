@@ -29,10 +29,10 @@ from torchsde_lti.core.linalg import bl_matmul
 from torchsde_lti.core.thresholds import (
     BATCH_LAST_MAX_DIM,
     BATCH_LAST_MIN_ELEMENTS,
-    FEW_ELEMENTS,
+    FEW_ENTRIES,
     SHARED_MIN_ELEMENTS,
-    THETA_SORTED,
     THETA_SHARED,
+    THETA_SORTED,
 )
 from torchsde_lti.core.validation import SDEInputs, tracing
 
@@ -177,13 +177,13 @@ def per_element_doubling(
 
     F: (..., n, n); W: (..., n, n) or None; B: (..., n, p) or None; dt: (...), broadcast to
     ``x.batch``. Returns (*batch, n, n), (*batch, n, n) or None, (*batch, n, p) or None
-    (with ``batch_last`` contiguous (n, n, *batch), …). At most :data:`FEW_ELEMENTS` elements,
-    or while torch.compile / torch.export trace (``masked``: as if tracing), take
+    (with ``batch_last`` contiguous (n, n, *batch), …). At most :data:`FEW_ENTRIES` entries
+    N n², or while torch.compile / torch.export trace (``masked``: as if tracing), take
     :func:`~torchsde_lti.core._power_series.few_elements_doubling` (one schedule for all).
     """
     F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
     assert dt is not None
-    if (tracing() if masked is None else masked) or math.prod(batch) <= FEW_ELEMENTS:
+    if (tracing() if masked is None else masked) or math.prod(batch) * F.shape[-1] ** 2 <= FEW_ENTRIES:
         return few_elements_doubling(x, batch_last, masked)
     n, N = F.shape[-1], math.prod(batch)
     p = 0 if B is None else B.shape[-1]

@@ -205,8 +205,10 @@ def _double_traced(
     if differentiable:
         for j in range(TRACED_MAX_HALVINGS):
             active = steps > j
-            new = step(j, A, X, near, Q, G)
-            A, X, near, Q, G = (None if o is None else torch.where(active, a, o) for a, o in zip(new, (A, X, near, Q, G)))  # type: ignore[misc]
+            A2, X2, near2, Q2, G2 = step(j, A, X, near, Q, G)
+            A, X, near = torch.where(active, A2, A), torch.where(active, X2, X), torch.where(active, near2, near)
+            Q = None if Q is None or Q2 is None else torch.where(active, Q2, Q)
+            G = None if G is None or G2 is None else torch.where(active, G2, G)
         return A, Q, G
     from torch._higher_order_ops import while_loop
 
@@ -271,7 +273,7 @@ def few_elements_doubling(
             with torch.no_grad():
                 top = float(torch.nan_to_num(frobenius_norm(Fb).double() * dtf.double(), nan=0.0).max())
         if math.isinf(top):
-            s = 2 * torch.finfo(F.dtype).maxexp
+            s = 2 * 1075  # ‖F‖ dt < 2^2150: enough halvings for any product of two doubles
         else:
             s = math.ceil(math.log2(top) - math.log2(theta)) if top > theta else 0
         bound = theta if s else (2.0 ** math.ceil(math.log2(top)) if top > 0 else 0.0)  # (few cache keys)

@@ -20,7 +20,7 @@ from torch import Tensor
 from torchsde_lti.core._doubling import doubling
 from torchsde_lti.core._matrix_exp import matrix_exp
 from torchsde_lti.core.threads import intra_op_threads
-from torchsde_lti.core.validation import SDEInputs, checks_values, sde_inputs, tracing
+from torchsde_lti.core.validation import SDEInputs, checks_values, sde_inputs
 
 __all__ = [
     "METHODS",

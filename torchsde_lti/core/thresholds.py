@@ -7,8 +7,6 @@ speed threshold is set.
 
 from __future__ import annotations
 
-import torch
-
 # ---- linear-algebra kernels (core/linalg.py)
 #: Matrices up to this size use the unrolled Cholesky factor and triangular solves.
 UNROLLED_MAX_DIM = 4
@@ -28,9 +26,10 @@ PARALLEL_MIN_WORK = 1 << 20
 PYTHON_CHECK_MAX_VALUES = 256
 
 # ---- scaling and doubling (core/_doubling.py)
-#: Per-element calls of at most this many elements (and traced calls) take the schedule of
-#: fewest torch calls (one number of halvings for all, power series); more take the sorted one.
-FEW_ELEMENTS = 256
+#: Per-element calls whose F has at most this many entries in all (N n²; and traced calls)
+#: take the schedule of fewest torch calls (one number of halvings for all, power series);
+#: larger ones the sorted schedule (fewer flops).
+FEW_ENTRIES = 2048
 #: Sub-step bounds ‖F‖ h ≤ θ: few elements (power series), sorted per element (Horner series
 #: on every element) and one parameter set (series terms once on n × n matrices).
 THETA_PER_ELEMENT = 0.5
