@@ -232,7 +232,7 @@ def _largest_reach(x: SDEInputs) -> float:
         with torch.no_grad():
             return float((F.square().sum((-2, -1)).sqrt() * dt).max())
     size, v = F.shape[-1] ** 2, host["F"]
-    norms = [math.sqrt(sum(t * t for t in v[i : i + size])) for i in range(0, len(v), size)]
+    norms = [math.hypot(*v[i : i + size]) for i in range(0, len(v), size)]
     if F.shape[:-2] == dt.shape:
         return max(a * b for a, b in zip(norms, host["dt"]))
     return max(norms) * max(host["dt"])

@@ -70,7 +70,7 @@ def _overflow_impossible(x: SDEInputs) -> bool:
     host = x.host
     if host is None or not host.get("dt"):
         return False
-    top = {name: max(map(abs, v), default=0.0) for name, v in host.items()}
+    top = {name: max(max(v), -min(v)) if v else 0.0 for name, v in host.items()}
     n = x.F.shape[-1]
     # ‖L Qc Lᵀ‖_F ≤ ‖L‖_F² ‖Qc‖_F ≤ n s² max|L|² max|Qc| (s² ≤ the number of Qc values)
     w = n * len(host.get("Qc", ())) * top.get("L", 0.0) ** 2 * top.get("Qc", 0.0)

@@ -156,27 +156,34 @@ def _psd_test(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 def cholesky_succeeds(m: Sequence[float], k: int, shift: float) -> bool:
     """Whether the row-major k × k matrix ``m`` (its lower triangle) plus ``shift`` I has a
     Cholesky factor: every pivot positive (Python floats; for a few small matrices)."""
-    rows: list[list[float]] = []
+    low = [0.0] * (k * k)
     for j in range(k):
-        row = [m[j * k + t] for t in range(j)]
+        jk = j * k
         for t in range(j):
-            row[t] = (row[t] - sum(row[u] * rows[t][u] for u in range(t))) / rows[t][t]
-        d = m[j * k + j] + shift - sum(v * v for v in row)
+            tk, v = t * k, m[jk + t]
+            for u in range(t):
+                v -= low[jk + u] * low[tk + u]
+            low[jk + t] = v / low[tk + t]
+        d = m[jk + j] + shift
+        for u in range(j):
+            d -= low[jk + u] * low[jk + u]
         if not d > 0:
             return False
-        rows.append(row + [math.sqrt(d)])
+        low[jk + j] = math.sqrt(d)
     return True
 
 
 def _psd_values(values: Sequence[float], k: int, tol: float) -> bool:
     """:func:`_psd_test`'s decision on row-major k × k matrices given as Python floats."""
-    tiny = 1e-300
-    for start in range(0, len(values), k * k):
-        m = values[start : start + k * k]
-        scale = max(max(abs(v) for v in m), tiny)
-        if any(abs(m[i * k + j] - m[j * k + i]) > tol * scale for i in range(k) for j in range(i)):
-            return False
-        if not cholesky_succeeds(m, k, tol * scale):
+    size = k * k
+    for start in range(0, len(values), size):
+        m = values[start : start + size]
+        limit = tol * max(max(m), -min(m), 1e-300)
+        for i in range(1, k):
+            for j in range(i):
+                if abs(m[i * k + j] - m[j * k + i]) > limit:
+                    return False
+        if not cholesky_succeeds(m, k, limit):
             return False
     return True
 
@@ -206,6 +213,9 @@ def check_symmetric_psd(x: Tensor, name: str) -> None:
 def broadcast_batch(named: Sequence[tuple[str, Sequence[int]]]) -> torch.Size:
     """Broadcast named batch shapes (numpy rules), naming them all when they do not broadcast."""
     shapes = [tuple(s) for _, s in named]
+    distinct = set(shapes) - {()}
+    if len(distinct) <= 1:  # one shape (or none): the common case
+        return torch.Size(distinct.pop() if distinct else ())
     if not tracing():  # (plain ints: the rules in Python, cheaper than torch's reference version)
         out = [1] * max(map(len, shapes), default=0)
         for shape in shapes:
@@ -237,7 +247,7 @@ def parse_learn(learn: Iterable[str] | str, allowed: Sequence[str]) -> tuple[str
 def _values_valid(host: dict[str, list[float]], Qc: Tensor | None) -> bool:
     """The value checks of :func:`sde_inputs` on Python floats: all finite, dt ≥ 0, Qc
     symmetric PSD (the test of :func:`_psd_test`)."""
-    if not all(math.isfinite(v) for part in host.values() for v in part):
+    if not all(math.isfinite(sum(part)) for part in host.values()):  # (an overflowing sum: the detailed checks)
         return False
     if host.get("dt") and min(host["dt"]) < 0:
         return False
