@@ -32,7 +32,7 @@ PYTHON_CHECK_MAX_VALUES = 256
 FEW_ENTRIES = 2048
 #: Sub-step bounds ‖F‖ h ≤ θ: few elements (power series), sorted per element (Horner series
 #: on every element) and one parameter set (series terms once on n × n matrices).
-THETA_PER_ELEMENT = 0.5
+THETA_PER_ELEMENT = 1.0
 THETA_SORTED = 0.25
 THETA_SHARED = 1.0
 #: Sorted per-element layout: batch-last fused multiply-adds for n up to this and more than

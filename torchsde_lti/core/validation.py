@@ -213,10 +213,10 @@ def check_symmetric_psd(x: Tensor, name: str) -> None:
 def broadcast_batch(named: Sequence[tuple[str, Sequence[int]]]) -> torch.Size:
     """Broadcast named batch shapes (numpy rules), naming them all when they do not broadcast."""
     shapes = [tuple(s) for _, s in named]
-    distinct = set(shapes) - {()}
-    if len(distinct) <= 1:  # one shape (or none): the common case
-        return torch.Size(distinct.pop() if distinct else ())
     if not tracing():  # (plain ints: the rules in Python, cheaper than torch's reference version)
+        distinct = set(shapes) - {()}
+        if len(distinct) <= 1:  # one shape (or none): the common case
+            return torch.Size(distinct.pop() if distinct else ())
         out = [1] * max(map(len, shapes), default=0)
         for shape in shapes:
             for i, d in enumerate(shape, len(out) - len(shape)):
