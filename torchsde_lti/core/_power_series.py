@@ -22,7 +22,9 @@ __all__ = ["few_elements_doubling", "frobenius_norm", "halvings_for"]
 
 def _flat(x: Tensor | None, batch: torch.Size, cols: int) -> Tensor | None:
     """(..., n, c) broadcast to (*batch, n, c), flattened to (N, n, c)."""
-    return None if x is None else x.expand(*batch, x.shape[-2], cols).reshape(-1, x.shape[-2], cols)
+    if x is None or (x.dim() == 3 and len(batch) == 1 and x.shape[0] == batch[0]):
+        return x
+    return x.expand(*batch, x.shape[-2], cols).reshape(-1, x.shape[-2], cols)
 
 
 _POWER_TERMS: dict[tuple[torch.dtype, float, int], int] = {}
@@ -257,7 +259,7 @@ def few_elements_doubling(
     theta = THETA_PER_ELEMENT
     Fb, Wb, Bb = _flat(F, batch, n), _flat(W, batch, n), _flat(B, batch, p)
     assert Fb is not None
-    dtf = dt.expand(batch).reshape(N)
+    dtf = dt if dt.shape == batch and len(batch) == 1 else dt.expand(batch).reshape(N)
     if traced:  # s from the largest reach; a reach beyond θ 2^TRACED_MAX_HALVINGS takes the step at that limit
         with torch.no_grad():
             reach = frobenius_norm(Fb) * dtf
@@ -286,10 +288,10 @@ def few_elements_doubling(
         needs_grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (F, W, B, dt))
         A, Q, G = _double_traced(E, Q, G, steps, needs_grad and not torch.compiler.is_exporting())
     else:
-        A, Q, G = _double_eager(E, Q, G, s)
+        A, Q, G = _double_eager(E, Q, G, s) if s else (E + _eye(n, E), Q, G)
     if Q is not None:
         Q = torch.lerp(Q, Q.mT, 0.5)
-    out = [None if t is None else t.reshape(*batch, *t.shape[1:]) for t in (A, Q, G)]
+    out = [t if t is None or len(batch) == 1 else t.reshape(*batch, *t.shape[1:]) for t in (A, Q, G)]
     if batch_last:
         out = [None if t is None else t.movedim((-2, -1), (0, 1)).contiguous() for t in out]
     return out[0], out[1], out[2]  # type: ignore[return-value]

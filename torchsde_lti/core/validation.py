@@ -292,7 +292,8 @@ def sde_inputs(
         B if isinstance(B, Tensor) else None,
     )
     device = F.device
-    F = as_float_tensor(F, "F", dtype, device)
+    if F.dtype != dtype:
+        F = F.to(dtype)
     check_matrix(F, "F", square=True)
     n = F.shape[-1]
     if n == 0:
