@@ -235,3 +235,25 @@ def test_step_with_inputs_and_feedthrough_equals_sequence_filter():
         torch.testing.assert_close(state.mean, ref.mean[:, -1], rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match="u must have shape"):
         kf.step(state, y[:, 0], dt[:, 0], u=torch.zeros(2, 3, dtype=F64))
+
+
+def test_step_follows_parameter_changes_without_gradients():
+    """The online calls evaluate the model once per parameter version under no_grad: an
+    in-place optimiser-style update or a new R is seen by the next step."""
+    kf = _kf()
+    state = kf.initial_state(2)
+    y = torch.tensor([[0.3, -0.2], [1.0, 0.4]], dtype=F64)
+    dt = torch.tensor([0.4, 1.3], dtype=F64)
+    with torch.no_grad():
+        before = kf.step(state, y, dt)[1].log_likelihood
+        assert torch.equal(kf.step(state, y, dt)[1].log_likelihood, before)  # cached model, same values
+        for p in kf.parameters():
+            p.mul_(1.5)
+        after = kf.step(state, y, dt)[1].log_likelihood
+        kf.R = torch.tensor([[2.0, 0.0], [0.0, 3.0]], dtype=F64)
+        again = kf.step(state, y, dt)[1]
+    with torch.enable_grad():
+        want = kf.step(state, y, dt)[1]
+    assert not torch.allclose(after, before)
+    torch.testing.assert_close(again.innovation_cov, want.innovation_cov.detach(), rtol=0, atol=1e-12)
+    torch.testing.assert_close(again.log_likelihood, want.log_likelihood.detach(), rtol=0, atol=1e-12)

@@ -80,6 +80,7 @@ from torchsde_lti.filters.online import (
     kalman_step,
 )
 from torchsde_lti.nn._register import register_tensor
+from torchsde_lti.nn._online import evaluated
 from torchsde_lti.nn._validate import ValidateArgs, check_outcome, check_values, online_report
 from torchsde_lti.nn.parametrizations import PositiveDefinite
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
@@ -485,26 +486,29 @@ class KalmanFilter(ValidateArgs, nn.Module):
             pred_mean, pred_cov, innovation (..., m), innovation_cov (..., m, m),
             log_likelihood (...), observed).
         """
-        with parametrize.cached():
-            mats = self.sde.matrices()
-            state, dt, u = self._check_state(state, dt, u, mats)
-            y, mask = online_report(y, mask, self.H, mats.F.dtype, mats.F.device)
-            H, R, D = self.H, self.R, (self.D if u is not None else None)
-            if self.validate_args:
-                self._check_values(mats, dt, y=y, u=u, H=H, R=R, D=D, mean=state.mean, cov=state.cov)
-            A, Q, c = self._online_step_model(mats, dt, u)
-            if D is not None:
-                y = y - matvec(D, u)
-            return kalman_step(state, y, A, Q, H, R, c, mask)
+        mats, H, R, D = evaluated(self, self._online_model)
+        state, dt, u = self._check_state(state, dt, u, mats)
+        y, mask = online_report(y, mask, H, mats.F.dtype, mats.F.device)
+        D = D if u is not None else None
+        if self.validate_args:
+            self._check_values(mats, dt, y=y, u=u, H=H, R=R, D=D, mean=state.mean, cov=state.cov)
+        A, Q, c = self._online_step_model(mats, dt, u)
+        if D is not None:
+            y = y - matvec(D, u)
+        return kalman_step(state, y, A, Q, H, R, c, mask)
 
     def predict(self, state: KalmanState, dt: Tensor | float, u: Tensor | None = None) -> KalmanState:
         """Prediction only, each track over its own dt (...): ``m⁻ = A m + G u``, ``P⁻ = A P Aᵀ + Q``."""
+        mats = evaluated(self, self._online_model)[0]
+        state, dt, u = self._check_state(state, dt, u, mats)
+        if self.validate_args:
+            self._check_values(mats, dt, u=u, mean=state.mean, cov=state.cov)
+        return kalman_predict(state, *self._online_step_model(mats, dt, u))
+
+    def _online_model(self) -> tuple[SDEMatrices, Tensor, Tensor, Tensor | None]:
+        """(SDE matrices, H, R, D), each parametrisation evaluated once."""
         with parametrize.cached():
-            mats = self.sde.matrices()
-            state, dt, u = self._check_state(state, dt, u, mats)
-            if self.validate_args:
-                self._check_values(mats, dt, u=u, mean=state.mean, cov=state.cov)
-            return kalman_predict(state, *self._online_step_model(mats, dt, u))
+            return self.sde.matrices(), self.H, self.R, self.D
 
     def _online_step_model(
         self, mats: SDEMatrices, dt: Tensor, u: Tensor | None
@@ -518,7 +522,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
     ) -> tuple[KalmanState, Tensor, Tensor | None]:
         """(state, dt, u) of an online call converted and their shapes checked."""
         dtype, device = mats.F.dtype, mats.F.device
-        n = self.state_dim
+        n = mats.F.shape[-1]
         if not isinstance(state, tuple) or len(state) != 2:
             raise TypeError(f"state must be a KalmanState (mean, cov), got {type(state).__name__}")
         mean = as_float_tensor(state[0], "state.mean", dtype, device)
