@@ -40,8 +40,11 @@ def _kf(dtype: torch.dtype = F64, model: str = "cv") -> tl.KalmanFilter:
     )
 
 
+@pytest.mark.parametrize("path", ["joint", "scalar"])
 @pytest.mark.parametrize("model", ["cv", "iou"])
-def test_kalman_step_equals_sequence_filter(model):
+def test_kalman_step_equals_sequence_filter(model, path, monkeypatch):
+    """Both update paths (the joint update of a few tracks, the scalar updates of many)."""
+    monkeypatch.setattr(tl.filters.online, "SMALL_BATCH", 64 if path == "joint" else 0)
     kf = _kf(model=model)
     y, dt, mask = _series(6, 40, seed=1)
     with torch.no_grad():

@@ -296,8 +296,14 @@ def _scalar_step(
     perm2 = [*range(2, 2 + len(cb)), 0, 1]
     pred_mean, filt_mean = pm.permute(perm1), mean.permute(perm1)
     pred_cov, filt_cov = pc.permute(perm2).expand(*mb, n, n), P.permute(perm2).expand(*mb, n, n)
-    innovation = y0 - matvec(H, pred_mean)
-    innovation_cov = sym(H @ pred_cov @ H.mT + R)
+    if H.dim() == 2 and len(cb) == 1:
+        # one H for every track: single matrix products on the batch-last (n, B), (n·n, B)
+        innovation = y0 - (H @ pm).mT
+        HH = (H[:, None, :, None] * H[None, :, None, :]).reshape(m * m, n * n)
+        innovation_cov = sym((HH @ pc.reshape(n * n, -1)).reshape(m, m, -1).permute(2, 0, 1) + R)
+    else:
+        innovation = y0 - matvec(H, pred_mean)
+        innovation_cov = sym(H @ pred_cov @ H.mT + R)
     if obs is None:
         n_obs = torch.full((), float(m), dtype=y0.dtype, device=y0.device)
         observed = torch.ones((*mb, m), dtype=torch.bool, device=y0.device)
