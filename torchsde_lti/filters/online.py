@@ -26,6 +26,7 @@ leading)::
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -225,7 +226,7 @@ def _joint_step(
     Unobserved components get a zero row of H P⁻, zero innovation and a decoupled unit
     variance in S, so K has zero columns there and H, R enter the Joseph form unmasked."""
     n, m = A.shape[-1], y0.shape[-1]
-    b = mb.numel()
+    b = math.prod(mb)  # symbolic-safe (Size.numel() specialises a traced batch)
 
     def flat(x: Tensor, *event: int) -> Tensor:
         return x.expand(*mb, *event).reshape(b, *event)
