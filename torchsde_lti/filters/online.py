@@ -33,7 +33,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import matvec, sym, to_batch_last
+from torchsde_lti.core.linalg import cholesky, matvec, solve_lower, solve_upper_t, sym, to_batch_last
 from torchsde_lti.core.validation import tracing
 from torchsde_lti.filters.imm import combine, imm_cycle, imm_predict
 from torchsde_lti.filters.inputs import (
@@ -249,9 +249,16 @@ def _joint_step(
         HP = HP * o
         e = e * o
         n_obs = o.sum((-2, -1))
-    L = torch.linalg.cholesky_ex(S)[0]
-    W = torch.linalg.solve_triangular(L, torch.cat([HP, e], -1), upper=False)  # L⁻¹ [H P⁻, e]
-    Kt = torch.linalg.solve_triangular(L.mT, W[..., :n], upper=True)  # Kᵀ = S⁻¹ H P⁻ (b, m, n)
+    if tracing():
+        # unrolled over m (elementwise ops an AOTInductor program fuses; its calls of the
+        # LAPACK kernels cost tens to hundreds of µs each through the fallback path)
+        L = cholesky(S)
+        W = solve_lower(L, torch.cat([HP, e], -1))  # L⁻¹ [H P⁻, e]
+        Kt = solve_upper_t(L, W[..., :n])  # Kᵀ = S⁻¹ H P⁻ (b, m, n)
+    else:
+        L = torch.linalg.cholesky_ex(S)[0]
+        W = torch.linalg.solve_triangular(L, torch.cat([HP, e], -1), upper=False)
+        Kt = torch.linalg.solve_triangular(L.mT, W[..., :n], upper=True)
     z = W[..., n:]  # (b, m, 1) the whitened innovation
     filt_mean = torch.baddbmm(pm, Kt.mT, e)
     MP = torch.baddbmm(pc, Kt.mT, HP, alpha=-1.0)  # (I − K H) P⁻
