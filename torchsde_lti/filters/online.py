@@ -229,6 +229,10 @@ def _joint_step(
     b = math.prod(mb)  # symbolic-safe (Size.numel() specialises a traced batch)
 
     def flat(x: Tensor, *event: int) -> Tensor:
+        if x.dim() == len(event):  # shared by every track: a stride-0 view
+            return x.expand(b, *event)
+        if not tracing() and x.dim() == len(event) + 1 and x.shape[0] == b:  # already (b, *event)
+            return x
         return x.expand(*mb, *event).reshape(b, *event)
 
     A3, Q3, H3, R3 = flat(A, n, n), flat(Q, n, n), flat(H, m, n), flat(R, m, m)
