@@ -7,9 +7,10 @@ from collections.abc import Callable
 from typing import TypeVar
 
 import torch
-from torch import nn
+from torch import Tensor, nn
 
-from torchsde_lti.core.validation import tracing
+from torchsde_lti.core.validation import as_float_tensor, shape_str, tracing
+from torchsde_lti.filters.online import KalmanState
 
 T = TypeVar("T")
 
@@ -44,3 +45,18 @@ def evaluated(module: nn.Module, build: Callable[[], T]) -> T:
     value = build()
     module.__dict__[_CACHE] = (key, value)
     return value
+
+
+def online_state(state: object, dt: Tensor | float, F: Tensor) -> tuple[KalmanState, Tensor]:
+    """(state, dt) of a KalmanFilter's online call as tensors of F's dtype and device, shapes
+    checked: state a (mean (..., n), cov (..., n, n)) pair, n = F's; TypeError or ValueError."""
+    dtype, device, n = F.dtype, F.device, F.shape[-1]
+    if not isinstance(state, tuple) or len(state) != 2:
+        raise TypeError(f"state must be a KalmanState (mean, cov), got {type(state).__name__}")
+    mean = as_float_tensor(state[0], "state.mean", dtype, device)
+    cov = as_float_tensor(state[1], "state.cov", dtype, device)
+    if mean.dim() < 1 or mean.shape[-1] != n or cov.dim() < 2 or cov.shape[-2:] != (n, n):
+        raise ValueError(
+            f"state must be (mean (..., {n}), cov (..., {n}, {n})), got mean {shape_str(mean)}, cov {shape_str(cov)}"
+        )
+    return KalmanState(mean, cov), as_float_tensor(dt, "dt", dtype, device)

@@ -79,8 +79,8 @@ from torchsde_lti.filters.online import (
     kalman_predict,
     kalman_step,
 )
+from torchsde_lti.nn._online import evaluated, online_state
 from torchsde_lti.nn._register import register_tensor
-from torchsde_lti.nn._online import evaluated
 from torchsde_lti.nn._validate import ValidateArgs, check_outcome, check_values, online_report
 from torchsde_lti.nn.parametrizations import PositiveDefinite
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
@@ -521,23 +521,13 @@ class KalmanFilter(ValidateArgs, nn.Module):
         self, state: KalmanState | tuple[Tensor, Tensor], dt: Tensor | float, u: Tensor | None, mats: SDEMatrices
     ) -> tuple[KalmanState, Tensor, Tensor | None]:
         """(state, dt, u) of an online call converted and their shapes checked."""
-        dtype, device = mats.F.dtype, mats.F.device
-        n = mats.F.shape[-1]
-        if not isinstance(state, tuple) or len(state) != 2:
-            raise TypeError(f"state must be a KalmanState (mean, cov), got {type(state).__name__}")
-        mean = as_float_tensor(state[0], "state.mean", dtype, device)
-        cov = as_float_tensor(state[1], "state.cov", dtype, device)
-        if mean.dim() < 1 or mean.shape[-1] != n or cov.dim() < 2 or cov.shape[-2:] != (n, n):
-            raise ValueError(
-                f"state must be (mean (..., {n}), cov (..., {n}, {n})), got mean {shape_str(mean)}, "
-                f"cov {shape_str(cov)}"
-            )
-        dt = as_float_tensor(dt, "dt", dtype, device)
+        state, dt = online_state(state, dt, mats.F)
         if u is not None:  # one step: (..., p) checked as (..., 1, p)
+            dtype, device = mats.F.dtype, mats.F.device
             p = mats.B.shape[-1] if mats.B is not None else (self.D.shape[-1] if self.D is not None else 0)
             u = as_float_tensor(u, "u", dtype, device)
             u = self._check_u(u.unsqueeze(-2) if u.dim() else u.reshape(1, 1), p, 1, "1", dtype, device).squeeze(-2)
-        return KalmanState(mean, cov), dt, u
+        return state, dt, u
 
     def smooth(self, out: FilterResult) -> SmootherResult:
         """RTS smoother over the filter output (uses the A_k, Q_k stored in ``out``): the
