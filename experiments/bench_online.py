@@ -149,7 +149,7 @@ def main() -> None:
         ("online step B=1, eager (validate_args=True)", t_checked, "one fused value check"),
         ("  of which: sde.matrices()", t_mats, "parametrisations"),
         ("  of which: exact discretisation (doubling, 1 element)", t_disc, ""),
-        ("  of which: filters.kalman_step (the loop's Joseph step)", t_kstep, ""),
+        ("  of which: filters.kalman_step (joint Joseph update)", t_kstep, ""),
     ]
 
     from torch.export import Dim
