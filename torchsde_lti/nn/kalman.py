@@ -471,7 +471,9 @@ class KalmanFilter(ValidateArgs, nn.Module):
         """One report per live track: predict each track over its own dt, then update.
 
         The same step as the sequence filter's loop: iterating it over a series gives
-        :meth:`forward`'s filtered moments and step log-likelihoods (to rounding).
+        :meth:`forward`'s filtered moments and step log-likelihoods (to rounding). Without
+        gradients the model's matrices are evaluated once per parameter version (in-place
+        updates and assignments are seen; writes through ``tensor.data`` are not).
 
         Args:
             state: :class:`~torchsde_lti.KalmanState` (mean (..., n), cov (..., n, n)), from
