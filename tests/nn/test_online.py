@@ -65,6 +65,24 @@ def test_kalman_step_equals_sequence_filter(model, path, monkeypatch):
                 torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("path", ["joint", "scalar"])
+def test_kalman_step_without_missing_reports(path, monkeypatch):
+    """Every report present (the update paths' shortcuts without masking), float64 and float32."""
+    monkeypatch.setattr(tl.filters.online, "SMALL_BATCH", 64 if path == "joint" else 0)
+    for dtype, tol in ((F64, 1e-12), (torch.float32, 2e-3)):
+        kf = _kf(dtype)
+        y, dt, _ = _series(4, 25, seed=8, dtype=dtype)
+        y = torch.nan_to_num(y)
+        with torch.no_grad():
+            ref = kf(y, dt)
+            state = kf.initial_state(4)
+            for k in range(25):
+                state, out = kf.step(state, y[:, k], dt[:, k])
+                torch.testing.assert_close(state.cov, ref.cov[:, k], rtol=0, atol=tol)
+                torch.testing.assert_close(out.log_likelihood, ref.step_log_likelihood[:, k], rtol=0, atol=tol)
+            torch.testing.assert_close(state.mean, ref.mean[:, -1], rtol=0, atol=tol)
+
+
 def test_kalman_step_float32_and_per_component_mask():
     kf = _kf(torch.float32)
     y, dt, _ = _series(3, 20, seed=2, dtype=torch.float32)

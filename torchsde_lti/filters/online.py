@@ -293,12 +293,21 @@ def _scalar_step(
 ) -> tuple[KalmanState, KalmanStep]:
     """:func:`kalman_step` with the sequence loop's whitened scalar Joseph updates (batch-last)."""
     n, m = A.shape[-1], y0.shape[-1]
-    Hw, yw, log_det = whiten(*mask_observation_model(H, R, obs), y0)
+    if obs is None and H.dim() == 2 and R.dim() == 2 and len(mb) == 1:
+        # one (H, R) for every track, all observed: whiten with one LAPACK factor and one
+        # triangular solve of all reports at once, straight into the batch-last layout
+        LR = torch.linalg.cholesky(R)
+        Hw = torch.linalg.solve_triangular(LR, H, upper=False)
+        yw_bl = torch.linalg.solve_triangular(LR, y0.expand(*mb, m).mT, upper=False)  # (m, B)
+        log_det = torch.log(torch.diagonal(LR)).sum()
+    else:
+        Hw, yw, log_det = whiten(*mask_observation_model(H, R, obs), y0)
+        yw_bl = to_batch_last(yw.expand(*mb, m), 1)
     cb = _broadcast(state.cov.shape[:-2], A.shape[:-2], Q.shape[:-2], Hw.shape[:-2])
     # batch-last layout (event dims first, batch contiguous), as in the sequence loop
     Ab, Qb, Pb, mean_b, cbl = _batch_last(state, A, Q, c, cb, mb)
     h_rows = to_batch_last(Hw.expand(*cb, m, n), 2).unbind(0)
-    y_vals = to_batch_last(yw.expand(*mb, m), 1).unbind(0)
+    y_vals = yw_bl.unbind(0)
     pm, pc, mean, P, es, ss = _joseph_step(Ab, Qb, mean_b, Pb, cbl, h_rows, y_vals, None, None)
     core = torch.zeros((), dtype=y0.dtype, device=y0.device)
     for e, s in zip(es, ss):
