@@ -278,3 +278,18 @@ def test_step_follows_parameter_changes_without_gradients():
     assert not torch.allclose(after, before)
     torch.testing.assert_close(again.innovation_cov, want.innovation_cov.detach(), rtol=0, atol=1e-12)
     torch.testing.assert_close(again.log_likelihood, want.log_likelihood.detach(), rtol=0, atol=1e-12)
+
+
+def test_imm_step_follows_parameter_changes_without_gradients():
+    imm = _imm()
+    state = imm.initial_state(2)
+    y = torch.tensor([[0.3, -0.2], [1.0, 0.4]], dtype=F64)
+    dt = torch.tensor([0.4, 1.3], dtype=F64)
+    with torch.no_grad():
+        before = imm.step(state, y, dt)[1].log_likelihood
+        for p in imm.parameters():
+            p.mul_(1.3)
+        after = imm.step(state, y, dt)[1].log_likelihood
+    want = imm.step(state, y, dt)[1].log_likelihood.detach()  # evaluated afresh (gradients on)
+    assert not torch.allclose(after, before)
+    torch.testing.assert_close(after, want, rtol=0, atol=1e-12)
