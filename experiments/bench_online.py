@@ -45,16 +45,36 @@ R_NP = np.array([[0.3, 0.1], [0.1, 0.4]])
 
 
 def median_s(fn: Callable[[], object], repeat: int, warmup: int = 5, inner: int = 1) -> float:
-    """Median seconds of one call of ``fn`` over ``repeat`` timings of ``inner`` calls each."""
+    """Median CPU seconds (this process, 1 thread) of one call of ``fn`` over ``repeat``
+    timings of ``inner`` calls each (a CPU-time clock: a shared machine's other jobs do not
+    add their time slices, only their cache and core sharing)."""
     for _ in range(warmup):
         fn()
     times = []
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         for _ in range(inner):
             fn()
-        times.append((time.perf_counter() - t0) / inner)
+        times.append((time.process_time() - t0) / inner)
     return statistics.median(times)
+
+
+def paired_s(
+    fa: Callable[[], object], fb: Callable[[], object], repeat: int, warmup: int = 3, inner: int = 1
+) -> tuple[float, float]:
+    """Median CPU seconds of ``fa`` and of ``fb``, timed in alternation (a, b, a, b, ...) so
+    that both see the same load: the ratio of the two is what the targets compare."""
+    for _ in range(warmup):
+        fa()
+        fb()
+    ta, tb = [], []
+    for _ in range(repeat):
+        for fn, out in ((fa, ta), (fb, tb)):
+            t0 = time.process_time()
+            for _ in range(inner):
+                fn()
+            out.append((time.process_time() - t0) / inner)
+    return statistics.median(ta), statistics.median(tb)
 
 
 def cv_closed_form(dt: float, q: float = Q_CV) -> tuple[np.ndarray, np.ndarray]:
@@ -129,7 +149,7 @@ def main() -> None:
         ("online step B=1, eager (validate_args=True)", t_checked, "one fused value check"),
         ("  of which: sde.matrices()", t_mats, "parametrisations"),
         ("  of which: exact discretisation (doubling, 1 element)", t_disc, ""),
-        ("  of which: filters.kalman_step (the loop's Joseph step)", t_kstep, ""),
+        ("  of which: filters.kalman_step (joint Joseph update)", t_kstep, ""),
     ]
 
     from torch.export import Dim
@@ -153,10 +173,9 @@ def main() -> None:
     assert torch.allclose(got[0], ref_state.mean, atol=1e-9) and torch.allclose(
         got[4], ref_out.log_likelihood, atol=1e-9
     )
-    t_aoti_step = median_s(lambda: run_step(mean, cov, y, dt), rep, inner=5)
     fp = filterpy_filter()
     z, h = y[0].numpy()[:, None], float(dt[0])
-    t_fp = median_s(lambda: filterpy_step(fp, z, h), rep, inner=5)
+    t_aoti_step, t_fp = paired_s(lambda: run_step(mean, cov, y, dt), lambda: filterpy_step(fp, z, h), rep, inner=20)
     rows += [
         ("online step B=1, exported program (torch.export, dynamic B)", t_exp_step, f"export {t_export_step:.1f} s"),
         ("online step B=1, AOTInductor package", t_aoti_step, f"compile {t_compile_step:.0f} s"),
@@ -167,8 +186,6 @@ def main() -> None:
     B = 1000
     meanB, covB, yB, dtB = step_args(B, 2)
     stateB = tl.KalmanState(meanB, covB)
-    with torch.no_grad():
-        t_eager_B = median_s(lambda: kf.step(stateB, yB, dtB), max(rep // 4, 11))
     t_aoti_B = median_s(lambda: run_step(meanB, covB, yB, dtB), max(rep // 4, 11))
     fps = [filterpy_filter() for _ in range(B)]
     zs, hs = yB.numpy()[:, :, None], dtB.tolist()
@@ -177,7 +194,11 @@ def main() -> None:
         for f, z_, h_ in zip(fps, zs, hs):
             filterpy_step(f, z_, h_)
 
-    t_fp_B = median_s(fp_loop, 7, warmup=1)
+    def eager_B() -> None:
+        with torch.no_grad():
+            kf.step(stateB, yB, dtB)
+
+    t_eager_B, t_fp_B = paired_s(eager_B, fp_loop, 9, warmup=1)
     rows += [
         ("online step B=1000 (own dt), eager", t_eager_B, ""),
         ("online step B=1000 (own dt), AOTInductor package", t_aoti_B, ""),
@@ -208,7 +229,6 @@ def main() -> None:
     run_seq = torch._inductor.aoti_load_package(seq_pkg)
     with torch.no_grad():
         assert torch.allclose(run_seq(y_seq, dt_seq)[0], kf(y_seq, dt_seq).log_likelihood, atol=1e-8)
-    t_aoti_seq = median_s(lambda: run_seq(y_seq, dt_seq), max(rep // 4, 11))
     zs_seq, hs_seq = y_seq[0].numpy()[:, :, None], dt_seq[0].tolist()
 
     def fp_seq() -> None:
@@ -216,7 +236,7 @@ def main() -> None:
         for z_, h_ in zip(zs_seq, hs_seq):
             filterpy_step(f, z_, h_)
 
-    t_fp_seq = median_s(fp_seq, max(rep // 4, 11), warmup=2)
+    t_aoti_seq, t_fp_seq = paired_s(lambda: run_seq(y_seq, dt_seq), fp_seq, max(rep // 4, 11), warmup=2)
     rows += [
         (
             "sequence B=1 T=200, AOTInductor package (static (1, 200) bucket)",
@@ -230,8 +250,9 @@ def main() -> None:
         yb = torch.randn(b, T, 2, generator=g, dtype=F64).cumsum(1)
         dtb = 0.2 + torch.rand(b, T, generator=g, dtype=F64)
         with torch.no_grad():
-            t_e = median_s(lambda yb=yb, dtb=dtb: kf(yb, dtb), max(rep // 8, 7), warmup=2)
-            t_x = median_s(lambda yb=yb, dtb=dtb: prog_seq(yb, dtb), max(rep // 8, 7), warmup=2)
+            t_e, t_x = paired_s(
+                lambda yb=yb, dtb=dtb: kf(yb, dtb), lambda yb=yb, dtb=dtb: prog_seq(yb, dtb), max(rep // 8, 7), warmup=1
+            )
         rows += [
             (f"sequence B={b} T=200, eager kf(y, dt)", t_e, f"algorithm {kf.algorithm_for(b, T, yb.device)!r}"),
             (f"sequence B={b} T=200, exported program (not AOTI)", t_x, "one program for every (B, T)"),
@@ -324,8 +345,10 @@ def render(
         "# Online tracking latency (experiments/bench_online.py)",
         "",
         f"torch {torch.__version__}, {platform.processor() or platform.machine()}, 1 intra-op thread, float64, "
-        f"medians{' (--quick)' if quick else ''}; load average {load_before[0]:.1f} before, {load_after[0]:.1f} after "
-        f"on {os.cpu_count()} cores (a shared machine: other jobs ran at the same time).",
+        f"medians of CPU time (process_time){' (--quick)' if quick else ''}; every ratio of a target from "
+        "paired, alternating timings of its two sides; load average "
+        f"{load_before[0]:.1f} before, {load_after[0]:.1f} after on {os.cpu_count()} cores (a shared machine: "
+        "other jobs ran at the same time).",
         "",
         "| what | median | note |",
         "|---|---:|---|",

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from torchsde_lti.core.discretization import Discrete
+from torchsde_lti.core.discretization import discretize
 from torchsde_lti.nn.sde import LTISDE
 
 __all__ = ["LTISDETransitionModel", "discrete_step", "set_filterpy_step", "stonesoup_transition_model"]
@@ -63,17 +63,46 @@ def discrete_step(
     """
     if not isinstance(sde, LTISDE):
         raise TypeError(f"sde must be an LTISDE, got {type(sde).__name__}")
-    if len(sde.batch_shape) != 0:
-        raise ValueError(f"sde must be a single model (batch_shape ()), got batch_shape {tuple(sde.batch_shape)}")
     seconds = _seconds(dt, "dt")
     with torch.no_grad():
-        d: Discrete = sde(torch.tensor(seconds, dtype=sde.dtype, device=sde.device), method=method)
+        m = sde.matrices()  # each parametrisation evaluated once
+        batch = [x.shape[:-2] for x in m if x is not None]
+        if any(len(b) for b in batch):
+            raise ValueError(
+                f"sde must be a single model (batch_shape ()), got batch_shape {tuple(torch.broadcast_shapes(*batch))}"
+            )
+        h = torch.tensor(seconds, dtype=m.F.dtype, device=m.F.device)
+        # the gap is checked above; the parameters' values are checked on the result (numpy, no torch check)
+        d = discretize(m.F, m.L, m.Qc, h, B=m.B, method=method, validate_args=False)
     to_np = lambda x: x.detach().cpu().to(torch.float64).numpy()  # noqa: E731
-    Q = to_np(d.Q)
-    return to_np(d.A), 0.5 * (Q + Q.T), None if d.G is None else to_np(d.G)
+    A, Q, G = to_np(d.A), to_np(d.Q), None if d.G is None else to_np(d.G)
+    if not (np.isfinite(A).all() and np.isfinite(Q).all() and (G is None or np.isfinite(G).all())):
+        raise ValueError(
+            f"the discretisation of the SDE over dt = {seconds!r} s is not finite: its parameters are not finite "
+            "or the step overflows float64 (an unstable F over a long gap)"
+        )
+    return A, 0.5 * (Q + Q.T), G
+
+
+def _version(module: torch.nn.Module) -> tuple[tuple[int, int, int], ...]:
+    """(id, storage address, version counter) of every parameter and buffer of ``module``
+    (a plain walk of the module tree: ``parameters()`` costs several times more per call)."""
+    out: list[tuple[int, int, int]] = []
+    stack = [module]
+    while stack:
+        mod = stack.pop()
+        for t in (*mod._parameters.values(), *mod._buffers.values()):
+            if t is not None:
+                out.append((id(t), t.data_ptr(), t._version))
+        stack.extend(x for x in mod._modules.values() if x is not None)
+    return tuple(out)
 
 
 # ---------------------------------------------------------------------------- Stone Soup
+#: Gaps whose (A, Q) a Stone Soup model keeps (a tracker's scans share a few gaps).
+_GAPS_KEPT = 16
+
+
 @functools.cache
 def _stonesoup_class() -> type:
     try:
@@ -92,8 +121,8 @@ def _stonesoup_class() -> type:
         ``matrix(time_interval=Δ)`` = expm(F Δ) and ``covar(time_interval=Δ)`` = the exact
         process noise over Δ (seconds of the ``timedelta``), computed by
         :func:`torchsde_lti.discretize` at the SDE's current parameters. Δ must be
-        non-negative. The state layout is the SDE's (e.g. ``[x, vx, y, vy]``). The last
-        (A, Q) is reused while the gap and every parameter/buffer version counter are
+        non-negative. The state layout is the SDE's (e.g. ``[x, vx, y, vy]``). The (A, Q)
+        of the last 16 gaps are reused while every parameter/buffer version counter is
         unchanged (in-place optimiser steps and ``sde.q = …`` bump them; writes through
         ``tensor.data`` do not).
         """
@@ -110,24 +139,30 @@ def _stonesoup_class() -> type:
                     f"sde must be a single model (batch_shape ()), got batch_shape {tuple(self.sde.batch_shape)}"
                 )
 
-            self._last: tuple[tuple, tuple[np.ndarray, np.ndarray]] | None = None
+            self._version: tuple = ()
+            self._gaps: dict[tuple[float, str], tuple[np.ndarray, np.ndarray]] = {}
 
         @property
         def ndim_state(self) -> int:
             return self.sde.state_dim
 
         def _step(self, time_interval: datetime.timedelta) -> tuple[np.ndarray, np.ndarray]:
-            # A predict asks for matrix() twice and covar() once for the same gap: keep the last
-            # result, keyed on the gap and on the version counters of every parameter and buffer
-            # (an optimiser step or an assignment ``sde.q = …`` changes them in place).
+            # A scan asks for matrix() and covar() of the same few gaps for every track and
+            # hypothesis: keep the (A, Q) of the last gaps seen, valid while the version
+            # counters of every parameter and buffer are unchanged (an optimiser step or an
+            # assignment ``sde.q = …`` changes them).
             seconds = _seconds(time_interval, "time_interval")
-            tensors = [*self.sde.parameters(), *(b for b in self.sde.buffers() if b is not None)]
-            key = (seconds, self.method, tuple((t.data_ptr(), t._version) for t in tensors))
-            if self._last is None or self._last[0] != key:
+            version = _version(self.sde)
+            if version != self._version:
+                self._version, self._gaps = version, {}
+            key = (seconds, self.method)
+            hit = self._gaps.get(key)
+            if hit is None:
                 A, Q, _ = discrete_step(self.sde, seconds, self.method)
-                self._last = (key, (A, Q))
-            A, Q = self._last[1]
-            return A.copy(), Q.copy()
+                if len(self._gaps) >= _GAPS_KEPT:
+                    self._gaps.pop(next(iter(self._gaps)))  # the oldest gap
+                hit = self._gaps[key] = (A, Q)
+            return hit[0].copy(), hit[1].copy()
 
         def matrix(self, time_interval: datetime.timedelta, **kwargs: Any) -> np.ndarray:
             """A = expm(F Δ) (n, n) for the gap ``time_interval``."""

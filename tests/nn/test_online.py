@@ -40,8 +40,11 @@ def _kf(dtype: torch.dtype = F64, model: str = "cv") -> tl.KalmanFilter:
     )
 
 
+@pytest.mark.parametrize("path", ["joint", "scalar"])
 @pytest.mark.parametrize("model", ["cv", "iou"])
-def test_kalman_step_equals_sequence_filter(model):
+def test_kalman_step_equals_sequence_filter(model, path, monkeypatch):
+    """Both update paths (the joint update of a few tracks, the scalar updates of many)."""
+    monkeypatch.setattr(tl.filters.online, "SMALL_BATCH", 64 if path == "joint" else 0)
     kf = _kf(model=model)
     y, dt, mask = _series(6, 40, seed=1)
     with torch.no_grad():
@@ -60,6 +63,24 @@ def test_kalman_step_equals_sequence_filter(model):
                 (out.observed, ref.observed[:, k]),
             ):
                 torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("path", ["joint", "scalar"])
+def test_kalman_step_without_missing_reports(path, monkeypatch):
+    """Every report present (the update paths' shortcuts without masking), float64 and float32."""
+    monkeypatch.setattr(tl.filters.online, "SMALL_BATCH", 64 if path == "joint" else 0)
+    for dtype, tol in ((F64, 1e-12), (torch.float32, 2e-3)):
+        kf = _kf(dtype)
+        y, dt, _ = _series(4, 25, seed=8, dtype=dtype)
+        y = torch.nan_to_num(y)
+        with torch.no_grad():
+            ref = kf(y, dt)
+            state = kf.initial_state(4)
+            for k in range(25):
+                state, out = kf.step(state, y[:, k], dt[:, k])
+                torch.testing.assert_close(state.cov, ref.cov[:, k], rtol=0, atol=tol)
+                torch.testing.assert_close(out.log_likelihood, ref.step_log_likelihood[:, k], rtol=0, atol=tol)
+            torch.testing.assert_close(state.mean, ref.mean[:, -1], rtol=0, atol=tol)
 
 
 def test_kalman_step_float32_and_per_component_mask():
@@ -235,3 +256,40 @@ def test_step_with_inputs_and_feedthrough_equals_sequence_filter():
         torch.testing.assert_close(state.mean, ref.mean[:, -1], rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match="u must have shape"):
         kf.step(state, y[:, 0], dt[:, 0], u=torch.zeros(2, 3, dtype=F64))
+
+
+def test_step_follows_parameter_changes_without_gradients():
+    """The online calls evaluate the model once per parameter version under no_grad: an
+    in-place optimiser-style update or a new R is seen by the next step."""
+    kf = _kf()
+    state = kf.initial_state(2)
+    y = torch.tensor([[0.3, -0.2], [1.0, 0.4]], dtype=F64)
+    dt = torch.tensor([0.4, 1.3], dtype=F64)
+    with torch.no_grad():
+        before = kf.step(state, y, dt)[1].log_likelihood
+        assert torch.equal(kf.step(state, y, dt)[1].log_likelihood, before)  # cached model, same values
+        for p in kf.parameters():
+            p.mul_(1.5)
+        after = kf.step(state, y, dt)[1].log_likelihood
+        kf.R = torch.tensor([[2.0, 0.0], [0.0, 3.0]], dtype=F64)
+        again = kf.step(state, y, dt)[1]
+    with torch.enable_grad():
+        want = kf.step(state, y, dt)[1]
+    assert not torch.allclose(after, before)
+    torch.testing.assert_close(again.innovation_cov, want.innovation_cov.detach(), rtol=0, atol=1e-12)
+    torch.testing.assert_close(again.log_likelihood, want.log_likelihood.detach(), rtol=0, atol=1e-12)
+
+
+def test_imm_step_follows_parameter_changes_without_gradients():
+    imm = _imm()
+    state = imm.initial_state(2)
+    y = torch.tensor([[0.3, -0.2], [1.0, 0.4]], dtype=F64)
+    dt = torch.tensor([0.4, 1.3], dtype=F64)
+    with torch.no_grad():
+        before = imm.step(state, y, dt)[1].log_likelihood
+        for p in imm.parameters():
+            p.mul_(1.3)
+        after = imm.step(state, y, dt)[1].log_likelihood
+    want = imm.step(state, y, dt)[1].log_likelihood.detach()  # evaluated afresh (gradients on)
+    assert not torch.allclose(after, before)
+    torch.testing.assert_close(after, want, rtol=0, atol=1e-12)

@@ -26,18 +26,19 @@ leading)::
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import matvec, sym, to_batch_last
+from torchsde_lti.core.linalg import cholesky, matvec, solve_lower, solve_upper_t, sym, to_batch_last
+from torchsde_lti.core.validation import tracing
 from torchsde_lti.filters.imm import combine, imm_cycle, imm_predict
 from torchsde_lti.filters.inputs import (
     LOG_2PI,
     mask_observation_model,
-    observed_components,
     whiten,
 )
 from torchsde_lti.filters.sequential import _joseph_step
@@ -92,6 +93,13 @@ class KalmanStep(NamedTuple):
     observed: Tensor
 
 
+#: Batches of at most this many tracks take the joint update with small matrix products
+#: (fewest ops: what one live track costs); larger batches the sequence loop's scalar
+#: updates on the batch-last layout (elementwise over the tracks, no tiny batched GEMMs).
+#: Traced programs (export, compile) always take the joint update.
+SMALL_BATCH = 64
+
+
 def kalman_predict(state: KalmanState, A: Tensor, Q: Tensor, c: Tensor | None = None) -> KalmanState:
     """Prediction only: ``m⁻ = A m + c``, ``P⁻ = A P Aᵀ + Q``.
 
@@ -102,14 +110,34 @@ def kalman_predict(state: KalmanState, A: Tensor, Q: Tensor, c: Tensor | None = 
     Returns:
         :class:`KalmanState` of the predictions (batch dims broadcast).
     """
-    n = A.shape[-1]
-    cb = torch.broadcast_shapes(state.cov.shape[:-2], A.shape[:-2], Q.shape[:-2])
-    mb = torch.broadcast_shapes(cb, state.mean.shape[:-1], *(() if c is None else (c.shape[:-1],)))
-    Ab, Qb, Pb, mean_b, cbl = _batch_last(state, A, Q, c, cb, mb)
-    pm, pc, _, _, _, _ = _joseph_step(Ab, Qb, mean_b, Pb, cbl, (), (), None, None)  # no rows: predict only
-    return KalmanState(
-        pm.permute(*range(1, 1 + len(mb)), 0), pc.permute(*range(2, 2 + len(cb)), 0, 1).expand(*mb, n, n)
-    )
+    pm = (A @ state.mean.unsqueeze(-1)).squeeze(-1)
+    if c is not None:
+        pm = pm + c
+    pc = _sym(A @ state.cov @ A.mT + Q)
+    batch = _broadcast(pm.shape[:-1], pc.shape[:-2])
+    n = pm.shape[-1]
+    return KalmanState(pm.expand(*batch, n), pc.expand(*batch, n, n))
+
+
+def _broadcast(*shapes: Sequence[int]) -> torch.Size:
+    """``torch.broadcast_shapes`` in plain Python (that function costs tens of µs per call
+    eagerly; traced, it is used itself)."""
+    if tracing():
+        return torch.broadcast_shapes(*shapes)
+    nd = max(len(s) for s in shapes)
+    out = [1] * nd
+    for s in shapes:
+        for i, d in enumerate(s, nd - len(s)):
+            if d != 1:
+                if out[i] != 1 and out[i] != d:
+                    raise ValueError(f"shapes {[tuple(x) for x in shapes]} do not broadcast")
+                out[i] = d
+    return torch.Size(out)
+
+
+def _sym(P: Tensor) -> Tensor:
+    """``(P + Pᵀ) / 2`` in two ops."""
+    return torch.add(P, P.mT).mul_(0.5)
 
 
 def _batch_last(
@@ -125,6 +153,20 @@ def _batch_last(
     return Ab, Qb, Pb, mean_b, cbl
 
 
+def _online_observed(y: Tensor, mask: Tensor | None) -> tuple[Tensor | None, Tensor]:
+    """(obs, y0) of one report: obs (..., m) bool (None: all observed, known without a
+    device sync only on the CPU), y0 = y with missing entries 0. Traced and off the CPU the
+    masked path always runs (no data-dependent branch, no host sync; the same values)."""
+    nan = torch.isnan(y)
+    obs: Tensor | None = None
+    if tracing() or y.device.type != "cpu" or bool(nan.any()):
+        obs = ~nan
+    if mask is not None:
+        obs = mask if obs is None else (obs & mask)
+    y0 = y if obs is None else torch.where(obs, y, torch.zeros((), dtype=y.dtype, device=y.device))
+    return obs, y0
+
+
 def kalman_step(
     state: KalmanState,
     y: Tensor,
@@ -137,7 +179,11 @@ def kalman_step(
 ) -> tuple[KalmanState, KalmanStep]:
     r"""One predict + update of every track (the sequence filter's step).
 
-    Arguments are taken as checked (the modules check them once at their boundary).
+    Arguments are taken as checked (the modules check them once at their boundary). Up to
+    :data:`SMALL_BATCH` tracks (and always when traced) the update is the joint Joseph update
+    ``K = P⁻Hᵀ S⁻¹`` (one Cholesky factor of S), ``P = (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ``;
+    larger batches run the sequence loop's whitened scalar Joseph updates. Both equal the
+    sequence filter to rounding.
 
     Args:
         state: mean (..., n), cov (..., n, n) before the step.
@@ -151,18 +197,117 @@ def kalman_step(
     Returns:
         (:class:`KalmanState` after the update, :class:`KalmanStep`); batch dims broadcast.
     """
-    n, m = A.shape[-1], y.shape[-1]
     if mask is not None and mask.dim() < y.dim():
         mask = mask.unsqueeze(-1)
-    obs, y0 = observed_components(y, mask)
-    Hw, yw, log_det = whiten(*mask_observation_model(H, R, obs), y0)
-    shapes = [state.cov.shape[:-2], A.shape[:-2], Q.shape[:-2], Hw.shape[:-2]]
-    cb = torch.broadcast_shapes(*shapes)
-    mb = torch.broadcast_shapes(cb, state.mean.shape[:-1], yw.shape[:-1], *(() if c is None else (c.shape[:-1],)))
+    obs, y0 = _online_observed(y, mask)
+    mb = _broadcast(
+        state.mean.shape[:-1], state.cov.shape[:-2], A.shape[:-2], Q.shape[:-2], H.shape[:-2], R.shape[:-2],
+        y0.shape[:-1], *(() if c is None else (c.shape[:-1],)), *(() if obs is None else (obs.shape[:-1],)),
+    )  # fmt: skip
+    if tracing() or mb.numel() <= SMALL_BATCH:
+        return _joint_step(state, y0, obs, A, Q, H, R, c, mb)
+    return _scalar_step(state, y0, obs, A, Q, H, R, c, mb)
+
+
+def _joint_step(
+    state: KalmanState,
+    y0: Tensor,
+    obs: Tensor | None,
+    A: Tensor,
+    Q: Tensor,
+    H: Tensor,
+    R: Tensor,
+    c: Tensor | None,
+    mb: torch.Size,
+) -> tuple[KalmanState, KalmanStep]:
+    """:func:`kalman_step` with the joint update: batch flattened to one dimension b, batched
+    matrix products (bmm, baddbmm: the fewest ops for a few tracks).
+
+    Unobserved components get a zero row of H P⁻, zero innovation and a decoupled unit
+    variance in S, so K has zero columns there and H, R enter the Joseph form unmasked."""
+    n, m = A.shape[-1], y0.shape[-1]
+    b = math.prod(mb)  # symbolic-safe (Size.numel() specialises a traced batch)
+
+    def flat(x: Tensor, *event: int) -> Tensor:
+        if x.dim() == len(event):  # shared by every track: a stride-0 view
+            return x.expand(b, *event)
+        if not tracing() and x.dim() == len(event) + 1 and x.shape[0] == b:  # already (b, *event)
+            return x
+        return x.expand(*mb, *event).reshape(b, *event)
+
+    A3, Q3, H3, R3 = flat(A, n, n), flat(Q, n, n), flat(H, m, n), flat(R, m, m)
+    mean = flat(state.mean, n).unsqueeze(-1)
+    pm = torch.bmm(A3, mean) if c is None else torch.baddbmm(flat(c, n).unsqueeze(-1), A3, mean)  # (b, n, 1)
+    pc = _sym(torch.baddbmm(Q3, torch.bmm(A3, flat(state.cov, n, n)), A3.mT))
+    HP = torch.bmm(H3, pc)  # (b, m, n)
+    S_all = _sym(torch.baddbmm(R3, HP, H3.mT))  # every component (the output)
+    e = torch.baddbmm(flat(y0, m).unsqueeze(-1), H3, pm, alpha=-1.0)  # (b, m, 1)
+    if obs is None:
+        S = S_all
+        n_obs: Tensor | float = float(m)
+        observed = torch.ones((*mb, m), dtype=torch.bool, device=y0.device)
+    else:
+        observed = obs.expand(*mb, m)
+        o = flat(observed, m).to(y0.dtype).unsqueeze(-1)  # (b, m, 1)
+        S = S_all * torch.bmm(o, o.mT) + torch.diag_embed(1.0 - o.squeeze(-1))
+        HP = HP * o
+        e = e * o
+        n_obs = o.sum((-2, -1))
+    if tracing():
+        # unrolled over m (elementwise ops an AOTInductor program fuses; its calls of the
+        # LAPACK kernels cost tens to hundreds of µs each through the fallback path)
+        L = cholesky(S)
+        W = solve_lower(L, torch.cat([HP, e], -1))  # L⁻¹ [H P⁻, e]
+        Kt = solve_upper_t(L, W[..., :n])  # Kᵀ = S⁻¹ H P⁻ (b, m, n)
+    else:
+        L = torch.linalg.cholesky_ex(S)[0]
+        W = torch.linalg.solve_triangular(L, torch.cat([HP, e], -1), upper=False)
+        Kt = torch.linalg.solve_triangular(L.mT, W[..., :n], upper=True)
+    z = W[..., n:]  # (b, m, 1) the whitened innovation
+    filt_mean = torch.baddbmm(pm, Kt.mT, e)
+    MP = torch.baddbmm(pc, Kt.mT, HP, alpha=-1.0)  # (I − K H) P⁻
+    P = torch.baddbmm(MP, torch.bmm(MP, H3.mT), Kt, alpha=-1.0)  # … (I − K H)ᵀ
+    P = _sym(torch.baddbmm(P, Kt.mT, torch.bmm(R3, Kt)))  # + K R Kᵀ
+    ll = torch.bmm(z.mT, z).reshape(b).mul_(-0.5) - torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+    ll = ll - (0.5 * LOG_2PI) * n_obs
+    return KalmanState(filt_mean.reshape(*mb, n), P.reshape(*mb, n, n)), KalmanStep(
+        pm.reshape(*mb, n),
+        pc.reshape(*mb, n, n),
+        e.reshape(*mb, m),
+        S_all.reshape(*mb, m, m),
+        ll.reshape(mb),
+        observed,
+    )
+
+
+def _scalar_step(
+    state: KalmanState,
+    y0: Tensor,
+    obs: Tensor | None,
+    A: Tensor,
+    Q: Tensor,
+    H: Tensor,
+    R: Tensor,
+    c: Tensor | None,
+    mb: torch.Size,
+) -> tuple[KalmanState, KalmanStep]:
+    """:func:`kalman_step` with the sequence loop's whitened scalar Joseph updates (batch-last)."""
+    n, m = A.shape[-1], y0.shape[-1]
+    if obs is None and H.dim() == 2 and R.dim() == 2 and len(mb) == 1:
+        # one (H, R) for every track, all observed: whiten with one LAPACK factor and one
+        # triangular solve of all reports at once, straight into the batch-last layout
+        LR = torch.linalg.cholesky(R)
+        Hw = torch.linalg.solve_triangular(LR, H, upper=False)
+        yw_bl = torch.linalg.solve_triangular(LR, y0.expand(*mb, m).mT, upper=False)  # (m, B)
+        log_det = torch.log(torch.diagonal(LR)).sum()
+    else:
+        Hw, yw, log_det = whiten(*mask_observation_model(H, R, obs), y0)
+        yw_bl = to_batch_last(yw.expand(*mb, m), 1)
+    cb = _broadcast(state.cov.shape[:-2], A.shape[:-2], Q.shape[:-2], Hw.shape[:-2])
     # batch-last layout (event dims first, batch contiguous), as in the sequence loop
     Ab, Qb, Pb, mean_b, cbl = _batch_last(state, A, Q, c, cb, mb)
     h_rows = to_batch_last(Hw.expand(*cb, m, n), 2).unbind(0)
-    y_vals = to_batch_last(yw.expand(*mb, m), 1).unbind(0)
+    y_vals = yw_bl.unbind(0)
     pm, pc, mean, P, es, ss = _joseph_step(Ab, Qb, mean_b, Pb, cbl, h_rows, y_vals, None, None)
     core = torch.zeros((), dtype=y0.dtype, device=y0.device)
     for e, s in zip(es, ss):
@@ -172,8 +317,14 @@ def kalman_step(
     perm2 = [*range(2, 2 + len(cb)), 0, 1]
     pred_mean, filt_mean = pm.permute(perm1), mean.permute(perm1)
     pred_cov, filt_cov = pc.permute(perm2).expand(*mb, n, n), P.permute(perm2).expand(*mb, n, n)
-    innovation = y0 - matvec(H, pred_mean)
-    innovation_cov = sym(H @ pred_cov @ H.mT + R)
+    if H.dim() == 2 and len(cb) == 1:
+        # one H for every track: single matrix products on the batch-last (n, B), (n·n, B)
+        innovation = y0 - (H @ pm).mT
+        HH = (H[:, None, :, None] * H[None, :, None, :]).reshape(m * m, n * n)
+        innovation_cov = sym((HH @ pc.reshape(n * n, -1)).reshape(m, m, -1).permute(2, 0, 1) + R)
+    else:
+        innovation = y0 - matvec(H, pred_mean)
+        innovation_cov = sym(H @ pred_cov @ H.mT + R)
     if obs is None:
         n_obs = torch.full((), float(m), dtype=y0.dtype, device=y0.device)
         observed = torch.ones((*mb, m), dtype=torch.bool, device=y0.device)
@@ -251,7 +402,7 @@ def imm_step(
     m = y.shape[-1]
     if mask is not None and mask.dim() < y.dim():
         mask = mask.unsqueeze(-1)
-    obs, y0 = observed_components(y, mask)
+    obs, y0 = _online_observed(y, mask)
     if obs is None:
         n_obs = torch.full(y0.shape[:-1], float(m), dtype=y0.dtype, device=y0.device)
         observed = torch.ones(y0.shape, dtype=torch.bool, device=y0.device)
@@ -262,7 +413,7 @@ def imm_step(
     cyc = imm_cycle(*state, Pi, A, Q, Hm, Rm, y0, n_obs)
     x, P = combine(cyc.mode_prob, cyc.mode_mean, cyc.mode_cov)
     new = IMMState(cyc.mode_prob, cyc.mode_mean, cyc.mode_cov)
-    batch = torch.broadcast_shapes(cyc.log_likelihood.shape, observed.shape[:-1])
+    batch = _broadcast(cyc.log_likelihood.shape, observed.shape[:-1])
     return new, IMMStep(
         x,
         P,

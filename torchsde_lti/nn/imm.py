@@ -57,6 +57,7 @@ from torchsde_lti.filters.imm import (
 )
 from torchsde_lti.filters.kalman import check_algorithm
 from torchsde_lti.filters.online import IMMState, IMMStep, imm_predict_state, imm_step
+from torchsde_lti.nn._online import evaluated
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_values, online_report
 from torchsde_lti.nn.kalman import FilterMode
@@ -379,9 +380,8 @@ class IMMFilter(ValidateArgs, nn.Module):
         if u is not None:
             raise ValueError(f"u was given (shape {shape_str(torch.as_tensor(u))}) but IMMFilter has no inputs")
         with parametrize.cached():
-            F, W, state, dt = self._online_args(state, dt)
-            y, mask = online_report(y, mask, self.H, F.dtype, F.device)
-            H, R = self._obs_model()
+            F, W, H, R, state, dt = self._online_args(state, dt)
+            y, mask = online_report(y, mask, H, F.dtype, F.device)
             if self.validate_args:
                 check_values(
                     finite=[
@@ -402,16 +402,20 @@ class IMMFilter(ValidateArgs, nn.Module):
         """Prediction only, each track over its own dt (...): mixing with ``expm(Λ dt)``, then
         each mode's exact A_j, Q_j (the predicted :class:`~torchsde_lti.IMMState`)."""
         with parametrize.cached():
-            F, W, state, dt = self._online_args(state, dt)
+            F, W, _, _, state, dt = self._online_args(state, dt)
             if self.validate_args:
                 check_values(finite=[("F", F), ("W", W), ("rates", self.rates)], nonnegative=[("dt", dt)])
             d, Pi = self._discretize_bank(F, W, dt, validate_args=False)
             return imm_predict_state(state, d.A, d.Q, Pi)
 
-    def _online_args(self, state: IMMState, dt: Tensor | float) -> tuple[Tensor, Tensor, IMMState, Tensor]:
-        """The bank (F, W), the state and dt of an online call, converted and shape-checked."""
-        F, W = self.bank()
-        M, n = self.num_modes, self.state_dim
+    def _online_args(
+        self, state: IMMState, dt: Tensor | float
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, IMMState, Tensor]:
+        """The bank (F, W), the observation model (H, R), the state and dt of an online call,
+        converted and shape-checked; without gradients the model is evaluated once per
+        parameter version."""
+        F, W, H, R = evaluated(self, self._online_model)
+        M, n = F.shape[-3], F.shape[-1]
         if not isinstance(state, tuple) or len(state) != 3:
             raise TypeError(f"state must be an IMMState (mode_prob, mode_mean, mode_cov), got {type(state).__name__}")
         prob, mean, cov = (
@@ -423,7 +427,12 @@ class IMMFilter(ValidateArgs, nn.Module):
                 f"state must be (mode_prob (..., {M}), mode_mean (..., {M}, {n}), mode_cov "
                 f"(..., {M}, {n}, {n})), got {shape_str(prob)}, {shape_str(mean)}, {shape_str(cov)}"
             )
-        return F, W, IMMState(prob, mean, cov), as_float_tensor(dt, "dt", F.dtype, F.device)
+        return F, W, H, R, IMMState(prob, mean, cov), as_float_tensor(dt, "dt", F.dtype, F.device)
+
+    def _online_model(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(F, W, H, R): :meth:`bank` and the observation model, each parametrisation evaluated once."""
+        with parametrize.cached():
+            return (*self.bank(), *self._obs_model())
 
     def forecast(
         self,

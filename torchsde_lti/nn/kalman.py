@@ -79,6 +79,7 @@ from torchsde_lti.filters.online import (
     kalman_predict,
     kalman_step,
 )
+from torchsde_lti.nn._online import evaluated, online_state
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_outcome, check_values, online_report
 from torchsde_lti.nn.parametrizations import PositiveDefinite
@@ -470,7 +471,9 @@ class KalmanFilter(ValidateArgs, nn.Module):
         """One report per live track: predict each track over its own dt, then update.
 
         The same step as the sequence filter's loop: iterating it over a series gives
-        :meth:`forward`'s filtered moments and step log-likelihoods (to rounding).
+        :meth:`forward`'s filtered moments and step log-likelihoods (to rounding). Without
+        gradients the model's matrices are evaluated once per parameter version (in-place
+        updates and assignments are seen; writes through ``tensor.data`` are not).
 
         Args:
             state: :class:`~torchsde_lti.KalmanState` (mean (..., n), cov (..., n, n)), from
@@ -485,26 +488,29 @@ class KalmanFilter(ValidateArgs, nn.Module):
             pred_mean, pred_cov, innovation (..., m), innovation_cov (..., m, m),
             log_likelihood (...), observed).
         """
-        with parametrize.cached():
-            mats = self.sde.matrices()
-            state, dt, u = self._check_state(state, dt, u, mats)
-            y, mask = online_report(y, mask, self.H, mats.F.dtype, mats.F.device)
-            H, R, D = self.H, self.R, (self.D if u is not None else None)
-            if self.validate_args:
-                self._check_values(mats, dt, y=y, u=u, H=H, R=R, D=D, mean=state.mean, cov=state.cov)
-            A, Q, c = self._online_step_model(mats, dt, u)
-            if D is not None:
-                y = y - matvec(D, u)
-            return kalman_step(state, y, A, Q, H, R, c, mask)
+        mats, H, R, D = evaluated(self, self._online_model)
+        state, dt, u = self._check_state(state, dt, u, mats)
+        y, mask = online_report(y, mask, H, mats.F.dtype, mats.F.device)
+        D = D if u is not None else None
+        if self.validate_args:
+            self._check_values(mats, dt, y=y, u=u, H=H, R=R, D=D, mean=state.mean, cov=state.cov)
+        A, Q, c = self._online_step_model(mats, dt, u)
+        if D is not None:
+            y = y - matvec(D, u)
+        return kalman_step(state, y, A, Q, H, R, c, mask)
 
     def predict(self, state: KalmanState, dt: Tensor | float, u: Tensor | None = None) -> KalmanState:
         """Prediction only, each track over its own dt (...): ``m⁻ = A m + G u``, ``P⁻ = A P Aᵀ + Q``."""
+        mats = evaluated(self, self._online_model)[0]
+        state, dt, u = self._check_state(state, dt, u, mats)
+        if self.validate_args:
+            self._check_values(mats, dt, u=u, mean=state.mean, cov=state.cov)
+        return kalman_predict(state, *self._online_step_model(mats, dt, u))
+
+    def _online_model(self) -> tuple[SDEMatrices, Tensor, Tensor, Tensor | None]:
+        """(SDE matrices, H, R, D), each parametrisation evaluated once."""
         with parametrize.cached():
-            mats = self.sde.matrices()
-            state, dt, u = self._check_state(state, dt, u, mats)
-            if self.validate_args:
-                self._check_values(mats, dt, u=u, mean=state.mean, cov=state.cov)
-            return kalman_predict(state, *self._online_step_model(mats, dt, u))
+            return self.sde.matrices(), self.H, self.R, self.D
 
     def _online_step_model(
         self, mats: SDEMatrices, dt: Tensor, u: Tensor | None
@@ -517,23 +523,13 @@ class KalmanFilter(ValidateArgs, nn.Module):
         self, state: KalmanState | tuple[Tensor, Tensor], dt: Tensor | float, u: Tensor | None, mats: SDEMatrices
     ) -> tuple[KalmanState, Tensor, Tensor | None]:
         """(state, dt, u) of an online call converted and their shapes checked."""
-        dtype, device = mats.F.dtype, mats.F.device
-        n = self.state_dim
-        if not isinstance(state, tuple) or len(state) != 2:
-            raise TypeError(f"state must be a KalmanState (mean, cov), got {type(state).__name__}")
-        mean = as_float_tensor(state[0], "state.mean", dtype, device)
-        cov = as_float_tensor(state[1], "state.cov", dtype, device)
-        if mean.dim() < 1 or mean.shape[-1] != n or cov.dim() < 2 or cov.shape[-2:] != (n, n):
-            raise ValueError(
-                f"state must be (mean (..., {n}), cov (..., {n}, {n})), got mean {shape_str(mean)}, "
-                f"cov {shape_str(cov)}"
-            )
-        dt = as_float_tensor(dt, "dt", dtype, device)
+        state, dt = online_state(state, dt, mats.F)
         if u is not None:  # one step: (..., p) checked as (..., 1, p)
+            dtype, device = mats.F.dtype, mats.F.device
             p = mats.B.shape[-1] if mats.B is not None else (self.D.shape[-1] if self.D is not None else 0)
             u = as_float_tensor(u, "u", dtype, device)
             u = self._check_u(u.unsqueeze(-2) if u.dim() else u.reshape(1, 1), p, 1, "1", dtype, device).squeeze(-2)
-        return KalmanState(mean, cov), dt, u
+        return state, dt, u
 
     def smooth(self, out: FilterResult) -> SmootherResult:
         """RTS smoother over the filter output (uses the A_k, Q_k stored in ``out``): the
