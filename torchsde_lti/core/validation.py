@@ -210,28 +210,30 @@ def check_symmetric_psd(x: Tensor, name: str) -> None:
             )
 
 
+def broadcast_shapes(*shapes: Sequence[int]) -> torch.Size:
+    """Broadcast shapes (numpy rules); ValueError when they do not broadcast. Plain Python on
+    ints (``torch.broadcast_shapes`` costs tens of µs a call eagerly); torch's own while tracing
+    (symbolic sizes)."""
+    if tracing():
+        try:
+            return torch.broadcast_shapes(*shapes)
+        except RuntimeError:
+            raise ValueError(f"shapes {[tuple(s) for s in shapes]} do not broadcast") from None
+    out = [1] * max(map(len, shapes), default=0)
+    for shape in shapes:
+        for i, d in enumerate(shape, len(out) - len(shape)):
+            if d != 1 and out[i] != d:
+                if out[i] != 1:
+                    raise ValueError(f"shapes {[tuple(s) for s in shapes]} do not broadcast")
+                out[i] = d
+    return torch.Size(out)
+
+
 def broadcast_batch(named: Sequence[tuple[str, Sequence[int]]]) -> torch.Size:
     """Broadcast named batch shapes (numpy rules), naming them all when they do not broadcast."""
-    shapes = [tuple(s) for _, s in named]
-    if not tracing():  # (plain ints: the rules in Python, cheaper than torch's reference version)
-        distinct = set(shapes) - {()}
-        if len(distinct) <= 1:  # one shape (or none): the common case
-            return torch.Size(distinct.pop() if distinct else ())
-        out = [1] * max(map(len, shapes), default=0)
-        for shape in shapes:
-            for i, d in enumerate(shape, len(out) - len(shape)):
-                if d != 1 and out[i] != d:
-                    if out[i] != 1:
-                        break
-                    out[i] = d
-            else:
-                continue
-            break
-        else:
-            return torch.Size(out)
     try:
-        return torch.broadcast_shapes(*shapes)
-    except RuntimeError:
+        return broadcast_shapes(*(s for _, s in named))
+    except ValueError:
         seen = ", ".join(f"{n}: ({', '.join(map(str, s))})" for n, s in named)
         raise ValueError(f"batch shapes do not broadcast: {seen}") from None
 

@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import cholesky, matvec, solve_lower, solve_upper_t, sym, to_batch_last
-from torchsde_lti.core.validation import tracing
+from torchsde_lti.core.validation import broadcast_shapes, tracing
 from torchsde_lti.filters.imm import combine, imm_cycle, imm_predict
 from torchsde_lti.filters.inputs import (
     LOG_2PI,
@@ -113,31 +113,10 @@ def kalman_predict(state: KalmanState, A: Tensor, Q: Tensor, c: Tensor | None = 
     pm = (A @ state.mean.unsqueeze(-1)).squeeze(-1)
     if c is not None:
         pm = pm + c
-    pc = _sym(A @ state.cov @ A.mT + Q)
-    batch = _broadcast(pm.shape[:-1], pc.shape[:-2])
+    pc = sym(A @ state.cov @ A.mT + Q)
+    batch = broadcast_shapes(pm.shape[:-1], pc.shape[:-2])
     n = pm.shape[-1]
     return KalmanState(pm.expand(*batch, n), pc.expand(*batch, n, n))
-
-
-def _broadcast(*shapes: Sequence[int]) -> torch.Size:
-    """``torch.broadcast_shapes`` in plain Python (that function costs tens of µs per call
-    eagerly; traced, it is used itself)."""
-    if tracing():
-        return torch.broadcast_shapes(*shapes)
-    nd = max(len(s) for s in shapes)
-    out = [1] * nd
-    for s in shapes:
-        for i, d in enumerate(s, nd - len(s)):
-            if d != 1:
-                if out[i] != 1 and out[i] != d:
-                    raise ValueError(f"shapes {[tuple(x) for x in shapes]} do not broadcast")
-                out[i] = d
-    return torch.Size(out)
-
-
-def _sym(P: Tensor) -> Tensor:
-    """``(P + Pᵀ) / 2`` in two ops."""
-    return torch.add(P, P.mT).mul_(0.5)
 
 
 def _batch_last(
@@ -200,7 +179,7 @@ def kalman_step(
     if mask is not None and mask.dim() < y.dim():
         mask = mask.unsqueeze(-1)
     obs, y0 = _online_observed(y, mask)
-    mb = _broadcast(
+    mb = broadcast_shapes(
         state.mean.shape[:-1], state.cov.shape[:-2], A.shape[:-2], Q.shape[:-2], H.shape[:-2], R.shape[:-2],
         y0.shape[:-1], *(() if c is None else (c.shape[:-1],)), *(() if obs is None else (obs.shape[:-1],)),
     )  # fmt: skip
@@ -238,9 +217,9 @@ def _joint_step(
     A3, Q3, H3, R3 = flat(A, n, n), flat(Q, n, n), flat(H, m, n), flat(R, m, m)
     mean = flat(state.mean, n).unsqueeze(-1)
     pm = torch.bmm(A3, mean) if c is None else torch.baddbmm(flat(c, n).unsqueeze(-1), A3, mean)  # (b, n, 1)
-    pc = _sym(torch.baddbmm(Q3, torch.bmm(A3, flat(state.cov, n, n)), A3.mT))
+    pc = sym(torch.baddbmm(Q3, torch.bmm(A3, flat(state.cov, n, n)), A3.mT))
     HP = torch.bmm(H3, pc)  # (b, m, n)
-    S_all = _sym(torch.baddbmm(R3, HP, H3.mT))  # every component (the output)
+    S_all = sym(torch.baddbmm(R3, HP, H3.mT))  # every component (the output)
     e = torch.baddbmm(flat(y0, m).unsqueeze(-1), H3, pm, alpha=-1.0)  # (b, m, 1)
     if obs is None:
         S = S_all
@@ -267,7 +246,7 @@ def _joint_step(
     filt_mean = torch.baddbmm(pm, Kt.mT, e)
     MP = torch.baddbmm(pc, Kt.mT, HP, alpha=-1.0)  # (I − K H) P⁻
     P = torch.baddbmm(MP, torch.bmm(MP, H3.mT), Kt, alpha=-1.0)  # … (I − K H)ᵀ
-    P = _sym(torch.baddbmm(P, Kt.mT, torch.bmm(R3, Kt)))  # + K R Kᵀ
+    P = sym(torch.baddbmm(P, Kt.mT, torch.bmm(R3, Kt)))  # + K R Kᵀ
     ll = torch.bmm(z.mT, z).reshape(b).mul_(-0.5) - torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
     ll = ll - (0.5 * LOG_2PI) * n_obs
     return KalmanState(filt_mean.reshape(*mb, n), P.reshape(*mb, n, n)), KalmanStep(
@@ -303,7 +282,7 @@ def _scalar_step(
     else:
         Hw, yw, log_det = whiten(*mask_observation_model(H, R, obs), y0)
         yw_bl = to_batch_last(yw.expand(*mb, m), 1)
-    cb = _broadcast(state.cov.shape[:-2], A.shape[:-2], Q.shape[:-2], Hw.shape[:-2])
+    cb = broadcast_shapes(state.cov.shape[:-2], A.shape[:-2], Q.shape[:-2], Hw.shape[:-2])
     # batch-last layout (event dims first, batch contiguous), as in the sequence loop
     Ab, Qb, Pb, mean_b, cbl = _batch_last(state, A, Q, c, cb, mb)
     h_rows = to_batch_last(Hw.expand(*cb, m, n), 2).unbind(0)
@@ -413,7 +392,7 @@ def imm_step(
     cyc = imm_cycle(*state, Pi, A, Q, Hm, Rm, y0, n_obs)
     x, P = combine(cyc.mode_prob, cyc.mode_mean, cyc.mode_cov)
     new = IMMState(cyc.mode_prob, cyc.mode_mean, cyc.mode_cov)
-    batch = _broadcast(cyc.log_likelihood.shape, observed.shape[:-1])
+    batch = broadcast_shapes(cyc.log_likelihood.shape, observed.shape[:-1])
     return new, IMMStep(
         x,
         P,
