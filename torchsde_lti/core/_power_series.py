@@ -185,43 +185,43 @@ def _double_eager(
 
 
 def _double_traced(
-    E: Tensor, Q: Tensor | None, G: Tensor | None, steps: Tensor, differentiable: bool
+    E: Tensor, Q: Tensor | None, G: Tensor | None, steps: Tensor, static: bool
 ) -> tuple[Tensor, Tensor | None, Tensor | None]:
     """:func:`_double_eager` without data-dependent control flow (torch.compile / torch.export):
     the switch is a mask, and the ``steps`` (0-dim) doublings are a structured while_loop, or with
-    ``differentiable`` (which while_loop is not) :data:`TRACED_MAX_HALVINGS` static steps of
-    which those beyond ``steps`` keep their input."""
+    ``static`` (differentiable, which while_loop is not) :data:`TRACED_MAX_HALVINGS` static
+    steps of which those beyond ``steps`` keep their input."""
     eye = _eye(E.shape[-1], E)
 
-    def step(j: Tensor | int, A: Tensor, X: Tensor, near: Tensor, Q: Tensor | None, G: Tensor | None):
-        first = j == 0 if isinstance(j, int) else (j == 0).reshape(())
-        switch = (near > 0) & _has_decayed(A) & ~torch.as_tensor(first)
-        X = torch.where(switch, A, X)
-        near = torch.where(switch, 0.0, near)
-        A, X, Q, G = _double_step(A, X, near, Q, G, eye)
+    def step(A: Tensor, X: Tensor, near: Tensor, Q: Tensor | None, G: Tensor | None, switching: bool = True):
+        if switching:  # (not before the first doubling)
+            switch = near & _has_decayed(A)
+            X = torch.where(switch, A, X)
+            near = near & ~switch
+        A, X, Q, G = _double_step(A, X, near.to(A.dtype), Q, G, eye)
         return A, X, near, Q, G
 
-    near = E.new_ones(E.shape[0], 1, 1)
-    A, X = E + eye, E
-    Q, G = (None if t is None else t.contiguous() for t in (Q, G))
-    if differentiable:
-        for j in range(TRACED_MAX_HALVINGS):
-            active = steps > j
-            A2, X2, near2, Q2, G2 = step(j, A, X, near, Q, G)
-            A, X, near = torch.where(active, A2, A), torch.where(active, X2, X), torch.where(active, near2, near)
-            Q = None if Q is None or Q2 is None else torch.where(active, Q2, Q)
-            G = None if G is None or G2 is None else torch.where(active, G2, G)
-        return A, Q, G
+    def keep(active: Tensor, new: tuple, old: tuple) -> tuple:
+        return tuple(None if o is None else torch.where(active, a, o) for a, o in zip(new, old))
+
+    near = torch.ones(E.shape[0], 1, 1, dtype=torch.bool, device=E.device)
+    state = (E + eye, E, near, Q, G)
+    state = keep(steps > 0, step(*state, switching=False), state)
+    if static:
+        for j in range(1, TRACED_MAX_HALVINGS):
+            state = keep(steps > j, step(*state), state)
+        return state[0], state[3], state[4]
     from torch._higher_order_ops import while_loop
 
     has_q, has_g = Q is not None, G is not None
 
     def body(j: Tensor, A: Tensor, X: Tensor, near: Tensor, *qg: Tensor):
-        A, X, near, q, g = step(j, A, X, near, qg[0] if has_q else None, qg[-1] if has_g else None)
+        A, X, near, q, g = step(A, X, near, qg[0] if has_q else None, qg[-1] if has_g else None)
         return (j + 1, A, X, near, *(t for t in (q, g) if t is not None))
 
-    init = (torch.zeros((), dtype=torch.int64, device=A.device), A, X, near, *(t for t in (Q, G) if t is not None))
-    out = while_loop(lambda j, *rest: j < steps, body, init)
+    count = steps.to(torch.int64)
+    init = (torch.ones((), dtype=torch.int64, device=E.device), *state[:3], *(t for t in state[3:] if t is not None))
+    out = while_loop(lambda j, *rest: j < count, body, init)
     return out[1], (out[4] if has_q else None), (out[-1] if has_g else None)
 
 
@@ -286,7 +286,8 @@ def few_elements_doubling(
     Q, G = (None if t is None else t * hc for t in (Q, G))
     if traced:
         needs_grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (F, W, B, dt))
-        A, Q, G = _double_traced(E, Q, G, steps, needs_grad and not torch.compiler.is_exporting())
+        # (exported programs take the static steps: AOTInductor miscompiles this while_loop in an online step)
+        A, Q, G = _double_traced(E, Q, G, steps, needs_grad or torch.compiler.is_exporting())
     else:
         A, Q, G = _double_eager(E, Q, G, s) if s else (E + _eye(n, E), Q, G)
     if Q is not None:
