@@ -26,10 +26,11 @@ velocity with q and R = r² I tuned by grid search on the EVALUATION tracks them
 in-sample oracle, :func:`torchsde_lti.training.evaluation.tune_cv`). The best model and
 ``best_single`` (the single learned model) are those with the lowest validation NLL (cards).
 
-Calibration (``--calibrate``; also after ``--train``): each card's scalar covariance inflation c,
-fitted on the VALIDATION split so that 86.5 % of its reports lie in the 2σ HPD region
-(:func:`torchsde_lti.training.calibration.calibrate_filter`); the evaluation scores every learned
-model's calibrated predictive (``evaluate_filter(..., cov_scale=c)``).
+Calibration (``--calibrate``; also after ``--train``): each card's covariance inflation, one scalar
+c for every mode, fitted on the VALIDATION split so that 86.5 % of its reports lie in the 2σ HPD
+region (:func:`torchsde_lti.training.calibration.calibrate_filter`; ``--per-mode``: one scale per
+mode instead); the evaluation scores every learned model's calibrated predictive
+(``evaluate_filter(..., cov_scale=c)``).
 
 Metrics (one implementation: :mod:`torchsde_lti.training.evaluation`): NLL per report (all, moving
 and moored 1-h windows: median position-derived speed >= 1 m/s), 2σ coverage (86.5 % HPD region of
@@ -205,10 +206,16 @@ def holdout_tracks(set_name: str, file: str | None, cards: dict[str, dict[str, A
     return load_tracks(file, **args), os.path.basename(file)
 
 
-def calibrate_cards(set_name: str, samples: int = 500) -> None:
+def calibrate_cards(set_name: str, samples: int = 500, per_mode: bool = False) -> None:
     """Fit each card's covariance inflation c on the set's VALIDATION split (never the hold-out)
     and write it into the card (``calibration``), with the validation coverage and NLL before / after."""
-    from torchsde_lti.training.calibration import NOMINAL_2SIGMA, calibrate_filter, hpd_level, one_step_predictive
+    from torchsde_lti.training.calibration import (
+        NOMINAL_2SIGMA,
+        calibrate_filter,
+        hpd_level,
+        one_step_predictive,
+        scale_vector,
+    )
     from torchsde_lti.training.evaluation import mixture_log_prob, moving_reports
 
     cards = load_cards(set_name)
@@ -218,19 +225,21 @@ def calibrate_cards(set_name: str, samples: int = 500) -> None:
     for name, card in cards.items():
         t0 = time.perf_counter()
         model = load_model(card, folder)
-        c = calibrate_filter(model, val, samples=samples)
+        c = calibrate_filter(model, val, samples=samples, per_mode=per_mode)
         pred = one_step_predictive(model, val)
         mv = torch.as_tensor(moving[pred["index"].numpy()])
         stats: dict[str, float] = {}
-        for tag, scale in (("before", 1.0), ("after", c)):
+        for tag, scale in (("before", [1.0]), ("after", c)):
             lev = hpd_level(pred["y"], pred["w"], pred["mu"], pred["S"], scale, samples=samples)
             inside = (lev <= NOMINAL_2SIGMA).double()
-            nll = -mixture_log_prob(pred["y"], pred["w"], pred["mu"], scale * pred["S"])
+            cj = scale_vector(scale, pred["w"].shape[-1])[:, None, None]
+            nll = -mixture_log_prob(pred["y"], pred["w"], pred["mu"], cj * pred["S"])
             stats[f"val_cover2s_{tag}"] = float(inside.mean())
             stats[f"val_cover2s_moving_{tag}"] = float(inside[mv].mean())
             stats[f"val_nll_per_report_{tag}"] = float(nll.mean())
         card["calibration"] = {
             "cov_scale": c,
+            "per_mode": per_mode,
             "fitted_on": "val",
             "target_cover2s": NOMINAL_2SIGMA,
             "val_reports": int(pred["y"].shape[0]),
@@ -238,7 +247,7 @@ def calibrate_cards(set_name: str, samples: int = 500) -> None:
             "seconds": time.perf_counter() - t0,
         }
         (folder / f"{name}.json").write_text(json.dumps(card, indent=1))
-        print(f"[{set_name}] {name}: cov_scale {c:.4f} {stats} ({time.perf_counter() - t0:.0f} s)", flush=True)
+        print(f"[{set_name}] {name}: cov_scale {c} {stats} ({time.perf_counter() - t0:.0f} s)", flush=True)
 
 
 def study(set_name: str, file: str | None, samples: int) -> dict[str, Any]:
@@ -255,7 +264,7 @@ def study(set_name: str, file: str | None, samples: int) -> dict[str, Any]:
     singles = [n for n, c in cards.items() if c["filter"]["_target_"].endswith("KalmanFilter")]
     best_single = min(singles, key=lambda n: cards[n]["val_nll_per_scalar"])
     best = min(cards, key=lambda n: cards[n]["val_nll_per_scalar"])
-    scale = {n: float(c.get("calibration", {}).get("cov_scale", 1.0)) for n, c in cards.items()}
+    scale = {n: c.get("calibration", {}).get("cov_scale", 1.0) for n, c in cards.items()}
     records: dict[str, EvalRecords] = {}
     for name, model in models.items():
         t1 = time.perf_counter()
@@ -329,6 +338,12 @@ def _ci(d: dict[str, float], scale: float = 1.0, fmt: str = "+.3f") -> str:
     return f"{scale * d['delta']:{fmt}} [{scale * d['lo']:{fmt}}, {scale * d['hi']:{fmt}}]"
 
 
+def _scales(c: float | list[float], fmt: str = ".3f") -> str:
+    """A card's covariance scale(s): one number, or one per mode joined by " / "."""
+    c = [c] if isinstance(c, (int, float)) else list(c)
+    return " / ".join(f"{x:{fmt}}" for x in (c if len(set(c)) > 1 else c[:1]))
+
+
 def markdown(payloads: list[dict[str, Any]], runtime: float, cmd: str) -> str:
     load = os.getloadavg()
     lines = [
@@ -348,9 +363,9 @@ def markdown(payloads: list[dict[str, Any]], runtime: float, cmd: str) -> str:
         ),
         "",
         (
-            "Calibration: every learned model is scored with its *calibrated* predictive, every component's "
-            "covariance times the scalar c of its card (`calibration.cov_scale`), fitted on the set's VALIDATION "
-            "split so that 86.5 % of validation reports lie in the 2σ HPD region "
+            "Calibration: every learned model is scored with its *calibrated* predictive, every mode's "
+            "covariance times the scalar c of its card (`calibration.cov_scale`), fitted on the set's "
+            "VALIDATION split so that 86.5 % of the validation reports lie in the 2σ HPD region "
             "(`torchsde_lti.training.calibration.calibrate_filter`); means, weights and forecasts' means are "
             "unchanged, NLL and coverage use it. cv_oracle is not calibrated (c = 1). The best model's own "
             "predictive (c = 1) is listed below each table. Model selection (best model, best single) is by the "
@@ -389,7 +404,7 @@ def markdown(payloads: list[dict[str, Any]], runtime: float, cmd: str) -> str:
         for n, r in res.items():
             val = "—" if r["val_nll_per_scalar"] is None else f"{r['val_nll_per_scalar']:.3f}"
             lines.append(
-                f"| {n} | {val} | {r['cov_scale']:.3f} | {r['nll']:.3f} | {r['nll_moving']:.3f} | {r['nll_moored']:.3f} | "
+                f"| {n} | {val} | {_scales(r['cov_scale'])} | {r['nll']:.3f} | {r['nll_moving']:.3f} | {r['nll_moored']:.3f} | "
                 f"{100 * r['cover2s']:.1f} % | {100 * r['cover2s_moving']:.1f} % | {r['fc_rmse_5']:.0f} | "
                 f"{r['fc_rmse_10']:.0f} | {r['fc_rmse_15']:.0f} |"
             )
@@ -458,7 +473,7 @@ def markdown(payloads: list[dict[str, Any]], runtime: float, cmd: str) -> str:
             took = f", {wall / 60:.1f} min of training on the shared machine" if wall else ""
             cal = c.get("calibration") or {}
             cal_s = (
-                f"; calibration on val: c = {cal['cov_scale']:.4f}, val in 2σ {100 * cal['val_cover2s_before']:.1f} % "
+                f"; calibration on val: c = {_scales(cal['cov_scale'], '.4f')}, val in 2σ {100 * cal['val_cover2s_before']:.1f} % "
                 f"→ {100 * cal['val_cover2s_after']:.1f} % (moving {100 * cal['val_cover2s_moving_before']:.1f} % → "
                 f"{100 * cal['val_cover2s_moving_after']:.1f} %), val NLL/report {cal['val_nll_per_report_before']:.3f} "
                 f"→ {cal['val_nll_per_report_after']:.3f}"
@@ -484,6 +499,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument(
         "--calibrate", action="store_true", help="(re)fit the cards' covariance inflation on the val split, then stop"
     )
+    parser.add_argument("--per-mode", action="store_true", help="with --calibrate: one scale per mode")
     parser.add_argument("--samples-calibration", type=int, default=500, help="Monte Carlo draws of the calibration")
     parser.add_argument("--train-models", nargs="*", default=None, help="with --train: only these models")
     parser.add_argument("--sets", nargs="*", default=list(SETS), help="model sets to train / evaluate")
@@ -504,7 +520,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             return {}
     if args.calibrate:
         for set_name in args.sets:
-            calibrate_cards(set_name, args.samples_calibration)
+            calibrate_cards(set_name, args.samples_calibration, args.per_mode)
         return {}
     start = time.perf_counter()
     if args.holdout is not None:

@@ -16,6 +16,7 @@ from torchsde_lti.training.calibration import (
     NOMINAL_2SIGMA,
     calibrate_filter,
     fit_cov_scale,
+    fit_mode_scales,
     hpd_level,
     one_step_predictive,
 )
@@ -78,6 +79,29 @@ def test_fit_cov_scale_recovers_the_scale_of_the_data(M: int, true_scale: float)
     assert cover == pytest.approx(NOMINAL_2SIGMA, abs=0.002)  # the fit matches the coverage it targets
 
 
+def test_fit_mode_scales_recovers_one_scale_per_predicted_mode() -> None:
+    """Two well-separated modes, each report predicted in one of them (weight 0.999: the mixture's
+    86.5 % region is that mode's ellipse), the data of mode 0 drawn with covariance 0.5 S_0 and of
+    mode 1 with 2 S_1: the fit finds [0.5, 2]."""
+    N = 4000
+    w, mu, S = random_mixture(N, 2, 21)
+    first = torch.arange(N) % 2 == 0
+    w = torch.where(first[:, None], torch.tensor([0.999, 0.001], dtype=f64), torch.tensor([0.001, 0.999], dtype=f64))
+    mu[:, 1] = mu[:, 0] + 200.0  # far apart: each report's density is its own mode's
+    j = (~first).long()
+    rows = torch.arange(N)
+    scale = torch.where(first, 0.5, 2.0).to(f64)
+    L = torch.linalg.cholesky(scale[:, None, None] * S[rows, j])
+    y = mu[rows, j] + (L @ torch.randn(N, 2, 1, generator=torch.Generator().manual_seed(22), dtype=f64)).squeeze(-1)
+    c = fit_mode_scales(y, w, mu, S, samples=200, seed=1)
+    assert c == pytest.approx([0.5, 2.0], rel=0.1)
+    single = fit_cov_scale(y, w, mu, S, samples=200, seed=1)
+    assert 0.6 < single < 1.8  # one scale for both: between them
+    lev = hpd_level(y, w, mu, S, c, samples=200, seed=1).numpy()
+    for g in (first.numpy(), ~first.numpy()):
+        assert np.mean(lev[g] <= NOMINAL_2SIGMA) == pytest.approx(NOMINAL_2SIGMA, abs=0.02)
+
+
 def test_fit_cov_scale_widens_the_bracket_and_clips_to_bounds() -> None:
     w, mu, S = random_mixture(2000, 1, 7)
     assert fit_cov_scale(*(draw(w, mu, S, 9.0, 8), w, mu, S)) == pytest.approx(9.0, rel=0.08)
@@ -94,6 +118,8 @@ def test_bad_input_raises() -> None:
         hpd_level(y, w, mu[0], S)
     with pytest.raises(ValueError, match="scale"):
         hpd_level(y, w, mu, S, scale=0.0)
+    with pytest.raises(ValueError, match="one per component"):
+        hpd_level(y, w, mu, S, scale=[1.0, 2.0, 3.0])
     with pytest.raises(ValueError, match="target"):
         fit_cov_scale(y, w, mu, S, target=1.0)
     with pytest.raises(ValueError, match="bounds"):
@@ -103,6 +129,8 @@ def test_bad_input_raises() -> None:
     tracks = simulated_cv(0.05, 10.0, 2, 20, seed=0)
     with pytest.raises(ValueError, match="cov_scale"):
         evaluate_filter(cv_filter(0.05, 10.0), tracks, cov_scale=-1.0)
+    with pytest.raises(ValueError, match="cov_scale"):
+        evaluate_filter(cv_filter(0.05, 10.0), tracks, cov_scale=[1.0, 2.0])
 
 
 def test_calibrated_kalman_predictive_is_the_filter_with_q_r_and_prior_scaled() -> None:
@@ -131,7 +159,7 @@ def test_cov_scale_one_equals_the_filter_likelihood_for_an_imm() -> None:
 def test_calibrate_filter_hits_the_target_on_its_tracks_and_corrects_a_wrong_noise() -> None:
     tracks = simulated_cv(0.05, 10.0, 30, 80, seed=3)
     right, wrong = cv_filter(0.05, 10.0), cv_filter(0.05, 25.0)  # R 6x too large: too wide a predictive
-    c_right, c_wrong = calibrate_filter(right, tracks), calibrate_filter(wrong, tracks)
+    (c_right,), (c_wrong,) = calibrate_filter(right, tracks), calibrate_filter(wrong, tracks)
     assert 0.85 < c_right < 1.2
     assert c_wrong < 0.75
     for model, c in ((right, c_right), (wrong, c_wrong)):

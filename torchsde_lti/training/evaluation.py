@@ -38,7 +38,7 @@ from torchsde_lti.data.tracks import TrackBatch, pad_tracks
 from torchsde_lti.data.trajectories import Tracks, track_windows
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
-from torchsde_lti.training.calibration import NOMINAL_2SIGMA, hpd_level, mixture_log_prob
+from torchsde_lti.training.calibration import NOMINAL_2SIGMA, hpd_level, mixture_log_prob, scale_vector
 
 __all__ = [
     "HORIZONS",
@@ -240,7 +240,7 @@ def evaluate_filter(
     samples: int = 500,
     seed: int = 0,
     forecast_coverage: bool = False,
-    cov_scale: float = 1.0,
+    cov_scale: float | Sequence[float] = 1.0,
 ) -> EvalRecords:
     """Per-report and per-forecast records of one frozen filter on whole tracks (module docstring).
 
@@ -253,13 +253,17 @@ def evaluate_filter(
         max_steps: B x T of a padded batch; samples, seed: Monte Carlo of the mixture HPD region.
         forecast_coverage: also test the forecasts against their HPD regions (``fc_cover2s_<min>``;
             Monte Carlo for a mixture, so off by default; NaN when off).
-        cov_scale: c > 0, the calibrated predictive: every component's covariance (one-step
-            and forecast) times c, the means and weights unchanged; the NLL and the HPD tests
-            use it (:func:`~torchsde_lti.training.calibration.calibrate_filter` fits c on
-            validation tracks). 1.0: the filter's own predictive.
+        cov_scale: the calibrated predictive: component j's covariance (one-step and forecast)
+            times c_j > 0 (one number for all, or one per mode), the means and weights
+            unchanged; the NLL and the HPD tests use it
+            (:func:`~torchsde_lti.training.calibration.calibrate_filter` fits it on validation
+            tracks). 1.0: the filter's own predictive.
     """
-    if not (math.isfinite(cov_scale) and cov_scale > 0):
-        raise ValueError(f"cov_scale must be a finite number > 0, got {cov_scale}")
+    M = len(model.modes()) if isinstance(model, IMMFilter) else 1
+    try:
+        scale = scale_vector(cov_scale, M)
+    except ValueError as e:
+        raise ValueError(f"cov_scale: {e}") from None
     model = model.to(torch.float64).eval()
     _, vessel_of_track = np.unique(tracks.object_id, return_inverse=True)
     lengths = np.diff(tracks.offsets)
@@ -277,10 +281,10 @@ def evaluate_filter(
             point = (w.unsqueeze(-1) * ym).sum(-2)
             parts["vessel"].append(vessel_flat[flat])
             parts["moving"].append(moving_flat[flat])
-            if cov_scale == 1.0:
+            if bool(torch.all(scale == 1.0)):
                 parts["nll"].append((-out.step_log_likelihood[m]).numpy())
             else:
-                S = cov_scale * S
+                S = scale[:, None, None] * S
                 parts["nll"].append((-mixture_log_prob(batch.y[m], w[m], ym[m], S[m])).numpy())
             parts["sq_err"].append((batch.y - point)[m].pow(2).sum(-1).numpy())
             parts["inside"].append(hpd_inside(batch.y[m], w[m], ym[m], S[m], samples=samples, seed=seed).numpy())
@@ -291,7 +295,7 @@ def evaluate_filter(
                 t = batch.t if batch.t is not None else torch.cumsum(batch.dt, dim=-1)
                 lead = t[b, j] - t[b, k]
                 fw, fm, fS = _forecast(model, out, b, k, lead)
-                fS = cov_scale * fS
+                fS = scale[:, None, None] * fS
                 yj = batch.y[b, j]
                 err = ((fw.unsqueeze(-1) * fm).sum(-2) - yj).pow(2).sum(-1)
                 ins = (
