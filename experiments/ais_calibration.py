@@ -47,7 +47,10 @@ def diagnose(set_name: str, samples: int = 500) -> list[str]:
         c = card.get("calibration", {}).get("cov_scale", 1.0)
         lev = hpd_level(p["y"], p["w"], p["mu"], p["S"], samples=samples).numpy()
         lev_c = hpd_level(p["y"], p["w"], p["mu"], p["S"], c, samples=samples).numpy()
-        lines += [f"### {name} ({len(idx)} reports, {mv.sum()} in moving windows; c = {c})", ""]
+        lines += [
+            f"### {name} ({len(idx)} reports, {mv.sum()} in moving windows; c = {ais_study._scales(c, '.4f')})",
+            "",
+        ]
         lines += ["| HPD level | all | moving | moored | all, calibrated | moving, calibrated |", "|---|" + "---:|" * 5]
         for a in LEVELS:
             cells = [np.mean(x[s] <= a) for x in (lev,) for s in (slice(None), mv, ~mv)]
