@@ -83,7 +83,7 @@ def test_fit_mode_scales_recovers_one_scale_per_predicted_mode() -> None:
     """Two well-separated modes, each report predicted in one of them (weight 0.999: the mixture's
     86.5 % region is that mode's ellipse), the data of mode 0 drawn with covariance 0.5 S_0 and of
     mode 1 with 2 S_1: the fit finds [0.5, 2]."""
-    N = 4000
+    N = 2000
     w, mu, S = random_mixture(N, 2, 21)
     first = torch.arange(N) % 2 == 0
     w = torch.where(first[:, None], torch.tensor([0.999, 0.001], dtype=f64), torch.tensor([0.001, 0.999], dtype=f64))

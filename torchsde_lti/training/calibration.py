@@ -2,7 +2,8 @@ r"""Calibration of a frozen filter's predictive: HPD levels and a scalar covaria
 
     levels = hpd_level(y, w, mu, S)                     # (N,) mass of the predictive denser than y
     c = fit_cov_scale(y, w, mu, S)                      # S -> c S: share of y in the 86.5 % region = 86.5 %
-    c = calibrate_filter(model, val_tracks)             # the same, on a filter's one-step predictive
+    c = calibrate_filter(model, val_tracks)             # the same, on a filter's one-step predictive: [c]
+    cs = fit_mode_scales(y, w, mu, S)                   # one scale per mode, by the mode the filter predicts
 
 The one-step predictive of a report is a Gaussian mixture ``Σ_j w_j N(mu_j, S_j)`` (one
 component for a Kalman filter). Its *HPD level* at y is the probability mass of the
@@ -18,6 +19,7 @@ on *validation* data so that the share of reports inside the ``target`` region e
 target. For a linear Kalman filter this is exactly the filter with Q, R and the prior
 covariance all scaled by c (the gain and the means are unchanged, every covariance scales by
 c); for an IMM it widens each mode's predictive and keeps the filtered mode probabilities.
+:func:`fit_mode_scales` fits one scale per mode instead (``S_j -> c_j S_j``).
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.data.trajectories import Tracks
+from torchsde_lti.nn.imm import IMMFilter
+from torchsde_lti.nn.kalman import KalmanFilter
 
 __all__ = [
     "NOMINAL_2SIGMA",
@@ -263,7 +267,7 @@ def fit_mode_scales(
     return [float(x) for x in c]
 
 
-def one_step_predictive(model: torch.nn.Module, tracks: Tracks, max_steps: int = 50_000) -> dict[str, Tensor]:
+def one_step_predictive(model: KalmanFilter | IMMFilter, tracks: Tracks, max_steps: int = 50_000) -> dict[str, Tensor]:
     """The one-step predictive of every report k >= 2 of every track (float64, no gradients).
 
     Args:
@@ -293,7 +297,7 @@ def one_step_predictive(model: torch.nn.Module, tracks: Tracks, max_steps: int =
 
 
 def calibrate_filter(
-    model: torch.nn.Module,
+    model: KalmanFilter | IMMFilter,
     tracks: Tracks,
     target: float = NOMINAL_2SIGMA,
     samples: int = 500,
