@@ -1,6 +1,7 @@
 """Learned motion models vs a tuned constant-velocity filter on MOVING ships (AIS), frozen and held out.
 
     python experiments/ais_study.py --train                    # train the missing runs (the one path), save cards
+    python experiments/ais_study.py --calibrate                # (re)fit the cards' calibration on the val splits
     python experiments/ais_study.py                            # both own hold-outs -> results/ais_moving.{md,json}
     python experiments/ais_study.py --holdout FILE --json OUT  # one file (e.g. a reserved one, evaluation only)
 
@@ -10,19 +11,26 @@ per model: ``experiments/results/models/<set>/<model>.json`` — data, split, co
 learned values, the filter's resolved config — next to ``<model>.pt``, the filter's weights of the
 run's ``best.ckpt`` (lowest validation NLL), a few KB). Evaluation loads only the cards.
 
-Two model sets, each with its own hold-out (never trained on; the checkpoint is chosen on the val split):
+Two model sets, each with its own hold-out (never trained on, never used to select or calibrate):
 
 - ``us_coastal``: the national day ``US_coastal_2020_06_30.traj``, vessel-disjoint 60/20/20 split
-  (seed 0); hold-out = the TEST vessels;
-- ``ny_week``: ``NYHarbor_2020_12_first_week.traj``, train 1-6 Dec; hold-out = 7 Dec (also the
-  validation day that picked the checkpoint epoch: a split in time, not an untouched file).
+  (seed 0); validation = the VAL vessels; hold-out = the TEST vessels;
+- ``ny_week``: ``NYHarbor_2020_12_first_week.traj`` split in time (``conf/data/ais_ny_week_holdout.yaml``):
+  train 1-5 Dec, validation 6 Dec, hold-out 7 Dec.
 
 Models: ``imm3`` (3-mode IMM: moored / manoeuvring / underway, learned k, q, per-mode R, switching
-rates; one-step NLL + k-step forecast-mixture NLL at 4, 8, 12 reports), ``integrated_ou`` (single
-model, the same loss), ``cv_train`` (constant velocity learned on the training data, one-step NLL)
-and ``cv_oracle`` (constant velocity with q and R = r² I tuned by grid search on the EVALUATION
-tracks themselves: an in-sample oracle, :func:`torchsde_lti.training.evaluation.tune_cv`).
-``best_single`` = the single learned model with the lowest validation NLL (from the cards).
+rates; one-step NLL + k-step forecast-mixture NLL at 4, 8, 12 reports), ``imm3_1step`` (the same
+IMM, one-step NLL only), ``integrated_ou`` (single model, the k-step loss), ``cv_train``
+(constant velocity learned on the training data, one-step NLL) and ``cv_oracle`` (constant
+velocity with q and R = r² I tuned by grid search on the EVALUATION tracks themselves: an
+in-sample oracle, :func:`torchsde_lti.training.evaluation.tune_cv`). The best model and
+``best_single`` (the single learned model) are those with the lowest validation NLL (cards).
+
+Calibration (``--calibrate``; also after ``--train``): each card's covariance inflation, one scalar
+c for every mode, fitted on the VALIDATION split so that 86.5 % of its reports lie in the 2σ HPD
+region (:func:`torchsde_lti.training.calibration.calibrate_filter`; ``--per-mode``: one scale per
+mode instead); the evaluation scores every learned model's calibrated predictive
+(``evaluate_filter(..., cov_scale=c)``).
 
 Metrics (one implementation: :mod:`torchsde_lti.training.evaluation`): NLL per report (all, moving
 and moored 1-h windows: median position-derived speed >= 1 m/s), 2σ coverage (86.5 % HPD region of
@@ -59,6 +67,8 @@ HERE = Path(__file__).resolve().parent
 MODELS_DIR = HERE / "results" / "models"
 COMMON = ["plots=false", "data.batch_size=32", "trainer.max_epochs=8"]
 KSTEP = ["module.k_step=[4,8,12]", "module.k_step_weight=0.3"]
+#: The NY week split three ways in time: train 1-5 Dec, validate 6 Dec, hold out 7 Dec.
+NY = "ais_ny_week_holdout"
 #: Model sets: the training file, the split that is held out, and each model's overrides of
 #: ``python -m torchsde_lti.train`` (plus :data:`COMMON`).
 SETS: dict[str, dict[str, Any]] = {
@@ -67,17 +77,19 @@ SETS: dict[str, dict[str, Any]] = {
         "holdout_split": "test",
         "runs": {
             "imm3": ["experiment=ais_moving"],
+            "imm3_1step": ["experiment=ais_moving", "module.k_step_weight=0"],
             "cv_train": ["experiment=ais_us_coastal", "model=cv"],
             "integrated_ou": ["experiment=ais_us_coastal", *KSTEP],
         },
     },
     "ny_week": {
         "source": "NYHarbor_2020_12_first_week.traj",
-        "holdout_split": "val",
+        "holdout_split": "test",
         "runs": {
-            "imm3": ["experiment=ais_moving", "data=ais_ny_week", "test=false"],
-            "cv_train": ["experiment=ais_ny_week", "model=cv"],
-            "integrated_ou": ["experiment=ais_ny_week", *KSTEP],
+            "imm3": ["experiment=ais_moving", f"data={NY}", "test=false"],
+            "imm3_1step": ["experiment=ais_moving", f"data={NY}", "test=false", "module.k_step_weight=0"],
+            "cv_train": ["experiment=ais_ny_week", f"data={NY}", "model=cv"],
+            "integrated_ou": ["experiment=ais_ny_week", f"data={NY}", *KSTEP],
         },
     },
 }
@@ -88,10 +100,13 @@ BASELINES = ("cv_oracle", "best_single")
 # --------------------------------------------------------------------------- training + cards
 
 
-def train_runs(runs: Path, sets: list[str]) -> None:
-    """Launch the missing runs (one process each, the CLI a user types) and (re)write their cards."""
+def train_runs(runs: Path, sets: list[str], only: list[str] | None = None) -> None:
+    """Launch the missing runs (one process each, the CLI a user types) and (re)write their cards
+    (``only``: just these models)."""
     for set_name in sets:
         for name, overrides in SETS[set_name]["runs"].items():
+            if only is not None and name not in only:
+                continue
             run = runs / set_name / name
             done = run / "metrics.json"
             if not (done.is_file() and json.loads(done.read_text()).get("status") == "completed"):
@@ -99,6 +114,7 @@ def train_runs(runs: Path, sets: list[str]) -> None:
                 print("$", " ".join(cmd[1:]), flush=True)
                 subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
             save_card(set_name, name, run)
+        calibrate_cards(set_name)
 
 
 def save_card(set_name: str, name: str, run: Path) -> Path:
@@ -167,23 +183,71 @@ def load_cards(set_name: str) -> dict[str, dict[str, Any]]:
 # --------------------------------------------------------------------------- evaluation
 
 
+def split_tracks(set_name: str, split: str, cards: dict[str, dict[str, Any]]) -> Tracks:
+    """One split ("train", "val", "test") of the set's source, loaded with the cards' cleaning rules."""
+    data = next(iter(cards.values()))["data_config"]
+    args = {k: data[k] for k in ("max_gap", "v_max", "min_reports", "max_extent") if k in data}
+    source = SETS[set_name]["source"]
+    which = {"train": 0, "val": 1, "test": 2}[split]
+    if data["split"] == "objects":
+        return split_objects(load_tracks(source, **args), data["fractions"], data["seed"])[which]
+    return split_time(load_tracks(source, cut_times=list(data["boundaries"]), **args), data["boundaries"])[which]
+
+
 def holdout_tracks(set_name: str, file: str | None, cards: dict[str, dict[str, Any]]) -> tuple[Tracks, str]:
     """The evaluation tracks: the set's own held-out split of its source, or a whole other file
     (loaded with the set's cleaning rules)."""
-    data = next(iter(cards.values()))["data_config"]
-    keys = ("max_gap", "v_max", "min_reports", "max_extent")
-    args = {k: data[k] for k in keys if k in data}
     source = SETS[set_name]["source"]
     if file is None or os.path.basename(file) == source:
         split = SETS[set_name]["holdout_split"]
-        if data["split"] == "objects":
-            tracks = load_tracks(source, **args)
-            part = split_objects(tracks, data["fractions"], data["seed"])[{"train": 0, "val": 1, "test": 2}[split]]
-        else:
-            tracks = load_tracks(source, cut_times=list(data["boundaries"]), **args)
-            part = split_time(tracks, data["boundaries"])[{"train": 0, "val": 1, "test": 2}[split]]
-        return part, f"{source}, {split} split"
+        return split_tracks(set_name, split, cards), f"{source}, {split} split"
+    data = next(iter(cards.values()))["data_config"]
+    args = {k: data[k] for k in ("max_gap", "v_max", "min_reports", "max_extent") if k in data}
     return load_tracks(file, **args), os.path.basename(file)
+
+
+def calibrate_cards(set_name: str, samples: int = 500, per_mode: bool = False) -> None:
+    """Fit each card's covariance inflation c on the set's VALIDATION split (never the hold-out)
+    and write it into the card (``calibration``), with the validation coverage and NLL before / after."""
+    from torchsde_lti.training.calibration import (
+        NOMINAL_2SIGMA,
+        calibrate_filter,
+        hpd_level,
+        one_step_predictive,
+        scale_vector,
+    )
+    from torchsde_lti.training.evaluation import mixture_log_prob, moving_reports
+
+    cards = load_cards(set_name)
+    val = split_tracks(set_name, "val", cards)
+    moving = moving_reports(val.t, val.pos[:, :2], val.offsets)
+    folder = MODELS_DIR / set_name
+    for name, card in cards.items():
+        t0 = time.perf_counter()
+        model = load_model(card, folder)
+        c = calibrate_filter(model, val, samples=samples, per_mode=per_mode)
+        pred = one_step_predictive(model, val)
+        mv = torch.as_tensor(moving[pred["index"].numpy()])
+        stats: dict[str, float] = {}
+        for tag, scale in (("before", [1.0]), ("after", c)):
+            lev = hpd_level(pred["y"], pred["w"], pred["mu"], pred["S"], scale, samples=samples)
+            inside = (lev <= NOMINAL_2SIGMA).double()
+            cj = scale_vector(scale, pred["w"].shape[-1])[:, None, None]
+            nll = -mixture_log_prob(pred["y"], pred["w"], pred["mu"], cj * pred["S"])
+            stats[f"val_cover2s_{tag}"] = float(inside.mean())
+            stats[f"val_cover2s_moving_{tag}"] = float(inside[mv].mean())
+            stats[f"val_nll_per_report_{tag}"] = float(nll.mean())
+        card["calibration"] = {
+            "cov_scale": c,
+            "per_mode": per_mode,
+            "fitted_on": "val",
+            "target_cover2s": NOMINAL_2SIGMA,
+            "val_reports": int(pred["y"].shape[0]),
+            **stats,
+            "seconds": time.perf_counter() - t0,
+        }
+        (folder / f"{name}.json").write_text(json.dumps(card, indent=1))
+        print(f"[{set_name}] {name}: cov_scale {c} {stats} ({time.perf_counter() - t0:.0f} s)", flush=True)
 
 
 def study(set_name: str, file: str | None, samples: int) -> dict[str, Any]:
@@ -197,19 +261,23 @@ def study(set_name: str, file: str | None, samples: int) -> dict[str, Any]:
     q, r, table = tune_cv(tracks, log=lambda s: print("  " + s, flush=True))
     oracle = {"q": q, "r_std": r, "grid_points": len(table), "seconds": time.perf_counter() - t0}
     models["cv_oracle"] = cv_filter(q, r)
-    records: dict[str, EvalRecords] = {}
-    for name, model in models.items():
-        t1 = time.perf_counter()
-        records[name] = evaluate_filter(model, tracks, samples=samples)
-        print(f"  {name}: {time.perf_counter() - t1:.1f} s", flush=True)
     singles = [n for n, c in cards.items() if c["filter"]["_target_"].endswith("KalmanFilter")]
     best_single = min(singles, key=lambda n: cards[n]["val_nll_per_scalar"])
     best = min(cards, key=lambda n: cards[n]["val_nll_per_scalar"])
+    scale = {n: c.get("calibration", {}).get("cov_scale", 1.0) for n, c in cards.items()}
+    records: dict[str, EvalRecords] = {}
+    for name, model in models.items():
+        t1 = time.perf_counter()
+        records[name] = evaluate_filter(model, tracks, samples=samples, cov_scale=scale.get(name, 1.0))
+        print(f"  {name}: {time.perf_counter() - t1:.1f} s", flush=True)
+    # the best model's own (uncalibrated) predictive, for the record
+    raw = summary(evaluate_filter(models[best], tracks, samples=samples, horizons=()))
     base = {"cv_oracle": "cv_oracle", "best_single": best_single}
     results: dict[str, Any] = {}
     for name, rec in records.items():
         res: dict[str, Any] = summary(rec)
         res["val_nll_per_scalar"] = cards[name]["val_nll_per_scalar"] if name in cards else None
+        res["cov_scale"] = scale.get(name, 1.0)
         res["paired"] = {
             b: paired_bootstrap(rec, records[ref], metrics=METRICS) for b, ref in base.items() if ref != name
         }
@@ -222,10 +290,13 @@ def study(set_name: str, file: str | None, samples: int) -> dict[str, Any]:
         "vessels": int(results[best]["vessels"]),
         "best_model": best,
         "best_single": best_single,
+        "best_uncalibrated": {k: raw[k] for k in ("nll", "nll_moving", "nll_moored", "cover2s", "cover2s_moving")},
         "cv_oracle_tuning": oracle,
         "results": results,
         "cards": {
-            n: {k: c[k] for k in ("command", "epoch", "val_nll_per_scalar", "learned", "wall_time_s")}
+            n: {
+                k: c.get(k) for k in ("command", "epoch", "val_nll_per_scalar", "learned", "wall_time_s", "calibration")
+            }
             for n, c in cards.items()
         },
         "runtime_s": time.perf_counter() - start,
@@ -267,6 +338,12 @@ def _ci(d: dict[str, float], scale: float = 1.0, fmt: str = "+.3f") -> str:
     return f"{scale * d['delta']:{fmt}} [{scale * d['lo']:{fmt}}, {scale * d['hi']:{fmt}}]"
 
 
+def _scales(c: float | list[float], fmt: str = ".3f") -> str:
+    """A card's covariance scale(s): one number, or one per mode joined by " / "."""
+    c = [c] if isinstance(c, (int, float)) else list(c)
+    return " / ".join(f"{x:{fmt}}" for x in (c if len(set(c)) > 1 else c[:1]))
+
+
 def markdown(payloads: list[dict[str, Any]], runtime: float, cmd: str) -> str:
     load = os.getloadavg()
     lines = [
@@ -283,6 +360,16 @@ def markdown(payloads: list[dict[str, Any]], runtime: float, cmd: str) -> str:
             "median position-derived speed >= 1 m/s; 2σ = the 86.5 % highest-density region of the one-step "
             "predictive (mixture for the IMM, Monte Carlo); forecast RMSE (m) of the predictive mean at the report "
             "nearest 5 / 10 / 15 min ahead (±25 %). Intervals: 95 % paired bootstrap over vessels."
+        ),
+        "",
+        (
+            "Calibration: every learned model is scored with its *calibrated* predictive, every mode's "
+            "covariance times the scalar c of its card (`calibration.cov_scale`), fitted on the set's "
+            "VALIDATION split so that 86.5 % of the validation reports lie in the 2σ HPD region "
+            "(`torchsde_lti.training.calibration.calibrate_filter`); means, weights and forecasts' means are "
+            "unchanged, NLL and coverage use it. cv_oracle is not calibrated (c = 1). The best model's own "
+            "predictive (c = 1) is listed below each table. Model selection (best model, best single) is by the "
+            "validation NLL of the training run (c = 1), never by the hold-out."
         ),
         "",
     ]
@@ -302,27 +389,33 @@ def markdown(payloads: list[dict[str, Any]], runtime: float, cmd: str) -> str:
                 else ""
             )
             + (
-                " This day is also the validation split that chose each run's checkpoint epoch (a split in "
-                "time, never trained on)."
-                if p["set"] == "ny_week" and p["data"].endswith("val split")
+                " Split in time: trained on 1–5 Dec, checkpoint epoch and calibration chosen on 6 Dec, this "
+                "day (7 Dec) used for nothing but this evaluation."
+                if p["set"] == "ny_week" and p["data"].endswith("test split")
                 else ""
             ),
             "",
             (
-                "| model | val NLL/scalar | NLL | NLL moving | NLL moored | in 2σ | in 2σ moving | fc RMSE 5 min "
+                "| model | val NLL/scalar | c | NLL | NLL moving | NLL moored | in 2σ | in 2σ moving | fc RMSE 5 min "
                 "| 10 min | 15 min |"
             ),
-            "|---|" + "---:|" * 9,
+            "|---|" + "---:|" * 10,
         ]
         for n, r in res.items():
             val = "—" if r["val_nll_per_scalar"] is None else f"{r['val_nll_per_scalar']:.3f}"
             lines.append(
-                f"| {n} | {val} | {r['nll']:.3f} | {r['nll_moving']:.3f} | {r['nll_moored']:.3f} | "
+                f"| {n} | {val} | {_scales(r['cov_scale'])} | {r['nll']:.3f} | {r['nll_moving']:.3f} | {r['nll_moored']:.3f} | "
                 f"{100 * r['cover2s']:.1f} % | {100 * r['cover2s_moving']:.1f} % | {r['fc_rmse_5']:.0f} | "
                 f"{r['fc_rmse_10']:.0f} | {r['fc_rmse_15']:.0f} |"
             )
         r0 = next(iter(res.values()))
+        u = p["best_uncalibrated"]
         lines += [
+            "",
+            (
+                f"{p['best_model']} uncalibrated (c = 1): NLL {u['nll']:.3f}, moving {u['nll_moving']:.3f}, moored "
+                f"{u['nll_moored']:.3f}; in 2σ {100 * u['cover2s']:.1f} %, moving {100 * u['cover2s_moving']:.1f} %."
+            ),
             "",
             (
                 f"Reports: {r0['reports']} ({r0['reports_moving']} in moving windows); forecast pairs "
@@ -378,7 +471,16 @@ def markdown(payloads: list[dict[str, Any]], runtime: float, cmd: str) -> str:
             vals = ", ".join(f"{k}={x:.4g}" for k, x in c["learned"].items())
             wall = c.get("wall_time_s")
             took = f", {wall / 60:.1f} min of training on the shared machine" if wall else ""
-            lines.append(f"- {n} (checkpoint of epoch {c['epoch']}{took}, `{c['command']}`): {vals}")
+            cal = c.get("calibration") or {}
+            cal_s = (
+                f"; calibration on val: c = {_scales(cal['cov_scale'], '.4f')}, val in 2σ {100 * cal['val_cover2s_before']:.1f} % "
+                f"→ {100 * cal['val_cover2s_after']:.1f} % (moving {100 * cal['val_cover2s_moving_before']:.1f} % → "
+                f"{100 * cal['val_cover2s_moving_after']:.1f} %), val NLL/report {cal['val_nll_per_report_before']:.3f} "
+                f"→ {cal['val_nll_per_report_after']:.3f}"
+                if cal
+                else ""
+            )
+            lines.append(f"- {n} (checkpoint of epoch {c['epoch']}{took}, `{c['command']}`): {vals}{cal_s}")
         lines.append("")
     return "\n".join(lines)
 
@@ -394,6 +496,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--runs", default="outputs/ais_moving", help="training runs, <runs>/<set>/<model>")
     parser.add_argument("--train", action="store_true", help="launch the missing runs, write the model cards")
+    parser.add_argument(
+        "--calibrate", action="store_true", help="(re)fit the cards' covariance inflation on the val split, then stop"
+    )
+    parser.add_argument("--per-mode", action="store_true", help="with --calibrate: one scale per mode")
+    parser.add_argument("--samples-calibration", type=int, default=500, help="Monte Carlo draws of the calibration")
+    parser.add_argument("--train-models", nargs="*", default=None, help="with --train: only these models")
     parser.add_argument("--sets", nargs="*", default=list(SETS), help="model sets to train / evaluate")
     parser.add_argument(
         "--holdout",
@@ -407,7 +515,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     if args.train:
-        train_runs(Path(args.runs), args.sets)
+        train_runs(Path(args.runs), args.sets, args.train_models)
+        if args.train_models is not None:  # some runs only: evaluate later
+            return {}
+    if args.calibrate:
+        for set_name in args.sets:
+            calibrate_cards(set_name, args.samples_calibration, args.per_mode)
+        return {}
     start = time.perf_counter()
     if args.holdout is not None:
         payload = study(args.models or auto_set(args.holdout), args.holdout, args.samples)

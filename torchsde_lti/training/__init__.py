@@ -6,6 +6,8 @@ The only part of the package that imports Lightning, Hydra or matplotlib.
     metrics.py      parameter errors (identifiable quantities), tables, masked Gaussian NLL
     evaluation.py   frozen filters on held-out tracks: NLL (moving / moored windows), HPD coverage,
                     forecast RMSE, paired vessel bootstrap, the CV grid oracle (no Lightning)
+    calibration.py  HPD levels of a predictive mixture, a scalar covariance inflation fitted on
+                    validation tracks (calibrate_filter), the one-step predictive of a filter
     callbacks.py    ParameterHistory, RunLog (Lightning), BestRun (Hydra, best of a multirun)
     plots.py        loss / parameter / track figures of a run
     checkpoints.py  read_checkpoint / load_filter_weights: clear errors for damaged files
@@ -16,6 +18,7 @@ The only part of the package that imports Lightning, Hydra or matplotlib.
     train.py        train(cfg) behind @hydra.main (``python -m torchsde_lti.train``)
 """
 
+from torchsde_lti.training.calibration import calibrate_filter, fit_cov_scale, hpd_level
 from torchsde_lti.training.callbacks import BestRun, ParameterHistory, RunLog
 from torchsde_lti.training.checkpoints import (
     CheckpointError,
@@ -51,10 +54,13 @@ __all__ = [
     "ParameterHistory",
     "RunInterrupted",
     "RunLog",
+    "calibrate_filter",
     "config_path",
     "evaluate_filter",
     "evaluate_models",
+    "fit_cov_scale",
     "format_table",
+    "hpd_level",
     "learned_values",
     "load_filter_weights",
     "main",

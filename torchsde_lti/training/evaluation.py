@@ -38,6 +38,7 @@ from torchsde_lti.data.tracks import TrackBatch, pad_tracks
 from torchsde_lti.data.trajectories import Tracks, track_windows
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
+from torchsde_lti.training.calibration import NOMINAL_2SIGMA, hpd_level, mixture_log_prob, scale_vector
 
 __all__ = [
     "HORIZONS",
@@ -57,8 +58,6 @@ __all__ = [
 
 #: Forecast horizons (s) of :func:`evaluate_filter`: 5, 10, 15 min.
 HORIZONS: tuple[float, ...] = (300.0, 600.0, 900.0)
-#: P(chi²_2 <= 4) = 1 - e^-2: the probability of the 2σ region in 2-D.
-NOMINAL_2SIGMA = 1.0 - math.exp(-2.0)
 
 
 @dataclass
@@ -85,31 +84,6 @@ class EvalRecords:
 # --------------------------------------------------------------------------- pieces
 
 
-def mixture_log_prob(x: Tensor, w: Tensor, mu: Tensor, S: Tensor) -> Tensor:
-    """log Σ_j w_j N(x; mu_j, S_j) of points x (N, S, m) or (N, m).
-
-    Args:
-        x: (N, m) or (N, S, m) points (S draws per row).
-        w: (N, M) weights; mu: (N, M, m) means; S: (N, M, m, m) covariances (SPD).
-
-    Returns:
-        (N,) or (N, S) log densities. Elementwise over the m × m entries of the inverse
-        (no batched small solves: those dominate otherwise).
-    """
-    squeeze = x.dim() == 2
-    if squeeze:
-        x = x.unsqueeze(1)
-    m = x.shape[-1]
-    L = torch.linalg.cholesky(S)
-    Sinv = torch.cholesky_inverse(L).unsqueeze(1)  # (N, 1, M, m, m)
-    logdet = 2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1).unsqueeze(1)  # (N, 1, M)
-    d = x.unsqueeze(-2) - mu.unsqueeze(1)  # (N, S, M, m)
-    quad = sum(d[..., i] * Sinv[..., i, j] * d[..., j] for i in range(m) for j in range(m))
-    comp = -0.5 * (quad + logdet + m * math.log(2 * math.pi))
-    out = torch.logsumexp(comp + torch.log(w.clamp_min(1e-300)).unsqueeze(1), -1)
-    return out.squeeze(1) if squeeze else out
-
-
 def hpd_inside(
     y: Tensor,
     w: Tensor,
@@ -122,10 +96,10 @@ def hpd_inside(
 ) -> Tensor:
     """Is y inside the ``level`` highest-density region of the predictive mixture? (N,) bool.
 
-    One component in 2-D: the ellipse of Mahalanobis² <= -2 log(1 - level) (the 2σ ellipse
-    for the default level), in closed form.
-    Otherwise: y is inside when the share of ``samples`` seeded draws from the mixture with
-    a higher density than y is at most ``level``.
+    One component: the ellipse of Mahalanobis² <= the chi-square quantile at ``level`` (the 2σ
+    ellipse in 2-D for the default level), in closed form. Otherwise: y is inside when the
+    share of ``samples`` seeded draws from the mixture with a higher density than y is at most
+    ``level`` (:func:`~torchsde_lti.training.calibration.hpd_level`).
 
     Args:
         y: (N, m) observations; w: (N, M) weights; mu: (N, M, m); S: (N, M, m, m).
@@ -133,25 +107,7 @@ def hpd_inside(
     """
     if not 0.0 < level < 1.0:
         raise ValueError(f"level must be in (0, 1), got {level}")
-    m_ = y.shape[-1]
-    if w.shape[-1] == 1 and m_ == 2:
-        d = (y - mu[:, 0]).unsqueeze(-1)
-        maha = (d.mT @ torch.linalg.solve(S[:, 0], d)).reshape(-1)
-        return maha <= -2.0 * math.log1p(-level)
-    g = torch.Generator().manual_seed(seed)
-    out = []
-    for lo in range(0, y.shape[0], chunk):
-        ww, mm, SS = w[lo : lo + chunk], mu[lo : lo + chunk], S[lo : lo + chunk]
-        comp = torch.multinomial(ww.clamp_min(0), samples, replacement=True, generator=g)  # (n, samples)
-        Lc = torch.linalg.cholesky(SS)
-        z = torch.randn(*comp.shape, m_, generator=g, dtype=y.dtype)
-        Lg = torch.gather(Lc.flatten(-2), 1, comp[..., None].expand(-1, -1, m_ * m_)).unflatten(-1, (m_, m_))
-        xs = torch.gather(mm, 1, comp[..., None].expand(-1, -1, m_))
-        xs = xs + sum(Lg[..., :, j] * z[..., j : j + 1] for j in range(m_))
-        ly = mixture_log_prob(y[lo : lo + chunk], ww, mm, SS)
-        lx = mixture_log_prob(xs, ww, mm, SS)
-        out.append((lx > ly[:, None]).to(y.dtype).mean(-1) <= level)
-    return torch.cat(out) if out else torch.zeros(0, dtype=torch.bool)
+    return hpd_level(y, w, mu, S, samples=samples, seed=seed, chunk=chunk) <= level
 
 
 def moving_reports(
@@ -284,6 +240,7 @@ def evaluate_filter(
     samples: int = 500,
     seed: int = 0,
     forecast_coverage: bool = False,
+    cov_scale: float | Sequence[float] = 1.0,
 ) -> EvalRecords:
     """Per-report and per-forecast records of one frozen filter on whole tracks (module docstring).
 
@@ -296,7 +253,17 @@ def evaluate_filter(
         max_steps: B x T of a padded batch; samples, seed: Monte Carlo of the mixture HPD region.
         forecast_coverage: also test the forecasts against their HPD regions (``fc_cover2s_<min>``;
             Monte Carlo for a mixture, so off by default; NaN when off).
+        cov_scale: the calibrated predictive: component j's covariance (one-step and forecast)
+            times c_j > 0 (one number for all, or one per mode), the means and weights
+            unchanged; the NLL and the HPD tests use it
+            (:func:`~torchsde_lti.training.calibration.calibrate_filter` fits it on validation
+            tracks). 1.0: the filter's own predictive.
     """
+    M = len(model.modes()) if isinstance(model, IMMFilter) else 1
+    try:
+        scale = scale_vector(cov_scale, M)
+    except ValueError as e:
+        raise ValueError(f"cov_scale: {e}") from None
     model = model.to(torch.float64).eval()
     _, vessel_of_track = np.unique(tracks.object_id, return_inverse=True)
     lengths = np.diff(tracks.offsets)
@@ -314,7 +281,11 @@ def evaluate_filter(
             point = (w.unsqueeze(-1) * ym).sum(-2)
             parts["vessel"].append(vessel_flat[flat])
             parts["moving"].append(moving_flat[flat])
-            parts["nll"].append((-out.step_log_likelihood[m]).numpy())
+            if bool(torch.all(scale == 1.0)):
+                parts["nll"].append((-out.step_log_likelihood[m]).numpy())
+            else:
+                S = scale[:, None, None] * S
+                parts["nll"].append((-mixture_log_prob(batch.y[m], w[m], ym[m], S[m])).numpy())
             parts["sq_err"].append((batch.y - point)[m].pow(2).sum(-1).numpy())
             parts["inside"].append(hpd_inside(batch.y[m], w[m], ym[m], S[m], samples=samples, seed=seed).numpy())
             for h in horizons:
@@ -324,6 +295,7 @@ def evaluate_filter(
                 t = batch.t if batch.t is not None else torch.cumsum(batch.dt, dim=-1)
                 lead = t[b, j] - t[b, k]
                 fw, fm, fS = _forecast(model, out, b, k, lead)
+                fS = scale[:, None, None] * fS
                 yj = batch.y[b, j]
                 err = ((fw.unsqueeze(-1) * fm).sum(-2) - yj).pow(2).sum(-1)
                 ins = (
