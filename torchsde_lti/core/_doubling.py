@@ -1,7 +1,7 @@
 r"""Scaling and doubling: the default, PSD-preserving discretisation method (private).
 
-Many elements, eager (few elements and traced calls: module ``_power_series``, the same
-method on a schedule of fewer torch calls). Element i takes ``s_i = ceil(log2(‖F_i‖ dt_i / θ))`` halvings (none when ``‖F_i‖ dt_i ≤ θ``),
+Few elements, eager: module ``_power_series`` (the same method on a schedule of fewer torch
+calls). Element i takes ``s_i = ceil(log2(‖F_i‖ dt_i / θ))`` halvings (none when ``‖F_i‖ dt_i ≤ θ``),
 sums Taylor series on the sub-step ``h_i = dt_i / 2^{s_i}`` (``M = F h``, ``𝓛(X) = F X + X Fᵀ``)::
 
     E_h = A_h − I = M φ₁(M),   φ₁(M) = Σ_k M^k/(k+1)!,   G_h = h φ₁(M) B,   Q_h = h Σ_k h^k 𝓛^k(W)/(k+1)!,
@@ -10,8 +10,9 @@ and doubles ``s_i`` times: ``Q ← A Q Aᵀ + Q``, ``G ← A G + G``, ``A ← A 
 PSD terms. While A is near the identity the recursion carries ``E = A − I`` (``E ← 2E + E²``,
 no slow mode rounded away) and switches to A once ``‖A‖_F < 1/2``.
 
-:func:`per_element_doubling` is the one algorithm (each element its own F, W, B, dt;
-doubling on the elements sorted by ``s``); :func:`shared_doubling` its one specialisation for ONE parameter set (series terms once on
+:func:`per_element_doubling` is the one algorithm (each element its own F, W, B, dt; eager
+doubling on the elements sorted by ``s``, masked while torch.compile / torch.export trace);
+:func:`shared_doubling` its one specialisation for ONE parameter set (series terms once on
 n × n matrices, one product per quantity for the batch; a nilpotent F takes its terminating
 series at the full step).
 """
@@ -33,6 +34,7 @@ from torchsde_lti.core.thresholds import (
     SHARED_MIN_ELEMENTS,
     THETA_SHARED,
     THETA_SORTED,
+    TRACED_MAX_HALVINGS,
 )
 from torchsde_lti.core.validation import SDEInputs, tracing
 
@@ -170,6 +172,50 @@ def _double_sorted(
     return A, Q, G
 
 
+def _double_masked(
+    A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, halvings: Tensor, lo: _Layout, differentiable: bool
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """Doubling of unsorted elements without data-dependent control flow (tracing): every step
+    runs on all elements and keeps the result of those with more halvings than the step
+    (``torch.where``). ``max s`` steps of torch's structured while_loop, or with
+    ``differentiable`` (which while_loop is not) :data:`TRACED_MAX_HALVINGS` static steps."""
+    eye = lo.eye(X.shape[1], X)
+    keep = lambda mask, new, old: None if old is None else torch.where(mask, new, old)
+
+    def step(j: Tensor | int, A: Tensor, X: Tensor, near: Tensor, Q: Tensor | None, G: Tensor | None):
+        active = lo.col(halvings > j)
+        first = j == 0 if isinstance(j, int) else (j == 0).reshape(())
+        switch = near & lo.col(_decayed(A, lo)) & ~torch.as_tensor(first)
+        X = torch.where(switch, A, X)
+        near = near & ~switch
+        A2, X2, Q2, G2 = _double(A, X, Q, G, near.to(X.dtype), eye, lo)
+        return keep(active, A2, A), keep(active, X2, X), near, keep(active, Q2, Q), keep(active, G2, G)
+
+    near = lo.col(torch.ones(halvings.shape, dtype=torch.bool, device=halvings.device))
+    if differentiable:
+        for j in range(TRACED_MAX_HALVINGS):
+            A, X, near, Q, G = step(j, A, X, near, Q, G)
+        return A, Q, G
+    from torch._higher_order_ops import while_loop
+
+    has_q, has_g = Q is not None, G is not None
+    steps = halvings.max().to(torch.int64).reshape(())
+
+    def body(j: Tensor, A: Tensor, X: Tensor, near: Tensor, *qg: Tensor):
+        A, X, near, q, g = step(j, A, X, near, qg[0] if has_q else None, qg[-1] if has_g else None)
+        return (j + 1, A, X, near, *(t for t in (q, g) if t is not None))
+
+    init = (
+        torch.zeros((), dtype=torch.int64, device=halvings.device),
+        A,
+        X,
+        near,
+        *(t for t in (Q, G) if t is not None),
+    )
+    out = while_loop(lambda j, *rest: j < steps, body, init)
+    return out[1], (out[4] if has_q else None), (out[-1] if has_g else None)
+
+
 def per_element_doubling(
     x: SDEInputs, batch_last: bool = False, masked: bool | None = None
 ) -> tuple[Tensor, Tensor | None, Tensor | None]:
@@ -177,33 +223,40 @@ def per_element_doubling(
 
     F: (..., n, n); W: (..., n, n) or None; B: (..., n, p) or None; dt: (...), broadcast to
     ``x.batch``. Returns (*batch, n, n), (*batch, n, n) or None, (*batch, n, p) or None
-    (with ``batch_last`` contiguous (n, n, *batch), …). At most :data:`FEW_ENTRIES` entries
-    N n², or while torch.compile / torch.export trace (``masked``: as if tracing), take
-    :func:`~torchsde_lti.core._power_series.few_elements_doubling` (one schedule for all).
+    (with ``batch_last`` contiguous (n, n, *batch), …). ``masked``: the schedule without
+    data-dependent control flow (default: while torch.compile / torch.export trace). Eager
+    calls of at most :data:`FEW_ENTRIES` entries N n² take
+    :func:`~torchsde_lti.core._power_series.few_elements_doubling` (fewest torch calls).
     """
     F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
     assert dt is not None
-    if (tracing() if masked is None else masked) or math.prod(batch) * F.shape[-1] ** 2 <= FEW_ENTRIES:
-        return few_elements_doubling(x, batch_last, masked)
-    n, N = F.shape[-1], math.prod(batch)
+    n, N = F.shape[-1], math.prod(batch)  # (a symbolic size while tracing: no guard on it)
     p = 0 if B is None else B.shape[-1]
+    traced = tracing() if masked is None else masked
+    if not traced and N * n * n <= FEW_ENTRIES:
+        return few_elements_doubling(x, batch_last)
     Fb, Wb, Bb = _flat(F, batch, n), _flat(W, batch, n), _flat(B, batch, p)
     assert Fb is not None
     dtf = dt.expand(batch).reshape(N)
     with torch.no_grad():
         nu = frobenius_norm(Fb)
         halvings = halvings_for(nu, dtf, THETA_SORTED)
-        # one synchronisation: the most halvings and the largest ‖F‖ dt
-        top_f, x_max = torch.stack([halvings.max(), (nu * dtf).max()]).tolist()
+    order: Tensor | None = None
+    counts: list[int] = []
     K = series_terms(F.dtype, THETA_SORTED, n)
-    if not top_f:  # no element halves: the series for the largest ‖F‖ dt (a power of 2) suffices
-        K = series_terms(F.dtype, 2.0 ** math.ceil(math.log2(x_max)) if x_max > 0 else 0.0, n)
-    order, counts = _schedule(halvings.to(torch.int64), int(top_f))
+    if traced:
+        halvings = halvings.clamp_max(TRACED_MAX_HALVINGS)
+    elif N:
+        with torch.no_grad():  # one synchronisation: the most halvings and the largest ‖F‖ dt
+            top_f, x_max = torch.stack([halvings.max(), (nu * dtf).max()]).tolist()
+            if not top_f:  # no element halves: the series for the largest ‖F‖ dt (a power of 2) suffices
+                K = series_terms(F.dtype, 2.0 ** math.ceil(math.log2(x_max)) if x_max > 0 else 0.0, n)
+            order, counts = _schedule(halvings.to(torch.int64), int(top_f))
     if order is not None:
         Fb, dtf, halvings = Fb[order], dtf[order], halvings[order]
         Wb, Bb = (None if t is None else t[order] for t in (Wb, Bb))
 
-    lo = _Layout(batch_first=n > BATCH_LAST_MAX_DIM or N <= BATCH_LAST_MIN_ELEMENTS)
+    lo = _Layout(batch_first=n > BATCH_LAST_MAX_DIM or tracing() or N <= BATCH_LAST_MIN_ELEMENTS)
     hc = lo.col(dtf * torch.exp2(-halvings))
     M = lo.put(Fb) * hc
     eye = lo.eye(n, M)
@@ -218,7 +271,11 @@ def per_element_doubling(
     X = lo.mm(M, Y)  # E = A − I
     Q = None if Z is None else Z * hc
     G = None if Bb is None else lo.mm(Y, lo.put(Bb)) * hc
-    A, Q, G = _double_sorted(X + eye, X, Q, G, counts, lo)
+    if traced:
+        needs_grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (F, W, B, dt))
+        A, Q, G = _double_masked(X + eye, X, Q, G, halvings, lo, needs_grad and not torch.compiler.is_exporting())
+    else:
+        A, Q, G = _double_sorted(X + eye, X, Q, G, counts, lo)
     return _finish(A, Q, G, lo, order, batch, batch_last)
 
 

@@ -1,7 +1,7 @@
-r"""Scaling and doubling for few elements, and while torch.compile / torch.export trace (private).
+r"""Scaling and doubling for an eager call of few elements (private).
 
 Every element takes the same number of halvings ``s = ⌈log₂(max ‖F‖_F dt / θ)⌉`` (from the host
-values of a small call, else one synchronisation; a tensor while tracing), sums the Taylor
+values of a small call, else one synchronisation), sums the Taylor
 series of :func:`_series` on its sub-step ``h = dt / 2^s`` and doubles s times (``Q ← A Q Aᵀ + Q``,
 ``G ← A G + G``, ``A ← A A``), carrying ``E = A − I`` until ``‖A‖_F < 1/2``. Few torch calls: the
 powers of the series come from ⌈log₂ K⌉ products, one product doubles A, Q and G together.
@@ -14,7 +14,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.thresholds import THETA_PER_ELEMENT, TRACED_MAX_HALVINGS
+from torchsde_lti.core.thresholds import THETA_PER_ELEMENT
 from torchsde_lti.core.validation import SDEInputs, tracing
 
 __all__ = ["few_elements_doubling", "frobenius_norm", "halvings_for"]
@@ -184,47 +184,6 @@ def _double_eager(
     return A, Q, G
 
 
-def _double_traced(
-    E: Tensor, Q: Tensor | None, G: Tensor | None, steps: Tensor, static: bool
-) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    """:func:`_double_eager` without data-dependent control flow (torch.compile / torch.export):
-    the switch is a mask, and the ``steps`` (0-dim) doublings are a structured while_loop, or with
-    ``static`` (differentiable, which while_loop is not) :data:`TRACED_MAX_HALVINGS` static
-    steps of which those beyond ``steps`` keep their input."""
-    eye = _eye(E.shape[-1], E)
-
-    def step(A: Tensor, X: Tensor, near: Tensor, Q: Tensor | None, G: Tensor | None, switching: bool = True):
-        if switching:  # (not before the first doubling)
-            switch = near & _has_decayed(A)
-            X = torch.where(switch, A, X)
-            near = near & ~switch
-        A, X, Q, G = _double_step(A, X, near.to(A.dtype), Q, G, eye)
-        return A, X, near, Q, G
-
-    def keep(active: Tensor, new: tuple, old: tuple) -> tuple:
-        return tuple(None if o is None else torch.where(active, a, o) for a, o in zip(new, old))
-
-    near = torch.ones(E.shape[0], 1, 1, dtype=torch.bool, device=E.device)
-    state = (E + eye, E, near, Q, G)
-    state = keep(steps > 0, step(*state, switching=False), state)
-    if static:
-        for j in range(1, TRACED_MAX_HALVINGS):
-            state = keep(steps > j, step(*state), state)
-        return state[0], state[3], state[4]
-    from torch._higher_order_ops import while_loop
-
-    has_q, has_g = Q is not None, G is not None
-
-    def body(j: Tensor, A: Tensor, X: Tensor, near: Tensor, *qg: Tensor):
-        A, X, near, q, g = step(A, X, near, qg[0] if has_q else None, qg[-1] if has_g else None)
-        return (j + 1, A, X, near, *(t for t in (q, g) if t is not None))
-
-    count = steps.to(torch.int64)
-    init = (torch.ones((), dtype=torch.int64, device=E.device), *state[:3], *(t for t in state[3:] if t is not None))
-    out = while_loop(lambda j, *rest: j < count, body, init)
-    return out[1], (out[4] if has_q else None), (out[-1] if has_g else None)
-
-
 def _largest_reach(x: SDEInputs) -> float:
     """max ‖F‖_F dt over the elements (one synchronisation; none from :attr:`SDEInputs.host`,
     which pairs norms with steps where F's batch shape is dt's, else bounds by max ‖F‖ max dt)."""
@@ -240,56 +199,35 @@ def _largest_reach(x: SDEInputs) -> float:
     return max(norms) * max(host["dt"])
 
 
-def few_elements_doubling(
-    x: SDEInputs, batch_last: bool = False, masked: bool | None = None
-) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    """(A, Q, G) when every element has its own F, W, B and dt (the general algorithm).
+def few_elements_doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """(A, Q, G) of an eager call of few elements, each with its own F, W, B and dt.
 
     F: (..., n, n); W: (..., n, n) or None; B: (..., n, p) or None; dt: (...), broadcast to
     ``x.batch``. Returns (*batch, n, n), (*batch, n, n) or None, (*batch, n, p) or None
     (with ``batch_last`` contiguous (n, n, *batch), …). Every element takes the same number of
-    halvings s = ⌈log₂(max ‖F‖_F dt / θ)⌉ (one synchronisation; ``masked``, the default while
-    torch.compile / torch.export trace: none, s a tensor).
+    halvings s = ⌈log₂(max ‖F‖_F dt / θ)⌉ (from :attr:`SDEInputs.host`, else one synchronisation).
     """
     F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
     assert dt is not None
-    n, N = F.shape[-1], math.prod(batch)  # (a symbolic size while tracing: no guard on it)
+    n, N = F.shape[-1], math.prod(batch)
     p = 0 if B is None else B.shape[-1]
-    traced = tracing() if masked is None else masked
     theta = THETA_PER_ELEMENT
     Fb, Wb, Bb = _flat(F, batch, n), _flat(W, batch, n), _flat(B, batch, p)
     assert Fb is not None
     dtf = dt if dt.shape == batch and len(batch) == 1 else dt.expand(batch).reshape(N)
-    if traced:  # s from the largest reach; a reach beyond θ 2^TRACED_MAX_HALVINGS takes the step at that limit
+    top = _largest_reach(x) if N else 0.0
+    if not math.isfinite(top):  # the squares overflowed (or a NaN passed unchecked)
         with torch.no_grad():
-            reach = frobenius_norm(Fb) * dtf
-            limit = theta * 2.0**TRACED_MAX_HALVINGS
-            steps = halvings_for(reach.amax() if N else reach.new_zeros(()), reach.new_ones(()), theta)
-            steps = steps.clamp_max(TRACED_MAX_HALVINGS)
-            shrink = torch.where(reach > limit, limit / reach.clamp_min(limit), 1.0)
-        h = dtf * shrink * torch.exp2(-steps)
-        K = power_terms(F.dtype, theta, n)
+            top = float(torch.nan_to_num(frobenius_norm(Fb).double() * dtf.double(), nan=0.0).max())
+    if math.isinf(top):
+        s = 2 * 1075  # ‖F‖ dt < 2^2150: enough halvings for any product of two doubles
     else:
-        top = _largest_reach(x) if N else 0.0
-        if not math.isfinite(top):  # the squares overflowed (or a NaN passed unchecked)
-            with torch.no_grad():
-                top = float(torch.nan_to_num(frobenius_norm(Fb).double() * dtf.double(), nan=0.0).max())
-        if math.isinf(top):
-            s = 2 * 1075  # ‖F‖ dt < 2^2150: enough halvings for any product of two doubles
-        else:
-            s = math.ceil(math.log2(top) - math.log2(theta)) if top > theta else 0
-        bound = theta if s else (2.0 ** math.ceil(math.log2(top)) if top > 0 else 0.0)  # (few cache keys)
-        K = power_terms(F.dtype, bound, n)
-        h = _scaled(dtf, s)
-    hc = h[:, None, None]
-    E, Q, G = _series(Fb * hc, Wb, Bb, K)
+        s = math.ceil(math.log2(top) - math.log2(theta)) if top > theta else 0
+    bound = theta if s else (2.0 ** math.ceil(math.log2(top)) if top > 0 else 0.0)  # (few cache keys)
+    hc = _scaled(dtf, s)[:, None, None]
+    E, Q, G = _series(Fb * hc, Wb, Bb, power_terms(F.dtype, bound, n))
     Q, G = (None if t is None else t * hc for t in (Q, G))
-    if traced:
-        needs_grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (F, W, B, dt))
-        # (exported programs take the static steps: AOTInductor miscompiles this while_loop in an online step)
-        A, Q, G = _double_traced(E, Q, G, steps, needs_grad or torch.compiler.is_exporting())
-    else:
-        A, Q, G = _double_eager(E, Q, G, s) if s else (E + _eye(n, E), Q, G)
+    A, Q, G = _double_eager(E, Q, G, s) if s else (E + _eye(n, E), Q, G)
     if Q is not None:
         Q = torch.lerp(Q, Q.mT, 0.5)
     out = [t if t is None or len(batch) == 1 else t.reshape(*batch, *t.shape[1:]) for t in (A, Q, G)]
