@@ -26,8 +26,8 @@ PARALLEL_MIN_WORK = 1 << 20
 PYTHON_CHECK_MAX_VALUES = 256
 
 # ---- scaling and doubling (core/_doubling.py)
-#: Per-element calls whose F has at most this many entries in all (N n²; and traced calls)
-#: take the schedule of fewest torch calls (one number of halvings for all, power series);
+#: Eager per-element calls whose F has at most this many entries in all (N n²) take the
+#: schedule of fewest torch calls (one number of halvings for all, power series);
 #: larger ones the sorted schedule (fewer flops).
 FEW_ENTRIES = 2048
 #: Sub-step bounds ‖F‖ h ≤ θ: few elements (power series), sorted per element (Horner series
