@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from torchsde_lti.core.discretization import discretize
+from torchsde_lti.nn import model_version
 from torchsde_lti.nn.sde import LTISDE
 
 __all__ = ["LTISDETransitionModel", "discrete_step", "set_filterpy_step", "stonesoup_transition_model"]
@@ -82,20 +83,6 @@ def discrete_step(
             "or the step overflows float64 (an unstable F over a long gap)"
         )
     return A, 0.5 * (Q + Q.T), G
-
-
-def _version(module: torch.nn.Module) -> tuple[tuple[int, int, int], ...]:
-    """(id, storage address, version counter) of every parameter and buffer of ``module``
-    (a plain walk of the module tree: ``parameters()`` costs several times more per call)."""
-    out: list[tuple[int, int, int]] = []
-    stack = [module]
-    while stack:
-        mod = stack.pop()
-        for t in (*mod._parameters.values(), *mod._buffers.values()):
-            if t is not None:
-                out.append((id(t), t.data_ptr(), t._version))
-        stack.extend(x for x in mod._modules.values() if x is not None)
-    return tuple(out)
 
 
 # ---------------------------------------------------------------------------- Stone Soup
@@ -152,7 +139,7 @@ def _stonesoup_class() -> type:
             # counters of every parameter and buffer are unchanged (an optimiser step or an
             # assignment ``sde.q = …`` changes them).
             seconds = _seconds(time_interval, "time_interval")
-            version = _version(self.sde)
+            version = model_version(self.sde)
             if version != self._version:
                 self._version, self._gaps = version, {}
             key = (seconds, self.method)

@@ -28,19 +28,6 @@ def benign(seed: int = 0, batch: tuple[int, ...] = (5,), n: int = 3, s: int = 2,
     return F, L, Qc, B, dt
 
 
-@pytest.fixture
-def count_matrix_exp(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, ...]]:
-    calls: list[tuple[int, ...]] = []
-    original = torch.matrix_exp
-
-    def counting(x: torch.Tensor) -> torch.Tensor:
-        calls.append(tuple(x.shape))
-        return original(x)
-
-    monkeypatch.setattr(torch, "matrix_exp", counting)
-    return calls
-
-
 def test_transition_layer_matrix_exp_calls_torch_and_agrees(count_matrix_exp: list) -> None:
     F, _, _, B, dt = benign()
     A_me = tl.Transition(method="matrix_exp")(F, dt)

@@ -25,7 +25,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchsde_lti.core._power_series import _flat, few_elements_doubling, frobenius_norm, halvings_for
+from torchsde_lti.core._power_series import _flat, few_elements_doubling, frobenius_norm
 from torchsde_lti.core.linalg import bl_matmul
 from torchsde_lti.core.thresholds import (
     BATCH_LAST_MAX_DIM,
@@ -57,6 +57,13 @@ def series_terms(dtype: torch.dtype, theta: float, n: int) -> int:
         if not tracing():
             _TERMS[key] = K
     return K
+
+
+def halvings_for(norm: Tensor, dt: Tensor, theta: float) -> Tensor:
+    """s = ceil(log2(‖F‖ dt / θ)), at least 0 (float, broadcast shape). ‖F‖ dt beyond the float
+    range takes the most halvings (A → 0, Q → P∞ for a stable F); NaN takes none."""
+    x = torch.nan_to_num(norm * dt, nan=0.0, posinf=torch.finfo(dt.dtype).max)
+    return torch.ceil(torch.log2(x.clamp_min(theta)) - math.log2(theta))
 
 
 class _Layout:

@@ -17,7 +17,7 @@ from torch import Tensor
 from torchsde_lti.core.thresholds import THETA_PER_ELEMENT
 from torchsde_lti.core.validation import SDEInputs, tracing
 
-__all__ = ["few_elements_doubling", "frobenius_norm", "halvings_for"]
+__all__ = ["few_elements_doubling", "frobenius_norm"]
 
 
 def _flat(x: Tensor | None, batch: torch.Size, cols: int) -> Tensor | None:
@@ -56,13 +56,6 @@ def frobenius_norm(F: Tensor) -> Tensor:
         top = flat.abs().amax(-1).clamp_min(torch.finfo(F.dtype).tiny)
         norm = torch.where(overflow, top * torch.linalg.vector_norm(flat / top[..., None], dim=-1), norm)
     return norm
-
-
-def halvings_for(norm: Tensor, dt: Tensor, theta: float) -> Tensor:
-    """s = ceil(log2(‖F‖ dt / θ)), at least 0 (float, broadcast shape). ‖F‖ dt beyond the float
-    range takes the most halvings (A → 0, Q → P∞ for a stable F); NaN takes none."""
-    x = torch.nan_to_num(norm * dt, nan=0.0, posinf=torch.finfo(dt.dtype).max)
-    return torch.ceil(torch.log2(x.clamp_min(theta)) - math.log2(theta))
 
 
 def _scaled(dt: Tensor, s: int) -> Tensor:

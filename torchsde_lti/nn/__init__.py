@@ -1,6 +1,7 @@
 """Modules: the parameter-free discretisation layers, parametrisations, the LTISDE (and the
 StructuredSDE base of the motion models) and the KalmanFilter module."""
 
+from torchsde_lti.nn._online import model_version
 from torchsde_lti.nn._validate import NonFiniteLikelihoodError
 from torchsde_lti.nn.deploy import DeployedFilter, OnlineStep
 from torchsde_lti.nn.imm import IMMFilter
@@ -22,4 +23,5 @@ __all__ = [
     "StructuredSDE",
     "Transition",
     "VanLoanNoise",
+    "model_version",
 ]
