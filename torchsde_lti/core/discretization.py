@@ -57,12 +57,6 @@ def resolve_method(method: str) -> str:
     return method
 
 
-def _work(inputs: SDEInputs) -> int:
-    """Matrix entries a call produces: the size that sets its intra-op threads."""
-    n = inputs.F.shape[-1]
-    return math.prod(inputs.batch) * n * (n + (0 if inputs.B is None else inputs.B.shape[-1]))  # symbolic-safe
-
-
 def _overflow_impossible(x: SDEInputs) -> bool:
     """Whether the host values (:attr:`SDEInputs.host`) bound the results and every intermediate
     of either method below the dtype's maximum: ‖A‖ ≤ e^{‖F‖ dt}, ‖Q‖ ≤ ‖W‖ dt e^{2‖F‖ dt},
@@ -108,15 +102,15 @@ def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | No
 
 def _run(inputs: SDEInputs, method: str, validate_args: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
     """(A, Q, G) of checked arguments by ``method`` and, with ``validate_args``, the result
-    check, run with :func:`intra_op_threads`."""
-    with intra_op_threads(_work(inputs)):
+    check, run with :func:`intra_op_threads` (the backward too: ``inputs.finish``)."""
+    with intra_op_threads(inputs.work):
         if resolve_method(method) == "matrix_exp":
             A, Q, G = matrix_exp(inputs)
         else:
             A, Q, G = doubling(inputs)
         if checks_values(validate_args) and not _overflow_impossible(inputs):
             _check_result(inputs, A, Q, G, method)
-    return A, Q, G
+    return inputs.finish(A, Q, G)  # type: ignore[return-value]
 
 
 def discretize(
@@ -193,10 +187,11 @@ def discretize_series(
     inverse = None
     if unique and not dt_tm.requires_grad:
         dt_tm, inverse = torch.unique(dt_tm, return_inverse=True)
-    with intra_op_threads(_work(inputs)):
-        out = doubling(inputs._replace(dt=dt_tm, batch=dt_tm.shape, host=None), batch_last=True)
+    with intra_op_threads(inputs.work):
+        A, Q, G = inputs.finish(*doubling(inputs._replace(dt=dt_tm, batch=dt_tm.shape, host=None), batch_last=True))
+        assert A is not None
         if checks_values(validate_args):
-            _check_result(inputs, *out, method)
+            _check_result(inputs, A, Q, G, method)
     perm = [*range(3, 3 + len(lead)), 2, 0, 1]  # (r, c, T, *lead) -> (*lead, T, r, c)
 
     def layout(x: Tensor) -> Tensor:
@@ -204,7 +199,7 @@ def discretize_series(
             x = x.index_select(-1, inverse.reshape(-1)).reshape(*x.shape[:2], *inverse.shape)
         return x.permute(perm)
 
-    A, Q, G = (None if x is None else layout(x) for x in out)
+    A, Q, G = (None if x is None else layout(x) for x in (A, Q, G))
     return Discrete(A, Q, G)  # type: ignore[arg-type]
 
 

@@ -7,14 +7,14 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import sym
-from torchsde_lti.core.threads import intra_op_threads
+from torchsde_lti.core.threads import intra_op_threads, one_thread_backward
 from torchsde_lti.core.thresholds import PYTHON_CHECK_MAX_VALUES
 
 
@@ -262,7 +262,9 @@ class SDEInputs(NamedTuple):
 
     ``host``: for a small call (at most :data:`PYTHON_CHECK_MAX_VALUES` values, not traced)
     the values of F, L, Qc, B and dt (row-major Python floats, read in the call's one
-    transfer) by name; None otherwise. Replace it (``_replace``) when a field changes."""
+    transfer) by name; None otherwise. Replace it (``_replace``) when a field changes.
+    ``finish``: to be applied to the call's results (its backward then runs with the
+    threads of :func:`~torchsde_lti.core.threads.one_thread_backward`)."""
 
     F: Tensor
     W: Tensor | None
@@ -270,6 +272,17 @@ class SDEInputs(NamedTuple):
     dt: Tensor | None
     batch: torch.Size
     host: dict[str, list[float]] | None = None
+    finish: Callable[..., tuple[Tensor | None, ...]] = lambda *results: results
+
+    @property
+    def work(self) -> int:
+        """Matrix entries the call produces, N n (n + p): the size that sets its threads."""
+        return _entries(self.batch, self.F.shape[-1], self.B)
+
+
+def _entries(batch: Sequence[int], n: int, B: Tensor | None) -> int:
+    """N n (n + p) for a batch of N = prod(batch) elements (symbolic-safe)."""
+    return math.prod(batch) * n * (n + (0 if B is None else B.shape[-1]))
 
 
 def sde_inputs(
@@ -324,10 +337,15 @@ def sde_inputs(
         checked.append(("dt", dt_t))
         named.append(("dt", dt_t.shape))
     batch = broadcast_batch(named)
+    work = _entries(batch, n, B)
+    (F_out, L, Qc, B, dt_t), finish = one_thread_backward(work, (F, L, Qc, B, dt_t))  # (the checks: same values)
+    assert F_out is not None
+    F = F_out
     W = None
     if L is not None and Qc is not None:
-        W = L @ Qc @ L.mT
-        W = torch.lerp(W, W.mT, 0.5)  # exactly symmetric
+        with intra_op_threads(work):
+            W = L @ Qc @ L.mT
+            W = torch.lerp(W, W.mT, 0.5)  # exactly symmetric
     values = checks_values(validate_args)
     total = sum(t.numel() for _, t in checked)
     host: dict[str, list[float]] | None = None
@@ -355,4 +373,4 @@ def sde_inputs(
             check_nonnegative(dt_t, "dt")
         if Qc is not None:
             check_symmetric_psd(Qc, "Qc")
-    return SDEInputs(F, W, B, dt_t, batch, host)
+    return SDEInputs(F, W, B, dt_t, batch, host, finish)

@@ -19,7 +19,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.threads import intra_op_threads
+from torchsde_lti.core.threads import with_threads
 from torchsde_lti.filters.inputs import FilterInputs, prepare_inputs
 from torchsde_lti.filters.results import FilterResult
 from torchsde_lti.filters.scan import chunked_scan, prefers_scan
@@ -129,16 +129,21 @@ def run_filter(
     ``torch.compile``, with its discretisation eager); inside a trace it always does.
     """
     check_algorithm(algorithm, ALGORITHMS[1:])
-    with intra_op_threads(_work(args)):
-        if algorithm == "scan":
-            return chunked_scan(args, chunk, validate_args)
-        prep = prepare_inputs(args, validate_args)
-        if algorithm == "square_root":
-            return square_root_filter(prep)
-        # traced (torch.compile, torch.export): the loop as torch's structured scan, one step's
-        # graph for any T (an exported program then takes any T: a dynamic time axis)
-        structured = compiled_loop or torch.compiler.is_compiling()
-        return sequential_filter(prep, structured)
+    return with_threads(_work(args), _run_algorithm, args, algorithm, chunk, validate_args, compiled_loop)
+
+
+def _run_algorithm(
+    args: FilterInputs, algorithm: str, chunk: int | None, validate_args: bool, compiled_loop: bool
+) -> FilterResult:
+    """:func:`run_filter`'s body."""
+    if algorithm == "scan":
+        return chunked_scan(args, chunk, validate_args)
+    prep = prepare_inputs(args, validate_args)
+    if algorithm == "square_root":
+        return square_root_filter(prep)
+    # traced (torch.compile, torch.export): the loop as torch's structured scan, one step's
+    # graph for any T (an exported program then takes any T: a dynamic time axis)
+    return sequential_filter(prep, compiled_loop or torch.compiler.is_compiling())
 
 
 def _work(args: FilterInputs) -> int:

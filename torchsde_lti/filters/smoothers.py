@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, sym
-from torchsde_lti.core.threads import intra_op_threads
+from torchsde_lti.core.threads import with_threads
 from torchsde_lti.core.validation import check_matrix
 from torchsde_lti.filters.kalman import check_algorithm
 from torchsde_lti.filters.results import FilterResult, SmootherResult
@@ -78,8 +78,7 @@ def rts_smoother(
         raise TypeError(
             f"result must be a FilterResult (the output of kalman_filter or KalmanFilter), got {type(result).__name__}"
         )
-    with intra_op_threads(result.cov.numel()):
-        return _rts(result, A, Q, algorithm)
+    return with_threads(result.cov.numel(), _rts, result, A, Q, algorithm)
 
 
 def _rts(result: FilterResult, A: Tensor | None, Q: Tensor | None, algorithm: str) -> SmootherResult:
