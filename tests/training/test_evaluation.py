@@ -10,6 +10,7 @@ import pytest
 import torch
 
 import torchsde_lti as tl
+from torchsde_lti import models
 from torchsde_lti.data import ExponentialDt, simulate_tracks
 from torchsde_lti.data.trajectories import LoadSummary, Tracks
 from torchsde_lti.training.evaluation import (
@@ -22,8 +23,10 @@ from torchsde_lti.training.evaluation import (
     mixture_log_prob,
     moving_reports,
     paired_bootstrap,
+    select_model,
     summary,
     tune_cv,
+    validation_selection,
 )
 
 
@@ -219,3 +222,87 @@ def test_cv_oracle_grid_extends_until_the_optimum_is_inside() -> None:
     assert best == pytest.approx(table[(q, r)])
     qs = sorted({k[0] for k in table})
     assert qs[0] < q < qs[-1]
+
+
+def wiggly_tracks(num: int, T: int, seed: int, q: float = 1e-3, sig: float = 60.0, tau: float = 300.0) -> Tracks:
+    """Constant-velocity tracks (q) plus a slow Ornstein-Uhlenbeck wiggle of the position (std sig m,
+    time constant tau s) and 3 m white noise, reported every ~15 s: a filter that tracks the wiggle
+    (high q, small R) has the better one-step NLL, one that averages it out the better forecasts."""
+    rng = np.random.default_rng(seed)
+    times, positions = [], []
+    for _ in range(num):
+        dt = rng.exponential(10.0, T - 1) + 5.0
+        x, v, w = np.zeros(2), rng.normal(0.0, 3.0, 2), rng.normal(0.0, sig, 2)
+        pos = [x + w + 3.0 * rng.normal(size=2)]
+        for d in dt:
+            L = np.linalg.cholesky(q * np.array([[d**3 / 3, d**2 / 2], [d**2 / 2, d]]))
+            e = L @ rng.normal(size=(2, 2))  # (x, v) increments of both axes
+            x, v = x + v * d + e[0], v + e[1]
+            phi = math.exp(-d / tau)
+            w = phi * w + sig * math.sqrt(1 - phi**2) * rng.normal(size=2)
+            pos.append(x + w + 3.0 * rng.normal(size=2))
+        times.append(np.concatenate([[0.0], np.cumsum(dt)]))
+        positions.append(np.stack(pos))
+    return make_tracks(list(range(num)), times, positions)
+
+
+def _cv_imm(q1: float, q2: float, r: float) -> tl.IMMFilter:
+    f64 = torch.float64
+    a, b = (models.constant_velocity(dim=2, q=torch.tensor(q, dtype=f64)) for q in (q1, q2))
+    rates = torch.tensor([[0.0, 1e-3], [1e-3, 0.0]], dtype=f64)
+    return tl.IMMFilter(
+        [a, b], models.position_observation(a), r**2 * torch.eye(2, dtype=f64), rates, diffuse_variance=100.0
+    )
+
+
+def test_selection_picks_the_forecast_qualified_candidate_not_the_lowest_nll() -> None:
+    tr = wiggly_tracks(8, 120, seed=0)
+    ms = {
+        "cv_smooth": cv_filter(0.1, 60.0),  # the best single (lower NLL than cv_rough)
+        "cv_rough": cv_filter(1.0, 60.0),
+        "imm_track": _cv_imm(0.01, 0.1, 10.0),  # tracks the wiggle: lowest NLL, worse forecasts
+        "imm_smooth": _cv_imm(1e-3, 3e-3, 60.0),  # averages it out: better forecasts
+    }
+    sel = validation_selection(ms, tr, cov_scale={"cv_rough": 2.0}, samples=20)
+    v = sel.table
+    # the premise: one-step NLL alone would pick imm_track, whose forecasts lose to the best single
+    assert min(v, key=lambda n: v[n]["nll"]) == "imm_track"
+    assert all(v["imm_track"][f"fc_rmse_{h}"] > v["cv_smooth"][f"fc_rmse_{h}"] for h in (5, 10, 15))
+    assert all(v["imm_smooth"][f"fc_rmse_{h}"] <= v["cv_smooth"][f"fc_rmse_{h}"] for h in (5, 10, 15))
+    assert sel.best_single == "cv_smooth" and sel.candidates == ("imm_track", "imm_smooth")
+    assert sel.best == "imm_smooth" and sel.qualified == ("imm_smooth",) and not sel.fallback
+    # the table is evaluate_filter's summary on these tracks, of the calibrated predictive where a scale is given
+    rough = summary(evaluate_filter(ms["cv_rough"], tr, samples=20, cov_scale=2.0))
+    assert v["cv_rough"]["nll"] == pytest.approx(rough["nll"], rel=1e-12)
+    # without a qualified candidate: the lowest NLL of all, flagged
+    del ms["imm_smooth"]
+    fb = select_model({n: v[n] for n in ms}, ["cv_smooth", "cv_rough"])
+    assert fb.best == "imm_track" and fb.fallback and fb.qualified == () and "FALLBACK" in fb.reason
+
+
+def test_select_model_rule_on_given_summaries() -> None:
+    def row(nll: float, *fc: float) -> dict[str, float]:
+        return {"nll": nll, "fc_rmse_5": fc[0], "fc_rmse_10": fc[1], "fc_rmse_15": fc[2]}
+
+    val = {
+        "s1": row(6.0, 100.0, 200.0, 300.0),
+        "s2": row(5.0, 110.0, 190.0, 310.0),  # best single (lowest NLL of the singles), not the best forecasts
+        "a": row(4.0, 100.0, 190.0, 311.0),  # lowest NLL, worse than s2 at 15 min
+        "b": row(4.5, 110.0, 190.0, 310.0),  # ties s2 everywhere: qualifies (<=)
+        "c": row(4.2, math.nan, 100.0, 100.0),  # no 5-min pairs: does not qualify
+        "d": row(4.8, 50.0, 50.0, 50.0),
+    }
+    sel = select_model(val, ["s1", "s2"])
+    assert (sel.best, sel.best_single, sel.qualified, sel.fallback) == ("b", "s2", ("b", "d"), False)
+    assert sel.candidates == ("a", "b", "c", "d")
+    # only some horizons checked: a qualifies on 5 and 10 min
+    assert select_model(val, ["s1", "s2"], horizons=(300.0, 600.0)).best == "a"
+    # only singles: nothing to choose among, the lowest NLL
+    only = select_model({k: val[k] for k in ("s1", "s2")}, ["s1", "s2"])
+    assert only.best == "s2" and only.fallback
+    with pytest.raises(ValueError, match="singles"):
+        select_model(val, [])
+    with pytest.raises(ValueError, match="singles"):
+        select_model(val, ["nope"])
+    with pytest.raises(ValueError, match="lacks"):
+        select_model({"s1": {"nll": 1.0}}, ["s1"])

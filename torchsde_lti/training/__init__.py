@@ -5,7 +5,8 @@ The only part of the package that imports Lightning, Hydra or matplotlib.
     module.py       KalmanFilterModule: NLL loss, robust optimizer steps, logged metrics
     metrics.py      parameter errors (identifiable quantities), tables, masked Gaussian NLL
     evaluation.py   frozen filters on held-out tracks: NLL (moving / moored windows), HPD coverage,
-                    forecast RMSE, paired vessel bootstrap, the CV grid oracle (no Lightning)
+                    forecast RMSE, paired vessel bootstrap, the CV grid oracle, model selection on
+                    validation (select_model, validation_selection) (no Lightning)
     calibration.py  HPD levels of a predictive mixture, a scalar covariance inflation fitted on
                     validation tracks (calibrate_filter), the one-step predictive of a filter
     callbacks.py    ParameterHistory, RunLog (Lightning), BestRun (Hydra, best of a multirun)
@@ -27,10 +28,13 @@ from torchsde_lti.training.checkpoints import (
 )
 from torchsde_lti.training.evaluation import (
     EvalRecords,
+    ModelSelection,
     evaluate_filter,
     evaluate_models,
     paired_bootstrap,
+    select_model,
     tune_cv,
+    validation_selection,
 )
 from torchsde_lti.training.metrics import (
     format_table,
@@ -51,6 +55,7 @@ __all__ = [
     "CheckpointError",
     "EvalRecords",
     "KalmanFilterModule",
+    "ModelSelection",
     "ParameterHistory",
     "RunInterrupted",
     "RunLog",
@@ -73,6 +78,8 @@ __all__ = [
     "raw_f_identifiable",
     "read_checkpoint",
     "restart_learner",
+    "select_model",
     "train",
     "tune_cv",
+    "validation_selection",
 ]
