@@ -94,9 +94,6 @@ class _Layout:
             return None, None
         return (x[:c], x[c:]) if self.batch_first else (x[..., :c], x[..., c:])
 
-    def cat(self, xs: list[Tensor | None]) -> Any:
-        return None if xs[0] is None else torch.cat(xs, 0 if self.batch_first else -1)  # type: ignore[arg-type]
-
     def eye(self, n: int, like: Tensor) -> Tensor:
         e = torch.eye(n, dtype=like.dtype, device=like.device)
         return e if self.batch_first else e[..., None]
@@ -109,22 +106,25 @@ class _Layout:
         """(N, r, c) -> this layout (contiguous)."""
         return x.contiguous() if self.batch_first else x.permute(1, 2, 0).contiguous()
 
-    def take(self, x: Tensor | None, order: Tensor | None, batch: torch.Size, batch_last: bool) -> Tensor | None:
-        """This layout, elements in sorted ``order`` (or None) -> (*batch, r, c) in the elements'
-        order, or contiguous (r, c, *batch) with ``batch_last`` (one gather or copy)."""
-        if x is None:
+    def take(
+        self, parts: list[Tensor | None], order: Tensor | None, batch: torch.Size, batch_last: bool
+    ) -> Tensor | None:
+        """Consecutive groups ``parts`` of elements in sorted ``order`` (or None), in this
+        layout -> (*batch, r, c) in the elements' order, or contiguous (r, c, *batch) with
+        ``batch_last``. ``order``: for batch-first output its inverse (``x[inverse]`` restores
+        the elements' order)."""
+        present = [t for t in parts if t is not None]
+        if not present:
             return None
         if not self.batch_first and batch_last:
+            x = present[0] if len(present) == 1 else torch.cat(present, -1)
             if order is not None:  # out[..., order[i]] = x[..., i]
                 x = torch.empty_like(x).index_copy_(-1, order, x)
             return x.reshape(*x.shape[:2], *batch)
-        xb = x if self.batch_first else x.permute(2, 0, 1)
-        if order is None:
-            xb = xb.contiguous()
-        else:
-            inverse = torch.empty_like(order)
-            inverse[order] = torch.arange(order.numel(), device=order.device)
-            xb = xb[inverse]
+        rows = [t if self.batch_first else t.permute(2, 0, 1) for t in present]
+        xb = torch.cat(rows) if len(rows) > 1 else rows[0].contiguous()
+        if order is not None:  # (a gather of contiguous rows: the fastest way back)
+            xb = xb.index_select(0, order)
         xb = xb.reshape(*batch, *xb.shape[1:])
         return xb.movedim((-2, -1), (0, 1)).contiguous() if batch_last else xb
 
@@ -151,13 +151,14 @@ def _decayed(A: Tensor, lo: _Layout) -> Tensor:
 
 def _double_sorted(
     A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, counts: list[int], lo: _Layout
-) -> tuple[Tensor, Tensor | None, Tensor | None]:
+) -> list[tuple[Tensor, Tensor | None, Tensor | None]]:
     """Doubling of elements sorted by halvings (descending): step j doubles the first counts[j]
-    (those with more than j halvings) and leaves the others final."""
+    (those with more than j halvings) and leaves the others final. Returns the (A, Q, G) of
+    consecutive groups of the sorted elements (assembled by :func:`_finish`)."""
     eye = lo.eye(X.shape[1], X)
     near: Tensor | None = None  # None: every element holds E; else a per-element 1/0 mask
     size = A.shape[0] if lo.batch_first else A.shape[-1]
-    done: list[tuple[Tensor | None, ...]] = []
+    done: list[tuple[Tensor, Tensor | None, Tensor | None]] = []
     for j, c in enumerate(counts):
         if c < size:
             (A, a), (Q, q), (G, g), (X, _), (near, _) = (lo.split(t, c) for t in (A, Q, G, X, near))
@@ -172,11 +173,7 @@ def _double_sorted(
                 X = torch.addcmul(X, sw, eye)  # A where switched
                 near = 1.0 - sw if near is None else near * (1.0 - sw)
         A, X, Q, G = _double(A, X, Q, G, near, eye, lo)
-    if not done:
-        return A, Q, G
-    parts = [(A, Q, G), *done[::-1]]
-    A, Q, G = (lo.cat([p[i] for p in parts]) for i in range(3))
-    return A, Q, G
+    return [(A, Q, G), *done[::-1]]
 
 
 def _double_masked(
@@ -280,10 +277,10 @@ def per_element_doubling(
     G = None if Bb is None else lo.mm(Y, lo.put(Bb)) * hc
     if traced:
         needs_grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (F, W, B, dt))
-        A, Q, G = _double_masked(X + eye, X, Q, G, halvings, lo, needs_grad and not torch.compiler.is_exporting())
+        parts = [_double_masked(X + eye, X, Q, G, halvings, lo, needs_grad and not torch.compiler.is_exporting())]
     else:
-        A, Q, G = _double_sorted(X + eye, X, Q, G, counts, lo)
-    return _finish(A, Q, G, lo, order, batch, batch_last)
+        parts = _double_sorted(X + eye, X, Q, G, counts, lo)
+    return _finish(parts, lo, order, batch, batch_last)
 
 
 def _schedule(steps: Tensor, top: int) -> tuple[Tensor | None, list[int]]:
@@ -291,26 +288,31 @@ def _schedule(steps: Tensor, top: int) -> tuple[Tensor | None, list[int]]:
     fewer than two elements or no halving) and ``counts[j]``: how many have more than j, j < top."""
     if not top:
         return None, []
-    order = torch.argsort(steps, descending=True) if steps.numel() > 1 else None
+    order = None
+    if steps.numel() > 1:  # (a stable sort of small integer keys: torch's fastest)
+        order = torch.argsort((top - steps).to(torch.uint8 if top < 256 else torch.int32), stable=True)
     tally = torch.bincount(steps, minlength=top + 1)
     return order, (steps.numel() - torch.cumsum(tally, 0))[:top].tolist()
 
 
 def _finish(
-    A: Tensor,
-    Q: Tensor | None,
-    G: Tensor | None,
+    parts: list[tuple[Tensor, Tensor | None, Tensor | None]],
     lo: _Layout,
     order: Tensor | None,
     batch: torch.Size,
     batch_last: bool,
 ) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    """Q made exactly symmetric, and all three in the elements' order and the output layout."""
+    """(A, Q, G) from the groups ``parts`` of the sorted elements: in the elements' order and
+    the output layout (one copy that concatenates, one gather), Q made exactly symmetric."""
+    if order is not None and (lo.batch_first or not batch_last):
+        inverse = torch.empty_like(order)
+        inverse[order] = torch.arange(order.numel(), device=order.device)
+        order = inverse
+    A, Q, G = (lo.take([p[i] for p in parts], order, batch, batch_last) for i in range(3))
     if Q is not None:
-        Q = torch.lerp(Q, lo.t(Q), 0.5)
-    A_out = lo.take(A, order, batch, batch_last)
-    assert A_out is not None
-    return A_out, lo.take(Q, order, batch, batch_last), lo.take(G, order, batch, batch_last)
+        Q = torch.lerp(Q, Q.transpose(0, 1) if batch_last else Q.mT, 0.5)
+    assert A is not None
+    return A, Q, G
 
 
 def nilpotency_index(F: Tensor) -> int | None:
@@ -402,8 +404,7 @@ def shared_doubling(
     Q, G = (None if t is None else t * h for t in (Q, G))
     assert X is not None
     lo = _Layout(batch_first=False)
-    A, Q, G = _double_sorted(X + lo.eye(n, X), X, Q, G, counts, lo)
-    return _finish(A, Q, G, lo, order, batch, batch_last)
+    return _finish(_double_sorted(X + lo.eye(n, X), X, Q, G, counts, lo), lo, order, batch, batch_last)
 
 
 def _full_step(
