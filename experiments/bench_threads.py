@@ -33,6 +33,7 @@ import bench_per_element
 from bench_discretize import make_call, make_problem
 
 import torchsde_lti as tl
+from torchsde_lti.core import threads as core_threads
 
 
 def per_element_call(name: str, n: int, B: int, dtype: torch.dtype, backward: bool) -> Callable[[], object]:
@@ -92,6 +93,20 @@ def paired(
     return {f"{name}@{th}": statistics.median(v) * 1e3 for (name, th), v in times.items()}
 
 
+def unguarded(call: Callable[[], object]) -> Callable[[], object]:
+    """``call`` with the library's backward thread guard switched off (the behaviour before it)."""
+
+    def run() -> object:
+        guarded = core_threads._guarded
+        core_threads._guarded = lambda work, tensors: False
+        try:
+            return call()
+        finally:
+            core_threads._guarded = guarded
+
+    return run
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=5)
@@ -103,6 +118,12 @@ def main() -> None:
         choices=["wall", "cpu"],
         default="wall",
         help="cpu: process CPU time at 1 thread only (robust to other processes; no 2-thread column)",
+    )
+    ap.add_argument(
+        "--unguarded",
+        action="store_true",
+        help="also time the default with its backward thread guard off (core.threads.one_thread_backward), "
+        "in the forward+backward cells",
     )
     args = ap.parse_args()
     threads = [1] if args.clock == "cpu" else [1, 2]
@@ -132,6 +153,10 @@ def main() -> None:
                 )
     cells.append(("Matérn-3/2 filter, T=4000, float64", {"default": gp_call()}))
     cells = [c for c in cells if args.only in c[0]]
+    if args.unguarded:
+        for label, calls in cells:
+            if "fwd+bwd" in label:
+                calls["unguarded"] = unguarded(calls["default"])
     head = (
         f"# issue-19 speed cells, paired: {args.clock} ms (median), threads {threads} (torch {torch.__version__}, "
         f"cpu_count {os.cpu_count()}, load at start {os.getloadavg()[0]:.2f})\n"
@@ -140,9 +165,9 @@ def main() -> None:
         head,
         (
             "| cell | default 1t | default 2t | default 2t/1t | naive 1t | naive 2t | naive 2t/1t | "
-            "default/naive speed-up 1t | 2t |"
+            "default/naive speed-up 1t | 2t |" + (" unguarded 1t | 2t | 2t/1t |" if args.unguarded else "")
         ),
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|" + ("---|---|---|" if args.unguarded else ""),
     ]
     print("\n".join(lines), flush=True)
     for label, calls in cells:
@@ -155,6 +180,9 @@ def main() -> None:
             f"{'—' if n1 is None else f'{n2 / n1:.2f}'} | {'—' if n1 is None else f'{n1 / d1:.2f}×'} | "
             f"{'—' if n1 is None else f'{n2 / d2:.2f}×'} |"
         )
+        if args.unguarded:
+            u1, u2 = t.get("unguarded@1"), t.get("unguarded@2", math.nan)
+            row += f" {fmt(u1)} | {fmt(u2)} | {'—' if u1 is None else f'{u2 / u1:.2f}'} |"
         lines.append(row)
         print(row, flush=True)
     lines.append(f"\nload average at end {os.getloadavg()[0]:.2f}")
