@@ -107,22 +107,23 @@ class _Layout:
         return x.contiguous() if self.batch_first else x.permute(1, 2, 0).contiguous()
 
     def take(
-        self, parts: list[Tensor | None], order: Tensor | None, batch: torch.Size, batch_last: bool
+        self, parts: list[Tensor | None], order: Tensor | None, batch: torch.Size, batch_last: bool, sym: bool = False
     ) -> Tensor | None:
         """Consecutive groups ``parts`` of elements in sorted ``order`` (or None), in this
         layout -> (*batch, r, c) in the elements' order, or contiguous (r, c, *batch) with
-        ``batch_last``. ``order``: for batch-first output its inverse (``x[inverse]`` restores
-        the elements' order)."""
+        ``batch_last``; with ``sym`` made exactly symmetric ((X + Xᵀ)/2). ``order``: for
+        batch-first output its inverse (``x[inverse]`` restores the elements' order)."""
         present = [t for t in parts if t is not None]
         if not present:
             return None
+        x = present[0] if len(present) == 1 else torch.cat(present, 0 if self.batch_first else -1)
+        if sym:
+            x = torch.lerp(x, self.t(x), 0.5)
         if not self.batch_first and batch_last:
-            x = present[0] if len(present) == 1 else torch.cat(present, -1)
             if order is not None:  # out[..., order[i]] = x[..., i]
                 x = torch.empty_like(x).index_copy_(-1, order, x)
             return x.reshape(*x.shape[:2], *batch)
-        rows = [t if self.batch_first else t.permute(2, 0, 1) for t in present]
-        xb = torch.cat(rows) if len(rows) > 1 else rows[0].contiguous()
+        xb = (x if self.batch_first else x.permute(2, 0, 1)).contiguous()
         if order is not None:  # (a gather of contiguous rows: the fastest way back)
             xb = xb.index_select(0, order)
         xb = xb.reshape(*batch, *xb.shape[1:])
@@ -308,9 +309,7 @@ def _finish(
         inverse = torch.empty_like(order)
         inverse[order] = torch.arange(order.numel(), device=order.device)
         order = inverse
-    A, Q, G = (lo.take([p[i] for p in parts], order, batch, batch_last) for i in range(3))
-    if Q is not None:
-        Q = torch.lerp(Q, Q.transpose(0, 1) if batch_last else Q.mT, 0.5)
+    A, Q, G = (lo.take([p[i] for p in parts], order, batch, batch_last, sym=i == 1) for i in range(3))
     assert A is not None
     return A, Q, G
 
