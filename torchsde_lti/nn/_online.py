@@ -1,10 +1,12 @@
 """The evaluated model of a module's online calls (private to nn/): its parametrisations run
-once per parameter version while no gradient is recorded."""
+once per parameter version while no gradient is recorded, and what the exact discretisation
+of a step needs that does not depend on dt (:class:`TerminatingSeries`) is formed with them."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
-from typing import TypeVar
+from typing import NamedTuple, TypeVar
 
 import torch
 from torch import Tensor, nn
@@ -60,3 +62,87 @@ def online_state(state: object, dt: Tensor | float, F: Tensor) -> tuple[KalmanSt
             f"state must be (mean (..., {n}), cov (..., {n}, {n})), got mean {shape_str(mean)}, cov {shape_str(cov)}"
         )
     return KalmanState(mean, cov), as_float_tensor(dt, "dt", dtype, device)
+
+
+class TerminatingSeries(NamedTuple):
+    r"""The exact discretisation over any dt of ONE fixed parameter set whose F is nilpotent
+    (an integrator chain: constant velocity, acceleration, Wiener velocity), F^k = 0.
+
+    With ν = max(‖F‖₁, ‖F‖∞) (1 if F = 0), F̃ = F/ν, 𝓛̃(X) = F̃ X + X F̃ᵀ and x = ν dt, the
+    series of expm(F s) terminate (the same closed form as core's doubling takes for a
+    nilpotent F at the full step)::
+
+        A = Σ_{i<k} x^i F̃^i / i!,   Q = Σ_{1≤i<2k} x^i 𝓛̃^{i−1}(W) / (ν i!),   G = Σ_{1≤i≤k} x^i F̃^{i−1} B / (ν i!)
+
+    so every coefficient is a power x^i times a matrix that does not depend on dt: the
+    matrices are formed once per parameter version (``coeff``) and a step costs one power and
+    one product for the whole batch.
+
+    coeff: (2k, (2n + p) n) the rows [A | Q | Gᵀ] (row-major) of each power x^i.
+    exponents: (2k, 1) the powers i. nu: ν. n, p: state and input dimensions (p = 0: no B).
+    """
+
+    coeff: Tensor
+    exponents: Tensor
+    nu: float
+    n: int
+    p: int
+
+    def __call__(self, dt: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        """(A (..., n, n), Q (..., n, n), G (..., n, p) or None) over dt (...): batch-first
+        views of batch-last storage ((2n + p), n, ...), the layout of the filters' loops. Q is
+        symmetric to rounding (the filters symmetrise their predicted covariances)."""
+        n = self.n
+        powers = torch.pow((dt * self.nu).reshape(1, -1), self.exponents)  # (2k, N): x^i
+        out = (self.coeff.mT @ powers).view(2 * n + self.p, n, *dt.shape).movedim((0, 1), (-2, -1))
+        return out[..., :n, :], out[..., n : 2 * n, :], (out[..., 2 * n :, :].mT if self.p else None)
+
+
+def nilpotency_index(F: Tensor) -> int | None:
+    """The smallest k ≤ n with F^k = 0 exactly, for one F (n, n); None when F is not nilpotent
+    (a non-zero trace rules it out without matrix powers)."""
+    n = F.shape[-1]
+    if bool(torch.diagonal(F).sum() != 0):
+        return None
+    power = F
+    for k in range(1, n + 1):
+        if not bool(power.any()):
+            return k
+        power = F @ power
+    return None
+
+
+def terminating_series(F: Tensor, L: Tensor, Qc: Tensor, B: Tensor | None) -> TerminatingSeries | None:
+    """:class:`TerminatingSeries` of one parameter set (F (n, n), L (n, s), Qc (s, s), B (n, p)
+    or None, no batch dims) when F is nilpotent; None otherwise (a batch of parameters, or an F
+    that is not nilpotent: those take core's discretisation)."""
+    if any(t is not None and t.dim() != 2 for t in (F, L, Qc, B)):
+        return None
+    with torch.no_grad():
+        k = nilpotency_index(F)
+        if k is None:
+            return None
+        n, p = F.shape[-1], 0 if B is None else B.shape[-1]
+        W = L @ Qc @ L.mT
+        W = torch.lerp(W, W.mT, 0.5)  # exactly symmetric, as core forms it
+        absF = F.abs()
+        nu = float(torch.maximum(absF.sum(-2).amax(), absF.sum(-1).amax()))
+        nu = nu if nu > 0 else 1.0
+        Ft = F / nu
+        powers = [torch.eye(n, dtype=F.dtype, device=F.device)]  # F̃^i, i < k
+        for _ in range(k - 1):
+            powers.append(Ft @ powers[-1])
+        lyap = [W]  # 𝓛̃^j(W), j < 2k − 1 (the higher ones vanish)
+        for _ in range(2 * k - 2):
+            X = Ft @ lyap[-1]
+            lyap.append(X + X.mT)  # exactly symmetric
+        coeff = F.new_zeros(2 * k, 2 * n + p, n)
+        for i in range(2 * k):
+            if i < k:
+                coeff[i, :n] = powers[i] / math.factorial(i)
+            if i >= 1:
+                coeff[i, n : 2 * n] = lyap[i - 1] / (nu * math.factorial(i))
+            if 1 <= i <= k and B is not None:
+                coeff[i, 2 * n :] = (powers[i - 1] @ B).mT / (nu * math.factorial(i))
+        exponents = torch.arange(2 * k, dtype=F.dtype, device=F.device)[:, None]
+    return TerminatingSeries(coeff.reshape(2 * k, -1), exponents, nu, n, p)
