@@ -330,21 +330,23 @@ def test_terminating_series_equals_closed_form_and_van_loan():
             torch.zeros(4, 4, dtype=F64), torch.eye(4, dtype=F64), 0.5 * torch.eye(4, dtype=F64), B_in
         ).matrices(),
     ]
-    dt = torch.rand(3, 5, generator=g, dtype=F64) * 4.0
-    dt[0, 0] = 0.0
+    few = torch.rand(3, 5, generator=g, dtype=F64) * 4.0  # batch-first results
+    few[0, 0] = 0.0
+    many = torch.rand(2, 100, generator=g, dtype=F64) * 4.0  # > SMALL_BATCH: batch-last storage
     for mats in models:
         series = terminating_series(*mats)
         assert series is not None
-        A, Q, G = series(dt)
-        want = discretize(*mats[:3], dt, B=mats.B, method="matrix_exp")
-        n = mats.F.shape[-1]
-        assert A.shape == Q.shape == (3, 5, n, n)
-        torch.testing.assert_close(A, want.A, rtol=1e-12, atol=1e-12)
-        torch.testing.assert_close(Q, want.Q, rtol=1e-12, atol=1e-12)
-        if mats.B is None:
-            assert G is None
-        else:
-            torch.testing.assert_close(G, want.G, rtol=1e-12, atol=1e-12)
+        for dt in (few, many):
+            A, Q, G = series(dt)
+            want = discretize(*mats[:3], dt, B=mats.B, method="matrix_exp")
+            n = mats.F.shape[-1]
+            assert A.shape == Q.shape == (*dt.shape, n, n)
+            torch.testing.assert_close(A, want.A, rtol=1e-12, atol=1e-12)
+            torch.testing.assert_close(Q, want.Q, rtol=1e-12, atol=1e-12)
+            if mats.B is None:
+                assert G is None
+            else:
+                torch.testing.assert_close(G, want.G, rtol=1e-12, atol=1e-12)
 
 
 def test_terminating_series_only_for_one_nilpotent_parameter_set():

@@ -132,14 +132,24 @@ def _batch_last(
     return Ab, Qb, Pb, mean_b, cbl
 
 
+#: Reports with at most this many values are checked for NaN as Python floats.
+_FEW_VALUES = 64
+
+
 def _online_observed(y: Tensor, mask: Tensor | None) -> tuple[Tensor | None, Tensor]:
     """(obs, y0) of one report: obs (..., m) bool (None: all observed, known without a
     device sync only on the CPU), y0 = y with missing entries 0. Traced and off the CPU the
     masked path always runs (no data-dependent branch, no host sync; the same values)."""
-    nan = torch.isnan(y)
     obs: Tensor | None = None
-    if tracing() or y.device.type != "cpu" or bool(nan.any()):
-        obs = ~nan
+    if tracing() or y.device.type != "cpu":
+        obs = ~torch.isnan(y)
+    elif y.numel() <= _FEW_VALUES:  # a few reports: read on the host (one call, no reduction)
+        if any(v != v for v in y.reshape(-1).tolist()):
+            obs = ~torch.isnan(y)
+    else:
+        nan = torch.isnan(y)
+        if bool(nan.any()):
+            obs = ~nan
     if mask is not None:
         obs = mask if obs is None else (obs & mask)
     y0 = y if obs is None else torch.where(obs, y, torch.zeros((), dtype=y.dtype, device=y.device))

@@ -12,6 +12,7 @@ import torch
 from torch import Tensor, nn
 
 from torchsde_lti.core.validation import as_float_tensor, shape_str, tracing
+from torchsde_lti.filters import online
 from torchsde_lti.filters.online import KalmanState
 
 T = TypeVar("T")
@@ -19,19 +20,24 @@ T = TypeVar("T")
 _CACHE = "_online_model_cache"
 
 
-def model_version(module: nn.Module) -> tuple[tuple[int, int, int], ...]:
+def model_version(module: nn.Module) -> tuple[int, ...]:
     """(id, storage address, version counter) of every parameter and buffer of ``module`` and
-    its submodules: changes with an optimiser step (in-place), ``.to()``, a load_state_dict or
-    an assignment. (A plain walk over the module tree: ``named_modules`` costs 5× more.)"""
-    out: list[tuple[int, int, int]] = []
+    its submodules, flattened: changes with an optimiser step (in-place), ``.to()``, a
+    load_state_dict or an assignment. (A plain walk over the module tree: ``named_modules``
+    costs 5× more; it runs on every online call.)"""
+    key: list[int] = []
+    add = key.extend
     stack = [module]
     while stack:
         mod = stack.pop()
-        for t in (*mod._parameters.values(), *mod._buffers.values()):
+        for t in mod._parameters.values():
             if t is not None:
-                out.append((id(t), t.data_ptr(), t._version))
-        stack.extend(m for m in mod._modules.values() if m is not None)
-    return tuple(out)
+                add((id(t), t.data_ptr(), t._version))
+        for t in mod._buffers.values():
+            if t is not None:
+                add((id(t), t.data_ptr(), t._version))
+        stack.extend([m for m in mod._modules.values() if m is not None])
+    return tuple(key)
 
 
 def evaluated(module: nn.Module, build: Callable[[], T]) -> T:
@@ -79,7 +85,7 @@ class TerminatingSeries(NamedTuple):
     one product for the whole batch.
 
     coeff: (2k, (2n + p) n) the rows [A | Q | Gᵀ] (row-major) of each power x^i.
-    exponents: (2k, 1) the powers i. nu: ν. n, p: state and input dimensions (p = 0: no B).
+    exponents: (2k,) the powers i. nu: ν. n, p: state and input dimensions (p = 0: no B).
     """
 
     coeff: Tensor
@@ -89,12 +95,19 @@ class TerminatingSeries(NamedTuple):
     p: int
 
     def __call__(self, dt: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
-        """(A (..., n, n), Q (..., n, n), G (..., n, p) or None) over dt (...): batch-first
-        views of batch-last storage ((2n + p), n, ...), the layout of the filters' loops. Q is
-        symmetric to rounding (the filters symmetrise their predicted covariances)."""
-        n = self.n
-        powers = torch.pow((dt * self.nu).reshape(1, -1), self.exponents)  # (2k, N): x^i
-        out = (self.coeff.mT @ powers).view(2 * n + self.p, n, *dt.shape).movedim((0, 1), (-2, -1))
+        """(A (..., n, n), Q (..., n, n), G (..., n, p) or None) over dt (...). Q is symmetric
+        to rounding (the filters symmetrise their predicted covariances).
+
+        Layout: for at most :data:`~torchsde_lti.filters.online.SMALL_BATCH` steps (the
+        online step's joint update) plain batch-first tensors; for more, batch-first views of
+        batch-last storage ((2n + p), n, ...), the layout of the scalar updates."""
+        n, rows = self.n, 2 * self.n + self.p
+        x = (dt * self.nu).reshape(-1, 1)
+        if x.shape[0] <= online.SMALL_BATCH:
+            out = (torch.pow(x, self.exponents) @ self.coeff).view(*dt.shape, rows, n)
+        else:  # the powers by products (Vandermonde rows), the result batch-last
+            powers = torch.linalg.vander(x.squeeze(-1), N=self.exponents.shape[0])  # (N, 2k): x^i
+            out = (self.coeff.mT @ powers.mT).view(rows, n, *dt.shape).movedim((0, 1), (-2, -1))
         return out[..., :n, :], out[..., n : 2 * n, :], (out[..., 2 * n :, :].mT if self.p else None)
 
 
@@ -144,5 +157,5 @@ def terminating_series(F: Tensor, L: Tensor, Qc: Tensor, B: Tensor | None) -> Te
                 coeff[i, n : 2 * n] = lyap[i - 1] / (nu * math.factorial(i))
             if 1 <= i <= k and B is not None:
                 coeff[i, 2 * n :] = (powers[i - 1] @ B).mT / (nu * math.factorial(i))
-        exponents = torch.arange(2 * k, dtype=F.dtype, device=F.device)[:, None]
+        exponents = torch.arange(2 * k, dtype=F.dtype, device=F.device)
     return TerminatingSeries(coeff.reshape(2 * k, -1), exponents, nu, n, p)
