@@ -33,9 +33,9 @@ def model_version(module: nn.Module) -> tuple[int, ...]:
         for t in mod._parameters.values():
             if t is not None:
                 add((id(t), t.data_ptr(), t._version))
-        for t in mod._buffers.values():
-            if t is not None:
-                add((id(t), t.data_ptr(), t._version))
+        for b in mod._buffers.values():
+            if b is not None:
+                add((id(b), b.data_ptr(), b._version))
         stack.extend([m for m in mod._modules.values() if m is not None])
     return tuple(key)
 
