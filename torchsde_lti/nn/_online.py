@@ -10,6 +10,7 @@ from typing import NamedTuple, TypeVar
 
 import torch
 from torch import Tensor, nn
+from torch.nn.utils import parametrize
 
 from torchsde_lti.core.validation import as_float_tensor, shape_str, tracing
 from torchsde_lti.filters import online
@@ -71,8 +72,8 @@ def online_state(state: object, dt: Tensor | float, F: Tensor) -> tuple[KalmanSt
 
 
 class TerminatingSeries(NamedTuple):
-    r"""The exact discretisation over any dt of ONE fixed parameter set whose F is nilpotent
-    (an integrator chain: constant velocity, acceleration, Wiener velocity), F^k = 0.
+    r"""The exact discretisation over any dt of ONE parameter set whose F is nilpotent (an
+    integrator chain: constant velocity, acceleration, Wiener velocity), F^k = 0.
 
     With ν = max(‖F‖₁, ‖F‖∞) (1 if F = 0), F̃ = F/ν, 𝓛̃(X) = F̃ X + X F̃ᵀ and x = ν dt, the
     series of expm(F s) terminate (the same closed form as core's doubling takes for a
@@ -85,12 +86,12 @@ class TerminatingSeries(NamedTuple):
     one product for the whole batch.
 
     coeff: (2k, (2n + p) n) the rows [A | Q | Gᵀ] (row-major) of each power x^i.
-    exponents: (2k,) the powers i. nu: ν. n, p: state and input dimensions (p = 0: no B).
+    exponents: (2k,) the powers i. nu: ν (0-dim). n, p: state and input dimensions (p = 0: no B).
     """
 
     coeff: Tensor
     exponents: Tensor
-    nu: float
+    nu: Tensor
     n: int
     p: int
 
@@ -99,11 +100,12 @@ class TerminatingSeries(NamedTuple):
         to rounding (the filters symmetrise their predicted covariances).
 
         Layout: for at most :data:`~torchsde_lti.filters.online.SMALL_BATCH` steps (the
-        online step's joint update) plain batch-first tensors; for more, batch-first views of
-        batch-last storage ((2n + p), n, ...), the layout of the scalar updates."""
+        online step's joint update) and while traced plain batch-first tensors; for more,
+        batch-first views of batch-last storage ((2n + p), n, ...), the layout of the scalar
+        updates."""
         n, rows = self.n, 2 * self.n + self.p
         x = (dt * self.nu).reshape(-1, 1)
-        if x.shape[0] <= online.SMALL_BATCH:
+        if tracing() or x.shape[0] <= online.SMALL_BATCH:
             out = (torch.pow(x, self.exponents) @ self.coeff).view(*dt.shape, rows, n)
         else:  # the powers by products (Vandermonde rows), the result batch-last
             powers = torch.linalg.vander(x.squeeze(-1), N=self.exponents.shape[0])  # (N, 2k): x^i
@@ -125,37 +127,56 @@ def nilpotency_index(F: Tensor) -> int | None:
     return None
 
 
-def terminating_series(F: Tensor, L: Tensor, Qc: Tensor, B: Tensor | None) -> TerminatingSeries | None:
+def terminating_series(
+    F: Tensor, L: Tensor, Qc: Tensor, B: Tensor | None, index: int | None = None
+) -> TerminatingSeries | None:
     """:class:`TerminatingSeries` of one parameter set (F (n, n), L (n, s), Qc (s, s), B (n, p)
     or None, no batch dims) when F is nilpotent; None otherwise (a batch of parameters, or an F
-    that is not nilpotent: those take core's discretisation)."""
+    that is not nilpotent: those take core's discretisation).
+
+    ``index``: F's nilpotency index when the model's structure fixes it (F^index = 0 whatever
+    the parameter values: an integrator chain); then no value is read (no synchronisation, and
+    the series may be formed inside a traced program). None: found from F's values."""
     if any(t is not None and t.dim() != 2 for t in (F, L, Qc, B)):
         return None
-    with torch.no_grad():
-        k = nilpotency_index(F)
-        if k is None:
-            return None
-        n, p = F.shape[-1], 0 if B is None else B.shape[-1]
-        W = L @ Qc @ L.mT
-        W = torch.lerp(W, W.mT, 0.5)  # exactly symmetric, as core forms it
-        absF = F.abs()
-        nu = float(torch.maximum(absF.sum(-2).amax(), absF.sum(-1).amax()))
-        nu = nu if nu > 0 else 1.0
-        Ft = F / nu
-        powers = [torch.eye(n, dtype=F.dtype, device=F.device)]  # F̃^i, i < k
-        for _ in range(k - 1):
-            powers.append(Ft @ powers[-1])
-        lyap = [W]  # 𝓛̃^j(W), j < 2k − 1 (the higher ones vanish)
-        for _ in range(2 * k - 2):
-            X = Ft @ lyap[-1]
-            lyap.append(X + X.mT)  # exactly symmetric
-        coeff = F.new_zeros(2 * k, 2 * n + p, n)
-        for i in range(2 * k):
-            if i < k:
-                coeff[i, :n] = powers[i] / math.factorial(i)
-            if i >= 1:
-                coeff[i, n : 2 * n] = lyap[i - 1] / (nu * math.factorial(i))
-            if 1 <= i <= k and B is not None:
-                coeff[i, 2 * n :] = (powers[i - 1] @ B).mT / (nu * math.factorial(i))
-        exponents = torch.arange(2 * k, dtype=F.dtype, device=F.device)
-    return TerminatingSeries(coeff.reshape(2 * k, -1), exponents, nu, n, p)
+    k = nilpotency_index(F) if index is None else index
+    if k is None:
+        return None
+    n, p = F.shape[-1], 0 if B is None else B.shape[-1]
+    W = L @ Qc @ L.mT
+    W = torch.lerp(W, W.mT, 0.5)  # exactly symmetric, as core forms it
+    absF = F.abs()
+    nu = torch.maximum(absF.sum(-2).amax(), absF.sum(-1).amax())
+    nu = torch.where(nu > 0, nu, torch.ones_like(nu))
+    Ft = F / nu
+    powers = [torch.eye(n, dtype=F.dtype, device=F.device)]  # F̃^i, i < k
+    for _ in range(k - 1):
+        powers.append(Ft @ powers[-1])
+    lyap = [W]  # 𝓛̃^j(W), j < 2k − 1 (the higher ones vanish)
+    for _ in range(2 * k - 2):
+        X = Ft @ lyap[-1]
+        lyap.append(X + X.mT)  # exactly symmetric
+    zero_n, zero_p = F.new_zeros(n, n), F.new_zeros(p, n)
+    rows = []
+    for i in range(2 * k):
+        blocks = [
+            powers[i] / math.factorial(i) if i < k else zero_n,
+            lyap[i - 1] / (nu * math.factorial(i)) if i >= 1 else zero_n,
+        ]
+        if B is not None:
+            blocks.append((powers[i - 1] @ B).mT / (nu * math.factorial(i)) if 1 <= i <= k else zero_p)
+        rows.append(torch.cat(blocks).reshape(-1))
+    exponents = torch.arange(2 * k, dtype=F.dtype, device=F.device)
+    return TerminatingSeries(torch.stack(rows), exponents, nu, n, p)
+
+
+def structural_nilpotency(sde: nn.Module) -> int | None:
+    """F's nilpotency index when the model's structure fixes it whatever its parameter values:
+    an integrator chain (:func:`~torchsde_lti.models.integrated_wiener`: F a fixed buffer with
+    ones on each axis's superdiagonal, F^order = 0); None for every other model."""
+    from torchsde_lti.models._kinematics import IntegratedWiener  # (models build on nn: imported on use)
+
+    if parametrize.type_before_parametrizations(sde) is not IntegratedWiener:
+        return None
+    order: int = sde.__dict__["order"]  # a plain int attribute of the chain
+    return order

@@ -79,7 +79,13 @@ from torchsde_lti.filters.online import (
     kalman_predict,
     kalman_step,
 )
-from torchsde_lti.nn._online import TerminatingSeries, evaluated, online_state, terminating_series
+from torchsde_lti.nn._online import (
+    TerminatingSeries,
+    evaluated,
+    online_state,
+    structural_nilpotency,
+    terminating_series,
+)
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_outcome, check_values, online_report
 from torchsde_lti.nn.parametrizations import PositiveDefinite
@@ -510,11 +516,20 @@ class KalmanFilter(ValidateArgs, nn.Module):
     def _online_model(self) -> tuple[SDEMatrices, Tensor, Tensor, Tensor | None, TerminatingSeries | None]:
         """(SDE matrices, H, R, D, the model's terminating series or None), each
         parametrisation evaluated once. The series (a nilpotent F's closed-form discretisation,
-        its dt-independent matrices formed here) only without gradients and outside traces,
-        where :func:`~torchsde_lti.nn._online.evaluated` caches this per parameter version."""
+        its dt-independent matrices formed here): eagerly without gradients, where
+        :func:`~torchsde_lti.nn._online.evaluated` caches this per parameter version (F's
+        nilpotency read from its values); while traced (torch.export of
+        :class:`~torchsde_lti.OnlineStep`) for a model whose structure makes F nilpotent, an
+        integrator chain (the series then inside the program, in place of the doubling's
+        static schedule); otherwise None (core's discretisation)."""
         with parametrize.cached():
             mats = self.sde.matrices()
-            series = None if torch.is_grad_enabled() or tracing() else terminating_series(*mats)
+            series = None
+            if tracing():
+                index = structural_nilpotency(self.sde)
+                series = None if index is None else terminating_series(*mats, index=index)
+            elif not torch.is_grad_enabled():
+                series = terminating_series(*mats)
             return mats, self.H, self.R, self.D, series
 
     def _online_step_model(
