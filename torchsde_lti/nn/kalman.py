@@ -462,6 +462,11 @@ class KalmanFilter(ValidateArgs, nn.Module):
         """
         if mats is None:
             mats = self.sde.matrices()
+        if tracing() and self.discretization_method == "doubling":  # an exported sequence program
+            index = structural_nilpotency(self.sde)
+            series = None if index is None else terminating_series(*mats, index=index)
+            if series is not None:  # an integrator chain: its closed form, no doubling schedule
+                return Discrete(*series(dt))
         # a length-1 time axis in the matrices lines a parameter batch up with dt (..., T)
         m = SDEMatrices(*(None if x is None else x.unsqueeze(-3) for x in mats))
         if not series_layout and not self.unique_dt:
