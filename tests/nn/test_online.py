@@ -381,14 +381,14 @@ def test_structural_series_for_integrator_chains():
     """Integrator chains (integrated_wiener: constant velocity, acceleration) fix F's
     nilpotency by their structure, so a traced program forms the series without reading F's
     values; the structural series equals the one found from the values. Other models: None."""
-    from torchsde_lti.nn._online import structural_nilpotency, terminating_series
+    from torchsde_lti.nn._online import terminating_series
 
     for sde, order in (
         (tl.models.constant_velocity(dim=2, q=0.3, dtype=F64), 2),
         (tl.models.constant_acceleration(dim=1, q=2.0, dtype=F64), 3),
         (tl.models.integrated_wiener(order=1, dim=2, dtype=F64), 1),
     ):
-        assert structural_nilpotency(sde) == order
+        assert sde.structural_nilpotency() == order
         mats = sde.matrices()
         with torch.no_grad():
             by_values = terminating_series(*mats)
@@ -398,6 +398,6 @@ def test_structural_series_for_integrator_chains():
         for got, want in zip(by_structure(dt), by_values(dt)):
             torch.testing.assert_close(got, want, rtol=0, atol=0)
     for sde in (tl.models.singer(0.5, 1.0, dtype=F64), tl.models.ornstein_uhlenbeck(0.5, 1.0, dtype=F64)):
-        assert structural_nilpotency(sde) is None
+        assert sde.structural_nilpotency() is None
     cv = tl.models.constant_velocity(dim=1, dtype=F64).matrices()
-    assert structural_nilpotency(tl.LTISDE(cv.F, cv.L, cv.Qc)) is None  # a free F may be trained away from nilpotent
+    assert tl.LTISDE(cv.F, cv.L, cv.Qc).structural_nilpotency() is None  # a free F may be trained away from nilpotent

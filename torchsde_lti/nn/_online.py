@@ -10,7 +10,6 @@ from typing import NamedTuple, TypeVar
 
 import torch
 from torch import Tensor, nn
-from torch.nn.utils import parametrize
 
 from torchsde_lti.core.validation import as_float_tensor, shape_str, tracing
 from torchsde_lti.filters import online
@@ -168,15 +167,3 @@ def terminating_series(
         rows.append(torch.cat(blocks).reshape(-1))
     exponents = torch.arange(2 * k, dtype=F.dtype, device=F.device)
     return TerminatingSeries(torch.stack(rows), exponents, nu, n, p)
-
-
-def structural_nilpotency(sde: nn.Module) -> int | None:
-    """F's nilpotency index when the model's structure fixes it whatever its parameter values:
-    an integrator chain (:func:`~torchsde_lti.models.integrated_wiener`: F a fixed buffer with
-    ones on each axis's superdiagonal, F^order = 0); None for every other model."""
-    from torchsde_lti.models._kinematics import IntegratedWiener  # (models build on nn: imported on use)
-
-    if parametrize.type_before_parametrizations(sde) is not IntegratedWiener:
-        return None
-    order: int = sde.__dict__["order"]  # a plain int attribute of the chain
-    return order

@@ -83,7 +83,6 @@ from torchsde_lti.nn._online import (
     TerminatingSeries,
     evaluated,
     online_state,
-    structural_nilpotency,
     terminating_series,
 )
 from torchsde_lti.nn._register import register_tensor
@@ -463,7 +462,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
         if mats is None:
             mats = self.sde.matrices()
         if tracing() and self.discretization_method == "doubling":  # an exported sequence program
-            index = structural_nilpotency(self.sde)
+            index = self.sde.structural_nilpotency()
             series = None if index is None else terminating_series(*mats, index=index)
             if series is not None:  # an integrator chain: its closed form, no doubling schedule
                 return Discrete(*series(dt))
@@ -531,7 +530,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
             mats = self.sde.matrices()
             series = None
             if tracing():
-                index = structural_nilpotency(self.sde)
+                index = self.sde.structural_nilpotency()
                 series = None if index is None else terminating_series(*mats, index=index)
             elif not torch.is_grad_enabled():
                 series = terminating_series(*mats)
