@@ -1,7 +1,10 @@
 """Where one online step's time goes (B = 1, constant velocity in 2-D, float64, 1 thread).
 
 Eager: torch.profiler's top-level aten calls and the CPU time of each part of ``kf.step``
-(the model's matrices, the exact discretisation of the one gap, ``filters.kalman_step``).
+(the per-version cache's key, the closed-form discretisation of the one gap of the nilpotent
+CV model, ``filters.kalman_step``), and of what the step does not run each time (the model's
+matrices, once per parameter version; core's discretisation, which a model whose F has no
+closed form takes).
 AOTInductor: the whole step's package, a package of ``filters.kalman_step`` alone (A, Q
 given: no discretisation inside), each called through the package's Python wrapper and
 through its C++ loader directly (``.loader.run``), against filterpy's predict + update, all
@@ -34,6 +37,8 @@ from bench_online import (  # noqa: E402
 )
 
 import torchsde_lti as tl  # noqa: E402
+from torchsde_lti.nn import model_version  # noqa: E402
+from torchsde_lti.nn._online import terminating_series  # noqa: E402
 
 
 class UpdateOnly(torch.nn.Module):
@@ -66,12 +71,19 @@ def main() -> None:
     with torch.no_grad():
         mats = kf.sde.matrices()
         d = discretize(mats.F, mats.L, mats.Qc, dt, validate_args=False)
+        series = terminating_series(*mats)
+        assert series is not None  # constant velocity: F² = 0
+        A, Q, _ = series(dt)
         H, R = kf.H.detach().clone(), kf.R.detach().clone()
         parts = {
             "kf.step": lambda: kf.step(state, y, dt),
-            "sde.matrices()": lambda: kf.sde.matrices(),
-            "discretize (1 gap)": lambda: discretize(mats.F, mats.L, mats.Qc, dt, validate_args=False),
-            "filters.kalman_step": lambda: tl.filters.kalman_step(state, y, d.A, d.Q, H, R),
+            "model_version(kf) (cache key)": lambda: model_version(kf),
+            "closed-form series (1 gap; the step's)": lambda: series(dt),
+            "filters.kalman_step": lambda: tl.filters.kalman_step(state, y, A, Q, H, R),
+            "sde.matrices() (once per version)": lambda: kf.sde.matrices(),
+            "core discretize (1 gap; F without closed form)": lambda: discretize(
+                mats.F, mats.L, mats.Qc, dt, validate_args=False
+            ),
         }
         lines += [
             f"torch {torch.__version__}, 1 thread, float64, CPU-time medians; load average {load:.1f} on "
@@ -82,6 +94,25 @@ def main() -> None:
         ]
         for name, fn in parts.items():
             t = median_s(fn, 201, inner=5)
+            n, common = top_level_calls(fn)
+            lines.append(f"| {name} | {t * 1e6:.0f} µs | {n} | {', '.join(f'{k} {v}' for k, v in common[:5])} |")
+
+        # B = 1000 tracks, each with its own dt: the same parts (the scalar updates of the
+        # sequence loop run for more than SMALL_BATCH tracks)
+        mB, cB, yB, dtB = step_args(1000, 2)
+        stB = tl.KalmanState(mB, cB)
+        AB, QB, _ = series(dtB)
+        lines += [
+            "",
+            "| eager part, B = 1000 (own dt) | CPU time | top-level aten calls | most frequent |",
+            "|---|---:|---:|---|",
+        ]
+        for name, fn in {
+            "kf.step": lambda: kf.step(stB, yB, dtB),
+            "closed-form series (1000 gaps)": lambda: series(dtB),
+            "filters.kalman_step (scalar Joseph updates)": lambda: tl.filters.kalman_step(stB, yB, AB, QB, H, R),
+        }.items():
+            t = median_s(fn, 51, inner=2)
             n, common = top_level_calls(fn)
             lines.append(f"| {name} | {t * 1e6:.0f} µs | {n} | {', '.join(f'{k} {v}' for k, v in common[:5])} |")
 

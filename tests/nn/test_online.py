@@ -293,3 +293,111 @@ def test_imm_step_follows_parameter_changes_without_gradients():
     want = imm.step(state, y, dt)[1].log_likelihood.detach()  # evaluated afresh (gradients on)
     assert not torch.allclose(after, before)
     torch.testing.assert_close(after, want, rtol=0, atol=1e-12)
+
+
+def _cv_closed_form(dt: float, q: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The textbook constant-velocity A, Q (one axis, state [x, v]): [[1, dt], [0, 1]] and
+    q [[dt³/3, dt²/2], [dt²/2, dt]]."""
+    A = torch.tensor([[1.0, dt], [0.0, 1.0]], dtype=F64)
+    Q = q * torch.tensor([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]], dtype=F64)
+    return A, Q
+
+
+def test_terminating_series_equals_closed_form_and_van_loan():
+    """The online step's closed-form discretisation of a nilpotent F (formed once per
+    parameter version) equals the textbook constant-velocity A, Q and torch.matrix_exp of
+    Van Loan's block (core's method="matrix_exp") for integrator chains of order 1-3, with an
+    input matrix B and for F = 0; dt of any shape (0-dim, a batch, 0 and large gaps)."""
+    from torchsde_lti.core.discretization import discretize
+    from torchsde_lti.nn._online import terminating_series
+
+    cv = tl.models.constant_velocity(dim=1, q=0.7, dtype=F64).matrices()
+    series = terminating_series(*cv)
+    assert series is not None
+    for h in (0.0, 0.3, 1.7, 250.0):
+        A, Q, G = series(torch.tensor(h, dtype=F64))
+        A_want, Q_want = _cv_closed_form(h, 0.7)
+        assert G is None and A.shape == Q.shape == (2, 2)
+        torch.testing.assert_close(A, A_want, rtol=1e-14, atol=0)
+        torch.testing.assert_close(Q, Q_want, rtol=1e-13, atol=1e-300)
+    g = torch.Generator().manual_seed(4)
+    B_in = torch.randn(4, 2, generator=g, dtype=F64)
+    models = [
+        tl.models.constant_acceleration(dim=2, q=0.4, dtype=F64).matrices(),
+        tl.models.integrated_wiener(order=3, dim=1, q=1.3, dtype=F64).matrices(),
+        tl.LTISDE(cv.F.new_tensor([[0.0, 2.0], [0.0, 0.0]]), cv.L, cv.Qc, B_in[:2]).matrices(),
+        tl.LTISDE(
+            torch.zeros(4, 4, dtype=F64), torch.eye(4, dtype=F64), 0.5 * torch.eye(4, dtype=F64), B_in
+        ).matrices(),
+    ]
+    few = torch.rand(3, 5, generator=g, dtype=F64) * 4.0  # batch-first results
+    few[0, 0] = 0.0
+    many = torch.rand(2, 100, generator=g, dtype=F64) * 4.0  # > SMALL_BATCH: batch-last storage
+    for mats in models:
+        series = terminating_series(*mats)
+        assert series is not None
+        for dt in (few, many):
+            A, Q, G = series(dt)
+            want = discretize(*mats[:3], dt, B=mats.B, method="matrix_exp")
+            n = mats.F.shape[-1]
+            assert A.shape == Q.shape == (*dt.shape, n, n)
+            torch.testing.assert_close(A, want.A, rtol=1e-12, atol=1e-12)
+            torch.testing.assert_close(Q, want.Q, rtol=1e-12, atol=1e-12)
+            if mats.B is None:
+                assert G is None
+            else:
+                torch.testing.assert_close(G, want.G, rtol=1e-12, atol=1e-12)
+
+
+def test_terminating_series_only_for_one_nilpotent_parameter_set():
+    """F not nilpotent (Singer, OU: core's doubling then) or a batch of parameters: None."""
+    from torchsde_lti.nn._online import nilpotency_index, terminating_series
+
+    assert terminating_series(*tl.models.singer(0.5, 1.0, dtype=F64).matrices()) is None
+    assert terminating_series(*tl.models.ornstein_uhlenbeck(0.5, 1.0, dtype=F64).matrices()) is None
+    cv = tl.models.constant_velocity(dim=1, dtype=F64).matrices()
+    assert terminating_series(cv.F.expand(3, 2, 2), cv.L, cv.Qc, None) is None
+    assert nilpotency_index(torch.zeros(3, 3)) == 1
+    assert nilpotency_index(torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])) == 3
+    assert nilpotency_index(torch.tensor([[1.0, 1.0], [-1.0, -1.0]])) == 2  # zero trace, not triangular
+    assert nilpotency_index(torch.tensor([[1.0, 0.0], [0.0, -1.0]])) is None  # zero trace, not nilpotent
+
+
+def test_step_of_a_model_that_is_not_nilpotent_takes_core_discretisation():
+    """A Singer model's step (no closed-form series) equals the sequence filter too."""
+    sde = tl.models.singer(0.8, 0.5, dim=2, dtype=F64)
+    kf = tl.KalmanFilter(sde, torch.eye(6, dtype=F64)[[0, 3]], torch.eye(2, dtype=F64) * 0.2, algorithm="sequential")
+    y, dt, mask = _series(3, 15, seed=5)
+    with torch.no_grad():
+        ref = kf(y, dt, mask=mask)
+        state = kf.initial_state(3)
+        for k in range(15):
+            state, out = kf.step(state, y[:, k], dt[:, k], mask=mask[:, k])
+            torch.testing.assert_close(out.log_likelihood, ref.step_log_likelihood[:, k], rtol=0, atol=1e-12)
+        torch.testing.assert_close(state.cov, ref.cov[:, -1], rtol=0, atol=1e-12)
+
+
+def test_structural_series_for_integrator_chains():
+    """Integrator chains (integrated_wiener: constant velocity, acceleration) fix F's
+    nilpotency by their structure, so a traced program forms the series without reading F's
+    values; the structural series equals the one found from the values. Other models: None."""
+    from torchsde_lti.nn._online import terminating_series
+
+    for sde, order in (
+        (tl.models.constant_velocity(dim=2, q=0.3, dtype=F64), 2),
+        (tl.models.constant_acceleration(dim=1, q=2.0, dtype=F64), 3),
+        (tl.models.integrated_wiener(order=1, dim=2, dtype=F64), 1),
+    ):
+        assert sde.structural_nilpotency() == order
+        mats = sde.matrices()
+        with torch.no_grad():
+            by_values = terminating_series(*mats)
+        by_structure = terminating_series(*mats, index=order)
+        assert by_values is not None and by_structure is not None
+        dt = torch.tensor([0.0, 0.4, 3.0], dtype=F64)
+        for got, want in zip(by_structure(dt), by_values(dt)):
+            torch.testing.assert_close(got, want, rtol=0, atol=0)
+    for sde in (tl.models.singer(0.5, 1.0, dtype=F64), tl.models.ornstein_uhlenbeck(0.5, 1.0, dtype=F64)):
+        assert sde.structural_nilpotency() is None
+    cv = tl.models.constant_velocity(dim=1, dtype=F64).matrices()
+    assert tl.LTISDE(cv.F, cv.L, cv.Qc).structural_nilpotency() is None  # a free F may be trained away from nilpotent

@@ -132,14 +132,24 @@ def _batch_last(
     return Ab, Qb, Pb, mean_b, cbl
 
 
+#: Reports with at most this many values are checked for NaN as Python floats.
+_FEW_VALUES = 64
+
+
 def _online_observed(y: Tensor, mask: Tensor | None) -> tuple[Tensor | None, Tensor]:
     """(obs, y0) of one report: obs (..., m) bool (None: all observed, known without a
     device sync only on the CPU), y0 = y with missing entries 0. Traced and off the CPU the
     masked path always runs (no data-dependent branch, no host sync; the same values)."""
-    nan = torch.isnan(y)
     obs: Tensor | None = None
-    if tracing() or y.device.type != "cpu" or bool(nan.any()):
-        obs = ~nan
+    if tracing() or y.device.type != "cpu":
+        obs = ~torch.isnan(y)
+    elif y.numel() <= _FEW_VALUES:  # a few reports: read on the host (one call, no reduction)
+        if any(v != v for v in y.reshape(-1).tolist()):
+            obs = ~torch.isnan(y)
+    else:
+        nan = torch.isnan(y)
+        if bool(nan.any()):
+            obs = ~nan
     if mask is not None:
         obs = mask if obs is None else (obs & mask)
     y0 = y if obs is None else torch.where(obs, y, torch.zeros((), dtype=y.dtype, device=y.device))
@@ -206,24 +216,25 @@ def _joint_step(
     variance in S, so K has zero columns there and H, R enter the Joseph form unmasked."""
     n, m = A.shape[-1], y0.shape[-1]
     b = math.prod(mb)  # symbolic-safe (Size.numel() specialises a traced batch)
+    traced = tracing()
 
     def flat(x: Tensor, *event: int) -> Tensor:
         if x.dim() == len(event):  # shared by every track: a stride-0 view
             return x.expand(b, *event)
-        if not tracing() and x.dim() == len(event) + 1 and x.shape[0] == b:  # already (b, *event)
+        if not traced and x.dim() == len(event) + 1 and x.shape[0] == b:  # already (b, *event)
             return x
         return x.expand(*mb, *event).reshape(b, *event)
 
     A3, Q3, H3, R3 = flat(A, n, n), flat(Q, n, n), flat(H, m, n), flat(R, m, m)
+    Ht = H3.mT
     mean = flat(state.mean, n).unsqueeze(-1)
     pm = torch.bmm(A3, mean) if c is None else torch.baddbmm(flat(c, n).unsqueeze(-1), A3, mean)  # (b, n, 1)
-    pc = sym(torch.baddbmm(Q3, torch.bmm(A3, flat(state.cov, n, n)), A3.mT))
+    pc = _sym(torch.baddbmm(Q3, torch.bmm(A3, flat(state.cov, n, n)), A3.mT, beta=0.5, alpha=0.5))
     HP = torch.bmm(H3, pc)  # (b, m, n)
-    S_all = sym(torch.baddbmm(R3, HP, H3.mT))  # every component (the output)
+    S_all = _sym(torch.baddbmm(R3, HP, Ht, beta=0.5, alpha=0.5))  # every component (the output)
     e = torch.baddbmm(flat(y0, m).unsqueeze(-1), H3, pm, alpha=-1.0)  # (b, m, 1)
     if obs is None:
         S = S_all
-        n_obs: Tensor | float = float(m)
         observed = torch.ones((*mb, m), dtype=torch.bool, device=y0.device)
     else:
         observed = obs.expand(*mb, m)
@@ -231,32 +242,43 @@ def _joint_step(
         S = S_all * torch.bmm(o, o.mT) + torch.diag_embed(1.0 - o.squeeze(-1))
         HP = HP * o
         e = e * o
-        n_obs = o.sum((-2, -1))
-    if tracing():
+    if traced:
         # unrolled over m (elementwise ops an AOTInductor program fuses; its calls of the
         # LAPACK kernels cost tens to hundreds of µs each through the fallback path)
         L = cholesky(S)
         W = solve_lower(L, torch.cat([HP, e], -1))  # L⁻¹ [H P⁻, e]
         Kt = solve_upper_t(L, W[..., :n])  # Kᵀ = S⁻¹ H P⁻ (b, m, n)
+        K = Kt.mT
     else:
         L = torch.linalg.cholesky_ex(S)[0]
         W = torch.linalg.solve_triangular(L, torch.cat([HP, e], -1), upper=False)
-        Kt = torch.linalg.solve_triangular(L.mT, W[..., :n], upper=True)
-    z = W[..., n:]  # (b, m, 1) the whitened innovation
-    filt_mean = torch.baddbmm(pm, Kt.mT, e)
-    MP = torch.baddbmm(pc, Kt.mT, HP, alpha=-1.0)  # (I − K H) P⁻
-    P = torch.baddbmm(MP, torch.bmm(MP, H3.mT), Kt, alpha=-1.0)  # … (I − K H)ᵀ
-    P = sym(torch.baddbmm(P, Kt.mT, torch.bmm(R3, Kt)))  # + K R Kᵀ
-    ll = torch.bmm(z.mT, z).reshape(b).mul_(-0.5) - torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
-    ll = ll - (0.5 * LOG_2PI) * n_obs
-    return KalmanState(filt_mean.reshape(*mb, n), P.reshape(*mb, n, n)), KalmanStep(
-        pm.reshape(*mb, n),
-        pc.reshape(*mb, n, n),
-        e.reshape(*mb, m),
-        S_all.reshape(*mb, m, m),
-        ll.reshape(mb),
-        observed,
+        K = torch.linalg.solve_triangular(L, W[..., :n].mT, upper=False, left=False)  # K L = (L⁻¹ H P⁻)ᵀ
+        Kt = K.mT
+    z = W[..., n]  # (b, m) the whitened innovation
+    filt_mean = torch.baddbmm(pm, K, e)
+    MP = torch.baddbmm(pc, K, HP, alpha=-1.0)  # (I − K H) P⁻
+    P = torch.baddbmm(MP, torch.bmm(MP, Ht), Kt, alpha=-1.0)  # … (I − K H)ᵀ
+    P = _sym(torch.baddbmm(P, K, torch.bmm(R3, Kt), beta=0.5, alpha=0.5))  # + K R Kᵀ
+    # −log N(e; 0, S) per observed component: log L_jj + z_j²/2 + log(2π)/2 (an unobserved
+    # component has L_jj = 1, z_j = 0: it adds log(2π)/2, taken off with n_obs)
+    nll = torch.addcmul(torch.log(torch.diagonal(L, dim1=-2, dim2=-1)), z, z, value=0.5).sum(-1)
+    if obs is None:
+        ll = torch.rsub(nll, -0.5 * LOG_2PI * m)
+    else:
+        ll = torch.add(nll, o.sum((-2, -1)), alpha=0.5 * LOG_2PI).neg_()
+
+    def shaped(x: Tensor, *event: int) -> Tensor:
+        return x if not traced and x.shape == (*mb, *event) else x.reshape((*mb, *event))
+
+    return KalmanState(shaped(filt_mean, n), shaped(P, n, n)), KalmanStep(
+        shaped(pm, n), shaped(pc, n, n), shaped(e, m), shaped(S_all, m, m), shaped(ll), observed
     )
+
+
+def _sym(half: Tensor) -> Tensor:
+    """``X + Xᵀ`` of ``X = P / 2`` (the caller's product scaled by 1/2 with its α and β):
+    ``(P + Pᵀ) / 2``, exactly symmetric, in two torch calls."""
+    return half + half.mT
 
 
 def _scalar_step(

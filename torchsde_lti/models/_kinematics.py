@@ -82,6 +82,10 @@ class IntegratedWiener(ChainSDE):
         self._add_positive("q", q, dtype, device)
         self._init_chain(order, dim, dtype, device)
 
+    def structural_nilpotency(self) -> int:
+        """``order``: F holds ones on each axis's superdiagonal (a fixed buffer), F^order = 0."""
+        return self.order
+
     def _build(self) -> SDEMatrices:
         q = self.q
         F = self._chain.expand(*q.shape, *self._chain.shape)

@@ -79,7 +79,12 @@ from torchsde_lti.filters.online import (
     kalman_predict,
     kalman_step,
 )
-from torchsde_lti.nn._online import evaluated, online_state
+from torchsde_lti.nn._online import (
+    TerminatingSeries,
+    evaluated,
+    online_state,
+    terminating_series,
+)
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_outcome, check_values, online_report
 from torchsde_lti.nn.parametrizations import PositiveDefinite
@@ -456,6 +461,11 @@ class KalmanFilter(ValidateArgs, nn.Module):
         """
         if mats is None:
             mats = self.sde.matrices()
+        if tracing() and self.discretization_method == "doubling":  # an exported sequence program
+            index = self.sde.structural_nilpotency()
+            series = None if index is None else terminating_series(*mats, index=index)
+            if series is not None:  # an integrator chain: its closed form, no doubling schedule
+                return Discrete(*series(dt))
         # a length-1 time axis in the matrices lines a parameter batch up with dt (..., T)
         m = SDEMatrices(*(None if x is None else x.unsqueeze(-3) for x in mats))
         if not series_layout and not self.unique_dt:
@@ -488,36 +498,58 @@ class KalmanFilter(ValidateArgs, nn.Module):
             pred_mean, pred_cov, innovation (..., m), innovation_cov (..., m, m),
             log_likelihood (...), observed).
         """
-        mats, H, R, D = evaluated(self, self._online_model)
+        mats, H, R, D, series = evaluated(self, self._online_model)
         state, dt, u = self._check_state(state, dt, u, mats)
         y, mask = online_report(y, mask, H, mats.F.dtype, mats.F.device)
         D = D if u is not None else None
         if self.validate_args:
             self._check_values(mats, dt, y=y, u=u, H=H, R=R, D=D, mean=state.mean, cov=state.cov)
-        A, Q, c = self._online_step_model(mats, dt, u)
+        A, Q, c = self._online_step_model(mats, dt, u, series)
         if D is not None:
             y = y - matvec(D, u)
         return kalman_step(state, y, A, Q, H, R, c, mask)
 
     def predict(self, state: KalmanState, dt: Tensor | float, u: Tensor | None = None) -> KalmanState:
         """Prediction only, each track over its own dt (...): ``m⁻ = A m + G u``, ``P⁻ = A P Aᵀ + Q``."""
-        mats = evaluated(self, self._online_model)[0]
+        mats, _, _, _, series = evaluated(self, self._online_model)
         state, dt, u = self._check_state(state, dt, u, mats)
         if self.validate_args:
             self._check_values(mats, dt, u=u, mean=state.mean, cov=state.cov)
-        return kalman_predict(state, *self._online_step_model(mats, dt, u))
+        return kalman_predict(state, *self._online_step_model(mats, dt, u, series))
 
-    def _online_model(self) -> tuple[SDEMatrices, Tensor, Tensor, Tensor | None]:
-        """(SDE matrices, H, R, D), each parametrisation evaluated once."""
+    def _online_model(self) -> tuple[SDEMatrices, Tensor, Tensor, Tensor | None, TerminatingSeries | None]:
+        """(SDE matrices, H, R, D, the model's terminating series or None), each
+        parametrisation evaluated once. The series (a nilpotent F's closed-form discretisation,
+        its dt-independent matrices formed here): eagerly without gradients, where
+        :func:`~torchsde_lti.nn._online.evaluated` caches this per parameter version (F's
+        nilpotency read from its values); while traced (torch.export of
+        :class:`~torchsde_lti.OnlineStep`) for a model whose structure makes F nilpotent, an
+        integrator chain (the series then inside the program, in place of the doubling's
+        static schedule); otherwise None (core's discretisation)."""
         with parametrize.cached():
-            return self.sde.matrices(), self.H, self.R, self.D
+            mats = self.sde.matrices()
+            series = None
+            if tracing():
+                index = self.sde.structural_nilpotency()
+                series = None if index is None else terminating_series(*mats, index=index)
+            elif not torch.is_grad_enabled():
+                series = terminating_series(*mats)
+            return mats, self.H, self.R, self.D, series
 
     def _online_step_model(
-        self, mats: SDEMatrices, dt: Tensor, u: Tensor | None
+        self, mats: SDEMatrices, dt: Tensor, u: Tensor | None, series: TerminatingSeries | None = None
     ) -> tuple[Tensor, Tensor, Tensor | None]:
-        """(A, Q, G u or None) of each track's gap dt (...): one batched exact discretisation."""
-        d = discretize(mats.F, mats.L, mats.Qc, dt, B=mats.B, method=self.discretization_method, validate_args=False)
-        return d.A, d.Q, (matvec(d.G, u) if (u is not None and d.G is not None) else None)
+        """(A, Q, G u or None) of each track's gap dt (...): one batched exact discretisation,
+        for a nilpotent F with the doubling method the model's ``series`` (the closed form that
+        core's doubling also takes for it; no scaling, no value checks, the same values to
+        rounding), else core's :func:`~torchsde_lti.core.discretize`."""
+        if series is not None and self.discretization_method == "doubling":
+            A, Q, G = series(dt)
+        else:
+            A, Q, G = discretize(
+                mats.F, mats.L, mats.Qc, dt, B=mats.B, method=self.discretization_method, validate_args=False
+            )
+        return A, Q, (matvec(G, u) if (u is not None and G is not None) else None)
 
     def _check_state(
         self, state: KalmanState | tuple[Tensor, Tensor], dt: Tensor | float, u: Tensor | None, mats: SDEMatrices

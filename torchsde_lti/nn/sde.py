@@ -258,6 +258,13 @@ class LTISDE(ValidateArgs, nn.Module):
         m = self.matrices()
         return stationary_covariance(m.F, m.L, m.Qc, validate_args=self.validate_args)
 
+    def structural_nilpotency(self) -> int | None:
+        """F's nilpotency index k (F^k = 0) when the model's structure fixes it whatever the
+        parameter values (an integrator chain), else None (the default: a free F may be
+        trained away from nilpotent). With it, traced programs (torch.export) discretise by
+        F's terminating series without reading F's values."""
+        return None
+
     def prior_covariance(self, mats: SDEMatrices | None = None, *, validate_args: bool | None = None) -> Tensor:
         """The covariance a filter starts from when it is given none: P∞ (..., n, n), the
         stationary covariance (the process has run for all past time).
