@@ -351,7 +351,8 @@ def test_terminating_series_equals_closed_form_and_van_loan():
 
 def test_terminating_series_only_for_one_nilpotent_parameter_set():
     """F not nilpotent (Singer, OU: core's doubling then) or a batch of parameters: None."""
-    from torchsde_lti.nn._online import nilpotency_index, terminating_series
+    from torchsde_lti.core.linalg import nilpotency_index
+    from torchsde_lti.nn._online import terminating_series
 
     assert terminating_series(*tl.models.singer(0.5, 1.0, dtype=F64).matrices()) is None
     assert terminating_series(*tl.models.ornstein_uhlenbeck(0.5, 1.0, dtype=F64).matrices()) is None

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core._power_series import _flat, few_elements_doubling, frobenius_norm
-from torchsde_lti.core.linalg import bl_matmul
+from torchsde_lti.core.linalg import bl_matmul, nilpotency_index
 from torchsde_lti.core.thresholds import (
     BATCH_LAST_MAX_DIM,
     BATCH_LAST_MIN_ELEMENTS,
@@ -312,22 +312,6 @@ def _finish(
     A, Q, G = (lo.take([p[i] for p in parts], order, batch, batch_last, sym=i == 1) for i in range(3))
     assert A is not None
     return A, Q, G
-
-
-def nilpotency_index(F: Tensor) -> int | None:
-    """Smallest k ≤ n with F^k = 0 exactly (every batch element), else None. A non-zero trace
-    settles most cases without matrix powers."""
-    n = F.shape[-1]
-    with torch.no_grad():
-        if bool(torch.diagonal(F, dim1=-2, dim2=-1).sum(-1).ne(0).any()):
-            return None
-        power = F
-        for k in range(1, n + 1):
-            if not bool(power.any()):
-                return k
-            if k < n:
-                power = F @ power
-    return None
 
 
 def _terms(F: Tensor, X: Tensor, count: int, lyapunov: bool = False) -> Tensor:

@@ -24,6 +24,7 @@ __all__ = [
     "cholesky",
     "from_batch_last",
     "matvec",
+    "nilpotency_index",
     "solve_lower",
     "solve_upper_t",
     "sym",
@@ -211,3 +212,19 @@ def bl_sym_into(P: Tensor, out: Tensor | None) -> Tensor:
         return 0.5 * (P + P.transpose(0, 1))
     torch.add(P, P.transpose(0, 1), out=out)
     return out.mul_(0.5)
+
+
+def nilpotency_index(F: Tensor) -> int | None:
+    """Smallest k ≤ n with F^k = 0 exactly (every batch element), else None. A non-zero trace
+    settles most cases without matrix powers."""
+    n = F.shape[-1]
+    with torch.no_grad():
+        if bool(torch.diagonal(F, dim1=-2, dim2=-1).sum(-1).ne(0).any()):
+            return None
+        power = F
+        for k in range(1, n + 1):
+            if not bool(power.any()):
+                return k
+            if k < n:
+                power = F @ power
+    return None

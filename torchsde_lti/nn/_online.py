@@ -11,6 +11,7 @@ from typing import NamedTuple, TypeVar
 import torch
 from torch import Tensor, nn
 
+from torchsde_lti.core.linalg import nilpotency_index
 from torchsde_lti.core.validation import as_float_tensor, shape_str, tracing
 from torchsde_lti.filters import online
 from torchsde_lti.filters.online import KalmanState
@@ -110,20 +111,6 @@ class TerminatingSeries(NamedTuple):
             powers = torch.linalg.vander(x.squeeze(-1), N=self.exponents.shape[0])  # (N, 2k): x^i
             out = (self.coeff.mT @ powers.mT).view(rows, n, *dt.shape).movedim((0, 1), (-2, -1))
         return out[..., :n, :], out[..., n : 2 * n, :], (out[..., 2 * n :, :].mT if self.p else None)
-
-
-def nilpotency_index(F: Tensor) -> int | None:
-    """The smallest k ≤ n with F^k = 0 exactly, for one F (n, n); None when F is not nilpotent
-    (a non-zero trace rules it out without matrix powers)."""
-    n = F.shape[-1]
-    if bool(torch.diagonal(F).sum() != 0):
-        return None
-    power = F
-    for k in range(1, n + 1):
-        if not bool(power.any()):
-            return k
-        power = F @ power
-    return None
 
 
 def terminating_series(
