@@ -402,3 +402,22 @@ def test_structural_series_for_integrator_chains():
         assert sde.structural_nilpotency() is None
     cv = tl.models.constant_velocity(dim=1, dtype=F64).matrices()
     assert tl.LTISDE(cv.F, cv.L, cv.Qc).structural_nilpotency() is None  # a free F may be trained away from nilpotent
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_series_keeps_a_finite_transition_over_gaps_beyond_the_float_range_of_its_powers(dtype) -> None:
+    """A constant-acceleration model over gaps whose x^5 overflows float32: A (exact, finite)
+    equals core's, never inf · 0 = NaN; every batch size (joint and scalar layouts)."""
+    from torchsde_lti.nn._online import terminating_series
+
+    sde = tl.models.constant_acceleration(dim=1, q=1.0, dtype=dtype)
+    m = sde.matrices()
+    for b in (1, 300):
+        dt = torch.logspace(6, 12, b, dtype=dtype) if b > 1 else torch.tensor([1e9], dtype=dtype)
+        with torch.no_grad():
+            series = terminating_series(*m)
+            assert series is not None
+            A, Q, _ = series(dt)
+            ref = tl.discretize(m.F, m.L, m.Qc, dt, validate_args=False)
+        assert bool(A.isfinite().all()) and not bool(Q.isnan().any())
+        torch.testing.assert_close(A, ref.A, rtol=1e-6, atol=0)

@@ -97,7 +97,9 @@ class TerminatingSeries(NamedTuple):
 
     def __call__(self, dt: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
         """(A (..., n, n), Q (..., n, n), G (..., n, p) or None) over dt (...). Q is symmetric
-        to rounding (the filters symmetrise their predicted covariances).
+        to rounding (the filters symmetrise their predicted covariances). Where an exact entry
+        exceeds the float range it saturates near the largest float instead of becoming inf
+        (A and G stay exact wherever they are finite).
 
         Layout: for at most :data:`~torchsde_lti.filters.online.SMALL_BATCH` steps (the
         online step's joint update) and while traced plain batch-first tensors; for more,
@@ -105,10 +107,12 @@ class TerminatingSeries(NamedTuple):
         updates."""
         n, rows = self.n, 2 * self.n + self.p
         x = (dt * self.nu).reshape(-1, 1)
+        big = torch.finfo(x.dtype).max  # (a power beyond the float range saturates: its zero
+        # coefficients, A's for i ≥ k, then give 0, not inf · 0)
         if tracing() or x.shape[0] <= online.SMALL_BATCH:
-            out = (torch.pow(x, self.exponents) @ self.coeff).view(*dt.shape, rows, n)
+            out = (torch.pow(x, self.exponents).clamp(-big, big) @ self.coeff).view(*dt.shape, rows, n)
         else:  # the powers by products (Vandermonde rows), the result batch-last
-            powers = torch.linalg.vander(x.squeeze(-1), N=self.exponents.shape[0])  # (N, 2k): x^i
+            powers = torch.linalg.vander(x.squeeze(-1), N=self.exponents.shape[0]).clamp(-big, big)  # (N, 2k): x^i
             out = (self.coeff.mT @ powers.mT).view(rows, n, *dt.shape).movedim((0, 1), (-2, -1))
         return out[..., :n, :], out[..., n : 2 * n, :], (out[..., 2 * n :, :].mT if self.p else None)
 
