@@ -27,6 +27,7 @@ from torch import Tensor
 
 from torchsde_lti.core._power_series import _flat, few_elements_doubling, frobenius_norm
 from torchsde_lti.core.linalg import bl_matmul, nilpotency_index
+from torchsde_lti.core.series import series_matrices, terminating_series
 from torchsde_lti.core.thresholds import (
     BATCH_LAST_MAX_DIM,
     BATCH_LAST_MIN_ELEMENTS,
@@ -314,15 +315,6 @@ def _finish(
     return A, Q, G
 
 
-def _terms(F: Tensor, X: Tensor, count: int, lyapunov: bool = False) -> Tensor:
-    """F^k X, or with ``lyapunov`` 𝓛^k(X) (𝓛(X) = F X + X Fᵀ), for k < count: (count, n, c)."""
-    terms = [X]
-    for _ in range(1, count):
-        FX = F @ terms[-1]
-        terms.append(FX + FX.mT if lyapunov else FX)
-    return torch.stack(terms)
-
-
 def shared_doubling(
     F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor, batch_last: bool = False
 ) -> tuple[Tensor, Tensor | None, Tensor | None]:
@@ -336,10 +328,7 @@ def shared_doubling(
         E_h = Σ_{k≥1} r_k F̃^k,   Q_h = h Σ_k r_k 𝓛̃^k(W) / (k+1),   G_h = h Σ_k r_k F̃^k B / (k+1)
 
     (one matrix product for the whole batch, batch-last), then the sorted doubling. A nilpotent
-    F of index m takes its terminating series at the full step: m terms for A and G and
-    2m − 1 for Q (exact), and with a gradient for F the 2m, 3m − 1, 2m terms whose derivative
-    is not zero; the coefficients of terms that vanish in the forward pass are clamped to the
-    float range, so a step whose unneeded coefficients overflow gives no inf · 0.
+    F takes its terminating series at the full step (:mod:`torchsde_lti.core.series`).
     """
     batch = dt.shape
     N, n = dt.numel(), F.shape[-1]
@@ -350,88 +339,41 @@ def shared_doubling(
         nu = torch.maximum(absF.sum(-2).amax(-1), absF.sum(-1).amax(-1))
         nu = torch.where(nu > 0, nu, torch.ones_like(nu))
     index = nilpotency_index(F)
+    if index is not None:  # its terminating series at the full step: no doubling
+        gradient_terms = torch.is_grad_enabled() and F.requires_grad
+        return terminating_series(F, W, B, index, gradient_terms)(dt, batch_last)
     h = dtf = dt.reshape(N)
     order: Tensor | None = None
     counts: list[int] = []
-    if index is None:
-        exact = full = (series_terms(dtype, THETA_SHARED, n),) * 3
-        with torch.no_grad():
-            steps = halvings_for(nu, dtf, THETA_SHARED).to(torch.int64)
-            order, counts = _schedule(steps, int(steps.max()) if N else 0)
-        if counts:
-            h = dtf * torch.exp2(-steps.to(dtype))
-            h = h if order is None else h[order]
-    else:
-        exact = (index, 2 * index - 1, index)
-        full = (2 * index, 3 * index - 1, 2 * index) if torch.is_grad_enabled() and F.requires_grad else exact
+    K = series_terms(dtype, THETA_SHARED, n)
+    with torch.no_grad():
+        steps = halvings_for(nu, dtf, THETA_SHARED).to(torch.int64)
+        order, counts = _schedule(steps, int(steps.max()) if N else 0)
+    if counts:
+        h = dtf * torch.exp2(-steps.to(dtype))
+        h = h if order is None else h[order]
     Ft = F / nu
-    x = nu * h  # ‖F‖ h: ≤ θ with doubling; the full ‖F‖ dt for a nilpotent F
+    x = nu * h  # ‖F‖ h ≤ θ
     rows = [torch.ones_like(x)]
-    for k in range(1, max(full)):
+    for k in range(1, K):
         rows.append(rows[-1] * x * (1.0 / k))
     R = torch.stack(rows)  # (K, N): r_k = x^k / k!
-    k1 = torch.arange(1, max(full) + 1, dtype=dtype, device=F.device)[:, None, None]
+    k1 = torch.arange(1, K + 1, dtype=dtype, device=F.device)[:, None, None]
     eye = torch.eye(n, dtype=dtype, device=F.device)
-    stacks = [  # (count, n, c) terms whose coefficients are r_k (Q and G: times h)
-        torch.cat([torch.zeros_like(eye)[None], _terms(Ft, eye, full[0])[1:]]),
-        None if W is None else _terms(Ft, W, full[1], lyapunov=True) / k1[: full[1]],
-        None if B is None else _terms(Ft, B, full[2]) / k1[: full[2]],
+    stacks = [  # (K, n, c) terms whose coefficients are r_k (Q and G: times h)
+        torch.cat([torch.zeros_like(eye)[None], series_matrices(Ft, eye, K)[1:]]),
+        None if W is None else series_matrices(Ft, W, K, lyapunov=True) / k1,
+        None if B is None else series_matrices(Ft, B, K) / k1,
     ]
-    if full != exact or len(set(full)) > 1:  # a nilpotent F: no doubling, results in the output layout
-        return _full_step(stacks, R, exact, full, h, eye, batch, batch_last)
     shapes = [(n, n), (n, n), (n, p)]
     present = [i for i, t in enumerate(stacks) if t is not None]
-    flat = torch.cat([stacks[i].reshape(full[0], -1) for i in present], -1)  # type: ignore[union-attr]
+    flat = torch.cat([stacks[i].reshape(K, -1) for i in present], -1)  # type: ignore[union-attr]
     parts = dict(zip(present, (flat.mT @ R).split([math.prod(shapes[i]) for i in present])))  # one product
     X, Q, G = (parts[i].reshape(*shapes[i], N) if i in parts else None for i in range(3))
     Q, G = (None if t is None else t * h for t in (Q, G))
     assert X is not None
     lo = _Layout(batch_first=False)
     return _finish(_double_sorted(X + lo.eye(n, X), X, Q, G, counts, lo), lo, order, batch, batch_last)
-
-
-def _full_step(
-    stacks: list[Tensor | None],
-    R: Tensor,
-    exact: tuple[int, ...],
-    full: tuple[int, ...],
-    h: Tensor,
-    eye: Tensor,
-    batch: torch.Size,
-    batch_last: bool,
-) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    """The terminating series of a nilpotent F at the full step: A = I + Σ_k r_k F̃^k,
-    Q = Σ_k (h r_k) 𝓛̃^k(W)/(k+1), G likewise, one product each, h folded into the coefficient
-    rows and Q formed on its n(n+1)/2 distinct entries (exactly symmetric). Coefficients of the
-    terms that vanish in the forward pass (kept for the gradient) are clamped to the float range."""
-    n = eye.shape[0]
-    big = torch.finfo(R.dtype).max
-    iu = torch.triu_indices(n, n, device=R.device)
-    mirror = torch.empty(n, n, dtype=torch.int64, device=R.device)
-    mirror[iu[0], iu[1]] = mirror[iu[1], iu[0]] = torch.arange(iu.shape[1], device=R.device)
-    out: list[Tensor | None] = []
-    for i, terms in enumerate(stacks):
-        if terms is None:
-            out.append(None)
-            continue
-        coeff = R[: full[i]] if i == 0 else R[: full[i]] * h  # E and A: r_k; Q, G: h r_k
-        if full[i] > exact[i]:
-            coeff = torch.cat([coeff[: exact[i]], coeff[exact[i] :].clamp(-big, big)])
-        if i == 0:
-            terms = terms.clone()
-            terms[0] = eye  # A = Σ_{k≥0} r_k F̃^k
-        cols = terms.shape[-1]
-        flat = terms[:, iu[0], iu[1]] if i == 1 else terms.reshape(full[i], -1)
-        if batch_last:
-            res = flat.mT @ coeff
-            res = res.index_select(0, mirror.reshape(-1)) if i == 1 else res
-            out.append(res.reshape(n, cols, *batch))
-        else:
-            res = coeff.mT @ flat
-            res = res.index_select(1, mirror.reshape(-1)) if i == 1 else res
-            out.append(res.reshape(*batch, n, cols))
-    assert out[0] is not None
-    return out[0], out[1], out[2]
 
 
 def doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | None, Tensor | None]:

@@ -57,6 +57,7 @@ from torchsde_lti.core.discretization import (
 )
 from torchsde_lti.core.linalg import matvec, sym
 from torchsde_lti.core.moments import predict_moments
+from torchsde_lti.core.series import TerminatingSeries
 from torchsde_lti.core.validation import (
     as_float_tensor,
     check_finite,
@@ -79,12 +80,7 @@ from torchsde_lti.filters.online import (
     kalman_predict,
     kalman_step,
 )
-from torchsde_lti.nn._online import (
-    TerminatingSeries,
-    evaluated,
-    online_state,
-    terminating_series,
-)
+from torchsde_lti.nn._online import evaluated, model_series, online_state, series_step
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_outcome, check_values, online_report
 from torchsde_lti.nn.parametrizations import PositiveDefinite
@@ -463,7 +459,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
             mats = self.sde.matrices()
         if tracing() and self.discretization_method == "doubling":  # an exported sequence program
             index = self.sde.structural_nilpotency()
-            series = None if index is None else terminating_series(*mats, index=index)
+            series = None if index is None else model_series(*mats, index=index)
             if series is not None:  # an integrator chain: its closed form, no doubling schedule
                 return Discrete(*series(dt))
         # a length-1 time axis in the matrices lines a parameter batch up with dt (..., T)
@@ -531,9 +527,9 @@ class KalmanFilter(ValidateArgs, nn.Module):
             series = None
             if tracing():
                 index = self.sde.structural_nilpotency()
-                series = None if index is None else terminating_series(*mats, index=index)
+                series = None if index is None else model_series(*mats, index=index)
             elif not torch.is_grad_enabled():
-                series = terminating_series(*mats)
+                series = model_series(*mats)
             return mats, self.H, self.R, self.D, series
 
     def _online_step_model(
@@ -544,7 +540,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
         core's doubling also takes for it; no scaling, no value checks, the same values to
         rounding), else core's :func:`~torchsde_lti.core.discretize`."""
         if series is not None and self.discretization_method == "doubling":
-            A, Q, G = series(dt)
+            A, Q, G = series_step(series, dt)
         else:
             A, Q, G = discretize(
                 mats.F, mats.L, mats.Qc, dt, B=mats.B, method=self.discretization_method, validate_args=False
