@@ -38,7 +38,7 @@ import torch
 import torchsde_lti as tl
 from torchsde_lti.core.discretization import discretize
 from torchsde_lti.nn import model_version
-from torchsde_lti.nn._online import terminating_series
+from torchsde_lti.nn._online import model_series, series_step
 
 F64 = torch.float64
 Q_CV = 0.8
@@ -143,11 +143,11 @@ def main() -> None:
         mats = kf.sde.matrices()
         t_mats = median_s(lambda: kf.sde.matrices(), rep, inner=5)
         t_version = median_s(lambda: model_version(kf), rep, inner=5)
-        series = terminating_series(*mats)
+        series = model_series(*mats)
         assert series is not None  # constant velocity: F² = 0
-        t_series = median_s(lambda: series(dt), rep, inner=5)
+        t_series = median_s(lambda: series_step(series, dt), rep, inner=5)
         t_disc = median_s(lambda: discretize(mats.F, mats.L, mats.Qc, dt, validate_args=False), rep, inner=5)
-        A, Q, _ = series(dt)
+        A, Q, _ = series_step(series, dt)
         H, R = kf.H, kf.R
         t_kstep = median_s(lambda: tl.filters.kalman_step(state, y, A, Q, H, R), rep, inner=5)
     rows += [

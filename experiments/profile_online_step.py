@@ -38,7 +38,7 @@ from bench_online import (  # noqa: E402
 
 import torchsde_lti as tl  # noqa: E402
 from torchsde_lti.nn import model_version  # noqa: E402
-from torchsde_lti.nn._online import terminating_series  # noqa: E402
+from torchsde_lti.nn._online import model_series, series_step  # noqa: E402
 
 
 class UpdateOnly(torch.nn.Module):
@@ -71,14 +71,14 @@ def main() -> None:
     with torch.no_grad():
         mats = kf.sde.matrices()
         d = discretize(mats.F, mats.L, mats.Qc, dt, validate_args=False)
-        series = terminating_series(*mats)
+        series = model_series(*mats)
         assert series is not None  # constant velocity: F² = 0
-        A, Q, _ = series(dt)
+        A, Q, _ = series_step(series, dt)
         H, R = kf.H.detach().clone(), kf.R.detach().clone()
         parts = {
             "kf.step": lambda: kf.step(state, y, dt),
             "model_version(kf) (cache key)": lambda: model_version(kf),
-            "closed-form series (1 gap; the step's)": lambda: series(dt),
+            "closed-form series (1 gap; the step's)": lambda: series_step(series, dt),
             "filters.kalman_step": lambda: tl.filters.kalman_step(state, y, A, Q, H, R),
             "sde.matrices() (once per version)": lambda: kf.sde.matrices(),
             "core discretize (1 gap; F without closed form)": lambda: discretize(
@@ -101,7 +101,7 @@ def main() -> None:
         # sequence loop run for more than SMALL_BATCH tracks)
         mB, cB, yB, dtB = step_args(1000, 2)
         stB = tl.KalmanState(mB, cB)
-        AB, QB, _ = series(dtB)
+        AB, QB, _ = series_step(series, dtB)
         lines += [
             "",
             "| eager part, B = 1000 (own dt) | CPU time | top-level aten calls | most frequent |",
@@ -109,7 +109,7 @@ def main() -> None:
         ]
         for name, fn in {
             "kf.step": lambda: kf.step(stB, yB, dtB),
-            "closed-form series (1000 gaps)": lambda: series(dtB),
+            "closed-form series (1000 gaps)": lambda: series_step(series, dtB),
             "filters.kalman_step (scalar Joseph updates)": lambda: tl.filters.kalman_step(stB, yB, AB, QB, H, R),
         }.items():
             t = median_s(fn, 51, inner=2)

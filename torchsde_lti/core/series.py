@@ -8,10 +8,9 @@ the series of expm(F s) terminate. With ν = max(‖F‖₁, ‖F‖∞) (1 for 
 
 (exact: every omitted term is zero). The matrices F̃^k, 𝓛̃^k(W), F̃^k B do not depend on dt:
 :func:`terminating_series` forms them once, and a batch of steps costs the rows r_k and one
-product per result (:class:`TerminatingSeries`). With ``gradient_terms`` the series keeps the
-terms whose value is zero but whose derivative with respect to F is not (2m, 3m − 1 and 2m
-terms), their coefficients clamped to the float range so that an overflowing coefficient of a
-zero term gives 0, not inf · 0.
+product for all three results (:class:`TerminatingSeries`). With ``gradient_terms`` the series
+keeps the terms whose value is zero but whose derivative with respect to F is not (2m,
+3m − 1 and 2m terms).
 """
 
 from __future__ import annotations
@@ -35,20 +34,23 @@ def series_matrices(F: Tensor, X: Tensor, count: int, lyapunov: bool = False) ->
 
 
 class TerminatingSeries(NamedTuple):
-    """The dt-independent matrices of a nilpotent F's exact discretisation (module docstring).
+    """The dt-independent matrices of a nilpotent F's exact discretisation (module docstring),
+    as the coefficients of r_k = x^k / k!: A = Σ_k r_k F̃^k, Q = Σ_{k≥1} r_k 𝓛̃^{k−1}(W)/ν,
+    G = Σ_{k≥1} r_k F̃^{k−1} B/ν (h r_k/(k+1) = r_{k+1}/ν), all results in one product.
 
-    terms: for A, Q and G (None where absent) the pair (term 0 (entries,), terms 1 … K−1
-    (K − 1, entries)), flattened: A's F̃^k row-major (n² entries), Q's the upper triangle of
-    𝓛̃^k(W)/(k+1) (n(n+1)/2), G's F̃^k B/(k+1) (n p). exact: how many terms of each are not
-    zero in value (the rest carry a derivative only). scale: (K − 1,) ν / k for k = 1 … K − 1
-    (K the most terms), so that r_k = Π_{j≤k} (dt ν / j) = x^k / k!. mirror: (n²,) the
-    upper-triangle entry of each (i, j) (Q exactly symmetric). n, p: state and input dimensions.
+    bias: (E,) the coefficients of r_0 = 1; rest: (K, E) those of r_1 … r_K, with the E
+    entries [A's n² row-major | Q's upper triangle n(n+1)/2 | G's n p] (None blocks absent:
+    ``has_q``, ``p`` = 0). scale: (K,) ν / k, so that r_k = Π_{j≤k} (dt ν / j). mirror: (n²,)
+    the upper-triangle entry of each (i, j) (Q exactly symmetric). The coefficients are kept
+    in float64 for float32 parameters, so that r_k of a gap whose exact results fit in float32
+    does not overflow (a coefficient of a zero term would then give inf · 0).
     """
 
-    terms: tuple[tuple[Tensor, Tensor] | None, ...]
-    exact: tuple[int, int, int]
+    bias: Tensor
+    rest: Tensor
     scale: Tensor
     mirror: Tensor
+    has_q: bool
     n: int
     p: int
 
@@ -56,32 +58,22 @@ class TerminatingSeries(NamedTuple):
         """(A, Q, G) over steps dt (...): A (..., n, n), Q (..., n, n) exactly symmetric or
         None, G (..., n, p) or None; with ``batch_last`` contiguous (n, n, ...), (n, n, ...),
         (n, p, ...). Differentiable with respect to dt and to the parameters the terms came
-        from. One product per result (term 0, r_0 = 1, its bias)."""
-        batch, N = dt.shape, dt.numel()
-        h = dt.reshape(N, 1)
-        r = torch.cumprod(h * self.scale, -1)  # (N, K − 1): r_k = x^k / k!, k ≥ 1
-        out: list[Tensor | None] = []
-        for i, (pair, cols) in enumerate(zip(self.terms, (self.n, self.n, self.p))):
-            if pair is None:
-                out.append(None)
-                continue
-            bias, rest = pair
-            coeff, exact = (r if rest.shape[0] == r.shape[1] else r[:, : rest.shape[0]]), self.exact[i] - 1
-            if coeff.shape[1] > exact:  # terms that are zero in value: no inf · 0
-                big = torch.finfo(dt.dtype).max
-                coeff = torch.cat([coeff[:, :exact], coeff[:, exact:].clamp(-big, big)], -1)
-            if batch_last:
-                res = torch.addmm(bias[:, None], rest.mT, coeff.mT)  # (entries, N)
-                res = res if i == 0 else res * h.reshape(1, N)
-                res = res.index_select(0, self.mirror) if i == 1 else res
-                out.append(res.reshape(self.n, cols, *batch))
-            else:
-                res = torch.addmm(bias, coeff, rest)  # (N, entries)
-                res = res if i == 0 else res * h
-                res = res.index_select(1, self.mirror) if i == 1 else res
-                out.append(res.reshape(*batch, self.n, cols))
-        assert out[0] is not None
-        return out[0], out[1], out[2]
+        from. Entries whose exact value exceeds dt's float range are inf (float64 parameters:
+        gaps with ν dt up to ~1e61)."""
+        batch, N, n, p = dt.shape, dt.numel(), self.n, self.p
+        h = dt.reshape(N, 1).to(self.scale.dtype)
+        r = torch.cumprod(h * self.scale, -1)  # (N, K): r_k = x^k / k!
+        if batch_last:
+            out = torch.addmm(self.bias[:, None], self.rest.mT, r.mT).to(dt.dtype)  # (E, N)
+            A = out[: n * n].reshape(n, n, *batch)
+            Q = out[n * n :].index_select(0, self.mirror).reshape(n, n, *batch) if self.has_q else None
+            G = out[out.shape[0] - n * p :].reshape(n, p, *batch) if p else None
+        else:
+            out = torch.addmm(self.bias, r, self.rest).to(dt.dtype)  # (N, E)
+            A = out[:, : n * n].reshape(*batch, n, n)
+            Q = out[:, n * n :].index_select(1, self.mirror).reshape(*batch, n, n) if self.has_q else None
+            G = out[:, out.shape[1] - n * p :].reshape(*batch, n, p) if p else None
+        return A, Q, G
 
 
 def terminating_series(
@@ -91,24 +83,32 @@ def terminating_series(
     (n, n) symmetric or None, B (n, p) or None. ``gradient_terms``: also the terms whose value is
     zero but whose derivative with respect to F is not (for a gradient with respect to F)."""
     n, p = F.shape[-1], 0 if B is None else B.shape[-1]
+    work = torch.float64 if F.dtype == torch.float32 else F.dtype
+    F = F.to(work)
+    W = None if W is None else W.to(work)
+    B = None if B is None else B.to(work)
     with torch.no_grad():  # (a scale: any positive ν gives the same exact series)
         absF = F.abs()
         nu = torch.maximum(absF.sum(-2).amax(-1), absF.sum(-1).amax(-1))
         nu = torch.where(nu > 0, nu, torch.ones_like(nu))
-    exact = (index, 2 * index - 1, index)
-    count = (2 * index, 3 * index - 1, 2 * index) if gradient_terms else exact
+    m = 2 * index if gradient_terms else index  # terms of A (of G: r_1 … r_m)
+    mq = 3 * index - 1 if gradient_terms else 2 * index - 1  # of Q: r_1 … r_mq
+    K = max(m - 1, mq if W is not None else 0, m if B is not None else 0)
     Ft = F / nu
-    k1 = torch.arange(1, max(count) + 1, dtype=F.dtype, device=F.device)[:, None, None]
-    A_terms = series_matrices(Ft, torch.eye(n, dtype=F.dtype, device=F.device), count[0]).reshape(count[0], n * n)
-    Q_terms = G_terms = None
-    upper = [(i, j) for i in range(n) for j in range(i, n)]
+    eye = torch.eye(n, dtype=work, device=F.device)
+    powers = series_matrices(Ft, eye, m)  # F̃^k, k < m
+    zero = F.new_zeros(())
+    blocks = [torch.cat([powers, zero.expand(K + 1 - m, n, n)]).reshape(K + 1, n * n)]
     if W is not None:
+        upper = [(i, j) for i in range(n) for j in range(i, n)]
         rows, cols = (torch.tensor(c, dtype=torch.int64, device=F.device) for c in zip(*upper))
-        Q_terms = (series_matrices(Ft, W, count[1], lyapunov=True) / k1[: count[1]])[:, rows, cols]
+        lyap = series_matrices(Ft, W, mq, lyapunov=True)[:, rows, cols] / nu  # 𝓛̃^{k−1}(W)/ν for r_k, k = 1 … mq
+        blocks.append(torch.cat([zero.expand(1, len(upper)), lyap, zero.expand(K - mq, len(upper))]))
     if B is not None:
-        G_terms = (series_matrices(Ft, B, count[2]) / k1[: count[2]]).reshape(count[2], n * p)
-    where = {ij: e for e, ij in enumerate(upper)}
-    mirror = torch.tensor([where[min(i, j), max(i, j)] for i in range(n) for j in range(n)], device=F.device)
-    scale = nu / k1[: max(count) - 1].reshape(-1)
-    terms = tuple(None if t is None else (t[0], t[1:]) for t in (A_terms, Q_terms, G_terms))
-    return TerminatingSeries(terms, exact, scale, mirror, n, p)
+        inputs = (powers @ B).reshape(m, n * p) / nu  # F̃^{k−1} B/ν for r_k, k = 1 … m
+        blocks.append(torch.cat([zero.expand(1, n * p), inputs, zero.expand(K - m, n * p)]))
+    coeff = torch.cat(blocks, -1)  # (K + 1, E)
+    scale = nu / torch.arange(1, K + 1, dtype=work, device=F.device)
+    upper_index = {(i, j): e for e, (i, j) in enumerate((i, j) for i in range(n) for j in range(i, n))}
+    mirror = torch.tensor([upper_index[min(i, j), max(i, j)] for i in range(n) for j in range(n)], device=F.device)
+    return TerminatingSeries(coeff[0], coeff[1:], scale, mirror, W is not None, n, p)
