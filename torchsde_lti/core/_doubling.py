@@ -334,14 +334,14 @@ def shared_doubling(
     N, n = dt.numel(), F.shape[-1]
     p = 0 if B is None else B.shape[-1]
     dtype = F.dtype
-    with torch.no_grad():
-        absF = F.abs()
-        nu = torch.maximum(absF.sum(-2).amax(-1), absF.sum(-1).amax(-1))
-        nu = torch.where(nu > 0, nu, torch.ones_like(nu))
     index = nilpotency_index(F)
     if index is not None:  # its terminating series at the full step: no doubling
         gradient_terms = torch.is_grad_enabled() and F.requires_grad
         return terminating_series(F, W, B, index, gradient_terms)(dt, batch_last)
+    with torch.no_grad():
+        absF = F.abs()
+        nu = torch.maximum(absF.sum(-2).amax(-1), absF.sum(-1).amax(-1))
+        nu = torch.where(nu > 0, nu, torch.ones_like(nu))
     h = dtf = dt.reshape(N)
     order: Tensor | None = None
     counts: list[int] = []

@@ -99,8 +99,8 @@ def terminating_series(
     powers = series_matrices(Ft, eye, m)  # F̃^k, k < m
     zero = F.new_zeros(())
     blocks = [torch.cat([powers, zero.expand(K + 1 - m, n, n)]).reshape(K + 1, n * n)]
+    upper = [(i, j) for i in range(n) for j in range(i, n)]
     if W is not None:
-        upper = [(i, j) for i in range(n) for j in range(i, n)]
         rows, cols = (torch.tensor(c, dtype=torch.int64, device=F.device) for c in zip(*upper))
         lyap = series_matrices(Ft, W, mq, lyapunov=True)[:, rows, cols] / nu  # 𝓛̃^{k−1}(W)/ν for r_k, k = 1 … mq
         blocks.append(torch.cat([zero.expand(1, len(upper)), lyap, zero.expand(K - mq, len(upper))]))
@@ -109,6 +109,6 @@ def terminating_series(
         blocks.append(torch.cat([zero.expand(1, n * p), inputs, zero.expand(K - m, n * p)]))
     coeff = torch.cat(blocks, -1)  # (K + 1, E)
     scale = nu / torch.arange(1, K + 1, dtype=work, device=F.device)
-    upper_index = {(i, j): e for e, (i, j) in enumerate((i, j) for i in range(n) for j in range(i, n))}
+    upper_index = {ij: e for e, ij in enumerate(upper)}
     mirror = torch.tensor([upper_index[min(i, j), max(i, j)] for i in range(n) for j in range(n)], device=F.device)
     return TerminatingSeries(coeff[0], coeff[1:], scale, mirror, W is not None, n, p)

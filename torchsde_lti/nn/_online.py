@@ -99,9 +99,7 @@ def series_step(series: TerminatingSeries, dt: Tensor) -> tuple[Tensor, Tensor, 
     the scalar updates)."""
     if tracing() or dt.numel() <= online.SMALL_BATCH:
         A, Q, G = series(dt)
-    else:
-        A, Q, G = series(dt, batch_last=True)
-        A, Q, G = A.movedim((0, 1), (-2, -1)), Q, None if G is None else G.movedim((0, 1), (-2, -1))
-        Q = None if Q is None else Q.movedim((0, 1), (-2, -1))
-    assert Q is not None
+    else:  # (n, c, ...) -> (..., n, c) views
+        A, Q, G = (None if t is None else t.movedim((0, 1), (-2, -1)) for t in series(dt, batch_last=True))  # type: ignore[assignment]
+    assert A is not None and Q is not None
     return A, Q, G

@@ -458,8 +458,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
         if mats is None:
             mats = self.sde.matrices()
         if tracing() and self.discretization_method == "doubling":  # an exported sequence program
-            index = self.sde.structural_nilpotency()
-            series = None if index is None else model_series(*mats, index=index)
+            series = self._structural_series(mats)
             if series is not None:  # an integrator chain: its closed form, no doubling schedule
                 return Discrete(*series(dt))
         # a length-1 time axis in the matrices lines a parameter batch up with dt (..., T)
@@ -526,11 +525,16 @@ class KalmanFilter(ValidateArgs, nn.Module):
             mats = self.sde.matrices()
             series = None
             if tracing():
-                index = self.sde.structural_nilpotency()
-                series = None if index is None else model_series(*mats, index=index)
+                series = self._structural_series(mats)
             elif not torch.is_grad_enabled():
                 series = model_series(*mats)
             return mats, self.H, self.R, self.D, series
+
+    def _structural_series(self, mats: SDEMatrices) -> TerminatingSeries | None:
+        """The terminating series of a model whose structure makes F nilpotent (no value of F
+        read: traceable), else None."""
+        index = self.sde.structural_nilpotency()
+        return None if index is None else model_series(*mats, index=index)
 
     def _online_step_model(
         self, mats: SDEMatrices, dt: Tensor, u: Tensor | None, series: TerminatingSeries | None = None
