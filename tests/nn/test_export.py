@@ -241,16 +241,46 @@ def test_exported_online_step_any_number_of_tracks(tmp_path):
             torch.testing.assert_close(x, ref, rtol=0, atol=1e-10)
 
 
+def test_online_step_is_a_snapshot_of_the_filter():
+    """OnlineStep holds the model's matrices evaluated when it is built: its exported program
+    reads none of the filter's parameters (no parametrisation runs per call), and a later
+    change of the filter does not reach it (a new OnlineStep sees it)."""
+    kf = _cv_filter()
+    ep = _exported_step(kf)
+    params = set(ep.graph_signature.inputs_to_parameters)
+    used = [n.name for n in ep.graph.nodes if n.op == "placeholder" and n.name in params and n.users]
+    assert params and not used
+    step = tl.OnlineStep(kf)
+    args = _step_args(5, seed=3)
+    before = step(*args)
+    with torch.no_grad():
+        for p in kf.parameters():
+            p.add_(0.3)
+    after = step(*args)
+    for x, y in zip(before, after):
+        torch.testing.assert_close(x, y, rtol=0, atol=0)
+    fresh = tl.OnlineStep(kf)(*args)
+    with torch.no_grad():
+        state, out = kf.step(tl.KalmanState(args[0], args[1]), args[2], args[3])
+    assert not torch.allclose(fresh[4], before[4])
+    for x, ref in zip(fresh, (state.mean, state.cov, out.innovation, out.innovation_cov, out.log_likelihood)):
+        torch.testing.assert_close(x, ref, rtol=0, atol=1e-12)
+
+
 @pytest.mark.slow
 def test_aoti_packaged_online_step(tmp_path):
-    """The exported step through AOTInductor (compiles C++: slow) gives the eager step at 1 and 500 tracks."""
+    """The exported step through AOTInductor (compiles C++: slow), built by compile_package and
+    loaded by load_package (and by torch's own loader), gives the eager step at 1 and 500 tracks."""
     kf = _cv_filter()
-    path = torch._inductor.aoti_compile_and_package(_exported_step(kf), package_path=str(tmp_path / "step_aoti.pt2"))
-    runner = torch._inductor.aoti_load_package(path)
+    path = tl.compile_package(_exported_step(kf), tmp_path / "step_aoti.pt2")
+    packaged = tl.load_package(path)
+    stock = torch._inductor.aoti_load_package(path)
     for b in (1, 500):
         args = _step_args(b, seed=10 + b)
-        got = runner(*args)
         with torch.no_grad():
             state, out = kf.step(tl.KalmanState(args[0], args[1]), args[2], args[3])
-        for x, ref in zip(got, (state.mean, state.cov, out.innovation, out.innovation_cov, out.log_likelihood)):
-            torch.testing.assert_close(x, ref, rtol=0, atol=1e-9)
+        refs = (state.mean, state.cov, out.innovation, out.innovation_cov, out.log_likelihood)
+        for got in (packaged(*args), stock(*args)):
+            assert isinstance(got, tuple) and len(got) == 5
+            for x, ref in zip(got, refs):
+                torch.testing.assert_close(x, ref, rtol=0, atol=1e-9)

@@ -23,6 +23,7 @@ __all__ = [
     "cho_solve",
     "cholesky",
     "from_batch_last",
+    "fused_matmul",
     "matvec",
     "nilpotency_index",
     "solve_lower",
@@ -107,6 +108,16 @@ def solve_upper_t(L: Tensor, B: Tensor) -> Tensor:
 def cho_solve(L: Tensor, B: Tensor) -> Tensor:
     """X with ``(L Lᵀ) X = B`` from the Cholesky factor L (..., k, k); B (..., k, r)."""
     return solve_upper_t(L, solve_lower(L, B))
+
+
+def fused_matmul(a: Tensor, b: Tensor) -> Tensor:
+    """``a b`` as one broadcast product summed over k: a (..., r, k), b (..., k, s) -> (..., r, s).
+
+    For small matrices inside a traced program (torch.compile, AOTInductor): the compiler
+    fuses it with the elementwise ops around it instead of calling a GEMM library kernel per
+    product. It materialises (..., r, k, s): keep to small r, k, s.
+    """
+    return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
 
 
 def matvec(M: Tensor, v: Tensor) -> Tensor:

@@ -33,7 +33,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import cholesky, matvec, solve_lower, solve_upper_t, sym, to_batch_last
+from torchsde_lti.core.linalg import cholesky, fused_matmul, matvec, solve_lower, solve_upper_t, sym, to_batch_last
 from torchsde_lti.core.validation import broadcast_shapes, tracing
 from torchsde_lti.filters.imm import combine, imm_cycle, imm_predict
 from torchsde_lti.filters.inputs import (
@@ -225,21 +225,37 @@ def _joint_step(
             return x
         return x.expand(*mb, *event).reshape(b, *event)
 
+    if traced:  # products a compiler fuses with the elementwise ops (no GEMM library call each)
+
+        def mm(a: Tensor, x: Tensor) -> Tensor:
+            return fused_matmul(a, x)
+
+        def addmm(c: Tensor, a: Tensor, x: Tensor, beta: float = 1.0, alpha: float = 1.0) -> Tensor:
+            return c * beta + fused_matmul(a, x) * alpha
+
+    else:  # the fewest eager calls
+
+        def mm(a: Tensor, x: Tensor) -> Tensor:
+            return torch.bmm(a, x)
+
+        def addmm(c: Tensor, a: Tensor, x: Tensor, beta: float = 1.0, alpha: float = 1.0) -> Tensor:
+            return torch.baddbmm(c, a, x, beta=beta, alpha=alpha)
+
     A3, Q3, H3, R3 = flat(A, n, n), flat(Q, n, n), flat(H, m, n), flat(R, m, m)
     Ht = H3.mT
     mean = flat(state.mean, n).unsqueeze(-1)
-    pm = torch.bmm(A3, mean) if c is None else torch.baddbmm(flat(c, n).unsqueeze(-1), A3, mean)  # (b, n, 1)
-    pc = _sym(torch.baddbmm(Q3, torch.bmm(A3, flat(state.cov, n, n)), A3.mT, beta=0.5, alpha=0.5))
-    HP = torch.bmm(H3, pc)  # (b, m, n)
-    S_all = _sym(torch.baddbmm(R3, HP, Ht, beta=0.5, alpha=0.5))  # every component (the output)
-    e = torch.baddbmm(flat(y0, m).unsqueeze(-1), H3, pm, alpha=-1.0)  # (b, m, 1)
+    pm = mm(A3, mean) if c is None else addmm(flat(c, n).unsqueeze(-1), A3, mean)  # (b, n, 1)
+    pc = _sym(addmm(Q3, mm(A3, flat(state.cov, n, n)), A3.mT, beta=0.5, alpha=0.5))
+    HP = mm(H3, pc)  # (b, m, n)
+    S_all = _sym(addmm(R3, HP, Ht, beta=0.5, alpha=0.5))  # every component (the output)
+    e = addmm(flat(y0, m).unsqueeze(-1), H3, pm, alpha=-1.0)  # (b, m, 1)
     if obs is None:
         S = S_all
         observed = torch.ones((*mb, m), dtype=torch.bool, device=y0.device)
     else:
         observed = obs.expand(*mb, m)
         o = flat(observed, m).to(y0.dtype).unsqueeze(-1)  # (b, m, 1)
-        S = S_all * torch.bmm(o, o.mT) + torch.diag_embed(1.0 - o.squeeze(-1))
+        S = S_all * (o * o.mT) + torch.diag_embed(1.0 - o.squeeze(-1))
         HP = HP * o
         e = e * o
     if traced:
@@ -255,10 +271,10 @@ def _joint_step(
         K = torch.linalg.solve_triangular(L, W[..., :n].mT, upper=False, left=False)  # K L = (L⁻¹ H P⁻)ᵀ
         Kt = K.mT
     z = W[..., n]  # (b, m) the whitened innovation
-    filt_mean = torch.baddbmm(pm, K, e)
-    MP = torch.baddbmm(pc, K, HP, alpha=-1.0)  # (I − K H) P⁻
-    P = torch.baddbmm(MP, torch.bmm(MP, Ht), Kt, alpha=-1.0)  # … (I − K H)ᵀ
-    P = _sym(torch.baddbmm(P, K, torch.bmm(R3, Kt), beta=0.5, alpha=0.5))  # + K R Kᵀ
+    filt_mean = addmm(pm, K, e)
+    MP = addmm(pc, K, HP, alpha=-1.0)  # (I − K H) P⁻
+    P = addmm(MP, mm(MP, Ht), Kt, alpha=-1.0)  # … (I − K H)ᵀ
+    P = _sym(addmm(P, K, mm(R3, Kt), beta=0.5, alpha=0.5))  # + K R Kᵀ
     # −log N(e; 0, S) per observed component: log L_jj + z_j²/2 + log(2π)/2 (an unobserved
     # component has L_jj = 1, z_j = 0: it adds log(2π)/2, taken off with n_obs)
     nll = torch.addcmul(torch.log(torch.diagonal(L, dim1=-2, dim2=-1)), z, z, value=0.5).sum(-1)

@@ -3,7 +3,7 @@ StructuredSDE base of the motion models) and the KalmanFilter module."""
 
 from torchsde_lti.nn._online import model_version
 from torchsde_lti.nn._validate import NonFiniteLikelihoodError
-from torchsde_lti.nn.deploy import DeployedFilter, OnlineStep
+from torchsde_lti.nn.deploy import DeployedFilter, OnlineStep, PackagedProgram, compile_package, load_package
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import FilterMode, Forecast, KalmanFilter
 from torchsde_lti.nn.layers import Discretization, Transition, VanLoanNoise
@@ -19,9 +19,12 @@ __all__ = [
     "LTISDE",
     "NonFiniteLikelihoodError",
     "OnlineStep",
+    "PackagedProgram",
     "SDEMatrices",
     "StructuredSDE",
     "Transition",
     "VanLoanNoise",
+    "compile_package",
+    "load_package",
     "model_version",
 ]

@@ -3,17 +3,27 @@ plain tensor inputs and outputs whose ``forward`` is what a service calls, ready
 ``torch.export`` (with dynamic shapes) and AOTInductor packaging.
 
 - :class:`DeployedFilter`: the sequence filter, ``(y, dt) -> (log_likelihood, mean)``;
-- :class:`OnlineStep`: one online step of live tracks (:meth:`~torchsde_lti.KalmanFilter.step`).
+- :class:`OnlineStep`: one online step of live tracks (:meth:`~torchsde_lti.KalmanFilter.step`);
+- :func:`compile_package` builds an exported program into an AOTInductor package whose
+  parameter-only work (the parametrisations, a nilpotent F's series matrices) runs once per
+  loaded program instead of on every call; :func:`load_package` loads one as a
+  :class:`PackagedProgram`, a callable with its calling convention read once.
 """
 
 from __future__ import annotations
 
+import os
+from typing import Any
+
+import torch
 from torch import Tensor, nn
+from torch.export import ExportedProgram
+from torch.utils import _pytree as pytree
 
 from torchsde_lti.filters.online import KalmanState
-from torchsde_lti.nn.kalman import KalmanFilter
+from torchsde_lti.nn.kalman import KalmanFilter, OnlineModel
 
-__all__ = ["DeployedFilter", "OnlineStep"]
+__all__ = ["DeployedFilter", "OnlineStep", "PackagedProgram", "compile_package", "load_package"]
 
 
 class DeployedFilter(nn.Module):
@@ -42,6 +52,11 @@ class OnlineStep(nn.Module):
     ``forward(mean, cov, y, dt)``: mean (B, n), cov (B, n, n), y (B, m) (NaN = missing), dt (B,)
     -> ``(mean, cov, innovation (B, m), innovation_cov (B, m, m), log_likelihood (B,))``.
     Value checks are off inside (check reports where they enter the tracker).
+
+    The step is a snapshot of the filter when it is built: the model's matrices (the SDE's, H,
+    R, D and, for a nilpotent F, the terminating series of its discretisation) are evaluated
+    then, without gradients, and held as buffers, so an exported program runs the step alone
+    and not the parametrisations. Build it after training (again after any change of ``kf``).
     """
 
     def __init__(self, kf: KalmanFilter) -> None:
@@ -49,7 +64,68 @@ class OnlineStep(nn.Module):
         if not isinstance(kf, KalmanFilter):
             raise TypeError(f"kf must be a KalmanFilter, got {type(kf).__name__}")
         self.kf = kf
+        with torch.no_grad():
+            leaves, self._model_spec = pytree.tree_flatten(kf._online_model())
+        self._model_slots = [i for i, leaf in enumerate(leaves) if isinstance(leaf, Tensor)]
+        for i in self._model_slots:
+            self.register_buffer(f"_model_{i}", leaves[i].detach().clone(), persistent=False)
+            leaves[i] = None
+        self._model_leaves = leaves  # the non-tensor leaves (flags, sizes); None in a tensor's slot
+
+    def _model(self) -> OnlineModel:
+        """The snapshot of ``kf._online_model()`` (its tensors the buffers)."""
+        leaves = list(self._model_leaves)
+        for i in self._model_slots:
+            leaves[i] = getattr(self, f"_model_{i}")
+        return pytree.tree_unflatten(leaves, self._model_spec)
 
     def forward(self, mean: Tensor, cov: Tensor, y: Tensor, dt: Tensor) -> tuple[Tensor, ...]:
-        state, out = self.kf.step(KalmanState(mean, cov), y, dt)
+        state, out = self.kf._step(self._model(), KalmanState(mean, cov), y, dt)
         return state.mean, state.cov, out.innovation, out.innovation_cov, out.log_likelihood
+
+
+#: AOTInductor options of :func:`compile_package`: fold the subgraphs that depend on the
+#: program's parameters and buffers alone once, when the package is loaded and run first
+#: (and again after ``load_constants``), not on every call.
+PACKAGE_CONFIGS: dict[str, Any] = {"aot_inductor.use_runtime_constant_folding": True}
+
+
+def compile_package(
+    program: ExportedProgram, path: str | os.PathLike[str], inductor_configs: dict[str, Any] | None = None
+) -> str:
+    """Build ``program`` (from ``torch.export.export`` of :class:`OnlineStep`,
+    :class:`DeployedFilter` or any module) into an AOTInductor package at ``path`` with
+    :data:`PACKAGE_CONFIGS` (updated by ``inductor_configs``); returns the package's path. Needs
+    a C++ compiler; the package then runs with torch alone (:func:`load_package`)."""
+    configs = {**PACKAGE_CONFIGS, **(inductor_configs or {})}
+    return torch._inductor.aoti_compile_and_package(program, package_path=os.fspath(path), inductor_configs=configs)
+
+
+class PackagedProgram:
+    """A loaded AOTInductor package, called like the module it was exported from.
+
+    Its input and output structure is read once when it is loaded (``torch._inductor``'s
+    loader object parses it again on every call, which costs a small call more than the
+    compiled program itself); positional tensor arguments go to the compiled program as they
+    are. ``loader`` is torch's ``AOTIModelPackageLoader`` (``load_constants`` to swap weights).
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self._compiled = torch._inductor.aoti_load_package(os.fspath(path))
+        self.loader = self._compiled.loader
+        in_spec, out_spec = (pytree.treespec_loads(s) for s in self.loader.get_call_spec())
+        self._n_inputs = in_spec.num_leaves
+        self._out_spec = out_spec
+        self._flat_tuple_out = out_spec == pytree.tree_structure((0,) * out_spec.num_leaves)
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        if kwargs or len(args) != self._n_inputs or not all(isinstance(a, Tensor) for a in args):
+            return self._compiled(*args, **kwargs)  # torch's own flattening of any structure
+        out = self.loader.boxed_run(list(args))
+        return tuple(out) if self._flat_tuple_out else pytree.tree_unflatten(out, self._out_spec)
+
+
+def load_package(path: str | os.PathLike[str]) -> PackagedProgram:
+    """The package at ``path`` (from :func:`compile_package` or
+    ``torch._inductor.aoti_compile_and_package``) as a :class:`PackagedProgram`."""
+    return PackagedProgram(path)

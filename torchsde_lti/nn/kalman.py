@@ -90,6 +90,10 @@ __all__ = ["FilterMode", "Forecast", "KalmanFilter"]
 
 _LEARNABLE = ("H", "D", "R", "m0", "P0")
 
+#: The evaluated model of online calls: (SDE matrices, H, R, D, a nilpotent F's terminating
+#: series or None), see :meth:`KalmanFilter._online_model`.
+OnlineModel = tuple[SDEMatrices, Tensor, Tensor, Tensor | None, TerminatingSeries | None]
+
 
 class Forecast(NamedTuple):
     """Predictive moments at future times.
@@ -493,7 +497,19 @@ class KalmanFilter(ValidateArgs, nn.Module):
             pred_mean, pred_cov, innovation (..., m), innovation_cov (..., m, m),
             log_likelihood (...), observed).
         """
-        mats, H, R, D, series = evaluated(self, self._online_model)
+        return self._step(evaluated(self, self._online_model), state, y, dt, u, mask)
+
+    def _step(
+        self,
+        model: OnlineModel,
+        state: KalmanState,
+        y: Tensor,
+        dt: Tensor | float,
+        u: Tensor | None = None,
+        mask: Tensor | None = None,
+    ) -> tuple[KalmanState, KalmanStep]:
+        """:meth:`step` with the model's evaluated matrices given (:meth:`_online_model`)."""
+        mats, H, R, D, series = model
         state, dt, u = self._check_state(state, dt, u, mats)
         y, mask = online_report(y, mask, H, mats.F.dtype, mats.F.device)
         D = D if u is not None else None
@@ -512,7 +528,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
             self._check_values(mats, dt, u=u, mean=state.mean, cov=state.cov)
         return kalman_predict(state, *self._online_step_model(mats, dt, u, series))
 
-    def _online_model(self) -> tuple[SDEMatrices, Tensor, Tensor, Tensor | None, TerminatingSeries | None]:
+    def _online_model(self) -> OnlineModel:
         """(SDE matrices, H, R, D, the model's terminating series or None), each
         parametrisation evaluated once. The series (a nilpotent F's closed-form discretisation,
         its dt-independent matrices formed here): eagerly without gradients, where
