@@ -241,6 +241,38 @@ def test_exported_online_step_any_number_of_tracks(tmp_path):
             torch.testing.assert_close(x, ref, rtol=0, atol=1e-10)
 
 
+@pytest.mark.parametrize("model", ["singer", "constant_acceleration"])
+def test_exported_online_step_of_larger_models(model):
+    """The exported step of a 6-state model (products through bmm while traced: above the
+    fused-product bound; Singer's F is not nilpotent, constant acceleration's is) equals the
+    eager step, NaN report components included."""
+    from torch.export import Dim
+
+    kw = {"alpha": 0.5, "q": 0.7} if model == "singer" else {}
+    sde = getattr(tl.models, model)(dim=2, dtype=F64, **kw)
+    kf = tl.KalmanFilter(
+        sde, tl.models.position_observation(sde), 0.3 * torch.eye(2, dtype=F64), P0=torch.eye(6, dtype=F64)
+    )
+    g = torch.Generator().manual_seed(5)
+
+    def args(b: int) -> tuple[torch.Tensor, ...]:
+        y = torch.randn(b, 2, generator=g, dtype=F64)
+        y[0, 0] = float("nan")
+        cov = torch.eye(6, dtype=F64).expand(b, 6, 6).contiguous()
+        return torch.randn(b, 6, generator=g, dtype=F64), cov, y, torch.rand(b, generator=g, dtype=F64) * 2.0
+
+    with torch.no_grad():
+        ep = torch.export.export(tl.OnlineStep(kf).eval(), args(3), dynamic_shapes=({0: Dim("B", max=10_000)},) * 4)
+        prog = ep.module()
+        for b in (1, 9):
+            a = args(b)
+            state, out = kf.step(tl.KalmanState(a[0], a[1]), a[2], a[3])
+            for x, ref in zip(
+                prog(*a), (state.mean, state.cov, out.innovation, out.innovation_cov, out.log_likelihood)
+            ):
+                torch.testing.assert_close(x, ref, rtol=0, atol=1e-10)
+
+
 def test_online_step_is_a_snapshot_of_the_filter():
     """OnlineStep holds the model's matrices evaluated when it is built: its exported program
     reads none of the filter's parameters (no parametrisation runs per call), and a later

@@ -100,6 +100,13 @@ class KalmanStep(NamedTuple):
 SMALL_BATCH = 64
 
 
+#: Traced joint updates with n and m up to this form their matrix products as broadcast sums
+#: (:func:`~torchsde_lti.core.linalg.fused_matmul`), which a compiler (AOTInductor,
+#: torch.compile) fuses into its kernels instead of calling a GEMM per product; an exported
+#: program run eagerly materialises the k-fold product, hence the bound. Larger: bmm.
+FUSED_MAX_INNER = 4
+
+
 def kalman_predict(state: KalmanState, A: Tensor, Q: Tensor, c: Tensor | None = None) -> KalmanState:
     """Prediction only: ``m⁻ = A m + c``, ``P⁻ = A P Aᵀ + Q``.
 
@@ -225,7 +232,7 @@ def _joint_step(
             return x
         return x.expand(*mb, *event).reshape(b, *event)
 
-    if traced:  # products a compiler fuses with the elementwise ops (no GEMM library call each)
+    if traced and max(n, m) <= FUSED_MAX_INNER:  # products a compiler fuses with the elementwise ops
 
         def mm(a: Tensor, x: Tensor) -> Tensor:
             return fused_matmul(a, x)
