@@ -24,26 +24,33 @@ def _series(B: int, T: int, seed: int, dtype: torch.dtype = F64) -> tuple[torch.
 
 
 def _kf(dtype: torch.dtype = F64, model: str = "cv") -> tl.KalmanFilter:
-    sde = (
-        tl.models.constant_velocity(dim=2, q=0.8, dtype=dtype)
-        if model == "cv"
-        else tl.models.integrated_ou(0.7, 0.5, dim=2, dtype=dtype)
-    )
+    """A two-axis tracker observing the positions: constant velocity (F nilpotent: the online
+    step's terminating series), integrated OU or Singer (F not nilpotent: core's discretisation)."""
+    if model == "cv":
+        sde = tl.models.constant_velocity(dim=2, q=0.8, dtype=dtype)
+    elif model == "iou":
+        sde = tl.models.integrated_ou(0.7, 0.5, dim=2, dtype=dtype)
+    else:
+        sde = tl.models.singer(0.8, 0.5, dim=2, dtype=dtype)
+    n = sde.state_dim
+    m0 = torch.zeros(n, dtype=dtype)
+    m0[[0, n // 2, n // 2 + 1]] = torch.tensor([0.5, -0.5, 0.1], dtype=dtype)
     R = torch.tensor([[0.3, 0.1], [0.1, 0.5]], dtype=dtype)
     return tl.KalmanFilter(
         sde,
-        torch.tensor(H2, dtype=dtype),
+        torch.eye(n, dtype=dtype)[[0, n // 2]],  # (H2 for the 4-state models)
         R,
-        P0=20 * torch.eye(4, dtype=dtype),
-        m0=torch.tensor([0.5, 0.0, -0.5, 0.1], dtype=dtype),
+        P0=20 * torch.eye(n, dtype=dtype),
+        m0=m0,
         algorithm="sequential",
     )
 
 
 @pytest.mark.parametrize("path", ["joint", "scalar"])
-@pytest.mark.parametrize("model", ["cv", "iou"])
+@pytest.mark.parametrize("model", ["cv", "iou", "singer"])
 def test_kalman_step_equals_sequence_filter(model, path, monkeypatch):
-    """Both update paths (the joint update of a few tracks, the scalar updates of many)."""
+    """Both update paths (the joint update of a few tracks, the scalar updates of many), for
+    a nilpotent F (cv: the series) and F that are not (iou, Singer: core's discretisation)."""
     monkeypatch.setattr(tl.filters.online, "SMALL_BATCH", 64 if path == "joint" else 0)
     kf = _kf(model=model)
     y, dt, mask = _series(6, 40, seed=1)
@@ -362,20 +369,6 @@ def test_terminating_series_only_for_one_nilpotent_parameter_set():
     assert nilpotency_index(torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])) == 3
     assert nilpotency_index(torch.tensor([[1.0, 1.0], [-1.0, -1.0]])) == 2  # zero trace, not triangular
     assert nilpotency_index(torch.tensor([[1.0, 0.0], [0.0, -1.0]])) is None  # zero trace, not nilpotent
-
-
-def test_step_of_a_model_that_is_not_nilpotent_takes_core_discretisation():
-    """A Singer model's step (no closed-form series) equals the sequence filter too."""
-    sde = tl.models.singer(0.8, 0.5, dim=2, dtype=F64)
-    kf = tl.KalmanFilter(sde, torch.eye(6, dtype=F64)[[0, 3]], torch.eye(2, dtype=F64) * 0.2, algorithm="sequential")
-    y, dt, mask = _series(3, 15, seed=5)
-    with torch.no_grad():
-        ref = kf(y, dt, mask=mask)
-        state = kf.initial_state(3)
-        for k in range(15):
-            state, out = kf.step(state, y[:, k], dt[:, k], mask=mask[:, k])
-            torch.testing.assert_close(out.log_likelihood, ref.step_log_likelihood[:, k], rtol=0, atol=1e-12)
-        torch.testing.assert_close(state.cov, ref.cov[:, -1], rtol=0, atol=1e-12)
 
 
 def test_structural_series_for_integrator_chains():

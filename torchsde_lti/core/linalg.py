@@ -1,7 +1,8 @@
 r"""Small dense linear-algebra kernels for every layer (torch only).
 
-Batch-first kernels on ``(..., k, k)`` (:func:`sym`, :func:`cholesky`, :func:`solve_lower`,
-:func:`solve_upper_t`, :func:`cho_solve`, :func:`matvec`; unrolled over k ≤
+Batch-first kernels on ``(..., k, k)`` (:func:`sym`, :func:`noise_covariance`,
+:func:`cholesky`, :func:`solve_lower`, :func:`solve_upper_t`, :func:`cho_solve`,
+:func:`matvec`; unrolled over k ≤
 :data:`~torchsde_lti.core.thresholds.UNROLLED_MAX_DIM`, LAPACK beyond) and batch-last kernels
 on ``(r, c, *batch)`` with the batch as the contiguous inner dimension, the layout of the
 filter loop and of the doubling (:func:`to_batch_last`, :func:`from_batch_last`,
@@ -26,6 +27,7 @@ __all__ = [
     "fused_matmul",
     "matvec",
     "nilpotency_index",
+    "noise_covariance",
     "solve_lower",
     "solve_upper_t",
     "sym",
@@ -36,6 +38,13 @@ __all__ = [
 def sym(P: Tensor) -> Tensor:
     """``(P + Pᵀ) / 2`` over the last two dimensions: P (..., k, k) -> (..., k, k)."""
     return 0.5 * (P + P.mT)
+
+
+def noise_covariance(L: Tensor, Qc: Tensor) -> Tensor:
+    """W = L Qc Lᵀ, exactly symmetric (the average of W and Wᵀ, as ``torch.lerp``): L (..., n, s),
+    Qc (..., s, s) -> (..., n, n)."""
+    W = L @ Qc @ L.mT
+    return torch.lerp(W, W.mT, 0.5)
 
 
 def cholesky(S: Tensor, semidefinite: bool = False) -> Tensor:

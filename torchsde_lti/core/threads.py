@@ -163,12 +163,12 @@ def with_threads(work: int, fn: Callable[..., _R], *args: Any) -> _R:
     """``fn(*args)`` under :func:`intra_op_threads` ``(work)``, its backward under
     :func:`one_thread_backward`: the tensors among ``args`` and in the result (tensors,
     tuples and NamedTuples of them, nested) are wrapped when the guard applies."""
-    if torch.get_num_threads() == 1 or not torch.is_grad_enabled() or not isinstance(work, int):
-        with intra_op_threads(work):  # (no guard: skip flattening the arguments)
-            return fn(*args)
-    leaves, spec = pytree.tree_flatten(args)
-    tensors = [x if isinstance(x, Tensor) else None for x in leaves]
-    if not _guarded(work, tensors):
+    guard = torch.get_num_threads() != 1 and torch.is_grad_enabled() and isinstance(work, int)
+    if guard:  # (the cheap checks first: the arguments are flattened only when they may need it)
+        leaves, spec = pytree.tree_flatten(args)
+        tensors = [x if isinstance(x, Tensor) else None for x in leaves]
+        guard = _guarded(work, tensors)
+    if not guard:
         with intra_op_threads(work):
             return fn(*args)
     wrapped, finish = one_thread_backward(work, tensors)

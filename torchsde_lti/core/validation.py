@@ -13,7 +13,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import sym
+from torchsde_lti.core.linalg import noise_covariance, sym
 from torchsde_lti.core.threads import intra_op_threads, one_thread_backward
 from torchsde_lti.core.thresholds import PYTHON_CHECK_MAX_VALUES
 
@@ -344,8 +344,7 @@ def sde_inputs(
     W = None
     if L is not None and Qc is not None:
         with intra_op_threads(work):
-            W = L @ Qc @ L.mT
-            W = torch.lerp(W, W.mT, 0.5)  # exactly symmetric
+            W = noise_covariance(L, Qc)
     values = checks_values(validate_args)
     total = sum(t.numel() for _, t in checked)
     host: dict[str, list[float]] | None = None

@@ -11,7 +11,7 @@ from typing import TypeVar
 import torch
 from torch import Tensor, nn
 
-from torchsde_lti.core.linalg import nilpotency_index
+from torchsde_lti.core.linalg import nilpotency_index, noise_covariance
 from torchsde_lti.core.series import TerminatingSeries, terminating_series
 from torchsde_lti.core.validation import as_float_tensor, shape_str, tracing
 from torchsde_lti.filters import online
@@ -88,8 +88,7 @@ def model_series(
     k = nilpotency_index(F) if index is None else index
     if k is None:
         return None
-    W = L @ Qc @ L.mT
-    return terminating_series(F, torch.lerp(W, W.mT, 0.5), B, k)  # (W exactly symmetric, as core forms it)
+    return terminating_series(F, noise_covariance(L, Qc), B, k)
 
 
 def series_step(series: TerminatingSeries, dt: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
