@@ -292,6 +292,10 @@ def test_online_step_is_a_snapshot_of_the_filter():
     for x, y in zip(before, after):
         torch.testing.assert_close(x, y, rtol=0, atol=0)
     fresh = tl.OnlineStep(kf)(*args)
+    reloaded = tl.OnlineStep(_cv_filter())
+    reloaded.load_state_dict(step.state_dict())  # kf's changed weights: the snapshot follows them
+    for x, y in zip(reloaded(*args), fresh):
+        torch.testing.assert_close(x, y, rtol=0, atol=0)
     with torch.no_grad():
         state, out = kf.step(tl.KalmanState(args[0], args[1]), args[2], args[3])
     assert not torch.allclose(fresh[4], before[4])

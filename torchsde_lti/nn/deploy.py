@@ -56,7 +56,8 @@ class OnlineStep(nn.Module):
     The step is a snapshot of the filter when it is built: the model's matrices (the SDE's, H,
     R, D and, for a nilpotent F, the terminating series of its discretisation) are evaluated
     then, without gradients, and held as buffers, so an exported program runs the step alone
-    and not the parametrisations. Build it after training (again after any change of ``kf``).
+    and not the parametrisations. Build it after training (again after any change of ``kf``;
+    ``load_state_dict`` on the step re-evaluates it).
     """
 
     def __init__(self, kf: KalmanFilter) -> None:
@@ -64,8 +65,13 @@ class OnlineStep(nn.Module):
         if not isinstance(kf, KalmanFilter):
             raise TypeError(f"kf must be a KalmanFilter, got {type(kf).__name__}")
         self.kf = kf
+        self._snapshot()
+        self.register_load_state_dict_post_hook(lambda module, _incompatible: module._snapshot())
+
+    def _snapshot(self) -> None:
+        """Evaluate ``kf``'s online model now and hold its tensors as (non-persistent) buffers."""
         with torch.no_grad():
-            leaves, self._model_spec = pytree.tree_flatten(kf._online_model())
+            leaves, self._model_spec = pytree.tree_flatten(self.kf._online_model())
         self._model_slots = [i for i, leaf in enumerate(leaves) if isinstance(leaf, Tensor)]
         for i in self._model_slots:
             self.register_buffer(f"_model_{i}", leaves[i].detach().clone(), persistent=False)
