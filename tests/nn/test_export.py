@@ -320,3 +320,19 @@ def test_aoti_packaged_online_step(tmp_path):
             assert isinstance(got, tuple) and len(got) == 5
             for x, ref in zip(got, refs):
                 torch.testing.assert_close(x, ref, rtol=0, atol=1e-9)
+    # the recorded signature: a wrong dtype, rank or count is a ValueError naming the input
+    mean, cov, y, dt = _step_args(2, seed=1)
+    with pytest.raises(ValueError, match=r"dt must be a 1-dim torch.float64 tensor on cpu, got \(2\) torch.float32"):
+        packaged(mean, cov, y, dt.float())
+    with pytest.raises(ValueError, match=r"cov must be a 3-dim torch.float64"):
+        packaged(mean, cov[0], y, dt)
+    with pytest.raises(ValueError, match=r"takes 4 tensors \(mean, cov, y, dt\), got 3"):
+        packaged(mean, cov, y)
+
+
+def test_package_functions_reject_bad_arguments(tmp_path):
+    """compile_package takes an ExportedProgram; load_package a file that exists."""
+    with pytest.raises(TypeError, match="program must be a torch.export.ExportedProgram, got OnlineStep"):
+        tl.compile_package(tl.OnlineStep(_cv_filter()), tmp_path / "x.pt2")
+    with pytest.raises(ValueError, match="path must name an AOTInductor package file"):
+        tl.load_package(tmp_path / "missing.pt2")

@@ -4,14 +4,15 @@ plain tensor inputs and outputs whose ``forward`` is what a service calls, ready
 
 - :class:`DeployedFilter`: the sequence filter, ``(y, dt) -> (log_likelihood, mean)``;
 - :class:`OnlineStep`: one online step of live tracks (:meth:`~torchsde_lti.KalmanFilter.step`);
-- :func:`compile_package` builds an exported program into an AOTInductor package whose
-  parameter-only work (the parametrisations, a nilpotent F's series matrices) runs once per
-  loaded program instead of on every call; :func:`load_package` loads one as a
-  :class:`PackagedProgram`, a callable with its calling convention read once.
+- :func:`compile_package` builds an exported program into an AOTInductor package (runtime
+  constant folding on, the program's input signature recorded); :func:`load_package` loads
+  one as a :class:`PackagedProgram`, a callable with its calling convention read once and its
+  inputs checked against the recorded signature.
 """
 
 from __future__ import annotations
 
+import json
 import os
 from typing import Any
 
@@ -20,6 +21,7 @@ from torch import Tensor, nn
 from torch.export import ExportedProgram
 from torch.utils import _pytree as pytree
 
+from torchsde_lti.core.validation import shape_str
 from torchsde_lti.filters.online import KalmanState
 from torchsde_lti.nn.kalman import KalmanFilter, OnlineModel
 
@@ -92,8 +94,14 @@ class OnlineStep(nn.Module):
 
 #: AOTInductor options of :func:`compile_package`: fold the subgraphs that depend on the
 #: program's parameters and buffers alone once, when the package is loaded and run first
-#: (and again after ``load_constants``), not on every call.
+#: (and again after ``load_constants``), not on every call. (Inductor's folder leaves out any
+#: chain that starts from a factory call such as ``torch.eye``; :class:`OnlineStep` holds its
+#: model evaluated and needs none of it.)
 PACKAGE_CONFIGS: dict[str, Any] = {"aot_inductor.use_runtime_constant_folding": True}
+
+#: The package metadata key under which :func:`compile_package` records the program's tensor
+#: inputs: a JSON list of [name, dtype, number of dims, device type].
+_INPUTS_KEY = "torchsde_lti.inputs"
 
 
 def compile_package(
@@ -101,9 +109,19 @@ def compile_package(
 ) -> str:
     """Build ``program`` (from ``torch.export.export`` of :class:`OnlineStep`,
     :class:`DeployedFilter` or any module) into an AOTInductor package at ``path`` with
-    :data:`PACKAGE_CONFIGS` (updated by ``inductor_configs``); returns the package's path. Needs
-    a C++ compiler; the package then runs with torch alone (:func:`load_package`)."""
+    :data:`PACKAGE_CONFIGS` (updated by ``inductor_configs``) and its input signature in the
+    package's metadata (read by :class:`PackagedProgram`); returns the package's path. Needs a
+    C++ compiler; the package then runs with torch alone (:func:`load_package`)."""
+    if not isinstance(program, ExportedProgram):
+        raise TypeError(f"program must be a torch.export.ExportedProgram, got {type(program).__name__}")
+    user_inputs = set(program.graph_signature.user_inputs)
+    signature = [
+        [node.name, str(val.dtype).removeprefix("torch."), val.dim(), val.device.type]
+        for node in program.graph.nodes
+        if node.op == "placeholder" and node.name in user_inputs and isinstance(val := node.meta.get("val"), Tensor)
+    ]
     configs = {**PACKAGE_CONFIGS, **(inductor_configs or {})}
+    configs["aot_inductor.metadata"] = {**configs.get("aot_inductor.metadata", {}), _INPUTS_KEY: json.dumps(signature)}
     return torch._inductor.aoti_compile_and_package(program, package_path=os.fspath(path), inductor_configs=configs)
 
 
@@ -113,22 +131,50 @@ class PackagedProgram:
     Its input and output structure is read once when it is loaded (``torch._inductor``'s
     loader object parses it again on every call, which costs a small call more than the
     compiled program itself); positional tensor arguments go to the compiled program as they
-    are. ``loader`` is torch's ``AOTIModelPackageLoader`` (``load_constants`` to swap weights).
+    are, checked first against the input signature :func:`compile_package` recorded (dtype,
+    number of dims, device: the compiled program itself reads a wrong one's memory as if it
+    were right). ``loader`` is torch's ``AOTIModelPackageLoader`` (``load_constants`` to swap
+    weights).
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
+        if not os.path.isfile(path):
+            raise ValueError(f"path must name an AOTInductor package file, got {os.fspath(path)!r} (no such file)")
         self._compiled = torch._inductor.aoti_load_package(os.fspath(path))
         self.loader = self._compiled.loader
         in_spec, out_spec = (pytree.treespec_loads(s) for s in self.loader.get_call_spec())
         self._n_inputs = in_spec.num_leaves
         self._out_spec = out_spec
         self._flat_tuple_out = out_spec == pytree.tree_structure((0,) * out_spec.num_leaves)
+        recorded = self.loader.get_metadata().get(_INPUTS_KEY)
+        self._inputs = (
+            None
+            if recorded is None
+            else [(name, getattr(torch, dtype), dim, device) for name, dtype, dim, device in json.loads(recorded)]
+        )
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
-        if kwargs or len(args) != self._n_inputs or not all(isinstance(a, Tensor) for a in args):
+        if kwargs or not all(isinstance(a, Tensor) for a in args):
             return self._compiled(*args, **kwargs)  # torch's own flattening of any structure
+        if self._inputs is not None:
+            self._check(args)
+        elif len(args) != self._n_inputs:
+            return self._compiled(*args)
         out = self.loader.boxed_run(list(args))
         return tuple(out) if self._flat_tuple_out else pytree.tree_unflatten(out, self._out_spec)
+
+    def _check(self, args: tuple[Tensor, ...]) -> None:
+        """ValueError naming the first argument whose dtype, number of dims or device differs
+        from the recorded signature (or a wrong number of arguments)."""
+        assert self._inputs is not None
+        if len(args) != len(self._inputs):
+            names = ", ".join(name for name, *_ in self._inputs)
+            raise ValueError(f"the package takes {len(self._inputs)} tensors ({names}), got {len(args)}")
+        for a, (name, dtype, dim, device) in zip(args, self._inputs):
+            if a.dtype != dtype or a.dim() != dim or a.device.type != device:
+                raise ValueError(
+                    f"{name} must be a {dim}-dim {dtype} tensor on {device}, got {shape_str(a)} {a.dtype} on {a.device.type}"
+                )
 
 
 def load_package(path: str | os.PathLike[str]) -> PackagedProgram:
