@@ -1,0 +1,86 @@
+"""The packaged online step (AOTInductor) beyond bench_online.py's float64 constant-velocity case:
+constant velocity in float32 and the Singer model (6 states, F not nilpotent: the program
+discretises with core's traced doubling schedule) in float64 and float32, at 1 and 1000 tracks.
+Run it against two checkouts to compare them (it uses tl.compile_package / tl.load_package
+where the checkout has them, torch's own calls otherwise)::
+
+    PYTHONPATH=/path/to/old python experiments/ab_package_step.py
+    PYTHONPATH=$PWD python experiments/ab_package_step.py
+
+1 intra-op thread, median CPU time of 41 timings of 20 calls; each row also prints the largest
+difference of the packaged step's filtered mean from the eager step's.
+"""
+
+from __future__ import annotations
+
+import statistics
+import tempfile
+import time
+from collections.abc import Callable
+
+import torch
+from torch.export import Dim
+
+import torchsde_lti as tl
+
+
+def median_s(fn: Callable[[], object], rep: int = 41, inner: int = 20) -> float:
+    for _ in range(5):
+        fn()
+    times = []
+    for _ in range(rep):
+        t0 = time.process_time()
+        for _ in range(inner):
+            fn()
+        times.append((time.process_time() - t0) / inner)
+    return statistics.median(times)
+
+
+def build(name: str, dtype: torch.dtype) -> tl.KalmanFilter:
+    if name == "singer":
+        sde = tl.models.singer(dim=2, alpha=0.5, q=0.7, dtype=dtype)
+    else:
+        sde = tl.models.constant_velocity(dim=2, q=0.8, dtype=dtype)
+    n = sde.matrices().F.shape[-1]
+    R = 0.3 * torch.eye(2, dtype=dtype)
+    return tl.KalmanFilter(sde, tl.models.position_observation(sde), R, P0=torch.eye(n, dtype=dtype))
+
+
+def step_args(b: int, n: int, dtype: torch.dtype, g: torch.Generator) -> tuple[torch.Tensor, ...]:
+    cov = torch.eye(n, dtype=dtype).expand(b, n, n).contiguous()
+    return (
+        torch.randn(b, n, generator=g).to(dtype),
+        cov,
+        torch.randn(b, 2, generator=g).to(dtype),
+        torch.rand(b, generator=g).to(dtype),
+    )
+
+
+def main() -> None:
+    torch.set_num_threads(1)
+    helpers = hasattr(tl, "compile_package")
+    print("tl.compile_package / tl.load_package" if helpers else "torch's aoti_compile_and_package / aoti_load_package")
+    for name, dtype in (("cv", torch.float32), ("singer", torch.float64), ("singer", torch.float32)):
+        kf = build(name, dtype)
+        n = kf.sde.matrices().F.shape[-1]
+        g = torch.Generator().manual_seed(0)
+        with torch.no_grad():
+            ep = torch.export.export(
+                tl.OnlineStep(kf).eval(), step_args(3, n, dtype, g), dynamic_shapes=({0: Dim("B", max=100_000)},) * 4
+            )
+        path = tempfile.mktemp(suffix=".pt2")
+        if helpers:
+            run = tl.load_package(tl.compile_package(ep, path))
+        else:
+            run = torch._inductor.aoti_load_package(torch._inductor.aoti_compile_and_package(ep, package_path=path))
+        for b in (1, 1000):
+            args = step_args(b, n, dtype, g)
+            with torch.no_grad():
+                state, _ = kf.step(tl.KalmanState(args[0], args[1]), args[2], args[3])
+            err = float((run(*args)[0] - state.mean).abs().max())
+            t = median_s(lambda args=args: run(*args))
+            print(f"{name} {str(dtype)[6:]} B={b}: {t * 1e6:.1f} µs (max |mean − eager| {err:.1e})")
+
+
+if __name__ == "__main__":
+    main()
