@@ -1,7 +1,8 @@
 """The packaged online step (AOTInductor) beyond bench_online.py's float64 constant-velocity case:
 constant velocity in float32 and the Singer model (6 states, F not nilpotent: the program
-discretises with core's traced doubling schedule) in float64 and float32, at 1 and 1000 tracks.
-Run it against two checkouts to compare them (it uses tl.compile_package / tl.load_package
+discretises with core's traced doubling schedule) in float64 and float32, at 1 and 1000 tracks;
+with ``--eager``, instead, the eager ``kf.step`` of bench_online.py's float64 constant-velocity
+filter at one track (no packages built). Run it against two checkouts to compare them (it uses tl.compile_package / tl.load_package
 where the checkout has them, torch's own calls otherwise)::
 
     PYTHONPATH=/path/to/old python experiments/ab_package_step.py
@@ -13,10 +14,13 @@ difference of the packaged step's filtered mean from the eager step's.
 
 from __future__ import annotations
 
+import argparse
 import statistics
+import sys
 import tempfile
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import torch
 from torch.export import Dim
@@ -56,8 +60,27 @@ def step_args(b: int, n: int, dtype: torch.dtype, g: torch.Generator) -> tuple[t
     )
 
 
+def eager_step() -> None:
+    """bench_online.py's float64 constant-velocity filter, ``kf.step`` at one track, no gradients."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from bench_online import build_filter
+    from bench_online import step_args as cv_args
+
+    kf = build_filter(validate=False)
+    mean, cov, y, dt = cv_args(1, 0)
+    state = tl.KalmanState(mean, cov)
+    with torch.no_grad():
+        t = median_s(lambda: kf.step(state, y, dt), rep=101, inner=10)
+    print(f"cv float64 B=1 eager kf.step: {t * 1e6:.1f} µs")
+
+
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--eager", action="store_true", help="time the eager kf.step only")
     torch.set_num_threads(1)
+    if ap.parse_args().eager:
+        eager_step()
+        return
     helpers = hasattr(tl, "compile_package")
     print("tl.compile_package / tl.load_package" if helpers else "torch's aoti_compile_and_package / aoti_load_package")
     for name, dtype in (("cv", torch.float32), ("singer", torch.float64), ("singer", torch.float32)):
