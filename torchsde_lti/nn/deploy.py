@@ -132,7 +132,7 @@ class PackagedProgram:
     loader object parses it again on every call, which costs a small call more than the
     compiled program itself); positional tensor arguments go to the compiled program as they
     are, checked first against the input signature :func:`compile_package` recorded (dtype,
-    number of dims, device: the compiled program itself reads a wrong one's memory as if it
+    number of dims, on the CPU or not: the compiled program itself reads a wrong one's memory as if it
     were right). ``loader`` is torch's ``AOTIModelPackageLoader`` (``load_constants`` to swap
     weights).
     """
@@ -152,26 +152,29 @@ class PackagedProgram:
             if recorded is None
             else [(name, getattr(torch, dtype), dim, device) for name, dtype, dim, device in json.loads(recorded)]
         )
+        # what each call compares (dtype, number of dims, on the CPU or not): one list equality
+        self._expected = None if self._inputs is None else [(d, k, dev == "cpu") for _, d, k, dev in self._inputs]
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         if kwargs or not all(isinstance(a, Tensor) for a in args):
             return self._compiled(*args, **kwargs)  # torch's own flattening of any structure
-        if self._inputs is not None:
-            self._check(args)
+        if self._expected is not None:
+            if [(a.dtype, a.ndim, a.is_cpu) for a in args] != self._expected:
+                self._raise_mismatch(args)
         elif len(args) != self._n_inputs:
             return self._compiled(*args)
         out = self.loader.boxed_run(list(args))
         return tuple(out) if self._flat_tuple_out else pytree.tree_unflatten(out, self._out_spec)
 
-    def _check(self, args: tuple[Tensor, ...]) -> None:
-        """ValueError naming the first argument whose dtype, number of dims or device differs
+    def _raise_mismatch(self, args: tuple[Tensor, ...]) -> None:
+        """ValueError naming the first argument whose dtype, number of dims or device (CPU or not) differs
         from the recorded signature (or a wrong number of arguments)."""
         assert self._inputs is not None
         if len(args) != len(self._inputs):
             names = ", ".join(name for name, *_ in self._inputs)
             raise ValueError(f"the package takes {len(self._inputs)} tensors ({names}), got {len(args)}")
         for a, (name, dtype, dim, device) in zip(args, self._inputs):
-            if a.dtype != dtype or a.dim() != dim or a.device.type != device:
+            if a.dtype != dtype or a.dim() != dim or a.is_cpu != (device == "cpu"):
                 raise ValueError(
                     f"{name} must be a {dim}-dim {dtype} tensor on {device}, got {shape_str(a)} {a.dtype} on {a.device.type}"
                 )
