@@ -15,11 +15,8 @@ difference of the packaged step's filtered mean from the eager step's.
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 import tempfile
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -27,17 +24,9 @@ from torch.export import Dim
 
 import torchsde_lti as tl
 
-
-def median_s(fn: Callable[[], object], rep: int = 41, inner: int = 20) -> float:
-    for _ in range(5):
-        fn()
-    times = []
-    for _ in range(rep):
-        t0 = time.process_time()
-        for _ in range(inner):
-            fn()
-        times.append((time.process_time() - t0) / inner)
-    return statistics.median(times)
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_online import build_filter, median_s  # noqa: E402
+from bench_online import step_args as cv_args  # noqa: E402
 
 
 def build(name: str, dtype: torch.dtype) -> tl.KalmanFilter:
@@ -62,15 +51,11 @@ def step_args(b: int, n: int, dtype: torch.dtype, g: torch.Generator) -> tuple[t
 
 def eager_step() -> None:
     """bench_online.py's float64 constant-velocity filter, ``kf.step`` at one track, no gradients."""
-    sys.path.insert(0, str(Path(__file__).parent))
-    from bench_online import build_filter
-    from bench_online import step_args as cv_args
-
     kf = build_filter(validate=False)
     mean, cov, y, dt = cv_args(1, 0)
     state = tl.KalmanState(mean, cov)
     with torch.no_grad():
-        t = median_s(lambda: kf.step(state, y, dt), rep=101, inner=10)
+        t = median_s(lambda: kf.step(state, y, dt), 101, inner=10)
     print(f"cv float64 B=1 eager kf.step: {t * 1e6:.1f} µs")
 
 
@@ -101,7 +86,7 @@ def main() -> None:
             with torch.no_grad():
                 state, _ = kf.step(tl.KalmanState(args[0], args[1]), args[2], args[3])
             err = float((run(*args)[0] - state.mean).abs().max())
-            t = median_s(lambda args=args: run(*args))
+            t = median_s(lambda args=args: run(*args), 41, inner=20)
             print(f"{name} {str(dtype)[6:]} B={b}: {t * 1e6:.1f} µs (max |mean − eager| {err:.1e})")
 
 
