@@ -44,6 +44,7 @@ __all__ = [
     "PreparedInputs",
     "assemble_result",
     "check_mask",
+    "complete_from_filtered",
     "mask_observation_model",
     "observed_components",
     "pad_dims",
@@ -328,3 +329,27 @@ def assemble_result(
         observed=observed,
         control=(mean.new_zeros(()) if prep.c is None else prep.c).expand(*mb, T, n),
     )
+
+
+def complete_from_filtered(prep: PreparedInputs, mean: Tensor, cov: Tensor) -> FilterResult:
+    """The :class:`FilterResult` of an algorithm that yields the filtered moments alone, mean
+    (..., T, n) and cov (..., T, n, n): the predictions ``m⁻_k = A_k m_{k−1} + c_k``,
+    ``P⁻_k = A_k P_{k−1} A_kᵀ + Q_k`` (step 0 from the prior) and the log-likelihood from the
+    whitened innovations ``z_k = L_k⁻¹ (y'_k − H'_k m⁻_k)``, ``L_k L_kᵀ = H'_k P⁻_k H'_kᵀ + I``,
+    all batched over the steps (an unobserved component has a zero row of H' and y': it adds 0)."""
+    n = mean.shape[-1]
+    # (the prior put in front, the last step dropped: no size-(T − 1) tensor, which a traced
+    # program with a dynamic T would have to guard against being 1)
+    prev_m = torch.cat([prep.m0.unsqueeze(-2), mean], dim=-2)[..., :-1, :]
+    lead = torch.broadcast_shapes(prep.P0.shape[:-2], cov.shape[:-3])
+    prev_P = torch.cat([prep.P0.expand(*lead, n, n).unsqueeze(-3), cov.expand(*lead, -1, n, n)], dim=-3)[..., :-1, :, :]
+    pred_mean = matvec(prep.A, prev_m)
+    if prep.c is not None:
+        pred_mean = pred_mean + prep.c
+    pred_cov = sym(prep.A @ prev_P @ prep.A.mT + prep.Q)
+    Hw = prep.Hw
+    S = sym(Hw @ pred_cov @ Hw.mT) + torch.eye(Hw.shape[-2], dtype=Hw.dtype, device=Hw.device)
+    L = cholesky(S)
+    z = solve_lower(L, (prep.yw - matvec(Hw, pred_mean)).unsqueeze(-1)).squeeze(-1)
+    logdet = 2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+    return assemble_result(prep, (mean, cov), (pred_mean, pred_cov), -0.5 * (logdet + (z * z).sum(-1)))

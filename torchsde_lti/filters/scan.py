@@ -12,8 +12,8 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, solve_lower, sym
-from torchsde_lti.filters.inputs import FilterInputs, PreparedInputs, assemble_result, prepare_inputs
+from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, sym
+from torchsde_lti.filters.inputs import FilterInputs, PreparedInputs, complete_from_filtered, prepare_inputs
 from torchsde_lti.filters.results import FilterResult
 
 __all__ = ["SCAN_MAX_BATCH_CPU", "SCAN_MAX_ELEMENTS", "associative_scan", "chunked_scan", "prefers_scan", "scan_filter"]
@@ -135,24 +135,7 @@ def scan_filter(prep: PreparedInputs) -> FilterResult:
     mean = scanned[1].movedim(0, -2)
     cov = scanned[2].movedim(0, -3)
 
-    # Predictions batched over steps, then the log-likelihood from whitened innovations.
-    prev_m = torch.cat([prep.m0.unsqueeze(-2), mean[..., :-1, :]], dim=-2)
-    lead_c = torch.broadcast_shapes(prep.P0.shape[:-2], cov.shape[:-3])
-    prev_P = torch.cat(
-        [prep.P0.expand(*lead_c, n, n).unsqueeze(-3), cov[..., :-1, :, :].expand(*lead_c, T - 1, n, n)], dim=-3
-    )
-    pred_mean = matvec(A_, prev_m)
-    if prep.c is not None:
-        pred_mean = pred_mean + prep.c
-    pred_cov = sym(A_ @ prev_P @ A_.mT + Qp)
-    HP = Hw @ pred_cov
-    Sw = sym(HP @ Hw.mT) + torch.eye(Hw.shape[-2], dtype=Hw.dtype, device=Hw.device)
-    Lw = cholesky(Sw)
-    vw = yw - matvec(Hw, pred_mean)
-    z = solve_lower(Lw, vw.unsqueeze(-1)).squeeze(-1)
-    logdet = 2.0 * torch.log(torch.diagonal(Lw, dim1=-2, dim2=-1)).sum(-1)
-    core = -0.5 * (logdet + (z * z).sum(-1))
-    return assemble_result(prep, (mean, cov), (pred_mean, pred_cov), core)
+    return complete_from_filtered(prep, mean, cov)
 
 
 # ----------------------------------------------------------------------------------------

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import bl_matmul, bl_matvec, bl_sym_into, from_batch_last, to_batch_last
-from torchsde_lti.filters.inputs import PreparedInputs, assemble_result
+from torchsde_lti.filters.inputs import PreparedInputs, assemble_result, complete_from_filtered
 from torchsde_lti.filters.results import FilterResult
 
 __all__ = ["sequential_filter"]
@@ -74,11 +74,13 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
     nd = len(prep.mean_batch)
     if structured:
         # The whole loop as torch's structured scan, compiled once: one step's graph, no
-        # unrolling, no Python per step.
+        # unrolling, no Python per step. The loop carries and returns the filtered moments
+        # alone (each output of a step costs a compiled program buffers every iteration);
+        # predictions and the log-likelihood are then formed batched over the steps.
         T = prep.T
         c_all = to_batch_last(prep.c, 1, time=True) if prep.c is not None else torch.zeros_like(mean).unsqueeze(0)
         loop = _scan_loop if torch.compiler.is_exporting() else _run_compiled_loop
-        pm_bl, pc_bl, fm_bl, fc_bl, e_bl, s_bl = loop(
+        fm_bl, fc_bl = loop(
             to_batch_last(A_bf, 2, time=True),
             to_batch_last(Q_bf, 2, time=True),
             H_s.expand(T, *H_s.shape[1:]),
@@ -87,8 +89,7 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
             _row_major(mean),
             _row_major(P),
         )
-        e_t = e_bl.reshape(T * m_dim, *e_bl.shape[2:])
-        s_t = s_bl.reshape(T * m_dim, *s_bl.shape[2:])
+        return complete_from_filtered(prep, from_batch_last(fm_bl, 1, nd), from_batch_last(fc_bl, 2, nd))
     else:
         A_steps, Q_steps = A_bf.unbind(-3), Q_bf.unbind(-3)
         h_rows = H_s.reshape(-1, *H_s.shape[2:]).unbind(0)  # (T or 1)·m rows, each (n, *)
@@ -210,20 +211,20 @@ def _row_major(x: Tensor) -> Tensor:
 
 def _scan_body(
     carry: tuple[Tensor, Tensor], step: tuple[Tensor, Tensor, Tensor, Tensor, Tensor]
-) -> tuple[tuple[Tensor, Tensor], tuple[Tensor, ...]]:
+) -> tuple[tuple[Tensor, Tensor], tuple[Tensor, Tensor]]:
     """:func:`_joseph_step` as the body of ``torch._higher_order_ops.scan``: carry (mean, P),
-    step slices (A_k, Q_k, H'_k (m, n, *), y'_k (m, *), c_k (n, *))."""
+    step slices (A_k, Q_k, H'_k (m, n, *), y'_k (m, *), c_k (n, *)); outputs the filtered
+    (mean, P)."""
     mean, P = carry
     Ak, Qk, hk, yk, ck = step
-    pm, pc, mean, P, es, ss = _joseph_step(Ak, Qk, mean, P, ck, hk.unbind(0), yk.unbind(0), None, None)
-    e = torch.stack(torch.broadcast_tensors(*es))
+    _, _, mean, P, _, _ = _joseph_step(Ak, Qk, mean, P, ck, hk.unbind(0), yk.unbind(0), None, None)
     # outputs must not alias the carry (a requirement of the scan operator)
-    return (mean, P), (pm.clone(), pc.clone(), mean.clone(), P.clone(), e, torch.stack(ss))
+    return (mean, P), (mean.clone(), P.clone())
 
 
 def _scan_loop(A: Tensor, Q: Tensor, H: Tensor, y: Tensor, c: Tensor, mean: Tensor, P: Tensor) -> tuple[Tensor, ...]:
     """The sequential loop over the leading T axis of A, Q (T, n, n, *), H' (T, m, n, *),
-    y' (T, m, *), c (T, n, *): stacked (pred mean, pred cov, mean, cov, e, s)."""
+    y' (T, m, *), c (T, n, *): the filtered means (T, n, *) and covariances (T, n, n, *)."""
     from torch._higher_order_ops import scan
 
     _, outs = scan(_scan_body, (mean, P), (A, Q, H, y, c))
