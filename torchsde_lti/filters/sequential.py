@@ -40,7 +40,9 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
     ``structured``: run the loop as torch's structured scan (``torch._higher_order_ops.scan``)
     through its own ``torch.compile``: one step's graph is compiled (once), the T steps are not
     unrolled; inside a caller's ``torch.compile`` trace the loop is a graph break (inductor
-    cannot yet lower the scan inside a larger graph). What ``torch.compile(kf)`` uses.
+    cannot yet lower the scan inside a larger graph). What ``torch.compile(kf)`` uses. The
+    loop then yields the filtered moments alone, the rest is formed batched over the steps
+    (:func:`~torchsde_lti.filters.inputs.complete_from_filtered`).
     """
     m_dim = prep.yw.shape[-1]
     # Batch-last layout: per-step tensors (n, n, *batch) keep the batch as the contiguous
@@ -62,15 +64,6 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
 
     mean = to_batch_last(prep.m0, 1)  # (n, *mb)
     P = to_batch_last(prep.P0, 2)  # (n, n, *cb)
-    means, covs, pmeans, pcovs, es, ss = [], [], [], [], [], []
-    # Without autograd the covariances are written straight into (T, n, n, *cb) outputs
-    # (no stack of T tensors at the end); with autograd they are stacked.
-    buffers = not torch.is_grad_enabled() or not any(
-        t.requires_grad for t in (prep.A, prep.Q, prep.Hw, prep.P0) if isinstance(t, Tensor)
-    )
-    n_state = P.shape[0]
-    pc_buf = P.new_empty((prep.T, n_state, n_state, *P.shape[2:])) if buffers else None
-    fc_buf = P.new_empty((prep.T, n_state, n_state, *P.shape[2:])) if buffers else None
     nd = len(prep.mean_batch)
     if structured:
         # The whole loop as torch's structured scan, compiled once: one step's graph, no
@@ -90,42 +83,50 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
             _row_major(P),
         )
         return complete_from_filtered(prep, from_batch_last(fm_bl, 1, nd), from_batch_last(fc_bl, 2, nd))
-    else:
-        A_steps, Q_steps = A_bf.unbind(-3), Q_bf.unbind(-3)
-        h_rows = H_s.reshape(-1, *H_s.shape[2:]).unbind(0)  # (T or 1)·m rows, each (n, *)
-        y_rows = yw_bl.reshape(-1, *yw_bl.shape[2:]).unbind(0)  # T·m entries, each (*mb)
-        c_steps = to_batch_last(prep.c, 1, time=True).unbind(0) if prep.c is not None else None
-        c_single = c_steps is not None and len(c_steps) == 1
-        for k in range(prep.T):
-            Ak = A_steps[k].permute(to_bl)
-            Qk = Q_steps[k].permute(to_bl)
-            if Ak.stride(-1) != 1 or Ak.dim() == 2:
-                Ak, Qk = Ak.contiguous(), Qk.contiguous()
-            ck = None if c_steps is None else c_steps[0 if c_single else k]
-            hk0 = 0 if h_single else k * m_dim
-            pm, pc, mean, P, e_k, s_k = _joseph_step(
-                Ak,
-                Qk,
-                mean,
-                P,
-                ck,
-                h_rows[hk0 : hk0 + m_dim],
-                y_rows[k * m_dim : (k + 1) * m_dim],
-                None if pc_buf is None else pc_buf[k],
-                None if fc_buf is None else fc_buf[k],
-            )
-            pmeans.append(pm)
-            pcovs.append(pc)
-            es.extend(e_k)
-            ss.extend(s_k)
-            means.append(mean)
-            covs.append(P)
-        pm_bl = torch.stack(pmeans)  # (T, n, *mb)
-        pc_bl = torch.stack(pcovs) if pc_buf is None else pc_buf  # (T, n, n, *cb)
-        fm_bl = torch.stack(means)
-        fc_bl = torch.stack(covs) if fc_buf is None else fc_buf
-        e_t = torch.stack(torch.broadcast_tensors(*es))  # (T m, *mb)
-        s_t = torch.stack(ss)  # (T m, *cb)
+    means, covs, pmeans, pcovs, es, ss = [], [], [], [], [], []
+    # Without autograd the covariances are written straight into (T, n, n, *cb) outputs
+    # (no stack of T tensors at the end); with autograd they are stacked.
+    buffers = not torch.is_grad_enabled() or not any(
+        t.requires_grad for t in (prep.A, prep.Q, prep.Hw, prep.P0) if isinstance(t, Tensor)
+    )
+    n_state = P.shape[0]
+    pc_buf = P.new_empty((prep.T, n_state, n_state, *P.shape[2:])) if buffers else None
+    fc_buf = P.new_empty((prep.T, n_state, n_state, *P.shape[2:])) if buffers else None
+    A_steps, Q_steps = A_bf.unbind(-3), Q_bf.unbind(-3)
+    h_rows = H_s.reshape(-1, *H_s.shape[2:]).unbind(0)  # (T or 1)·m rows, each (n, *)
+    y_rows = yw_bl.reshape(-1, *yw_bl.shape[2:]).unbind(0)  # T·m entries, each (*mb)
+    c_steps = to_batch_last(prep.c, 1, time=True).unbind(0) if prep.c is not None else None
+    c_single = c_steps is not None and len(c_steps) == 1
+    for k in range(prep.T):
+        Ak = A_steps[k].permute(to_bl)
+        Qk = Q_steps[k].permute(to_bl)
+        if Ak.stride(-1) != 1 or Ak.dim() == 2:
+            Ak, Qk = Ak.contiguous(), Qk.contiguous()
+        ck = None if c_steps is None else c_steps[0 if c_single else k]
+        hk0 = 0 if h_single else k * m_dim
+        pm, pc, mean, P, e_k, s_k = _joseph_step(
+            Ak,
+            Qk,
+            mean,
+            P,
+            ck,
+            h_rows[hk0 : hk0 + m_dim],
+            y_rows[k * m_dim : (k + 1) * m_dim],
+            None if pc_buf is None else pc_buf[k],
+            None if fc_buf is None else fc_buf[k],
+        )
+        pmeans.append(pm)
+        pcovs.append(pc)
+        es.extend(e_k)
+        ss.extend(s_k)
+        means.append(mean)
+        covs.append(P)
+    pm_bl = torch.stack(pmeans)  # (T, n, *mb)
+    pc_bl = torch.stack(pcovs) if pc_buf is None else pc_buf  # (T, n, n, *cb)
+    fm_bl = torch.stack(means)
+    fc_bl = torch.stack(covs) if fc_buf is None else fc_buf
+    e_t = torch.stack(torch.broadcast_tensors(*es))  # (T m, *mb)
+    s_t = torch.stack(ss)  # (T m, *cb)
     # Innovations and their covariances, batched over all steps in the same layout.
     H_bl = to_batch_last(prep.H, 2, time=True)  # (T or 1, m, n, *)
     R_bl = to_batch_last(prep.R, 2, time=True)
