@@ -204,3 +204,29 @@ def test_one_public_name_per_model() -> None:
         assert inspect.isfunction(getattr(tl.models, name)), name
     assert not [n for n in dir(tl.models) if not n.startswith("_") and inspect.isclass(getattr(tl.models, n))]
     assert isinstance(tl.models.singer(0.5, 1.0, dim=2), tl.LTISDE)
+
+
+@pytest.mark.parametrize("size", [3, 400])  # on Python floats (≤ PYTHON_CHECK_MAX_VALUES in all); as tensors
+def test_fused_check_names_the_bad_tensor_on_both_paths(size: int) -> None:
+    """check_values: the same verdicts whether the values are read to the host (a live track's
+    step) or reduced as tensors (a batch): NaN/Inf in a finite argument, a negative or NaN dt,
+    Inf in y fail, naming the argument; NaN in y (missing data) passes."""
+    from torchsde_lti.nn._validate import check_values
+
+    def call(F: torch.Tensor, dt: torch.Tensor, y: torch.Tensor) -> None:
+        check_values(finite=[("F", F), ("L", None)], nonnegative=[("dt", dt)], no_inf=[("y", y)])
+
+    F, dt, y = torch.zeros(2, 2, dtype=F64), torch.ones(size, dtype=F64), torch.zeros(size, 2, dtype=F64)
+    y[0, 1] = float("nan")
+    call(F, dt, y)
+    for field, index, value, message in (
+        ("F", (1, 0), float("nan"), "F contains NaN or Inf"),
+        ("F", (0, 1), float("-inf"), "F contains NaN or Inf"),
+        ("dt", (size - 1,), -1e-300, "dt must be non-negative"),
+        ("dt", (0,), float("nan"), "dt contains NaN or Inf"),
+        ("y", (size - 1, 0), float("inf"), "y contains Inf"),
+    ):
+        args = {"F": F.clone(), "dt": dt.clone(), "y": y.clone()}
+        args[field][index] = value
+        with pytest.raises(ValueError, match=message):
+            call(**args)

@@ -3,12 +3,14 @@ default, as in torch.distributions, and one fused check of a call's arguments.""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import ClassVar
 
 import torch
 from torch import Tensor
 
+from torchsde_lti.core.thresholds import PYTHON_CHECK_MAX_VALUES
 from torchsde_lti.core.validation import as_float_tensor, check_finite, check_nonnegative, shape_str, tracing
 
 Named = Sequence[tuple[str, Tensor | None]]
@@ -46,22 +48,31 @@ class ValidateArgs:
 def check_values(finite: Named = (), nonnegative: Named = (), no_inf: Named = ()) -> None:
     """ValueError naming the first bad tensor: NaN/Inf in ``finite`` and ``nonnegative``,
     a negative entry in ``nonnegative``, ±Inf in ``no_inf`` (NaN allowed: missing data).
-    One synchronisation when everything is valid (no-op while tracing)."""
+    One synchronisation when everything is valid (no-op while tracing): for at most
+    :data:`~torchsde_lti.core.thresholds.PYTHON_CHECK_MAX_VALUES` values in all (one live
+    track's step) the values are read in one transfer and checked as Python floats."""
     if tracing():
         return
     finite = [(k, v) for k, v in finite if v is not None]
     nonnegative = [(k, v) for k, v in nonnegative if v is not None and v.numel()]
     no_inf = [(k, v) for k, v in no_inf if v is not None]
+    named = [*finite, *nonnegative, *no_inf]
+    if not named:
+        return
     with torch.no_grad():
-        flags = (
-            [torch.stack([v.sum() for _, v in (*finite, *nonnegative)]).isfinite().all()]
-            if finite or nonnegative
-            else []
-        )
-        flags += [v.amin() >= 0 for _, v in nonnegative]
-        flags += [~torch.isinf(v).any() for _, v in no_inf]
-        if not flags or bool(torch.stack(flags).all()):
-            return
+        if sum(v.numel() for _, v in named) <= PYTHON_CHECK_MAX_VALUES:
+            if _host_values_valid(finite, nonnegative, no_inf):
+                return
+        else:
+            flags = (
+                [torch.stack([v.sum() for _, v in (*finite, *nonnegative)]).isfinite().all()]
+                if finite or nonnegative
+                else []
+            )
+            flags += [v.amin() >= 0 for _, v in nonnegative]
+            flags += [~torch.isinf(v).any() for _, v in no_inf]
+            if bool(torch.stack(flags).all()):
+                return
     for name, value in finite:  # a finite sum that overflowed passes these
         check_finite(value, name)
     for name, value in nonnegative:
@@ -69,6 +80,20 @@ def check_values(finite: Named = (), nonnegative: Named = (), no_inf: Named = ()
     for name, value in no_inf:
         if bool(torch.isinf(value).any()):
             raise ValueError(f"{name} contains Inf (shape {shape_str(value)}); mark missing values with NaN or mask")
+
+
+def _host_values_valid(finite: Named, nonnegative: Named, no_inf: Named) -> bool:
+    """:func:`check_values`'s test on Python floats (one transfer of every value)."""
+    parts = [v.reshape(-1) for _, v in (*finite, *nonnegative, *no_inf)]  # type: ignore[union-attr]
+    values = torch.cat(parts).tolist() if len(parts) > 1 else parts[0].tolist()
+    n_finite = sum(v.numel() for _, v in finite)  # type: ignore[union-attr]
+    n_nonneg = sum(v.numel() for _, v in nonnegative)  # type: ignore[union-attr]
+    isfinite, isinf = math.isfinite, math.isinf
+    return (
+        all(isfinite(x) for x in values[:n_finite])
+        and all(isfinite(x) and x >= 0 for x in values[n_finite : n_finite + n_nonneg])
+        and not any(isinf(x) for x in values[n_finite + n_nonneg :])
+    )
 
 
 class NonFiniteLikelihoodError(ValueError):
