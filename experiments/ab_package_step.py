@@ -1,8 +1,9 @@
 """The packaged online step (AOTInductor) beyond bench_online.py's float64 constant-velocity case:
 constant velocity in float32 and the Singer model (6 states, F not nilpotent: the program
-discretises with core's traced doubling schedule) in float64 and float32, at 1 and 1000 tracks;
-with ``--eager``, instead, the eager ``kf.step`` of bench_online.py's float64 constant-velocity
-filter at one track (no packages built). Run it against two checkouts to compare them (it uses tl.compile_package / tl.load_package
+discretises with its doubling series, or before that series existed with core's traced
+doubling schedule) in float64 and float32, at 1 and 1000 tracks; with ``--eager``, instead, the
+eager ``kf.step`` of bench_online.py's float64 constant-velocity filter at one track and of the
+Singer model at 1 and 1000 tracks (no packages built). Run it against two checkouts to compare them (it uses tl.compile_package / tl.load_package
 where the checkout has them, torch's own calls otherwise)::
 
     PYTHONPATH=/path/to/old python experiments/ab_package_step.py
@@ -50,13 +51,23 @@ def step_args(b: int, n: int, dtype: torch.dtype, g: torch.Generator) -> tuple[t
 
 
 def eager_step() -> None:
-    """bench_online.py's float64 constant-velocity filter, ``kf.step`` at one track, no gradients."""
+    """``kf.step`` without gradients: bench_online.py's float64 constant-velocity filter at one
+    track, the Singer model (float64, float32) at 1 and 1000 tracks."""
     kf = build_filter(validate=False)
     mean, cov, y, dt = cv_args(1, 0)
     state = tl.KalmanState(mean, cov)
     with torch.no_grad():
         t = median_s(lambda: kf.step(state, y, dt), 101, inner=10)
     print(f"cv float64 B=1 eager kf.step: {t * 1e6:.1f} µs")
+    for dtype in (torch.float64, torch.float32):
+        kf = build("singer", dtype)
+        g = torch.Generator().manual_seed(0)
+        for b in (1, 1000):
+            mean, cov, y, dt = step_args(b, 6, dtype, g)
+            state = tl.KalmanState(mean, cov)
+            with torch.no_grad():
+                t = median_s(lambda state=state, y=y, dt=dt: kf.step(state, y, dt), 41 if b == 1 else 15, inner=5)
+            print(f"singer {str(dtype)[6:]} B={b} eager kf.step: {t * 1e6:.1f} µs")
 
 
 def main() -> None:

@@ -4,6 +4,7 @@ reports (NaN and mask) to 1e-12 in float64; tracks join and leave by indexing th
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -356,14 +357,37 @@ def test_terminating_series_equals_closed_form_and_van_loan():
                 torch.testing.assert_close(G, want.G, rtol=1e-12, atol=1e-12)
 
 
-def test_terminating_series_only_for_one_nilpotent_parameter_set():
-    """F not nilpotent (Singer, OU: core's doubling then) or a batch of parameters: None."""
+def test_model_series_of_one_parameter_set():
+    """A nilpotent F: its terminating series; any other F (Singer, OU): the doubling's series
+    terms (SharedSeries), whose steps equal core's discretize to rounding and, where the Van
+    Loan block is benign (dt ≤ 4), scipy's expm of it; a batch of parameters: None (core's
+    discretisation then)."""
+    import scipy.linalg
+
+    from torchsde_lti.core.discretization import SharedSeries, discretize
     from torchsde_lti.core.linalg import nilpotency_index
+    from torchsde_lti.core.series import TerminatingSeries
     from torchsde_lti.nn._online import model_series
 
-    assert model_series(*tl.models.singer(0.5, 1.0, dtype=F64).matrices()) is None
-    assert model_series(*tl.models.ornstein_uhlenbeck(0.5, 1.0, dtype=F64).matrices()) is None
+    dt = torch.tensor([0.0, 1e-5, 0.03, 0.7, 4.0, 60.0], dtype=F64)
+    for sde in (tl.models.singer(0.5, 1.0, dim=2, dtype=F64), tl.models.ornstein_uhlenbeck(0.5, 1.0, dtype=F64)):
+        mats = sde.matrices()
+        with torch.no_grad():
+            series = model_series(*mats)
+            assert isinstance(series, SharedSeries)
+            A, Q, _ = series(dt)
+            ref = discretize(mats.F, mats.L, mats.Qc, dt)
+        torch.testing.assert_close(A, ref.A, rtol=1e-12, atol=1e-14)
+        torch.testing.assert_close(Q, ref.Q, rtol=1e-12, atol=1e-14)
+        n = mats.F.shape[-1]
+        F, W = mats.F.detach().numpy(), (mats.L @ mats.Qc @ mats.L.mT).detach().numpy()
+        for k, h in enumerate(dt.tolist()[:-1]):
+            E = scipy.linalg.expm(np.block([[F, W], [np.zeros((n, n)), -F.T]]) * h)
+            np.testing.assert_allclose(A[k].numpy(), E[:n, :n], rtol=1e-10, atol=1e-12)
+            np.testing.assert_allclose(Q[k].numpy(), E[:n, n:] @ E[:n, :n].T, rtol=1e-8, atol=1e-12)
     cv = tl.models.constant_velocity(dim=1, dtype=F64).matrices()
+    with torch.no_grad():
+        assert isinstance(model_series(*cv), TerminatingSeries)
     assert model_series(cv.F.expand(3, 2, 2), cv.L, cv.Qc, None) is None
     assert nilpotency_index(torch.zeros(3, 3)) == 1
     assert nilpotency_index(torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])) == 3
@@ -374,7 +398,7 @@ def test_terminating_series_only_for_one_nilpotent_parameter_set():
 def test_structural_series_for_integrator_chains():
     """Integrator chains (integrated_wiener: constant velocity, acceleration) fix F's
     nilpotency by their structure, so a traced program forms the series without reading F's
-    values; the structural series equals the one found from the values. Other models: None."""
+    values; the structural series equals the one found from the values. Other models: not structurally nilpotent."""
     from torchsde_lti.nn._online import model_series
 
     for sde, order in (
@@ -386,7 +410,7 @@ def test_structural_series_for_integrator_chains():
         mats = sde.matrices()
         with torch.no_grad():
             by_values = model_series(*mats)
-        by_structure = model_series(*mats, index=order)
+        by_structure = model_series(*mats, index=order, read_values=False)
         assert by_values is not None and by_structure is not None
         dt = torch.tensor([0.0, 0.4, 3.0], dtype=F64)
         for got, want in zip(by_structure(dt), by_values(dt)):

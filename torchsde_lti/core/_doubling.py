@@ -20,7 +20,7 @@ series at the full step).
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -39,7 +39,7 @@ from torchsde_lti.core.thresholds import (
 )
 from torchsde_lti.core.validation import SDEInputs, tracing
 
-__all__ = ["doubling", "per_element_doubling", "shared_doubling"]
+__all__ = ["SharedSeries", "doubling", "per_element_doubling", "shared_doubling", "shared_series"]
 
 _TERMS: dict[tuple[torch.dtype, float, int], int] = {}
 
@@ -315,49 +315,74 @@ def _finish(
     return A, Q, G
 
 
-def shared_doubling(
-    F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor, batch_last: bool = False
-) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    r"""(A, Q, G) for ONE parameter set, F (n, n), W (n, n) or None, B (n, p) or None, over
-    dt (*batch); shapes as :func:`per_element_doubling`.
+class SharedSeries(NamedTuple):
+    r"""The dt-independent part of :func:`shared_doubling` for ONE parameter set that is not
+    nilpotent: with F = ν F̃, the series terms as the coefficients of the rows ``r_k = (ν h)^k / k!``
+    of a sub-step h (``E_h = Σ_k r_k F̃^k``, ``Q_h / h = Σ_k r_k 𝓛̃^k(W) / (k+1)``,
+    ``G_h / h = Σ_k r_k F̃^k B / (k+1)``, k < K). Formed once (:func:`shared_series`); a call
+    over dt (...) costs the halvings, the rows, one product for the batch and the doubling, so
+    a module may keep it per parameter version (a live tracker's online step).
 
-    With F = ν F̃ (ν = max(‖F‖₁, ‖F‖∞), which bounds ‖F‖ and ‖𝓛‖/2 in the induced 1-norm),
-    the series terms F̃^k, 𝓛̃^k(W), F̃^k B are computed once and every element combines them
-    with its rows ``r_k = (ν h)^k / k!``::
-
-        E_h = Σ_{k≥1} r_k F̃^k,   Q_h = h Σ_k r_k 𝓛̃^k(W) / (k+1),   G_h = h Σ_k r_k F̃^k B / (k+1)
-
-    (one matrix product for the whole batch, batch-last), then the sorted doubling. A nilpotent
-    F takes its terminating series at the full step (:mod:`torchsde_lti.core.series`).
+    coeff: (K, E) with the E entries [E's n² | Q's n² | G's n p] (absent blocks left out);
+    nu: () the scale ν (a tensor: also while traced).
     """
-    batch = dt.shape
-    N, n = dt.numel(), F.shape[-1]
-    p = 0 if B is None else B.shape[-1]
-    dtype = F.dtype
-    index = nilpotency_index(F)
-    if index is not None:  # its terminating series at the full step: no doubling
-        gradient_terms = torch.is_grad_enabled() and F.requires_grad
-        return terminating_series(F, W, B, index, gradient_terms)(dt, batch_last)
+
+    coeff: Tensor
+    nu: Tensor
+    has_q: bool
+    n: int
+    p: int
+
+    def __call__(self, dt: Tensor, batch_last: bool = False) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        """(A, Q, G) over dt (...): (..., n, n), (..., n, n) or None, (..., n, p) or None (with
+        ``batch_last`` contiguous (n, n, ...), …). Eager: each element its own halvings, the
+        doubling on the elements sorted by them; traced (torch.compile / torch.export): the
+        masked doubling (:func:`_double_masked`), no data-dependent control flow."""
+        batch, n, p, dtype = dt.shape, self.n, self.p, self.coeff.dtype
+        N = math.prod(batch)  # (a symbolic size while tracing: no guard on it)
+        K = self.coeff.shape[0]
+        dtf = dt.reshape(N).to(dtype)
+        traced = tracing()
+        with torch.no_grad():
+            steps = halvings_for(self.nu, dtf, THETA_SHARED)
+        order: Tensor | None = None
+        counts: list[int] = []
+        if traced:
+            steps = steps.clamp_max(TRACED_MAX_HALVINGS)
+            h = dtf * torch.exp2(-steps)
+        else:
+            with torch.no_grad():
+                order, counts = _schedule(steps.to(torch.int64), int(steps.max()) if N else 0)
+            h = dtf
+            if counts:
+                h = dtf * torch.exp2(-steps)
+                h = h if order is None else h[order]
+        inv_k = torch.arange(1, K, dtype=dtype, device=dt.device).reciprocal()
+        rows = torch.cat([torch.ones_like(h)[None], torch.cumprod((self.nu * h) * inv_k[:, None], 0)])  # (K, N)
+        sizes = [n * n, *([n * n] if self.has_q else []), *([n * p] if p else [])]
+        parts = iter((self.coeff.mT @ rows).split(sizes))  # one product for the batch
+        X = next(parts).reshape(n, n, N)
+        Q = next(parts).reshape(n, n, N) * h if self.has_q else None
+        G = next(parts).reshape(n, p, N) * h if p else None
+        lo = _Layout(batch_first=False)
+        A = X + lo.eye(n, X)
+        if traced:
+            needs_grad = torch.is_grad_enabled() and (dt.requires_grad or self.coeff.requires_grad)
+            differentiable = needs_grad and not torch.compiler.is_exporting()
+            return _finish([_double_masked(A, X, Q, G, steps, lo, differentiable)], lo, None, batch, batch_last)
+        return _finish(_double_sorted(A, X, Q, G, counts, lo), lo, order, batch, batch_last)
+
+
+def shared_series(F: Tensor, W: Tensor | None, B: Tensor | None) -> SharedSeries:
+    """:class:`SharedSeries` of F (n, n), W = L Qc Lᵀ (n, n) or None, B (n, p) or None
+    (ν = max(‖F‖₁, ‖F‖∞), which bounds ‖F‖ and ‖𝓛‖/2 in the induced 1-norm)."""
+    n, p, dtype = F.shape[-1], 0 if B is None else B.shape[-1], F.dtype
     with torch.no_grad():
         absF = F.abs()
         nu = torch.maximum(absF.sum(-2).amax(-1), absF.sum(-1).amax(-1))
         nu = torch.where(nu > 0, nu, torch.ones_like(nu))
-    h = dtf = dt.reshape(N)
-    order: Tensor | None = None
-    counts: list[int] = []
     K = series_terms(dtype, THETA_SHARED, n)
-    with torch.no_grad():
-        steps = halvings_for(nu, dtf, THETA_SHARED).to(torch.int64)
-        order, counts = _schedule(steps, int(steps.max()) if N else 0)
-    if counts:
-        h = dtf * torch.exp2(-steps.to(dtype))
-        h = h if order is None else h[order]
     Ft = F / nu
-    x = nu * h  # ‖F‖ h ≤ θ
-    rows = [torch.ones_like(x)]
-    for k in range(1, K):
-        rows.append(rows[-1] * x * (1.0 / k))
-    R = torch.stack(rows)  # (K, N): r_k = x^k / k!
     k1 = torch.arange(1, K + 1, dtype=dtype, device=F.device)[:, None, None]
     eye = torch.eye(n, dtype=dtype, device=F.device)
     stacks = [  # (K, n, c) terms whose coefficients are r_k (Q and G: times h)
@@ -365,15 +390,26 @@ def shared_doubling(
         None if W is None else series_matrices(Ft, W, K, lyapunov=True) / k1,
         None if B is None else series_matrices(Ft, B, K) / k1,
     ]
-    shapes = [(n, n), (n, n), (n, p)]
-    present = [i for i, t in enumerate(stacks) if t is not None]
-    flat = torch.cat([stacks[i].reshape(K, -1) for i in present], -1)  # type: ignore[union-attr]
-    parts = dict(zip(present, (flat.mT @ R).split([math.prod(shapes[i]) for i in present])))  # one product
-    X, Q, G = (parts[i].reshape(*shapes[i], N) if i in parts else None for i in range(3))
-    Q, G = (None if t is None else t * h for t in (Q, G))
-    assert X is not None
-    lo = _Layout(batch_first=False)
-    return _finish(_double_sorted(X + lo.eye(n, X), X, Q, G, counts, lo), lo, order, batch, batch_last)
+    coeff = torch.cat([t.reshape(K, -1) for t in stacks if t is not None], -1)
+    return SharedSeries(coeff, nu, W is not None, n, p)
+
+
+def shared_doubling(
+    F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor, batch_last: bool = False
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    r"""(A, Q, G) for ONE parameter set, F (n, n), W (n, n) or None, B (n, p) or None, over
+    dt (*batch); shapes as :func:`per_element_doubling`.
+
+    The series terms F̃^k, 𝓛̃^k(W), F̃^k B are computed once (:func:`shared_series`) and every
+    element combines them with its rows ``r_k = (ν h)^k / k!`` (one matrix product for the
+    whole batch, batch-last), then the sorted doubling. A nilpotent F takes its terminating
+    series at the full step (:mod:`torchsde_lti.core.series`).
+    """
+    index = nilpotency_index(F)
+    if index is not None:  # its terminating series at the full step: no doubling
+        gradient_terms = torch.is_grad_enabled() and F.requires_grad
+        return terminating_series(F, W, B, index, gradient_terms)(dt, batch_last)
+    return shared_series(F, W, B)(dt, batch_last)
 
 
 def doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | None, Tensor | None]:

@@ -1,7 +1,7 @@
 """The evaluated model of a module's online calls (private to nn/): its parametrisations run
 once per parameter version while no gradient is recorded, and what the exact discretisation
-of a step needs that does not depend on dt (a nilpotent F's terminating series,
-:func:`model_series`) is formed with them."""
+of a step needs that does not depend on dt (:func:`model_series`: a nilpotent F's terminating
+series, any other F's doubling series terms) is formed with them."""
 
 from __future__ import annotations
 
@@ -11,13 +11,17 @@ from typing import TypeVar
 import torch
 from torch import Tensor, nn
 
-from torchsde_lti.core.linalg import nilpotency_index, noise_covariance
-from torchsde_lti.core.series import TerminatingSeries, terminating_series
+from torchsde_lti.core.discretization import SharedSeries, discretization_series
+from torchsde_lti.core.linalg import noise_covariance
+from torchsde_lti.core.series import TerminatingSeries
 from torchsde_lti.core.validation import as_float_tensor, shape_str, tracing
 from torchsde_lti.filters import online
 from torchsde_lti.filters.online import KalmanState
 
 T = TypeVar("T")
+
+#: The dt-independent part of one parameter set's discretisation (:func:`model_series`).
+Series = TerminatingSeries | SharedSeries
 
 _CACHE = "_online_model_cache"
 
@@ -73,25 +77,24 @@ def online_state(state: object, dt: Tensor | float, F: Tensor) -> tuple[KalmanSt
 
 
 def model_series(
-    F: Tensor, L: Tensor, Qc: Tensor, B: Tensor | None, index: int | None = None
-) -> TerminatingSeries | None:
-    """Core's :class:`~torchsde_lti.core.series.TerminatingSeries` of a model's matrices (F (n, n),
-    L (n, s), Qc (s, s), B (n, p) or None, no batch dims) when F is nilpotent: its exact
-    discretisation's dt-independent matrices, formed once per parameter version; None otherwise
-    (a batch of parameters, or an F that is not nilpotent: those take core's discretisation).
+    F: Tensor, L: Tensor, Qc: Tensor, B: Tensor | None, index: int | None = None, read_values: bool = True
+) -> Series | None:
+    """Core's :func:`~torchsde_lti.core.discretization.discretization_series` of a model's
+    matrices (F (n, n), L (n, s), Qc (s, s), B (n, p) or None, no batch dims): its exact
+    discretisation's dt-independent part, formed once per parameter version (a nilpotent F's
+    terminating series, else the series terms of the doubling); None for a batch of
+    parameters (those take core's discretisation).
 
-    ``index``: F's nilpotency index when the model's structure fixes it (F^index = 0 whatever
-    the parameter values: an integrator chain); then no value is read (no synchronisation, and
-    the series may be formed inside a traced program). None: found from F's values."""
+    ``index``, ``read_values``: F's nilpotency index when the model's structure fixes it
+    (F^index = 0 whatever the parameter values: an integrator chain); without ``read_values``
+    no value is read (no synchronisation, and the series may be formed inside a traced
+    program), None then meaning not structurally nilpotent."""
     if any(t is not None and t.dim() != 2 for t in (F, L, Qc, B)):
         return None
-    k = nilpotency_index(F) if index is None else index
-    if k is None:
-        return None
-    return terminating_series(F, noise_covariance(L, Qc), B, k)
+    return discretization_series(F, noise_covariance(L, Qc), B, index, read_values)
 
 
-def series_step(series: TerminatingSeries, dt: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+def series_step(series: Series, dt: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
     """(A, Q, G or None) of the online steps dt (...) from the model's series: plain batch-first
     tensors for at most :data:`~torchsde_lti.filters.online.SMALL_BATCH` steps (the joint
     update) and while traced; for more, batch-first views of batch-last storage (the layout of

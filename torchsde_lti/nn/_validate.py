@@ -14,6 +14,7 @@ from torchsde_lti.core.thresholds import PYTHON_CHECK_MAX_VALUES
 from torchsde_lti.core.validation import as_float_tensor, check_finite, check_nonnegative, shape_str, tracing
 
 Named = Sequence[tuple[str, Tensor | None]]
+Present = list[tuple[str, Tensor]]
 
 
 class ValidateArgs:
@@ -53,41 +54,36 @@ def check_values(finite: Named = (), nonnegative: Named = (), no_inf: Named = ()
     track's step) the values are read in one transfer and checked as Python floats."""
     if tracing():
         return
-    finite = [(k, v) for k, v in finite if v is not None]
-    nonnegative = [(k, v) for k, v in nonnegative if v is not None and v.numel()]
-    no_inf = [(k, v) for k, v in no_inf if v is not None]
-    named = [*finite, *nonnegative, *no_inf]
-    if not named:
+    fin: Present = [(k, v) for k, v in finite if v is not None]
+    nonneg: Present = [(k, v) for k, v in nonnegative if v is not None and v.numel()]
+    noinf: Present = [(k, v) for k, v in no_inf if v is not None]
+    if not (fin or nonneg or noinf):
         return
     with torch.no_grad():
-        if sum(v.numel() for _, v in named) <= PYTHON_CHECK_MAX_VALUES:
-            if _host_values_valid(finite, nonnegative, no_inf):
+        if sum(v.numel() for _, v in (*fin, *nonneg, *noinf)) <= PYTHON_CHECK_MAX_VALUES:
+            if _host_values_valid(fin, nonneg, noinf):
                 return
         else:
-            flags = (
-                [torch.stack([v.sum() for _, v in (*finite, *nonnegative)]).isfinite().all()]
-                if finite or nonnegative
-                else []
-            )
-            flags += [v.amin() >= 0 for _, v in nonnegative]
-            flags += [~torch.isinf(v).any() for _, v in no_inf]
+            flags = [torch.stack([v.sum() for _, v in (*fin, *nonneg)]).isfinite().all()] if fin or nonneg else []
+            flags += [v.amin() >= 0 for _, v in nonneg]
+            flags += [~torch.isinf(v).any() for _, v in noinf]
             if bool(torch.stack(flags).all()):
                 return
-    for name, value in finite:  # a finite sum that overflowed passes these
+    for name, value in fin:  # a finite sum that overflowed passes these
         check_finite(value, name)
-    for name, value in nonnegative:
+    for name, value in nonneg:
         check_nonnegative(value, name)
-    for name, value in no_inf:
+    for name, value in noinf:
         if bool(torch.isinf(value).any()):
             raise ValueError(f"{name} contains Inf (shape {shape_str(value)}); mark missing values with NaN or mask")
 
 
-def _host_values_valid(finite: Named, nonnegative: Named, no_inf: Named) -> bool:
+def _host_values_valid(finite: Present, nonnegative: Present, no_inf: Present) -> bool:
     """:func:`check_values`'s test on Python floats (one transfer of every value)."""
-    parts = [v.reshape(-1) for _, v in (*finite, *nonnegative, *no_inf)]  # type: ignore[union-attr]
-    values = torch.cat(parts).tolist() if len(parts) > 1 else parts[0].tolist()
-    n_finite = sum(v.numel() for _, v in finite)  # type: ignore[union-attr]
-    n_nonneg = sum(v.numel() for _, v in nonnegative)  # type: ignore[union-attr]
+    parts = [v.reshape(-1) for _, v in (*finite, *nonnegative, *no_inf)]
+    values: list[float] = torch.cat(parts).tolist() if len(parts) > 1 else parts[0].tolist()
+    n_finite = sum(v.numel() for _, v in finite)
+    n_nonneg = sum(v.numel() for _, v in nonnegative)
     isfinite, isinf = math.isfinite, math.isinf
     return (
         all(isfinite(x) for x in values[:n_finite])

@@ -57,7 +57,6 @@ from torchsde_lti.core.discretization import (
 )
 from torchsde_lti.core.linalg import matvec, sym
 from torchsde_lti.core.moments import predict_moments
-from torchsde_lti.core.series import TerminatingSeries
 from torchsde_lti.core.validation import (
     as_float_tensor,
     check_finite,
@@ -80,7 +79,7 @@ from torchsde_lti.filters.online import (
     kalman_predict,
     kalman_step,
 )
-from torchsde_lti.nn._online import evaluated, model_series, online_state, series_step
+from torchsde_lti.nn._online import Series, evaluated, model_series, online_state, series_step
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_outcome, check_values, online_report
 from torchsde_lti.nn.parametrizations import PositiveDefinite
@@ -92,7 +91,7 @@ _LEARNABLE = ("H", "D", "R", "m0", "P0")
 
 #: The evaluated model of online calls: (SDE matrices, H, R, D, a nilpotent F's terminating
 #: series or None), see :meth:`KalmanFilter._online_model`.
-OnlineModel = tuple[SDEMatrices, Tensor, Tensor, Tensor | None, TerminatingSeries | None]
+OnlineModel = tuple[SDEMatrices, Tensor, Tensor, Tensor | None, Series | None]
 
 
 class Forecast(NamedTuple):
@@ -463,7 +462,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
             mats = self.sde.matrices()
         if tracing() and self.discretization_method == "doubling":  # an exported sequence program
             series = self._structural_series(mats)
-            if series is not None:  # an integrator chain: its closed form, no doubling schedule
+            if series is not None:  # one parameter set: its series (an integrator chain's closed form)
                 return Discrete(*series(dt))
         # a length-1 time axis in the matrices lines a parameter batch up with dt (..., T)
         m = SDEMatrices(*(None if x is None else x.unsqueeze(-3) for x in mats))
@@ -529,14 +528,14 @@ class KalmanFilter(ValidateArgs, nn.Module):
         return kalman_predict(state, *self._online_step_model(mats, dt, u, series))
 
     def _online_model(self) -> OnlineModel:
-        """(SDE matrices, H, R, D, the model's terminating series or None), each
-        parametrisation evaluated once. The series (a nilpotent F's closed-form discretisation,
-        its dt-independent matrices formed here): eagerly without gradients, where
-        :func:`~torchsde_lti.nn._online.evaluated` caches this per parameter version (F's
+        """(SDE matrices, H, R, D, the model's discretisation series or None), each
+        parametrisation evaluated once. The series (:func:`~torchsde_lti.nn._online.model_series`:
+        the dt-independent part of the exact discretisation, formed here: a nilpotent F's
+        terminating series, any other F's doubling series terms): eagerly without gradients,
+        where :func:`~torchsde_lti.nn._online.evaluated` caches this per parameter version (F's
         nilpotency read from its values); while traced (torch.export of
-        :class:`~torchsde_lti.OnlineStep`) for a model whose structure makes F nilpotent, an
-        integrator chain (the series then inside the program, in place of the doubling's
-        static schedule); otherwise None (core's discretisation)."""
+        :class:`~torchsde_lti.OnlineStep`) from the model's structure (the series then inside
+        the program); otherwise None (core's discretisation)."""
         with parametrize.cached():
             mats = self.sde.matrices()
             series = None
@@ -546,14 +545,13 @@ class KalmanFilter(ValidateArgs, nn.Module):
                 series = model_series(*mats)
             return mats, self.H, self.R, self.D, series
 
-    def _structural_series(self, mats: SDEMatrices) -> TerminatingSeries | None:
-        """The terminating series of a model whose structure makes F nilpotent (no value of F
-        read: traceable), else None."""
-        index = self.sde.structural_nilpotency()
-        return None if index is None else model_series(*mats, index=index)
+    def _structural_series(self, mats: SDEMatrices) -> Series | None:
+        """The discretisation series of one parameter set with F's nilpotency taken from the
+        model's structure (no value of F read: traceable), else None (a parameter batch)."""
+        return model_series(*mats, index=self.sde.structural_nilpotency(), read_values=False)
 
     def _online_step_model(
-        self, mats: SDEMatrices, dt: Tensor, u: Tensor | None, series: TerminatingSeries | None = None
+        self, mats: SDEMatrices, dt: Tensor, u: Tensor | None, series: Series | None = None
     ) -> tuple[Tensor, Tensor, Tensor | None]:
         """(A, Q, G u or None) of each track's gap dt (...): one batched exact discretisation,
         for a nilpotent F with the doubling method the model's ``series`` (the closed form that
