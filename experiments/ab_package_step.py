@@ -3,7 +3,9 @@ constant velocity in float32 and the Singer model (6 states, F not nilpotent: th
 discretises with its doubling series, or before that series existed with core's traced
 doubling schedule) in float64 and float32, at 1 and 1000 tracks; with ``--eager``, instead, the
 eager ``kf.step`` of bench_online.py's float64 constant-velocity filter at one track and of the
-Singer model at 1 and 1000 tracks (no packages built). Run it against two checkouts to compare them (it uses tl.compile_package / tl.load_package
+Singer model at 1 and 1000 tracks (no packages built); with ``--series``, paired in one
+process, the eager Singer step with its discretisation series (kept per parameter version)
+against the same step discretising with core's ``discretize`` on every call. Run it against two checkouts to compare them (it uses tl.compile_package / tl.load_package
 where the checkout has them, torch's own calls otherwise)::
 
     PYTHONPATH=/path/to/old python experiments/ab_package_step.py
@@ -70,12 +72,45 @@ def eager_step() -> None:
             print(f"singer {str(dtype)[6:]} B={b} eager kf.step: {t * 1e6:.1f} µs")
 
 
+def series_vs_discretize() -> None:
+    """The eager Singer step with the model's discretisation series (``kf.step``'s default)
+    against the same step with core's ``discretize`` on every call, timed in alternation."""
+    from bench_online import paired_s
+
+    from torchsde_lti.nn._online import evaluated
+
+    for dtype in (torch.float64, torch.float32):
+        kf = build("singer", dtype)
+        g = torch.Generator().manual_seed(0)
+        with torch.no_grad():
+            model = evaluated(kf, kf._online_model)
+            plain = (*model[:4], None)
+            for b in (1, 8, 64, 1000):
+                mean, cov, y, dt = step_args(b, 6, dtype, g)
+                st = tl.KalmanState(mean, cov)
+                a, c = paired_s(
+                    lambda st=st, y=y, dt=dt: kf._step(model, st, y, dt),
+                    lambda st=st, y=y, dt=dt: kf._step(plain, st, y, dt),
+                    41 if b < 1000 else 15,
+                    inner=3,
+                )
+                print(
+                    f"singer {str(dtype)[6:]} B={b}: with the series {a * 1e6:.0f} µs, "
+                    f"core discretize {c * 1e6:.0f} µs, ratio {a / c:.2f}"
+                )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--eager", action="store_true", help="time the eager kf.step only")
+    ap.add_argument("--series", action="store_true", help="eager Singer step: the series vs core discretize")
     torch.set_num_threads(1)
-    if ap.parse_args().eager:
+    args = ap.parse_args()
+    if args.eager:
         eager_step()
+        return
+    if args.series:
+        series_vs_discretize()
         return
     helpers = hasattr(tl, "compile_package")
     print("tl.compile_package / tl.load_package" if helpers else "torch's aoti_compile_and_package / aoti_load_package")

@@ -336,3 +336,38 @@ def test_package_functions_reject_bad_arguments(tmp_path):
         tl.compile_package(tl.OnlineStep(_cv_filter()), tmp_path / "x.pt2")
     with pytest.raises(ValueError, match="path must name an AOTInductor package file"):
         tl.load_package(tmp_path / "missing.pt2")
+
+
+@pytest.mark.slow  # builds C++ kernels: ≈ 20–60 s
+def test_aoti_packaged_online_step_of_a_model_that_is_not_nilpotent(tmp_path):
+    """Singer (F not nilpotent: the program doubles over each gap's halvings in a while_loop)
+    through AOTInductor equals the eager step for short gaps (no track needs a halving: a loop
+    of no iteration, which once gave wrong values), long gaps and a mix."""
+    from torch.export import Dim
+
+    sde = tl.models.singer(dim=2, alpha=0.5, q=0.7, dtype=F64)
+    kf = tl.KalmanFilter(
+        sde, tl.models.position_observation(sde), 0.3 * torch.eye(2, dtype=F64), P0=torch.eye(6, dtype=F64)
+    )
+    g = torch.Generator().manual_seed(7)
+
+    def args(b: int, dt: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        cov = torch.eye(6, dtype=F64).expand(b, 6, 6).contiguous()
+        return torch.randn(b, 6, generator=g, dtype=F64), cov, torch.randn(b, 2, generator=g, dtype=F64), dt
+
+    with torch.no_grad():
+        ep = torch.export.export(
+            tl.OnlineStep(kf).eval(), args(3, torch.rand(3, dtype=F64)), dynamic_shapes=({0: Dim("B", max=10_000)},) * 4
+        )
+    run = tl.load_package(tl.compile_package(ep, tmp_path / "singer_step.pt2"))
+    for dt in (
+        torch.full((1,), 0.05, dtype=F64),
+        torch.full((4,), 0.05, dtype=F64),
+        torch.full((2,), 30.0, dtype=F64),
+        torch.tensor([0.0, 0.01, 0.7, 5.0, 80.0], dtype=F64),
+    ):
+        a = args(dt.numel(), dt)
+        with torch.no_grad():
+            state, out = kf.step(tl.KalmanState(a[0], a[1]), a[2], a[3])
+        for x, ref in zip(run(*a), (state.mean, state.cov, out.innovation, out.innovation_cov, out.log_likelihood)):
+            torch.testing.assert_close(x, ref, rtol=1e-9, atol=1e-9)

@@ -205,7 +205,9 @@ def _double_masked(
     from torch._higher_order_ops import while_loop
 
     has_q, has_g = Q is not None, G is not None
-    steps = halvings.max().to(torch.int64).reshape(())
+    # at least one iteration (one with no element active changes nothing): an AOTInductor
+    # package returned wrong values after a while_loop of no iteration (torch 2.13)
+    steps = halvings.max().clamp_min(1).to(torch.int64).reshape(())
 
     def body(j: Tensor, A: Tensor, X: Tensor, near: Tensor, *qg: Tensor):
         A, X, near, q, g = step(j, A, X, near, qg[0] if has_q else None, qg[-1] if has_g else None)
@@ -360,11 +362,21 @@ class SharedSeries(NamedTuple):
         inv_k = torch.arange(1, K, dtype=dtype, device=dt.device).reciprocal()
         rows = torch.cat([torch.ones_like(h)[None], torch.cumprod((self.nu * h) * inv_k[:, None], 0)])  # (K, N)
         sizes = [n * n, *([n * n] if self.has_q else []), *([n * p] if p else [])]
-        parts = iter((self.coeff.mT @ rows).split(sizes))  # one product for the batch
-        X = next(parts).reshape(n, n, N)
-        Q = next(parts).reshape(n, n, N) * h if self.has_q else None
-        G = next(parts).reshape(n, p, N) * h if p else None
-        lo = _Layout(batch_first=False)
+        # one product for the batch; batch-last eagerly, batch-first while traced (as the
+        # per-element schedule: AOTInductor's while_loop gave wrong results for batch-last
+        # carries of one or two elements)
+        lo = _Layout(batch_first=traced)
+        if traced:
+            parts = iter((rows.mT @ self.coeff).split(sizes, -1))
+            hb = h[:, None, None]
+            X = next(parts).reshape(N, n, n).contiguous()  # (a loop carry: strides must match)
+            Q = next(parts).reshape(N, n, n) * hb if self.has_q else None
+            G = next(parts).reshape(N, n, p) * hb if p else None
+        else:
+            parts = iter((self.coeff.mT @ rows).split(sizes))
+            X = next(parts).reshape(n, n, N)
+            Q = next(parts).reshape(n, n, N) * h if self.has_q else None
+            G = next(parts).reshape(n, p, N) * h if p else None
         A = X + lo.eye(n, X)
         if traced:
             needs_grad = torch.is_grad_enabled() and (dt.requires_grad or self.coeff.requires_grad)
