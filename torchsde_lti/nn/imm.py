@@ -39,7 +39,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from torchsde_lti.core.discretization import Discrete, discretize
+from torchsde_lti.core.discretization import Discrete, discretization_series, discretize
 from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.validation import (
     as_float_tensor,
@@ -47,6 +47,7 @@ from torchsde_lti.core.validation import (
     check_matrix,
     parse_learn,
     shape_str,
+    tracing,
 )
 from torchsde_lti.filters.imm import (
     IMMPrediction,
@@ -57,7 +58,7 @@ from torchsde_lti.filters.imm import (
 )
 from torchsde_lti.filters.kalman import check_algorithm
 from torchsde_lti.filters.online import IMMState, IMMStep, imm_predict_state, imm_step
-from torchsde_lti.nn._online import evaluated
+from torchsde_lti.nn._online import Series, evaluated
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_values, online_report
 from torchsde_lti.nn.kalman import FilterMode
@@ -274,21 +275,34 @@ class IMMFilter(ValidateArgs, nn.Module):
         """
         return self._discretize_bank(*self.bank(), dt, self._validates(validate_args))
 
-    def _discretize_bank(self, F: Tensor, W: Tensor, dt: Tensor, validate_args: bool) -> tuple[Discrete, Tensor]:
-        """:meth:`discretize` for the stacked bank (F, W) already read."""
+    def _discretize_bank(
+        self, F: Tensor, W: Tensor, dt: Tensor, validate_args: bool, series: Sequence[Series] | None = None
+    ) -> tuple[Discrete, Tensor]:
+        """:meth:`discretize` for the stacked bank (F, W) already read; with ``series`` (each
+        mode's discretisation series, :meth:`_online_model`) from those (the same values to
+        rounding: what an online step without gradients takes)."""
         eye = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device)
         if self.unique_dt and not dt.requires_grad and dt.numel() > 0:
             values, inverse = torch.unique(dt, return_inverse=True)
-            d, Pi = self._discretize_flat(F, W, eye, values, validate_args)
+            d, Pi = self._discretize_flat(F, W, eye, values, validate_args, series)
             return Discrete(d.A[inverse], d.Q[inverse], None), Pi[inverse]
-        return self._discretize_flat(F, W, eye, dt, validate_args)
+        return self._discretize_flat(F, W, eye, dt, validate_args, series)
 
     def _discretize_flat(
-        self, F: Tensor, W: Tensor, eye: Tensor, dt: Tensor, validate_args: bool
+        self, F: Tensor, W: Tensor, eye: Tensor, dt: Tensor, validate_args: bool, series: Sequence[Series] | None = None
     ) -> tuple[Discrete, Tensor]:
-        d = discretize(
-            F, eye, W, dt.unsqueeze(-1), method=self.method, validate_args=validate_args
-        )  # F (M,·,·) with dt (..., 1)
+        if series is not None and self.method == "doubling":
+            As, Qs = [], []
+            for mode in series:  # each mode over every gap: (..., n, n)
+                A_j, Q_j, _ = mode(dt)
+                assert Q_j is not None
+                As.append(A_j)
+                Qs.append(Q_j)
+            d = Discrete(torch.stack(As, -3), torch.stack(Qs, -3), None)
+        else:
+            d = discretize(
+                F, eye, W, dt.unsqueeze(-1), method=self.method, validate_args=validate_args
+            )  # F (M,·,·) with dt (..., 1)
         # the chain's transitions in float64 (an M × M exponential: free), rows renormalised:
         # a float32 exponential of Λ dt for dt ≫ 1/rate loses the row sums (and gives NaN mixing)
         Pi = torch.matrix_exp(self.rates.double() * dt.double()[..., None, None]).clamp_min(0.0)
@@ -380,7 +394,7 @@ class IMMFilter(ValidateArgs, nn.Module):
         if u is not None:
             raise ValueError(f"u was given (shape {shape_str(torch.as_tensor(u))}) but IMMFilter has no inputs")
         with parametrize.cached():
-            F, W, H, R, state, dt = self._online_args(state, dt)
+            F, W, H, R, series, state, dt = self._online_args(state, dt)
             y, mask = online_report(y, mask, H, F.dtype, F.device)
             if self.validate_args:
                 check_values(
@@ -395,26 +409,26 @@ class IMMFilter(ValidateArgs, nn.Module):
                     nonnegative=[("dt", dt)],
                     no_inf=[("y", y)],
                 )
-            d, Pi = self._discretize_bank(F, W, dt, validate_args=False)
+            d, Pi = self._discretize_bank(F, W, dt, validate_args=False, series=series)
             return imm_step(state, y, d.A, d.Q, Pi, H, R, mask)
 
     def predict(self, state: IMMState, dt: Tensor | float) -> IMMState:
         """Prediction only, each track over its own dt (...): mixing with ``expm(Λ dt)``, then
         each mode's exact A_j, Q_j (the predicted :class:`~torchsde_lti.IMMState`)."""
         with parametrize.cached():
-            F, W, _, _, state, dt = self._online_args(state, dt)
+            F, W, _, _, series, state, dt = self._online_args(state, dt)
             if self.validate_args:
                 check_values(finite=[("F", F), ("W", W), ("rates", self.rates)], nonnegative=[("dt", dt)])
-            d, Pi = self._discretize_bank(F, W, dt, validate_args=False)
+            d, Pi = self._discretize_bank(F, W, dt, validate_args=False, series=series)
             return imm_predict_state(state, d.A, d.Q, Pi)
 
     def _online_args(
         self, state: IMMState, dt: Tensor | float
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor, IMMState, Tensor]:
-        """The bank (F, W), the observation model (H, R), the state and dt of an online call,
-        converted and shape-checked; without gradients the model is evaluated once per
-        parameter version."""
-        F, W, H, R = evaluated(self, self._online_model)
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, list[Series] | None, IMMState, Tensor]:
+        """The bank (F, W), the observation model (H, R), the modes' discretisation series
+        (or None), the state and dt of an online call, converted and shape-checked; without
+        gradients the model is evaluated once per parameter version."""
+        F, W, H, R, series = evaluated(self, self._online_model)
         M, n = F.shape[-3], F.shape[-1]
         if not isinstance(state, tuple) or len(state) != 3:
             raise TypeError(f"state must be an IMMState (mode_prob, mode_mean, mode_cov), got {type(state).__name__}")
@@ -427,12 +441,20 @@ class IMMFilter(ValidateArgs, nn.Module):
                 f"state must be (mode_prob (..., {M}), mode_mean (..., {M}, {n}), mode_cov "
                 f"(..., {M}, {n}, {n})), got {shape_str(prob)}, {shape_str(mean)}, {shape_str(cov)}"
             )
-        return F, W, H, R, IMMState(prob, mean, cov), as_float_tensor(dt, "dt", F.dtype, F.device)
+        return F, W, H, R, series, IMMState(prob, mean, cov), as_float_tensor(dt, "dt", F.dtype, F.device)
 
-    def _online_model(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """(F, W, H, R): :meth:`bank` and the observation model, each parametrisation evaluated once."""
+    def _online_model(self) -> tuple[Tensor, Tensor, Tensor, Tensor, list[Series] | None]:
+        """(F, W, H, R, series): :meth:`bank` and the observation model, each parametrisation
+        evaluated once, and, eagerly without gradients (where
+        :func:`~torchsde_lti.nn._online.evaluated` caches this per parameter version), each
+        mode's discretisation series (:func:`~torchsde_lti.core.discretization.discretization_series`:
+        what a step's discretisation needs that does not depend on dt); else None."""
         with parametrize.cached():
-            return (*self.bank(), *self._obs_model())
+            F, W = self.bank()
+            series = None
+            if not torch.is_grad_enabled() and not tracing():
+                series = [discretization_series(F[j], W[j], None) for j in range(F.shape[0])]
+            return F, W, *self._obs_model(), series
 
     def forecast(
         self,
