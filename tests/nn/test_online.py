@@ -439,3 +439,22 @@ def test_series_keeps_a_finite_transition_over_gaps_beyond_the_float_range_of_it
             ref = tl.discretize(m.F, m.L, m.Qc, dt, validate_args=False)
         assert bool(A.isfinite().all())
         torch.testing.assert_close(A, ref.A, rtol=1e-6, atol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_imm_step_many_tracks_long_gaps_equals_sequence_filter(dtype):
+    """The IMM step with each mode's series (integrated OU: doubling over long gaps; constant
+    velocity: its terminating series) over 80 tracks whose gaps reach 50 equals the sequence
+    filter (core's discretisation of the whole bank), in float32 and float64."""
+    imm = _imm(dtype)
+    y, dt, mask = _series(80, 12, seed=9, dtype=dtype)
+    dt = dt * torch.logspace(-2, 1.7, 12, dtype=dtype)
+    tol = 1e-10 if dtype == F64 else 2e-3
+    with torch.no_grad():
+        ref = imm(y, dt, mask=mask)
+        state = imm.initial_state(80)
+        for k in range(12):
+            state, out = imm.step(state, y[:, k], dt[:, k], mask=mask[:, k])
+            torch.testing.assert_close(out.log_likelihood, ref.step_log_likelihood[:, k], rtol=tol, atol=tol)
+        torch.testing.assert_close(state.mode_prob, ref.mode_probabilities[:, -1], rtol=tol, atol=tol)
+        torch.testing.assert_close(out.mean, ref.mean[:, -1], rtol=tol, atol=tol * 10)
