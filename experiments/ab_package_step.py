@@ -3,7 +3,7 @@ constant velocity in float32 and the Singer model (6 states, F not nilpotent: th
 discretises with its doubling series, or before that series existed with core's traced
 doubling schedule) in float64 and float32, at 1 and 1000 tracks; with ``--eager``, instead, the
 eager ``kf.step`` of bench_online.py's float64 constant-velocity filter at one track and of the
-Singer model at 1 and 1000 tracks (no packages built); with ``--series``, paired in one
+Singer model and of an IMM at 1 and 1000 tracks (no packages built); with ``--series``, paired in one
 process, the eager Singer step (and an IMM step) with its discretisation series (kept per
 parameter version) against the same step discretising with core's ``discretize`` on every call. Run it against two checkouts to compare them (it uses tl.compile_package / tl.load_package
 where the checkout has them, torch's own calls otherwise)::
@@ -70,12 +70,30 @@ def eager_step() -> None:
             with torch.no_grad():
                 t = median_s(lambda state=state, y=y, dt=dt: kf.step(state, y, dt), 41 if b == 1 else 15, inner=5)
             print(f"singer {str(dtype)[6:]} B={b} eager kf.step: {t * 1e6:.1f} µs")
+    imm = _imm_filter()
+    g = torch.Generator().manual_seed(1)
+    for b in (1, 1000):
+        state = imm.initial_state(b)
+        y, dt = torch.randn(b, 2, generator=g, dtype=torch.float64), torch.rand(b, generator=g, dtype=torch.float64)
+        with torch.no_grad():
+            t = median_s(lambda state=state, y=y, dt=dt: imm.step(state, y, dt), 41 if b == 1 else 15, inner=5)
+        print(f"imm cv+iou float64 B={b} eager imm.step: {t * 1e6:.1f} µs")
+
+
+def _imm_filter() -> tl.IMMFilter:
+    """An IMM of constant velocity and integrated OU (2-D, float64, positions observed)."""
+    cv = tl.models.constant_velocity(dim=2, q=0.5, dtype=torch.float64)
+    iou = tl.models.integrated_ou(1.5, 0.05, dim=2, dtype=torch.float64)
+    H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=torch.float64)
+    rates = torch.tensor([[0.0, 0.2], [0.4, 0.0]], dtype=torch.float64)
+    return tl.IMMFilter([cv, iou], H, 0.4 * torch.eye(2, dtype=torch.float64), rates, validate_args=False)
 
 
 def series_vs_discretize() -> None:
     """The eager Singer step with the model's discretisation series (``kf.step``'s default)
     against the same step with core's ``discretize`` on every call, timed in alternation; the
-    same for an IMM step (constant velocity + integrated OU, each mode's series)."""
+    same for an IMM step (constant velocity + integrated OU, each mode's and the mode chain's
+    series, against core's discretize and torch.matrix_exp of Λ dt)."""
     from bench_online import paired_s
 
     from torchsde_lti.nn._online import evaluated
@@ -99,24 +117,21 @@ def series_vs_discretize() -> None:
                     f"singer {str(dtype)[6:]} B={b}: with the series {a * 1e6:.0f} µs, "
                     f"core discretize {c * 1e6:.0f} µs, ratio {a / c:.2f}"
                 )
-    # an IMM of constant velocity and integrated OU (2-D): each mode's series
-    cv = tl.models.constant_velocity(dim=2, q=0.5, dtype=torch.float64)
-    iou = tl.models.integrated_ou(1.5, 0.05, dim=2, dtype=torch.float64)
-    H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=torch.float64)
-    rates = torch.tensor([[0.0, 0.2], [0.4, 0.0]], dtype=torch.float64)
-    imm = tl.IMMFilter([cv, iou], H, 0.4 * torch.eye(2, dtype=torch.float64), rates, validate_args=False)
+    # an IMM of constant velocity and integrated OU (2-D): each mode's and the chain's series
+    imm = _imm_filter()
     g = torch.Generator().manual_seed(1)
     with torch.no_grad():
-        F, W, Hm, Rm, series = evaluated(imm, imm._online_model)
+        online = evaluated(imm, imm._online_model)
+        plain_imm = online._replace(series=None, chain=None)
         for b in (1, 8, 64, 1000):
             state = imm.initial_state(b)
             y, dt = torch.randn(b, 2, generator=g, dtype=torch.float64), torch.rand(b, generator=g, dtype=torch.float64)
 
-            def imm_step(series: object, state=state, y=y, dt=dt) -> None:
-                d, Pi = imm._discretize_bank(F, W, dt, validate_args=False, series=series)  # type: ignore[arg-type]
-                tl.filters.imm_step(state, y, d.A, d.Q, Pi, Hm, Rm)
+            def imm_step(model: object, state=state, y=y, dt=dt) -> None:
+                d, Pi = imm._discretize_bank(online.F, online.W, dt, False, model)  # type: ignore[arg-type]
+                tl.filters.imm_step(state, y, d.A, d.Q, Pi, online.H, online.R)
 
-            a, c = paired_s(lambda: imm_step(series), lambda: imm_step(None), 41 if b < 1000 else 15, inner=3)
+            a, c = paired_s(lambda: imm_step(online), lambda: imm_step(plain_imm), 41 if b < 1000 else 15, inner=3)
             print(
                 f"imm cv+iou float64 B={b}: with the series {a * 1e6:.0f} µs, core discretize {c * 1e6:.0f} µs, ratio {a / c:.2f}"
             )

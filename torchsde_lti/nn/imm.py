@@ -98,6 +98,21 @@ class IMMForecast(NamedTuple):
     mode_obs_cov: Tensor
 
 
+class OnlineIMM(NamedTuple):
+    """The evaluated model of an :class:`IMMFilter`'s online calls: F, W (M, n, n) the bank,
+    H (M or 1, m, n), R (M or 1, m, m), rates (M, M) the generator Λ; ``series`` each mode's
+    and ``chain`` the mode chain's discretisation series (float64), or None (while recording
+    gradients or traced: the calls then discretise from F, W and the rates)."""
+
+    F: Tensor
+    W: Tensor
+    H: Tensor
+    R: Tensor
+    rates: Tensor
+    series: list[Series] | None
+    chain: Series | None
+
+
 class IMMFilter(ValidateArgs, nn.Module):
     r"""IMM filter over M continuous-time motion models with a learned switching generator.
 
@@ -276,24 +291,24 @@ class IMMFilter(ValidateArgs, nn.Module):
         return self._discretize_bank(*self.bank(), dt, self._validates(validate_args))
 
     def _discretize_bank(
-        self, F: Tensor, W: Tensor, dt: Tensor, validate_args: bool, series: Sequence[Series] | None = None
+        self, F: Tensor, W: Tensor, dt: Tensor, validate_args: bool, online: OnlineIMM | None = None
     ) -> tuple[Discrete, Tensor]:
-        """:meth:`discretize` for the stacked bank (F, W) already read; with ``series`` (each
-        mode's discretisation series, :meth:`_online_model`) from those (the same values to
-        rounding: what an online step without gradients takes)."""
+        """:meth:`discretize` for the stacked bank (F, W) already read; with ``online`` (the
+        evaluated model of an online call, :meth:`_online_model`) its rates and, where it holds
+        them, each mode's and the chain's discretisation series (the same values to rounding)."""
         eye = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device)
         if self.unique_dt and not dt.requires_grad and dt.numel() > 0:
             values, inverse = torch.unique(dt, return_inverse=True)
-            d, Pi = self._discretize_flat(F, W, eye, values, validate_args, series)
+            d, Pi = self._discretize_flat(F, W, eye, values, validate_args, online)
             return Discrete(d.A[inverse], d.Q[inverse], None), Pi[inverse]
-        return self._discretize_flat(F, W, eye, dt, validate_args, series)
+        return self._discretize_flat(F, W, eye, dt, validate_args, online)
 
     def _discretize_flat(
-        self, F: Tensor, W: Tensor, eye: Tensor, dt: Tensor, validate_args: bool, series: Sequence[Series] | None = None
+        self, F: Tensor, W: Tensor, eye: Tensor, dt: Tensor, validate_args: bool, online: OnlineIMM | None = None
     ) -> tuple[Discrete, Tensor]:
-        if series is not None and self.method == "doubling":
+        if online is not None and online.series is not None and self.method == "doubling":
             As, Qs = [], []
-            for mode in series:  # each mode over every gap: (..., n, n)
+            for mode in online.series:  # each mode over every gap: (..., n, n)
                 A_j, Q_j, _ = mode(dt)
                 assert Q_j is not None
                 As.append(A_j)
@@ -303,10 +318,14 @@ class IMMFilter(ValidateArgs, nn.Module):
             d = discretize(
                 F, eye, W, dt.unsqueeze(-1), method=self.method, validate_args=validate_args
             )  # F (M,·,·) with dt (..., 1)
-        # the chain's transitions in float64 (an M × M exponential: free), rows renormalised:
-        # a float32 exponential of Λ dt for dt ≫ 1/rate loses the row sums (and gives NaN mixing)
-        Pi = torch.matrix_exp(self.rates.double() * dt.double()[..., None, None]).clamp_min(0.0)
-        Pi = (Pi / Pi.sum(-1, keepdim=True)).to(self.rates.dtype)
+        # the chain's transitions in float64 (an M × M exponential), rows renormalised: a
+        # float32 exponential of Λ dt for dt ≫ 1/rate loses the row sums (and gives NaN mixing)
+        rates = self.rates if online is None else online.rates
+        if online is not None and online.chain is not None:
+            Pi = online.chain(dt.double())[0].clamp_min(0.0)
+        else:
+            Pi = torch.matrix_exp(rates.double() * dt.double()[..., None, None]).clamp_min(0.0)
+        Pi = (Pi / Pi.sum(-1, keepdim=True)).to(rates.dtype)
         return d, Pi
 
     def _obs_model(self) -> tuple[Tensor, Tensor]:
@@ -394,7 +413,8 @@ class IMMFilter(ValidateArgs, nn.Module):
         if u is not None:
             raise ValueError(f"u was given (shape {shape_str(torch.as_tensor(u))}) but IMMFilter has no inputs")
         with parametrize.cached():
-            F, W, H, R, series, state, dt = self._online_args(state, dt)
+            online, state, dt = self._online_args(state, dt)
+            F, W, H, R = online.F, online.W, online.H, online.R
             y, mask = online_report(y, mask, H, F.dtype, F.device)
             if self.validate_args:
                 check_values(
@@ -403,32 +423,33 @@ class IMMFilter(ValidateArgs, nn.Module):
                         ("W", W),
                         ("H", H),
                         ("R", R),
-                        ("rates", self.rates),
+                        ("rates", online.rates),
                         *zip(("state.mode_prob", "state.mode_mean", "state.mode_cov"), state),
                     ],
                     nonnegative=[("dt", dt)],
                     no_inf=[("y", y)],
                 )
-            d, Pi = self._discretize_bank(F, W, dt, validate_args=False, series=series)
+            d, Pi = self._discretize_bank(F, W, dt, validate_args=False, online=online)
             return imm_step(state, y, d.A, d.Q, Pi, H, R, mask)
 
     def predict(self, state: IMMState, dt: Tensor | float) -> IMMState:
         """Prediction only, each track over its own dt (...): mixing with ``expm(Λ dt)``, then
         each mode's exact A_j, Q_j (the predicted :class:`~torchsde_lti.IMMState`)."""
         with parametrize.cached():
-            F, W, _, _, series, state, dt = self._online_args(state, dt)
+            online, state, dt = self._online_args(state, dt)
             if self.validate_args:
-                check_values(finite=[("F", F), ("W", W), ("rates", self.rates)], nonnegative=[("dt", dt)])
-            d, Pi = self._discretize_bank(F, W, dt, validate_args=False, series=series)
+                check_values(
+                    finite=[("F", online.F), ("W", online.W), ("rates", online.rates)], nonnegative=[("dt", dt)]
+                )
+            d, Pi = self._discretize_bank(online.F, online.W, dt, validate_args=False, online=online)
             return imm_predict_state(state, d.A, d.Q, Pi)
 
-    def _online_args(
-        self, state: IMMState, dt: Tensor | float
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor, list[Series] | None, IMMState, Tensor]:
-        """The bank (F, W), the observation model (H, R), the modes' discretisation series
-        (or None), the state and dt of an online call, converted and shape-checked; without
-        gradients the model is evaluated once per parameter version."""
-        F, W, H, R, series = evaluated(self, self._online_model)
+    def _online_args(self, state: IMMState, dt: Tensor | float) -> tuple[OnlineIMM, IMMState, Tensor]:
+        """The evaluated model (:meth:`_online_model`), the state and dt of an online call,
+        converted and shape-checked; without gradients the model is evaluated once per
+        parameter version."""
+        online = evaluated(self, self._online_model)
+        F = online.F
         M, n = F.shape[-3], F.shape[-1]
         if not isinstance(state, tuple) or len(state) != 3:
             raise TypeError(f"state must be an IMMState (mode_prob, mode_mean, mode_cov), got {type(state).__name__}")
@@ -441,20 +462,24 @@ class IMMFilter(ValidateArgs, nn.Module):
                 f"state must be (mode_prob (..., {M}), mode_mean (..., {M}, {n}), mode_cov "
                 f"(..., {M}, {n}, {n})), got {shape_str(prob)}, {shape_str(mean)}, {shape_str(cov)}"
             )
-        return F, W, H, R, series, IMMState(prob, mean, cov), as_float_tensor(dt, "dt", F.dtype, F.device)
+        return online, IMMState(prob, mean, cov), as_float_tensor(dt, "dt", F.dtype, F.device)
 
-    def _online_model(self) -> tuple[Tensor, Tensor, Tensor, Tensor, list[Series] | None]:
-        """(F, W, H, R, series): :meth:`bank` and the observation model, each parametrisation
-        evaluated once, and, eagerly without gradients (where
-        :func:`~torchsde_lti.nn._online.evaluated` caches this per parameter version), each
-        mode's discretisation series (:func:`~torchsde_lti.core.discretization.discretization_series`:
-        what a step's discretisation needs that does not depend on dt); else None."""
+    def _online_model(self) -> OnlineIMM:
+        """:class:`OnlineIMM`: :meth:`bank`, the observation model and the rates, each
+        parametrisation evaluated once, and, eagerly without gradients (where
+        :func:`~torchsde_lti.nn._online.evaluated` caches this per parameter version), the
+        discretisation series (:func:`~torchsde_lti.core.discretization.discretization_series`:
+        what a step's discretisation needs that does not depend on dt) of each mode and of the
+        mode chain (``expm(Λ dt)`` in float64)."""
         with parametrize.cached():
             F, W = self.bank()
-            series = None
+            H, R = self._obs_model()
+            rates = self.rates
+            series = chain = None
             if not torch.is_grad_enabled() and not tracing():
                 series = [discretization_series(F[j], W[j], None) for j in range(F.shape[0])]
-            return F, W, *self._obs_model(), series
+                chain = discretization_series(rates.double(), None, None)
+            return OnlineIMM(F, W, H, R, rates, series, chain)
 
     def forecast(
         self,
