@@ -5,7 +5,9 @@ doubling schedule) in float64 and float32, at 1 and 1000 tracks; with ``--eager`
 eager ``kf.step`` of bench_online.py's float64 constant-velocity filter at one track and of the
 Singer model and of an IMM at 1 and 1000 tracks (no packages built); with ``--series``, paired in one
 process, the eager Singer step (and an IMM step) with its discretisation series (kept per
-parameter version) against the same step discretising with core's ``discretize`` on every call. Run it against two checkouts to compare them (it uses tl.compile_package / tl.load_package
+parameter version) against the same step discretising with core's ``discretize`` on every call;
+with ``--small-batch``, the eager step's joint update against its scalar updates by number of
+tracks (what sets ``filters.online.SMALL_BATCH``). Run it against two checkouts to compare them (it uses tl.compile_package / tl.load_package
 where the checkout has them, torch's own calls otherwise)::
 
     PYTHONPATH=/path/to/old python experiments/ab_package_step.py
@@ -137,10 +139,40 @@ def series_vs_discretize() -> None:
             )
 
 
+def small_batch_crossover() -> None:
+    """The eager constant-velocity step (float64 and float32) with the joint update against the
+    scalar updates, by number of tracks, timed in alternation: what sets
+    ``torchsde_lti.filters.online.SMALL_BATCH``."""
+    from bench_online import paired_s
+
+    import torchsde_lti.filters.online as online
+
+    default = online.SMALL_BATCH
+    for dtype in (torch.float64, torch.float32):
+        kf = build("cv", dtype)
+        g = torch.Generator().manual_seed(2)
+        for b in (16, 32, 64, 96, 128, 192, 256, 512):
+            mean, cov, y, dt = step_args(b, 4, dtype, g)
+            state = tl.KalmanState(mean, cov)
+
+            def run(small: int, state=state, y=y, dt=dt) -> None:
+                online.SMALL_BATCH = small
+                kf.step(state, y, dt)
+
+            with torch.no_grad():
+                joint, scalar = paired_s(lambda: run(1 << 30), lambda: run(0), 31, inner=5)
+            print(
+                f"cv {str(dtype)[6:]} B={b}: joint update {joint * 1e6:.0f} µs, scalar updates "
+                f"{scalar * 1e6:.0f} µs, joint / scalar {joint / scalar:.2f}"
+            )
+    online.SMALL_BATCH = default
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--eager", action="store_true", help="time the eager kf.step only")
     ap.add_argument("--series", action="store_true", help="eager Singer step: the series vs core discretize")
+    ap.add_argument("--small-batch", action="store_true", help="eager step: joint vs scalar update by batch size")
     torch.set_num_threads(1)
     args = ap.parse_args()
     if args.eager:
@@ -148,6 +180,9 @@ def main() -> None:
         return
     if args.series:
         series_vs_discretize()
+        return
+    if args.small_batch:
+        small_batch_crossover()
         return
     helpers = hasattr(tl, "compile_package")
     print("tl.compile_package / tl.load_package" if helpers else "torch's aoti_compile_and_package / aoti_load_package")

@@ -97,7 +97,7 @@ class KalmanStep(NamedTuple):
 #: (fewest ops: what one live track costs); larger batches the sequence loop's scalar
 #: updates on the batch-last layout (elementwise over the tracks, no tiny batched GEMMs).
 #: Traced programs (export, compile) always take the joint update.
-SMALL_BATCH = 64
+SMALL_BATCH = 128
 
 
 #: Traced joint updates with n and m up to this form their matrix products as broadcast sums
