@@ -56,7 +56,7 @@ class OnlineStep(nn.Module):
     Value checks are off inside (check reports where they enter the tracker).
 
     The step is a snapshot of the filter when it is built: the model's matrices (the SDE's, H,
-    R, D and, for a nilpotent F, the terminating series of its discretisation) are evaluated
+    R, D and the dt-independent part of its discretisation) are evaluated
     then, without gradients, and held as buffers, so an exported program runs the step alone
     and not the parametrisations. Build it after training (again after any change of ``kf``;
     ``load_state_dict`` on the step re-evaluates it).

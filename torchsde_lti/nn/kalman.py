@@ -89,8 +89,8 @@ __all__ = ["FilterMode", "Forecast", "KalmanFilter"]
 
 _LEARNABLE = ("H", "D", "R", "m0", "P0")
 
-#: The evaluated model of online calls: (SDE matrices, H, R, D, a nilpotent F's terminating
-#: series or None), see :meth:`KalmanFilter._online_model`.
+#: The evaluated model of online calls: (SDE matrices, H, R, D, the discretisation series of
+#: one parameter set or None), see :meth:`KalmanFilter._online_model`.
 OnlineModel = tuple[SDEMatrices, Tensor, Tensor, Tensor | None, Series | None]
 
 
@@ -554,9 +554,9 @@ class KalmanFilter(ValidateArgs, nn.Module):
         self, mats: SDEMatrices, dt: Tensor, u: Tensor | None, series: Series | None = None
     ) -> tuple[Tensor, Tensor, Tensor | None]:
         """(A, Q, G u or None) of each track's gap dt (...): one batched exact discretisation,
-        for a nilpotent F with the doubling method the model's ``series`` (the closed form that
-        core's doubling also takes for it; no scaling, no value checks, the same values to
-        rounding), else core's :func:`~torchsde_lti.core.discretize`."""
+        with the doubling method from the model's ``series`` (its dt-independent part formed
+        once: no value checks, the same values as core's doubling to rounding), else core's
+        :func:`~torchsde_lti.core.discretize`."""
         if series is not None and self.discretization_method == "doubling":
             A, Q, G = series_step(series, dt)
         else:
