@@ -4,6 +4,8 @@ discretisation, stationary covariance and moment propagation."""
 from torchsde_lti.core.discretization import (
     METHODS,
     Discrete,
+    SharedSeries,
+    discretization_series,
     discretize,
     discretize_series,
     process_noise,
@@ -16,6 +18,8 @@ from torchsde_lti.core.stationary import stationary_covariance
 __all__ = [
     "METHODS",
     "Discrete",
+    "SharedSeries",
+    "discretization_series",
     "discretize",
     "discretize_series",
     "predict_moments",

@@ -339,7 +339,8 @@ class SharedSeries(NamedTuple):
         """(A, Q, G) over dt (...): (..., n, n), (..., n, n) or None, (..., n, p) or None (with
         ``batch_last`` contiguous (n, n, ...), …). Eager: each element its own halvings, the
         doubling on the elements sorted by them; traced (torch.compile / torch.export): the
-        masked doubling (:func:`_double_masked`), no data-dependent control flow."""
+        masked doubling (every element every step, a ``while_loop`` over the most halvings),
+        no data-dependent control flow."""
         batch, n, p, dtype = dt.shape, self.n, self.p, self.coeff.dtype
         N = math.prod(batch)  # (a symbolic size while tracing: no guard on it)
         K = self.coeff.shape[0]
