@@ -261,31 +261,37 @@ def test_shared_nilpotent_series_gradients(order: int) -> None:
 
 @pytest.mark.parametrize("kind", ["random", "stiff", "big_noise"])
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
-def test_shared_series_masked_schedule_equals_sorted_schedule(kind: str, dtype: torch.dtype, monkeypatch) -> None:
+@pytest.mark.parametrize("N", [24, 300])  # the few-element schedule (N n² ≤ FEW_ENTRIES); the sorted one
+def test_shared_series_schedules_equal_the_per_element_algorithm(
+    kind: str, dtype: torch.dtype, N: int, monkeypatch
+) -> None:
     """One parameter set's SharedSeries (formed once, called on many steps: what the online
-    step keeps per parameter version) gives the same (A, Q, G) with the traced masked doubling
-    (while_loop over the most halvings, every element every step) as with the eager sorted
-    schedule, and as shared_doubling; Q symmetric PSD in both dtypes (a stable F: A and Q
+    step keeps per parameter version) gives the same (A, Q, G) with its eager schedule (one
+    number of halvings for few elements, sorted halvings for more) and with the traced masked
+    doubling (while_loop over the most halvings, every element every step) as the general
+    per-element algorithm; Q exactly symmetric and PSD in both dtypes (a stable F: A and Q
     finite over steps up to 1e3)."""
     import torchsde_lti.core._doubling as doubling_mod
     from torchsde_lti.core.discretization import SharedSeries, discretization_series
 
     F, L, Qc, _, B = _problem(4, 2, 1, kind, seed=21)
     F = F[0] - (torch.linalg.eigvals(F[0]).real.max().clamp_min(0) + 0.2) * torch.eye(4, dtype=F64)
-    dt = torch.cat([torch.zeros(1, dtype=F64), torch.logspace(-6, 3, 23, dtype=F64)])
+    g = torch.Generator().manual_seed(N)
+    dt = torch.cat([torch.zeros(1, dtype=F64), 10.0 ** (torch.rand(N - 1, generator=g, dtype=F64) * 9 - 6)])
     x = sde_inputs(F, L[0], Qc[0], dt, B[0])
     series = discretization_series(x.F.to(dtype), x.W.to(dtype), x.B.to(dtype))
     assert isinstance(series, SharedSeries)
     dtd = dt.to(dtype)
-    sorted_ = series(dtd)
+    eager = series(dtd)
     monkeypatch.setattr(doubling_mod, "tracing", lambda: True)
     masked = series(dtd)
     masked_bl = series(dtd, batch_last=True)
     monkeypatch.undo()
+    reference = per_element_doubling(x)
     tol = 1e-12 if dtype == F64 else 1e-5
-    for a, b, c, d in zip(sorted_, masked, masked_bl, shared_doubling(x.F, x.W, x.B, dt)):
+    for a, b, c, d in zip(eager, masked, masked_bl, reference):
         assert a.dtype == dtype and a.shape == d.shape and c.shape == (*d.shape[1:], d.shape[0])
         assert _rel(a.double(), d) < tol and _rel(b.double(), d) < tol and _rel(c.movedim(-1, 0).double(), d) < tol
-    for Q in (sorted_[1], masked[1]):
+    for Q in (eager[1], masked[1]):
         assert torch.equal(Q, Q.mT)
         assert torch.linalg.eigvalsh(Q.double()).min() >= -1e-6 * torch.linalg.matrix_norm(Q.double(), 2).amax()

@@ -326,11 +326,12 @@ class SharedSeries(NamedTuple):
     a module may keep it per parameter version (a live tracker's online step).
 
     coeff: (K, E) with the E entries [E's n² | Q's n² | G's n p] (absent blocks left out);
-    nu: () the scale ν (a tensor: also while traced).
+    nu: () the scale ν (a tensor: also while traced); inv_k: (K − 1,) 1/k, k = 1 … K − 1.
     """
 
     coeff: Tensor
     nu: Tensor
+    inv_k: Tensor
     has_q: bool
     n: int
     p: int
@@ -338,30 +339,35 @@ class SharedSeries(NamedTuple):
     def __call__(self, dt: Tensor, batch_last: bool = False) -> tuple[Tensor, Tensor | None, Tensor | None]:
         """(A, Q, G) over dt (...): (..., n, n), (..., n, n) or None, (..., n, p) or None (with
         ``batch_last`` contiguous (n, n, ...), …). Eager: each element its own halvings, the
-        doubling on the elements sorted by them; traced (torch.compile / torch.export): the
-        masked doubling (every element every step, a ``while_loop`` over the most halvings),
-        no data-dependent control flow."""
+        doubling on the elements sorted by them (a call of at most :data:`FEW_ENTRIES` entries
+        N n²: every element the most halvings, read on the host, no sort); traced
+        (torch.compile / torch.export): the masked doubling (every element every step, a
+        ``while_loop`` over the most halvings), no data-dependent control flow."""
         batch, n, p, dtype = dt.shape, self.n, self.p, self.coeff.dtype
         N = math.prod(batch)  # (a symbolic size while tracing: no guard on it)
-        K = self.coeff.shape[0]
         dtf = dt.reshape(N).to(dtype)
         traced = tracing()
-        with torch.no_grad():
-            steps = halvings_for(self.nu, dtf, THETA_SHARED)
         order: Tensor | None = None
         counts: list[int] = []
         if traced:
-            steps = steps.clamp_max(TRACED_MAX_HALVINGS)
+            with torch.no_grad():
+                steps = halvings_for(self.nu, dtf, THETA_SHARED).clamp_max(TRACED_MAX_HALVINGS)
             h = dtf * torch.exp2(-steps)
+        elif N * n * n <= FEW_ENTRIES:  # few elements: one number of halvings for all
+            with torch.no_grad():  # (a NaN step takes no halving, as in halvings_for)
+                top = float(torch.nan_to_num(self.nu * dtf, nan=0.0).max()) if N else 0.0
+            s = _host_halvings(top, THETA_SHARED, dtype)
+            counts = [N] * s
+            h = dtf * 2.0**-s if s else dtf
         else:
             with torch.no_grad():
+                steps = halvings_for(self.nu, dtf, THETA_SHARED)
                 order, counts = _schedule(steps.to(torch.int64), int(steps.max()) if N else 0)
             h = dtf
             if counts:
                 h = dtf * torch.exp2(-steps)
                 h = h if order is None else h[order]
-        inv_k = torch.arange(1, K, dtype=dtype, device=dt.device).reciprocal()
-        rows = torch.cat([torch.ones_like(h)[None], torch.cumprod((self.nu * h) * inv_k[:, None], 0)])  # (K, N)
+        rows = torch.cat([torch.ones_like(h)[None], torch.cumprod((self.nu * h) * self.inv_k[:, None], 0)])  # (K, N)
         sizes = [n * n, *([n * n] if self.has_q else []), *([n * p] if p else [])]
         # one product for the batch; batch-last eagerly, batch-first while traced (as the
         # per-element schedule: AOTInductor's while_loop gave wrong results for batch-last
@@ -386,6 +392,15 @@ class SharedSeries(NamedTuple):
         return _finish(_double_sorted(A, X, Q, G, counts, lo), lo, order, batch, batch_last)
 
 
+def _host_halvings(x: float, theta: float, dtype: torch.dtype) -> int:
+    """:func:`halvings_for` of one Python float ‖F‖ dt: ceil(log2(x / θ)), at least 0; beyond the
+    float range of ``dtype`` that of its largest number (A → 0, Q → P∞ for a stable F)."""
+    if not x > theta:  # (NaN too)
+        return 0
+    x = min(x, torch.finfo(dtype).max)
+    return max(0, math.ceil(math.log2(x) - math.log2(theta)))
+
+
 def shared_series(F: Tensor, W: Tensor | None, B: Tensor | None) -> SharedSeries:
     """:class:`SharedSeries` of F (n, n), W = L Qc Lᵀ (n, n) or None, B (n, p) or None
     (ν = max(‖F‖₁, ‖F‖∞), which bounds ‖F‖ and ‖𝓛‖/2 in the induced 1-norm)."""
@@ -404,7 +419,8 @@ def shared_series(F: Tensor, W: Tensor | None, B: Tensor | None) -> SharedSeries
         None if B is None else series_matrices(Ft, B, K) / k1,
     ]
     coeff = torch.cat([t.reshape(K, -1) for t in stacks if t is not None], -1)
-    return SharedSeries(coeff, nu, W is not None, n, p)
+    inv_k = torch.arange(1, K, dtype=dtype, device=F.device).reciprocal()
+    return SharedSeries(coeff, nu, inv_k, W is not None, n, p)
 
 
 def shared_doubling(
