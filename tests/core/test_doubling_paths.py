@@ -295,3 +295,25 @@ def test_shared_series_schedules_equal_the_per_element_algorithm(
     for Q in (eager[1], masked[1]):
         assert torch.equal(Q, Q.mT)
         assert torch.linalg.eigvalsh(Q.double()).min() >= -1e-6 * torch.linalg.matrix_norm(Q.double(), 2).amax()
+
+
+def test_discretization_series_of_a_nilpotent_f_differentiates_with_respect_to_f() -> None:
+    """A nilpotent F recording gradients: the series keeps the terms whose value is zero but
+    whose derivative is not, so d/dF of its (A, Q) equals that of core's discretize (gradcheck)."""
+    from torchsde_lti.core.discretization import discretization_series, discretize
+
+    L = torch.tensor([[0.0], [0.0], [1.0]], dtype=F64)
+    Qc = torch.tensor([[0.7]], dtype=F64)
+    dt = torch.tensor([0.0, 0.3, 2.5], dtype=F64)
+    F = torch.diag(torch.ones(2, dtype=F64), 1).requires_grad_()
+
+    def via_series(F: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        A, Q, _ = discretization_series(F, L @ Qc @ L.mT, None)(dt)
+        return A, Q
+
+    assert torch.autograd.gradcheck(via_series, (F,), eps=1e-7, atol=1e-5, rtol=1e-6)
+    weights = torch.randn(2, 3, 3, 3, dtype=F64, generator=torch.Generator().manual_seed(2))
+    (g_series,) = torch.autograd.grad(sum((w * t).sum() for w, t in zip(weights, via_series(F))), F)
+    ref = discretize(F, L, Qc, dt)
+    (g_ref,) = torch.autograd.grad((weights[0] * ref.A).sum() + (weights[1] * ref.Q).sum(), F)
+    assert _rel(g_series, g_ref) < 1e-10

@@ -27,7 +27,7 @@ from torch import Tensor
 
 from torchsde_lti.core._power_series import _flat, few_elements_doubling, frobenius_norm
 from torchsde_lti.core.linalg import bl_matmul, nilpotency_index
-from torchsde_lti.core.series import series_matrices, terminating_series
+from torchsde_lti.core.series import TerminatingSeries, series_matrices, terminating_series
 from torchsde_lti.core.thresholds import (
     BATCH_LAST_MAX_DIM,
     BATCH_LAST_MIN_ELEMENTS,
@@ -39,7 +39,14 @@ from torchsde_lti.core.thresholds import (
 )
 from torchsde_lti.core.validation import SDEInputs, tracing
 
-__all__ = ["SharedSeries", "doubling", "per_element_doubling", "shared_doubling", "shared_series"]
+__all__ = [
+    "SharedSeries",
+    "discretization_series",
+    "doubling",
+    "per_element_doubling",
+    "shared_doubling",
+    "shared_series",
+]
 
 _TERMS: dict[tuple[torch.dtype, float, int], int] = {}
 
@@ -423,22 +430,40 @@ def shared_series(F: Tensor, W: Tensor | None, B: Tensor | None) -> SharedSeries
     return SharedSeries(coeff, nu, inv_k, W is not None, n, p)
 
 
+def discretization_series(
+    F: Tensor, W: Tensor | None, B: Tensor | None, index: int | None = None, read_values: bool = True
+) -> TerminatingSeries | SharedSeries:
+    """The dt-independent part of the doubling discretisation of ONE parameter set, to form
+    once and call on many steps: ``series(dt)`` -> (A, Q, G) over dt (...) (with
+    ``batch_last=True`` contiguous (n, n, ...), …), the values of
+    :func:`~torchsde_lti.core.discretize`'s default method to rounding. Arguments are taken as
+    checked (no validation).
+
+    F: (n, n); W = L Qc Lᵀ: (n, n) or None; B: (n, p) or None. A nilpotent F (F^index = 0)
+    gives its :class:`~torchsde_lti.core.series.TerminatingSeries` (exact polynomial in dt; with
+    the terms whose value is zero but whose derivative is not when F records gradients), any
+    other F a :class:`SharedSeries` (series terms of a sub-step, then the doubling).
+    ``index``: F's nilpotency index when the model's structure fixes it; with ``read_values``
+    and ``index`` None it is found from F's values (one synchronisation), without
+    ``read_values`` None means not nilpotent (no value read: traceable).
+    """
+    if index is None and read_values:
+        index = nilpotency_index(F)
+    if index is None:
+        return shared_series(F, W, B)
+    return terminating_series(F, W, B, index, gradient_terms=torch.is_grad_enabled() and F.requires_grad)
+
+
 def shared_doubling(
     F: Tensor, W: Tensor | None, B: Tensor | None, dt: Tensor, batch_last: bool = False
 ) -> tuple[Tensor, Tensor | None, Tensor | None]:
     r"""(A, Q, G) for ONE parameter set, F (n, n), W (n, n) or None, B (n, p) or None, over
-    dt (*batch); shapes as :func:`per_element_doubling`.
-
-    The series terms F̃^k, 𝓛̃^k(W), F̃^k B are computed once (:func:`shared_series`) and every
-    element combines them with its rows ``r_k = (ν h)^k / k!`` (one matrix product for the
-    whole batch, batch-last), then the sorted doubling. A nilpotent F takes its terminating
-    series at the full step (:mod:`torchsde_lti.core.series`).
+    dt (*batch); shapes as :func:`per_element_doubling`: :func:`discretization_series` called
+    on dt (the series terms F̃^k, 𝓛̃^k(W), F̃^k B computed once, every element combining them
+    with its rows ``r_k = (ν h)^k / k!`` in one matrix product for the whole batch, then the
+    doubling; a nilpotent F's terminating series at the full step).
     """
-    index = nilpotency_index(F)
-    if index is not None:  # its terminating series at the full step: no doubling
-        gradient_terms = torch.is_grad_enabled() and F.requires_grad
-        return terminating_series(F, W, B, index, gradient_terms)(dt, batch_last)
-    return shared_series(F, W, B)(dt, batch_last)
+    return discretization_series(F, W, B)(dt, batch_last)
 
 
 def doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | None, Tensor | None]:

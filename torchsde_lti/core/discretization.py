@@ -17,10 +17,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchsde_lti.core._doubling import SharedSeries, doubling, shared_series
+from torchsde_lti.core._doubling import SharedSeries, discretization_series, doubling
 from torchsde_lti.core._matrix_exp import matrix_exp
-from torchsde_lti.core.linalg import nilpotency_index
-from torchsde_lti.core.series import TerminatingSeries, terminating_series
 from torchsde_lti.core.threads import intra_op_threads
 from torchsde_lti.core.validation import SDEInputs, checks_values, sde_inputs
 
@@ -259,23 +257,3 @@ def process_noise(
         (..., n, n) symmetric PSD.
     """
     return discretize(F, L, Qc, dt, method=method, validate_args=validate_args).Q
-
-
-def discretization_series(
-    F: Tensor, W: Tensor | None, B: Tensor | None, index: int | None = None, read_values: bool = True
-) -> TerminatingSeries | SharedSeries:
-    """The dt-independent part of the doubling discretisation of ONE parameter set, to form
-    once and call on many steps: ``series(dt)`` -> (A, Q, G) over dt (...) (with
-    ``batch_last=True`` contiguous (n, n, ...), …), the values of :func:`discretize`'s default
-    method to rounding. Arguments are taken as checked (no validation).
-
-    F: (n, n); W = L Qc Lᵀ: (n, n) or None; B: (n, p) or None. A nilpotent F (F^index = 0)
-    gives its :class:`~torchsde_lti.core.series.TerminatingSeries` (exact polynomial in dt),
-    any other F a :class:`SharedSeries` (series terms of a sub-step, then the doubling).
-    ``index``: F's nilpotency index when the model's structure fixes it; with ``read_values``
-    and ``index`` None it is found from F's values (one synchronisation), without
-    ``read_values`` None means not nilpotent (no value read: traceable).
-    """
-    if index is None and read_values:
-        index = nilpotency_index(F)
-    return shared_series(F, W, B) if index is None else terminating_series(F, W, B, index)
