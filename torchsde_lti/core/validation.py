@@ -246,6 +246,19 @@ def parse_learn(learn: Iterable[str] | str, allowed: Sequence[str]) -> tuple[str
     return names
 
 
+def host_values(tensors: Sequence[Tensor]) -> list[list[float]]:
+    """The values of ``tensors`` (row-major Python floats, one list per tensor), read to the host
+    in one transfer (for the value checks of small calls)."""
+    with torch.no_grad():
+        parts = [t.reshape(-1) for t in tensors]
+        flat: list[float] = (torch.cat(parts) if len(parts) > 1 else parts[0]).tolist() if parts else []
+    out, offset = [], 0
+    for part in parts:
+        out.append(flat[offset : offset + part.numel()])
+        offset += part.numel()
+    return out
+
+
 def _values_valid(host: dict[str, list[float]], Qc: Tensor | None) -> bool:
     """The value checks of :func:`sde_inputs` on Python floats: all finite, dt ≥ 0, Qc
     symmetric PSD (the test of :func:`_psd_test`)."""
@@ -349,11 +362,7 @@ def sde_inputs(
     total = sum(t.numel() for _, t in checked)
     host: dict[str, list[float]] | None = None
     if not tracing() and total <= PYTHON_CHECK_MAX_VALUES:  # one transfer: checks and decisions on Python floats
-        with torch.no_grad():
-            flat = torch.cat([t.reshape(-1) for _, t in checked]).tolist()
-        host, offset = {}, 0
-        for name, t in checked:
-            host[name], offset = flat[offset : offset + t.numel()], offset + t.numel()
+        host = dict(zip((name for name, _ in checked), host_values([t for _, t in checked])))
         valid = not values or _values_valid(host, Qc)
     elif values:  # one synchronisation: a sum is non-finite if any entry is (or it overflowed:
         with torch.no_grad(), intra_op_threads(total):  # then the detailed checks below pass)

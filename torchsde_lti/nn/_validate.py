@@ -11,7 +11,14 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.thresholds import PYTHON_CHECK_MAX_VALUES
-from torchsde_lti.core.validation import as_float_tensor, check_finite, check_nonnegative, shape_str, tracing
+from torchsde_lti.core.validation import (
+    as_float_tensor,
+    check_finite,
+    check_nonnegative,
+    host_values,
+    shape_str,
+    tracing,
+)
 
 Named = Sequence[tuple[str, Tensor | None]]
 Present = list[tuple[str, Tensor]]
@@ -80,15 +87,12 @@ def check_values(finite: Named = (), nonnegative: Named = (), no_inf: Named = ()
 
 def _host_values_valid(finite: Present, nonnegative: Present, no_inf: Present) -> bool:
     """:func:`check_values`'s test on Python floats (one transfer of every value)."""
-    parts = [v.reshape(-1) for _, v in (*finite, *nonnegative, *no_inf)]
-    values: list[float] = torch.cat(parts).tolist() if len(parts) > 1 else parts[0].tolist()
-    n_finite = sum(v.numel() for _, v in finite)
-    n_nonneg = sum(v.numel() for _, v in nonnegative)
-    isfinite, isinf = math.isfinite, math.isinf
+    values = host_values([v for _, v in (*finite, *nonnegative, *no_inf)])
+    k1, k2 = len(finite), len(finite) + len(nonnegative)
     return (
-        all(isfinite(x) for x in values[:n_finite])
-        and all(isfinite(x) and x >= 0 for x in values[n_finite : n_finite + n_nonneg])
-        and not any(isinf(x) for x in values[n_finite + n_nonneg :])
+        all(math.isfinite(x) for part in values[:k1] for x in part)
+        and all(math.isfinite(x) and x >= 0 for part in values[k1:k2] for x in part)
+        and not any(math.isinf(x) for part in values[k2:] for x in part)
     )
 
 
