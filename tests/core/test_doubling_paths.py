@@ -317,3 +317,27 @@ def test_discretization_series_of_a_nilpotent_f_differentiates_with_respect_to_f
     ref = discretize(F, L, Qc, dt)
     (g_ref,) = torch.autograd.grad((weights[0] * ref.A).sum() + (weights[1] * ref.Q).sum(), F)
     assert _rel(g_series, g_ref) < 1e-10
+
+
+def test_discretization_series_rejects_bad_shapes() -> None:
+    """The public series of one parameter set checks shapes and names the argument."""
+    from torchsde_lti.core import discretization_series
+
+    F, W, B = -torch.eye(3, dtype=F64), torch.eye(3, dtype=F64), torch.ones(3, 1, dtype=F64)
+    assert discretization_series(F, W, B)(torch.tensor([0.5], dtype=F64))[2].shape == (1, 3, 1)
+    for args, kwargs, message in (
+        ((torch.ones(2, 3, dtype=F64), None), {}, "F must be square"),
+        ((F.expand(2, 3, 3), W), {}, r"F must be one \(n, n\) matrix"),
+        ((torch.zeros(0, 0, dtype=F64), None), {}, "at least one state"),
+        ((F, torch.eye(2, dtype=F64)), {}, "W must have 3 rows"),
+        ((F, torch.ones(3, 2, dtype=F64)), {}, "W must have 3 columns"),
+        ((F, W.expand(2, 3, 3)), {}, "W must be one matrix with 3 rows"),
+        ((F, W, torch.ones(2, 1, dtype=F64)), {}, "B must have 3 rows"),
+        ((F, W.float()), {}, "W must have F's dtype"),
+        ((F, W), {"index": 0}, r"index must be None or an int in \[1, n=3\]"),
+        ((F, W), {"index": 4}, r"index must be None or an int in \[1, n=3\]"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            discretization_series(*args, **kwargs)
+    with pytest.raises(TypeError, match="F must be a real floating tensor"):
+        discretization_series(torch.eye(3, dtype=torch.int64), None)

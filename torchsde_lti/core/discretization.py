@@ -17,10 +17,12 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchsde_lti.core._doubling import SharedSeries, discretization_series, doubling
+from torchsde_lti.core._doubling import SharedSeries, doubling
+from torchsde_lti.core._doubling import discretization_series as _discretization_series
 from torchsde_lti.core._matrix_exp import matrix_exp
+from torchsde_lti.core.series import TerminatingSeries
 from torchsde_lti.core.threads import intra_op_threads
-from torchsde_lti.core.validation import SDEInputs, checks_values, sde_inputs
+from torchsde_lti.core.validation import SDEInputs, check_matrix, checks_values, sde_inputs, shape_str
 
 __all__ = [
     "METHODS",
@@ -257,3 +259,45 @@ def process_noise(
         (..., n, n) symmetric PSD.
     """
     return discretize(F, L, Qc, dt, method=method, validate_args=validate_args).Q
+
+
+def discretization_series(
+    F: Tensor, W: Tensor | None, B: Tensor | None = None, index: int | None = None, read_values: bool = True
+) -> TerminatingSeries | SharedSeries:
+    """The dt-independent part of the doubling discretisation of ONE parameter set, to form
+    once and call on many steps: ``series(dt)`` -> (A, Q, G) over dt (...) (with
+    ``batch_last=True`` contiguous (n, n, ...), …), the values of :func:`discretize`'s default
+    method to rounding.
+
+    F: (n, n), n ≥ 1; W = L Qc Lᵀ: (n, n) or None (symmetric PSD); B: (n, p) or None; all of
+    F's dtype and device. A nilpotent F (F^index = 0) gives its
+    :class:`~torchsde_lti.core.series.TerminatingSeries` (exact polynomial in dt), any other F
+    a :class:`SharedSeries` (series terms of a sub-step, then the doubling). ``index``: F's
+    nilpotency index when the model's structure fixes it; with ``read_values`` and ``index``
+    None it is found from F's values (one synchronisation), without ``read_values`` None means
+    not nilpotent (no value read: traceable).
+
+    Shapes (and ``index``) are checked, ValueError naming the argument; values are not (form
+    the series from checked matrices, e.g. an SDE's ``matrices()``).
+    """
+    if not isinstance(F, Tensor) or not F.is_floating_point():
+        raise TypeError(f"F must be a real floating tensor, got {type(F).__name__}")
+    if F.dim() != 2:
+        raise ValueError(f"F must be one (n, n) matrix (no batch dims), got shape {shape_str(F)}")
+    check_matrix(F, "F", square=True)
+    n = F.shape[-1]
+    if n == 0:
+        raise ValueError("F must have at least one state, got shape (0, 0)")
+    for name, x, cols in (("W", W, n), ("B", B, None)):
+        if x is None:
+            continue
+        if x.dim() != 2:
+            raise ValueError(f"{name} must be one matrix with {n} rows (no batch dims), got shape {shape_str(x)}")
+        check_matrix(x, name, rows=n, cols=cols)
+        if x.dtype != F.dtype or x.device != F.device:
+            raise ValueError(
+                f"{name} must have F's dtype and device ({F.dtype}, {F.device}), got {x.dtype}, {x.device}"
+            )
+    if index is not None and (isinstance(index, bool) or not isinstance(index, int) or not 1 <= index <= n):
+        raise ValueError(f"index must be None or an int in [1, n={n}], got {index!r}")
+    return _discretization_series(F, W, B, index, read_values)
