@@ -261,6 +261,56 @@ def parallel_min_work() -> str:
     )
 
 
+def chunk_bytes() -> str:
+    """Each repeat calls every chunk size once, in turn (the sizes see the same load)."""
+    sizes = (0, 1 << 19, 1 << 20, 1 << 21, 1 << 22, 1 << 23)  # 0: one pass
+    rows = []
+    for kind in ("shared", "per element"):
+        for n in (2, 4):
+            for dtype in (F64, torch.float32):
+                N = 100_000
+                if kind == "shared":
+                    F, L, Qc, _ = per_element_problem(n, 1, dtype)
+                    dt = per_element_problem(n, N, dtype)[3]
+                    x = sde_inputs(F[0], L, Qc[0], dt, validate_args=False)
+                else:
+                    x = sde_inputs(*per_element_problem(n, N, dtype), validate_args=False)
+                times: dict[int, list[float]] = {b: [] for b in sizes}
+                for r in range(7):
+                    for b in sizes if r % 2 else sizes[::-1]:
+                        with patched(doubling_mod, CHUNK_BYTES=b or 1 << 62), torch.no_grad():
+                            t0 = time.thread_time()
+                            doubling_mod.doubling(x)
+                            if r:  # (the first round warms up)
+                                times[b].append(time.thread_time() - t0)
+                rows.append([kind, n, str(dtype)[6:], *(f"{statistics.median(times[b]) * 1e3:.1f}" for b in sizes)])
+    return table(
+        f"10. CHUNK_BYTES = {thresholds.CHUNK_BYTES}: N = 1e5 elements (dt log-uniform in [1e-3, 10]), "
+        "forward, ms by chunk size",
+        ["parameters", "n", "dtype", "one pass", "512 KiB", "1 MiB", "2 MiB", "4 MiB", "8 MiB"],
+        rows,
+    )
+
+
+def rows_by_products() -> str:
+    K = doubling_mod.series_terms(F64, thresholds.THETA_SHARED, 2)
+    inv_k = torch.arange(1, K, dtype=F64).reciprocal()
+    rows = []
+    for N in (256, 1024, 2048, 4096, 8192, 32768):
+        x = torch.rand(N, generator=torch.Generator().manual_seed(N), dtype=F64)
+        row: list[object] = [N]
+        for bound in (1 << 62, 0):  # cumulative product, one product a row
+            with patched(doubling_mod, ROWS_BY_PRODUCTS_MIN=bound):
+                row.append(cpu_us(lambda: doubling_mod._rows(x, inv_k, False)))
+        rows.append(row)
+    return table(
+        f"11. ROWS_BY_PRODUCTS_MIN = {thresholds.ROWS_BY_PRODUCTS_MIN}: the series rows of one parameter set "
+        f"(K = {K}, float64), µs",
+        ["N", "cumulative product", "one product a row"],
+        rows,
+    )
+
+
 SECTIONS = {
     1: unrolled_cholesky,
     2: batch_last_products,
@@ -271,6 +321,8 @@ SECTIONS = {
     7: shared_min,
     8: few_elements,
     9: parallel_min_work,
+    10: chunk_bytes,
+    11: rows_by_products,
 }
 
 

@@ -341,3 +341,51 @@ def test_discretization_series_rejects_bad_shapes() -> None:
             discretization_series(*args, **kwargs)
     with pytest.raises(TypeError, match="F must be a real floating tensor"):
         discretization_series(torch.eye(3, dtype=torch.int64), None)
+
+
+@pytest.mark.parametrize("shared", [False, True])
+@pytest.mark.parametrize("p", [0, 2])
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_large_calls_in_chunks_equal_one_pass(monkeypatch, shared: bool, p: int, dtype: torch.dtype) -> None:
+    """Chunked eager calls (forced here by tiny chunk sizes, with a short last chunk) give the
+    one-pass results and gradients, in both output layouts, for a 2-D batch."""
+    from torchsde_lti.core import _doubling
+
+    n, batch = 3, (9, 31)  # 279 elements (past the few-element schedule): chunks of 2 and of 50
+    kind = "stiff" if dtype == F64 else "random"  # (stiff float32 gradients overflow)
+    F, L, Qc, dt, B = _problem(n, p, batch[0] * batch[1], kind, seed=4, dtype=dtype)
+    if dtype != F64:  # stable: finite values and gradients over the long steps
+        F = F - 5.0 * torch.eye(n, dtype=dtype)
+    dt = dt.reshape(batch)
+    if shared:
+        F, L, Qc, B = (None if t is None else t[0] for t in (F, L, Qc, B))
+    else:
+        F, L, Qc, B = (None if t is None else t.reshape(*batch, *t.shape[1:]) for t in (F, L, Qc, B))
+        F = F[:, :1]  # one F per row, broadcast over the columns (an expanded flat copy)
+
+    def run(chunk_bytes: int, batch_last: bool):
+        monkeypatch.setattr(_doubling, "CHUNK_BYTES", chunk_bytes)
+        # the series rows of one parameter set: one cumulative product in one pass, one product
+        # a row in chunks
+        monkeypatch.setattr(_doubling, "ROWS_BY_PRODUCTS_MIN", 1 << 40 if chunk_bytes > 1 << 30 else 0)
+        xs = [None if t is None else t.detach().requires_grad_() for t in (F, Qc, dt, B)]
+        x = sde_inputs(xs[0], L, xs[1], xs[2], xs[3])
+        A, Q, G = _doubling.doubling(x, batch_last)
+        loss = sum(
+            ((t.double() ** 2) * (1 + torch.arange(t.numel()).reshape(t.shape) % 5)).sum()
+            for t in (A, Q, G)
+            if t is not None
+        )
+        grads = torch.autograd.grad(loss, [t for t in xs if t is not None])
+        return [t.detach() for t in (A, Q, G) if t is not None], grads
+
+    tol = 1e-12 if dtype == F64 else 2e-5
+    for batch_last in (False, True):
+        whole, g_whole = run(1 << 40, batch_last)
+        for chunk_bytes in (2 * n * max(n, p) * dtype.itemsize, 50 * n * n * dtype.itemsize):
+            parts, g_parts = run(chunk_bytes, batch_last)
+            for a, b in zip(parts, whole):
+                assert a.shape == b.shape and a.is_contiguous() == b.is_contiguous()
+                assert _rel(a, b) <= tol
+            for a, b in zip(g_parts, g_whole):
+                assert _rel(a, b) <= 10 * tol

@@ -31,7 +31,9 @@ from torchsde_lti.core.series import TerminatingSeries, series_matrices, termina
 from torchsde_lti.core.thresholds import (
     BATCH_LAST_MAX_DIM,
     BATCH_LAST_MIN_ELEMENTS,
+    CHUNK_BYTES,
     FEW_ENTRIES,
+    ROWS_BY_PRODUCTS_MIN,
     SHARED_MIN_ELEMENTS,
     THETA_SHARED,
     THETA_SORTED,
@@ -241,7 +243,8 @@ def per_element_doubling(
     (with ``batch_last`` contiguous (n, n, *batch), …). ``masked``: the schedule without
     data-dependent control flow (default: while torch.compile / torch.export trace). Eager
     calls of at most :data:`FEW_ENTRIES` entries N n² take
-    :func:`~torchsde_lti.core._power_series.few_elements_doubling` (fewest torch calls).
+    :func:`~torchsde_lti.core._power_series.few_elements_doubling` (fewest torch calls); eager
+    calls of more than two chunks (:func:`chunk_elements`) run chunk by chunk.
     """
     F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
     assert dt is not None
@@ -253,19 +256,44 @@ def per_element_doubling(
     Fb, Wb, Bb = _flat(F, batch, n), _flat(W, batch, n), _flat(B, batch, p)
     assert Fb is not None
     dtf = dt.expand(batch).reshape(N)
+    chunk = chunk_elements(n, p, F.dtype)
+    if not traced and N > 2 * chunk:
+        cut = lambda t, i: None if t is None else t[i : i + chunk]  # noqa: E731
+        parts = [
+            _per_element_flat(Fb[i : i + chunk], cut(Wb, i), cut(Bb, i), dtf[i : i + chunk], False, batch_last)
+            for i in range(0, N, chunk)
+        ]
+        return joined(parts, batch, batch_last)
+    return _per_element_flat(Fb, Wb, Bb, dtf, traced, batch_last, batch)
+
+
+def _per_element_flat(
+    Fb: Tensor,
+    Wb: Tensor | None,
+    Bb: Tensor | None,
+    dtf: Tensor,
+    traced: bool,
+    batch_last: bool,
+    batch: torch.Size | None = None,
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """:func:`per_element_doubling` of N flat elements: Fb (N, n, n), Wb (N, n, n) or None,
+    Bb (N, n, p) or None, dtf (N,) -> (*batch, n, n), … (``batch`` of N elements; default
+    (N,)), with ``batch_last`` contiguous (n, n, *batch), …."""
+    n, N = Fb.shape[-1], Fb.shape[0]
+    batch = torch.Size([N]) if batch is None else batch
     with torch.no_grad():
         nu = frobenius_norm(Fb)
         halvings = halvings_for(nu, dtf, THETA_SORTED)
     order: Tensor | None = None
     counts: list[int] = []
-    K = series_terms(F.dtype, THETA_SORTED, n)
+    K = series_terms(Fb.dtype, THETA_SORTED, n)
     if traced:
         halvings = halvings.clamp_max(TRACED_MAX_HALVINGS)
     elif N:
         with torch.no_grad():  # one synchronisation: the most halvings and the largest ‖F‖ dt
             top_f, x_max = torch.stack([halvings.max(), (nu * dtf).max()]).tolist()
             if not top_f:  # no element halves: the series for the largest ‖F‖ dt (a power of 2) suffices
-                K = series_terms(F.dtype, 2.0 ** math.ceil(math.log2(x_max)) if x_max > 0 else 0.0, n)
+                K = series_terms(Fb.dtype, 2.0 ** math.ceil(math.log2(x_max)) if x_max > 0 else 0.0, n)
             order, counts = _schedule(halvings.to(torch.int64), int(top_f))
     if order is not None:
         Fb, dtf, halvings = Fb[order], dtf[order], halvings[order]
@@ -287,7 +315,7 @@ def per_element_doubling(
     Q = None if Z is None else Z * hc
     G = None if Bb is None else lo.mm(Y, lo.put(Bb)) * hc
     if traced:
-        needs_grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (F, W, B, dt))
+        needs_grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (Fb, Wb, Bb, dtf))
         parts = [_double_masked(X + eye, X, Q, G, halvings, lo, needs_grad and not torch.compiler.is_exporting())]
     else:
         parts = _double_sorted(X + eye, X, Q, G, counts, lo)
@@ -324,6 +352,28 @@ def _finish(
     return A, Q, G
 
 
+def chunk_elements(n: int, p: int, dtype: torch.dtype) -> int:
+    """Elements per chunk of a large eager call: :data:`CHUNK_BYTES` of (n, max(n, p)) matrices."""
+    return max(1, CHUNK_BYTES // (n * max(n, p) * (torch.finfo(dtype).bits // 8)))
+
+
+def joined(
+    parts: list[tuple[Tensor, Tensor | None, Tensor | None]], batch: torch.Size, batch_last: bool
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """(A, Q, G) of consecutive chunks of flat elements, each (C, r, c) (with ``batch_last``
+    (r, c, C)), joined into (*batch, r, c) (with ``batch_last`` contiguous (r, c, *batch))."""
+    out: list[Tensor | None] = []
+    for group in zip(*parts):
+        if group[0] is None:
+            out.append(None)
+            continue
+        x = torch.cat(group, -1 if batch_last else 0) if len(group) > 1 else group[0]
+        out.append(x.reshape(*x.shape[:2], *batch) if batch_last else x.reshape(*batch, *x.shape[1:]))
+    A, Q, G = out
+    assert A is not None
+    return A, Q, G
+
+
 class SharedSeries(NamedTuple):
     r"""The dt-independent part of :func:`shared_doubling` for ONE parameter set that is not
     nilpotent: with F = ν F̃, the series terms as the coefficients of the rows ``r_k = (ν h)^k / k!``
@@ -349,11 +399,15 @@ class SharedSeries(NamedTuple):
         doubling on the elements sorted by them (a call of at most :data:`FEW_ENTRIES` entries
         N n²: every element the most halvings, read on the host, no sort); traced
         (torch.compile / torch.export): the masked doubling (every element every step, a
-        ``while_loop`` over the most halvings), no data-dependent control flow."""
+        ``while_loop`` over the most halvings), no data-dependent control flow. Eager calls of
+        more than two chunks (:func:`chunk_elements`) run chunk by chunk."""
         batch, n, p, dtype = dt.shape, self.n, self.p, self.coeff.dtype
         N = math.prod(batch)  # (a symbolic size while tracing: no guard on it)
         dtf = dt.reshape(N).to(dtype)
         traced = tracing()
+        chunk = chunk_elements(n, p, dtype)
+        if not traced and N > 2 * chunk:
+            return joined([self(d, batch_last) for d in dtf.split(chunk)], batch, batch_last)
         order: Tensor | None = None
         counts: list[int] = []
         if traced:
@@ -374,7 +428,7 @@ class SharedSeries(NamedTuple):
             if counts:
                 h = dtf * torch.exp2(-steps)
                 h = h if order is None else h[order]
-        rows = torch.cat([torch.ones_like(h)[None], torch.cumprod((self.nu * h) * self.inv_k[:, None], 0)])  # (K, N)
+        rows = _rows(self.nu * h, self.inv_k, traced)  # (K, N)
         sizes = [n * n, *([n * n] if self.has_q else []), *([n * p] if p else [])]
         # one product for the batch; batch-last eagerly, batch-first while traced (as the
         # per-element schedule: AOTInductor's while_loop gave wrong results for batch-last
@@ -397,6 +451,18 @@ class SharedSeries(NamedTuple):
             differentiable = needs_grad and not torch.compiler.is_exporting()
             return _finish([_double_masked(A, X, Q, G, steps, lo, differentiable)], lo, None, batch, batch_last)
         return _finish(_double_sorted(A, X, Q, G, counts, lo), lo, order, batch, batch_last)
+
+
+def _rows(x: Tensor, inv_k: Tensor, traced: bool) -> Tensor:
+    """``r_k = x^k / k!``, k < K = len(inv_k) + 1: (K, N) from x (N,). Traced or fewer than
+    :data:`ROWS_BY_PRODUCTS_MIN` elements: one cumulative product; else one product a row (on
+    the CPU torch's cumulative product over the leading dimension slows down sharply with N)."""
+    if traced or x.shape[0] < ROWS_BY_PRODUCTS_MIN:
+        return torch.cat([torch.ones_like(x)[None], torch.cumprod(x * inv_k[:, None], 0)])
+    rows = [torch.ones_like(x)]
+    for c in inv_k.tolist():
+        rows.append(torch.mul(rows[-1], x).mul_(c))
+    return torch.stack(rows)
 
 
 def _host_halvings(x: float, theta: float, dtype: torch.dtype) -> int:
