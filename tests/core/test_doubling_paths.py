@@ -365,6 +365,7 @@ def test_large_calls_in_chunks_equal_one_pass(monkeypatch, shared: bool, p: int,
 
     def run(chunk_bytes: int, batch_last: bool):
         monkeypatch.setattr(_doubling, "CHUNK_BYTES", chunk_bytes)
+        monkeypatch.setattr(_doubling, "CHUNKED_MIN_BYTES", 0)
         # the series rows of one parameter set: one cumulative product in one pass, one product
         # a row in chunks
         monkeypatch.setattr(_doubling, "ROWS_BY_PRODUCTS_MIN", 1 << 40 if chunk_bytes > 1 << 30 else 0)

@@ -32,6 +32,7 @@ from torchsde_lti.core.thresholds import (
     BATCH_LAST_MAX_DIM,
     BATCH_LAST_MIN_ELEMENTS,
     CHUNK_BYTES,
+    CHUNKED_MIN_BYTES,
     FEW_ENTRIES,
     ROWS_BY_PRODUCTS_MIN,
     SHARED_MIN_ELEMENTS,
@@ -244,7 +245,7 @@ def per_element_doubling(
     data-dependent control flow (default: while torch.compile / torch.export trace). Eager
     calls of at most :data:`FEW_ENTRIES` entries N n² take
     :func:`~torchsde_lti.core._power_series.few_elements_doubling` (fewest torch calls); eager
-    calls of more than two chunks (:func:`chunk_elements`) run chunk by chunk.
+    calls of many elements run chunk by chunk (:func:`chunk_elements`).
     """
     F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
     assert dt is not None
@@ -256,8 +257,8 @@ def per_element_doubling(
     Fb, Wb, Bb = _flat(F, batch, n), _flat(W, batch, n), _flat(B, batch, p)
     assert Fb is not None
     dtf = dt.expand(batch).reshape(N)
-    chunk = chunk_elements(n, p, F.dtype)
-    if not traced and N > 2 * chunk:
+    chunk = chunk_elements(N, n, p, F.dtype)
+    if not traced and chunk < N:
         cut = lambda t, i: None if t is None else t[i : i + chunk]  # noqa: E731
         parts = [
             _per_element_flat(Fb[i : i + chunk], cut(Wb, i), cut(Bb, i), dtf[i : i + chunk], False, batch_last)
@@ -352,9 +353,11 @@ def _finish(
     return A, Q, G
 
 
-def chunk_elements(n: int, p: int, dtype: torch.dtype) -> int:
-    """Elements per chunk of a large eager call: :data:`CHUNK_BYTES` of (n, max(n, p)) matrices."""
-    return max(1, CHUNK_BYTES // (n * max(n, p) * (torch.finfo(dtype).bits // 8)))
+def chunk_elements(N: int, n: int, p: int, dtype: torch.dtype) -> int:
+    """Elements per chunk of an eager call of N elements: all N while their (n, max(n, p))
+    matrices take at most :data:`CHUNKED_MIN_BYTES`, else :data:`CHUNK_BYTES` of them."""
+    size = n * max(n, p) * (torch.finfo(dtype).bits // 8)
+    return N if N * size <= CHUNKED_MIN_BYTES else max(1, CHUNK_BYTES // size)
 
 
 def joined(
@@ -400,13 +403,13 @@ class SharedSeries(NamedTuple):
         N n²: every element the most halvings, read on the host, no sort); traced
         (torch.compile / torch.export): the masked doubling (every element every step, a
         ``while_loop`` over the most halvings), no data-dependent control flow. Eager calls of
-        more than two chunks (:func:`chunk_elements`) run chunk by chunk."""
+        many elements run chunk by chunk (:func:`chunk_elements`)."""
         batch, n, p, dtype = dt.shape, self.n, self.p, self.coeff.dtype
         N = math.prod(batch)  # (a symbolic size while tracing: no guard on it)
         dtf = dt.reshape(N).to(dtype)
         traced = tracing()
-        chunk = chunk_elements(n, p, dtype)
-        if not traced and N > 2 * chunk:
+        chunk = chunk_elements(N, n, p, dtype)
+        if not traced and chunk < N:
             return joined([self(d, batch_last) for d in dtf.split(chunk)], batch, batch_last)
         order: Tensor | None = None
         counts: list[int] = []

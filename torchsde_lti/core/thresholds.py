@@ -44,9 +44,10 @@ SHARED_MIN_ELEMENTS = 32
 #: One parameter set: the rows (ν h)^k / k! of the series by one product a row from this many
 #: elements on (eagerly); fewer take one cumulative product.
 ROWS_BY_PRODUCTS_MIN = 1024
-#: Eager calls of more than two chunks run chunk by chunk, a chunk this many bytes of (n, n)
-#: matrices: the temporaries stay small enough for the allocator to reuse their memory (fresh
-#: large allocations cost a page fault every 4 KiB) and for the caches.
+#: Eager calls whose (n, n) matrices take more than CHUNKED_MIN_BYTES in all run chunk by chunk,
+#: a chunk CHUNK_BYTES of them: the temporaries stay small enough for the allocator to reuse
+#: their memory (a fresh large allocation costs a page fault every 4 KiB) and for the caches.
+CHUNKED_MIN_BYTES = 1 << 23
 CHUNK_BYTES = 1 << 21
 #: Halvings of the traced (compile / export) schedule: ‖F‖ dt ≤ θ 2^32 (beyond, the result
 #: is that of dt = θ 2^32 / ‖F‖, where A and Q have long converged).
