@@ -390,3 +390,17 @@ def test_large_calls_in_chunks_equal_one_pass(monkeypatch, shared: bool, p: int,
                 assert _rel(a, b) <= tol
             for a, b in zip(g_parts, g_whole):
                 assert _rel(a, b) <= 10 * tol
+
+
+def test_chunks_only_for_large_cpu_calls() -> None:
+    """One pass up to the chunk bound and off the CPU (no page faults to save there, and a chunk
+    costs synchronisations); chunks of CHUNK_BYTES of matrices above it."""
+    from torchsde_lti.core import _doubling
+
+    n, size = 4, 4 * 4 * 8
+    big = 2 * _doubling.CHUNKED_MIN_BYTES // size
+    cpu, meta = torch.empty((), dtype=F64), torch.empty((), dtype=F64, device="meta")
+    assert _doubling.chunk_elements(big // 4, n, 0, cpu) == big // 4
+    assert _doubling.chunk_elements(big, n, 0, cpu) == _doubling.CHUNK_BYTES // size
+    assert _doubling.chunk_elements(big, n, 0, meta) == big
+    assert _doubling.chunk_elements(big, n, 8, cpu) == _doubling.CHUNK_BYTES // (4 * 8 * 8)  # (n, p) inputs

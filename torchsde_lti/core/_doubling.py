@@ -257,7 +257,7 @@ def per_element_doubling(
     Fb, Wb, Bb = _flat(F, batch, n), _flat(W, batch, n), _flat(B, batch, p)
     assert Fb is not None
     dtf = dt.expand(batch).reshape(N)
-    chunk = chunk_elements(N, n, p, F.dtype)
+    chunk = chunk_elements(N, n, p, Fb)
     if not traced and chunk < N:
         cut = lambda t, i: None if t is None else t[i : i + chunk]  # noqa: E731
         parts = [
@@ -353,11 +353,15 @@ def _finish(
     return A, Q, G
 
 
-def chunk_elements(N: int, n: int, p: int, dtype: torch.dtype) -> int:
-    """Elements per chunk of an eager call of N elements: all N while their (n, max(n, p))
-    matrices take at most :data:`CHUNKED_MIN_BYTES`, else :data:`CHUNK_BYTES` of them."""
-    size = n * max(n, p) * (torch.finfo(dtype).bits // 8)
-    return N if N * size <= CHUNKED_MIN_BYTES else max(1, CHUNK_BYTES // size)
+def chunk_elements(N: int, n: int, p: int, like: Tensor) -> int:
+    """Elements per chunk of an eager call of N elements on ``like``'s dtype and device: all N
+    off the CPU (no page faults behind a caching allocator; a chunk costs synchronisations) or
+    while their (n, max(n, p)) matrices take at most :data:`CHUNKED_MIN_BYTES`, else
+    :data:`CHUNK_BYTES` of them."""
+    size = n * max(n, p) * like.element_size()
+    if like.device.type != "cpu" or N * size <= CHUNKED_MIN_BYTES:
+        return N
+    return max(1, CHUNK_BYTES // size)
 
 
 def joined(
@@ -408,7 +412,7 @@ class SharedSeries(NamedTuple):
         N = math.prod(batch)  # (a symbolic size while tracing: no guard on it)
         dtf = dt.reshape(N).to(dtype)
         traced = tracing()
-        chunk = chunk_elements(N, n, p, dtype)
+        chunk = chunk_elements(N, n, p, dtf)
         if not traced and chunk < N:
             return joined([self(d, batch_last) for d in dtf.split(chunk)], batch, batch_last)
         order: Tensor | None = None
