@@ -44,7 +44,7 @@ SHARED_MIN_ELEMENTS = 32
 #: One parameter set: the rows (ν h)^k / k! of the series by one product a row from this many
 #: elements on (eagerly); fewer take one cumulative product.
 ROWS_BY_PRODUCTS_MIN = 1024
-#: Eager calls whose (n, n) matrices take more than CHUNKED_MIN_BYTES in all run chunk by chunk,
+#: Eager CPU calls whose (n, n) matrices take more than CHUNKED_MIN_BYTES in all run chunk by chunk,
 #: a chunk CHUNK_BYTES of them: the temporaries stay small enough for the allocator to reuse
 #: their memory (a fresh large allocation costs a page fault every 4 KiB) and for the caches.
 CHUNKED_MIN_BYTES = 1 << 23
