@@ -404,3 +404,36 @@ def test_chunks_only_for_large_cpu_calls() -> None:
     assert _doubling.chunk_elements(big, n, 0, cpu) == _doubling.CHUNK_BYTES // size
     assert _doubling.chunk_elements(big, n, 0, meta) == big
     assert _doubling.chunk_elements(big, n, 8, cpu) == _doubling.CHUNK_BYTES // (4 * 8 * 8)  # (n, p) inputs
+
+
+def test_export_with_a_dynamic_batch_sets_no_bound_from_the_chunk_rule() -> None:
+    """Traced calls are never chunked, and the chunk rule reads no symbolic batch size: a program
+    exported with a dynamic batch has no upper bound on it and runs past the chunk bound."""
+    from torch.export import Dim
+
+    from torchsde_lti.core import _doubling
+
+    F, L, Qc, _, _ = _problem(3, 0, 1, "random", seed=7)
+    F = F[0] - 4.0 * torch.eye(3, dtype=F64)
+    W = L[0] @ Qc[0] @ L[0].mT
+    series = _doubling.shared_series(F, W, None)
+
+    class Shared(torch.nn.Module):
+        def forward(self, dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            A, Q, _ = series(dt)
+            return A, Q
+
+    class PerElement(torch.nn.Module):
+        def forward(self, F: torch.Tensor, dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            A, Q, _ = per_element_doubling(sde_inputs(F, L[0], Qc[0], dt, validate_args=False))
+            return A, Q
+
+    big = 2 * _doubling.CHUNKED_MIN_BYTES // (3 * 3 * 8)  # chunked when eager
+    dt = torch.rand(big, generator=torch.Generator().manual_seed(0), dtype=F64) * 3
+    b = Dim("b")
+    ep = torch.export.export(Shared(), (dt[:5],), dynamic_shapes=({0: b},))
+    for got, want in zip(ep.module()(dt), series(dt)):
+        assert _rel(got, want) <= 1e-12
+    ep = torch.export.export(PerElement(), (F.expand(5, 3, 3).contiguous(), dt[:5]), dynamic_shapes=({0: b}, {0: b}))
+    for got, want in zip(ep.module()(F.expand(big, 3, 3), dt), per_element_doubling(sde_inputs(F, L[0], Qc[0], dt))):
+        assert _rel(got, want) <= 1e-12

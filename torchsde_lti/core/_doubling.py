@@ -257,8 +257,7 @@ def per_element_doubling(
     Fb, Wb, Bb = _flat(F, batch, n), _flat(W, batch, n), _flat(B, batch, p)
     assert Fb is not None
     dtf = dt.expand(batch).reshape(N)
-    chunk = chunk_elements(N, n, p, Fb)
-    if not traced and chunk < N:
+    if not traced and (chunk := chunk_elements(N, n, p, Fb)) < N:  # (traced: no guard on the symbolic N)
         cut = lambda t, i: None if t is None else t[i : i + chunk]  # noqa: E731
         parts = [
             _per_element_flat(Fb[i : i + chunk], cut(Wb, i), cut(Bb, i), dtf[i : i + chunk], False, batch_last)
@@ -412,8 +411,7 @@ class SharedSeries(NamedTuple):
         N = math.prod(batch)  # (a symbolic size while tracing: no guard on it)
         dtf = dt.reshape(N).to(dtype)
         traced = tracing()
-        chunk = chunk_elements(N, n, p, dtf)
-        if not traced and chunk < N:
+        if not traced and (chunk := chunk_elements(N, n, p, dtf)) < N:  # (traced: no guard on the symbolic N)
             return joined([self(d, batch_last) for d in dtf.split(chunk)], batch, batch_last)
         order: Tensor | None = None
         counts: list[int] = []
