@@ -458,3 +458,47 @@ def test_imm_step_many_tracks_long_gaps_equals_sequence_filter(dtype):
             torch.testing.assert_close(out.log_likelihood, ref.step_log_likelihood[:, k], rtol=tol, atol=tol)
         torch.testing.assert_close(state.mode_prob, ref.mode_probabilities[:, -1], rtol=tol, atol=tol)
         torch.testing.assert_close(out.mean, ref.mean[:, -1], rtol=tol, atol=tol * 10)
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_kalman_step_of_many_tracks_in_chunks_equals_one_pass(dtype, monkeypatch):
+    """Chunks along the leading batch dimension (forced small): the same values and gradients
+    as one pass; per-track and shared A, Q, H, R, a second batch dimension, inputs,
+    missing components and a mask; parameters broadcast along the chunked dimension."""
+    online = tl.filters.online
+    monkeypatch.setattr(online, "SMALL_BATCH", 0)
+    g = torch.Generator().manual_seed(11)
+    B, C, n, m = 23, 3, 4, 2
+
+    def spd(*shape: int) -> torch.Tensor:
+        X = torch.randn(*shape, generator=g, dtype=F64)
+        return (X @ X.mT / shape[-1] + 0.5 * torch.eye(shape[-1], dtype=F64)).to(dtype)
+
+    mean = torch.randn(B, C, n, generator=g, dtype=F64).to(dtype)
+    cov = spd(B, C, n, n)
+    y = torch.randn(B, C, m, generator=g, dtype=F64).to(dtype)
+    y[2, 1, 0] = float("nan")
+    y[5] = float("nan")
+    mask = torch.rand(B, C, generator=g) > 0.2
+    cases = {
+        "per track": (torch.randn(B, C, n, n, generator=g, dtype=F64).to(dtype) / 2, spd(B, C, n, n)),
+        "shared": (torch.randn(n, n, generator=g, dtype=F64).to(dtype) / 2, spd(n, n)),
+        "broadcast": (torch.randn(1, C, n, n, generator=g, dtype=F64).to(dtype) / 2, spd(B, 1, n, n)),
+    }
+    H, R = torch.randn(m, n, generator=g, dtype=F64).to(dtype), spd(C, m, m)
+    c = torch.randn(B, 1, n, generator=g, dtype=F64).to(dtype)
+    tol = 1e-12 if dtype == F64 else 1e-5
+    for name, (A, Q) in cases.items():
+        for extra in ({}, {"c": c, "mask": mask}):
+            runs = []
+            for chunked in (False, True):
+                # chunks of 2 leading rows (forced), or one pass
+                monkeypatch.setattr(online, "CHUNKED_STEP_MIN_BYTES", 0 if chunked else 1 << 62)
+                monkeypatch.setattr(online, "STEP_CHUNK_BYTES", 2 * C * n * n * cov.element_size())
+                A_ = A.clone().requires_grad_(True)
+                state, out = online.kalman_step(tl.KalmanState(mean, cov), y, A_, Q, H, R, **extra)
+                (grad,) = torch.autograd.grad(out.log_likelihood.sum() + state.cov.sum(), A_)
+                runs.append((*state, *out, grad))
+            for got, want in zip(runs[1], runs[0]):
+                assert got.shape == want.shape and got.dtype == want.dtype, name
+                torch.testing.assert_close(got, want, rtol=0, atol=tol, msg=name)

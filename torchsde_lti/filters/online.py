@@ -100,6 +100,14 @@ class KalmanStep(NamedTuple):
 SMALL_BATCH = 128
 
 
+#: Eager CPU steps whose (n, n) covariances of all tracks take more than CHUNKED_STEP_MIN_BYTES
+#: run the scalar updates chunk by chunk along the leading batch dimension, a chunk
+#: STEP_CHUNK_BYTES of covariances: the temporaries stay in the caches and in memory the
+#: allocator reuses (a fresh large allocation costs a page fault every 4 KiB).
+CHUNKED_STEP_MIN_BYTES = 1 << 22
+STEP_CHUNK_BYTES = 1 << 20
+
+
 #: Traced joint updates with n and m up to this form their matrix products as broadcast sums
 #: (:func:`~torchsde_lti.core.linalg.fused_matmul`), which a compiler (AOTInductor,
 #: torch.compile) fuses into its kernels instead of calling a GEMM per product; an exported
@@ -202,7 +210,43 @@ def kalman_step(
     )  # fmt: skip
     if tracing() or mb.numel() <= SMALL_BATCH:
         return _joint_step(state, y0, obs, A, Q, H, R, c, mb)
-    return _scalar_step(state, y0, obs, A, Q, H, R, c, mb)
+    per_lead = math.prod(mb[1:]) * A.shape[-1] ** 2 * A.element_size()  # covariance bytes per leading index
+    if y0.device.type != "cpu" or mb[0] * per_lead <= CHUNKED_STEP_MIN_BYTES:
+        return _scalar_step(state, y0, obs, A, Q, H, R, c, mb)
+    size = max(1, STEP_CHUNK_BYTES // per_lead)
+    args = [(state.mean, 1), (state.cov, 2), (y0, 1), (obs, 1), (A, 2), (Q, 2), (H, 2), (R, 2), (c, 1)]
+    parts = []
+    for start in range(0, mb[0], size):
+        rows = slice(start, min(start + size, mb[0]))
+        mean, cov, yk, ok, Ak, Qk, Hk, Rk, ck = (_leading_rows(x, e, mb, rows) for x, e in args)
+        assert mean is not None and cov is not None and yk is not None
+        assert Ak is not None and Qk is not None and Hk is not None and Rk is not None
+        chunk_mb = torch.Size([rows.stop - rows.start, *mb[1:]])
+        parts.append(_scalar_step(KalmanState(mean, cov), yk, ok, Ak, Qk, Hk, Rk, ck, chunk_mb))
+    new, out = zip(*parts)
+    return KalmanState(*map(_joined_tracks, zip(*new))), KalmanStep(*map(_joined_tracks, zip(*out)))
+
+
+def _leading_rows(x: Tensor | None, event_ndim: int, mb: torch.Size, rows: slice) -> Tensor | None:
+    """The rows ``rows`` of the leading batch dimension of ``x`` (..., *event) broadcast
+    against ``mb``; x as it is where it broadcasts along that dimension (shared, or size 1)."""
+    if x is None or x.dim() - event_ndim < len(mb) or x.shape[0] == 1:
+        return x
+    return x[rows]
+
+
+def _joined_tracks(parts: Sequence[Tensor]) -> Tensor:
+    """Chunks of tracks joined along the leading dimension, in the chunks' memory layout
+    where they share one dense layout (the scalar updates' batch-last storage: the next step
+    then reads it without a copy), else batch-first."""
+    if len(parts) == 1:
+        return parts[0]
+    strides = parts[0].stride()
+    order = sorted(range(len(strides)), key=lambda d: -strides[d])  # outermost first
+    if all(p.permute(order).is_contiguous() for p in parts):
+        joined = torch.cat([p.permute(order) for p in parts], order.index(0))
+        return joined.permute([order.index(d) for d in range(len(order))])
+    return torch.cat(list(parts))
 
 
 def _joint_step(
