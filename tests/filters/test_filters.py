@@ -199,6 +199,37 @@ def test_rts_matches_numpy_and_shrinks_covariance(smoother):
     torch.testing.assert_close(sm.mean[..., -1, :], out.mean[..., -1, :])
 
 
+@pytest.mark.parametrize("smoother", [sequential_rts, scan_rts], ids=["sequential", "scan"])
+@pytest.mark.parametrize("n", [4, 6])
+def test_rts_with_singular_predicted_covariances_matches_pseudo_inverse_reference(smoother, n):
+    """A prior with zero variances and steps with dt = 0 (A = I, Q = 0) leave P⁻ singular:
+    the smoother takes a generalised inverse, the reference the pseudo-inverse (the smoothed
+    moments are the same under any); n = 6 takes the solves' LAPACK path."""
+    rng = np.random.default_rng(7)
+    T, m = 6, 2
+    A = np.stack([np.eye(n)] * 2 + [np.eye(n) + 0.3 * rng.standard_normal((n, n)) for _ in range(T - 2)])
+    Q = np.zeros((T, n, n))
+    for k in range(2, T):
+        C = rng.standard_normal((n, n))
+        Q[k] = C @ C.T / n + 0.1 * np.eye(n)
+    P0 = np.diag([0.0, 1.0, 0.0, 2.0] + [0.5] * (n - 4))
+    H = rng.standard_normal((m, n))
+    R = 0.2 * np.eye(m)
+    y = rng.standard_normal((T, m))
+    out = sequential_kf(*(torch.tensor(x) for x in (y, A, Q, H, R, np.zeros(n), P0)))
+    sm = smoother(out)
+    mean, cov, pm, pc = (x.numpy() for x in (out.mean, out.cov, out.pred_mean, out.pred_cov))
+    assert np.linalg.matrix_rank(pc[1]) < n  # singular predicted covariances
+    ms, Ps = mean.copy(), cov.copy()
+    for k in range(T - 2, -1, -1):
+        E = cov[k] @ A[k + 1].T @ np.linalg.pinv(pc[k + 1], rcond=1e-12, hermitian=True)
+        ms[k] = mean[k] + E @ (ms[k + 1] - pm[k + 1])
+        Ps[k] = cov[k] + E @ (Ps[k + 1] - pc[k + 1]) @ E.T
+    np.testing.assert_allclose(sm.mean.numpy(), ms, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(sm.cov.numpy(), Ps, rtol=0, atol=1e-9)
+    assert float(torch.linalg.eigvalsh(sm.cov).min()) > -1e-10
+
+
 def test_smoother_explicit_A_Q_equal_stored():
     rng = np.random.default_rng(5)
     d = random_problem(rng, batch=(2,), T=6, missing=False)

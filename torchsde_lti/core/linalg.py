@@ -114,9 +114,17 @@ def solve_upper_t(L: Tensor, B: Tensor) -> Tensor:
     return torch.stack([x for x in xs if x is not None], dim=-2)
 
 
-def cho_solve(L: Tensor, B: Tensor) -> Tensor:
-    """X with ``(L Lᵀ) X = B`` from the Cholesky factor L (..., k, k); B (..., k, r)."""
-    return solve_upper_t(L, solve_lower(L, B))
+def cho_solve(L: Tensor, B: Tensor, semidefinite: bool = False) -> Tensor:
+    """X with ``(L Lᵀ) X = B`` from the Cholesky factor L (..., k, k); B (..., k, r).
+
+    ``semidefinite``: L from :func:`cholesky` ``(S, semidefinite=True)`` of a singular S: a
+    zero pivot's component of X is 0 (X = S⁻ B for a generalised inverse S⁻, S S⁻ S = S;
+    the solution where B lies in the range of S)."""
+    if not semidefinite:
+        return solve_upper_t(L, solve_lower(L, B))
+    kept = (torch.diagonal(L, dim1=-2, dim2=-1) > 0).to(L.dtype)
+    L = L + torch.diag_embed(1.0 - kept)  # a zero column of L: unit pivot, then its component zeroed
+    return solve_upper_t(L, solve_lower(L, B) * kept[..., None]) * kept[..., None]
 
 
 def fused_matmul(a: Tensor, b: Tensor) -> Tensor:

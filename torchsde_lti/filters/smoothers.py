@@ -21,7 +21,8 @@ SMOOTHER_ALGORITHMS = ("auto", "sequential", "scan")
 def _smoother_elements(result: FilterResult, A: Tensor | None, Q: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
     """Per-step (E_k, g_k, C_k) with ``x_k | x_{k+1}, y ~ N(g_k + E_k x_{k+1}, C_k)``.
 
-    E_k = P_k A_{k+1}ᵀ (P⁻_{k+1})⁻¹ (a Cholesky solve), g_k = m_k − E_k m⁻_{k+1},
+    E_k = P_k A_{k+1}ᵀ (P⁻_{k+1})⁻¹ (a Cholesky solve; a generalised inverse where P⁻_{k+1}
+    is singular), g_k = m_k − E_k m⁻_{k+1},
     C_k = (I − E_k A_{k+1}) P_k (I − E_k A_{k+1})ᵀ + E_k Q_{k+1} E_kᵀ (Joseph form of
     P_k − E_k P⁻_{k+1} E_kᵀ: a sum of PSD terms). The last step has E = 0, g = m, C = P.
     """
@@ -37,8 +38,10 @@ def _smoother_elements(result: FilterResult, A: Tensor | None, Q: Tensor | None)
     P_k = Pf[..., :-1, :, :]
     Pp1 = Pp[..., 1:, :, :]
     AP = A1 @ P_k  # A_{k+1} P_k
-    L = cholesky(Pp1)
-    E = cho_solve(L, AP).mT  # P_k A_{k+1}ᵀ (P⁻_{k+1})⁻¹
+    # (a singular P⁻_{k+1}, e.g. a prior with zero variances and a step dt = 0: a generalised
+    # inverse, under which the smoothed moments are those of the pseudo-inverse)
+    L = cholesky(Pp1, semidefinite=True)
+    E = cho_solve(L, AP, semidefinite=True).mT  # P_k A_{k+1}ᵀ (P⁻_{k+1})⁻¹
     eye = torch.eye(n, dtype=mf.dtype, device=mf.device)
     IEA = eye - E @ A1
     C = sym(IEA @ P_k @ IEA.mT + E @ Q1 @ E.mT)
