@@ -14,6 +14,7 @@ import pytest
 import scipy.linalg
 import torch
 
+import torchsde_lti as tl
 from torchsde_lti.core._doubling import per_element_doubling, shared_doubling
 from torchsde_lti.core.validation import sde_inputs
 
@@ -437,3 +438,71 @@ def test_export_with_a_dynamic_batch_sets_no_bound_from_the_chunk_rule() -> None
     ep = torch.export.export(PerElement(), (F.expand(5, 3, 3).contiguous(), dt[:5]), dynamic_shapes=({0: b}, {0: b}))
     for got, want in zip(ep.module()(F.expand(big, 3, 3), dt), per_element_doubling(sde_inputs(F, L[0], Qc[0], dt))):
         assert _rel(got, want) <= 1e-12
+
+
+def test_traced_schedule_runs_every_halving_and_caps_only_the_differentiable_one() -> None:
+    """‖F‖ dt up to 1e15: the traced schedule without a graph (export: a while_loop) runs every
+    halving and equals eager; recording a graph (static doublings, at most
+    TRACED_MAX_HALVINGS) it takes the capped step, converged for this stable F."""
+    from torch.export import Dim
+
+    from torchsde_lti.core import _doubling
+
+    F = torch.tensor([[-1000.0, 0.0], [1.0, -1.0]], dtype=F64)
+    L = Qc = torch.eye(2, dtype=F64)
+    W = L @ Qc @ L.mT
+    dt = torch.tensor([1.0, 1e6, 1e9, 1e12], dtype=F64)
+    want = per_element_doubling(sde_inputs(F.expand(4, 2, 2), L, Qc, dt))
+    series = _doubling.shared_series(F, W, None)
+
+    class Shared(torch.nn.Module):
+        def forward(self, dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            A, Q, _ = series(dt)
+            return A, Q
+
+    class PerElement(torch.nn.Module):
+        def forward(self, F: torch.Tensor, dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            A, Q, _ = per_element_doubling(sde_inputs(F, L, Qc, dt, validate_args=False))
+            return A, Q
+
+    b = Dim("b")
+    shared = torch.export.export(Shared(), (dt[:2],), dynamic_shapes=({0: b},)).module()(dt)
+    per_element = torch.export.export(
+        PerElement(), (F.expand(2, 2, 2).contiguous(), dt[:2]), dynamic_shapes=({0: b}, {0: b})
+    ).module()(F.expand(4, 2, 2).contiguous(), dt)
+    Fg = F.expand(4, 2, 2).clone().requires_grad_(True)
+    static = per_element_doubling(sde_inputs(Fg, L, Qc, dt), masked=True)
+    for got in (shared, per_element, static):
+        assert _rel(got[0], want[0]) <= 1e-12 and _rel(got[1], want[1]) <= 1e-12
+    assert torch.isfinite(torch.autograd.grad(static[1].sum(), Fg)[0]).all()
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_q_is_exactly_symmetric_on_every_path(dtype: torch.dtype) -> None:
+    """Q == Qᵀ bit for bit (the average X + Xᵀ; torch.lerp(X, Xᵀ, 1/2) is not): few elements,
+    one shared F (series), many per-element F (sorted, batch-last and batch-first), matrix_exp."""
+    g = torch.Generator().manual_seed(3)
+    for n in (2, 3, 6):
+        M = torch.randn(3000, n, n, generator=g, dtype=F64)
+        F = (M - 2.0 * n * torch.eye(n, dtype=F64)).to(dtype)
+        C = torch.randn(3000, n, n, generator=g, dtype=F64)
+        Qc = (C @ C.mT / n + 0.1 * torch.eye(n, dtype=F64)).to(dtype)
+        L = torch.eye(n, dtype=dtype)
+        dt = torch.logspace(-3, 3, 3000, dtype=F64).to(dtype)
+        calls = {
+            "few": (F[:3], L, Qc[:3], dt[:3], "doubling"),
+            "shared": (F[0], L, Qc[0], dt, "doubling"),
+            "per element": (F, L, Qc, dt, "doubling"),
+            "matrix_exp": (F[:50], L, Qc[:50], dt[:50] * 1e-3, "matrix_exp"),
+        }
+        for name, (F_, L_, Qc_, dt_, method) in calls.items():
+            Q = tl.discretize(F_, L_, Qc_, dt_, method=method).Q
+            assert torch.equal(Q, Q.mT), (name, n)
+    # a lightly damped oscillator over long steps: Q before symmetrisation far from symmetric
+    F = torch.tensor([[0.0, 1.0], [-100.0, -0.1]], dtype=dtype)
+    L, Qc1 = torch.tensor([[0.0], [1.0]], dtype=dtype), torch.ones(1, 1, dtype=dtype)
+    for N in (3, 40, 3000):
+        Q = tl.discretize(F.expand(N, 2, 2) if N == 3000 else F, L, Qc1, torch.full((N,), 1000.0, dtype=dtype)).Q
+        assert torch.equal(Q, Q.mT), N
+    W = tl.core.linalg.noise_covariance(torch.randn(50, 4, 2, generator=g).to(dtype), Qc[:50, :2, :2])
+    assert torch.equal(W, W.mT)

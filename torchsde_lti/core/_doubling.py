@@ -77,6 +77,20 @@ def halvings_for(norm: Tensor, dt: Tensor, theta: float) -> Tensor:
     return torch.ceil(torch.log2(x.clamp_min(theta)) - math.log2(theta))
 
 
+def traced_schedule(
+    halvings: Tensor, dt: Tensor, nu: Tensor, theta: float, differentiable: bool
+) -> tuple[Tensor, Tensor]:
+    """(halvings, sub-step h) of the traced (masked) schedule from ``halvings_for(nu, dt, theta)``:
+    every halving for the ``while_loop`` (not ``differentiable``); for the static differentiable
+    schedule at most :data:`TRACED_MAX_HALVINGS`, the sub-step capped at θ/ν — beyond
+    ‖F‖ dt = θ 2^TRACED_MAX_HALVINGS the result is that of that step (A and Q converged for a
+    stable F). halvings, dt, nu: broadcast shapes."""
+    if not differentiable:
+        return halvings, dt * torch.exp2(-halvings)
+    halvings = halvings.clamp_max(TRACED_MAX_HALVINGS)
+    return halvings, torch.minimum(dt * torch.exp2(-halvings), theta / nu)
+
+
 class _Layout:
     """Batch layout of the series and the doubling: batch-last (r, c, N) (fused multiply-adds
     over the contiguous batch) or batch-first (N, r, c) (one ``bmm`` a product)."""
@@ -129,7 +143,7 @@ class _Layout:
             return None
         x = present[0] if len(present) == 1 else torch.cat(present, 0 if self.batch_first else -1)
         if sym:
-            x = torch.lerp(x, self.t(x), 0.5)
+            x = 0.5 * (x + self.t(x))  # (x + xᵀ is exactly symmetric; torch.lerp is not)
         if not self.batch_first and batch_last:
             if order is not None:  # out[..., order[i]] = x[..., i]
                 x = torch.empty_like(x).index_copy_(-1, order, x)
@@ -287,8 +301,10 @@ def _per_element_flat(
     order: Tensor | None = None
     counts: list[int] = []
     K = series_terms(Fb.dtype, THETA_SORTED, n)
+    differentiable = traced and torch.is_grad_enabled() and not torch.compiler.is_exporting()
+    differentiable = differentiable and any(t is not None and t.requires_grad for t in (Fb, Wb, Bb, dtf))
     if traced:
-        halvings = halvings.clamp_max(TRACED_MAX_HALVINGS)
+        halvings, h = traced_schedule(halvings, dtf, nu, THETA_SORTED, differentiable)
     elif N:
         with torch.no_grad():  # one synchronisation: the most halvings and the largest ‖F‖ dt
             top_f, x_max = torch.stack([halvings.max(), (nu * dtf).max()]).tolist()
@@ -300,7 +316,7 @@ def _per_element_flat(
         Wb, Bb = (None if t is None else t[order] for t in (Wb, Bb))
 
     lo = _Layout(batch_first=n > BATCH_LAST_MAX_DIM or tracing() or N <= BATCH_LAST_MIN_ELEMENTS)
-    hc = lo.col(dtf * torch.exp2(-halvings))
+    hc = lo.col(h if traced else dtf * torch.exp2(-halvings))
     M = lo.put(Fb) * hc
     eye = lo.eye(n, M)
     Y = eye.expand_as(M)  # φ₁(M) by Horner: Y ← I + M Y / (k+1)
@@ -315,8 +331,7 @@ def _per_element_flat(
     Q = None if Z is None else Z * hc
     G = None if Bb is None else lo.mm(Y, lo.put(Bb)) * hc
     if traced:
-        needs_grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (Fb, Wb, Bb, dtf))
-        parts = [_double_masked(X + eye, X, Q, G, halvings, lo, needs_grad and not torch.compiler.is_exporting())]
+        parts = [_double_masked(X + eye, X, Q, G, halvings, lo, differentiable)]
     else:
         parts = _double_sorted(X + eye, X, Q, G, counts, lo)
     return _finish(parts, lo, order, batch, batch_last)
@@ -416,9 +431,11 @@ class SharedSeries(NamedTuple):
         order: Tensor | None = None
         counts: list[int] = []
         if traced:
+            differentiable = torch.is_grad_enabled() and (dt.requires_grad or self.coeff.requires_grad)
+            differentiable = differentiable and not torch.compiler.is_exporting()
             with torch.no_grad():
-                steps = halvings_for(self.nu, dtf, THETA_SHARED).clamp_max(TRACED_MAX_HALVINGS)
-            h = dtf * torch.exp2(-steps)
+                steps = halvings_for(self.nu, dtf, THETA_SHARED)
+            steps, h = traced_schedule(steps, dtf, self.nu, THETA_SHARED, differentiable)
         elif N * n * n <= FEW_ENTRIES:  # few elements: one number of halvings for all
             with torch.no_grad():  # (a NaN step takes no halving, as in halvings_for)
                 top = float(torch.nan_to_num(self.nu * dtf, nan=0.0).max()) if N else 0.0
@@ -452,8 +469,6 @@ class SharedSeries(NamedTuple):
             G = next(parts).reshape(n, p, N) * h if p else None
         A = X + lo.eye(n, X)
         if traced:
-            needs_grad = torch.is_grad_enabled() and (dt.requires_grad or self.coeff.requires_grad)
-            differentiable = needs_grad and not torch.compiler.is_exporting()
             return _finish([_double_masked(A, X, Q, G, steps, lo, differentiable)], lo, None, batch, batch_last)
         return _finish(_double_sorted(A, X, Q, G, counts, lo), lo, order, batch, batch_last)
 

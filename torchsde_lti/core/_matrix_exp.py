@@ -12,6 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.validation import SDEInputs
 
 __all__ = ["matrix_exp"]
@@ -47,4 +48,4 @@ def matrix_exp(x: SDEInputs) -> tuple[Tensor, Tensor | None, Tensor | None]:
     A = E[..., :n, :n]
     Q = None if W is None else E[..., :n, n : 2 * n] @ A.mT
     G = None if B is None else E[..., :n, n + (0 if W is None else n) :]
-    return A, None if Q is None else torch.lerp(Q, Q.mT, 0.5), G
+    return A, None if Q is None else sym(Q), G

@@ -14,6 +14,7 @@ import math
 import torch
 from torch import Tensor
 
+from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.thresholds import THETA_PER_ELEMENT
 from torchsde_lti.core.validation import SDEInputs, tracing
 
@@ -222,7 +223,7 @@ def few_elements_doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tenso
     Q, G = (None if t is None else t * hc for t in (Q, G))
     A, Q, G = _double_eager(E, Q, G, s) if s else (E + _eye(n, E), Q, G)
     if Q is not None:
-        Q = torch.lerp(Q, Q.mT, 0.5)
+        Q = sym(Q)
     out = [t if t is None or len(batch) == 1 else t.reshape(*batch, *t.shape[1:]) for t in (A, Q, G)]
     if batch_last:
         out = [None if t is None else t.movedim((-2, -1), (0, 1)).contiguous() for t in out]

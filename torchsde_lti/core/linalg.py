@@ -41,10 +41,10 @@ def sym(P: Tensor) -> Tensor:
 
 
 def noise_covariance(L: Tensor, Qc: Tensor) -> Tensor:
-    """W = L Qc Lᵀ, exactly symmetric (the average of W and Wᵀ, as ``torch.lerp``): L (..., n, s),
+    """W = L Qc Lᵀ, exactly symmetric (the average of W and Wᵀ): L (..., n, s),
     Qc (..., s, s) -> (..., n, n)."""
     W = L @ Qc @ L.mT
-    return torch.lerp(W, W.mT, 0.5)
+    return sym(W)
 
 
 def cholesky(S: Tensor, semidefinite: bool = False) -> Tensor:

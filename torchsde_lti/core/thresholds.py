@@ -49,6 +49,8 @@ ROWS_BY_PRODUCTS_MIN = 1024
 #: their memory (a fresh large allocation costs a page fault every 4 KiB) and for the caches.
 CHUNKED_MIN_BYTES = 1 << 23
 CHUNK_BYTES = 1 << 21
-#: Halvings of the traced (compile / export) schedule: ‖F‖ dt ≤ θ 2^32 (beyond, the result
-#: is that of dt = θ 2^32 / ‖F‖, where A and Q have long converged).
+#: Halvings of the traced schedule while it records a graph (torch.compile with gradients: static
+#: steps, as torch's while_loop is not differentiable): ‖F‖ dt ≤ θ 2^32 (beyond, the result is
+#: that of ‖F‖ dt = θ 2^32, where A and Q of a stable F have long converged). Without a graph
+#: (export, inference) the while_loop runs every halving.
 TRACED_MAX_HALVINGS = 32
