@@ -356,3 +356,39 @@ CASES = [
 @pytest.mark.parametrize("case", params(CASES))
 def test_filters(case: Case) -> None:
     run_case(case)
+
+
+def _batch_mismatches() -> dict[str, object]:
+    """Calls whose batch shapes do not broadcast (y of 3 tracks against 2 or 4 elsewhere)."""
+    F64 = torch.float64
+    H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=F64)
+    R = torch.diag(torch.tensor([0.1, 0.2], dtype=F64))
+    cv = tl.models.constant_velocity(dim=2, q=1.0, dtype=F64)
+    kf = tl.KalmanFilter(cv, H, R, P0=10 * torch.eye(4, dtype=F64))
+    rates = torch.tensor([[0.0, 0.2], [0.3, 0.0]], dtype=F64)
+    imm = tl.IMMFilter([cv, tl.models.constant_velocity(dim=2, q=5.0, dtype=F64)], H, R, rates)
+    y, dt = torch.randn(3, 5, 2, dtype=F64), torch.rand(3, 5, dtype=F64)
+    A, Q = torch.eye(4, dtype=F64).expand(2, 5, 4, 4), 0.1 * torch.eye(4, dtype=F64)
+    m0, P0 = torch.zeros(4, dtype=F64), torch.eye(4, dtype=F64)
+    F, L, Qc = -torch.eye(2, dtype=F64), torch.eye(2, dtype=F64), torch.eye(2, dtype=F64)
+    ones = torch.ones
+    return {
+        "kf, dt batch (auto)": lambda: kf(y, torch.rand(2, 5, dtype=F64)),
+        "kalman_filter, A batch (scan)": lambda: tl.kalman_filter(y, A, Q, H, R, m0, P0, algorithm="scan"),
+        "kalman_filter, A batch (sequential)": lambda: tl.kalman_filter(y, A, Q, H, R, m0, P0, algorithm="sequential"),
+        "kf, mask batch": lambda: kf(y, dt, mask=ones(2, 5, dtype=torch.bool)),
+        "kf.step, mask components": lambda: kf.step(
+            kf.initial_state(3), y[:, 0], dt[:, 0], mask=ones(3, 3, dtype=torch.bool)
+        ),
+        "kf.step, y batch": lambda: kf.step(kf.initial_state(3), torch.randn(4, 2, dtype=F64), dt[:, 0]),
+        "imm, dt batch": lambda: imm(y, torch.rand(2, 5, dtype=F64)),
+        "imm.step, y batch": lambda: imm.step(imm.initial_state(3), torch.randn(4, 2, dtype=F64), torch.rand(4)),
+        "propagate, m0 batch": lambda: tl.propagate(torch.zeros(5, 2, dtype=F64), L, F, L, Qc, ones(4, dtype=F64)),
+        "propagate, P0 batch": lambda: tl.propagate(torch.zeros(2, dtype=F64), L.expand(3, 2, 2), F, L, Qc, ones(4)),
+    }
+
+
+@pytest.mark.parametrize("name", list(_batch_mismatches()))
+def test_batch_shapes_that_do_not_broadcast_raise_value_errors_naming_the_arguments(name: str) -> None:
+    with pytest.raises(ValueError, match="batch shapes do not broadcast|mask must have shape"):
+        _batch_mismatches()[name]()  # type: ignore[operator]

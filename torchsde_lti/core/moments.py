@@ -15,6 +15,7 @@ from torchsde_lti.core.discretization import discretize
 from torchsde_lti.core.linalg import matvec, sym
 from torchsde_lti.core.validation import (
     as_float_tensor,
+    broadcast_batch,
     check_finite,
     check_matrix,
     check_symmetric_psd,
@@ -86,4 +87,6 @@ def propagate(
         check_vector(u, "u", d.G.shape[-1])
         if checks_values(validate_args):
             check_finite(u, "u")
+    named = [("discretisation (F, L, Qc, B, dt)", d.A.shape[:-2]), ("m0", m0.shape[:-1]), ("P0", P0.shape[:-2])]
+    broadcast_batch(named + ([] if u is None else [("u", u.shape[:-1])]))
     return predict_moments(m0, P0, d.A, d.Q, d.G, u)

@@ -44,6 +44,7 @@ from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, solve_lower, s
 from torchsde_lti.core.threads import with_threads
 from torchsde_lti.core.validation import (
     as_float_tensors,
+    broadcast_batch,
     check_finite,
     check_matrix,
     check_symmetric_psd,
@@ -252,6 +253,10 @@ def _check_inputs(
     if m0.dim() < 1 or m0.shape[-1] != n or (m0.dim() >= 2 and m0.shape[-2] not in (1, M)):
         raise ValueError(f"m0 must have shape (..., {M}, {n}) or (..., 1, {n}) or ({n},), got shape {shape_str(m0)}")
     mask = check_mask(mask, T, m, device)
+    named = [("y", y.shape[:-2]), ("Pi", Pi.shape[:-3]), ("m0", m0.shape[:-2]), ("P0", P0.shape[:-3])]
+    named += [(k, x.shape[:-4]) for k, x in (("A", A), ("Q", Q), ("H", H), ("R", R))]
+    named += [("mode_prob0", mode_prob0.shape[:-1]), *([] if mask is None else [("mask", mask.shape[:-2])])]
+    broadcast_batch(named)
     if checks_values(validate_args):
         if bool(torch.isinf(y).any()):
             raise ValueError(f"y contains Inf (shape {shape_str(y)}); mark missing values with NaN or mask")

@@ -182,6 +182,9 @@ def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked
             )
     if c is not None and c.shape[-2] not in (1, T):
         raise ValueError(f"u has {c.shape[-2]} steps but y has T={T}")
+    per_step = [(name, x.shape[:-3]) for name, x in (("A", A), ("Q", Q), ("H", H), ("R", R)) if x.dim() > 3]
+    other = [("m0", m0.shape[:-1]), ("P0", P0.shape[:-2]), *([] if mask is None else [("mask", mask.shape[:-2])])]
+    broadcast_batch([("y", y.shape[:-2]), *per_step, *other, *([] if c is None else [("u", c.shape[:-2])])])
 
     if values:
         check_finite(A, "A")

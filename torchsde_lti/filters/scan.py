@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, sym
+from torchsde_lti.core.validation import broadcast_batch
 from torchsde_lti.filters.inputs import FilterInputs, PreparedInputs, complete_from_filtered, prepare_inputs
 from torchsde_lti.filters.results import FilterResult
 
@@ -178,7 +179,7 @@ def chunked_scan(args: FilterInputs, chunk: int | None = None, validate_args: bo
     """
     y, A, Q, H, R, m0, P0, G, u, mask, D = args
     T = y.shape[-2]
-    batch = torch.broadcast_shapes(y.shape[:-2], A.shape[:-3] if A.dim() > 3 else ())
+    batch = broadcast_batch([("y", y.shape[:-2]), ("A", A.shape[:-3] if A.dim() > 3 else ())])
     if chunk is None:
         chunk = max(2, SCAN_MAX_ELEMENTS // max(1, batch.numel()))
     if chunk >= T:

@@ -13,6 +13,7 @@ from torch import Tensor
 from torchsde_lti.core.thresholds import PYTHON_CHECK_MAX_VALUES
 from torchsde_lti.core.validation import (
     as_float_tensor,
+    broadcast_batch,
     check_finite,
     check_nonnegative,
     host_values,
@@ -152,4 +153,10 @@ def online_report(
         mask = torch.as_tensor(mask, device=y.device)
         if mask.dtype != torch.bool:
             raise ValueError(f"mask must be a bool tensor, got dtype {mask.dtype}")
+        per_component = mask.dim() == y.dim() and mask.shape[-1] in (1, m)
+        if mask.dim() > y.dim() or (mask.dim() == y.dim() and not per_component):
+            raise ValueError(
+                f"mask must have shape (...) or (..., {m}) to match y {shape_str(y)}, got {shape_str(mask)}"
+            )
+        broadcast_batch([("y", y.shape[:-1]), ("mask", mask.shape[:-1] if per_component else mask.shape)])
     return y, mask

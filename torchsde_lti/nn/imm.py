@@ -43,6 +43,7 @@ from torchsde_lti.core.discretization import Discrete, discretization_series, di
 from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.validation import (
     as_float_tensor,
+    broadcast_batch,
     check_finite,
     check_matrix,
     parse_learn,
@@ -416,6 +417,7 @@ class IMMFilter(ValidateArgs, nn.Module):
             online, state, dt = self._online_args(state, dt)
             F, W, H, R = online.F, online.W, online.H, online.R
             y, mask = online_report(y, mask, H, F.dtype, F.device)
+            broadcast_batch([("state", state.mode_prob.shape[:-1]), ("y", y.shape[:-1]), ("dt", dt.shape)])
             if self.validate_args:
                 check_values(
                     finite=[

@@ -59,6 +59,7 @@ from torchsde_lti.core.linalg import matvec, sym
 from torchsde_lti.core.moments import predict_moments
 from torchsde_lti.core.validation import (
     as_float_tensor,
+    broadcast_batch,
     check_finite,
     check_matrix,
     parse_learn,
@@ -428,7 +429,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
                 D = D.unsqueeze(-3)
             T = y.shape[-2]
             if algorithm == "auto":
-                batch = torch.broadcast_shapes(y.shape[:-2], dt.shape[:-1])
+                batch = broadcast_batch([("y", y.shape[:-2]), ("dt", dt.shape[:-1])])
                 algorithm = choose_algorithm(algorithm, math.prod(batch), T, y.device)
             # one batched discretisation of every step: A, Q (..., T, n, n), laid out for the algorithm
             d = self._discretize(dt, mats, series_layout=algorithm != "scan")
@@ -511,6 +512,14 @@ class KalmanFilter(ValidateArgs, nn.Module):
         mats, H, R, D, series = model
         state, dt, u = self._check_state(state, dt, u, mats)
         y, mask = online_report(y, mask, H, mats.F.dtype, mats.F.device)
+        broadcast_batch(
+            [
+                ("state.mean", state.mean.shape[:-1]),
+                ("state.cov", state.cov.shape[:-2]),
+                ("y", y.shape[:-1]),
+                ("dt", dt.shape),
+            ]
+        )
         D = D if u is not None else None
         if self.validate_args:
             self._check_values(mats, dt, y=y, u=u, H=H, R=R, D=D, mean=state.mean, cov=state.cov)
