@@ -39,7 +39,10 @@ def square_root_filter(prep: PreparedInputs) -> FilterResult:
     float32) keeps its value when h is aligned with the factor (position observations of a
     kinematic model), where a Householder reflection cancels it to 0. Covariances are
     returned as ``S Sᵀ``, PSD by construction. ``torch.linalg.qr`` (reduced) and the
-    rotations are differentiable.
+    rotations are differentiable. One exception: where Q_k or P0 is singular (a step with
+    dt = 0 has Q_k = 0) the factor's zero pivots carry no gradient, so the gradient with
+    respect to that Q_k (to dt at a zero step) is not the log-likelihood's; the
+    ``"sequential"`` and ``"scan"`` algorithms give it.
     """
     A_steps = prep.A.unbind(-3)  # (*cb, n, n) each
     LQ_steps = cholesky(prep.Q, semidefinite=True).unbind(-3)
