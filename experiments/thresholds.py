@@ -328,37 +328,45 @@ def rows_by_products() -> str:
 
 
 def step_chunk_bytes() -> str:
-    """The online step of many tracks (``filters.online``), each repeat calling every chunk size once, in turn."""
+    """The online steps of many tracks (``filters.online``), each repeat calling every chunk size once, in turn."""
     import torchsde_lti.filters.online as online
 
     sizes = (0, 1 << 18, 1 << 19, 1 << 20, 1 << 21, 1 << 22)  # 0: one pass
-    rows = []
-    for name, dtype in (("2-D constant velocity (n = 4)", F64), ("2-D constant velocity (n = 4)", torch.float32)):
+    H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=F64)
+    cases: list[tuple[str, torch.dtype, torch.nn.Module, int]] = []
+    for dtype in (F64, torch.float32):
         kf = tl.KalmanFilter(
-            tl.models.constant_velocity(dim=2, q=0.5, dtype=dtype),
-            torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=dtype),
-            0.3 * torch.eye(2, dtype=dtype),
-            validate_args=False,
+            tl.models.constant_velocity(dim=2, q=0.5, dtype=dtype), H.to(dtype), 0.3 * torch.eye(2, dtype=dtype)
         )
-        for B in (8_000, 32_000, 100_000, 300_000, 1_000_000):
-            g = torch.Generator().manual_seed(B)
-            state = tl.KalmanState(
-                torch.randn(B, 4, generator=g, dtype=dtype), 2.0 * torch.eye(4, dtype=dtype).expand(B, 4, 4).clone()
-            )
-            y, dt = torch.randn(B, 2, generator=g, dtype=dtype), 0.2 + torch.rand(B, generator=g, dtype=dtype)
-            times: dict[int, list[float]] = {b: [] for b in sizes}
-            for r in range(9 if B < 300_000 else 4):
-                for b in sizes if r % 2 else sizes[::-1]:
-                    with patched(online, STEP_CHUNK_BYTES=b or 1 << 62, CHUNKED_STEP_MIN_BYTES=0), torch.no_grad():
-                        t0 = time.thread_time()
-                        kf.step(state, y, dt)
-                        if r:  # (the first round warms up)
-                            times[b].append(time.thread_time() - t0)
-            rows.append([name, str(dtype)[6:], B, *(f"{statistics.median(times[b]) * 1e3:.2f}" for b in sizes)])
+        cases += [("kf.step, 2-D constant velocity (n = 4)", dtype, kf, B) for B in (8_000, 32_000, 100_000, 300_000)]
+        cases.append(("kf.step, 2-D constant velocity (n = 4)", dtype, kf, 1_000_000))
+    imm = tl.IMMFilter(
+        [tl.models.constant_velocity(dim=2, q=q, dtype=F64) for q in (0.5, 5.0)],
+        H,
+        0.3 * torch.eye(2, dtype=F64),
+        torch.tensor([[0.0, 0.2], [0.3, 0.0]], dtype=F64),
+    )
+    cases += [("imm.step, 2 modes (n = 4)", F64, imm, B) for B in (30_000, 300_000)]
+    rows = []
+    for name, dtype, module, B in cases:
+        module.validate_args = False
+        g = torch.Generator().manual_seed(B)
+        state = module.initial_state(B)
+        y, dt = torch.randn(B, 2, generator=g, dtype=dtype), 0.2 + torch.rand(B, generator=g, dtype=dtype)
+        times: dict[int, list[float]] = {b: [] for b in sizes}
+        for r in range(9 if B < 300_000 else 4):
+            for b in sizes if r % 2 else sizes[::-1]:
+                with patched(online, STEP_CHUNK_BYTES=b or 1 << 62, CHUNKED_STEP_MIN_BYTES=0), torch.no_grad():
+                    t0 = time.thread_time()
+                    module.step(state, y, dt)
+                    if r:  # (the first round warms up)
+                        times[b].append(time.thread_time() - t0)
+        rows.append([name, str(dtype)[6:], B, *(f"{statistics.median(times[b]) * 1e3:.2f}" for b in sizes)])
     return table(
         f"12. filters.online STEP_CHUNK_BYTES = {online.STEP_CHUNK_BYTES}, CHUNKED_STEP_MIN_BYTES = "
-        f"{online.CHUNKED_STEP_MIN_BYTES}: kf.step of B tracks (own dt), ms by chunk size (chunked whatever the size)",
-        ["model", "dtype", "B", "one pass", "256 KiB", "512 KiB", "1 MiB", "2 MiB", "4 MiB"],
+        f"{online.CHUNKED_STEP_MIN_BYTES}: one online step of B tracks (own dt) from the initial state, ms by "
+        "chunk size (chunked whatever the size)",
+        ["call", "dtype", "B", "one pass", "256 KiB", "512 KiB", "1 MiB", "2 MiB", "4 MiB"],
         rows,
     )
 

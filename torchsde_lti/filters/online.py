@@ -27,7 +27,7 @@ leading)::
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import torch
@@ -186,8 +186,9 @@ def kalman_step(
     Arguments are taken as checked (the modules check them once at their boundary). Up to
     :data:`SMALL_BATCH` tracks (and always when traced) the update is the joint Joseph update
     ``K = P⁻Hᵀ S⁻¹`` (one Cholesky factor of S), ``P = (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ``;
-    larger batches run the sequence loop's whitened scalar Joseph updates. Both equal the
-    sequence filter to rounding.
+    larger batches run the sequence loop's whitened scalar Joseph updates, eagerly on the CPU
+    in chunks of tracks along the leading batch dimension beyond
+    :data:`CHUNKED_STEP_MIN_BYTES` of covariances. All equal the sequence filter to rounding.
 
     Args:
         state: mean (..., n), cov (..., n, n) before the step.
@@ -210,21 +211,46 @@ def kalman_step(
     )  # fmt: skip
     if tracing() or mb.numel() <= SMALL_BATCH:
         return _joint_step(state, y0, obs, A, Q, H, R, c, mb)
-    per_lead = math.prod(mb[1:]) * A.shape[-1] ** 2 * A.element_size()  # covariance bytes per leading index
-    if y0.device.type != "cpu" or mb[0] * per_lead <= CHUNKED_STEP_MIN_BYTES:
+    rows = _rows_per_chunk(mb, A.shape[-1] ** 2 * A.element_size(), y0)
+    if rows >= mb[0]:
         return _scalar_step(state, y0, obs, A, Q, H, R, c, mb)
-    size = max(1, STEP_CHUNK_BYTES // per_lead)
     args = [(state.mean, 1), (state.cov, 2), (y0, 1), (obs, 1), (A, 2), (Q, 2), (H, 2), (R, 2), (c, 1)]
+
+    def chunk(mean: Tensor, cov: Tensor, *rest: Tensor | None) -> tuple[KalmanState, KalmanStep]:
+        yk, ok, Ak, Qk, Hk, Rk, ck, size = rest
+        assert yk is not None and Ak is not None and Qk is not None and Hk is not None and Rk is not None
+        return _scalar_step(KalmanState(mean, cov), yk, ok, Ak, Qk, Hk, Rk, ck, size)  # type: ignore[arg-type]
+
+    new, out = _by_chunks(chunk, args, mb, rows)
+    return new, out  # type: ignore[return-value]
+
+
+def _rows_per_chunk(mb: torch.Size, bytes_per_track: int, like: Tensor) -> int:
+    """Rows of the leading batch dimension per chunk of an online step over the batch ``mb``
+    whose tracks hold ``bytes_per_track`` of covariances: all of them (one pass) while traced,
+    off the CPU or up to :data:`CHUNKED_STEP_MIN_BYTES` in all, else :data:`STEP_CHUNK_BYTES`
+    of covariances a chunk."""
+    if not mb:
+        return 1
+    per_row = math.prod(mb[1:]) * bytes_per_track
+    if tracing() or like.device.type != "cpu" or mb[0] * per_row <= CHUNKED_STEP_MIN_BYTES:
+        return mb[0]
+    return max(1, STEP_CHUNK_BYTES // per_row)
+
+
+def _by_chunks(
+    step: Callable[..., tuple[NamedTuple, ...]], args: Sequence[tuple[Tensor | None, int]], mb: torch.Size, rows: int
+) -> tuple[NamedTuple, ...]:
+    """``step`` over consecutive chunks of ``rows`` rows of the leading batch dimension, its
+    results (NamedTuples of tensors with the batch leading) joined: ``args`` are
+    (tensor or None, event ndim) pairs broadcast against ``mb``, passed to ``step`` chunk by
+    chunk, followed by the chunk's batch shape."""
     parts = []
-    for start in range(0, mb[0], size):
-        rows = slice(start, min(start + size, mb[0]))
-        mean, cov, yk, ok, Ak, Qk, Hk, Rk, ck = (_leading_rows(x, e, mb, rows) for x, e in args)
-        assert mean is not None and cov is not None and yk is not None
-        assert Ak is not None and Qk is not None and Hk is not None and Rk is not None
-        chunk_mb = torch.Size([rows.stop - rows.start, *mb[1:]])
-        parts.append(_scalar_step(KalmanState(mean, cov), yk, ok, Ak, Qk, Hk, Rk, ck, chunk_mb))
-    new, out = zip(*parts)
-    return KalmanState(*map(_joined_tracks, zip(*new))), KalmanStep(*map(_joined_tracks, zip(*out)))
+    for i in range(0, mb[0], rows):
+        cut = slice(i, min(i + rows, mb[0]))
+        size = torch.Size([cut.stop - cut.start, *mb[1:]])
+        parts.append(step(*(_leading_rows(x, e, mb, cut) for x, e in args), size))
+    return tuple(type(group[0])(*map(_joined_tracks, zip(*group))) for group in zip(*parts))
 
 
 def _leading_rows(x: Tensor | None, event_ndim: int, mb: torch.Size, rows: slice) -> Tensor | None:
@@ -455,7 +481,9 @@ class IMMStep(NamedTuple):
 def imm_step(
     state: IMMState, y: Tensor, A: Tensor, Q: Tensor, Pi: Tensor, H: Tensor, R: Tensor, mask: Tensor | None = None
 ) -> tuple[IMMState, IMMStep]:
-    """One IMM cycle of every track (the cycle of :func:`~torchsde_lti.filters.imm.imm_filter`).
+    """One IMM cycle of every track (the cycle of :func:`~torchsde_lti.filters.imm.imm_filter`);
+    eagerly on the CPU in chunks of tracks along the leading batch dimension beyond
+    :data:`CHUNKED_STEP_MIN_BYTES` of mode covariances.
 
     Args:
         state: mode_prob (..., M), mode_mean (..., M, n), mode_cov (..., M, n, n).
@@ -467,9 +495,35 @@ def imm_step(
     Returns:
         (:class:`IMMState`, :class:`IMMStep`).
     """
-    m = y.shape[-1]
     if mask is not None and mask.dim() < y.dim():
         mask = mask.unsqueeze(-1)
+    M, n = A.shape[-3], A.shape[-1]
+    mb = broadcast_shapes(
+        state.mode_prob.shape[:-1], state.mode_mean.shape[:-2], state.mode_cov.shape[:-3], y.shape[:-1],
+        A.shape[:-3], Q.shape[:-3], Pi.shape[:-2], H.shape[:-3], R.shape[:-3],
+        *(() if mask is None else (mask.shape[:-1],)),
+    )  # fmt: skip
+    rows = _rows_per_chunk(mb, M * n * n * A.element_size(), y)
+    if rows >= (mb[0] if mb else 1):
+        return _imm_step(state, y, A, Q, Pi, H, R, mask)
+    args: list[tuple[Tensor | None, int]] = [(state.mode_prob, 1), (state.mode_mean, 2), (state.mode_cov, 3)]
+    args += [(y, 1), (A, 3), (Q, 3), (Pi, 2), (H, 3), (R, 3), (mask, 1)]
+
+    def chunk(prob: Tensor, mean: Tensor, cov: Tensor, *rest: Tensor | None) -> tuple[IMMState, IMMStep]:
+        yk, Ak, Qk, Pk, Hk, Rk, mk, _ = rest
+        assert yk is not None and Ak is not None and Qk is not None and Pk is not None
+        assert Hk is not None and Rk is not None
+        return _imm_step(IMMState(prob, mean, cov), yk, Ak, Qk, Pk, Hk, Rk, mk)
+
+    new, out = _by_chunks(chunk, args, mb, rows)
+    return new, out  # type: ignore[return-value]
+
+
+def _imm_step(
+    state: IMMState, y: Tensor, A: Tensor, Q: Tensor, Pi: Tensor, H: Tensor, R: Tensor, mask: Tensor | None
+) -> tuple[IMMState, IMMStep]:
+    """:func:`imm_step` in one pass (mask: (..., 1 or m) or None)."""
+    m = y.shape[-1]
     obs, y0 = _online_observed(y, mask)
     if obs is None:
         n_obs = torch.full(y0.shape[:-1], float(m), dtype=y0.dtype, device=y0.device)
