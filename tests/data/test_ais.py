@@ -129,8 +129,18 @@ def test_datamodule_padded_masked_batches(data: Tracks) -> None:
 
 def test_reserved_files_are_refused() -> None:
     for name in ("NYHarbor_2020_12_08.traj", "VirginiaBeach_2020_06_04_to_06_filtered.traj"):
-        with pytest.raises(ValueError, match="reserved for evaluation"):
-            TrackDataModule(name)
+        for spelling in (name, f"./{name}", f"{name}/", f"{name}/.", f"{name}//"):
+            with pytest.raises(ValueError, match="reserved for evaluation"):
+                TrackDataModule(spelling)
+
+
+def test_a_link_to_a_reserved_file_is_refused(tmp_path) -> None:
+    from torchsde_lti.data import locate_file
+
+    link = tmp_path / "renamed.traj"
+    link.symlink_to(locate_file("NYHarbor_2020_12_08.traj"))
+    with pytest.raises(ValueError, match="reserved for evaluation"):
+        TrackDataModule(str(link))
 
 
 def test_shuffled_batches_depend_only_on_seed_and_epoch() -> None:

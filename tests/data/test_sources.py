@@ -207,3 +207,70 @@ def test_csv_numeric_times_are_epoch_seconds(tmp_path: Path) -> None:
     rep = read_reports(path, {"id": "id", "time": "t", "lat": "lat", "lon": "lon"})
     expected = np.array(["2020-09-13T12:26:40", "2020-09-13T12:26:50.5"], dtype="datetime64[us]")
     np.testing.assert_array_equal(rep.time[:2], expected)
+
+    assert rep.malformed == 1
+
+
+def test_epoch_seconds_with_sub_microsecond_digits_nan_and_nanosecond_timestamps(tmp_path: Path) -> None:
+    """Seconds as Python's time.time() writes them (more than 6 decimals) round to the
+    microsecond; a NaN time is one malformed row; a timestamp[ns] column truncates to µs."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    cols = {"id": "id", "time": "t", "lat": "lat", "lon": "lon"}
+    csv = tmp_path / "fine.csv"
+    csv.write_text("id,t,lat,lon\na,1733201014.6162397,40.0,-74.0\na,1733201015.1234565,40.001,-74.0\n")
+    got = read_reports(csv, cols).time
+    want = np.array(["2024-12-03T04:43:34.616240", "2024-12-03T04:43:35.123456"], dtype="datetime64[us]")
+    assert np.abs(got - want).max() <= np.timedelta64(1, "us")
+    for name, column, kept, malformed in (
+        ("nan", pa.array([1600000000.0, float("nan"), 1600000020.0]), 2, 1),
+        ("fine", pa.array([1600000000.0, 1600000010.123456789, 1600000020.0]), 3, 0),
+        ("ns", pa.array([1600000000_000000000, 1600000010_123456789, 1600000020_000000000], pa.timestamp("ns")), 3, 0),
+    ):
+        path = tmp_path / f"{name}.parquet"
+        pq.write_table(
+            pa.table({"id": ["a"] * 3, "t": column, "lat": [40.0, 40.001, 40.002], "lon": [-74.0] * 3}), path
+        )
+        rep = read_reports(path, cols)
+        assert (len(rep.time), rep.malformed) == (kept, malformed), name
+    assert rep.time[1] == np.datetime64("2020-09-13T12:26:50.123456", "us")
+
+
+def test_distinct_ids_that_read_as_one_integer_stay_distinct(tmp_path: Path) -> None:
+    path = tmp_path / "ids.csv"
+    rows = ["id,t,lat,lon", "007,2020-06-30T00:00:00,40.0,-74.0", "007,2020-06-30T00:01:00,40.001,-74.0"]
+    rows += ["7,2020-06-30T00:00:00,-33.9,151.2", "7,2020-06-30T00:01:00,-33.901,151.2"]
+    path.write_text("\n".join(rows) + "\n")
+    cols = {"id": "id", "time": "t", "lat": "lat", "lon": "lon"}
+    assert sorted(set(read_reports(path, cols).object_id.tolist())) == ["007", "7"]
+    assert load_tracks(path, cols, min_reports=2).summary.tracks == 2
+    path.write_text(path.read_text().replace("007", "8"))  # distinct integers: int64 ids
+    assert sorted(set(read_reports(path, cols).object_id.tolist())) == [7, 8]
+
+
+def test_csv_columns_mix_names_and_positions(tmp_path: Path) -> None:
+    path = tmp_path / "mixed.csv"
+    path.write_text("lon,vessel,when,lat\n-74.0,a,2020-06-30T00:00:00,40.0\n-74.0,a,2020-06-30T00:01:00,40.001\n")
+    rep = read_reports(path, {"id": "vessel", "time": "when", "lat": 3, "lon": 0})
+    np.testing.assert_array_equal(rep.lat, [40.0, 40.001])
+    np.testing.assert_array_equal(rep.lon, [-74.0, -74.0])
+    with pytest.raises(ValueError, match="not in the header"):
+        read_reports(path, {"id": "vessel", "time": "when", "lat": 7, "lon": 0})
+
+
+def test_traj_rows_account_for_malformed_lines(tmp_path: Path) -> None:
+    """rows = malformed + … + reports also when a .traj line is malformed (one row per line)."""
+    f = tmp_path / "acc.traj"
+    good = _traj_line("1", T3, P3)
+    f.write_text("\n".join([good, good.rsplit(",", 1)[0].replace('"1"', '"2"')]) + "\n")
+    s = load_tracks(f, min_reports=2).summary
+    accounted = s.malformed + s.invalid_positions + s.repeated_timestamps + s.jump_reports_dropped
+    assert s.malformed == 1 and s.rows == accounted + s.short_reports + s.reports
+
+
+def test_no_track_long_enough_raises_the_designed_error(tmp_path: Path) -> None:
+    path = tmp_path / "short.csv"
+    path.write_text("id,t,lat,lon\na,2020-06-30T00:00:00,40.0,-74.0\nb,2020-06-30T00:00:00,41.0,-74.0\n")
+    with pytest.raises(ValueError, match="no track of >= 2 reports is left"):
+        load_tracks(path, {"id": "id", "time": "t", "lat": "lat", "lon": "lon"}, min_reports=2)

@@ -260,3 +260,16 @@ def test_track_windows_centred_with_dt(coastal) -> None:
         assert float(w.dt[0]) == 0.0 and torch.all(w.y[0] == 0)
         np.testing.assert_allclose(w.dt[1:].numpy(), np.diff(coastal.t[a : a + T]))
         np.testing.assert_allclose((w.y + w.origin).numpy(), coastal.pos[a : a + T], atol=1e-9)
+
+
+def test_float32_windows_are_centred_in_float64(coastal) -> None:
+    """Positions far from the frame's origin (a common frame) are centred before the cast: the
+    float32 windows equal the float64 ones to float32 rounding of the centred values."""
+    import dataclasses
+
+    shifted = dataclasses.replace(coastal, pos=coastal.pos + 1.5e6)
+    w32 = track_windows(shifted, max_len=50, dtype=torch.float32)
+    w64 = track_windows(shifted, max_len=50, dtype=torch.float64)
+    for a, b in zip(w32, w64):
+        err = (a.y.double() - b.y).abs().max()
+        assert float(err) <= 1e-6 * max(1.0, float(b.y.abs().max()))

@@ -12,6 +12,7 @@ import math
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -21,7 +22,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader, SequentialSampler
 
 from torchsde_lti.data.simulate import ExponentialDt, isotropic_covariance, simulate_tracks
-from torchsde_lti.data.sources import RESERVED_FOR_EVALUATION
+from torchsde_lti.data.sources import RESERVED_FOR_EVALUATION, locate_file
 from torchsde_lti.data.tracks import (
     BucketBatchSampler,
     EpochShuffleSampler,
@@ -182,6 +183,17 @@ class DataSummary:
         return "\n".join(lines)
 
 
+def _names_of(source: str | os.PathLike[str]) -> set[str]:
+    """The file names ``source`` stands for: as written ("x.traj/" and "x.traj/." name x.traj)
+    and, where it is found, the file it resolves to (through links)."""
+    names = {Path(str(source)).name}
+    try:
+        names.add(locate_file(source).resolve().name)
+    except (FileNotFoundError, OSError):
+        pass
+    return names
+
+
 class TrackDataModule(LightningDataModule):
     """Real tracks from any trajectory file (:func:`~torchsde_lti.data.load_tracks`) as padded,
     masked :class:`~torchsde_lti.data.tracks.TrackBatch` es of similar-length windows.
@@ -232,7 +244,7 @@ class TrackDataModule(LightningDataModule):
         dtype: str = "float32",
     ) -> None:
         super().__init__()
-        if os.path.basename(str(source)) in RESERVED_FOR_EVALUATION:
+        if _names_of(source) & set(RESERVED_FOR_EVALUATION):
             raise ValueError(
                 f"data.source={source!r} is reserved for evaluation (never train, tune or select "
                 "on it); evaluate frozen, already trained models on it instead"

@@ -59,8 +59,8 @@ class Reports(NamedTuple):
     object_id: (N,) int64 or str; time: (N,) datetime64[us] (UTC where the file says so);
     lat, lon: (N,) float64 degrees as read; alt: (N,) metres or None; sog: (N,) knots or None;
     cog: (N,) degrees or None; segment: (N,) int64 (a ``.traj`` line) or None (one track per id);
-    rows: lines (``.traj``: points) read; malformed: lines or rows skipped because a field could not
-    be parsed; malformed_examples: the first few of them with the reason; path: the file read.
+    rows: lines (``.traj``: points of the readable lines, plus one per malformed line) read;
+    malformed: lines or rows skipped because a field could not be parsed; malformed_examples: the first few of them with the reason; path: the file read.
     """
 
     object_id: np.ndarray
@@ -258,7 +258,7 @@ def _read_traj(path: Path) -> Reports:
         None,
         None,
         np.concatenate(segs),
-        points,
+        points + malformed,  # (a malformed line counts as one row, as in malformed)
         malformed,
         tuple(examples),
         str(path),
@@ -291,9 +291,10 @@ def _resolve_columns(
             f"columns: unknown roles {sorted(unknown)} / missing roles {sorted(missing)}; roles are {ROLES}, got {cols}"
         )
     if header is not None:
-        absent = [v for v in cols.values() if isinstance(v, str) and v not in header]
+        absent: list[str | int] = [v for v in cols.values() if isinstance(v, str) and v not in header]
+        absent += [v for v in cols.values() if isinstance(v, int) and not 0 <= v < len(header)]
         if absent:
-            raise ValueError(f"{path}: columns {absent} not in the header {header}")
+            raise ValueError(f"{path}: columns {absent} not in the header {header} (names or 0-based positions)")
     return cols
 
 
@@ -324,11 +325,15 @@ def _as_float(arr: object, name: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _epoch_seconds(seconds: object) -> object:
-    """Seconds since 1970-01-01 UTC (a float64 arrow array) as a timestamp[us] array."""
+    """Seconds since 1970-01-01 UTC (a float64 arrow array) as a timestamp[us] array, rounded to
+    the microsecond; NaN, ±inf and values beyond the int64 range of microseconds are null."""
     import pyarrow as pa
     import pyarrow.compute as pc
 
-    return pc.cast(pc.cast(pc.multiply(seconds, 1e6), pa.int64()), pa.timestamp("us"))
+    us = pc.round(pc.multiply(seconds, 1e6))
+    valid = pc.and_(pc.is_finite(us), pc.less(pc.abs(us), 9.2e18))
+    us = pc.if_else(valid, us, pa.scalar(None, pa.float64()))
+    return pc.cast(pc.cast(us, pa.int64()), pa.timestamp("us"))
 
 
 def _as_time(arr: object, time_format: str | None) -> tuple[np.ndarray, np.ndarray]:
@@ -338,7 +343,8 @@ def _as_time(arr: object, time_format: str | None) -> tuple[np.ndarray, np.ndarr
 
     us = pa.timestamp("us")
     if pa.types.is_timestamp(arr.type):
-        out = pc.cast(arr, pa.timestamp("us", tz=arr.type.tz)) if arr.type.tz else pc.cast(arr, us)
+        # (finer units truncated to the microsecond)
+        out = pc.cast(arr, pa.timestamp("us", tz=arr.type.tz) if arr.type.tz else us, safe=False)
     elif pa.types.is_integer(arr.type) or pa.types.is_floating(arr.type):
         out = _epoch_seconds(pc.cast(arr, pa.float64()))
     else:
@@ -392,7 +398,10 @@ def _read_table(
         )
         header = None if by_position else _csv_header(path, skip)
         cols = _resolve_columns(columns, header, path)
-        names = {role: (f"f{c}" if isinstance(c, int) else c) for role, c in cols.items()}
+        # positions: pyarrow's generated names without a header, the header's names with one
+        names = {
+            role: (c if isinstance(c, str) else f"f{c}" if header is None else header[c]) for role, c in cols.items()
+        }
 
         def handler(row: object) -> str:
             if len(bad) < _EXAMPLES:
@@ -469,10 +478,12 @@ def _csv_header(path: Path, skip: int) -> list[str]:
 
 
 def _object_ids(ids: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """int64 when every readable id is an integer (MMSI), else the strings (call signs)."""
+    """int64 when every readable id is an integer (MMSI) and distinct ids stay distinct ("007"
+    and "7" do not), else the strings (call signs)."""
     if not ok.any():
         return ids
     try:
-        return np.where(ok, ids, "0").astype(np.int64)
+        as_int = np.where(ok, ids, "0").astype(np.int64)
     except (ValueError, OverflowError):
         return ids
+    return as_int if len(np.unique(as_int[ok])) == len(np.unique(ids[ok])) else ids

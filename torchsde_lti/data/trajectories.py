@@ -387,7 +387,8 @@ def prepare_tracks(
     if short.any():
         rows = _ranges(first[~short], lengths[~short])
         idx, t, lat, lon = idx[rows], t[rows], lat[rows], lon[rows]
-        first, lengths = np.concatenate([[0], np.cumsum(lengths[~short])[:-1]]).astype(np.int64), lengths[~short]
+        lengths = lengths[~short]
+        first = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)[: len(lengths)]
     if len(first) == 0:
         raise ValueError(f"{rep.path}: no track of >= {min_reports} reports is left ({rep.rows} read)")
     offsets = np.concatenate([first, [len(t)]]).astype(np.int64)
@@ -628,7 +629,8 @@ def track_windows(
     a = a + tracks.offsets[owner]
     b = b + tracks.offsets[owner]
     as_t = lambda x: torch.as_tensor(np.ascontiguousarray(x, dtype=np.float64)).to(dtype)  # noqa: E731
-    pos, t = as_t(tracks.pos), as_t(tracks.t)
+    pos64 = np.ascontiguousarray(tracks.pos, dtype=np.float64)  # (centred in float64, then cast)
+    t = as_t(tracks.t)
     vel = as_t(tracks.vel) if tracks.vel is not None else None
     sog = as_t(tracks.sog) if tracks.sog is not None else None
     dt_all = np.concatenate([[0.0], np.diff(tracks.t)])
@@ -636,15 +638,15 @@ def track_windows(
     dt = as_t(dt_all)
     out = []
     for k, (i, j) in enumerate(zip(a.tolist(), b.tolist())):
-        origin = pos[i] if center else torch.zeros_like(pos[i])
+        origin = pos64[i] if center else np.zeros_like(pos64[i])
         out.append(
             Track(
-                y=pos[i:j] - origin,
+                y=torch.as_tensor(pos64[i:j] - origin).to(dtype),
                 dt=dt[i:j],
                 t=t[i:j],
                 vel=None if vel is None else vel[i:j],
                 sog=None if sog is None else sog[i:j],
-                origin=origin.clone(),
+                origin=torch.tensor(origin, dtype=dtype),
                 track_id=torch.tensor(int(owner[k]), dtype=torch.int64),
             )
         )
