@@ -483,7 +483,7 @@ def imm_step(
 ) -> tuple[IMMState, IMMStep]:
     """One IMM cycle of every track (the cycle of :func:`~torchsde_lti.filters.imm.imm_filter`);
     eagerly on the CPU in chunks of tracks along the leading batch dimension beyond
-    :data:`CHUNKED_STEP_MIN_BYTES` of mode covariances.
+    :data:`CHUNKED_STEP_MIN_BYTES` of covariances (one mode's per track).
 
     Args:
         state: mode_prob (..., M), mode_mean (..., M, n), mode_cov (..., M, n, n).
@@ -497,13 +497,15 @@ def imm_step(
     """
     if mask is not None and mask.dim() < y.dim():
         mask = mask.unsqueeze(-1)
-    M, n = A.shape[-3], A.shape[-1]
+    n = A.shape[-1]
     mb = broadcast_shapes(
         state.mode_prob.shape[:-1], state.mode_mean.shape[:-2], state.mode_cov.shape[:-3], y.shape[:-1],
         A.shape[:-3], Q.shape[:-3], Pi.shape[:-2], H.shape[:-3], R.shape[:-3],
         *(() if mask is None else (mask.shape[:-1],)),
     )  # fmt: skip
-    rows = _rows_per_chunk(mb, M * n * n * A.element_size(), y)
+    # (the bound and chunk size in ONE mode's covariances: a chunk of the IMM cycle costs about M
+    # times the torch calls of a Kalman step, so its best chunks hold about M times the bytes)
+    rows = _rows_per_chunk(mb, n * n * A.element_size(), y)
     if rows >= (mb[0] if mb else 1):
         return _imm_step(state, y, A, Q, Pi, H, R, mask)
     args: list[tuple[Tensor | None, int]] = [(state.mode_prob, 1), (state.mode_mean, 2), (state.mode_cov, 3)]
