@@ -417,7 +417,8 @@ class IMMFilter(ValidateArgs, nn.Module):
             online, state, dt = self._online_args(state, dt)
             F, W, H, R = online.F, online.W, online.H, online.R
             y, mask = online_report(y, mask, H, F.dtype, F.device)
-            broadcast_batch([("state", state.mode_prob.shape[:-1]), ("y", y.shape[:-1]), ("dt", dt.shape)])
+            if not (state.mode_prob.shape[:-1] == y.shape[:-1] == dt.shape):  # (equal shapes: no check needed)
+                broadcast_batch([("state", state.mode_prob.shape[:-1]), ("y", y.shape[:-1]), ("dt", dt.shape)])
             if self.validate_args:
                 check_values(
                     finite=[

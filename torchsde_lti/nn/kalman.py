@@ -512,14 +512,10 @@ class KalmanFilter(ValidateArgs, nn.Module):
         mats, H, R, D, series = model
         state, dt, u = self._check_state(state, dt, u, mats)
         y, mask = online_report(y, mask, H, mats.F.dtype, mats.F.device)
-        broadcast_batch(
-            [
-                ("state.mean", state.mean.shape[:-1]),
-                ("state.cov", state.cov.shape[:-2]),
-                ("y", y.shape[:-1]),
-                ("dt", dt.shape),
-            ]
-        )
+        batch = state.mean.shape[:-1]
+        if not (batch == state.cov.shape[:-2] == y.shape[:-1] == dt.shape):  # (equal shapes: no check needed)
+            named = [("state.mean", batch), ("state.cov", state.cov.shape[:-2]), ("y", y.shape[:-1]), ("dt", dt.shape)]
+            broadcast_batch(named)
         D = D if u is not None else None
         if self.validate_args:
             self._check_values(mats, dt, y=y, u=u, H=H, R=R, D=D, mean=state.mean, cov=state.cov)
