@@ -376,3 +376,33 @@ def test_aoti_packaged_online_step_of_a_model_that_is_not_nilpotent(tmp_path):
             state, out = kf.step(tl.KalmanState(a[0], a[1]), a[2], a[3])
         for x, ref in zip(run(*a), (state.mean, state.cov, out.innovation, out.innovation_cov, out.log_likelihood)):
             torch.testing.assert_close(x, ref, rtol=1e-9, atol=1e-9)
+
+
+def test_deployed_filter_and_online_step_take_the_inputs_u():
+    """A model with an input matrix B: the deployed sequence program (eager and exported with
+    dynamic B, T) and the online step equal ``kf(y, dt, u=u)`` (inputs were silently 0 before)."""
+    from torch.export import Dim
+
+    sde = tl.models.mass_spring_damper(m=1.0, k=2.0, c=0.5, q=0.1, dtype=F64)
+    kf = tl.KalmanFilter(
+        sde, torch.tensor([[1.0, 0.0]], dtype=F64), 0.01 * torch.eye(1, dtype=F64), P0=torch.eye(2, dtype=F64)
+    )
+    g = torch.Generator().manual_seed(0)
+    y = torch.randn(3, 12, 1, generator=g, dtype=F64)
+    dt = torch.full((3, 12), 0.1, dtype=F64)
+    u = torch.randn(3, 12, 1, generator=g, dtype=F64)
+    with torch.no_grad():
+        want = kf(y, dt, u=u)
+        assert not torch.allclose(kf(y, dt).log_likelihood, want.log_likelihood)  # u matters here
+        deployed = tl.DeployedFilter(kf)
+        b, t = Dim("b"), Dim("t")
+        ep = torch.export.export(deployed, (y, dt, u), dynamic_shapes=({0: b, 1: t}, {0: b, 1: t}, {0: b, 1: t}))
+        for got in (deployed(y, dt, u), ep.module()(y[:2, :7], dt[:2, :7], u[:2, :7])):
+            n = got[0].shape[0]
+            ref = want if n == 3 else kf(y[:2, :7], dt[:2, :7], u=u[:2, :7])
+            torch.testing.assert_close(got[0], ref.log_likelihood, rtol=0, atol=1e-10)
+        step, state = tl.OnlineStep(kf), kf.initial_state(3)
+        mean, cov = state.mean.contiguous(), state.cov.contiguous()
+        for k in range(12):
+            mean, cov, *_ = step(mean, cov, y[:, k], dt[:, k], u[:, k])
+        torch.testing.assert_close(mean, want.mean[:, -1], rtol=0, atol=1e-12)

@@ -407,3 +407,22 @@ def test_mode_probabilities_softmax_and_round_trip() -> None:
     assert float(out.sum()) == pytest.approx(1.0) and bool((out >= 0).all())
     with pytest.raises(ValueError, match="mode_prob0"):
         p.right_inverse([0.5, 0.5, 0.0])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_values_stay_finite_for_huge_raw_entries(dtype: torch.dtype) -> None:
+    """Raw entries beyond the saturation bound enter logarithmically: PositiveDefinite and
+    Hurwitz stay finite (and Hurwitz stable) up to the dtype's largest numbers."""
+    top = float(torch.finfo(dtype).max)
+    for big in (1e10, 1e20, top / 2):
+        pd = PositiveDefinite().to(dtype)(torch.full((3, 3), big, dtype=dtype))
+        assert bool(torch.isfinite(pd).all())
+        F = Hurwitz().to(dtype)(
+            torch.full((3, 3, 3), big, dtype=dtype) * torch.tensor([1.0, -1.0, 1.0], dtype=dtype)[:, None, None]
+        )
+        assert bool(torch.isfinite(F).all())
+        assert float(torch.linalg.eigvals(F.double()).real.max()) < 0
+    # ordinary raw values are untouched by the saturation (round trips as before)
+    pd = PositiveDefinite().to(dtype)
+    value = torch.tensor([[4.0, 1.0], [1.0, 2.0]], dtype=dtype)
+    torch.testing.assert_close(pd(pd.right_inverse(value)), value)

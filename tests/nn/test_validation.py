@@ -230,3 +230,20 @@ def test_fused_check_names_the_bad_tensor_on_both_paths(size: int) -> None:
         args[field][index] = value
         with pytest.raises(ValueError, match=message):
             call(**args)
+
+
+def test_a_nearly_singular_observation_noise_is_named_when_the_likelihood_is_not_finite() -> None:
+    """R formed from a factor with a tiny pivot under a unit off-diagonal (positive definite
+    on paper, singular in float32): the error names R, not the observations."""
+    import torchsde_lti as tl
+    from torchsde_lti.nn._validate import NonFiniteLikelihoodError
+
+    dtype = torch.float32
+    kf = tl.KalmanFilter(
+        tl.models.constant_velocity(dim=1, q=1.0, dtype=dtype), torch.eye(2, dtype=dtype), torch.eye(2, dtype=dtype)
+    )
+    kf.parametrizations.R.original.data = torch.tensor([[-10.0, 0.0], [1.0, -10.0]], dtype=dtype)
+    g = torch.Generator().manual_seed(0)
+    y, dt = torch.randn(3, 20, 2, generator=g), torch.full((3, 20), 0.5)
+    with pytest.raises(NonFiniteLikelihoodError, match="observation noise R is nearly singular"):
+        kf(y, dt)

@@ -354,3 +354,68 @@ def test_ddp_two_cpu_processes_gloo(tmp_path: Path) -> None:
     assert math.isfinite(summary["metrics"]["val/nll"])
     log = proc.stdout + proc.stderr
     assert "distributed_backend=gloo" in log and "MEMBER: 2/2" in log
+
+
+class _FailAtEpoch(__import__("lightning").pytorch.Callback):
+    """Raises ``error`` in the first training batch of epoch ``epoch``."""
+
+    def __init__(self, epoch: int, error: BaseException) -> None:
+        self.epoch, self.error = epoch, error
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:  # noqa: ANN001
+        if trainer.current_epoch == self.epoch:
+            raise self.error
+
+
+@pytest.mark.parametrize("error", [RuntimeError("boom mid-epoch"), KeyboardInterrupt()], ids=["exception", "kbd"])
+def test_a_failed_run_reports_the_epochs_its_last_checkpoint_holds(tmp_path: Path, error, monkeypatch) -> None:
+    """An exception (or a KeyboardInterrupt raised by code, which Lightning turns into an exit)
+    after one epoch: metrics.json says failed, 1 epoch, and results.md how to resume."""
+    train_module = sys.modules["torchsde_lti.training.train"]  # (the package re-exports train())
+    build = train_module._build
+
+    def failing(cfg, guard, resume=None):  # noqa: ANN001
+        objects = build(cfg, guard, resume)
+        objects["trainer"].callbacks.append(_FailAtEpoch(1, error))
+        return objects
+
+    monkeypatch.setattr(train_module, "_build", failing)
+    with pytest.raises((RuntimeError, SystemExit)):
+        train(_cfg(tmp_path, *TINY, "trainer.max_epochs=3", "plots=false"))
+    summary = json.loads((tmp_path / "metrics.json").read_text())
+    assert summary["status"] == "failed" and summary["epochs"] == 1
+    assert "ckpt_path=" in (tmp_path / "results.md").read_text()
+    assert torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)["epoch"] == 0
+
+
+def test_last_checkpoint_holds_the_final_epoch_without_validation_every_epoch(tmp_path: Path) -> None:
+    metrics, _ = train(_cfg(tmp_path, *TINY, "trainer.max_epochs=3", "trainer.check_val_every_n_epoch=2"))
+    summary = json.loads((tmp_path / "metrics.json").read_text())
+    assert summary["reported"]["epoch"] == 2
+    assert torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)["epoch"] == 2
+
+
+def test_max_steps_without_max_epochs_needs_the_schedule_length(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="module.scheduler.T_max"):
+        train(_cfg(tmp_path, *TINY, "trainer.max_epochs=null", "+trainer.max_steps=5"))
+
+
+def test_resuming_a_copied_run_keeps_its_best_checkpoint(tmp_path: Path) -> None:
+    """Lightning restores the best score only in the original directory: a copy of the run,
+    resumed, must not overwrite best.ckpt with a worse epoch (a large step makes epoch 1 worse
+    than epoch 0 here)."""
+    import shutil
+
+    common = [*TINY, "test=false", "plots=false", "module.scheduler.T_max=2", "module.optimizer.lr=0.3"]
+    common += ["data.num_tracks.train=200", "data.T=40", "data.T_min=30", "data.batch_size=20"]
+    train(_cfg(tmp_path / "a", *common, "trainer.max_epochs=1"))
+    shutil.copytree(tmp_path / "a", tmp_path / "b")
+    first = json.loads((tmp_path / "a" / "metrics.json").read_text())["best"]
+    assert first["epoch"] == 0
+    metrics, _ = train(
+        _cfg(tmp_path / "b", *common, "trainer.max_epochs=2", f"ckpt_path={tmp_path / 'b/checkpoints/last.ckpt'}")
+    )
+    assert metrics["val/nll"] > first["val/nll"]  # epoch 1 is worse: best.ckpt must stay epoch 0
+    best = json.loads((tmp_path / "b" / "metrics.json").read_text())["best"]
+    assert best["epoch"] == 0 and best["val/nll"] == pytest.approx(first["val/nll"], rel=1e-12)
+    assert torch.load(tmp_path / "b" / "checkpoints" / "best.ckpt", weights_only=True)["epoch"] == 0

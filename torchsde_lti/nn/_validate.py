@@ -104,11 +104,14 @@ class NonFiniteLikelihoodError(ValueError):
     catches this class alone."""
 
 
-def check_outcome(log_likelihood: Tensor, steps: Sequence[Tensor | None], y: Tensor, dt: Tensor, F: Tensor) -> None:
+def check_outcome(
+    log_likelihood: Tensor, steps: Sequence[Tensor | None], y: Tensor, dt: Tensor, F: Tensor, R: Tensor | None = None
+) -> None:
     """:class:`NonFiniteLikelihoodError` when a checked call's log-likelihood is not finite although its arguments
     were valid, saying why: the discretisation over-/underflows the dtype (an unstable F over
-    a long step) or the observations are too large for it (the squared residuals overflow).
-    One synchronisation (no-op while tracing). ``steps``: the discrete matrices the filter used."""
+    a long step), the observation noise R is nearly singular in the dtype, or the observations
+    are too large for it (the squared residuals overflow). One synchronisation (no-op while
+    tracing). ``steps``: the discrete matrices the filter used; R: (..., m, m) or None."""
     if tracing():
         return
     with torch.no_grad():
@@ -124,11 +127,28 @@ def check_outcome(log_likelihood: Tensor, steps: Sequence[Tensor | None], y: Ten
                 "(F_constraint='hurwitz') or use float64"
             )
         top = float(torch.nan_to_num(y.detach(), nan=0.0).abs().max())
-    raise NonFiniteLikelihoodError(
-        f"the log-likelihood is not finite in {dtype}: observations y up to |y| = {top:.3g} make the squared "
-        "residuals overflow; centre and scale the observations (e.g. positions relative to each track's start, "
-        "in km) or use float64"
-    )
+        info = torch.finfo(dtype)
+        ratio = None
+        if R is not None and R.numel():
+            lam = torch.linalg.eigvalsh(torch.nan_to_num(R.detach().double()))
+            ratio = float((lam[..., 0] / lam[..., -1].clamp_min(torch.finfo(torch.float64).tiny)).min())
+    wider = " or use float64" if dtype != torch.float64 else ""
+    if ratio is not None and ratio < 1e3 * info.eps:
+        why = (
+            f"the observation noise R is nearly singular in {dtype} (smallest / largest eigenvalue {ratio:.3g}): "
+            f"the updates lose the covariances' positive definiteness; keep R's eigenvalues apart{wider}"
+        )
+    elif top * top > info.max**0.5:
+        why = (
+            f"observations y up to |y| = {top:.3g} make the squared residuals overflow; centre and scale the "
+            f"observations (e.g. positions relative to each track's start, in km){wider}"
+        )
+    else:
+        why = (
+            f"the covariances lost their positive definiteness or overflowed (observations up to |y| = {top:.3g}); "
+            f"check the scales of Q, R and P0 against the data's{wider}"
+        )
+    raise NonFiniteLikelihoodError(f"the log-likelihood is not finite in {dtype}: {why}")
 
 
 def online_report(

@@ -32,8 +32,10 @@ class DeployedFilter(nn.Module):
     """The entry point to ship a trained :class:`KalmanFilter` with ``torch.export`` (or
     ``torch.jit``-free serving): plain tensor outputs instead of a :class:`FilterResult`.
 
-    ``forward(y, dt)``: y (..., T, m) with NaN = missing, dt (..., T) ->
-    ``(log_likelihood (...), mean (..., T, n))``, the filter's log-likelihood and filtered means.
+    ``forward(y, dt, u=None)``: y (..., T, m) with NaN = missing, dt (..., T), optional inputs
+    u (..., T, p) of a model with B or D (as in :meth:`KalmanFilter.forward`; without them the
+    inputs count as 0) -> ``(log_likelihood (...), mean (..., T, n))``, the filter's
+    log-likelihood and filtered means.
     """
 
     def __init__(self, kf: KalmanFilter) -> None:
@@ -42,8 +44,8 @@ class DeployedFilter(nn.Module):
             raise TypeError(f"kf must be a KalmanFilter, got {type(kf).__name__}")
         self.kf = kf
 
-    def forward(self, y: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
-        out = self.kf(y, dt)
+    def forward(self, y: Tensor, dt: Tensor, u: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        out = self.kf(y, dt, u)
         return out.log_likelihood, out.mean
 
 
@@ -51,7 +53,8 @@ class OnlineStep(nn.Module):
     """:meth:`KalmanFilter.step` as a module's ``forward``, to export and package (torch.export,
     AOTInductor) for a live tracker: plain tensors in and out.
 
-    ``forward(mean, cov, y, dt)``: mean (B, n), cov (B, n, n), y (B, m) (NaN = missing), dt (B,)
+    ``forward(mean, cov, y, dt, u=None)``: mean (B, n), cov (B, n, n), y (B, m) (NaN = missing),
+    dt (B,), optional inputs u (B, p) held over the step (as in :meth:`KalmanFilter.step`)
     -> ``(mean, cov, innovation (B, m), innovation_cov (B, m, m), log_likelihood (B,))``.
     Value checks are off inside (check reports where they enter the tracker).
 
@@ -87,8 +90,8 @@ class OnlineStep(nn.Module):
             leaves[i] = getattr(self, f"_model_{i}")
         return pytree.tree_unflatten(leaves, self._model_spec)
 
-    def forward(self, mean: Tensor, cov: Tensor, y: Tensor, dt: Tensor) -> tuple[Tensor, ...]:
-        state, out = self.kf._step(self._model(), KalmanState(mean, cov), y, dt)
+    def forward(self, mean: Tensor, cov: Tensor, y: Tensor, dt: Tensor, u: Tensor | None = None) -> tuple[Tensor, ...]:
+        state, out = self.kf._step(self._model(), KalmanState(mean, cov), y, dt, u)
         return state.mean, state.cov, out.innovation, out.innovation_cov, out.log_likelihood
 
 

@@ -437,7 +437,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
             args = FilterInputs(y, d.A, d.Q, H, R, m0, P0, G, u, mask, D)
             out = run_filter(args, algorithm, validate_args=False, compiled_loop=compiled_loop)
             if validate and not tracing():
-                check_outcome(out.log_likelihood, d, y, dt, mats.F)
+                check_outcome(out.log_likelihood, d, y, dt, mats.F, R)
             return out
 
     def algorithm_for(self, batch_size: int, T: int, device: torch.device) -> str:

@@ -21,9 +21,10 @@ class                  value                                       raw tensor
 =====================  ==========================================  =======================
 
 No forward map inverts, solves with, or exponentiates an unbounded quantity: values are
-polynomial in the raw entries and ``softplus`` (whose ``exp`` only sees ``−|x|``), so they
-are finite for every finite raw tensor (audited: ``Positive``, ``PositiveDefinite``,
-``Hurwitz``, ``IntegratorChain`` with either drag; :class:`Hurwitz` formerly used ``P⁻¹``).
+polynomial in the raw entries and ``softplus`` (whose ``exp`` only sees ``−|x|``), and the
+polynomial maps (``PositiveDefinite``, ``Hurwitz``) take raw entries beyond a bound
+(``finfo.max`` to the power 1/4 or 1/8) logarithmically, so values are finite for every
+finite raw tensor.
 
 The floor of ``Positive``/``PositiveDefinite`` (default ``torch.finfo(dtype).eps`` of the
 raw tensor, so float32 and float64 each get their own) only keeps values strictly positive
@@ -141,6 +142,30 @@ class Positive(_Parametrization):
         return softplus_inverse((v - floor).clamp_min(torch.finfo(v.dtype).tiny))
 
 
+def _saturation_bound(dtype: torch.dtype, degree: int) -> float:
+    """``finfo(dtype).max ** (1 / (2 degree))``: raw entries beyond it enter a map of that
+    polynomial degree logarithmically (:func:`_saturated`), so its values stay finite."""
+    return float(torch.finfo(dtype).max) ** (1.0 / (2 * degree))
+
+
+def _saturated(x: Tensor, bound: float) -> Tensor:
+    """x where ``|x| <= bound``, else ``sign(x) bound (1 + log(|x| / bound))`` (continuous with its
+    first derivative; at most ``bound (1 + log(max / bound))``)."""
+    big = x.abs() > bound
+    tail = torch.sign(x) * bound * (1.0 + torch.log(torch.where(big, x.abs(), bound) / bound))
+    return torch.where(big, tail, x)
+
+
+def _unsaturated(v: Tensor, bound: float, name: str) -> Tensor:
+    """The preimage of :func:`_saturated` (for ``right_inverse``); ValueError where ``v`` is
+    beyond its range."""
+    big = v.abs() > bound
+    x = torch.where(big, torch.sign(v) * bound * torch.exp(torch.where(big, v.abs(), bound) / bound - 1.0), v)
+    if not bool(torch.isfinite(x).all()):
+        raise ValueError(f"{name} is too large for the parametrisation in {v.dtype} (shape {shape_str(v)})")
+    return x
+
+
 def _cholesky_factor(raw: Tensor, floor: float) -> Tensor:
     """Lower-triangular factor with strictly positive diagonal from an unconstrained (..., n, n)."""
     diag = softplus(torch.diagonal(raw, dim1=-2, dim2=-1)) + floor
@@ -166,11 +191,15 @@ def _cholesky_raw(value: Tensor, floor: float, name: str) -> Tensor:
 class PositiveDefinite(_Parametrization):
     """Symmetric positive-definite matrices ``value = C Cᵀ`` (..., n, n).
 
-    ``C = tril(raw, -1) + diag(softplus(diag raw) + floor)`` is a Cholesky factor with a
-    strictly positive diagonal, so ``value`` is symmetric positive definite for every real
-    ``raw`` (the upper triangle of ``raw`` is unused). The result is symmetrised.
-    ``right_inverse`` takes the Cholesky factor of the value (ValueError if the value is
-    not symmetric positive definite, or not (..., size, size) when ``size`` is given).
+    ``C = tril(x, -1) + diag(softplus(diag x) + floor)``, x the raw entries (beyond
+    ``finfo(dtype).max ** (1/4)`` entering logarithmically, so the value is finite for
+    every finite raw tensor), is a Cholesky factor with a strictly positive diagonal, so
+    ``value`` is symmetric positive definite for every real ``raw`` (the upper triangle of
+    ``raw`` is unused). Formed in floating point it is numerically singular where its
+    condition number passes ~1/eps (pivots of C far below their rows' entries); a filter then
+    says so (R nearly singular). The result is symmetrised. ``right_inverse`` takes the
+    Cholesky factor of the value (ValueError if the value is not symmetric positive definite,
+    or not (..., size, size) when ``size`` is given).
     """
 
     def __init__(self, floor: float | None = None, name: str = "value", size: int | None = None) -> None:
@@ -179,7 +208,7 @@ class PositiveDefinite(_Parametrization):
 
     def factor(self, raw: Tensor) -> Tensor:
         """The lower Cholesky factor C (..., n, n) of the value."""
-        return _cholesky_factor(raw, self._floor(raw.dtype))
+        return _cholesky_factor(_saturated(raw, _saturation_bound(raw.dtype, 2)), self._floor(raw.dtype))
 
     def forward(self, raw: Tensor) -> Tensor:
         c = self.factor(raw)
@@ -188,7 +217,8 @@ class PositiveDefinite(_Parametrization):
     def right_inverse(self, value: object) -> Tensor:
         v = self._as_raw_tensor(value, self.name)
         self._check_size(v, self.name)
-        return _cholesky_raw(v, self._floor(v.dtype), self.name)
+        raw = _cholesky_raw(v, self._floor(v.dtype), self.name)
+        return _unsaturated(raw, _saturation_bound(v.dtype, 2), self.name)
 
 
 def _lyapunov_identity(F: Tensor) -> Tensor:
@@ -275,6 +305,7 @@ class Hurwitz(_Parametrization):
         if raw.dim() < 3 or raw.shape[-3] != 3:
             raise ValueError(f"Hurwitz raw tensor must have shape (..., 3, n, n), got {shape_str(raw)}")
         delta = self._floor(raw.dtype)
+        raw = _saturated(raw, _saturation_bound(raw.dtype, 4))
         eye = torch.eye(raw.shape[-1], dtype=raw.dtype, device=raw.device)
         upper = torch.triu(raw[..., 0, :, :], 1)
         skew = upper - upper.mT
@@ -322,7 +353,8 @@ class Hurwitz(_Parametrization):
         what = f"{self.name} (floor {delta:.3g})"
         raw_r = _cholesky_raw((r - c_r) * eye, 0.0, f"{what}; R − floor")
         raw_s = _cholesky_raw(s - c_s * eye, 0.0, f"{what}; S − floor")
-        return torch.stack((torch.triu(skew, 1), raw_r, raw_s), dim=-3)
+        raw = torch.stack((torch.triu(skew, 1), raw_r, raw_s), dim=-3)
+        return _unsaturated(raw, _saturation_bound(raw.dtype, 4), self.name)
 
 
 DragConstraint = Literal["free", "hurwitz"]

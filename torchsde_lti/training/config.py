@@ -74,7 +74,7 @@ def check_config(cfg: DictConfig) -> None:
     with a positive ``trainer.max_steps``), ``trainer.max_steps`` (-1 or >= 1),
     ``trainer.min_epochs`` <= max_epochs; ``data.batch_size`` (null or >= 1);
     ``module.optimizer.lr`` > 0 and its ``weight_decay`` / ``momentum`` >= 0, ``eps`` > 0;
-    ``module.scheduler.T_max`` >= 1 and ``eta_min`` >= 0; ``module.grad_clip_norm`` >= 0.
+    ``module.scheduler.T_max`` >= 1 (where the scheduler has one; null is refused) and ``eta_min`` >= 0; ``module.grad_clip_norm`` >= 0.
     """
     for key in _REQUIRED:
         if cfg.get(key) is None:
@@ -123,8 +123,11 @@ def check_config(cfg: DictConfig) -> None:
         for key in ("weight_decay", "momentum"):
             _positive(cfg, f"module.optimizer.{key}", allow_zero=True)
         _positive(cfg, "module.optimizer.eps")
-    if _value(cfg, "module.scheduler") is not None:
-        _integer(cfg, "module.scheduler.T_max", 1)
+    scheduler = _value(cfg, "module.scheduler")
+    if scheduler is not None:
+        if "T_max" in scheduler:  # (null: trainer.max_epochs=null, which it follows by default)
+            follows = " (it follows trainer.max_epochs: with trainer.max_epochs=null give module.scheduler.T_max)"
+            _integer(cfg, "module.scheduler.T_max", 1, optional=False, note=follows)
         _positive(cfg, "module.scheduler.eta_min", allow_zero=True)
     _positive(cfg, "module.grad_clip_norm", allow_zero=True)
 

@@ -256,8 +256,16 @@ class RunReport:
         write_text(self.run_dir / "results.md", text)
         return summary
 
-    def failed(self, error: BaseException) -> None:
-        """Write the report of a run that raised ``error``."""
+    def failed(self, error: BaseException, *, epochs: int | None = None, checkpoint: str | None = None) -> None:
+        """Write the report of a run that raised ``error``; ``epochs``: epochs completed, held by
+        ``checkpoint`` (``last.ckpt``, from which it can be resumed), when known."""
         message = f"{type(error).__name__}: {error}"
-        self._write(status="failed", error=message)
-        write_text(self.run_dir / "results.md", f"# {self.base['model']}: FAILED\n\n    {message}\n\nSee train.log.\n")
+        extra: dict[str, Any] = {} if epochs is None else {"epochs": epochs}
+        self._write(status="failed", error=message, **extra)
+        text = f"# {self.base['model']}: FAILED\n\n    {message}\n\nSee train.log.\n"
+        if checkpoint:
+            text += (
+                f"\n`checkpoints/last.ckpt` holds epoch {epochs - 1 if epochs else '?'}; once the cause is "
+                f"fixed, resume from it:\n\n    {self.resume_command(checkpoint)}\n"
+            )
+        write_text(self.run_dir / "results.md", text)

@@ -147,7 +147,7 @@ def _overrides() -> list[str] | None:
     return [str(o) for o in HydraConfig.get().overrides.task]
 
 
-def _build(cfg: DictConfig, guard: SignalGuard) -> dict[str, Any]:
+def _build(cfg: DictConfig, guard: SignalGuard, resume: dict[str, Any] | None = None) -> dict[str, Any]:
     """Data, filter, Lightning module, callbacks, loggers and trainer of ``cfg`` (and "truth")."""
     if cfg.get("num_threads"):
         torch.set_num_threads(int(cfg.num_threads))
@@ -166,6 +166,8 @@ def _build(cfg: DictConfig, guard: SignalGuard) -> dict[str, Any]:
     restart_learner(kf, float(cfg.get("init_jitter") or 0.0), int(cfg.get("restart") or 0))
     module = instantiate_node(cfg, "module", kf=kf, truth=truth)
     callbacks = [*_instantiate_dict(cfg, "callbacks"), StopOnSignal(guard)]
+    if resume is not None:
+        callbacks.append(_KeepBestOfMovedRun(resume.get("callbacks") or {}))
     # the best-so-far checkpoint saves before the last-epoch one at each epoch end, so that
     # last.ckpt (the resume point) holds the best's state after this epoch, not before it
     callbacks.sort(key=lambda c: isinstance(c, ModelCheckpoint) and c.monitor is None)
@@ -180,6 +182,32 @@ def _build(cfg: DictConfig, guard: SignalGuard) -> dict[str, Any]:
         "loggers": loggers,
         "truth": truth,
     }
+
+
+class _KeepBestOfMovedRun(pl.Callback):
+    """Resuming a run whose directory was moved or copied: Lightning restores a monitoring
+    ModelCheckpoint's best score only when its directory is unchanged, so the first epoch after
+    the resume would overwrite ``best.ckpt`` whatever its score. At the start of training this
+    re-seeds the best score (and the paths, in the new directory) from the checkpoint resumed
+    from, where that best file is in the new checkpoint directory."""
+
+    def __init__(self, saved: dict[str, Any]) -> None:
+        self.saved = saved
+
+    def on_train_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        for cb in trainer.checkpoint_callbacks:
+            if not isinstance(cb, ModelCheckpoint):
+                continue
+            state = self.saved.get(cb.state_key)
+            if not state or cb.monitor is None or cb.best_model_score is not None or cb.dirpath is None:
+                continue
+            score, path = state.get("best_model_score"), state.get("best_model_path")
+            moved = Path(cb.dirpath) / Path(path).name if path else None
+            if score is None or moved is None or not moved.is_file():
+                continue
+            cb.best_model_score, cb.best_model_path = score, str(moved)
+            cb.kth_value, cb.kth_best_model_path = score, str(moved)
+            cb.best_k_models = {str(moved): score}
 
 
 def _checkpoint_files(callbacks: list[Any]) -> tuple[str | None, str | None]:
@@ -317,7 +345,12 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             metrics = _run(cfg, guard, resume, out_dir, state)
         except (StopRun, SystemExit) as stop:
             signum = guard.received or _signal_of(stop)
-            if signum is None:
+            if signum is None:  # e.g. Lightning's exit after a KeyboardInterrupt raised by code
+                _report_failed(
+                    state,
+                    stop,
+                    f"the run stopped (SystemExit {stop.args[0] if stop.args else ''}) without a signal: e.g. a KeyboardInterrupt raised by code, which Lightning turns into an exit",
+                )
                 raise
             if state.report is None and "trainer" not in state.objects and int(os.environ.get("LOCAL_RANK", "0")) == 0:
                 state.report = _new_report(cfg, out_dir, resume)  # stopped while building: still say so
@@ -325,14 +358,25 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                 state.objects, state.report, signum, guard.received_during or guard.phase, out_dir
             ) from None
         except Exception as err:
-            if state.report is not None:
-                state.report.failed(err)
+            _report_failed(state, err)
             log.error("run failed: %s: %s", type(err).__name__, err)
             raise
     if guard.received is not None:
         log.warning("received %s after the run completed; its outputs are complete", guard.received.name)
     log.info("run completed: %s", out_dir.resolve())
     return metrics, state.objects
+
+
+def _report_failed(state: _RunState, error: BaseException, message: str | None = None) -> None:
+    """The failed report (rank zero, once built) with the epochs ``last.ckpt`` holds, if any."""
+    if state.report is None:
+        return
+    try:
+        last, _ = _checkpoint_files(state.objects.get("callbacks", []))
+        epochs = (_epoch_of(last) + 1) if last else 0
+    except Exception:  # noqa: BLE001 - the report of a failure must not fail itself
+        last, epochs = None, None
+    state.report.failed(RuntimeError(message) if message else error, epochs=epochs, checkpoint=last)
 
 
 @dataclass
@@ -348,7 +392,7 @@ def _run(
 ) -> dict[str, Any]:
     """Build, fit, test, plot and report, phase by phase (``guard`` stops between them)."""
     ckpt_path = cfg.get("ckpt_path")
-    state.objects = objects = _build(cfg, guard)
+    state.objects = objects = _build(cfg, guard, resume)
     trainer, module = objects["trainer"], objects["module"]
     same_dir = False
     if resume is not None:
