@@ -407,53 +407,10 @@ def test_chunks_only_for_large_cpu_calls() -> None:
     assert _doubling.chunk_elements(big, n, 8, cpu) == _doubling.CHUNK_BYTES // (4 * 8 * 8)  # (n, p) inputs
 
 
-def test_export_with_a_dynamic_batch_sets_no_bound_from_the_chunk_rule() -> None:
-    """Traced calls are never chunked, and the chunk rule reads no symbolic batch size: a program
-    exported with a dynamic batch has no upper bound on it and runs past the chunk bound."""
+def _exported(series, L: torch.Tensor, Qc: torch.Tensor, F_example: torch.Tensor, dt_example: torch.Tensor):
+    """A shared series and the per-element doubling exported with a dynamic batch: the
+    programs (dt) -> (A, Q) and (F, dt) -> (A, Q)."""
     from torch.export import Dim
-
-    from torchsde_lti.core import _doubling
-
-    F, L, Qc, _, _ = _problem(3, 0, 1, "random", seed=7)
-    F = F[0] - 4.0 * torch.eye(3, dtype=F64)
-    W = L[0] @ Qc[0] @ L[0].mT
-    series = _doubling.shared_series(F, W, None)
-
-    class Shared(torch.nn.Module):
-        def forward(self, dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            A, Q, _ = series(dt)
-            return A, Q
-
-    class PerElement(torch.nn.Module):
-        def forward(self, F: torch.Tensor, dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            A, Q, _ = per_element_doubling(sde_inputs(F, L[0], Qc[0], dt, validate_args=False))
-            return A, Q
-
-    big = 2 * _doubling.CHUNKED_MIN_BYTES // (3 * 3 * 8)  # chunked when eager
-    dt = torch.rand(big, generator=torch.Generator().manual_seed(0), dtype=F64) * 3
-    b = Dim("b")
-    ep = torch.export.export(Shared(), (dt[:5],), dynamic_shapes=({0: b},))
-    for got, want in zip(ep.module()(dt), series(dt)):
-        assert _rel(got, want) <= 1e-12
-    ep = torch.export.export(PerElement(), (F.expand(5, 3, 3).contiguous(), dt[:5]), dynamic_shapes=({0: b}, {0: b}))
-    for got, want in zip(ep.module()(F.expand(big, 3, 3), dt), per_element_doubling(sde_inputs(F, L[0], Qc[0], dt))):
-        assert _rel(got, want) <= 1e-12
-
-
-def test_traced_schedule_runs_every_halving_and_caps_only_the_differentiable_one() -> None:
-    """‖F‖ dt up to 1e15: the traced schedule without a graph (export: a while_loop) runs every
-    halving and equals eager; recording a graph (static doublings, at most
-    TRACED_MAX_HALVINGS) it takes the capped step, converged for this stable F."""
-    from torch.export import Dim
-
-    from torchsde_lti.core import _doubling
-
-    F = torch.tensor([[-1000.0, 0.0], [1.0, -1.0]], dtype=F64)
-    L = Qc = torch.eye(2, dtype=F64)
-    W = L @ Qc @ L.mT
-    dt = torch.tensor([1.0, 1e6, 1e9, 1e12], dtype=F64)
-    want = per_element_doubling(sde_inputs(F.expand(4, 2, 2), L, Qc, dt))
-    series = _doubling.shared_series(F, W, None)
 
     class Shared(torch.nn.Module):
         def forward(self, dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -466,13 +423,44 @@ def test_traced_schedule_runs_every_halving_and_caps_only_the_differentiable_one
             return A, Q
 
     b = Dim("b")
-    shared = torch.export.export(Shared(), (dt[:2],), dynamic_shapes=({0: b},)).module()(dt)
-    per_element = torch.export.export(
-        PerElement(), (F.expand(2, 2, 2).contiguous(), dt[:2]), dynamic_shapes=({0: b}, {0: b})
-    ).module()(F.expand(4, 2, 2).contiguous(), dt)
+    shared = torch.export.export(Shared(), (dt_example,), dynamic_shapes=({0: b},)).module()
+    per_element = torch.export.export(PerElement(), (F_example, dt_example), dynamic_shapes=({0: b}, {0: b}))
+    return shared, per_element.module()
+
+
+def test_export_with_a_dynamic_batch_sets_no_bound_from_the_chunk_rule() -> None:
+    """Traced calls are never chunked, and the chunk rule reads no symbolic batch size: a program
+    exported with a dynamic batch has no upper bound on it and runs past the chunk bound."""
+    from torchsde_lti.core import _doubling
+
+    F, L, Qc, _, _ = _problem(3, 0, 1, "random", seed=7)
+    F = F[0] - 4.0 * torch.eye(3, dtype=F64)
+    W = L[0] @ Qc[0] @ L[0].mT
+    series = _doubling.shared_series(F, W, None)
+    big = 2 * _doubling.CHUNKED_MIN_BYTES // (3 * 3 * 8)  # chunked when eager
+    dt = torch.rand(big, generator=torch.Generator().manual_seed(0), dtype=F64) * 3
+    shared, per_element = _exported(series, L[0], Qc[0], F.expand(5, 3, 3).contiguous(), dt[:5])
+    for got, want in zip(shared(dt), series(dt)):
+        assert _rel(got, want) <= 1e-12
+    for got, want in zip(per_element(F.expand(big, 3, 3), dt), per_element_doubling(sde_inputs(F, L[0], Qc[0], dt))):
+        assert _rel(got, want) <= 1e-12
+
+
+def test_traced_schedule_runs_every_halving_and_caps_only_the_differentiable_one() -> None:
+    """‖F‖ dt up to 1e15: the traced schedule without a graph (export: a while_loop) runs every
+    halving and equals eager; recording a graph (static doublings, at most
+    TRACED_MAX_HALVINGS) it takes the capped step, converged for this stable F."""
+    from torchsde_lti.core import _doubling
+
+    F = torch.tensor([[-1000.0, 0.0], [1.0, -1.0]], dtype=F64)
+    L = Qc = torch.eye(2, dtype=F64)
+    dt = torch.tensor([1.0, 1e6, 1e9, 1e12], dtype=F64)
+    want = per_element_doubling(sde_inputs(F.expand(4, 2, 2), L, Qc, dt))
+    series = _doubling.shared_series(F, L @ Qc @ L.mT, None)
+    shared, per_element = _exported(series, L, Qc, F.expand(2, 2, 2).contiguous(), dt[:2])
     Fg = F.expand(4, 2, 2).clone().requires_grad_(True)
     static = per_element_doubling(sde_inputs(Fg, L, Qc, dt), masked=True)
-    for got in (shared, per_element, static):
+    for got in (shared(dt), per_element(F.expand(4, 2, 2).contiguous(), dt), static):
         assert _rel(got[0], want[0]) <= 1e-12 and _rel(got[1], want[1]) <= 1e-12
     assert torch.isfinite(torch.autograd.grad(static[1].sum(), Fg)[0]).all()
 
