@@ -432,3 +432,34 @@ def test_moored_discretisation_closed_form() -> None:
     np.testing.assert_allclose(d.A.numpy(), A, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(d.Q.numpy(), np.kron(np.eye(2), Q1), rtol=1e-10, atol=1e-14)
     assert sde.position_indices == (0, 2)
+
+
+def test_block_diag_starts_each_part_from_its_own_prior() -> None:
+    """Independent parts observed separately: the joint log-likelihood of block_diag equals the
+    sum of the parts' own (each filter from its model's default prior: a shaped part's
+    steady-state start, a stationary part's P∞, a non-Hurwitz part diffuse)."""
+    F64 = torch.float64
+    M = tl.models
+    g = torch.Generator().manual_seed(0)
+    y, dt = torch.randn(25, 2, generator=g, dtype=F64), torch.rand(25, generator=g, dtype=F64)
+    R = torch.tensor([[0.1]], dtype=F64)
+    H1 = torch.tensor([[1.0, 0.0]], dtype=F64)
+    H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=F64)
+    gp = M.matern(1.5, 1.0, 1.0, dtype=F64)
+    for first in (
+        M.shaped(M.ornstein_uhlenbeck(1.3, 1.0, dtype=F64), M.ornstein_uhlenbeck(0.4, 0.9, dtype=F64)),
+        M.constant_velocity(1, 1.0, dtype=F64),
+    ):
+        with torch.no_grad():
+            parts = tl.KalmanFilter(first, H1, R)(y[:, :1], dt).log_likelihood
+            parts = parts + tl.KalmanFilter(gp, H1, R)(y[:, 1:], dt).log_likelihood
+            joint = tl.KalmanFilter(M.block_diag(first, gp), H, 0.1 * torch.eye(2, dtype=F64))(y, dt).log_likelihood
+        torch.testing.assert_close(joint, parts, rtol=1e-12, atol=1e-10)
+
+
+def test_compositions_check_the_parts_batch_shapes() -> None:
+    M = tl.models
+    with pytest.raises(ValueError, match="batch shapes do not broadcast"):
+        M.block_diag(M.singer(torch.ones(3), 1.0), M.constant_velocity(1, torch.ones(2)))
+    with pytest.raises(ValueError, match="batch shapes do not broadcast"):
+        M.shaped(M.ornstein_uhlenbeck(torch.ones(3), 1.0), M.ornstein_uhlenbeck(torch.ones(2), 1.0))

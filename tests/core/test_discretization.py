@@ -421,3 +421,15 @@ def test_process_noise_and_zero_order_hold_are_the_discretize_blocks() -> None:
     A, G = tl.zero_order_hold(F, B, dt)
     np.testing.assert_allclose(A, d.A, rtol=1e-15)
     np.testing.assert_allclose(G, d.G, rtol=1e-15)
+
+
+def test_matrix_exp_overflow_of_a_marginally_stable_f_names_the_method() -> None:
+    """Singer (integrators next to a stable mode) in float32 over a long step: the doubling
+    is finite, matrix_exp overflows through its −Fᵀ block and the error says so."""
+    import torchsde_lti as tl
+
+    m = tl.models.singer(0.5, 2.0, dtype=torch.float32).matrices()
+    dt = torch.tensor([300.0])
+    assert torch.isfinite(tl.discretize(m.F, m.L, m.Qc, dt).Q).all()
+    with pytest.raises(ValueError, match="method='matrix_exp' overflows"):
+        tl.discretize(m.F, m.L, m.Qc, dt, method="matrix_exp")

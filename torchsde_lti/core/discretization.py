@@ -87,12 +87,14 @@ def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | No
         bad = [name for name, t in zip("AQG", (A, Q, G)) if t is not None and not bool(torch.isfinite(t).all())]
         if not bad:  # a finite result whose sum overflowed
             return
-        rightmost = float(torch.linalg.eigvals(inputs.F.double()).real.max())
+        real = torch.linalg.eigvals(inputs.F.double()).real
+        rightmost, leftmost = float(real.max()), float(real.min())
         dt_max = float(inputs.dt.max()) if inputs.dt is not None and inputs.dt.numel() else 0.0
-    if method == "matrix_exp" and rightmost < 0:
+    if method == "matrix_exp" and leftmost < 0 and rightmost <= 0:
         cause = (
-            "method='matrix_exp' overflows for this stable F: the −Fᵀ block of Van Loan's exponential grows "
-            "like e^(|λ| dt); the default method='doubling' does not"
+            "method='matrix_exp' overflows for this F (no eigenvalue in the right half-plane): the −Fᵀ block of "
+            "Van Loan's exponential grows like e^(|Re λ| dt) for its stable modes; the default method='doubling' "
+            "does not"
         )
     else:
         cause = (

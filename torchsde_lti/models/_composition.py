@@ -7,7 +7,14 @@ import torch
 from torch import Tensor, nn
 
 from torchsde_lti.core.stationary import stationary_covariance
-from torchsde_lti.core.validation import as_float_tensor, check_finite, check_hurwitz, check_matrix, shape_str
+from torchsde_lti.core.validation import (
+    as_float_tensor,
+    broadcast_batch,
+    check_finite,
+    check_hurwitz,
+    check_matrix,
+    shape_str,
+)
 from torchsde_lti.models._common import block_diag_matrix
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices, StructuredSDE
 
@@ -30,6 +37,7 @@ class ShapedSDE(StructuredSDE):
                 f"the shaping filter must be strictly proper (D = 0): its D (shape {shape_str(feedthrough)}) "
                 "would pass white noise straight into the system"
             )
+        broadcast_batch([("system", system.batch_shape), ("shaping", shaping.batch_shape)])
         self.system = system
         self.shaping = shaping
         n_s, s, n_f = system.state_dim, system.noise_dim, shaping.state_dim
@@ -70,7 +78,13 @@ class ShapedSDE(StructuredSDE):
             B = block_diag_matrix([m.B if m.B is not None else m.F.new_zeros(*m.F.shape[:-1], 0) for m in (ms, mf)])
         return SDEMatrices(F, L, mf.Qc, B)
 
-    def prior_covariance(self, mats: SDEMatrices | None = None, *, validate_args: bool | None = None) -> Tensor:
+    def prior_covariance(
+        self,
+        mats: SDEMatrices | None = None,
+        *,
+        validate_args: bool | None = None,
+        diffuse_variance: float | None = None,
+    ) -> Tensor:
         r"""Seed 003's steady-state start ``P0 = [[0, 0], [0, P∞_f]]`` (..., n, n).
 
         ``P∞_f`` solves ``F_f P + P F_fᵀ + L_f Qc_f L_fᵀ = 0`` at the current parameters
@@ -137,7 +151,10 @@ class BlockDiagSDE(StructuredSDE):
         for i, s in enumerate(sdes):
             if not isinstance(s, LTISDE):
                 raise ValueError(f"sdes[{i}] must be an LTISDE, got {type(s).__name__}")
+        broadcast_batch([(f"sdes[{i}]", s.batch_shape) for i, s in enumerate(sdes)])
         self.parts = nn.ModuleList(sdes)
+        with torch.no_grad():  # which parts start from a prior of their own (F Hurwitz, or their own rule)
+            self._own_prior = tuple(_has_prior(s) for s in sdes)
         dims = [s.state_dim for s in sdes]
         if all(s.position_indices is not None for s in sdes):
             idx: list[int] = []
@@ -158,8 +175,41 @@ class BlockDiagSDE(StructuredSDE):
             B = block_diag_matrix([m.B if m.B is not None else m.F.new_zeros(*m.F.shape[:-1], 0) for m in mats])
         return SDEMatrices(F, L, Qc, B)
 
+    def prior_covariance(
+        self,
+        mats: SDEMatrices | None = None,
+        *,
+        validate_args: bool | None = None,
+        diffuse_variance: float | None = None,
+    ) -> Tensor:
+        """The parts' own priors, block diagonally (..., n, n): each part's ``prior_covariance()``
+        (a shaped part: its steady-state start), ``diffuse_variance · I`` for a part without one
+        (F not Hurwitz when the model was built; ValueError when ``diffuse_variance`` is None).
+        ``mats`` is not used (each part evaluates its own matrices)."""
+        blocks = []
+        parts: list[LTISDE] = list(self.parts)  # type: ignore[arg-type]
+        for i, (part, own) in enumerate(zip(parts, self._own_prior)):
+            if own:
+                blocks.append(part.prior_covariance(validate_args=validate_args))
+            elif diffuse_variance is None:
+                raise ValueError(
+                    f"parts[{i}] ({type(part).__name__}) has no prior covariance of its own (F not Hurwitz)"
+                )
+            else:
+                blocks.append(diffuse_variance * torch.eye(part.state_dim, dtype=part.dtype, device=part.device))
+        return block_diag_matrix(blocks)
+
     def extra_repr(self) -> str:
         return f"{len(self.parts)} parts"
+
+
+def _has_prior(sde: LTISDE) -> bool:
+    """Whether ``sde.prior_covariance()`` gives a prior (its F Hurwitz, or its own rule)."""
+    try:
+        sde.prior_covariance(validate_args=True)
+    except ValueError:
+        return False
+    return True
 
 
 def block_diag(*sdes: LTISDE, validate_args: bool | None = None) -> BlockDiagSDE:

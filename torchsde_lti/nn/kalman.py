@@ -251,7 +251,8 @@ class KalmanFilter(ValidateArgs, nn.Module):
         else:
             try:
                 with torch.no_grad():
-                    P0_t = self.sde.prior_covariance(validate_args=True).detach().clone()
+                    P0_t = self.sde.prior_covariance(validate_args=True, diffuse_variance=self.diffuse_variance)
+                    P0_t = P0_t.detach().clone()
                 self.prior_mode = "model"
             except ValueError:
                 self.prior_mode, P0_t = "diffuse", diffuse
@@ -312,7 +313,9 @@ class KalmanFilter(ValidateArgs, nn.Module):
             P0 = self.P0
         elif self.prior_mode == "model":
             try:
-                P0 = self.sde.prior_covariance(mats, validate_args=validate_args)
+                P0 = self.sde.prior_covariance(
+                    mats, validate_args=validate_args, diffuse_variance=self.diffuse_variance
+                )
             except ValueError as err:
                 raise ValueError(
                     "the default prior P0 is the model's prior_covariance(), but its F is no longer Hurwitz; "

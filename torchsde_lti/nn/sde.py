@@ -265,14 +265,21 @@ class LTISDE(ValidateArgs, nn.Module):
         F's terminating series without reading F's values."""
         return None
 
-    def prior_covariance(self, mats: SDEMatrices | None = None, *, validate_args: bool | None = None) -> Tensor:
+    def prior_covariance(
+        self,
+        mats: SDEMatrices | None = None,
+        *,
+        validate_args: bool | None = None,
+        diffuse_variance: float | None = None,
+    ) -> Tensor:
         """The covariance a filter starts from when it is given none: P∞ (..., n, n), the
         stationary covariance (the process has run for all past time).
 
-        Subclasses override it (a shaped model: its steady-state start). ``mats``: the
-        matrices already evaluated by the caller (read once per call; they are valid by
-        construction). ValueError when F is not Hurwitz (checked with ``validate_args``,
-        default :attr:`validate_args`): a filter then starts from a diffuse prior.
+        Subclasses override it (a shaped model: its steady-state start; composed models: their
+        parts' own, ``diffuse_variance · I`` for a part without one). ``mats``: the matrices
+        already evaluated by the caller (read once per call; they are valid by construction).
+        ValueError when F is not Hurwitz (checked with ``validate_args``, default
+        :attr:`validate_args`): a filter then starts from a diffuse prior.
         """
         m = self.matrices() if mats is None else mats
         if self._validates(validate_args):
