@@ -130,3 +130,27 @@ def test_auto_choice_gradients_equal_loop():
     assert grads[0] and len(grads[0]) == len(grads[1])
     for a, b in zip(*grads):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-10)
+
+
+def test_auto_runs_the_loop_in_float32_where_the_scan_loses_a_long_gap() -> None:
+    """One track, 10 reports, 2900 missing steps (a 1450 s gap: predicted/measured variance
+    ~1e11), 2 reports: the float32 scan's combine gives NaN there, so float32 "auto" runs the
+    loop and matches float64."""
+    import numpy as np
+
+    import torchsde_lti as tl
+
+    rng = np.random.default_rng(0)
+    T = 10 + 2900 + 2
+    y = rng.normal(size=(1, T, 1)).cumsum(1)
+    y[0, 10:2910] = np.nan
+    lls = {}
+    for dtype in (torch.float64, torch.float32):
+        sde = tl.models.constant_velocity(dim=1, q=1.0, dtype=dtype)
+        kf = tl.KalmanFilter(
+            sde, tl.models.position_observation(sde), 0.01 * torch.eye(1, dtype=dtype), P0=torch.eye(2, dtype=dtype)
+        )
+        assert kf.algorithm_for(1, T, torch.device("cpu")) == ("scan" if dtype == torch.float64 else "sequential")
+        with torch.no_grad():
+            lls[dtype] = float(kf(torch.tensor(y, dtype=dtype), torch.full((1, T), 0.5, dtype=dtype)).log_likelihood)
+    assert abs(lls[torch.float32] - lls[torch.float64]) < 1e-3

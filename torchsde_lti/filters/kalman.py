@@ -39,7 +39,9 @@ def check_algorithm(algorithm: str, allowed: tuple[str, ...] = ALGORITHMS, owner
     return algorithm
 
 
-def choose_algorithm(algorithm: str, batch_size: int, T: int, device: torch.device) -> str:
+def choose_algorithm(
+    algorithm: str, batch_size: int, T: int, device: torch.device, dtype: torch.dtype = torch.float64
+) -> str:
     """The algorithm a call runs: ``algorithm`` itself unless it is ``"auto"``.
 
     ``"auto"``: under ``torch.compile`` and ``torch.export`` the sequential loop, which
@@ -47,14 +49,15 @@ def choose_algorithm(algorithm: str, batch_size: int, T: int, device: torch.devi
     exported program takes any T; the associative scan traced whole takes minutes and fixes
     T); otherwise the associative scan where
     :func:`~torchsde_lti.filters.prefers_scan` says so (few tracks on CPU, any batch on
-    other devices), else the sequential loop. ``batch_size``: tracks in the call.
+    other devices; float64 only), else the sequential loop. ``batch_size``: tracks in the
+    call; ``dtype``: the call's floating dtype.
     """
     check_algorithm(algorithm)
     if algorithm != "auto":
         return algorithm
     if torch.compiler.is_compiling():  # compile and export: the loop as one structured scan step
         return "sequential"
-    return "scan" if prefers_scan(batch_size, T, device) else "sequential"
+    return "scan" if prefers_scan(batch_size, T, device, dtype) else "sequential"
 
 
 def kalman_filter(
@@ -110,7 +113,11 @@ def kalman_filter(
         y_t, A_t = torch.as_tensor(y), torch.as_tensor(A)
         batch = max(math.prod(y_t.shape[:-2]), math.prod(A_t.shape[:-3]))
         T = y_t.shape[-2] if y_t.dim() >= 2 else 1
-        algorithm = choose_algorithm(algorithm, batch, T, y_t.device)
+        floats = [t.dtype for t in (y_t, A_t) if t.is_floating_point()]
+        dtype = (
+            torch.promote_types(*floats) if len(floats) == 2 else (floats[0] if floats else torch.get_default_dtype())
+        )
+        algorithm = choose_algorithm(algorithm, batch, T, y_t.device, dtype)
     return run_filter(args, algorithm, chunk=chunk, validate_args=validate_args)
 
 

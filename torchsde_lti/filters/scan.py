@@ -152,11 +152,14 @@ SCAN_MAX_BATCH_CPU = 16
 SCAN_MAX_ELEMENTS = 1 << 18
 
 
-def prefers_scan(batch_size: int, T: int, device: torch.device) -> bool:
+def prefers_scan(batch_size: int, T: int, device: torch.device, dtype: torch.dtype = torch.float64) -> bool:
     """The automatic algorithm choice: True for the (chunked) associative scan, False for
-    the sequential loop. CPU: scan for at most :data:`SCAN_MAX_BATCH_CPU` tracks and T > 1.
-    Other devices (where every loop step costs kernel launches): always the scan."""
-    if T < 2:
+    the sequential loop. Float64 only (in float32 the scan's combine loses the covariances
+    over long gaps: a predicted-to-measured variance ratio of about 1e11 gives NaN, less a
+    wrong log-likelihood; the loop's Joseph updates do not). CPU: scan for at most
+    :data:`SCAN_MAX_BATCH_CPU` tracks and T > 1. Other devices (where every loop step costs
+    kernel launches): always the scan."""
+    if T < 2 or dtype != torch.float64:
         return False
     if device.type == "cpu":
         return batch_size <= SCAN_MAX_BATCH_CPU

@@ -433,7 +433,7 @@ class KalmanFilter(ValidateArgs, nn.Module):
             T = y.shape[-2]
             if algorithm == "auto":
                 batch = broadcast_batch([("y", y.shape[:-2]), ("dt", dt.shape[:-1])])
-                algorithm = choose_algorithm(algorithm, math.prod(batch), T, y.device)
+                algorithm = choose_algorithm(algorithm, math.prod(batch), T, y.device, y.dtype)
             # one batched discretisation of every step: A, Q (..., T, n, n), laid out for the algorithm
             d = self._discretize(dt, mats, series_layout=algorithm != "scan")
             G = d.G if u is not None else None
@@ -443,10 +443,11 @@ class KalmanFilter(ValidateArgs, nn.Module):
                 check_outcome(out.log_likelihood, d, y, dt, mats.F, R)
             return out
 
-    def algorithm_for(self, batch_size: int, T: int, device: torch.device) -> str:
+    def algorithm_for(self, batch_size: int, T: int, device: torch.device, dtype: torch.dtype | None = None) -> str:
         """The algorithm a call with ``batch_size`` tracks of T steps on ``device`` runs:
-        :attr:`algorithm` unless ``"auto"``, then :func:`~torchsde_lti.filters.choose_algorithm`."""
-        return choose_algorithm(self.algorithm, batch_size, T, device)
+        :attr:`algorithm` unless ``"auto"``, then :func:`~torchsde_lti.filters.choose_algorithm`
+        (``dtype``: default the model's)."""
+        return choose_algorithm(self.algorithm, batch_size, T, device, dtype or self.sde.dtype)
 
     @property
     def discretization_method(self) -> str:
