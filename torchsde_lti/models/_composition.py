@@ -78,24 +78,16 @@ class ShapedSDE(StructuredSDE):
             B = block_diag_matrix([m.B if m.B is not None else m.F.new_zeros(*m.F.shape[:-1], 0) for m in (ms, mf)])
         return SDEMatrices(F, L, mf.Qc, B)
 
-    def prior_covariance(
-        self,
-        mats: SDEMatrices | None = None,
-        *,
-        validate_args: bool | None = None,
-        diffuse_variance: float | None = None,
-    ) -> Tensor:
+    def _prior_covariance(self, m: SDEMatrices, validate: bool, diffuse_variance: float | None) -> Tensor:
         r"""Seed 003's steady-state start ``P0 = [[0, 0], [0, P∞_f]]`` (..., n, n).
 
         ``P∞_f`` solves ``F_f P + P F_fᵀ + L_f Qc_f L_fᵀ = 0`` at the current parameters
-        (read from the augmented ``mats`` when given, so a filter evaluates each
-        parametrisation once). ValueError when F_f is not Hurwitz (checked with
-        ``validate_args``, default :attr:`validate_args`).
+        (read from the augmented matrices, so a filter evaluates each parametrisation once).
+        ValueError when F_f is not Hurwitz (checked with ``validate``).
         """
-        m = self.matrices() if mats is None else mats
         n_s = self.system_dim
         F_f = m.F[..., n_s:, n_s:]
-        if self._validates(validate_args):
+        if validate:
             check_hurwitz(F_f, "F of the shaping filter")
         P_f = stationary_covariance(F_f, m.L[..., n_s:, :], m.Qc, validate_args=False)
         return nn.functional.pad(P_f, (n_s, 0, n_s, 0))
@@ -175,22 +167,16 @@ class BlockDiagSDE(StructuredSDE):
             B = block_diag_matrix([m.B if m.B is not None else m.F.new_zeros(*m.F.shape[:-1], 0) for m in mats])
         return SDEMatrices(F, L, Qc, B)
 
-    def prior_covariance(
-        self,
-        mats: SDEMatrices | None = None,
-        *,
-        validate_args: bool | None = None,
-        diffuse_variance: float | None = None,
-    ) -> Tensor:
+    def _prior_covariance(self, m: SDEMatrices, validate: bool, diffuse_variance: float | None) -> Tensor:
         """The parts' own priors, block diagonally (..., n, n): each part's ``prior_covariance()``
         (a shaped part: its steady-state start), ``diffuse_variance · I`` for a part without one
         (F not Hurwitz when the model was built; ValueError when ``diffuse_variance`` is None).
-        ``mats`` is not used (each part evaluates its own matrices)."""
+        ``m`` is not used (each part evaluates its own matrices)."""
         blocks = []
         parts: list[LTISDE] = list(self.parts)  # type: ignore[arg-type]
         for i, (part, own) in enumerate(zip(parts, self._own_prior)):
             if own:
-                blocks.append(part.prior_covariance(validate_args=validate_args))
+                blocks.append(part.prior_covariance(validate_args=validate))
             elif diffuse_variance is None:
                 raise ValueError(
                     f"parts[{i}] ({type(part).__name__}) has no prior covariance of its own (F not Hurwitz)"

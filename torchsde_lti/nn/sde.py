@@ -275,14 +275,19 @@ class LTISDE(ValidateArgs, nn.Module):
         """The covariance a filter starts from when it is given none: P∞ (..., n, n), the
         stationary covariance (the process has run for all past time).
 
-        Subclasses override it (a shaped model: its steady-state start; composed models: their
-        parts' own, ``diffuse_variance · I`` for a part without one). ``mats``: the matrices
-        already evaluated by the caller (read once per call; they are valid by construction).
-        ValueError when F is not Hurwitz (checked with ``validate_args``, default
-        :attr:`validate_args`): a filter then starts from a diffuse prior.
+        Subclasses override :meth:`_prior_covariance` (a shaped model: its steady-state start;
+        composed models: their parts' own, ``diffuse_variance · I`` for a part without one).
+        ``mats``: the matrices already evaluated by the caller (read once per call; they are
+        valid by construction). ValueError when F is not Hurwitz (checked with
+        ``validate_args``, default :attr:`validate_args`): a filter then starts from a diffuse
+        prior.
         """
         m = self.matrices() if mats is None else mats
-        if self._validates(validate_args):
+        return self._prior_covariance(m, self._validates(validate_args), diffuse_variance)
+
+    def _prior_covariance(self, m: SDEMatrices, validate: bool, diffuse_variance: float | None) -> Tensor:
+        """:meth:`prior_covariance` of the evaluated matrices ``m`` (``validate``: resolved)."""
+        if validate:
             check_hurwitz(m.F, "F")
         return stationary_covariance(m.F, m.L, m.Qc, validate_args=False)
 
