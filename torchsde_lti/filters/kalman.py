@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.threads import with_threads
+from torchsde_lti.core.validation import common_float_dtype
 from torchsde_lti.filters.inputs import FilterInputs, prepare_inputs
 from torchsde_lti.filters.results import FilterResult
 from torchsde_lti.filters.scan import chunked_scan, prefers_scan
@@ -113,11 +114,7 @@ def kalman_filter(
         y_t, A_t = torch.as_tensor(y), torch.as_tensor(A)
         batch = max(math.prod(y_t.shape[:-2]), math.prod(A_t.shape[:-3]))
         T = y_t.shape[-2] if y_t.dim() >= 2 else 1
-        floats = [t.dtype for t in (y_t, A_t) if t.is_floating_point()]
-        dtype = (
-            torch.promote_types(*floats) if len(floats) == 2 else (floats[0] if floats else torch.get_default_dtype())
-        )
-        algorithm = choose_algorithm(algorithm, batch, T, y_t.device, dtype)
+        algorithm = choose_algorithm(algorithm, batch, T, y_t.device, common_float_dtype(y_t, A_t))
     return run_filter(args, algorithm, chunk=chunk, validate_args=validate_args)
 
 

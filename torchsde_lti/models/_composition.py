@@ -148,6 +148,7 @@ class BlockDiagSDE(StructuredSDE):
         with torch.no_grad():  # which parts start from a prior of their own (F Hurwitz, or their own rule)
             self._own_prior = tuple(_has_prior(s) for s in sdes)
         dims = [s.state_dim for s in sdes]
+        self._block_sizes = tuple(zip(dims, (s.noise_dim for s in sdes)))  # (n_i, s_i): the parts' blocks
         if all(s.position_indices is not None for s in sdes):
             idx: list[int] = []
             offset = 0
@@ -168,21 +169,29 @@ class BlockDiagSDE(StructuredSDE):
         return SDEMatrices(F, L, Qc, B)
 
     def _prior_covariance(self, m: SDEMatrices, validate: bool, diffuse_variance: float | None) -> Tensor:
-        """The parts' own priors, block diagonally (..., n, n): each part's ``prior_covariance()``
-        (a shaped part: its steady-state start), ``diffuse_variance · I`` for a part without one
-        (F not Hurwitz when the model was built; ValueError when ``diffuse_variance`` is None).
-        ``m`` is not used (each part evaluates its own matrices)."""
+        """The parts' own priors, block diagonally (..., n, n): each part's ``prior_covariance``
+        of its diagonal blocks of ``m`` (a shaped part: its steady-state start),
+        ``diffuse_variance · I`` for a part without one (F not Hurwitz when the model was built;
+        ValueError when ``diffuse_variance`` is None)."""
         blocks = []
         parts: list[LTISDE] = list(self.parts)  # type: ignore[arg-type]
-        for i, (part, own) in enumerate(zip(parts, self._own_prior)):
+        a = b = 0  # offsets of the part's state and noise blocks
+        for i, (part, own, (n, s)) in enumerate(zip(parts, self._own_prior, self._block_sizes)):
             if own:
-                blocks.append(part.prior_covariance(validate_args=validate))
+                block = SDEMatrices(
+                    m.F[..., a : a + n, a : a + n],
+                    m.L[..., a : a + n, b : b + s],
+                    m.Qc[..., b : b + s, b : b + s],
+                    None,
+                )
+                blocks.append(part.prior_covariance(block, validate_args=validate))
             elif diffuse_variance is None:
                 raise ValueError(
                     f"parts[{i}] ({type(part).__name__}) has no prior covariance of its own (F not Hurwitz)"
                 )
             else:
-                blocks.append(diffuse_variance * torch.eye(part.state_dim, dtype=part.dtype, device=part.device))
+                blocks.append(diffuse_variance * torch.eye(n, dtype=m.F.dtype, device=m.F.device))
+            a, b = a + n, b + s
         return block_diag_matrix(blocks)
 
     def extra_repr(self) -> str:
