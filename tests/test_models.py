@@ -463,3 +463,10 @@ def test_compositions_check_the_parts_batch_shapes() -> None:
         M.block_diag(M.singer(torch.ones(3), 1.0), M.constant_velocity(1, torch.ones(2)))
     with pytest.raises(ValueError, match="batch shapes do not broadcast"):
         M.shaped(M.ornstein_uhlenbeck(torch.ones(3), 1.0), M.ornstein_uhlenbeck(torch.ones(2), 1.0))
+
+
+def test_prior_covariance_refuses_a_bad_diffuse_variance() -> None:
+    model = tl.models.block_diag(tl.models.constant_velocity(1, 1.0), tl.models.matern(1.5, 1.0, 1.0))
+    for bad in (-1.0, 0.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="diffuse_variance"):
+            model.prior_covariance(diffuse_variance=bad)

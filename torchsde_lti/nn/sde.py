@@ -33,6 +33,7 @@ computation use :meth:`LTISDE.matrices`, which reads all four once under
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from typing import NamedTuple
 
@@ -282,6 +283,8 @@ class LTISDE(ValidateArgs, nn.Module):
         ``validate_args``, default :attr:`validate_args`): a filter then starts from a diffuse
         prior.
         """
+        if diffuse_variance is not None and not (math.isfinite(diffuse_variance) and diffuse_variance > 0):
+            raise ValueError(f"diffuse_variance must be None or a finite positive variance, got {diffuse_variance!r}")
         m = self.matrices() if mats is None else mats
         return self._prior_covariance(m, self._validates(validate_args), diffuse_variance)
 
