@@ -177,6 +177,32 @@ def test_module_equals_standard_filter_values_and_gradients_with_zero_gap():
     torch.testing.assert_close(sm.cov, rts_smoother(outs[0]).cov, rtol=0, atol=1e-9)
 
 
+def test_singular_prior_and_zero_first_gap_gradients_equal_standard_filter():
+    """A shaped model's prior (zero variance for the system's state) and dt_0 = 0: the first
+    predicted covariance is singular, so the QR of the predict is rank-deficient; every model
+    parameter's gradient is still the standard filter's (was NaN: QR's backward divides by
+    R's zero pivots)."""
+    g = torch.Generator().manual_seed(0)
+    sde = M.shaped(M.ornstein_uhlenbeck(0.5, 1.0, dtype=F64), M.ornstein_uhlenbeck(2.0, 1.0, dtype=F64))
+    H, R = torch.tensor([[1.0, 0.0]], dtype=F64), torch.tensor([[0.1]], dtype=F64)
+    y = torch.randn(3, 6, 1, generator=g, dtype=F64)
+    dt = torch.full((3, 6), 0.5, dtype=F64)
+    dt[:, 0] = 0.0
+    params = [p for p in sde.parameters() if p.requires_grad]
+    grads = []
+    for algorithm in ("sequential", "square_root"):
+        kf = tl.KalmanFilter(sde, H, R, algorithm=algorithm)
+        assert kf.prior_mode == "model"
+        grads.append(torch.autograd.grad(kf(y, dt).log_likelihood.sum(), params, allow_unused=True))
+    assert sum(g is not None for g in grads[1]) >= 3
+    for g_std, g_sq in zip(*grads):
+        if g_std is None:
+            assert g_sq is None or not g_sq.any()
+            continue
+        assert torch.isfinite(g_sq).all()
+        torch.testing.assert_close(g_sq, g_std, rtol=1e-9, atol=1e-10)
+
+
 def test_module_algorithm_stored_and_shown():
     assert _cv_filter(False).algorithm == "sequential"
     kf = _cv_filter(True)

@@ -38,8 +38,9 @@ def square_root_filter(prep: PreparedInputs) -> FilterResult:
     / measured variance ratio beyond 1/eps, e.g. q = 10 over a 5000 s gap with R = 1e-4 in
     float32) keeps its value when h is aligned with the factor (position observations of a
     kinematic model), where a Householder reflection cancels it to 0. Covariances are
-    returned as ``S Sᵀ``, PSD by construction. ``torch.linalg.qr`` (reduced) and the
-    rotations are differentiable. One exception: where Q_k or P0 is singular (a step with
+    returned as ``S Sᵀ``, PSD by construction. The QR's R and the rotations are
+    differentiable (:func:`_compressed_factor`), also where the predicted covariance is
+    singular. One exception: where Q_k or P0 is singular (a step with
     dt = 0 has Q_k = 0) the factor's zero pivots carry no gradient, so the gradient with
     respect to that Q_k (to dt at a zero step) is not the log-likelihood's; the
     ``"sequential"`` and ``"scan"`` algorithms give it.
@@ -62,7 +63,7 @@ def square_root_filter(prep: PreparedInputs) -> FilterResult:
         LQ = LQ_steps[k]
         lead = torch.broadcast_shapes(AS.shape[:-2], LQ.shape[:-2])
         pre_p = torch.cat([AS.mT.expand(*lead, n, n), LQ.mT.expand(*lead, n, n)], dim=-2)  # (2n, n)
-        S = torch.linalg.qr(pre_p, mode="reduced").R.mT  # lower triangular S⁻
+        S = _compressed_factor(pre_p)
         pmeans.append(mean)
         pfacs.append(S)
         Hk = Hw[..., 0 if h_single else k, :, :]  # (.., m, n)
@@ -101,3 +102,17 @@ def square_root_filter(prep: PreparedInputs) -> FilterResult:
     core = torch.stack(torch.broadcast_tensors(*cores), dim=-1)
     core = core.expand(*torch.broadcast_shapes(core.shape[:-1], mb), prep.T)
     return assemble_result(prep, (mean_t, covs(facs)), (pmean_t, covs(pfacs)), core)
+
+
+def _compressed_factor(pre: Tensor) -> Tensor:
+    """S⁻ (..., n, n) with ``S⁻ S⁻ᵀ = preᵀ pre`` from pre (..., 2n, n): the transposed R of
+    pre's reduced QR, ``pre = Θ R``, so ``S⁻ = Rᵀ = preᵀ Θ``. When autograd records, Θ is taken
+    as a constant and the gradient flows through ``preᵀ Θ``: exact for every result that
+    depends on the factor through ``S⁻ S⁻ᵀ`` only (all of this filter's: Θ Θᵀ pre = pre, as Θ
+    spans pre's columns), and finite where pre is rank-deficient (a singular prior followed by
+    a zero step), where the backward of QR divides by R's zero pivots."""
+    if not (torch.is_grad_enabled() and pre.requires_grad):
+        return torch.linalg.qr(pre, mode="reduced").R.mT  # lower triangular
+    with torch.no_grad():
+        theta = torch.linalg.qr(pre, mode="reduced").Q  # (..., 2n, n)
+    return pre.mT @ theta
