@@ -481,6 +481,37 @@ def test_bad_mask_raises():
         sequential_kf(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], mask=torch.ones(2, 5))
 
 
+def test_mask_of_both_forms_when_T_equals_m():
+    """With T == m == B a (B, T) mask also fits (T, m): refused with a ValueError that names
+    both ways to write it; the unambiguous forms read as the online step reads them."""
+    g = torch.Generator().manual_seed(2)
+    B = T = m = 2
+    y = torch.randn(B, T, m, generator=g, dtype=F64)
+    A, Q = torch.eye(2, dtype=F64).expand(T, 2, 2), 0.1 * torch.eye(2, dtype=F64).expand(T, 2, 2)
+    H, R, m0, P0 = (
+        torch.eye(2, dtype=F64),
+        0.3 * torch.eye(2, dtype=F64),
+        torch.zeros(2, dtype=F64),
+        torch.eye(2, dtype=F64),
+    )
+    per_step = torch.tensor([[True, False], [False, True]])
+    with pytest.raises(ValueError, match=r"ambiguous.*\(\.\.\., 2, 1\)"):
+        sequential_kf(y, A, Q, H, R, m0, P0, mask=per_step)
+    y_nan = y.clone()
+    y_nan[~per_step] = float("nan")
+    want = sequential_kf(y_nan, A, Q, H, R, m0, P0)
+    got = sequential_kf(y, A, Q, H, R, m0, P0, mask=per_step[..., None])
+    torch.testing.assert_close(got.log_likelihood, want.log_likelihood, rtol=0, atol=1e-12)
+    # with y's number of dimensions: per component
+    per_component = torch.tensor([[[True, False], [True, True]], [[False, True], [True, False]]])
+    y_nan = y.clone()
+    y_nan[~per_component] = float("nan")
+    got = sequential_kf(y, A, Q, H, R, m0, P0, mask=per_component)
+    torch.testing.assert_close(
+        got.log_likelihood, sequential_kf(y_nan, A, Q, H, R, m0, P0).log_likelihood, rtol=0, atol=1e-12
+    )
+
+
 def test_result_is_namedtuple():
     t = _ok()
     out = sequential_kf(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"])

@@ -252,7 +252,7 @@ def _check_inputs(
         raise ValueError(f"Pi must have its time axis (dim -3) of size 1 or T={T}, got shape {shape_str(Pi)}")
     if m0.dim() < 1 or m0.shape[-1] != n or (m0.dim() >= 2 and m0.shape[-2] not in (1, M)):
         raise ValueError(f"m0 must have shape (..., {M}, {n}) or (..., 1, {n}) or ({n},), got shape {shape_str(m0)}")
-    mask = check_mask(mask, T, m, device)
+    mask = check_mask(mask, T, m, device, y.dim())
     named = [("y", y.shape[:-2]), ("Pi", Pi.shape[:-3]), ("m0", m0.shape[:-2]), ("P0", P0.shape[:-3])]
     named += [(k, x.shape[:-4]) for k, x in (("A", A), ("Q", Q), ("H", H), ("R", R))]
     named += [("mode_prob0", mode_prob0.shape[:-1]), *([] if mask is None else [("mask", mask.shape[:-2])])]

@@ -5,7 +5,8 @@ broadcast, numpy rules, right-aligned)::
 
     y (..., T, m)   A, Q (..., T, n, n)   H (..., T, m, n)   R (..., T, m, m)
     m0 (..., n)     P0 (..., n, n)        G (..., T, n, p)   u (..., T, p)
-    mask (..., T) or (..., T, m) bool (True = observed)
+    mask (..., T) or (..., T, m) bool (True = observed; with T == m a (..., T, T) mask with
+         fewer dims than y is refused as ambiguous: write (..., T, 1) or y's dims)
 
 Per-step arrays may omit or size-1 the T axis (a constant ``H (m, n)`` is fine); a
 per-batch constant matrix needs its T axis as 1, e.g. ``A (B, 1, n, n)``.
@@ -95,16 +96,25 @@ def pad_dims(x: Tensor, ndim: int) -> Tensor:
     return x.reshape((1,) * (ndim - x.dim()) + tuple(x.shape)) if x.dim() < ndim else x
 
 
-def check_mask(mask: Tensor | None, T: int, m: int, device: torch.device) -> Tensor | None:
+def check_mask(mask: Tensor | None, T: int, m: int, device: torch.device, y_ndim: int) -> Tensor | None:
     """A bool mask (..., T) or (..., T, m) (True = observed) as (..., T, 1 or m) on ``device``;
-    ValueError naming its shape or dtype otherwise. None stays None."""
+    ValueError naming its shape or dtype otherwise. None stays None. ``y_ndim``: the number of
+    dimensions of y (..., T, m). When T == m a mask (..., T, T) fits both forms: it is read per
+    component if it has y's number of dimensions (or more), and refused otherwise (write a
+    per-step mask as (..., T, 1), a per-component one with y's leading dimensions)."""
     if mask is None:
         return None
     mask = torch.as_tensor(mask, device=device)
     if mask.dtype != torch.bool:
         raise ValueError(f"mask must be a bool tensor, got dtype {mask.dtype}")
     per_component = mask.dim() >= 2 and mask.shape[-2] == T and mask.shape[-1] == m
-    if not per_component and mask.dim() >= 1 and mask.shape[-1] == T:
+    per_step = mask.dim() >= 1 and mask.shape[-1] == T
+    if per_component and per_step and mask.dim() < y_ndim:
+        raise ValueError(
+            f"mask of shape {shape_str(mask)} is ambiguous with T = m = {T}: write a per-step mask as "
+            f"(..., {T}, 1), a per-component mask with y's {y_ndim} dimensions (..., {T}, {m})"
+        )
+    if not per_component and per_step:
         mask = mask.unsqueeze(-1)  # (..., T) -> (..., T, 1)
     if mask.dim() < 2 or mask.shape[-2] != T or mask.shape[-1] not in (1, m):
         raise ValueError(f"mask must have shape (..., {T}) or (..., {T}, {m}), got shape {shape_str(mask)}")
@@ -171,7 +181,7 @@ def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked
         if values:
             check_finite(u, "u")
         c = matvec(G, u)  # (..., T, n)
-    mask = check_mask(mask, T, m, device)
+    mask = check_mask(mask, T, m, device, y.dim())
 
     # Per-step arrays: check their T axis.
     for name, x, k in (("A", A, 3), ("Q", Q, 3), ("H", H, 3), ("R", R, 3)):
