@@ -175,6 +175,9 @@ def test_imm_filter_algorithms_and_checks() -> None:
     with pytest.raises(ValueError, match="y contains Inf"):
         imm(y, dt)
     assert tl.IMMFilter(*args, validate_args=False)(y.nan_to_num(posinf=0.0), -dt).mean.shape == (2, 7, 2)
+    for bad in ([float("nan"), 1.0], [-0.5, 1.5], [0.5, 0.6], [float("inf"), 0.0]):
+        with pytest.raises(ValueError, match="mode_prob0 must be a probability vector"):
+            tl.IMMFilter(*args, mode_prob0=torch.tensor(bad, dtype=F64))
 
 
 def test_prior_is_a_method_of_the_model() -> None:

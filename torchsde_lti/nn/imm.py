@@ -230,7 +230,7 @@ class IMMFilter(ValidateArgs, nn.Module):
             if mode_prob0 is None
             else as_float_tensor(mode_prob0, "mode_prob0", dtype, device).detach().clone()
         )
-        if p0.shape != (M,) or bool((p0 < 0).any()) or abs(float(p0.sum()) - 1.0) > 1e-6:
+        if p0.shape != (M,) or not bool((p0 >= 0).all()) or not abs(float(p0.sum()) - 1.0) <= 1e-6:  # (NaN fails)
             raise ValueError(f"mode_prob0 must be a probability vector of shape ({M},), got {p0.tolist()}")
         p0 = p0 / p0.sum()
         register_tensor(self, "mode_prob0", p0, "mode_prob0" in names)
