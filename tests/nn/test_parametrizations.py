@@ -6,6 +6,7 @@ Lyapunov solver, and the math.log1p/exp definition of softplus.
 
 from __future__ import annotations
 
+import copy
 import math
 
 import numpy as np
@@ -426,3 +427,173 @@ def test_values_stay_finite_for_huge_raw_entries(dtype: torch.dtype) -> None:
     pd = PositiveDefinite().to(dtype)
     value = torch.tensor([[4.0, 1.0], [1.0, 2.0]], dtype=dtype)
     torch.testing.assert_close(pd(pd.right_inverse(value)), value)
+
+
+# --------------------------------------------------------------------------- the default floor across dtypes
+F32 = torch.float32
+EPS32 = float(torch.finfo(F32).eps)
+FLOORED = ("q", "Qc", "rates")
+
+
+def _floored_module(dtype: torch.dtype, scale: float = 1.0) -> torch.nn.Module:
+    """q (Positive), Qc (PositiveDefinite) and rates (Generator) of size ~1e-6 (times ``scale``),
+    where the default floor (float32 eps ≈ 1.2e-7) is a tenth of the value."""
+    from torch.nn.utils import parametrize
+
+    from torchsde_lti.nn.parametrizations import Generator
+
+    m = torch.nn.Module()
+    m.q = torch.nn.Parameter(scale * torch.tensor([1e-6, 1e-3, 2.0], dtype=dtype))
+    # eigenvalues ≈ 4.3e-6 and 0.7e-6; Cholesky diagonal ≈ 2e-3 and 8.7e-4
+    m.Qc = torch.nn.Parameter(scale * torch.tensor([[4e-6, 1e-6], [1e-6, 1e-6]], dtype=dtype))
+    m.rates = torch.nn.Parameter(scale * torch.tensor([[0.0, 1e-6], [3e-6, 0.0]], dtype=dtype))
+    parametrize.register_parametrization(m, "q", Positive(name="q").to(dtype))
+    parametrize.register_parametrization(m, "Qc", PositiveDefinite(name="Qc", size=2).to(dtype))
+    parametrize.register_parametrization(m, "rates", Generator().to(dtype))
+    return m
+
+
+def _values(m: torch.nn.Module) -> dict[str, torch.Tensor]:
+    with torch.no_grad():
+        return {k: getattr(m, k).to(F64) for k in FLOORED}
+
+
+def _assert_same_values(got: dict[str, torch.Tensor], want: dict[str, torch.Tensor], rtol: float) -> None:
+    for k in FLOORED:
+        torch.testing.assert_close(got[k], want[k], rtol=rtol, atol=0, msg=lambda s, k=k: f"{k}: {s}")
+
+
+def _floor_keys(state: dict[str, torch.Tensor]) -> list[str]:
+    return [k for k in state if k.endswith("._extra_state")]
+
+
+def test_default_floor_does_not_change_with_double() -> None:
+    """Built in float32 (floor float32 eps), then .double(): the values stay those of the float32
+    module to float32 rounding (a floor switched to float64 eps moved q = 1e-6 to 8.8e-7)."""
+    m = _floored_module(F32)
+    before = _values(m)
+    assert float(before["q"][0]) == pytest.approx(1e-6, rel=1e-6)
+    m.double()
+    assert m.parametrizations.q.original.dtype == F64
+    _assert_same_values(_values(m), before, rtol=4 * EPS32)
+
+
+def test_default_floor_does_not_change_with_float() -> None:
+    m = _floored_module(F64)
+    before = _values(m)
+    m.float()
+    assert m.parametrizations.Qc.original.dtype == F32
+    _assert_same_values(_values(m), before, rtol=4 * EPS32)
+
+
+def test_state_dict_saved_in_float32_loads_into_a_float64_model() -> None:
+    """A float32 checkpoint (through torch.save / torch.load(weights_only=True)) loaded into a model
+    built in float64 gives the float32 model's values: the floor travels with the weights."""
+    import io
+
+    src = _floored_module(F32, scale=3.0)
+    want = _values(src)
+    buf = io.BytesIO()
+    torch.save(src.state_dict(), buf)
+    buf.seek(0)
+    dst = _floored_module(F64)
+    dst.load_state_dict(torch.load(buf, weights_only=True), strict=True)
+    assert dst.parametrizations.q.original.dtype == F64
+    _assert_same_values(_values(dst), want, rtol=4 * EPS32)
+    # and the other way round
+    src64 = _floored_module(F64, scale=3.0)
+    dst32 = _floored_module(F32)
+    dst32.load_state_dict(src64.state_dict())
+    _assert_same_values(_values(dst32), _values(src64), rtol=4 * EPS32)
+
+
+@pytest.mark.parametrize("dtype", [F32, F64])
+def test_state_dict_without_the_floor_loads_as_before(dtype: torch.dtype) -> None:
+    """A state dict saved before floors were saved (the floor entries deleted) loads with
+    strict=True and gives what it gave then: the floor is the eps of the model's raw dtype."""
+    src = _floored_module(F32, scale=3.0)
+    state = src.state_dict()
+    floors = _floor_keys(state)
+    assert len(floors) == len(FLOORED), sorted(state)
+    old = {k: v for k, v in state.items() if k not in floors}
+    dst = _floored_module(dtype)
+    dst.load_state_dict(old, strict=True)
+    eps = float(torch.finfo(dtype).eps)
+    with torch.no_grad():
+        raw = {k: old[f"parametrizations.{k}.original"].to(dtype) for k in FLOORED}
+        q = softplus(raw["q"]) + eps
+        diag = softplus(torch.diagonal(raw["Qc"])) + eps
+        c = torch.tril(raw["Qc"], -1) + torch.diag(diag)
+        off = ~torch.eye(2, dtype=torch.bool)
+        rates = torch.where(off, softplus(raw["rates"]) + eps, 0.0)
+        want = {"q": q, "Qc": c @ c.mT, "rates": rates - torch.diag(rates.sum(-1))}
+    got = _values(dst)
+    for k in FLOORED:
+        torch.testing.assert_close(got[k], want[k].to(F64), rtol=2 * float(torch.finfo(dtype).eps), atol=0)
+    if dtype == F32:  # the float32 model reads the old checkpoint exactly as the model that saved it
+        for k in FLOORED:
+            assert torch.equal(got[k], _values(src)[k])
+    # from then on the floor is fixed (and saved): a later dtype change keeps the values
+    assert len(_floor_keys(dst.state_dict())) == len(FLOORED)
+    dst.to(F64 if dtype == F32 else F32)
+    _assert_same_values(_values(dst), got, rtol=4 * EPS32)
+
+
+def test_default_floor_is_fixed_by_the_first_tensor_seen() -> None:
+    """Never registered (no right_inverse): the first forward fixes the floor at its dtype's eps."""
+    raw = torch.tensor([-30.0, 0.0, 3.0], dtype=F32)
+    p = Positive()
+    first = p(raw)
+    torch.testing.assert_close(first, softplus(raw) + EPS32, rtol=0, atol=0)
+    torch.testing.assert_close(p(raw.double()), softplus(raw.double()) + EPS32, rtol=0, atol=0)
+    q = Positive().to(F64)
+    raw64 = q.right_inverse(torch.tensor([1e-6], dtype=F64))  # right_inverse fixes it: float64 eps
+    assert float(q.to(F32)(raw64.float())) == pytest.approx(1e-6, rel=4 * EPS32)
+
+
+def test_explicit_floor_is_kept() -> None:
+    """An explicit floor is used as given, whatever the dtype and whatever a loaded state says."""
+    p = Positive(floor=1e-3).to(F32)
+    raw = p.right_inverse(torch.tensor([2e-3]))
+    assert float(p.double()(raw.double())) == pytest.approx(2e-3, rel=4 * EPS32)
+    other = Positive(floor=1e-5)
+    other.load_state_dict(p.state_dict())
+    assert float(other(raw.double())) == pytest.approx(1e-5 + float(softplus(raw.double())), rel=1e-15)
+
+
+def test_reset_default_floors() -> None:
+    """The default floors become the eps of the given dtype (raw tensors kept, so values move by
+    the floor change); explicit floors stay; a filter's cached online model sees the change."""
+    import torchsde_lti as tl
+    from torchsde_lti.nn.parametrizations import reset_default_floors
+
+    m = _floored_module(F32).double()
+    raw = {k: getattr(m.parametrizations, k).original.detach().clone() for k in FLOORED}
+    reset_default_floors(m, F64)
+    with torch.no_grad():
+        torch.testing.assert_close(m.q, softplus(raw["q"]) + float(torch.finfo(F64).eps), rtol=0, atol=0)
+    p = Positive(floor=1e-3)
+    reset_default_floors(p, F64)
+    assert float(p(torch.tensor(-50.0, dtype=F64))) == pytest.approx(1e-3, rel=1e-12)
+    with pytest.raises(TypeError):
+        reset_default_floors(m, torch.int64)
+
+    sde = tl.models.constant_velocity(dim=1, q=1e-6)  # built in float32 (floor float32 eps)
+    kf = tl.KalmanFilter(sde, tl.models.position_observation(sde), 1e-6 * torch.eye(1)).double()
+    state, y = kf.initial_state(2), torch.zeros(2, 1, dtype=F64)
+    with torch.no_grad():
+        before = kf.step(state, y, 1.0)[0].cov
+        reset_default_floors(kf, F64)
+        after = kf.step(state, y, 1.0)[0].cov
+        fresh = copy.deepcopy(kf).step(state, y, 1.0)[0].cov
+    assert not torch.equal(before, after)
+    torch.testing.assert_close(after, fresh, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("bad", [-1e-7, math.nan, math.inf])
+def test_a_bad_saved_floor_is_refused_naming_the_parametrisation(bad: float) -> None:
+    m = _floored_module(F64)
+    state = m.state_dict()
+    state["parametrizations.q.0._extra_state"] = torch.tensor(bad, dtype=F64)
+    with pytest.raises(ValueError, match=r"Positive\('q'\): the saved floor"):
+        m.load_state_dict(state)

@@ -61,6 +61,12 @@ def evaluated(module: nn.Module, build: Callable[[], T]) -> T:
     return value
 
 
+def drop_evaluated(module: nn.Module) -> None:
+    """Forget ``module``'s cached :func:`evaluated` model (a change its parameter version does
+    not show, such as a parametrisation's floor)."""
+    module.__dict__.pop(_CACHE, None)
+
+
 def online_state(state: object, dt: Tensor | float, F: Tensor) -> tuple[KalmanState, Tensor]:
     """(state, dt) of a KalmanFilter's online call as tensors of F's dtype and device, shapes
     checked: state a (mean (..., n), cov (..., n, n)) pair, n = F's; TypeError or ValueError."""

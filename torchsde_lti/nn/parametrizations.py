@@ -26,10 +26,20 @@ polynomial maps (``PositiveDefinite``, ``Hurwitz``) take raw entries beyond a bo
 (``finfo.max`` to the power 1/4 or 1/8) logarithmically, so values are finite for every
 finite raw tensor.
 
-The floor of ``Positive``/``PositiveDefinite`` (default ``torch.finfo(dtype).eps`` of the
-raw tensor, so float32 and float64 each get their own) only keeps values strictly positive
-when ``softplus`` underflows to zero; ``right_inverse`` subtracts it again, so set-then-get
-round-trips to rounding. :class:`Hurwitz` uses a relative floor instead (see there).
+The floor δ of ``Positive``/``PositiveDefinite``/``Generator`` only keeps values strictly
+positive when ``softplus`` underflows to zero; ``right_inverse`` subtracts it again, so
+set-then-get round-trips to rounding. δ is part of the map raw -> value, so it does not follow
+the dtype: by default (``floor=None``) δ = ``torch.finfo(dtype).eps`` of the first tensor the
+parametrisation sees (the value ``register_parametrization`` passes to ``right_inverse``, or the
+raw tensor of a first ``forward``), fixed from then on, so ``module.double()`` / ``.float()``
+keep every value to the rounding of the new dtype. δ is saved in the module's ``state_dict``
+(the parametrisation's ``_extra_state``, a 0-dim float64 tensor: :func:`floor_state_keys`) and
+restored by ``load_state_dict``, so a checkpoint saved in one dtype gives its values in a model
+of another. A state dict without it (saved before δ was saved) loads, also with
+``strict=True``, with δ the eps of the model's dtype, the floor it was read with before. An
+explicit ``floor`` is used as given. A module built in float32 keeps float32's δ (values
+>= 1.2e-7) in float64; :func:`reset_default_floors` gives it float64's. :class:`Hurwitz` uses
+a relative floor instead (see there).
 Parametrisation modules carry a zero-size, non-persistent buffer that follows
 ``module.to(...)`` so that ``right_inverse`` can cast assigned values (Python floats,
 arrays, tensors of another dtype) to the dtype and device of the raw tensor.
@@ -37,13 +47,16 @@ arrays, tensors of another dtype) to the dtype and device of the raw tensor.
 
 from __future__ import annotations
 
-from typing import Literal
+import math
+from typing import Any, Literal
 
 import torch
 from torch import Tensor, nn
+from torch.nn.modules.module import _EXTRA_STATE_KEY_SUFFIX
 
 from torchsde_lti.core.linalg import sym
-from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, shape_str
+from torchsde_lti.core.validation import as_float_tensor, check_finite, check_matrix, shape_str, tracing
+from torchsde_lti.nn._online import drop_evaluated
 
 __all__ = [
     "Generator",
@@ -53,9 +66,11 @@ __all__ = [
     "Positive",
     "PositiveDefinite",
     "default_floor",
+    "floor_state_keys",
     "generator_from_rates",
     "hurwitz_floor",
     "integrator_chain",
+    "reset_default_floors",
     "softplus",
     "softplus_inverse",
 ]
@@ -101,9 +116,6 @@ class _Parametrization(nn.Module):
         """
         check_matrix(value, name, rows=self.size, cols=self.size, square=True)
 
-    def _floor(self, dtype: torch.dtype) -> float:
-        return default_floor(dtype) if self.floor is None else float(self.floor)
-
     def _as_raw_tensor(self, value: object, name: str) -> Tensor:
         """Cast an assigned value to the raw tensor's dtype and device."""
         if isinstance(value, torch.Tensor):
@@ -119,9 +131,111 @@ class _Parametrization(nn.Module):
         return ", ".join(parts)
 
 
-class Positive(_Parametrization):
+class _FlooredParametrization(_Parametrization):
+    """Base of the parametrisations that add an absolute floor δ > 0 after ``softplus``.
+
+    δ is ``floor`` when given. Otherwise it is fixed once, at ``default_floor(dtype)`` of the
+    first tensor the parametrisation sees (``right_inverse``'s value or ``forward``'s raw
+    tensor), and then kept whatever the dtype of later tensors. The δ in use is the module's
+    extra state (``<prefix>._extra_state`` in ``state_dict``: a 0-dim float64 tensor, 0 while
+    not fixed yet); ``load_state_dict`` restores it (an explicit ``floor`` stays as given), and
+    a state dict without it loads, strict or not, with δ = ``default_floor`` of the module's
+    dtype.
+    """
+
+    def __init__(self, floor: float | None = None, size: int | None = None) -> None:
+        super().__init__(floor, size)
+        self._default_floor: float | None = None
+
+    def _floor(self, dtype: torch.dtype) -> float:
+        """δ for a tensor of ``dtype``: the explicit floor, else the default fixed at the first call."""
+        if self.floor is not None:
+            return float(self.floor)
+        if self._default_floor is not None:
+            return self._default_floor
+        value = default_floor(dtype)
+        if not tracing():  # a traced call leaves the module as it is (the next eager call fixes δ)
+            self._default_floor = value
+        return value
+
+    def get_extra_state(self) -> Tensor:
+        """δ in use as a 0-dim float64 tensor (0 while the default floor is not fixed yet)."""
+        value = self._default_floor if self.floor is None else float(self.floor)
+        return torch.tensor(0.0 if value is None else value, dtype=torch.float64)
+
+    def set_extra_state(self, state: Any) -> None:
+        """Restore δ from :meth:`get_extra_state` (kept as the default floor; an explicit
+        ``floor`` is used as given). ValueError unless ``state`` is one finite number >= 0."""
+        value = float(state.item()) if isinstance(state, Tensor) and state.numel() == 1 else state
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+            raise ValueError(
+                f"{self._label()}: the saved floor ({_EXTRA_STATE_KEY_SUFFIX} in the state dict) must be one "
+                f"finite number >= 0, got {state!r}"
+            )
+        if self.floor is None:
+            self._default_floor = float(value) if value > 0 else None
+
+    def _label(self) -> str:
+        return f"{type(self).__name__}({getattr(self, 'name', '')!r})"
+
+    def _load_from_state_dict(
+        self,
+        state_dict: dict[str, Any],
+        prefix: str,
+        local_metadata: dict[str, Any],
+        strict: bool,
+        missing_keys: list[str],
+        unexpected_keys: list[str],
+        error_msgs: list[str],
+    ) -> None:
+        key = prefix + _EXTRA_STATE_KEY_SUFFIX
+        saved = key in state_dict
+        super()._load_from_state_dict(
+            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+        )
+        if not saved:  # saved before floors were saved: δ as such a state was read before
+            if key in missing_keys:
+                missing_keys.remove(key)
+            if self.floor is None:
+                self._default_floor = default_floor(self._ref.dtype)
+
+
+def floor_state_keys(module: nn.Module) -> frozenset[str]:
+    """The ``module.state_dict()`` keys holding the floors of its :class:`Positive`,
+    :class:`PositiveDefinite` and :class:`Generator` parametrisations.
+
+    ``load_state_dict`` accepts a state dict without them, with ``strict=True`` too (one saved
+    before the floors were saved: each floor is then the eps of the module's dtype).
+    """
+    return frozenset(
+        f"{name}.{_EXTRA_STATE_KEY_SUFFIX}" if name else _EXTRA_STATE_KEY_SUFFIX
+        for name, mod in module.named_modules(remove_duplicate=False)
+        if isinstance(mod, _FlooredParametrization)
+    )
+
+
+def reset_default_floors(module: nn.Module, dtype: torch.dtype) -> None:
+    """Fix the default floor (``floor=None``) of every :class:`Positive`, :class:`PositiveDefinite`
+    and :class:`Generator` of ``module`` at ``default_floor(dtype)``, as if it had been built in
+    ``dtype``; explicit floors are kept.
+
+    The raw tensors are not changed, so each value moves by the change of its floor (at most
+    float32's eps, 1.2e-7). Use it where a module built in one dtype is meant to be trained in
+    another: a float32 floor keeps a float64 model's values above 1.2e-7. ``dtype`` must be a
+    floating dtype (TypeError otherwise).
+    """
+    value = default_floor(dtype)
+    for mod in module.modules():
+        if isinstance(mod, _FlooredParametrization) and mod.floor is None:
+            mod._default_floor = value
+        drop_evaluated(mod)  # the online calls' evaluated model: it is kept per parameter version
+
+
+class Positive(_FlooredParametrization):
     """Elementwise positive values: ``value = softplus(raw) + floor`` (any shape).
 
+    ``floor`` δ > 0: by default the eps of the dtype of the first tensor the parametrisation
+    sees, then fixed whatever the dtype and saved in ``state_dict`` (module docstring).
     ``right_inverse`` raises ``ValueError`` for non-positive or non-finite values; values
     at or below the floor map to the smallest representable value (the floor itself).
     """
@@ -188,7 +302,7 @@ def _cholesky_raw(value: Tensor, floor: float, name: str) -> Tensor:
     return torch.tril(chol, -1) + torch.diag_embed(raw_diag)
 
 
-class PositiveDefinite(_Parametrization):
+class PositiveDefinite(_FlooredParametrization):
     """Symmetric positive-definite matrices ``value = C Cᵀ`` (..., n, n).
 
     ``C = tril(x, -1) + diag(softplus(diag x) + floor)``, x the raw entries (beyond
@@ -197,9 +311,10 @@ class PositiveDefinite(_Parametrization):
     ``value`` is symmetric positive definite for every real ``raw`` (the upper triangle of
     ``raw`` is unused). Formed in floating point it is numerically singular where its
     condition number passes ~1/eps (pivots of C far below their rows' entries); a filter then
-    says so (R nearly singular). The result is symmetrised. ``right_inverse`` takes the
-    Cholesky factor of the value (ValueError if the value is not symmetric positive definite,
-    or not (..., size, size) when ``size`` is given).
+    says so (R nearly singular). The result is symmetrised. The floor is fixed and saved as
+    :class:`Positive`'s. ``right_inverse`` takes the Cholesky factor of the value (ValueError
+    if the value is not symmetric positive definite, or not (..., size, size) when ``size`` is
+    given).
     """
 
     def __init__(self, floor: float | None = None, name: str = "value", size: int | None = None) -> None:
@@ -478,7 +593,7 @@ def generator_from_rates(rates: Tensor) -> Tensor:
     return off - torch.diag_embed(off.sum(-1))
 
 
-class Generator(_Parametrization):
+class Generator(_FlooredParametrization):
     r"""Markov-chain generators Λ (..., M, M): ``Λ_ij = softplus(raw_ij) + floor`` for i ≠ j,
     ``Λ_ii = −Σ_{j≠i} Λ_ij`` (the diagonal of raw is unused).
 
@@ -486,7 +601,7 @@ class Generator(_Parametrization):
     unbounded parameter), so ``expm(Λ dt)`` is a stochastic matrix for every dt ≥ 0.
     ``right_inverse`` accepts a generator or a matrix of off-diagonal rates (its diagonal is
     ignored); rates must be finite and > 0 (ValueError otherwise; use a fixed buffer for
-    exactly zero rates).
+    exactly zero rates). The floor is fixed and saved as :class:`Positive`'s.
     """
 
     def __init__(self, name: str = "rates", floor: float | None = None) -> None:

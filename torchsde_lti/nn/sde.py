@@ -9,7 +9,8 @@ matrices; assigning ``sde.Qc = X`` stores a preimage through the parametrisation
 ``right_inverse`` (:mod:`torch.nn.utils.parametrize`), in place, so an optimiser that holds
 the raw parameters keeps working. Matrices named in ``learn`` are ``nn.Parameter``; the
 others are buffers. Both move with ``.to()`` and are saved in ``state_dict`` (under
-``parametrizations.<name>.original``).
+``parametrizations.<name>.original``; the floor of Qc, and of a positive scalar, under
+``parametrizations.<name>.0._extra_state``).
 
 Value checks (``validate_args``, per instance with a class default as in torch.distributions):
 the constructor always checks its matrices; with ``validate_args`` every call also checks the
