@@ -9,6 +9,7 @@ Hydra multirun. Loss pieces and metrics: test_training_module.py, test_training_
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -270,6 +271,36 @@ def test_resume_from_checkpoint_continues_identically(tmp_path: Path) -> None:
     )
     hist = [c for c in resumed["callbacks"] if type(c).__name__ == "ParameterHistory"][0].history
     assert [r["epoch"] for r in hist] == [0.0, 1.0, 2.0, 3.0]
+
+
+def test_checkpoint_without_the_floors_loads_and_resumes(tmp_path: Path) -> None:
+    """A checkpoint saved before the parametrisations' floors were saved (their entries deleted)
+    loads into the filter (load_filter_weights) and resumes the run, exactly as the full one."""
+    from torchsde_lti.nn.parametrizations import floor_state_keys
+    from torchsde_lti.training import load_filter_weights
+
+    common = [*TINY, "test=false", "module.scheduler.T_max=2"]
+    _, part = train(_cfg(tmp_path / "part", *common, "trainer.max_epochs=1"))
+    new = tmp_path / "part" / "checkpoints" / "last.ckpt"
+    ckpt = torch.load(new, weights_only=True)
+    floors = {f"kf.{k}" for k in floor_state_keys(part["module"].kf)}
+    assert floors and floors <= set(ckpt["state_dict"])  # R, P0 and the model's positive scalars
+    ckpt["state_dict"] = {k: v for k, v in ckpt["state_dict"].items() if k not in floors}
+    old = tmp_path / "old.ckpt"
+    torch.save(ckpt, old)
+    kf_new, kf_old = copy.deepcopy(part["module"].kf), copy.deepcopy(part["module"].kf)
+    load_filter_weights(kf_new, new)
+    load_filter_weights(kf_old, old)
+    for name in ("R", "P0"):
+        assert torch.equal(getattr(kf_new, name), getattr(kf_old, name)), name
+    for a, b in zip(kf_new.sde.matrices(), kf_old.sde.matrices()):
+        assert (a is None and b is None) or torch.equal(a, b)
+    _, from_new = train(_cfg(tmp_path / "from_new", *common, "trainer.max_epochs=2", f"ckpt_path={new}"))
+    _, from_old = train(_cfg(tmp_path / "from_old", *common, "trainer.max_epochs=2", f"ckpt_path={old}"))
+    a, b = from_new["module"].state_dict(), from_old["module"].state_dict()
+    assert a.keys() == b.keys() and floors <= set(b)  # the resumed run saves the floors again
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
 
 
 def test_resume_past_restored_cosine_schedule_warns(tmp_path: Path) -> None:

@@ -26,6 +26,8 @@ from typing import Any
 import torch
 from torch import nn
 
+from torchsde_lti.nn.parametrizations import floor_state_keys
+
 __all__ = ["CheckpointError", "check_state_dict", "load_filter_weights", "read_checkpoint"]
 
 _ZIP_MAGIC = b"PK\x03\x04"
@@ -114,11 +116,13 @@ def check_state_dict(path: str | Path, saved: Mapping[str, Any], module: nn.Modu
     ``module.state_dict()`` (keys of ``saved`` read without ``prefix``).
 
     Names the missing, unexpected and mis-shaped entries: a checkpoint of another model
-    (``model=cv`` resumed with ``model=singer``) fails here, before any training.
+    (``model=cv`` resumed with ``model=singer``) fails here, before any training. The floors of
+    the positive parametrisations (:func:`~torchsde_lti.nn.parametrizations.floor_state_keys`)
+    may be missing: checkpoints saved before they were saved load without them.
     """
     own = module.state_dict()
     theirs = {k.removeprefix(prefix): v for k, v in saved.items() if k.startswith(prefix)}
-    missing = sorted(set(own) - set(theirs))
+    missing = sorted(set(own) - set(theirs) - floor_state_keys(module))
     unexpected = sorted(set(theirs) - set(own))
     shapes = sorted(
         f"{k} {tuple(theirs[k].shape)} vs {tuple(own[k].shape)}"

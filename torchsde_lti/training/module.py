@@ -39,6 +39,7 @@ from torchsde_lti.data.tracks import TrackBatch
 from torchsde_lti.nn import NonFiniteLikelihoodError
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
+from torchsde_lti.nn.parametrizations import reset_default_floors
 from torchsde_lti.training.metrics import (
     masked_gaussian_nll,
     parameter_errors,
@@ -103,7 +104,11 @@ class KalmanFilterModule(LightningModule):
             (0 = off) or a list of ints (each horizon's NLL is added). A KalmanFilter pushes
             the exact per-step transitions; an IMMFilter scores its forecast mixture.
         k_step_weight: weight of that loss.
-        dtype: "float64" or "float32": parameters and batches are kept in this dtype.
+        dtype: "float64" or "float32": parameters and batches are kept in this dtype, and the
+            default floors of the filter's positive parametrisations are this dtype's eps
+            (:func:`~torchsde_lti.nn.parametrizations.reset_default_floors`: a filter built
+            in float32, as Hydra builds it from plain numbers, trains in float64 with
+            float64's floors); a loaded checkpoint restores its own.
         param_names: names of the scalars to track (default: the model's own list).
         compare: which of "F", "Qc", "R" are compared with the truth in the parameter
             errors (which parameters are *trained* is the filter's and LTISDE's ``learn``).
@@ -153,6 +158,7 @@ class KalmanFilterModule(LightningModule):
         self.save_hyperparameters(ignore=["kf", "optimizer", "scheduler", "truth"])
         self.float_dtype = getattr(torch, dtype)
         self.kf = kf.to(self.float_dtype)
+        reset_default_floors(self.kf, self.float_dtype)
         self.optimizer_factory = optimizer
         self.scheduler_factory = scheduler
         # a plain dict, so the true model is neither trained nor saved in checkpoints
