@@ -23,7 +23,8 @@ from torch.utils import _pytree as pytree
 
 from torchsde_lti.core.validation import shape_str
 from torchsde_lti.filters.online import KalmanState
-from torchsde_lti.nn.kalman import KalmanFilter, OnlineModel
+from torchsde_lti.nn._kalman_online import OnlineModel
+from torchsde_lti.nn.kalman import KalmanFilter
 
 __all__ = ["DeployedFilter", "OnlineStep", "PackagedProgram", "compile_package", "load_package"]
 
