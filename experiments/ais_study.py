@@ -23,10 +23,10 @@ rates; one-step NLL + k-step forecast-mixture NLL at 4, 8, 12 reports), ``imm3_1
 IMM, one-step NLL only), ``integrated_ou`` (single model, the k-step loss), ``cv_train``
 (constant velocity learned on the training data, one-step NLL) and ``cv_oracle`` (constant
 velocity with q and R = r² I tuned by grid search on the EVALUATION tracks themselves: an
-in-sample oracle, :func:`torchsde_lti.training.evaluation.tune_cv`).
+in-sample oracle, :func:`torchsde_lti.training.baseline.tune_cv`).
 
 Model selection, on the set's VALIDATION split only (national day: its val vessels; NY week: 6 Dec),
-with the same evaluation as the hold-out (:func:`torchsde_lti.training.evaluation.validation_selection`):
+with the same evaluation as the hold-out (:func:`torchsde_lti.training.selection.validation_selection`):
 every card's calibrated predictive is scored on the validation reports; ``best_single`` = the
 single-mode model of lowest validation NLL; the best model = the IMM of lowest validation NLL among
 those whose validation forecast RMSE at 5, 10 and 15 min is <= best_single's at every horizon; when
@@ -60,17 +60,10 @@ import torch
 from torchsde_lti import IMMFilter, KalmanFilter
 from torchsde_lti.data import load_tracks
 from torchsde_lti.data.trajectories import Tracks, split_objects, split_time
-from torchsde_lti.training.evaluation import (
-    EvalRecords,
-    ModelSelection,
-    cv_filter,
-    evaluate_filter,
-    paired_bootstrap,
-    summary,
-    tune_cv,
-    validation_selection,
-)
+from torchsde_lti.training.baseline import cv_filter, tune_cv
+from torchsde_lti.training.evaluation import EvalRecords, evaluate_filter, paired_bootstrap, summary
 from torchsde_lti.training.outputs import write_json
+from torchsde_lti.training.selection import ModelSelection, validation_selection
 
 HERE = Path(__file__).resolve().parent
 MODELS_DIR = HERE / "results" / "models"
@@ -284,7 +277,7 @@ def select_on_validation(
     set_name: str, cards: dict[str, dict[str, Any]], models: dict[str, KalmanFilter | IMMFilter], samples: int
 ) -> tuple[ModelSelection, dict[str, Any]]:
     """The best model and best single of the set, decided on its VALIDATION split only
-    (:func:`torchsde_lti.training.evaluation.validation_selection`, each card's calibrated
+    (:func:`torchsde_lti.training.selection.validation_selection`, each card's calibrated
     predictive); and the record of the decision for the JSON / markdown."""
     t0 = time.perf_counter()
     val = split_tracks(set_name, "val", cards)
@@ -467,7 +460,7 @@ def markdown(payloads: list[dict[str, Any]], runtime: float, cmd: str) -> str:
             "predictive (c = 1) is listed below each table."
         ),
         "",
-        f"Model selection, on each set's VALIDATION split only (`training.evaluation.validation_selection`): {RULE}.",
+        f"Model selection, on each set's VALIDATION split only (`training.selection.validation_selection`): {RULE}.",
         "",
         SELECTION_NOTE,
         "",

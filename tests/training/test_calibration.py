@@ -12,6 +12,7 @@ import torch
 
 import torchsde_lti as tl
 from tests.training.test_evaluation import simulated_cv
+from torchsde_lti.training.baseline import cv_filter
 from torchsde_lti.training.calibration import (
     NOMINAL_2SIGMA,
     calibrate_filter,
@@ -20,7 +21,7 @@ from torchsde_lti.training.calibration import (
     hpd_level,
     one_step_predictive,
 )
-from torchsde_lti.training.evaluation import cv_filter, evaluate_filter, summary
+from torchsde_lti.training.evaluation import evaluate_filter, summary
 
 f64 = torch.float64
 

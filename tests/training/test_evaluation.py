@@ -1,5 +1,6 @@
 """training.evaluation: the one evaluation of frozen filters (moving windows, HPD coverage,
-forecast RMSE, paired vessel bootstrap, the CV oracle), on small synthetic tracks."""
+forecast RMSE, paired vessel bootstrap), with the CV oracle (training.baseline) and the model
+selection on validation (training.selection), on small synthetic tracks."""
 
 from __future__ import annotations
 
@@ -13,21 +14,19 @@ import torchsde_lti as tl
 from torchsde_lti import models
 from torchsde_lti.data import ExponentialDt, simulate_tracks
 from torchsde_lti.data.trajectories import LoadSummary, Tracks
+from torchsde_lti.training.baseline import cv_filter, tune_cv
 from torchsde_lti.training.evaluation import (
     NOMINAL_2SIGMA,
     EvalRecords,
-    cv_filter,
     evaluate_filter,
     forecast_pairs,
     hpd_inside,
     mixture_log_prob,
     moving_reports,
     paired_bootstrap,
-    select_model,
     summary,
-    tune_cv,
-    validation_selection,
 )
+from torchsde_lti.training.selection import select_model, validation_selection
 
 
 def make_tracks(object_id: list[int], times: list[np.ndarray], positions: list[np.ndarray]) -> Tracks:
@@ -306,3 +305,17 @@ def test_select_model_rule_on_given_summaries() -> None:
         select_model(val, ["nope"])
     with pytest.raises(ValueError, match="lacks"):
         select_model({"s1": {"nll": 1.0}}, ["s1"])
+
+
+def test_names_moved_out_of_evaluation_still_import_from_it() -> None:
+    """cv_filter and tune_cv (training.baseline) and the model selection (training.selection)
+    live in their own modules; the old path, training.evaluation, still gives the same objects."""
+    import torchsde_lti.training.baseline as baseline
+    import torchsde_lti.training.evaluation as evaluation
+    import torchsde_lti.training.selection as selection
+
+    for module in (baseline, selection):
+        for name in module.__all__:
+            assert getattr(evaluation, name) is getattr(module, name)
+    with pytest.raises(AttributeError, match="has no attribute 'not_a_name'"):
+        evaluation.__getattr__("not_a_name")

@@ -3,7 +3,6 @@ r"""Evaluation of frozen filters on held-out tracks: the same reports and foreca
     recs = evaluate_filter(model, tracks)        # model: KalmanFilter or IMMFilter (eval mode)
     summary(recs)                                # {"nll", "nll_moving", "nll_moored", "cover2s", "fc_rmse_300", ...}
     paired_bootstrap(recs_a, recs_b)             # {metric: {"delta", "lo", "hi"}}: a - b, vessels resampled
-    select_model(val_summaries, singles=[...])   # the model selection rule, on VALIDATION summaries only
 
 Per report k >= 2 of every track (the first report holds the prior): the one-step predictive
 NLL ``-log p(y_k | y_<k)`` (nats per 2-D report), whether y_k lies in the 86.5 % highest-density
@@ -23,19 +22,19 @@ Every metric is a ratio of per-vessel sums, so that the paired bootstrap resampl
 vessels (all tracks of an object together) and recomputes each metric for both models on
 the same resample.
 
-Model selection (:func:`select_model`, :func:`validation_selection`) judges on a VALIDATION
-split what the hold-out judges: the best single model is the single-mode model of lowest
-validation NLL; the best model is the candidate (a multi-mode model) of lowest validation NLL
-among those whose validation forecast RMSE is <= the best single's at every horizon; when
-none qualifies, the lowest validation NLL of all (and the selection says so).
+Built on this module: the constant-velocity baseline and its grid-tuned oracle
+(:mod:`torchsde_lti.training.baseline`: ``cv_filter``, ``tune_cv``) and the model selection
+rule on validation summaries (:mod:`torchsde_lti.training.selection`: ``select_model``,
+``validation_selection``, ``ModelSelection``); those names are still importable from here.
 """
 
 from __future__ import annotations
 
+import importlib
 import math
-from collections.abc import Callable, Collection, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 import torch
@@ -50,8 +49,6 @@ from torchsde_lti.training.calibration import NOMINAL_2SIGMA, hpd_level, mixture
 __all__ = [
     "HORIZONS",
     "EvalRecords",
-    "ModelSelection",
-    "cv_filter",
     "evaluate_filter",
     "evaluate_models",
     "forecast_pairs",
@@ -59,15 +56,28 @@ __all__ = [
     "mixture_log_prob",
     "moving_reports",
     "paired_bootstrap",
-    "select_model",
     "summary",
-    "tune_cv",
-    "validation_selection",
     "vessel_sums",
 ]
 
 #: Forecast horizons (s) of :func:`evaluate_filter`: 5, 10, 15 min.
 HORIZONS: tuple[float, ...] = (300.0, 600.0, 900.0)
+
+#: The names that moved to their own modules, each still importable from here: their new
+#: module (imported on first use, by :func:`__getattr__`, since it imports this one).
+_MOVED = {
+    "cv_filter": "torchsde_lti.training.baseline",
+    "tune_cv": "torchsde_lti.training.baseline",
+    "ModelSelection": "torchsde_lti.training.selection",
+    "select_model": "torchsde_lti.training.selection",
+    "validation_selection": "torchsde_lti.training.selection",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _MOVED:
+        return getattr(importlib.import_module(_MOVED[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 @dataclass
@@ -331,6 +341,11 @@ def evaluate_filter(
     )
 
 
+def evaluate_models(models: Mapping[str, Model], tracks: Tracks, **kwargs: Any) -> dict[str, EvalRecords]:
+    """:func:`evaluate_filter` of every model on the same tracks."""
+    return {name: evaluate_filter(model, tracks, **kwargs) for name, model in models.items()}
+
+
 # --------------------------------------------------------------------------- metrics
 
 
@@ -424,208 +439,3 @@ def paired_bootstrap(
             "p_ge_0": float((diff >= 0).mean()) if diff.size else math.nan,
         }
     return res
-
-
-# --------------------------------------------------------------------------- the CV baseline
-
-
-def cv_filter(q: float, r_std: float, diffuse_variance: float = 100.0) -> KalmanFilter:
-    """Constant velocity in 2-D (state [x, vx, y, vy]), isotropic R = r_std² I, float64, nothing learned."""
-    from torchsde_lti.models import constant_velocity, position_observation
-
-    sde = constant_velocity(dim=2, q=torch.tensor(float(q), dtype=torch.float64))
-    return KalmanFilter(
-        sde,
-        position_observation(sde),
-        float(r_std) ** 2 * torch.eye(2, dtype=torch.float64),
-        learn=(),
-        diffuse_variance=diffuse_variance,
-        unique_dt=True,
-    )
-
-
-def tune_cv(
-    tracks: Tracks,
-    q_grid: Sequence[float] = tuple(10.0 ** np.arange(-4.0, 0.1, 1.0)),
-    r_grid: Sequence[float] = (3.0, 10.0, 30.0, 100.0),
-    diffuse_variance: float = 100.0,
-    max_steps: int = 100_000,
-    refine: int = 2,
-    log: Callable[[str], None] | None = None,
-) -> tuple[float, float, dict[tuple[float, float], float]]:
-    """Constant velocity with (q, R = r² I) minimising the mean one-step NLL on ``tracks``.
-
-    A log-spaced grid over q and r, extended by a factor of the grid step beyond any edge
-    where the optimum lies until the optimum is inside, then refined ``refine`` times
-    (halving the log step around the optimum). Returns (q, r_std, {(q, r): mean NLL}).
-    """
-    batches, _ = _batches(tracks, max_steps)
-    table: dict[tuple[float, float], float] = {}
-
-    def score(q: float, r: float) -> float:
-        key = (float(q), float(r))
-        if key not in table:
-            kf = cv_filter(q, r, diffuse_variance)
-            tot, cnt = 0.0, 0
-            with torch.no_grad():
-                for batch in batches:
-                    m = batch.mask.clone()
-                    m[:, 0] = False
-                    ll = kf(batch.y, batch.dt, mask=batch.mask).step_log_likelihood
-                    tot += float(-(ll * m).sum())
-                    cnt += int(m.sum())
-            table[key] = tot / max(cnt, 1)
-        return table[key]
-
-    qs, rs = np.log10(np.asarray(q_grid, float)), np.log10(np.asarray(r_grid, float))
-    dq = float(np.diff(qs).min()) if len(qs) > 1 else 1.0
-    dr = float(np.diff(rs).min()) if len(rs) > 1 else 0.5
-    for _ in range(20):  # extend until the optimum is inside
-        vals = np.array([[score(10**a, 10**c) for c in rs] for a in qs])
-        i, j = np.unravel_index(np.argmin(vals), vals.shape)
-        grow = False
-        if i == 0:
-            qs, grow = np.concatenate([[qs[0] - dq], qs]), True
-        elif i == len(qs) - 1:
-            qs, grow = np.concatenate([qs, [qs[-1] + dq]]), True
-        if j == 0:
-            rs, grow = np.concatenate([[rs[0] - dr], rs]), True
-        elif j == len(rs) - 1:
-            rs, grow = np.concatenate([rs, [rs[-1] + dr]]), True
-        if not grow:
-            break
-    bq, br = qs[i], rs[j]
-    for _ in range(refine):
-        dq, dr = dq / 2, dr / 2
-        cand = [(bq + a * dq, br + c * dr) for a in (-1, 0, 1) for c in (-1, 0, 1)]
-        bq, br = min(cand, key=lambda p: score(10 ** p[0], 10 ** p[1]))
-    if log is not None:
-        log(f"cv oracle: q={10**bq:.4g}, r={10**br:.4g} m ({len(table)} grid points)")
-    return float(10**bq), float(10**br), table
-
-
-def evaluate_models(models: Mapping[str, Model], tracks: Tracks, **kwargs: Any) -> dict[str, EvalRecords]:
-    """:func:`evaluate_filter` of every model on the same tracks."""
-    return {name: evaluate_filter(model, tracks, **kwargs) for name, model in models.items()}
-
-
-# --------------------------------------------------------------------------- model selection
-
-
-class ModelSelection(NamedTuple):
-    """The outcome of :func:`select_model`.
-
-    best: the selected model; best_single: the single-mode model of lowest validation NLL;
-    candidates: the models the rule chose among (every model not in ``singles``);
-    qualified: the candidates whose validation forecast RMSE is <= best_single's at every
-    horizon (in the order given); fallback: True when no candidate qualified and ``best`` is
-    the lowest validation NLL of all models; reason: the decision in words; table: the
-    validation summaries the rule read ({model: {metric: value}}, as given).
-    """
-
-    best: str
-    best_single: str
-    candidates: tuple[str, ...]
-    qualified: tuple[str, ...]
-    fallback: bool
-    reason: str
-    table: dict[str, dict[str, float]]
-
-
-def select_model(
-    val: Mapping[str, Mapping[str, float]],
-    singles: Collection[str],
-    horizons: Sequence[float] = HORIZONS,
-    nll_key: str = "nll",
-) -> ModelSelection:
-    r"""The model selection rule, on VALIDATION summaries (never the hold-out's).
-
-    With :math:`\mathrm{NLL}_v(m)` and :math:`\mathrm{RMSE}_v(m, h)` the validation NLL per report
-    and forecast RMSE at horizon h of model m (:func:`summary` on the validation split, the
-    same reports for every model):
-
-    - best single :math:`s^* = \arg\min_{m \in \text{singles}} \mathrm{NLL}_v(m)`;
-    - qualified :math:`Q = \{c \notin \text{singles} : \mathrm{RMSE}_v(c, h) \le
-      \mathrm{RMSE}_v(s^*, h)\ \forall h\}` (a NaN RMSE does not qualify);
-    - best :math:`= \arg\min_{c \in Q} \mathrm{NLL}_v(c)`; when Q is empty (or there are no
-      candidates), the fallback :math:`\arg\min_m \mathrm{NLL}_v(m)` over all models.
-
-    So the selected model is not worse than the best single model on validation forecasts
-    (what the hold-out judges besides the NLL), and among those the likeliest.
-
-    Args:
-        val: {model: summary} with ``nll_key`` and ``fc_rmse_<min>`` for every horizon (e.g.
-            ``{"fc_rmse_5": ...}`` for 300 s), e.g. :func:`summary` of :func:`evaluate_filter`
-            on the validation tracks.
-        singles: the single-mode models (at least one of ``val``).
-        horizons: forecast horizons (s) to check; nll_key: the NLL metric to rank by.
-
-    Returns:
-        :class:`ModelSelection`. Ties go to the model listed first in ``val``.
-    """
-    names = list(val)
-    if not names:
-        raise ValueError("val must hold at least one model's validation summary, got none")
-    unknown = [s for s in singles if s not in val]
-    if unknown:
-        raise ValueError(f"singles must name models of val {names}, got unknown {unknown}")
-    single = [n for n in names if n in set(singles)]
-    if not single:
-        raise ValueError(f"singles must name at least one model of val {names}, got none")
-    keys = [nll_key, *(f"fc_rmse_{_key(h)}" for h in horizons)]
-    for n in names:
-        missing = [k for k in keys if k not in val[n]]
-        if missing:
-            raise ValueError(f"val[{n!r}] lacks {missing} (needs {keys})")
-
-    def nll(n: str) -> float:
-        v = float(val[n][nll_key])
-        return v if math.isfinite(v) else math.inf
-
-    best_single = min(single, key=nll)
-    candidates = tuple(n for n in names if n not in set(single))
-    ref = {h: float(val[best_single][f"fc_rmse_{_key(h)}"]) for h in horizons}
-    qualified = tuple(c for c in candidates if all(float(val[c][f"fc_rmse_{_key(h)}"]) <= ref[h] for h in horizons))
-    table = {n: {k: float(v) for k, v in val[n].items()} for n in names}
-    horizon_s = "/".join(_key(h) for h in horizons)
-    if qualified:
-        best = min(qualified, key=nll)
-        reason = (
-            f"{best}: lowest validation {nll_key} among the candidates whose validation forecast RMSE at "
-            f"{horizon_s} min is <= the best single's ({best_single}): {list(qualified)} of {list(candidates)}"
-        )
-        return ModelSelection(best, best_single, candidates, qualified, False, reason, table)
-    best = min(names, key=nll)
-    reason = (
-        f"FALLBACK: no candidate of {list(candidates)} has a validation forecast RMSE at {horizon_s} min <= the "
-        f"best single's ({best_single}); {best}: the lowest validation {nll_key} of all models"
-    )
-    return ModelSelection(best, best_single, candidates, (), True, reason, table)
-
-
-def validation_selection(
-    models: Mapping[str, Model],
-    tracks: Tracks,
-    singles: Collection[str] | None = None,
-    cov_scale: Mapping[str, float | Sequence[float]] | None = None,
-    horizons: Sequence[float] = HORIZONS,
-    **kwargs: Any,
-) -> ModelSelection:
-    """:func:`select_model` on :func:`summary` of :func:`evaluate_filter` of every model on the
-    VALIDATION ``tracks`` (the same reports for every model).
-
-    Args:
-        models: {name: frozen filter}; singles: the single-mode models (default: every
-            :class:`~torchsde_lti.KalmanFilter` of ``models``; the candidates are the rest).
-        cov_scale: {name: the calibrated predictive's covariance scale} (default 1.0: the
-            filter's own predictive); the NLL ranks the predictive that is evaluated.
-        horizons: forecast horizons (s); kwargs: more arguments of :func:`evaluate_filter`.
-    """
-    if singles is None:
-        singles = [n for n, m in models.items() if isinstance(m, KalmanFilter)]
-    scale = dict(cov_scale or {})
-    val = {
-        n: summary(evaluate_filter(m, tracks, horizons=horizons, cov_scale=scale.get(n, 1.0), **kwargs))
-        for n, m in models.items()
-    }
-    return select_model(val, singles, horizons)
