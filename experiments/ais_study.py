@@ -59,7 +59,8 @@ import torch
 
 from torchsde_lti import IMMFilter, KalmanFilter
 from torchsde_lti.data import load_tracks
-from torchsde_lti.data.trajectories import Tracks, split_objects, split_time
+from torchsde_lti.data.loaded_tracks import Tracks
+from torchsde_lti.data.splits import split_objects, split_time
 from torchsde_lti.training.baseline import cv_filter, tune_cv
 from torchsde_lti.training.evaluation import EvalRecords, evaluate_filter, paired_bootstrap, summary
 from torchsde_lti.training.outputs import write_json

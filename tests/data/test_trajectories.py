@@ -273,3 +273,17 @@ def test_float32_windows_are_centred_in_float64(coastal) -> None:
     for a, b in zip(w32, w64):
         err = (a.y.double() - b.y).abs().max()
         assert float(err) <= 1e-6 * max(1.0, float(b.y.abs().max()))
+
+
+def test_names_of_trajectories_still_import_from_it() -> None:
+    """Tracks and LoadSummary (data.loaded_tracks) and the splits and windows (data.splits) live
+    in their own modules; data.trajectories still exports every name it did."""
+    import torchsde_lti.data as data
+    import torchsde_lti.data.loaded_tracks as loaded_tracks
+    import torchsde_lti.data.splits as splits
+    import torchsde_lti.data.trajectories as trajectories
+
+    moved = [*loaded_tracks.__all__, *splits.__all__]
+    assert set(moved) | {"load_tracks", "prepare_tracks"} == set(trajectories.__all__)
+    for name in trajectories.__all__:
+        assert getattr(trajectories, name) is getattr(data, name)

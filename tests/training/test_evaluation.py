@@ -13,7 +13,7 @@ import torch
 import torchsde_lti as tl
 from torchsde_lti import models
 from torchsde_lti.data import ExponentialDt, simulate_tracks
-from torchsde_lti.data.trajectories import LoadSummary, Tracks
+from torchsde_lti.data.loaded_tracks import LoadSummary, Tracks
 from torchsde_lti.training.baseline import cv_filter, tune_cv
 from torchsde_lti.training.evaluation import (
     NOMINAL_2SIGMA,

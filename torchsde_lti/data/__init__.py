@@ -9,6 +9,7 @@ DataModules.
     windows = tl.data.track_windows(train, max_len=128)          # list of Track, metres and seconds
 """
 
+from torchsde_lti.data.loaded_tracks import LoadSummary, Tracks
 from torchsde_lti.data.simulate import (
     BurstDt,
     ExponentialDt,
@@ -20,6 +21,7 @@ from torchsde_lti.data.simulate import (
     simulate_tracks,
 )
 from torchsde_lti.data.sources import AIS_COLUMNS, RESERVED_FOR_EVALUATION, Reports, locate_file, read_reports
+from torchsde_lti.data.splits import split_objects, split_time, track_windows, window_bounds
 from torchsde_lti.data.tracks import (
     BucketBatchSampler,
     EpochShuffleSampler,
@@ -31,16 +33,7 @@ from torchsde_lti.data.tracks import (
     padding_waste,
     unpad_tracks,
 )
-from torchsde_lti.data.trajectories import (
-    LoadSummary,
-    Tracks,
-    load_tracks,
-    prepare_tracks,
-    split_objects,
-    split_time,
-    track_windows,
-    window_bounds,
-)
+from torchsde_lti.data.trajectories import load_tracks, prepare_tracks
 
 __all__ = [
     "AIS_COLUMNS",

@@ -21,8 +21,10 @@ from lightning.pytorch import LightningDataModule
 from torch import Tensor
 from torch.utils.data import DataLoader, SequentialSampler
 
+from torchsde_lti.data.loaded_tracks import LoadSummary, Tracks
 from torchsde_lti.data.simulate import ExponentialDt, isotropic_covariance, simulate_tracks
 from torchsde_lti.data.sources import RESERVED_FOR_EVALUATION, locate_file
+from torchsde_lti.data.splits import split_objects, split_time, track_windows
 from torchsde_lti.data.tracks import (
     BucketBatchSampler,
     EpochShuffleSampler,
@@ -32,7 +34,7 @@ from torchsde_lti.data.tracks import (
     padding_waste,
     unpad_tracks,
 )
-from torchsde_lti.data.trajectories import LoadSummary, Tracks, load_tracks, split_objects, split_time, track_windows
+from torchsde_lti.data.trajectories import load_tracks
 
 __all__ = ["DataSummary", "SimulatedTracks", "TrackDataModule"]
 

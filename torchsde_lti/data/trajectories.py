@@ -23,27 +23,25 @@ first report (``frame="local"``, :mod:`torchsde_lti.data.frames`), or in one fix
 ``reference`` (``frame="common"``). Speed over ground (knots) and course over ground become
 a velocity (m/s) in the same frame. Times are seconds since the file's first report.
 
-:class:`Tracks` holds everything as flat numpy arrays with per-track offsets (memory linear
-in the number of reports); :func:`split_objects` / :func:`split_time` divide it,
-:func:`track_windows` cuts it into :class:`~torchsde_lti.data.tracks.Track` windows of at most
-``max_len`` reports for training.
+The result is a :class:`~torchsde_lti.data.loaded_tracks.Tracks` (flat numpy arrays with
+per-track offsets) with its :class:`~torchsde_lti.data.loaded_tracks.LoadSummary`
+(:mod:`torchsde_lti.data.loaded_tracks`); :mod:`torchsde_lti.data.splits` divides it into
+object-disjoint or time splits and cuts it into training windows. Those names are also
+importable from here.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
-import torch
 
 from torchsde_lti.data.frames import EARTH_MEAN_RADIUS, KNOT, angular_distance, local_positions, local_velocities
+from torchsde_lti.data.loaded_tracks import LoadSummary, Tracks, _ranges
 from torchsde_lti.data.sources import Reports, read_reports
-from torchsde_lti.data.tracks import Track
+from torchsde_lti.data.splits import split_objects, split_time, track_windows, window_bounds
 
 __all__ = [
     "LoadSummary",
@@ -57,147 +55,6 @@ __all__ = [
 ]
 
 _COURSE_ENCODINGS = ("ais", "ais_int12", "degrees")
-
-
-@dataclass(frozen=True)
-class LoadSummary:
-    """What :func:`load_tracks` read, removed and kept; every report read is accounted for:
-    ``rows = malformed + invalid_positions + repeated_timestamps + jump_reports_dropped +
-    short_reports + reports``."""
-
-    source: str
-    rows: int
-    malformed: int
-    malformed_examples: tuple[str, ...]
-    invalid_positions: int
-    repeated_timestamps: int
-    time_cuts: int
-    gap_splits: int
-    jump_reports_dropped: int
-    jump_splits: int
-    extent_splits: int
-    short_tracks: int
-    short_reports: int
-    courses_decoded: int
-    objects: int
-    tracks: int
-    reports: int
-    dims: int
-    frame: str
-    rules: dict[str, Any]
-
-    def as_dict(self) -> dict[str, Any]:
-        """Plain Python values (JSON-ready)."""
-        out = dataclasses.asdict(self)
-        out["malformed_examples"] = list(self.malformed_examples)
-        return out
-
-    def __str__(self) -> str:
-        r = self.rules
-        off = lambda key, text: text.format(r[key]) if r.get(key) is not None else f"{key} off"  # noqa: E731
-        rows = [
-            ("malformed lines / rows skipped", self.malformed),
-            ("invalid positions dropped", self.invalid_positions),
-            ("repeated timestamps dropped", self.repeated_timestamps),
-            (f"cuts at split times ({len(r.get('cut_times') or ())})", self.time_cuts),
-            (f"cuts at gaps: {off('max_gap', '> {} s')}", self.gap_splits),
-            (f"jumps: {off('v_max', '> {} m/s')}: reports dropped", self.jump_reports_dropped),
-            (f"jumps: {off('v_max', '> {} m/s')}: tracks cut", self.jump_splits),
-            (f"cuts at extent: {off('max_extent', '{} m from the origin')}", self.extent_splits),
-            (
-                f"tracks < {r.get('min_reports')} reports dropped (reports)",
-                f"{self.short_tracks} ({self.short_reports})",
-            ),
-        ]
-        if self.courses_decoded:
-            rows.append(("COG decoded from signed 12-bit AIS", self.courses_decoded))
-        width = max(len(k) for k, _ in rows)
-        lines = [f"{os.path.basename(self.source)}: {self.rows} reports read"]
-        lines += [f"  {k:<{width}}  {v}" for k, v in rows]
-        lines += [
-            f"  kept: {self.tracks} tracks of {self.objects} objects, {self.reports} reports "
-            f"({self.dims}-D, {self.frame} frame{'s' if self.frame == 'local' else ''})"
-        ]
-        lines += [f"  malformed, e.g.: {e}" for e in self.malformed_examples]
-        return "\n".join(lines)
-
-
-@dataclass(frozen=True, eq=False)
-class Tracks:
-    """Tracks as flat arrays: track i is reports ``offsets[i]:offsets[i + 1]``, time-sorted.
-
-    S tracks, N reports, d = 2 (east, north) or 3 (east, north, altitude):
-    object_id (S,) int64 or str; offsets (S + 1,) int64; t (N,) float64 seconds since ``t0``
-    (strictly increasing within a track); pos (N, d) metres in the track's frame; lat, lon (N,)
-    degrees (lon in [-180, 180)); alt (N,) metres or None; vel (N, 2) m/s east, north from
-    SOG/COG (NaN where unavailable) or None; sog (N,) knots or None; origin (S, 3) the frame
-    origin (lat, lon, alt) of each track; t0 datetime64[us]; frame "local" or "common";
-    summary what the loader did.
-    """
-
-    object_id: np.ndarray
-    offsets: np.ndarray
-    t: np.ndarray
-    pos: np.ndarray
-    lat: np.ndarray
-    lon: np.ndarray
-    alt: np.ndarray | None
-    vel: np.ndarray | None
-    sog: np.ndarray | None
-    origin: np.ndarray
-    t0: np.datetime64
-    frame: str
-    summary: LoadSummary
-
-    def __len__(self) -> int:
-        return len(self.offsets) - 1
-
-    @property
-    def lengths(self) -> np.ndarray:
-        """(S,) reports per track."""
-        return np.diff(self.offsets)
-
-    @property
-    def num_reports(self) -> int:
-        return int(self.offsets[-1])
-
-    @property
-    def dims(self) -> int:
-        return int(self.pos.shape[-1])
-
-    def track(self, i: int) -> dict[str, np.ndarray]:
-        """Track ``i`` as views: t, pos, lat, lon (and alt, vel, sog where present)."""
-        a, b = int(self.offsets[i]), int(self.offsets[i + 1])
-        out = {
-            k: getattr(self, k)[a:b]
-            for k in ("t", "pos", "lat", "lon", "alt", "vel", "sog")
-            if getattr(self, k) is not None
-        }
-        return out
-
-    def subset(self, indices: Sequence[int] | np.ndarray) -> Tracks:
-        """The tracks ``indices`` (in that order), same frames and summary."""
-        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
-        lengths = self.lengths[idx]
-        offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
-        rows = _ranges(self.offsets[idx], lengths)
-        per_report = {
-            k: (None if getattr(self, k) is None else getattr(self, k)[rows])
-            for k in ("t", "pos", "lat", "lon", "alt", "vel", "sog")
-        }
-        return dataclasses.replace(
-            self, object_id=self.object_id[idx], offsets=offsets, origin=self.origin[idx], **per_report
-        )
-
-
-def _ranges(starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
-    """Concatenated aranges [starts[i], starts[i] + lengths[i]) without a Python loop."""
-    total = int(lengths.sum())
-    if total == 0:
-        return np.zeros(0, dtype=np.int64)
-    seg = np.repeat(np.arange(len(lengths)), lengths)
-    first = np.concatenate([[0], np.cumsum(lengths)[:-1]])
-    return (np.asarray(starts, dtype=np.int64)[seg] + np.arange(total) - first[seg]).astype(np.int64)
 
 
 def load_tracks(
@@ -524,130 +381,3 @@ def _cut_extent(lat: np.ndarray, lon: np.ndarray, start: np.ndarray, limit: floa
             start[a] = True
             cuts += 1
     return start, cuts
-
-
-# ---------------------------------------------------------------------------- splits and windows
-def split_objects(
-    tracks: Tracks, fractions: Sequence[float] = (0.6, 0.2, 0.2), seed: int = 0
-) -> tuple[Tracks, Tracks, Tracks]:
-    """Object-disjoint (train, val, test) splits: every track of an object goes where the object goes.
-
-    The sorted distinct object ids (K of them) are permuted with ``seed`` and cut into
-    val = round(f_val K), test = round(f_test K), train = the rest.
-
-    Args:
-        tracks: the tracks to split.
-        fractions: (train, val, test) shares of the objects, non-negative, summing to 1.
-        seed: the permutation's seed.
-
-    Returns:
-        tuple[Tracks, Tracks, Tracks]: train, val and test.
-    """
-    if len(fractions) != 3 or any(f < 0 for f in fractions) or not math.isclose(sum(fractions), 1.0):
-        raise ValueError(f"fractions must be 3 non-negative numbers summing to 1, got {list(fractions)}")
-    ids, owner = np.unique(tracks.object_id, return_inverse=True)
-    k = len(ids)
-    perm = np.random.default_rng(seed).permutation(k)
-    n_val, n_test = round(fractions[1] * k), round(fractions[2] * k)
-    n_train = k - n_val - n_test
-    parts = (perm[:n_train], perm[n_train : n_train + n_val], perm[n_train + n_val :])
-    out = []
-    for part in parts:
-        chosen = np.zeros(k, dtype=bool)
-        chosen[part] = True
-        out.append(tracks.subset(np.flatnonzero(chosen[owner])))
-    return out[0], out[1], out[2]
-
-
-def split_time(tracks: Tracks, boundaries: Sequence[str | np.datetime64]) -> list[Tracks]:
-    """Tracks grouped by the interval of their first report: [-inf, b1), [b1, b2), ..., [bk, inf).
-
-    Args:
-        tracks: tracks loaded with ``cut_times=boundaries``, so that none spans a boundary.
-        boundaries: increasing instants (ISO 8601 strings or datetime64).
-
-    Returns:
-        list[Tracks]: k + 1 groups, in time order.
-
-    Raises:
-        ValueError: for boundaries that do not increase, or a track spanning one.
-    """
-    cuts = np.array(
-        [(np.datetime64(b, "us") - tracks.t0).astype("timedelta64[us]").astype(np.int64) / 1e6 for b in boundaries]
-    )
-    if np.any(np.diff(cuts) <= 0):
-        raise ValueError(f"boundaries must increase, got {list(map(str, boundaries))}")
-    first_t, last_t = tracks.t[tracks.offsets[:-1]], tracks.t[tracks.offsets[1:] - 1]
-    bins = np.searchsorted(cuts, first_t, side="right")
-    if np.any(bins != np.searchsorted(cuts, last_t, side="right")):
-        raise ValueError("some tracks span a split boundary: load them with cut_times=boundaries")
-    return [tracks.subset(np.flatnonzero(bins == k)) for k in range(len(cuts) + 1)]
-
-
-def window_bounds(lengths: np.ndarray, max_len: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cut tracks of ``lengths`` into ceil(L / max_len) windows of near-equal length (<= max_len).
-
-    Args:
-        lengths: (K,) track lengths.
-        max_len: the longest window (>= 2); None = one window per track.
-
-    Returns:
-        tuple[ndarray, ndarray, ndarray]: (track index, start, stop) per window, start/stop relative
-        to the track.
-    """
-    lengths = np.asarray(lengths, dtype=np.int64)
-    if max_len is None:
-        n = np.ones_like(lengths)
-    else:
-        if int(max_len) < 2:
-            raise ValueError(f"max_len must be >= 2 or None, got {max_len}")
-        n = -(-lengths // int(max_len))
-    owner = np.repeat(np.arange(len(lengths)), n)
-    j = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
-    L, k = lengths[owner], n[owner]
-    return owner, (j * L) // k, ((j + 1) * L) // k
-
-
-def track_windows(
-    tracks: Tracks, max_len: int | None = None, center: bool = True, dtype: torch.dtype = torch.float32
-) -> list[Track]:
-    """Training windows as :class:`~torchsde_lti.data.tracks.Track` s (:func:`window_bounds`).
-
-    Args:
-        tracks: the tracks to cut.
-        max_len: the longest window (reports); None = whole tracks.
-        center: subtract each window's first report from its positions (kept in ``origin``).
-        dtype: of the returned tensors.
-
-    Returns:
-        list[Track]: per window y (T, d) positions, dt (T,) seconds from the previous report
-        (dt[0] = 0: the prior sits at the first report), t (T,) seconds since ``tracks.t0``,
-        vel (T, 2) and sog (T,) where the file has SOG/COG, and track_id, the track's index in
-        ``tracks`` (``tracks.object_id[track_id]`` is the object).
-    """
-    owner, a, b = window_bounds(tracks.lengths, max_len)
-    a = a + tracks.offsets[owner]
-    b = b + tracks.offsets[owner]
-    as_t = lambda x: torch.as_tensor(np.ascontiguousarray(x, dtype=np.float64)).to(dtype)  # noqa: E731
-    pos64 = np.ascontiguousarray(tracks.pos, dtype=np.float64)  # (centred in float64, then cast)
-    t = as_t(tracks.t)
-    vel = as_t(tracks.vel) if tracks.vel is not None else None
-    sog = as_t(tracks.sog) if tracks.sog is not None else None
-    dt_all = np.concatenate([[0.0], np.diff(tracks.t)])
-    dt_all[a] = 0.0
-    dt = as_t(dt_all)
-    out = []
-    for k, (i, j) in enumerate(zip(a.tolist(), b.tolist())):
-        origin = pos64[i] if center else np.zeros_like(pos64[i])
-        out.append(
-            Track(
-                y=torch.as_tensor(pos64[i:j] - origin).to(dtype),
-                dt=dt[i:j],
-                t=t[i:j],
-                vel=None if vel is None else vel[i:j],
-                sog=None if sog is None else sog[i:j],
-                origin=torch.tensor(origin, dtype=dtype),
-                track_id=torch.tensor(int(owner[k]), dtype=torch.int64),
-            )
-        )
-    return out

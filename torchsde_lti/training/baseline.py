@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import torch
 
-from torchsde_lti.data.trajectories import Tracks
+from torchsde_lti.data.loaded_tracks import Tracks
 from torchsde_lti.nn.kalman import KalmanFilter
 from torchsde_lti.training.evaluation import _batches
 

@@ -30,7 +30,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
-from torchsde_lti.data.trajectories import Tracks
+from torchsde_lti.data.loaded_tracks import Tracks
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
 

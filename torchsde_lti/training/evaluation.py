@@ -40,8 +40,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchsde_lti.data.loaded_tracks import Tracks
+from torchsde_lti.data.splits import track_windows
 from torchsde_lti.data.tracks import TrackBatch, pad_tracks
-from torchsde_lti.data.trajectories import Tracks, track_windows
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
 from torchsde_lti.training.calibration import NOMINAL_2SIGMA, hpd_level, mixture_log_prob, scale_vector

@@ -22,7 +22,7 @@ import math
 from collections.abc import Collection, Mapping, Sequence
 from typing import Any, NamedTuple
 
-from torchsde_lti.data.trajectories import Tracks
+from torchsde_lti.data.loaded_tracks import Tracks
 from torchsde_lti.nn.kalman import KalmanFilter
 from torchsde_lti.training.evaluation import HORIZONS, Model, _key, evaluate_filter, summary
 
