@@ -465,6 +465,20 @@ def test_compositions_check_the_parts_batch_shapes() -> None:
         M.shaped(M.ornstein_uhlenbeck(torch.ones(3), 1.0), M.ornstein_uhlenbeck(torch.ones(2), 1.0))
 
 
+def test_unknown_option_raises_type_error() -> None:
+    """A misspelt or unsupported option (``method=`` belongs to the SDE and the filter) is
+    refused, naming the options a factory takes; it was silently ignored."""
+    for make in (
+        lambda **o: models.singer(0.6, 2.0, dim=2, **o),
+        lambda **o: models.constant_velocity(2, **o),
+        lambda **o: models.matern(1.5, 1.0, 1.0, **o),
+        lambda **o: models.from_transfer_function([1.0], [1.0, 2.0, 3.0], 1.0, **o),
+    ):
+        with pytest.raises(TypeError, match=r"unknown model options \['method'\].*'validate_args'"):
+            make(method="matrix_exp")
+        assert make(dtype=torch.float64).matrices().F.dtype == torch.float64
+
+
 def test_prior_covariance_refuses_a_bad_diffuse_variance() -> None:
     model = tl.models.block_diag(tl.models.constant_velocity(1, 1.0), tl.models.matern(1.5, 1.0, 1.0))
     for bad in (-1.0, 0.0, float("nan"), float("inf")):

@@ -37,7 +37,13 @@ def check_int(value: object, name: str, minimum: int) -> int:
 
 def scalar_dtype_device(values: Sequence[object], options: ModelOptions) -> tuple[torch.dtype, torch.device | None]:
     """dtype and device of a model's parameters: the options' when given, else those of the
-    tensors among ``values`` (promoted), else torch's default dtype and no device."""
+    tensors among ``values`` (promoted), else torch's default dtype and no device. TypeError
+    naming an option that is not one of :class:`ModelOptions`'."""
+    unknown = sorted(set(options) - set(ModelOptions.__annotations__))
+    if unknown:
+        raise TypeError(
+            f"unknown model options {unknown}: a model factory takes {sorted(ModelOptions.__annotations__)}"
+        )
     tensors = [v for v in values if isinstance(v, Tensor)]
     dtype = options.get("dtype") or common_float_dtype(*tensors)
     device = options.get("device")

@@ -137,9 +137,10 @@ class KalmanFilter(KalmanOnline):
         learn: which of ``"H", "D", "R", "m0", "P0"`` are ``nn.Parameter`` (default ``("R",)``).
         algorithm: one of :data:`~torchsde_lti.filters.ALGORITHMS` (see
             :func:`~torchsde_lti.kalman_filter`): ``"auto"`` (default) chooses per call
-            (:func:`~torchsde_lti.filters.choose_algorithm`): on CPU the associative scan for
-            at most ``SCAN_MAX_BATCH_CPU`` = 16 tracks, where per-step Python overhead
-            dominates the loop, else the sequential loop; on other devices the scan; under
+            (:func:`~torchsde_lti.filters.choose_algorithm`): in float64 on CPU the associative
+            scan for at most ``SCAN_MAX_BATCH_CPU`` = 16 tracks, where per-step Python overhead
+            dominates the loop, else the sequential loop, and on other devices the scan; in
+            float32 the sequential loop (the scan's combine loses long gaps there); under
             ``torch.compile`` the loop as a structured scan. ``"sequential"``, ``"scan"``
             force one; ``"square_root"`` propagates
             Cholesky factors (QR predict, Givens update): same results up to rounding, and in
