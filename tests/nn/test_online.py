@@ -529,3 +529,60 @@ def test_imm_step_of_many_tracks_in_chunks_equals_one_pass(monkeypatch):
     for got, want in zip(runs[1], runs[0]):
         assert got.shape == want.shape
         torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+
+
+def test_initial_state_broadcasts_with_a_parameter_batch_and_checks_batch_shape() -> None:
+    """A model with a parameter batch (3 OU rates) starts 3 tracks per shape element (the
+    sequence filter broadcasts the same way); the online steps from that state equal the
+    sequence filter; a negative or non-broadcasting batch_shape is a ValueError naming it."""
+    ou = tl.models.ornstein_uhlenbeck(torch.tensor([0.5, 1.0, 2.0], dtype=F64), 1.0)
+    kf = tl.KalmanFilter(ou, torch.tensor([[1.0]], dtype=F64), torch.tensor([[0.3]], dtype=F64))
+    assert [tuple(t.shape) for t in kf.initial_state()] == [(3, 1), (3, 1, 1)]
+    state = kf.initial_state((2, 1))
+    assert [tuple(t.shape) for t in state] == [(2, 3, 1), (2, 3, 1, 1)]
+    g = torch.Generator().manual_seed(4)
+    y, dt = torch.randn(2, 1, 4, 1, generator=g, dtype=F64), torch.rand(2, 1, 4, generator=g, dtype=F64)
+    out = kf(y, dt)
+    with torch.no_grad():
+        for k in range(4):
+            state, step = kf.step(state, y[:, :, k], dt[:, :, k])
+            torch.testing.assert_close(state.mean, out.mean[..., k, :].detach(), rtol=0, atol=1e-12)
+    for bad in (-1, (2, -3), (2,), "ab", 1.5):
+        with pytest.raises(ValueError, match="batch_shape"):
+            kf.initial_state(bad)  # type: ignore[arg-type]
+    imm = _imm()
+    with pytest.raises(ValueError, match="batch_shape"):
+        imm.initial_state(-2)
+    assert imm.initial_state((4,)).mode_cov.shape == (4, 2, 4, 4)
+
+
+def test_predict_and_forecast_check_the_state_like_step() -> None:
+    """predict and forecast (KalmanFilter and IMMFilter) name mismatched batches in a
+    ValueError, convert a state of another dtype, and refuse a NaN state with value checks on."""
+    kf, imm = _kf(), _imm()
+    state, istate = kf.initial_state(3), imm.initial_state(3)
+    dt2, dtK = torch.rand(2, dtype=F64), torch.rand(2, 4, dtype=F64)
+    for call in (
+        lambda: kf.predict(state, dt2),
+        lambda: kf.forecast(state, dtK),
+        lambda: imm.predict(istate, dt2),
+        lambda: imm.forecast(istate, dtK),
+    ):
+        with pytest.raises(ValueError, match=r"batch shapes do not broadcast: state\.mode_prob|state\.mean"):
+            call()
+    f32 = tl.KalmanState(*(t.float() for t in state))
+    want = kf.forecast(state, 1.5)
+    got = kf.forecast(f32, 1.5)
+    assert got.mean.dtype == F64
+    torch.testing.assert_close(got.cov, want.cov, rtol=1e-6, atol=1e-6)
+    assert imm.forecast(tl.IMMState(*(t.float() for t in istate)), 1.5).mean.dtype == F64
+    bad = tl.KalmanState(state.mean.clone(), state.cov)
+    bad.mean[0, 0] = float("nan")
+    for call in (lambda: kf.predict(bad, 1.0), lambda: kf.forecast(bad, 1.0)):
+        with pytest.raises(ValueError, match="mean contains NaN"):
+            call()
+    ibad = tl.IMMState(istate.mode_prob, istate.mode_mean.clone(), istate.mode_cov)
+    ibad.mode_mean[0, 0, 0] = float("nan")
+    for call in (lambda: imm.predict(ibad, 1.0), lambda: imm.forecast(ibad, 1.0)):
+        with pytest.raises(ValueError, match="state.mode_mean contains NaN"):
+            call()

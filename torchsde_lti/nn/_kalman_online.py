@@ -32,7 +32,15 @@ from torchsde_lti.filters.online import (
     kalman_predict,
     kalman_step,
 )
-from torchsde_lti.nn._online import Series, evaluated, model_series, online_state, series_step
+from torchsde_lti.nn._online import (
+    Series,
+    check_batches,
+    evaluated,
+    model_series,
+    online_state,
+    series_step,
+    tracks_shape,
+)
 from torchsde_lti.nn._validate import ValidateArgs, online_report
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
 
@@ -70,15 +78,18 @@ class KalmanOnline(ValidateArgs, nn.Module):
     def initial_state(self, batch_shape: torch.Size | tuple[int, ...] | int = ()) -> KalmanState:
         """The prior N(m0, P0) at t₀ for ``batch_shape`` new tracks, for :meth:`step`.
 
-        Returns :class:`~torchsde_lti.KalmanState` with mean (*batch_shape, n) and cov
-        (*batch_shape, n, n) (expanded views of the current m0, P0; ``()``: one track,
-        unpacks as ``m0, P0 = kf.initial_state()``).
+        Returns :class:`~torchsde_lti.KalmanState` with mean (*batch, n) and cov
+        (*batch, n, n), batch = ``batch_shape`` broadcast with the batch of m0 and P0 (a model
+        with a parameter batch) (expanded views of the current m0, P0; ``()`` and no parameter
+        batch: one track, unpacks as ``m0, P0 = kf.initial_state()``). ValueError naming
+        ``batch_shape`` when it is not a shape or does not broadcast with the prior's.
         """
-        shape = (batch_shape,) if isinstance(batch_shape, int) else tuple(batch_shape)
+        shape = tracks_shape(batch_shape)
         with parametrize.cached():
             m0, P0 = self._prior(self.sde.matrices(), self.validate_args)
         n = self.state_dim
-        return KalmanState(m0.expand(*shape, n), P0.expand(*shape, n, n))
+        batch = broadcast_batch([("batch_shape", shape), ("m0", m0.shape[:-1]), ("P0", P0.shape[:-2])])
+        return KalmanState(m0.expand(*batch, n), P0.expand(*batch, n, n))
 
     def step(
         self, state: KalmanState, y: Tensor, dt: Tensor | float, u: Tensor | None = None, mask: Tensor | None = None
@@ -134,6 +145,8 @@ class KalmanOnline(ValidateArgs, nn.Module):
         """Prediction only, each track over its own dt (...): ``m⁻ = A m + G u``, ``P⁻ = A P Aᵀ + Q``."""
         mats, _, _, _, series = evaluated(self, self._online_model)
         state, dt, u = self._check_state(state, dt, u, mats)
+        named = [("state.mean", state.mean.shape[:-1]), ("state.cov", state.cov.shape[:-2]), ("dt", dt.shape)]
+        check_batches(named + ([] if u is None else [("u", u.shape[:-1])]))
         if self.validate_args:
             self._check_values(mats, dt, u=u, mean=state.mean, cov=state.cov)
         return kalman_predict(state, *self._online_step_model(mats, dt, u, series))

@@ -5,7 +5,7 @@ series, any other F's doubling series terms) is formed with them."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from typing import TypeVar
 
 import torch
@@ -14,7 +14,7 @@ from torch import Tensor, nn
 from torchsde_lti.core.discretization import SharedSeries, discretization_series
 from torchsde_lti.core.linalg import noise_covariance
 from torchsde_lti.core.series import TerminatingSeries
-from torchsde_lti.core.validation import as_float_tensor, shape_str, tracing
+from torchsde_lti.core.validation import as_float_tensor, broadcast_batch, shape_str, tracing
 from torchsde_lti.filters import online
 from torchsde_lti.filters.online import KalmanState
 
@@ -65,6 +65,23 @@ def drop_evaluated(module: nn.Module) -> None:
     """Forget ``module``'s cached :func:`evaluated` model (a change its parameter version does
     not show, such as a parametrisation's floor)."""
     module.__dict__.pop(_CACHE, None)
+
+
+def tracks_shape(batch_shape: object) -> tuple[int, ...]:
+    """``batch_shape`` of :meth:`initial_state` (an int or a sequence of ints ≥ 0) as a tuple;
+    ValueError naming it otherwise."""
+    shape = (batch_shape,) if isinstance(batch_shape, int) else batch_shape
+    out: tuple[object, ...] | None = tuple(shape) if isinstance(shape, Iterable) else None
+    if out is None or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in out):
+        raise ValueError(f"batch_shape must be an int or a sequence of ints >= 0, got {batch_shape!r}")
+    return out  # type: ignore[return-value]
+
+
+def check_batches(named: Sequence[tuple[str, Sequence[int]]]) -> None:
+    """ValueError naming the batch shapes ``named`` when they do not broadcast (nothing to
+    check when they are equal)."""
+    if any(tuple(shape) != tuple(named[0][1]) for _, shape in named[1:]):
+        broadcast_batch(named)
 
 
 def online_state(state: object, dt: Tensor | float, F: Tensor) -> tuple[KalmanState, Tensor]:

@@ -59,7 +59,7 @@ from torchsde_lti.filters.imm import (
 )
 from torchsde_lti.filters.kalman import check_algorithm
 from torchsde_lti.filters.online import IMMState, IMMStep, imm_predict_state, imm_step
-from torchsde_lti.nn._online import Series, evaluated
+from torchsde_lti.nn._online import Series, check_batches, evaluated, tracks_shape
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_values, online_report
 from torchsde_lti.nn.kalman import FilterMode
@@ -383,13 +383,16 @@ class IMMFilter(ValidateArgs, nn.Module):
     # ------------------------------------------------------------------ online
     def initial_state(self, batch_shape: torch.Size | tuple[int, ...] | int = ()) -> IMMState:
         """The prior (mode_prob0, m0, P0) for ``batch_shape`` new tracks, for :meth:`step`:
-        :class:`~torchsde_lti.IMMState` with mode_prob (*batch_shape, M), mode_mean
-        (*batch_shape, M, n), mode_cov (*batch_shape, M, n, n) (expanded views)."""
-        shape = (batch_shape,) if isinstance(batch_shape, int) else tuple(batch_shape)
+        :class:`~torchsde_lti.IMMState` with mode_prob (*batch, M), mode_mean (*batch, M, n),
+        mode_cov (*batch, M, n, n) (expanded views), batch = ``batch_shape`` broadcast with the
+        prior's batch; ValueError naming ``batch_shape`` when it is not a shape or does not
+        broadcast with it."""
+        shape = tracks_shape(batch_shape)
         M, n = self.num_modes, self.state_dim
-        return IMMState(
-            self.mode_prob0.expand(*shape, M), self.m0.expand(*shape, M, n), self.P0.expand(*shape, M, n, n)
-        )
+        p0, m0, P0 = self.mode_prob0, self.m0, self.P0
+        named = [("batch_shape", shape), ("mode_prob0", p0.shape[:-1]), ("m0", m0.shape[:-2]), ("P0", P0.shape[:-3])]
+        batch = broadcast_batch(named)
+        return IMMState(p0.expand(*batch, M), m0.expand(*batch, M, n), P0.expand(*batch, M, n, n))
 
     def step(
         self, state: IMMState, y: Tensor, dt: Tensor | float, u: Tensor | None = None, mask: Tensor | None = None
@@ -440,9 +443,16 @@ class IMMFilter(ValidateArgs, nn.Module):
         each mode's exact A_j, Q_j (the predicted :class:`~torchsde_lti.IMMState`)."""
         with parametrize.cached():
             online, state, dt = self._online_args(state, dt)
+            check_batches([*_state_batches(state), ("dt", dt.shape)])
             if self.validate_args:
                 check_values(
-                    finite=[("F", online.F), ("W", online.W), ("rates", online.rates)], nonnegative=[("dt", dt)]
+                    finite=[
+                        ("F", online.F),
+                        ("W", online.W),
+                        ("rates", online.rates),
+                        *zip(("state.mode_prob", "state.mode_mean", "state.mode_cov"), state),
+                    ],
+                    nonnegative=[("dt", dt)],
                 )
             d, Pi = self._discretize_bank(online.F, online.W, dt, validate_args=False, online=online)
             return imm_predict_state(state, d.A, d.Q, Pi)
@@ -453,19 +463,7 @@ class IMMFilter(ValidateArgs, nn.Module):
         parameter version."""
         online = evaluated(self, self._online_model)
         F = online.F
-        M, n = F.shape[-3], F.shape[-1]
-        if not isinstance(state, tuple) or len(state) != 3:
-            raise TypeError(f"state must be an IMMState (mode_prob, mode_mean, mode_cov), got {type(state).__name__}")
-        prob, mean, cov = (
-            as_float_tensor(t, f"state.{k}", F.dtype, F.device)
-            for k, t in zip(("mode_prob", "mode_mean", "mode_cov"), state)
-        )
-        if prob.dim() < 1 or prob.shape[-1] != M or mean.shape[-2:] != (M, n) or cov.shape[-3:] != (M, n, n):
-            raise ValueError(
-                f"state must be (mode_prob (..., {M}), mode_mean (..., {M}, {n}), mode_cov "
-                f"(..., {M}, {n}, {n})), got {shape_str(prob)}, {shape_str(mean)}, {shape_str(cov)}"
-            )
-        return online, IMMState(prob, mean, cov), as_float_tensor(dt, "dt", F.dtype, F.device)
+        return online, _imm_state(state, F), as_float_tensor(dt, "dt", F.dtype, F.device)
 
     def _online_model(self) -> OnlineIMM:
         """:class:`OnlineIMM`: :meth:`bank`, the observation model and the rates, each
@@ -500,28 +498,24 @@ class IMMFilter(ValidateArgs, nn.Module):
             dt: (..., K) non-negative horizons (a float or (K,) is shared by the batch).
         """
         if isinstance(state, IMMResult):
-            prob, mean, cov = (
+            state = (
                 state.mode_probabilities[..., -1, :],
                 state.mode_mean[..., -1, :, :],
                 state.mode_cov[..., -1, :, :, :],
             )
-        else:
-            prob, mean, cov = state
-        M, n = self.num_modes, self.state_dim
-        if prob.shape[-1] != M or mean.shape[-2:] != (M, n) or cov.shape[-3:] != (M, n, n):
-            raise ValueError(
-                f"state must be (mode_prob (..., {M}), mode_mean (..., {M}, {n}), mode_cov "
-                f"(..., {M}, {n}, {n})), got {shape_str(prob)}, {shape_str(mean)}, {shape_str(cov)}"
-            )
         with parametrize.cached():
             F, W = self.bank()
+            prob, mean, cov = _imm_state(state, F)
             dt = as_float_tensor(dt, "dt", F.dtype, F.device)
             if dt.dim() == 0:
                 dt = dt.reshape(1)
+            check_batches([*_state_batches(IMMState(prob, mean, cov)), ("dt", dt.shape[:-1])])
             H, R = self._obs_model()
             if self.validate_args:
+                named = zip(("state.mode_prob", "state.mode_mean", "state.mode_cov"), (prob, mean, cov))
                 check_values(
-                    finite=[("F", F), ("W", W), ("H", H), ("R", R), ("rates", self.rates)], nonnegative=[("dt", dt)]
+                    finite=[("F", F), ("W", W), ("H", H), ("R", R), ("rates", self.rates), *named],
+                    nonnegative=[("dt", dt)],
                 )
             d, Pi = self._discretize_bank(F, W, dt, validate_args=False)  # (..., K, M, n, n), (..., K, M, M)
         p: IMMPrediction = imm_predict(prob, mean, cov, d.A, d.Q, Pi)
@@ -533,3 +527,30 @@ class IMMFilter(ValidateArgs, nn.Module):
 
     def extra_repr(self) -> str:
         return f"modes={list(self.mode_names)}, obs_dim={self.obs_dim}, unique_dt={self.unique_dt}"
+
+
+def _imm_state(state: object, F: Tensor) -> IMMState:
+    """An online call's state as an :class:`~torchsde_lti.IMMState` of F's dtype and device
+    (F: (M, n, n)), shapes checked; TypeError or ValueError naming it."""
+    M, n = F.shape[-3], F.shape[-1]
+    if not isinstance(state, tuple) or len(state) != 3:
+        raise TypeError(f"state must be an IMMState (mode_prob, mode_mean, mode_cov), got {type(state).__name__}")
+    prob, mean, cov = (
+        as_float_tensor(t, f"state.{k}", F.dtype, F.device)
+        for k, t in zip(("mode_prob", "mode_mean", "mode_cov"), state)
+    )
+    if prob.dim() < 1 or prob.shape[-1] != M or mean.shape[-2:] != (M, n) or cov.shape[-3:] != (M, n, n):
+        raise ValueError(
+            f"state must be (mode_prob (..., {M}), mode_mean (..., {M}, {n}), mode_cov "
+            f"(..., {M}, {n}, {n})), got {shape_str(prob)}, {shape_str(mean)}, {shape_str(cov)}"
+        )
+    return IMMState(prob, mean, cov)
+
+
+def _state_batches(state: IMMState) -> list[tuple[str, tuple[int, ...]]]:
+    """The named batch shapes of an IMM state's fields."""
+    return [
+        ("state.mode_prob", tuple(state.mode_prob.shape[:-1])),
+        ("state.mode_mean", tuple(state.mode_mean.shape[:-2])),
+        ("state.mode_cov", tuple(state.mode_cov.shape[:-3])),
+    ]

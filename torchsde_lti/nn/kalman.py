@@ -79,6 +79,7 @@ from torchsde_lti.filters import (
 from torchsde_lti.filters.inputs import FilterInputs
 from torchsde_lti.filters.kalman import ALGORITHMS, check_algorithm, run_filter
 from torchsde_lti.nn._kalman_online import KalmanOnline
+from torchsde_lti.nn._online import check_batches, online_state
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import check_outcome, check_values
 from torchsde_lti.nn.parametrizations import PositiveDefinite
@@ -489,26 +490,21 @@ class KalmanFilter(KalmanOnline):
             :class:`Forecast` with mean (..., K, n), cov (..., K, n, n), obs_mean, obs_cov.
         """
         if isinstance(state, (FilterResult, SmootherResult)):
-            mean, cov = state.mean[..., -1, :], state.cov[..., -1, :, :]
-        else:
-            mean, cov = state
+            state = (state.mean[..., -1, :], state.cov[..., -1, :, :])
         with parametrize.cached():
             mats = self.sde.matrices()
             F = mats.F
-            dt = as_float_tensor(dt, "dt", F.dtype, F.device)
+            (mean, cov), dt = online_state(state, dt, F)
             if dt.dim() == 0:
                 dt = dt.reshape(1)
-            n = F.shape[-1]
-            if mean.shape[-1] != n or cov.shape[-2:] != (n, n):
-                raise ValueError(
-                    f"state must be (mean (..., {n}), cov (..., {n}, {n})), got {shape_str(mean)}, {shape_str(cov)}"
-                )
             if u is not None:
                 p = mats.B.shape[-1] if mats.B is not None else (self.D.shape[-1] if self.D is not None else 0)
                 u = self._check_u(u, p, dt.shape[-1], "K", F.dtype, F.device)
+            named = [("state.mean", mean.shape[:-1]), ("state.cov", cov.shape[:-2]), ("dt", dt.shape[:-1])]
+            check_batches(named + ([] if u is None else [("u", u.shape[:-2])]))
             H, R, D = self.H, self.R, self.D
             if self.validate_args:
-                self._check_values(mats, dt, u=u, H=H, R=R, D=D)
+                self._check_values(mats, dt, u=u, H=H, R=R, D=D, mean=mean, cov=cov)
             d = self._discretize(dt, mats, series_layout=False)
         m, P = predict_moments(mean.unsqueeze(-2), cov.unsqueeze(-3), d.A, d.Q, d.G, u)
         Hk = H.unsqueeze(-3) if H.dim() > 2 else H
