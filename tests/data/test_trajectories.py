@@ -235,6 +235,14 @@ def test_split_objects_disjoint_reproducible() -> None:
     assert sum(p.num_reports for p in a) == tracks.num_reports
     with pytest.raises(ValueError, match="fractions"):
         split_objects(tracks, (0.5, 0.6, 0.1))
+    # val and test both rounded up past K (no train): still disjoint, every object once
+    for k in (3, 7):
+        few = prepare_tracks(
+            _reports(list(range(3 * k)), [40.0] * (3 * k), [-74.0] * (3 * k), ids=[i // 3 for i in range(3 * k)]),
+            min_reports=3,
+        )
+        parts = [set(p.object_id.tolist()) for p in split_objects(few, (0.0, 0.5, 0.5), seed=0)]
+        assert sum(map(len, parts)) == k and set().union(*parts) == set(few.object_id.tolist()), parts
 
 
 @pytest.mark.parametrize("max_len", [None, 2, 3, 7, 128])

@@ -319,3 +319,25 @@ def test_names_moved_out_of_evaluation_still_import_from_it() -> None:
             assert getattr(evaluation, name) is getattr(module, name)
     with pytest.raises(AttributeError, match="has no attribute 'not_a_name'"):
         evaluation.__getattr__("not_a_name")
+
+
+def test_a_horizon_without_pairs_summarises_as_nan_and_bootstraps() -> None:
+    """One 9-minute track: 5- and 10-minute forecast pairs, none at 15 minutes. The summary
+    says NaN and 0 pairs at 15 minutes, and the bootstrap runs (both raised a numpy casting
+    error from the empty horizon's float vessel array)."""
+    t = np.arange(10) * 60.0
+    tracks = make_tracks([1], [t], [np.stack([2 * t, 0 * t], -1)])
+    rec = evaluate_filter(cv_filter(0.01, 10.0), tracks)
+    assert rec.fc[900.0][0].dtype == np.int64 and rec.fc[900.0][0].size == 0
+    s = summary(rec)
+    assert s["fc_n_15"] == 0 and math.isnan(s["fc_rmse_15"]) and s["fc_n_5"] == 5
+    paired_bootstrap(rec, rec)
+
+
+def test_tune_cv_refuses_tracks_with_nothing_to_score() -> None:
+    """Single-report tracks: the first report of a track is not scored, so no grid point has a
+    score (each was 0.0, a meaningless optimum)."""
+    t = [np.array([0.0]), np.array([5.0])]
+    tracks = make_tracks([1, 2], t, [np.zeros((1, 2)), np.ones((1, 2))])
+    with pytest.raises(ValueError, match="at least two reports"):
+        tune_cv(tracks)

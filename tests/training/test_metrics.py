@@ -11,6 +11,7 @@ import math
 import pytest
 import torch
 
+import torchsde_lti as tl
 from torchsde_lti import models
 from torchsde_lti.training.metrics import (
     masked_gaussian_nll,
@@ -70,3 +71,19 @@ def test_autocovariance_is_basis_free_and_raw_f_is_not() -> None:
     )
     C = observed_autocovariance(ou, torch.ones(1, 1, dtype=torch.float64), [0.0, 1.0])
     torch.testing.assert_close(C.flatten(), torch.tensor([1.0, math.exp(-1.0)], dtype=torch.float64))
+
+
+def test_qc_is_not_compared_where_the_data_cannot_identify_it() -> None:
+    """A free F seen through a one-row H: the model T F T⁻¹, T Qc Tᵀ gives the same
+    observations as the truth, so its raw Qc (220 % away) is not reported with compare=("Qc",)
+    (the docstring: Qc only if identifiable); the observed autocovariance agrees."""
+    d = torch.float64
+    F = torch.tensor([[-1.0, 1.0], [0.0, -2.0]], dtype=d)
+    T = torch.tensor([[2.0, 0.3], [0.0, 1.0]], dtype=d)
+    eye = torch.eye(2, dtype=d)
+    truth = tl.LTISDE(F, eye, eye, learn=("F", "Qc"))
+    learned = tl.LTISDE(T @ F @ torch.linalg.inv(T), eye, T @ T.mT, learn=("F", "Qc"))
+    H_true = torch.tensor([[1.0, 0.0]], dtype=d)
+    H = H_true @ torch.linalg.inv(T)
+    assert parameter_errors(learned, truth, H=H, H_true=H_true, compare=("Qc",)) == {}
+    assert parameter_errors(learned, truth, H=H, H_true=H_true)["autocov"] < 1e-12

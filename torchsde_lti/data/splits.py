@@ -31,7 +31,7 @@ def split_objects(
     """Object-disjoint (train, val, test) splits: every track of an object goes where the object goes.
 
     The sorted distinct object ids (K of them) are permuted with ``seed`` and cut into
-    val = round(f_val K), test = round(f_test K), train = the rest.
+    val = round(f_val K), test = round(f_test K) (at most what val leaves), train = the rest.
 
     Args:
         tracks: the tracks to split.
@@ -46,7 +46,8 @@ def split_objects(
     ids, owner = np.unique(tracks.object_id, return_inverse=True)
     k = len(ids)
     perm = np.random.default_rng(seed).permutation(k)
-    n_val, n_test = round(fractions[1] * k), round(fractions[2] * k)
+    n_val = min(round(fractions[1] * k), k)
+    n_test = min(round(fractions[2] * k), k - n_val)  # (both rounded up: they may exceed K together)
     n_train = k - n_val - n_test
     parts = (perm[:n_train], perm[n_train : n_train + n_val], perm[n_train + n_val :])
     out = []

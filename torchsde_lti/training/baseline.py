@@ -52,8 +52,11 @@ def tune_cv(
     A log-spaced grid over q and r, extended by a factor of the grid step beyond any edge
     where the optimum lies until the optimum is inside, then refined ``refine`` times
     (halving the log step around the optimum). Returns (q, r_std, {(q, r): mean NLL}).
+    ValueError when no track has a second report (nothing to score).
     """
     batches, _ = _batches(tracks, max_steps)
+    if not any(bool(b.mask[:, 1:].any()) for b in batches):
+        raise ValueError("tune_cv needs tracks with at least two reports: the first report of a track is not scored")
     table: dict[tuple[float, float], float] = {}
 
     def score(q: float, r: float) -> float:

@@ -328,7 +328,7 @@ def evaluate_filter(
     cat = {k: np.concatenate(v) if v else np.zeros(0) for k, v in parts.items()}
 
     def joined(v: list[tuple[np.ndarray, np.ndarray, np.ndarray]], i: int) -> np.ndarray:
-        return np.concatenate([p[i] for p in v]) if v else np.zeros(0)
+        return np.concatenate([p[i] for p in v]) if v else np.zeros(0, dtype=np.int64 if i == 0 else np.float64)
 
     fc = {h: (joined(v, 0), joined(v, 1), joined(v, 2)) for h, v in fc_parts.items()}
     return EvalRecords(

@@ -179,7 +179,7 @@ def parameter_errors(
             else:
                 scale = torch.linalg.matrix_norm(C_true[0])
                 errors["autocov"] = float((torch.linalg.matrix_norm(C - C_true) / scale).max())
-    elif not names and "Qc" in compare and same_shape:
+    elif not names and "Qc" in compare and identifiable:  # (identifiable implies same_shape)
         errors["Qc"] = _rel(learned.Qc, truth.Qc)
     if "F" in compare and identifiable:
         F, F_true = learned.F.detach().to(torch.float64), truth.F.detach().to(torch.float64)
