@@ -494,3 +494,34 @@ def test_q_is_exactly_symmetric_on_every_path(dtype: torch.dtype) -> None:
         assert torch.equal(Q, Q.mT), N
     W = tl.core.linalg.noise_covariance(torch.randn(50, 4, 2, generator=g).to(dtype), Qc[:50, :2, :2])
     assert torch.equal(W, W.mT)
+
+
+def test_export_of_the_public_discretize_with_a_dynamic_per_element_batch() -> None:
+    """``discretize`` itself (not the inner per-element function) exported with every
+    element's own F, L, Qc and dt on a dynamic batch: one program for every batch size (the
+    one-parameter-set test read the symbolic batch and fixed it), equal to eager."""
+    from torch.export import Dim
+
+    class PerElement(torch.nn.Module):
+        def forward(self, F: torch.Tensor, L: torch.Tensor, Qc: torch.Tensor, dt: torch.Tensor):
+            d = tl.discretize(F, L, Qc, dt)
+            return d.A, d.Q
+
+    g = torch.Generator().manual_seed(5)
+
+    def args(N: int) -> tuple[torch.Tensor, ...]:
+        X = torch.randn(N, 2, 2, generator=g, dtype=F64)
+        F = X - X.mT - 0.5 * torch.eye(2, dtype=F64)
+        return (
+            F,
+            torch.eye(2, dtype=F64).expand(N, 2, 2),
+            torch.eye(2, dtype=F64).expand(N, 2, 2),
+            torch.rand(N, generator=g, dtype=F64) * 10,
+        )
+
+    N = Dim("N", min=1, max=100_000)
+    program = torch.export.export(PerElement(), args(12), dynamic_shapes=({0: N},) * 4).module()
+    for size in (1, 5, 700):
+        a = args(size)
+        for got, want in zip(program(*a), PerElement()(*a)):
+            assert got.shape == want.shape and _rel(got, want) <= 1e-12

@@ -61,6 +61,24 @@ def test_B_rows() -> None:
         tl.discretize(F, L, Qc, 1.0, B=torch.zeros(3, 1, dtype=f64))
 
 
+def test_B_without_columns_and_missing_dt_or_B() -> None:
+    """A B of no columns (every path: few elements, per element, one F for many steps), a
+    missing dt, and zero_order_hold without B: ValueErrors naming them (were a reshape
+    RuntimeError, a dropped G and bare AssertionErrors)."""
+    F, L, Qc, _ = good()
+    B0 = torch.zeros(2, 0, dtype=f64)
+    for dt in (1.0, torch.ones(300, dtype=f64)):
+        with pytest.raises(ValueError, match=r"B must have at least one column.*\(2, 0\)"):
+            tl.discretize(F, L, Qc, dt, B=B0)
+    with pytest.raises(ValueError, match="B must have at least one column"):
+        tl.core.zero_order_hold(F, B0, 1.0)
+    for call in (lambda: tl.discretize(F, L, Qc, None), lambda: tl.core.transition_matrix(F, None)):
+        with pytest.raises(ValueError, match="dt is required"):
+            call()
+    with pytest.raises(ValueError, match="B is required"):
+        tl.core.zero_order_hold(F, None, 1.0)  # type: ignore[arg-type]
+
+
 def test_negative_dt() -> None:
     F, L, Qc, _ = good()
     with pytest.raises(ValueError, match=r"dt must be non-negative"):

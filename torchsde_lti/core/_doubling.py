@@ -562,8 +562,10 @@ def doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | N
     """
     F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
     assert dt is not None
+    if tracing():  # (no guard on a symbolic batch size: a dynamic per-element batch exports)
+        return per_element_doubling(x, batch_last)
     one_set = all(t is None or t.shape[:-2].numel() == 1 for t in (F, W, B))
-    if one_set and not tracing() and batch.numel() >= SHARED_MIN_ELEMENTS:
+    if one_set and batch.numel() >= SHARED_MIN_ELEMENTS:
         F1, W1, B1 = (None if t is None else t.reshape(t.shape[-2:]) for t in (F, W, B))
         return shared_doubling(F1, W1, B1, dt.expand(batch), batch_last)  # type: ignore[arg-type]
     return per_element_doubling(x, batch_last)

@@ -106,6 +106,16 @@ def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | No
     )
 
 
+def _required(dt: Tensor | float | None, B: Tensor | None = None, needs_B: bool = False) -> None:
+    """ValueError for a missing dt (every function of dt), or a missing B where G is asked for."""
+    if dt is None:
+        raise ValueError("dt is required: (...) non-negative step lengths, or a Python float")
+    if needs_B and B is None:
+        raise ValueError(
+            "B is required: the (..., n, p) input matrix whose zero-order hold G = ∫ expm(F s) ds B is asked for"
+        )
+
+
 def _run(inputs: SDEInputs, method: str, validate_args: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
     """(A, Q, G) of checked arguments by ``method`` and, with ``validate_args``, the result
     check, run with :func:`intra_op_threads` (the backward too: ``inputs.finish``)."""
@@ -149,6 +159,7 @@ def discretize(
         :class:`Discrete` with A (..., n, n), Q (..., n, n) symmetric PSD and
         G (..., n, p) or None. Differentiable with respect to F, L, Qc, B and dt.
     """
+    _required(dt)
     A, Q, G = _run(sde_inputs(F, L, Qc, dt, B, validate_args=validate_args), method, validate_args)
     assert Q is not None
     return Discrete(A, Q, G)
@@ -182,6 +193,7 @@ def discretize_series(
     Returns:
         :class:`Discrete` with A, Q (..., T, n, n) and G (..., T, n, p) or None.
     """
+    _required(dt)
     inputs = sde_inputs(F, L, Qc, dt, B, validate_args=validate_args)
     params = [inputs.F.shape[:-2]] + [x.shape[:-2] for x in (inputs.W, inputs.B) if x is not None]
     single = all(torch.Size(s).numel() == 1 for s in params)
@@ -221,6 +233,7 @@ def transition_matrix(F: Tensor, dt: Tensor | float, method: str = "doubling", *
     Returns:
         (..., n, n), batch broadcast from F and dt.
     """
+    _required(dt)
     return _run(sde_inputs(F, None, None, dt, validate_args=validate_args), method, validate_args)[0]
 
 
@@ -237,6 +250,7 @@ def zero_order_hold(
     Returns:
         A (..., n, n), G (..., n, p).
     """
+    _required(dt, B, needs_B=True)
     A, _, G = _run(sde_inputs(F, None, None, dt, B, validate_args=validate_args), method, validate_args)
     assert G is not None
     return A, G

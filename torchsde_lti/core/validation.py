@@ -342,6 +342,8 @@ def sde_inputs(
     if B is not None:
         B = as_float_tensor(B, "B", dtype, device)
         check_matrix(B, "B", rows=n)
+        if B.shape[-1] == 0:
+            raise ValueError(f"B must have at least one column (no inputs: pass B=None), got shape {shape_str(B)}")
         checked.append(("B", B))
         named.append(("B", B.shape[:-2]))
     dt_t = None
