@@ -341,3 +341,16 @@ def test_tune_cv_refuses_tracks_with_nothing_to_score() -> None:
     tracks = make_tracks([1, 2], t, [np.zeros((1, 2)), np.ones((1, 2))])
     with pytest.raises(ValueError, match="at least two reports"):
         tune_cv(tracks)
+
+
+def test_scoring_leaves_the_callers_model_as_it_was() -> None:
+    """evaluate_filter and one_step_predictive score a float64 eval-mode copy: the caller's
+    float32 module in training mode stays so (both converted it in place)."""
+    from torchsde_lti.training.calibration import one_step_predictive
+
+    t = np.arange(12) * 30.0
+    tracks = make_tracks([1], [t], [np.stack([3 * t, t], -1)])
+    model = cv_filter(0.01, 10.0).float().train()
+    evaluate_filter(model, tracks)
+    one_step_predictive(model, tracks)
+    assert model.training and all(p.dtype == torch.float32 for p in model.parameters())

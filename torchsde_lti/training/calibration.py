@@ -278,9 +278,9 @@ def one_step_predictive(model: KalmanFilter | IMMFilter, tracks: Tracks, max_ste
         {"y": (N, m), "w": (N, M), "mu": (N, M, m), "S": (N, M, m, m), "index": (N,) flat report
         index into ``tracks``}, in the order of :func:`~torchsde_lti.training.evaluation.evaluate_filter`.
     """
-    from torchsde_lti.training.evaluation import _batches, _one_step
+    from torchsde_lti.training.evaluation import _batches, _one_step, frozen_copy
 
-    model = model.to(torch.float64).eval()
+    model = frozen_copy(model)
     parts: dict[str, list[Tensor]] = {k: [] for k in ("y", "w", "mu", "S", "index")}
     batches, index = _batches(tracks, max_steps)
     with torch.no_grad():

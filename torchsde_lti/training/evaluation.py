@@ -30,6 +30,7 @@ rule on validation summaries (:mod:`torchsde_lti.training.selection`: ``select_m
 
 from __future__ import annotations
 
+import copy
 import importlib
 import math
 from collections.abc import Mapping, Sequence
@@ -51,6 +52,7 @@ __all__ = [
     "HORIZONS",
     "EvalRecords",
     "evaluate_filter",
+    "frozen_copy",
     "evaluate_models",
     "forecast_pairs",
     "hpd_inside",
@@ -251,6 +253,12 @@ def _batches(tracks: Tracks, max_steps: int) -> tuple[list[TrackBatch], list[np.
     return batches, index
 
 
+def frozen_copy(model: Model) -> Model:
+    """A float64 copy of ``model`` in eval mode, for scoring: the caller's module keeps its
+    dtype and training mode."""
+    return copy.deepcopy(model).to(torch.float64).eval()
+
+
 def evaluate_filter(
     model: Model,
     tracks: Tracks,
@@ -285,7 +293,7 @@ def evaluate_filter(
         scale = scale_vector(cov_scale, M)
     except ValueError as e:
         raise ValueError(f"cov_scale: {e}") from None
-    model = model.to(torch.float64).eval()
+    model = frozen_copy(model)
     _, vessel_of_track = np.unique(tracks.object_id, return_inverse=True)
     lengths = np.diff(tracks.offsets)
     vessel_flat = np.repeat(vessel_of_track, lengths)
