@@ -165,7 +165,7 @@ def _build(cfg: DictConfig, guard: SignalGuard, resume: dict[str, Any] | None = 
         kf = instantiate_node(cfg, "filter", **prior)
     restart_learner(kf, float(cfg.get("init_jitter") or 0.0), int(cfg.get("restart") or 0))
     module = instantiate_node(cfg, "module", kf=kf, truth=truth)
-    callbacks = [*_instantiate_dict(cfg, "callbacks"), StopOnSignal(guard)]
+    callbacks = [*_instantiate_dict(cfg, "callbacks"), StopOnSignal(guard), _ValidatedAt()]
     if resume is not None:
         callbacks.append(_KeepBestOfMovedRun(resume.get("callbacks") or {}))
     # the best-so-far checkpoint saves before the last-epoch one at each epoch end, so that
@@ -182,6 +182,19 @@ def _build(cfg: DictConfig, guard: SignalGuard, resume: dict[str, Any] | None = 
         "loggers": loggers,
         "truth": truth,
     }
+
+
+class _ValidatedAt(pl.Callback):
+    """The optimizer step (``trainer.global_step``) at the end of the last validation run, sanity
+    checks excluded: the final weights' validation metrics are stale where training stepped
+    after it (``check_val_every_n_epoch > 1``, a run stopped by ``max_steps`` mid-epoch)."""
+
+    def __init__(self) -> None:
+        self.step: int | None = None
+
+    def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        if not trainer.sanity_checking:
+            self.step = int(trainer.global_step)
 
 
 class _KeepBestOfMovedRun(pl.Callback):
@@ -419,6 +432,12 @@ def _run(
         trainer.fit(module, datamodule=objects["datamodule"], ckpt_path=ckpt_path, weights_only=True)
     wall = time.perf_counter() - start
     objects["fit_metrics"] = _floats(trainer.callback_metrics)  # the test replaces callback_metrics
+    validated = next(c for c in objects["callbacks"] if isinstance(c, _ValidatedAt))
+    if validated.step != trainer.global_step and not trainer.fast_dev_run and trainer.limit_val_batches:
+        # the last validation saw older weights than the reported ones (last.ckpt): validate these
+        with guard.graceful("fit"):
+            for r in trainer.validate(module, datamodule=objects["datamodule"], verbose=False):
+                objects["fit_metrics"].update(_floats(r))
     guard.stop_if_received()
     with guard.graceful("test"):
         metrics = _evaluate(cfg, objects, state.report.previous_metrics if state.report is not None else {}, wall)
