@@ -471,3 +471,20 @@ def test_collect_sweep_plots_a_sweep_without_truth(tmp_path: Path) -> None:
     ]
     collect_sweep.plot(rows, tmp_path / "summary.png")
     assert (tmp_path / "summary.png").stat().st_size > 0
+
+
+def test_resuming_a_moved_run_with_no_epoch_left_names_its_own_checkpoints(tmp_path: Path) -> None:
+    """A finished run, moved, resumed with nothing left to train (e.g. interrupted while
+    testing): the report names the moved directory's last.ckpt and best.ckpt with the best's
+    val/nll (it named the vanished originals' paths, or none)."""
+    import shutil
+
+    common = [*TINY, "test=false", "plots=false", "trainer.max_epochs=1"]
+    train(_cfg(tmp_path / "a", *common))
+    first = json.loads((tmp_path / "a" / "metrics.json").read_text())["best"]
+    shutil.move(tmp_path / "a", tmp_path / "b")
+    train(_cfg(tmp_path / "b", *common, f"ckpt_path={tmp_path / 'b' / 'checkpoints' / 'last.ckpt'}"))
+    summary = json.loads((tmp_path / "b" / "metrics.json").read_text())
+    assert summary["reported"]["checkpoint"] == "checkpoints/last.ckpt"
+    assert summary["best"]["checkpoint"] == "checkpoints/best.ckpt"
+    assert summary["best"]["val/nll"] == pytest.approx(first["val/nll"])

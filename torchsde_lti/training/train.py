@@ -227,15 +227,23 @@ def _checkpoint_files(callbacks: list[Any]) -> tuple[str | None, str | None]:
     """(last, best) checkpoint files written by the run's ModelCheckpoints (None: none written).
 
     ``last``: the ModelCheckpoint without a monitor (it keeps the newest epoch); ``best``: the
-    one monitoring a metric (it keeps the best epoch).
+    one monitoring a metric (it keeps the best epoch). A path restored from the checkpoint of a
+    run that was moved or copied (no epoch trained here since) names the file of the same name
+    in this run's checkpoint directory.
     """
     last = best = None
     for cb in callbacks:
-        if isinstance(cb, ModelCheckpoint) and cb.best_model_path and Path(cb.best_model_path).is_file():
-            if cb.monitor is None:
-                last = last or cb.best_model_path
-            else:
-                best = best or cb.best_model_path
+        if not isinstance(cb, ModelCheckpoint) or not cb.best_model_path:
+            continue
+        path = Path(cb.best_model_path)
+        if cb.dirpath is not None and path.parent.resolve() != Path(cb.dirpath).resolve():
+            path = Path(cb.dirpath) / path.name
+        if not path.is_file():
+            continue
+        if cb.monitor is None:
+            last = last or str(path)
+        else:
+            best = best or str(path)
     return last, best
 
 
@@ -295,6 +303,8 @@ def _report_completed(cfg: DictConfig, objects: dict[str, Any], report: RunRepor
         table, errors = _table_at(module, ckpt["state_dict"], truth)
         monitored = next((c for c in callbacks if isinstance(c, ModelCheckpoint) and c.monitor), None)
         score = monitored.best_model_score if monitored is not None else None
+        if score is None and monitored is not None:  # a moved run, no epoch trained here: the file's own record
+            score = (ckpt.get("callbacks") or {}).get(monitored.state_key, {}).get("best_model_score")
         best_info = {
             "checkpoint": best,
             "epoch": int(ckpt["epoch"]),
