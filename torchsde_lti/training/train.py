@@ -185,16 +185,26 @@ def _build(cfg: DictConfig, guard: SignalGuard, resume: dict[str, Any] | None = 
 
 
 class _ValidatedAt(pl.Callback):
-    """The optimizer step (``trainer.global_step``) at the end of the last validation run, sanity
-    checks excluded: the final weights' validation metrics are stale where training stepped
-    after it (``check_val_every_n_epoch > 1``, a run stopped by ``max_steps`` mid-epoch)."""
+    """The optimizer step (``trainer.global_step``) after this process's last training batch and
+    at the end of its last validation run (sanity checks excluded): the final weights'
+    validation metrics are stale where training stepped after the validation
+    (``check_val_every_n_epoch > 1``, a run stopped by ``max_steps`` mid-epoch)."""
 
     def __init__(self) -> None:
-        self.step: int | None = None
+        self.trained: int | None = None
+        self.validated: int | None = None
+
+    def on_train_batch_end(self, trainer: pl.Trainer, *args: Any) -> None:
+        self.trained = int(trainer.global_step)
 
     def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         if not trainer.sanity_checking:
-            self.step = int(trainer.global_step)
+            self.validated = int(trainer.global_step)
+
+    @property
+    def stale(self) -> bool:
+        """Whether this process trained after its last validation."""
+        return self.trained is not None and self.trained != self.validated
 
 
 class _KeepBestOfMovedRun(pl.Callback):
@@ -443,7 +453,7 @@ def _run(
     wall = time.perf_counter() - start
     objects["fit_metrics"] = _floats(trainer.callback_metrics)  # the test replaces callback_metrics
     validated = next(c for c in objects["callbacks"] if isinstance(c, _ValidatedAt))
-    if validated.step != trainer.global_step and not trainer.fast_dev_run and trainer.limit_val_batches:
+    if validated.stale and not trainer.fast_dev_run and trainer.limit_val_batches:
         # the last validation saw older weights than the reported ones (last.ckpt): validate these
         with guard.graceful("fit"):
             for r in trainer.validate(module, datamodule=objects["datamodule"], verbose=False):
