@@ -208,52 +208,57 @@ class _ValidatedAt(pl.Callback):
 
 
 class _KeepBestOfMovedRun(pl.Callback):
-    """Resuming a run whose directory was moved or copied: Lightning restores a monitoring
-    ModelCheckpoint's best score only when its directory is unchanged, so the first epoch after
-    the resume would overwrite ``best.ckpt`` whatever its score. At the start of training this
-    re-seeds the best score (and the paths, in the new directory) from the checkpoint resumed
-    from, where that best file is in the new checkpoint directory."""
+    """Resuming a run whose directory was moved or copied: Lightning restores the checkpoint
+    callbacks' file paths as they were (in the old directory) and a monitoring one's best score
+    only when its directory is unchanged, so the first epoch after the resume would overwrite
+    ``best.ckpt`` whatever its score, and a resume with no epoch left to train would report the
+    old directory's files. Before training, and at the end of a fit (which may have trained
+    nothing), this points each ModelCheckpoint still holding the old path at the file of the
+    same name in its own directory, where that file exists, and re-seeds a monitoring one's best
+    score from the checkpoint resumed from."""
 
     def __init__(self, saved: dict[str, Any]) -> None:
         self.saved = saved
 
     def on_train_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        self._adopt(trainer)
+
+    def on_fit_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        self._adopt(trainer)
+
+    def _adopt(self, trainer: pl.Trainer) -> None:
         for cb in trainer.checkpoint_callbacks:
-            if not isinstance(cb, ModelCheckpoint):
+            if not isinstance(cb, ModelCheckpoint) or cb.dirpath is None:
                 continue
-            state = self.saved.get(cb.state_key)
-            if not state or cb.monitor is None or cb.best_model_score is not None or cb.dirpath is None:
+            state = self.saved.get(cb.state_key) or {}
+            path = state.get("best_model_path")
+            if not path:
                 continue
-            score, path = state.get("best_model_score"), state.get("best_model_path")
-            moved = Path(cb.dirpath) / Path(path).name if path else None
-            if score is None or moved is None or not moved.is_file():
-                continue
-            cb.best_model_score, cb.best_model_path = score, str(moved)
-            cb.kth_value, cb.kth_best_model_path = score, str(moved)
-            cb.best_k_models = {str(moved): score}
+            moved = Path(cb.dirpath) / Path(path).name
+            if not moved.is_file() or Path(path).parent.resolve() == moved.parent.resolve():
+                continue  # no such file here, or the same directory
+            if cb.best_model_path == path:
+                cb.best_model_path = str(moved)
+            score = state.get("best_model_score")
+            if cb.monitor is not None and cb.best_model_score is None and score is not None:
+                cb.best_model_score, cb.best_model_path = score, str(moved)
+                cb.kth_value, cb.kth_best_model_path = score, str(moved)
+                cb.best_k_models = {str(moved): score}
 
 
 def _checkpoint_files(callbacks: list[Any]) -> tuple[str | None, str | None]:
     """(last, best) checkpoint files written by the run's ModelCheckpoints (None: none written).
 
     ``last``: the ModelCheckpoint without a monitor (it keeps the newest epoch); ``best``: the
-    one monitoring a metric (it keeps the best epoch). A path restored from the checkpoint of a
-    run that was moved or copied (no epoch trained here since) names the file of the same name
-    in this run's checkpoint directory.
+    one monitoring a metric (it keeps the best epoch).
     """
     last = best = None
     for cb in callbacks:
-        if not isinstance(cb, ModelCheckpoint) or not cb.best_model_path:
-            continue
-        path = Path(cb.best_model_path)
-        if cb.dirpath is not None and path.parent.resolve() != Path(cb.dirpath).resolve():
-            path = Path(cb.dirpath) / path.name
-        if not path.is_file():
-            continue
-        if cb.monitor is None:
-            last = last or str(path)
-        else:
-            best = best or str(path)
+        if isinstance(cb, ModelCheckpoint) and cb.best_model_path and Path(cb.best_model_path).is_file():
+            if cb.monitor is None:
+                last = last or cb.best_model_path
+            else:
+                best = best or cb.best_model_path
     return last, best
 
 
@@ -313,8 +318,6 @@ def _report_completed(cfg: DictConfig, objects: dict[str, Any], report: RunRepor
         table, errors = _table_at(module, ckpt["state_dict"], truth)
         monitored = next((c for c in callbacks if isinstance(c, ModelCheckpoint) and c.monitor), None)
         score = monitored.best_model_score if monitored is not None else None
-        if score is None and monitored is not None:  # a moved run, no epoch trained here: the file's own record
-            score = (ckpt.get("callbacks") or {}).get(monitored.state_key, {}).get("best_model_score")
         best_info = {
             "checkpoint": best,
             "epoch": int(ckpt["epoch"]),
