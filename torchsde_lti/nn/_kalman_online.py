@@ -44,7 +44,7 @@ from torchsde_lti.nn._online import (
 from torchsde_lti.nn._validate import ValidateArgs, online_report
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
 
-__all__ = ["KalmanOnline", "OnlineModel"]
+__all__ = ["KalmanOnline", "OnlineModel", "state_batches"]
 
 #: The evaluated model of online calls: (SDE matrices, H, R, D, the discretisation series of
 #: one parameter set or None), see :meth:`KalmanOnline._online_model`.
@@ -129,10 +129,7 @@ class KalmanOnline(ValidateArgs, nn.Module):
         mats, H, R, D, series = model
         state, dt, u = self._check_state(state, dt, u, mats)
         y, mask = online_report(y, mask, H, mats.F.dtype, mats.F.device)
-        batch = state.mean.shape[:-1]
-        if not (batch == state.cov.shape[:-2] == y.shape[:-1] == dt.shape):  # (equal shapes: no check needed)
-            named = [("state.mean", batch), ("state.cov", state.cov.shape[:-2]), ("y", y.shape[:-1]), ("dt", dt.shape)]
-            broadcast_batch(named)
+        check_batches([*state_batches(state), ("y", y.shape[:-1]), ("dt", dt.shape)])
         D = D if u is not None else None
         if self.validate_args:
             self._check_values(mats, dt, y=y, u=u, H=H, R=R, D=D, mean=state.mean, cov=state.cov)
@@ -145,8 +142,7 @@ class KalmanOnline(ValidateArgs, nn.Module):
         """Prediction only, each track over its own dt (...): ``m⁻ = A m + G u``, ``P⁻ = A P Aᵀ + Q``."""
         mats, _, _, _, series = evaluated(self, self._online_model)
         state, dt, u = self._check_state(state, dt, u, mats)
-        named = [("state.mean", state.mean.shape[:-1]), ("state.cov", state.cov.shape[:-2]), ("dt", dt.shape)]
-        check_batches(named + ([] if u is None else [("u", u.shape[:-1])]))
+        check_batches([*state_batches(state), ("dt", dt.shape), *([] if u is None else [("u", u.shape[:-1])])])
         if self.validate_args:
             self._check_values(mats, dt, u=u, mean=state.mean, cov=state.cov)
         return kalman_predict(state, *self._online_step_model(mats, dt, u, series))
@@ -200,3 +196,8 @@ class KalmanOnline(ValidateArgs, nn.Module):
             u = as_float_tensor(u, "u", dtype, device)
             u = self._check_u(u.unsqueeze(-2) if u.dim() else u.reshape(1, 1), p, 1, "1", dtype, device).squeeze(-2)
         return state, dt, u
+
+
+def state_batches(state: KalmanState) -> list[tuple[str, tuple[int, ...]]]:
+    """The named batch shapes of a Kalman state's fields (for :func:`~torchsde_lti.nn._online.check_batches`)."""
+    return [("state.mean", tuple(state.mean.shape[:-1])), ("state.cov", tuple(state.cov.shape[:-2]))]

@@ -420,8 +420,7 @@ class IMMFilter(ValidateArgs, nn.Module):
             online, state, dt = self._online_args(state, dt)
             F, W, H, R = online.F, online.W, online.H, online.R
             y, mask = online_report(y, mask, H, F.dtype, F.device)
-            if not (state.mode_prob.shape[:-1] == y.shape[:-1] == dt.shape):  # (equal shapes: no check needed)
-                broadcast_batch([("state", state.mode_prob.shape[:-1]), ("y", y.shape[:-1]), ("dt", dt.shape)])
+            check_batches([*_state_batches(state), ("y", y.shape[:-1]), ("dt", dt.shape)])
             if self.validate_args:
                 check_values(
                     finite=[
@@ -430,7 +429,7 @@ class IMMFilter(ValidateArgs, nn.Module):
                         ("H", H),
                         ("R", R),
                         ("rates", online.rates),
-                        *zip(("state.mode_prob", "state.mode_mean", "state.mode_cov"), state),
+                        *zip(_STATE_NAMES, state),
                     ],
                     nonnegative=[("dt", dt)],
                     no_inf=[("y", y)],
@@ -450,7 +449,7 @@ class IMMFilter(ValidateArgs, nn.Module):
                         ("F", online.F),
                         ("W", online.W),
                         ("rates", online.rates),
-                        *zip(("state.mode_prob", "state.mode_mean", "state.mode_cov"), state),
+                        *zip(_STATE_NAMES, state),
                     ],
                     nonnegative=[("dt", dt)],
                 )
@@ -512,9 +511,15 @@ class IMMFilter(ValidateArgs, nn.Module):
             check_batches([*_state_batches(IMMState(prob, mean, cov)), ("dt", dt.shape[:-1])])
             H, R = self._obs_model()
             if self.validate_args:
-                named = zip(("state.mode_prob", "state.mode_mean", "state.mode_cov"), (prob, mean, cov))
                 check_values(
-                    finite=[("F", F), ("W", W), ("H", H), ("R", R), ("rates", self.rates), *named],
+                    finite=[
+                        ("F", F),
+                        ("W", W),
+                        ("H", H),
+                        ("R", R),
+                        ("rates", self.rates),
+                        *zip(_STATE_NAMES, (prob, mean, cov)),
+                    ],
                     nonnegative=[("dt", dt)],
                 )
             d, Pi = self._discretize_bank(F, W, dt, validate_args=False)  # (..., K, M, n, n), (..., K, M, M)
@@ -529,16 +534,17 @@ class IMMFilter(ValidateArgs, nn.Module):
         return f"modes={list(self.mode_names)}, obs_dim={self.obs_dim}, unique_dt={self.unique_dt}"
 
 
+#: The names of an IMM state's fields in error messages.
+_STATE_NAMES = ("state.mode_prob", "state.mode_mean", "state.mode_cov")
+
+
 def _imm_state(state: object, F: Tensor) -> IMMState:
     """An online call's state as an :class:`~torchsde_lti.IMMState` of F's dtype and device
     (F: (M, n, n)), shapes checked; TypeError or ValueError naming it."""
     M, n = F.shape[-3], F.shape[-1]
     if not isinstance(state, tuple) or len(state) != 3:
         raise TypeError(f"state must be an IMMState (mode_prob, mode_mean, mode_cov), got {type(state).__name__}")
-    prob, mean, cov = (
-        as_float_tensor(t, f"state.{k}", F.dtype, F.device)
-        for k, t in zip(("mode_prob", "mode_mean", "mode_cov"), state)
-    )
+    prob, mean, cov = (as_float_tensor(t, name, F.dtype, F.device) for name, t in zip(_STATE_NAMES, state))
     if prob.dim() < 1 or prob.shape[-1] != M or mean.shape[-2:] != (M, n) or cov.shape[-3:] != (M, n, n):
         raise ValueError(
             f"state must be (mode_prob (..., {M}), mode_mean (..., {M}, {n}), mode_cov "
@@ -549,8 +555,4 @@ def _imm_state(state: object, F: Tensor) -> IMMState:
 
 def _state_batches(state: IMMState) -> list[tuple[str, tuple[int, ...]]]:
     """The named batch shapes of an IMM state's fields."""
-    return [
-        ("state.mode_prob", tuple(state.mode_prob.shape[:-1])),
-        ("state.mode_mean", tuple(state.mode_mean.shape[:-2])),
-        ("state.mode_cov", tuple(state.mode_cov.shape[:-3])),
-    ]
+    return [(name, tuple(t.shape[: t.dim() - k])) for name, t, k in zip(_STATE_NAMES, state, (1, 2, 3))]

@@ -78,7 +78,7 @@ from torchsde_lti.filters import (
 )
 from torchsde_lti.filters.inputs import FilterInputs
 from torchsde_lti.filters.kalman import ALGORITHMS, check_algorithm, run_filter
-from torchsde_lti.nn._kalman_online import KalmanOnline
+from torchsde_lti.nn._kalman_online import KalmanOnline, state_batches
 from torchsde_lti.nn._online import check_batches, online_state
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import check_outcome, check_values
@@ -494,14 +494,16 @@ class KalmanFilter(KalmanOnline):
         with parametrize.cached():
             mats = self.sde.matrices()
             F = mats.F
-            (mean, cov), dt = online_state(state, dt, F)
+            checked, dt = online_state(state, dt, F)
+            mean, cov = checked
             if dt.dim() == 0:
                 dt = dt.reshape(1)
             if u is not None:
                 p = mats.B.shape[-1] if mats.B is not None else (self.D.shape[-1] if self.D is not None else 0)
                 u = self._check_u(u, p, dt.shape[-1], "K", F.dtype, F.device)
-            named = [("state.mean", mean.shape[:-1]), ("state.cov", cov.shape[:-2]), ("dt", dt.shape[:-1])]
-            check_batches(named + ([] if u is None else [("u", u.shape[:-2])]))
+            check_batches(
+                [*state_batches(checked), ("dt", dt.shape[:-1]), *([] if u is None else [("u", u.shape[:-2])])]
+            )
             H, R, D = self.H, self.R, self.D
             if self.validate_args:
                 self._check_values(mats, dt, u=u, H=H, R=R, D=D, mean=mean, cov=cov)
