@@ -68,6 +68,15 @@ def test_real_data_experiment_trains_a_step(
         assert not (ids[0] & ids[1] or ids[0] & ids[2] or ids[1] & ids[2])
 
 
+def test_test_true_without_a_test_split_fails_before_training(tmp_path: Path) -> None:
+    # the NY week's split in time has train and val only: test=true used to train, then raise
+    source = _slice("NYHarbor_2020_12_first_week.traj", tmp_path, also="2020-12-07")
+    overrides = ["experiment=ais_ny_week", f"data.source={source}", "test=true", "plots=false", "trainer.max_epochs=1"]
+    with pytest.raises(ValueError, match="test=true, but the data have no test split.*set test=false"):
+        train(_cfg(tmp_path, *overrides))
+    assert not (tmp_path / "checkpoints").exists()
+
+
 def test_slurm_launcher_config_composes() -> None:
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):

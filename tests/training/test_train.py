@@ -135,6 +135,19 @@ def test_bad_values_fail_before_training(tmp_path: Path, override: str, match: s
     assert not (tmp_path / "checkpoints").exists()
 
 
+@pytest.mark.parametrize(
+    ("overrides", "match"),
+    [
+        (["filter=imm"], "filter=imm needs a bank of modes.*model=integrated_ou"),  # was: 'model.mode_names' not found
+        (["model=imm", "~truth"], "model=imm is a bank of modes for filter=imm"),
+    ],
+)
+def test_filter_and_model_mismatch_fails_fast(tmp_path: Path, overrides: list[str], match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        train(_cfg(tmp_path, *TINY, *overrides))
+    assert not (tmp_path / "checkpoints").exists()
+
+
 def test_bad_dtype_fails_fast(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="dtype"):
         train(_cfg(tmp_path, *TINY, "dtype=float16"))
@@ -205,6 +218,21 @@ def test_plots_and_table_written(tmp_path: Path) -> None:
         assert (tmp_path / name).stat().st_size > 0
     summary = json.loads((tmp_path / "metrics.json").read_text())
     assert {r["name"] for r in summary["table"]} >= {"k", "q", "R[0,0]"}
+
+
+def test_table_against_a_zero_noise_truth_gives_no_relative_error(tmp_path: Path) -> None:
+    # R = 0 has no relative error: the R row used to show ‖R‖ (an absolute value) as a percentage
+    from torchsde_lti.training.metrics import parameter_table
+
+    cfg = _cfg(tmp_path, *TINY, "data.noise=0")
+    dm = instantiate(cfg.data)
+    module = instantiate(cfg.module, kf=instantiate(cfg.filter, m0=dm.m0, P0=dm.P0), truth=dm.truth)
+    rows = {r["name"]: r for r in parameter_table(module, {**dm.truth, "H": dm.H})}
+    assert "R (matrix)" not in rows
+    row = rows["R (matrix, ‖·‖_F)"]
+    assert row["true"] == 0.0 and math.isnan(row["rel_error"])
+    assert row["learned"] == pytest.approx(float(torch.linalg.matrix_norm(module.kf.R.double())))
+    assert math.isfinite(rows["k"]["rel_error"]) and math.isnan(rows["R[0,0]"]["rel_error"])
 
 
 def test_checkpoints_are_named_for_what_they_hold_and_reports_say_which(tmp_path: Path) -> None:

@@ -64,10 +64,25 @@ def _boolean(cfg: DictConfig, key: str) -> None:
         raise ValueError(f"{key} must be true or false, got {x!r}")
 
 
+def _check_filter_model(cfg: DictConfig) -> None:
+    """An IMM filter learns a bank of modes (a model group with ``mode_names``, e.g. model=imm);
+    a Kalman filter one model."""
+    target = str(OmegaConf.select(cfg, "filter._target_", default="") or "")
+    model = OmegaConf.select(cfg, "model.name", default=None)
+    bank = OmegaConf.select(cfg, "model.mode_names", default=None) is not None
+    if target.endswith("IMMFilter") and not bank:
+        raise ValueError(
+            f"filter=imm needs a bank of modes: model=imm or model=imm3 (with truth=null and real data, as "
+            f"experiment=ais_imm and experiment=ais_moving set), got model={model}"
+        )
+    if target.endswith(".KalmanFilter") and bank:
+        raise ValueError(f"model={model} is a bank of modes for filter=imm (experiment=ais_imm), not for filter=kalman")
+
+
 def check_config(cfg: DictConfig) -> None:
     """Raise ValueError naming the key for a config that cannot make a sensible run.
 
-    Checked: the required nodes; ``dtype``; ``seed`` (an integer in [0, 2³² − 1]);
+    Checked: the required nodes; the filter and model paired (filter=imm with a bank of modes); ``dtype``; ``seed`` (an integer in [0, 2³² − 1]);
     ``num_threads`` (null, 0 = torch's default, or >= 1); ``init_jitter`` >= 0;
     ``restart`` >= 0; ``test`` / ``plots`` booleans; ``ckpt_path`` a string;
     ``trainer.max_epochs`` >= 1 (``-1``, Lightning's "train forever", is refused; null only
@@ -79,6 +94,7 @@ def check_config(cfg: DictConfig) -> None:
     for key in _REQUIRED:
         if cfg.get(key) is None:
             raise ValueError(f"config is missing the '{key}' node")
+    _check_filter_model(cfg)
     dtype = _value(cfg, "dtype")
     if dtype not in ("float32", "float64"):
         raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")

@@ -266,7 +266,9 @@ def parameter_table(module: Any, truth: dict[str, Any] | None) -> list[dict[str,
     the diagonal of every R are listed by value (``true`` and ``rel_error`` NaN without a
     truth); the matrix errors (``expmF``: max over dt of ‖expm(F dt) − expm(F* dt)‖/‖expm(F* dt)‖;
     ``autocov``: the observed autocovariance, for a free F the data do not determine entrywise;
-    ``Qc``, ``R``) by error only. Only a single-model filter is paired with a truth.
+    ``Qc``, ``R``) by error only, except against a zero truth (``data.noise=0``: R = 0), which
+    has no relative error: that row gives the learned matrix's Frobenius norm. Only a
+    single-model filter is paired with a truth.
     """
     errors = module.parameter_errors()
     kf = module.kf
@@ -289,7 +291,13 @@ def parameter_table(module: Any, truth: dict[str, Any] | None) -> list[dict[str,
                 err = abs(float(a) - b) / abs(b) if t_diag is not None and b != 0 else math.nan
                 rows.append({"name": f"{name}[{i},{i}]", "true": b, "learned": float(a), "rel_error": err})
     for name in ("expmF", "autocov", "Qc", "R"):
-        if name in errors:
+        if name not in errors:
+            continue
+        zero = name in true and not bool(torch.as_tensor(true[name]).any())
+        if zero:  # no relative error to a zero truth: the learned matrix's Frobenius norm instead
+            norm = float(torch.linalg.vector_norm(learned[name].detach().double())) if name in learned else math.nan
+            rows.append({"name": f"{name} (matrix, ‖·‖_F)", "true": 0.0, "learned": norm, "rel_error": math.nan})
+        else:
             rows.append({"name": f"{name} (matrix)", "true": math.nan, "learned": math.nan, "rel_error": errors[name]})
     return rows
 

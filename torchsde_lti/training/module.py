@@ -16,8 +16,10 @@ from the filtered mode probabilities, means and covariances at t over the lead
 Batches are dicts or NamedTuples with ``y`` (B, T, m; NaN = missing), ``dt`` (B, T),
 optional ``mask`` (B, T), ``u`` (B, T, p), ``x`` (B, T, n) — see :mod:`torchsde_lti.data`.
 
-Logged metrics: ``train/nll``, ``val/nll``, ``val/rmse`` (one-step-ahead prediction error
-of y), ``val/state_rmse`` (filtered mean vs true state, when batches carry ``x``), and when
+Logged metrics, each over a whole epoch (every batch, every process): ``train/nll``,
+``val/nll`` (per observed scalar: Σ NLL / Σ observed scalars), ``val/rmse`` (one-step-ahead
+prediction error of y: √(Σ squared errors / Σ observed scalars)), ``val/state_rmse``
+(filtered mean vs true state, when batches carry ``x``), and when
 the truth is known ``val/param_error`` (largest relative error of the quantities the data
 determine: see :func:`parameter_errors`) plus ``val/param_error/<name>`` for each of them.
 Robustness: gradient-norm clipping before every step, and a non-finite loss or gradient
@@ -170,6 +172,7 @@ class KalmanFilterModule(LightningModule):
         self.grad_clip_norm = float(grad_clip_norm) if grad_clip_norm else None
         self.skip_nonfinite = bool(skip_nonfinite)
         self.skipped_steps = 0
+        self._squared_errors: dict[str, Tensor] = {}  # stage -> running sums of one epoch (_eval_step)
 
     # ---------------------------------------------------------------- helpers
 
@@ -252,28 +255,49 @@ class KalmanFilterModule(LightningModule):
             # (and L-BFGS, seeing no gradient, ends its iteration)
             params = [p for p in self.parameters() if p.requires_grad]
             return sum((p.sum() * 0.0 for p in params), torch.zeros((), dtype=self.float_dtype)) + math.nan
-        bs = info["y"].shape[0]
-        self.log("train/nll", nll, on_step=False, on_epoch=True, prog_bar=True, batch_size=bs, sync_dist=True)
+        # weighted by observed scalars: the epoch's value is the NLL per observed scalar of all its batches
+        count = int(info["count"])
+        self.log("train/nll", nll, on_step=False, on_epoch=True, prog_bar=True, batch_size=count, sync_dist=True)
         if self.k_steps and self.k_step_weight > 0:
-            self.log("train/loss", loss, on_step=False, on_epoch=True, batch_size=bs, sync_dist=True)
+            self.log("train/loss", loss, on_step=False, on_epoch=True, batch_size=count, sync_dist=True)
         return loss
 
     def _eval_step(self, batch: Any, stage: str) -> Tensor:
         loss, nll, out, info = self._step(batch)
         y, observed = info["y"], info["observed"]
-        bs = y.shape[0]
-        self.log(f"{stage}/nll", nll, on_epoch=True, prog_bar=stage == "val", batch_size=bs, sync_dist=True)
+        count = int(info["count"])
+        self.log(f"{stage}/nll", nll, on_epoch=True, prog_bar=stage == "val", batch_size=count, sync_dist=True)
         pred = out.pred_mean @ self.kf.H.mT  # one-step-ahead predicted observation
         err = torch.where(observed, pred - y, torch.zeros_like(y))
-        mse = (err**2).sum() / observed.sum().clamp_min(1)
-        self.log(f"{stage}/rmse", mse.sqrt(), on_epoch=True, batch_size=bs, sync_dist=True)
+        sums = [(err**2).sum(), observed.sum()]
         x, mask = info["x"], info["mask"]
         if x is not None and x.shape[-1] == out.mean.shape[-1]:  # the truth's state (same kind of model)
             valid = torch.ones_like(x[..., 0], dtype=torch.bool) if mask is None else mask
             se = ((out.mean - x) ** 2).sum(-1)
-            smse = (se * valid).sum() / (valid.sum().clamp_min(1) * x.shape[-1])
-            self.log(f"{stage}/state_rmse", smse.sqrt(), on_epoch=True, batch_size=bs, sync_dist=True)
+            sums += [(se * valid).sum(), valid.sum() * x.shape[-1]]
+        total = torch.stack([v.detach().to(torch.float64) for v in sums])
+        previous = self._squared_errors.get(stage)
+        self._squared_errors[stage] = total if previous is None else previous + total
         return loss
+
+    def _log_rmse(self, stage: str) -> None:
+        """``{stage}/rmse`` (and ``state_rmse``) over the whole epoch: √(Σ squared errors / Σ
+        counts) of all its batches (and of all processes)."""
+        sums = self._squared_errors.pop(stage, None)
+        if sums is None:
+            return
+        sums = self.trainer.strategy.reduce(sums, reduce_op="sum")
+        for i, name in enumerate(("rmse", "state_rmse")[: len(sums) // 2]):
+            self.log(f"{stage}/{name}", (sums[2 * i] / sums[2 * i + 1].clamp_min(1)).sqrt(), sync_dist=False)
+
+    def on_validation_epoch_start(self) -> None:
+        self._squared_errors.pop("val", None)
+
+    def on_test_epoch_start(self) -> None:
+        self._squared_errors.pop("test", None)
+
+    def on_test_epoch_end(self) -> None:
+        self._log_rmse("test")
 
     def validation_step(self, batch: Any, batch_idx: int) -> Tensor:
         return self._eval_step(batch, "val")
@@ -307,6 +331,7 @@ class KalmanFilterModule(LightningModule):
         )
 
     def on_validation_epoch_end(self) -> None:
+        self._log_rmse("val")
         errors = self.parameter_errors()
         if not errors:
             return

@@ -173,6 +173,8 @@ def _build(cfg: DictConfig, guard: SignalGuard, resume: dict[str, Any] | None = 
     callbacks.sort(key=lambda c: isinstance(c, ModelCheckpoint) and c.monitor is None)
     loggers = _instantiate_dict(cfg, "logger")
     trainer: pl.Trainer = instantiate_node(cfg, "trainer", callbacks=callbacks, logger=loggers or False)
+    if cfg.get("test") and not trainer.fast_dev_run:
+        _check_test_split(datamodule)
     return {
         "cfg": cfg,
         "datamodule": datamodule,
@@ -182,6 +184,18 @@ def _build(cfg: DictConfig, guard: SignalGuard, resume: dict[str, Any] | None = 
         "loggers": loggers,
         "truth": truth,
     }
+
+
+def _check_test_split(datamodule: pl.LightningDataModule) -> None:
+    """ValueError before training where ``test=true`` finds no test batch (an empty test split),
+    instead of failing (or testing nothing) after the fit. Sets the data up (once: the fit reuses it)."""
+    datamodule.setup("fit")
+    try:
+        batches = len(datamodule.test_dataloader())
+    except ValueError as err:
+        raise ValueError(f"test=true, but the data have no test split: {err}; set test=false") from None
+    if batches == 0:
+        raise ValueError("test=true, but the data's test split is empty; set test=false or give it tracks")
 
 
 class _ValidatedAt(pl.Callback):
