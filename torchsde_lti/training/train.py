@@ -173,7 +173,7 @@ def _build(cfg: DictConfig, guard: SignalGuard, resume: dict[str, Any] | None = 
     callbacks.sort(key=lambda c: isinstance(c, ModelCheckpoint) and c.monitor is None)
     loggers = _instantiate_dict(cfg, "logger")
     trainer: pl.Trainer = instantiate_node(cfg, "trainer", callbacks=callbacks, logger=loggers or False)
-    if cfg.get("test") and not trainer.fast_dev_run:
+    if cfg.get("test") and not getattr(trainer, "fast_dev_run", False):
         _check_test_split(datamodule)
     return {
         "cfg": cfg,
