@@ -355,6 +355,20 @@ def test_batched_equals_loop_and_leading_dims():
             torch.testing.assert_close(sm.mean[i, j], sequential_rts(single).mean, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("algorithm", ["sequential", "square_root", "scan"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_empty_batch_gives_empty_results(algorithm, dtype):
+    """Zero tracks (a tracker or a loader with nothing to pass): empty results, every algorithm
+    (the sequential one's -1 reshapes were ambiguous for zero elements)."""
+    A, Q, _ = (torch.as_tensor(x, dtype=dtype) for x in cv_matrices(np.ones(5), 0.5, axes=1))
+    H = torch.tensor([[1.0, 0.0]], dtype=dtype)
+    y = torch.zeros(0, 5, 1, dtype=dtype)
+    out = kalman_filter(y, A, Q, H, 0.25 * torch.eye(1, dtype=dtype), torch.zeros(2, dtype=dtype),
+                        torch.eye(2, dtype=dtype), algorithm=algorithm)  # fmt: skip
+    assert out.mean.shape == (0, 5, 2) and out.cov.shape == (0, 5, 2, 2) and out.log_likelihood.shape == (0,)
+    assert rts_smoother(out).cov.shape == (0, 5, 2, 2)
+
+
 def test_shared_grid_broadcasts_over_tracks():
     """A, Q without a track axis and y (B, T, m): the covariance path is shared."""
     rng = np.random.default_rng(11)

@@ -20,6 +20,7 @@ are (possibly non-contiguous) views in the documented batch-first shapes.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import torch
@@ -93,8 +94,8 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
     pc_buf = P.new_empty((prep.T, n_state, n_state, *P.shape[2:])) if buffers else None
     fc_buf = P.new_empty((prep.T, n_state, n_state, *P.shape[2:])) if buffers else None
     A_steps, Q_steps = A_bf.unbind(-3), Q_bf.unbind(-3)
-    h_rows = H_s.reshape(-1, *H_s.shape[2:]).unbind(0)  # (T or 1)·m rows, each (n, *)
-    y_rows = yw_bl.reshape(-1, *yw_bl.shape[2:]).unbind(0)  # T·m entries, each (*mb)
+    h_rows = H_s.flatten(0, 1).unbind(0)  # (T or 1)·m rows, each (n, *)
+    y_rows = yw_bl.flatten(0, 1).unbind(0)  # T·m entries, each (*mb)
     c_steps = to_batch_last(prep.c, 1, time=True).unbind(0) if prep.c is not None else None
     c_single = c_steps is not None and len(c_steps) == 1
     for k in range(prep.T):
@@ -137,9 +138,10 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
         # the flattened (T, n·n, batch) covariances.
         Hm = H_bl.reshape(H_bl.shape[1:3])  # (m, n)
         bshape = pc_bl.shape[3:]
-        innov = y0_bl - (Hm @ pm_bl.reshape(prep.T, n, -1)).reshape(prep.T, -1, *pm_bl.shape[2:])
+        mshape = pm_bl.shape[2:]  # explicit sizes below: -1 is ambiguous for an empty batch
+        innov = y0_bl - (Hm @ pm_bl.reshape(prep.T, n, math.prod(mshape))).reshape(prep.T, m_dim, *mshape)
         HH = (Hm[:, None, :, None] * Hm[None, :, None, :]).reshape(m_dim * m_dim, n * n)  # (m², n²)
-        S = (HH @ pc_bl.reshape(prep.T, n * n, -1)).reshape(prep.T, m_dim, m_dim, *bshape) + R_bl
+        S = (HH @ pc_bl.reshape(prep.T, n * n, math.prod(bshape))).reshape(prep.T, m_dim, m_dim, *bshape) + R_bl
     else:
         # (accumulated over the contracted index: no (T, m, n, n, *batch) intermediate)
         innov = y0_bl
