@@ -117,6 +117,28 @@ def test_csv_named_columns_comment_header_ragged_rows_and_offsets(tmp_path: Path
         read_reports(f, {"id": 0, "time": 1})
 
 
+def test_one_unreadable_time_among_fractional_seconds_drops_that_row_only(tmp_path: Path) -> None:
+    # the column's cast failed on the one bad row, and the fallback formats had no fractions: 0 of 6 read
+    f = tmp_path / "frac.csv"
+    rows = [f"1,2020-06-30T00:00:{s:02d}.500,40.7,-74.0{s}" for s in range(5)]
+    f.write_text("\n".join(["id,t,lat,lon", *rows[:3], "1,not-a-time,40.7,-74.0", *rows[3:], ""]))
+    r = read_reports(f, {"id": "id", "time": "t", "lat": "lat", "lon": "lon"})
+    assert r.rows == 6 and r.malformed == 1 and "row 4" in r.malformed_examples[0]
+    assert [str(t) for t in r.time] == [f"2020-06-30T00:00:{s:02d}.500000" for s in range(5)]
+    f.write_text("id,t,lat,lon\n1,2020-06-30T02:00:01.25+02:00,1,2\n1,2020-06-30T00:00:02.5Z,1,2\n1,x,1,2\n")
+    r = read_reports(f, {"id": "id", "time": "t", "lat": "lat", "lon": "lon"})
+    assert r.malformed == 1 and [str(t) for t in r.time] == ["2020-06-30T00:00:01.250000", "2020-06-30T00:00:02.500000"]
+
+
+def test_positions_above_a_header_line_do_not_count_it_as_a_row(tmp_path: Path) -> None:
+    f = tmp_path / "pos.csv"
+    data = "1,2020-06-30T00:00:00,10,20\n1,2020-06-30T00:00:10,10,20.001\n"
+    for text in ("MMSI,BaseDateTime,LAT,LON\n" + data, data):  # with and without a header
+        f.write_text(text)
+        r = read_reports(f, {"id": 0, "time": 1, "lat": 2, "lon": 3})
+        assert r.rows == 2 and r.malformed == 0 and list(r.lon) == [20.0, 20.001]
+
+
 def test_parquet_matches_csv(tmp_path: Path) -> None:
     pa = pytest.importorskip("pyarrow")
     pcsv = pytest.importorskip("pyarrow.csv")

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import NamedTuple
@@ -51,6 +52,7 @@ AIS_COLUMNS: dict[str, str] = {
 RESERVED_FOR_EVALUATION = ("NYHarbor_2020_12_08.traj", "VirginiaBeach_2020_06_04_to_06_filtered.traj")
 _EXAMPLES = 3  # malformed examples kept
 _NUMBER = r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$"  # a decimal number, as text
+_ISO_8601 = r"^\s*\d{4}-\d{2}-\d{2}([T ]\d{2}:\d{2}(:\d{2}(\.\d+)?)?)?\s*(Z|[+-]\d{2}(:?\d{2})?)?\s*$"  # a date-time in ISO 8601
 
 
 class Reports(NamedTuple):
@@ -362,7 +364,16 @@ def _as_time(arr: object, time_format: str | None) -> tuple[np.ndarray, np.ndarr
             formats = [time_format]
         if out is None:  # some rows do not parse: the format that reads most of them, the rest are malformed
             candidates = [pc.strptime(arr, format=f, unit="us", error_is_null=True) for f in formats]
-            if time_format is None:  # CSV columns arrive as strings: numbers are seconds since the epoch
+            if time_format is None:
+                # the rows that look like ISO 8601 (fractional seconds and offsets too), cast alone
+                iso = pc.fill_null(pc.match_substring_regex(arr, _ISO_8601), False)
+                kept = pc.if_else(iso, arr, pa.scalar(None, pa.string()))
+                for target in (us, pa.timestamp("us", tz="UTC")):
+                    try:
+                        candidates.append(pc.cast(kept, target))
+                    except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+                        continue
+                # CSV columns arrive as strings: numbers are seconds since the epoch
                 numeric = pc.fill_null(pc.match_substring_regex(pc.utf8_trim_whitespace(arr), _NUMBER), False)
                 candidates.append(
                     _epoch_seconds(pc.cast(pc.if_else(numeric, arr, pa.scalar(None, pa.string())), pa.float64()))
@@ -396,6 +407,8 @@ def _read_table(
         by_position = isinstance(columns, Mapping) and all(
             isinstance(v, int) for v in columns.values() if v is not None
         )
+        if by_position and isinstance(columns, Mapping) and _first_line_is_header(path, skip, columns):
+            skip += 1  # positions above a header line: the header is not a row
         header = None if by_position else _csv_header(path, skip)
         cols = _resolve_columns(columns, header, path)
         # positions: pyarrow's generated names without a header, the header's names with one
@@ -475,6 +488,16 @@ def _csv_header(path: Path, skip: int) -> list[str]:
             fh.readline()
         first = fh.readline().rstrip(b"\r\n")
     return pcsv.read_csv(io.BytesIO(first + b"\n"), read_options=pcsv.ReadOptions()).schema.names
+
+
+def _first_line_is_header(path: Path, skip: int, columns: Mapping[str, str | int]) -> bool:
+    """Whether the first line after ``skip`` has text, not a number, at the latitude or
+    longitude position of ``columns``."""
+    fields = _csv_header(path, skip)
+    positions = [columns.get(role) for role in ("lat", "lon")]
+    return any(
+        isinstance(c, int) and c < len(fields) and re.match(_NUMBER, fields[c].strip()) is None for c in positions
+    )
 
 
 def _object_ids(ids: np.ndarray, ok: np.ndarray) -> np.ndarray:
