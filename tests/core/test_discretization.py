@@ -281,10 +281,30 @@ def test_van_loan_is_inaccurate_where_doubling_is_not() -> None:
     F, L, Qc = t64([[0, 1], [0, -3.0]]), t64([[0], [1.0]]), t64([[2.0]])
     dt = t64(20.0)
     A_ref, Q_ref = mp_discretize(F.numpy(), (L @ Qc @ L.T).numpy(), 20.0)
-    naive = tl.discretize(F, L, Qc, dt, method="matrix_exp")
+    naive = tl.discretize(F, L, Qc, dt, method="matrix_exp", validate_args=False)
     robust = tl.discretize(F, L, Qc, dt)
-    assert rel_err(naive.Q, Q_ref) > 1e-3
+    assert rel_err(naive.Q, Q_ref) > 1e-3 and float(torch.linalg.eigvalsh(naive.Q).min()) < 0
     assert rel_err(robust.Q, Q_ref) < 1e-13
+    # checked (the default), the non-PSD Q is refused instead of returned
+    with pytest.raises(
+        ValueError, match="method='matrix_exp' gave a process noise Q that is not positive semi-definite"
+    ):
+        tl.discretize(F, L, Qc, dt, method="matrix_exp")
+
+
+def test_matrix_exp_non_psd_q_is_refused_by_the_filter_module() -> None:
+    # Singer α = 50 over dt = 1 (float64): Van Loan's Q has eigenvalue −283, and the square-root
+    # filter returned a finite, wrong log-likelihood (−61.0 against the doubling's −80.3)
+    sde = tl.models.singer(50.0, 2.0, dim=1, dtype=torch.float64)
+    H, R = t64([[1.0, 0.0, 0.0]]), t64([[0.1]])
+    y, dt = torch.randn(1, 20, 1, dtype=torch.float64), torch.ones(1, 20, dtype=torch.float64)
+    kf = tl.KalmanFilter(sde, H, R, P0=torch.eye(3, dtype=torch.float64), algorithm="square_root", method="matrix_exp")
+    with pytest.raises(ValueError, match="not positive semi-definite"):
+        kf(y, dt)
+    kf.validate_args = False
+    assert torch.isfinite(kf(y, dt).log_likelihood).all()  # unchecked: what Van Loan gives
+    kf.validate_args, kf.method = True, "doubling"
+    assert torch.isfinite(kf(y, dt).log_likelihood).all()
 
 
 # --------------------------------------------------------------------------- batching
@@ -298,12 +318,14 @@ def test_batched_irregular_dt_equals_loop(method: str) -> None:
     # a batch mixing tiny, moderate and huge steps (different numbers of doublings)
     longest = 300.0 if method == "doubling" else 30.0  # matrix_exp's −Fᵀ block overflows at 300
     dt = t64(np.concatenate([[0.0, 1e-6], rng.exponential(1.0, size=20), [40.0, longest]]).reshape(4, 6))
-    d = tl.discretize(F, L, Qc, dt, B=B, method=method)
+    # matrix_exp's Q at dt 30-40 has lost PSD (refused when checked): this compares layouts, unchecked
+    checked = method == "doubling"
+    d = tl.discretize(F, L, Qc, dt, B=B, method=method, validate_args=checked)
     assert d.A.shape == (4, 6, 3, 3) and d.Q.shape == (4, 6, 3, 3) and d.G.shape == (4, 6, 3, 1)
     # torch.matrix_exp picks its Taylor degree from the whole batch: looser for matrix_exp
     rtol, atol = (1e-13, 1e-15) if method == "doubling" else (1e-11, 1e-14)
     for idx in np.ndindex(4, 6):
-        single = tl.discretize(F, L, Qc, dt[idx], B=B, method=method)
+        single = tl.discretize(F, L, Qc, dt[idx], B=B, method=method, validate_args=checked)
         np.testing.assert_allclose(d.A[idx], single.A, rtol=rtol, atol=atol)
         np.testing.assert_allclose(d.Q[idx], single.Q, rtol=rtol, atol=atol)
         np.testing.assert_allclose(d.G[idx], single.G, rtol=rtol, atol=atol)

@@ -22,12 +22,13 @@ from torchsde_lti.core._doubling import discretization_series as _discretization
 from torchsde_lti.core._matrix_exp import matrix_exp
 from torchsde_lti.core.series import TerminatingSeries
 from torchsde_lti.core.threads import intra_op_threads
-from torchsde_lti.core.validation import SDEInputs, check_matrix, checks_values, sde_inputs, shape_str
+from torchsde_lti.core.validation import SDEInputs, check_matrix, checks_values, sde_inputs, shape_str, tracing
 
 __all__ = [
     "METHODS",
     "Discrete",
     "SharedSeries",
+    "check_matrix_exp_noise",
     "discretization_series",
     "discretize",
     "discretize_series",
@@ -106,6 +107,27 @@ def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | No
     )
 
 
+def check_matrix_exp_noise(Q: Tensor) -> None:
+    """ValueError where ``method="matrix_exp"``'s Q (..., n, n) is not PSD beyond √eps of its
+    largest entry: the cancellation ``Q = X Aᵀ`` of Van Loan's block (growing like
+    ``‖e^{F dt}‖ ‖e^{−F dt}‖``) has lost it. One Cholesky of ``Q + √eps max|Q| I`` and one
+    synchronisation; nothing while tracing."""
+    if tracing() or Q.numel() == 0:
+        return
+    with torch.no_grad():
+        scale = Q.abs().amax(dim=(-2, -1)).clamp_min(torch.finfo(Q.dtype).tiny)
+        tol = math.sqrt(torch.finfo(Q.dtype).eps)
+        eye = torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
+        if bool((torch.linalg.cholesky_ex(Q + (tol * scale)[..., None, None] * eye).info == 0).all()):
+            return
+        lowest = float((torch.linalg.eigvalsh(Q).amin(dim=-1) / scale).min())
+    raise ValueError(
+        f"method='matrix_exp' gave a process noise Q that is not positive semi-definite (smallest eigenvalue "
+        f"{lowest:.3g} relative to its largest entry, shape {shape_str(Q)}): Van Loan's Q = X Aᵀ cancels for a "
+        "large ‖F‖ dt; the default method='doubling' stays PSD"
+    )
+
+
 def _required(dt: Tensor | float | None, B: Tensor | None = None, needs_B: bool = False) -> None:
     """ValueError for a missing dt (every function of dt), or a missing B where G is asked for."""
     if dt is None:
@@ -126,6 +148,8 @@ def _run(inputs: SDEInputs, method: str, validate_args: bool) -> tuple[Tensor, T
             A, Q, G = doubling(inputs)
         if checks_values(validate_args) and not _overflow_impossible(inputs):
             _check_result(inputs, A, Q, G, method)
+        if checks_values(validate_args) and method == "matrix_exp" and Q is not None:
+            check_matrix_exp_noise(Q)
     return inputs.finish(A, Q, G)  # type: ignore[return-value]
 
 

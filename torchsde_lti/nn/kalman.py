@@ -55,6 +55,7 @@ from torch.nn.utils import parametrize
 
 from torchsde_lti.core.discretization import (
     Discrete,
+    check_matrix_exp_noise,
     discretize,
     discretize_series,
     resolve_method,
@@ -419,6 +420,8 @@ class KalmanFilter(KalmanOnline):
                 algorithm = choose_algorithm(algorithm, math.prod(batch), T, y.device, y.dtype)
             # one batched discretisation of every step: A, Q (..., T, n, n), laid out for the algorithm
             d = self._discretize(dt, mats, series_layout=algorithm != "scan")
+            if validate and self.discretization_method == "matrix_exp":
+                check_matrix_exp_noise(d.Q)
             G = d.G if u is not None else None
             args = FilterInputs(y, d.A, d.Q, H, R, m0, P0, G, u, mask, D)
             out = run_filter(args, algorithm, validate_args=False, compiled_loop=compiled_loop)
