@@ -235,6 +235,25 @@ def test_table_against_a_zero_noise_truth_gives_no_relative_error(tmp_path: Path
     assert math.isfinite(rows["k"]["rel_error"]) and math.isnan(rows["R[0,0]"]["rel_error"])
 
 
+def test_epoch_metrics_are_per_observed_scalar_over_all_batches(tmp_path: Path) -> None:
+    """val/nll = Σ NLL / Σ observed scalars and val/rmse = √(Σ squared errors / Σ observed scalars)
+    over the epoch, whatever the batches' sizes (a batch of 7 tracks beside ones of 25)."""
+    metrics, objects = train(_cfg(tmp_path, *TINY, "trainer.max_epochs=1", "test=false", "plots=false",
+                                  "data.num_tracks.val=57", "data.batch_size=25"))  # fmt: skip
+    module, dm = objects["module"], objects["datamodule"]
+    nll = se = count = 0.0
+    with torch.no_grad():
+        for batch in dm.val_dataloader():
+            _, _, out, info = module._step(batch)
+            observed = info["observed"]
+            nll -= float(out.log_likelihood.sum())
+            err = torch.where(observed, out.pred_mean @ module.kf.H.mT - info["y"], 0.0)
+            se, count = se + float((err**2).sum()), count + float(observed.sum())
+    assert len(dm.val_dataloader()) == 3
+    assert metrics["val/nll"] == pytest.approx(nll / count, rel=1e-10)
+    assert metrics["val/rmse"] == pytest.approx(math.sqrt(se / count), rel=1e-10)
+
+
 def test_checkpoints_are_named_for_what_they_hold_and_reports_say_which(tmp_path: Path) -> None:
     """last.ckpt = the last epoch = what the table and test metrics report; best.ckpt = lowest val/nll."""
     import csv
