@@ -333,6 +333,25 @@ def test_aoti_packaged_online_step(tmp_path):
         packaged(mean, cov[0], y, dt)
     with pytest.raises(ValueError, match=r"takes 4 tensors \(mean, cov, y, dt\), got 3"):
         packaged(mean, cov, y)
+    # sizes: tracks that disagree between inputs, a fixed size that differs (torch's own loader
+    # reads past the end of y here, or returns garbage)
+    with pytest.raises(ValueError, match=r"y \(3, 2\) and mean \(2, 4\) must agree in the program's dynamic dim"):
+        packaged(mean, cov, torch.zeros(3, 2, dtype=F64), torch.ones(3, dtype=F64))
+    with pytest.raises(
+        ValueError, match=r"cov must have size 4 in dim 1 \(the program's fixed size\), got \(2, 3, 4\)"
+    ):
+        packaged(mean, cov[:, 1:], y, dt)
+    # views: the state of kf.initial_state is expanded (stride 0), a transposed mean is not contiguous
+    state = kf.initial_state((3,))
+    assert state.cov.stride(0) == 0
+    y3, dt3 = torch.randn(3, 2, dtype=F64), torch.full((3,), 0.5, dtype=F64)
+    mean_t = torch.randn(4, 3, dtype=F64).mT
+    with torch.no_grad():
+        for m in (state.mean, mean_t):
+            ref_state, ref_out = kf.step(tl.KalmanState(m, state.cov), y3, dt3)
+            got = packaged(m, state.cov, y3, dt3)
+            torch.testing.assert_close(got[0], ref_state.mean, rtol=0, atol=1e-9)
+            torch.testing.assert_close(got[4], ref_out.log_likelihood, rtol=0, atol=1e-9)
 
 
 def test_package_functions_reject_bad_arguments(tmp_path):

@@ -104,8 +104,27 @@ class OnlineStep(nn.Module):
 PACKAGE_CONFIGS: dict[str, Any] = {"aot_inductor.use_runtime_constant_folding": True}
 
 #: The package metadata key under which :func:`compile_package` records the program's tensor
-#: inputs: a JSON list of [name, dtype, number of dims, device type].
+#: inputs: a JSON list of [name, dtype, number of dims, device type, sizes, ranges]; sizes has an
+#: int for a fixed size, a dynamic dim's symbol ("s0") or None (an expression of symbols); ranges
+#: maps each symbol to [lowest, highest or None].
 _INPUTS_KEY = "torchsde_lti.inputs"
+
+
+def _dim_record(d: int | torch.SymInt) -> int | str | None:
+    """A fixed size as it is, a dynamic dim as its symbol's name, an expression of symbols as None."""
+    if isinstance(d, int):
+        return d
+    expr = d.node.expr
+    return str(expr) if getattr(expr, "is_Symbol", False) else None
+
+
+def _ranges(program: ExportedProgram) -> dict[str, list[int | None]]:
+    """symbol -> [lowest, highest or None] of the program's dynamic dims."""
+    out: dict[str, list[int | None]] = {}
+    for sym, vr in program.range_constraints.items():
+        lower, upper = vr.lower, vr.upper
+        out[str(sym)] = [int(lower) if lower.is_finite else 0, int(upper) if upper.is_finite else None]
+    return out
 
 
 def compile_package(
@@ -119,11 +138,15 @@ def compile_package(
     if not isinstance(program, ExportedProgram):
         raise TypeError(f"program must be a torch.export.ExportedProgram, got {type(program).__name__}")
     user_inputs = set(program.graph_signature.user_inputs)
+    ranges = _ranges(program)
     signature = [
-        [node.name, str(val.dtype).removeprefix("torch."), val.dim(), val.device.type]
+        [
+            node.name, str(val.dtype).removeprefix("torch."), val.dim(), val.device.type,
+            [_dim_record(d) for d in val.shape], ranges,
+        ]
         for node in program.graph.nodes
         if node.op == "placeholder" and node.name in user_inputs and isinstance(val := node.meta.get("val"), Tensor)
-    ]
+    ]  # fmt: skip
     configs = {**PACKAGE_CONFIGS, **(inductor_configs or {})}
     configs["aot_inductor.metadata"] = {**configs.get("aot_inductor.metadata", {}), _INPUTS_KEY: json.dumps(signature)}
     return torch._inductor.aoti_compile_and_package(program, package_path=os.fspath(path), inductor_configs=configs)
@@ -134,11 +157,13 @@ class PackagedProgram:
 
     Its input and output structure is read once when it is loaded (``torch._inductor``'s
     loader object parses it again on every call, which costs a small call more than the
-    compiled program itself); positional tensor arguments go to the compiled program as they
-    are, checked first against the input signature :func:`compile_package` recorded (dtype,
-    number of dims, on the CPU or not: the compiled program itself reads a wrong one's memory as if it
-    were right). ``loader`` is torch's ``AOTIModelPackageLoader`` (``load_constants`` to swap
-    weights).
+    compiled program itself); positional tensor arguments go to the compiled program
+    (made contiguous where they are not: it reads an expanded or transposed view as if it were
+    contiguous), checked first against the input signature :func:`compile_package` recorded:
+    dtype, number of dims, on the CPU or not, every fixed size, and each dynamic size within its
+    range and equal in every input that shares it (the compiled program itself reads a wrong
+    one's memory as if it were right). ``loader`` is torch's ``AOTIModelPackageLoader``
+    (``load_constants`` to swap weights).
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
@@ -151,13 +176,25 @@ class PackagedProgram:
         self._out_spec = out_spec
         self._flat_tuple_out = out_spec == pytree.tree_structure((0,) * out_spec.num_leaves)
         recorded = self.loader.get_metadata().get(_INPUTS_KEY)
-        self._inputs = (
-            None
-            if recorded is None
-            else [(name, getattr(torch, dtype), dim, device) for name, dtype, dim, device in json.loads(recorded)]
-        )
+        rows = None if recorded is None else json.loads(recorded)
+        # (packages of an earlier release recorded no sizes: dtype, dims and device only)
+        self._inputs = None if rows is None else [(r[0], getattr(torch, r[1]), r[2], r[3]) for r in rows]
+        self._sizes: list[list[int | str | None]] | None = None
+        self._ranges: dict[str, list[int | None]] = {}
+        if rows and all(len(r) >= 6 for r in rows):
+            self._sizes = [r[4] for r in rows]
+            self._ranges = rows[0][5]
         # what each call compares (dtype, number of dims, on the CPU or not): one list equality
-        self._expected = None if self._inputs is None else [(d, k, dev == "cpu") for _, d, k, dev in self._inputs]
+        self._expected = None
+        if self._inputs is not None:
+            self._expected = [(d, k, dev == "cpu") for _, d, k, dev in self._inputs]
+        # the dims each call reads: (input, dim) of every fixed size, and of every dynamic one
+        self._fixed = [] if self._sizes is None else [
+            (i, j, v) for i, sizes in enumerate(self._sizes) for j, v in enumerate(sizes) if isinstance(v, int)
+        ]  # fmt: skip
+        self._dynamic = [] if self._sizes is None else [
+            (i, j, v) for i, sizes in enumerate(self._sizes) for j, v in enumerate(sizes) if isinstance(v, str)
+        ]  # fmt: skip
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         if kwargs or not all(isinstance(a, Tensor) for a in args):
@@ -165,10 +202,40 @@ class PackagedProgram:
         if self._expected is not None:
             if [(a.dtype, a.ndim, a.is_cpu) for a in args] != self._expected:
                 self._raise_mismatch(args)
+            self._check_sizes(args)
         elif len(args) != self._n_inputs:
             return self._compiled(*args)
-        out = self.loader.boxed_run(list(args))
+        out = self.loader.boxed_run([a if a.is_contiguous() else a.contiguous() for a in args])
         return tuple(out) if self._flat_tuple_out else pytree.tree_unflatten(out, self._out_spec)
+
+    def _check_sizes(self, args: tuple[Tensor, ...]) -> None:
+        """ValueError naming the input whose fixed size differs, or whose dynamic size is out of
+        its range or differs from another input's size of the same dim."""
+        assert self._inputs is not None
+        for i, j, v in self._fixed:
+            if args[i].shape[j] != v:
+                raise ValueError(
+                    f"{self._inputs[i][0]} must have size {v} in dim {j} (the program's fixed size), "
+                    f"got {shape_str(args[i])}"
+                )
+        seen: dict[str, tuple[int, int]] = {}
+        for i, j, sym in self._dynamic:
+            size = args[i].shape[j]
+            if sym in seen:
+                k, d = seen[sym]
+                if args[k].shape[d] != size:
+                    raise ValueError(
+                        f"{self._inputs[i][0]} {shape_str(args[i])} and {self._inputs[k][0]} {shape_str(args[k])} "
+                        f"must agree in the program's dynamic dim {sym} (dim {j} and dim {d})"
+                    )
+                continue
+            seen[sym] = (i, j)
+            lowest, highest = self._ranges.get(sym, (0, None))
+            if size < (lowest or 0) or (highest is not None and size > highest):
+                raise ValueError(
+                    f"{self._inputs[i][0]} has size {size} in dim {j}, outside the program's range "
+                    f"[{lowest}, {'∞' if highest is None else highest}] for it ({shape_str(args[i])})"
+                )
 
     def _raise_mismatch(self, args: tuple[Tensor, ...]) -> None:
         """ValueError naming the first argument whose dtype, number of dims or device (CPU or not) differs
