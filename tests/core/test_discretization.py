@@ -402,6 +402,32 @@ def test_gradcheck_all_inputs(method: str, F_kind: str) -> None:
     assert torch.autograd.gradcheck(fn, (F, L, Qc, B, dt), eps=1e-6, atol=1e-6, rtol=1e-5)
 
 
+def test_matrix_exp_gradient_is_the_exact_maps_where_its_own_backward_fails() -> None:
+    """torch.matrix_exp's backward of the Van Loan block went wrong long before its values:
+    a Matérn-5/2 (lengthscale 1.3) over dt = 20 gave dQ[0,0]/dℓ = 2e21 where the exact value is
+    ≈ 0 (Q has converged to P∞). The method's values stay the block's; its gradient is the doubling's."""
+    ell = t64(1.3).requires_grad_()
+
+    def matern52() -> torch.Tensor:
+        lam = 5.0**0.5 / ell
+        zero, one = 0 * lam, 1 + 0 * lam
+        return torch.stack([torch.stack([zero, one, zero]), torch.stack([zero, zero, one]),
+                            torch.stack([-(lam**3), -3 * lam**2, -3 * lam])])  # fmt: skip
+
+    L, Qc = t64([[0.0], [0.0], [1.0]]), t64([[1.0]])
+    for dt in (0.5, 10.0, 20.0):
+        naive = tl.discretize(matern52(), L, Qc, t64(dt), method="matrix_exp")
+        exact = tl.discretize(matern52(), L, Qc, t64(dt))
+        torch.testing.assert_close(naive.Q, exact.Q, rtol=1e-6, atol=1e-9)  # the values: close
+        g_naive = torch.autograd.grad(naive.Q[0, 0] + naive.A.sum(), ell)[0]
+        g_exact = torch.autograd.grad(exact.Q[0, 0] + exact.A.sum(), ell)[0]
+        torch.testing.assert_close(g_naive, g_exact, rtol=1e-12, atol=1e-12)
+    # without a gradient asked for, the block exponential alone (no doubling)
+    with torch.no_grad():
+        d = tl.discretize(matern52(), L, Qc, t64(20.0), method="matrix_exp")
+    assert not d.Q.requires_grad
+
+
 def test_gradcheck_propagate_and_stationary() -> None:
     rng = np.random.default_rng(8)
     F = t64(random_stable(2, 8)).requires_grad_()
