@@ -206,3 +206,56 @@ def test_overflowing_results_raise_naming_the_cause(dtype: torch.dtype, dt: floa
             call(True)
         call(False)
     assert torch.isfinite(tl.discretize(F, L, Qc, torch.tensor(5.0, dtype=dtype)).Q).all()
+
+
+def _large(N: int = 100, n: int = 3):
+    """A call of more than PYTHON_CHECK_MAX_VALUES values (the checks run on tensors)."""
+    g = torch.Generator().manual_seed(0)
+    F = torch.randn(N, n, n, generator=g, dtype=f64) - 2 * torch.eye(n, dtype=f64)
+    C = torch.randn(N, n, n, generator=g, dtype=f64)
+    return F, torch.eye(n, dtype=f64), C @ C.mT + 0.1 * torch.eye(n, dtype=f64), torch.rand(N, generator=g, dtype=f64)
+
+
+@pytest.mark.parametrize("which", ["F", "L", "Qc", "dt"])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_large_calls_raise_the_same_errors(which: str, bad: float) -> None:
+    args = dict(zip(("F", "L", "Qc", "dt"), (t.clone() for t in _large())))
+    args[which].view(-1)[-1] = bad
+    with pytest.raises(ValueError, match=rf"{which} contains NaN or Inf"):
+        tl.discretize(args["F"], args["L"], args["Qc"], args["dt"])
+    F, L, Qc, dt = _large()
+    dt[7] = -0.1
+    with pytest.raises(ValueError, match=r"dt must be non-negative"):
+        tl.discretize(F, L, Qc, dt)
+    F, L, Qc, dt = _large()
+    Qc[3, 0, 1] += 0.5
+    with pytest.raises(ValueError, match=r"Qc must be symmetric"):
+        tl.discretize(F, L, Qc, dt)
+    Qc[3] = torch.tensor([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=f64)
+    with pytest.raises(ValueError, match=r"Qc must be positive semi-definite"):
+        tl.discretize(F, L, Qc, dt)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_large_calls_accept_semi_definite_noise(dtype: torch.dtype) -> None:
+    """A singular Qc (no Cholesky factor: the reductions' fast test fails) passes the detailed
+    PSD test; the fast test never accepts what the detailed one rejects."""
+    from torchsde_lti.core.validation import _psd_test, _reductions_valid
+
+    F, L, Qc, dt = (t.to(dtype) for t in _large())
+    v = torch.ones(3, 1, dtype=dtype)
+    Qc[5] = v @ v.T
+    d = tl.discretize(F, L, Qc, dt)
+    assert torch.isfinite(d.Q).all()
+    g, outcomes = torch.Generator().manual_seed(1), set()
+    for scale in (1e-30, 1e-3, 1.0, 1e30):
+        V = torch.linalg.qr(torch.randn(400, 3, 3, generator=g, dtype=f64)).Q
+        lam = torch.rand(400, 3, generator=g, dtype=f64) - 0.05
+        x = ((V * lam[:, None, :]) @ V.mT * scale).to(dtype)
+        x = x + 1e-7 * scale * (torch.rand(400, 3, 3, generator=g) < 0.02).to(dtype)  # a few asymmetric
+        for i in range(400):
+            xi = x[i : i + 1]
+            fast = _reductions_valid([xi], None, xi)
+            assert not fast or bool(_psd_test(xi)[0]), xi
+            outcomes.add(fast)
+    assert outcomes == {True, False}

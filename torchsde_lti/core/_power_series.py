@@ -110,7 +110,7 @@ def _series(M: Tensor, W: Tensor | None, B: Tensor | None, K: int) -> tuple[Tens
     S = S.view(N, n, K, c).transpose(-1, -2)  # [a, r, col, j] = (M^j [I, W, B])[r, col]
     e, g, H = _weights(K, M.dtype, M.device)
     P = S[:, :, :n].reshape(N, n, n * K)  # [a, r, (b, l)] = (M^l)[r, b]
-    E = P.view(N, n, n, K) @ e
+    E = torch.mv(P.view(N * n * n, K), e).view(N, n, n)
     Q = G = None
     if W is not None:  # Σ_{j,l} (M^j W)[i, b] H_jl (M^l)[r, b]
         V = (S[:, :, n : 2 * n].reshape(N * n * n, K) @ H).view(N, n, n * K)
@@ -218,7 +218,7 @@ def few_elements_doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tenso
     else:
         s = math.ceil(math.log2(top) - math.log2(theta)) if top > theta else 0
     bound = theta if s else (2.0 ** math.ceil(math.log2(top)) if top > 0 else 0.0)  # (few cache keys)
-    hc = _scaled(dtf, s)[:, None, None]
+    hc = _scaled(dtf, s).view(N, 1, 1)
     E, Q, G = _series(Fb * hc, Wb, Bb, power_terms(F.dtype, bound, n))
     Q, G = (None if t is None else t * hc for t in (Q, G))
     A, Q, G = _double_eager(E, Q, G, s) if s else (E + _eye(n, E), Q, G)

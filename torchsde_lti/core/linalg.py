@@ -42,8 +42,13 @@ def sym(P: Tensor) -> Tensor:
 
 def noise_covariance(L: Tensor, Qc: Tensor) -> Tensor:
     """W = L Qc Lᵀ, exactly symmetric (the average of W and Wᵀ): L (..., n, s),
-    Qc (..., s, s) -> (..., n, n)."""
-    W = L @ Qc @ L.mT
+    Qc (..., s, s) -> (..., n, n). One batch dimension takes ``bmm`` directly (fewer calls)."""
+    if max(L.dim(), Qc.dim()) == 3 and (min(L.dim(), Qc.dim()) == 2 or L.shape[0] == Qc.shape[0]):
+        N = (L if L.dim() == 3 else Qc).shape[0]
+        Lb = L.expand(N, *L.shape[-2:])
+        W = torch.bmm(torch.bmm(Lb, Qc.expand(N, *Qc.shape[-2:])), Lb.mT)
+    else:
+        W = L @ Qc @ L.mT
     return sym(W)
 
 

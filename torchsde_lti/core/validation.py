@@ -57,7 +57,9 @@ def as_float_tensor(
 
 def common_float_dtype(*tensors: Tensor | None) -> torch.dtype:
     """The promoted floating dtype of the given tensors (the default dtype if none is floating)."""
-    dtypes = [t.dtype for t in tensors if t is not None and t.is_floating_point()]
+    dtypes = {t.dtype for t in tensors if t is not None and t.is_floating_point()}
+    if len(dtypes) == 1:
+        return dtypes.pop()
     return functools.reduce(torch.promote_types, dtypes) if dtypes else torch.get_default_dtype()
 
 
@@ -269,6 +271,26 @@ def _values_valid(host: dict[str, list[float]], Qc: Tensor | None) -> bool:
     return Qc is None or not host["Qc"] or _psd_values(host["Qc"], Qc.shape[-1], psd_tolerance(Qc))
 
 
+def _reductions_valid(checked: Sequence[Tensor], dt: Tensor | None, Qc: Tensor | None) -> bool:
+    """A sufficient test for the value checks of :func:`sde_inputs` from a few reductions read in
+    one transfer: every sum of ``checked`` finite (a sum is non-finite if any entry is), min dt ≥ 0,
+    max |Qc − Qcᵀ| ≤ tol · min_i max |Qc_i| and a Cholesky factor of every Qc (positive definite,
+    so :func:`_psd_test` passes). False (NaN/Inf, a negative dt, an asymmetric or semi-definite
+    Qc, an overflowing sum) leaves the decision to the detailed checks."""
+    parts = [t.sum() for t in checked]
+    if dt is not None and dt.numel():
+        parts.append(dt.amin())
+    if Qc is not None and Qc.numel():
+        asym, scale = (Qc - Qc.mT).abs().amax(), Qc.abs().amax((-2, -1)).amin()
+        info = torch.linalg.cholesky_ex(_lapack_dtype(Qc)).info.amax().to(Qc.dtype)
+        *v, asym_v, scale_v, info_v = torch.stack([*parts, asym, scale, info]).tolist()
+        if not (asym_v <= psd_tolerance(Qc) * scale_v and info_v == 0):
+            return False
+    else:
+        v = torch.stack(parts).tolist()
+    return all(math.isfinite(x) for x in v) and (dt is None or not dt.numel() or v[-1] >= 0)
+
+
 class SDEInputs(NamedTuple):
     """Validated SDE arguments: F (..., n, n), W = L Qc Lᵀ (..., n, n) or None, B (..., n, p)
     or None, dt (...) or None, and the broadcast batch shape of all of them.
@@ -366,14 +388,9 @@ def sde_inputs(
     if not tracing() and total <= PYTHON_CHECK_MAX_VALUES:  # one transfer: checks and decisions on Python floats
         host = dict(zip((name for name, _ in checked), host_values([t for _, t in checked])))
         valid = not values or _values_valid(host, Qc)
-    elif values:  # one synchronisation: a sum is non-finite if any entry is (or it overflowed:
-        with torch.no_grad(), intra_op_threads(total):  # then the detailed checks below pass)
-            ok = torch.stack([t.sum() for _, t in checked]).isfinite().all()
-            if dt_t is not None and dt_t.numel():
-                ok = ok & (dt_t.amin() >= 0)
-            if Qc is not None and Qc.numel():
-                ok = ok & _psd_test(Qc)[0]
-            valid = bool(ok)
+    elif values:
+        with torch.no_grad(), intra_op_threads(total):
+            valid = _reductions_valid([t for _, t in checked], dt_t, Qc)
     else:
         valid = True
     if not valid:  # the detailed checks name the culprit: finiteness, then dt ≥ 0, then Qc PSD
