@@ -157,7 +157,7 @@ def _double_step(
 def _has_decayed(A: Tensor) -> Tensor:
     """Per element (bool (N, 1, 1)): ‖A‖_F < 1/2 — A has decayed and E = A − I no longer resolves it."""
     with torch.no_grad():
-        return A.square().sum((-2, -1), keepdim=True) < 0.25
+        return torch.linalg.vector_norm(A, dim=(-2, -1), keepdim=True) < 0.5
 
 
 def _double_eager(
@@ -185,7 +185,7 @@ def _largest_reach(x: SDEInputs) -> float:
     assert dt is not None
     if host is None:
         with torch.no_grad():
-            return float((F.square().sum((-2, -1)).sqrt() * dt).max())
+            return float((torch.linalg.vector_norm(F, dim=(-2, -1)) * dt).max())
     size, v = F.shape[-1] ** 2, host["F"]
     norms = [math.hypot(*v[i : i + size]) for i in range(0, len(v), size)]
     if F.shape[:-2] == dt.shape:
