@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from torchsde_lti.nn.parametrizations import (
+    Generator,
     Hurwitz,
     IntegratorChain,
     Positive,
@@ -423,7 +424,17 @@ def test_values_stay_finite_for_huge_raw_entries(dtype: torch.dtype) -> None:
         )
         assert bool(torch.isfinite(F).all())
         assert float(torch.linalg.eigvals(F.double()).real.max()) < 0
+    for big in (1e10, 1e20, top / 2, top):  # Generator: each rate was finite, their sums -inf
+        lam = Generator().to(dtype)(torch.full((3, 3), big, dtype=dtype))
+        assert lam.dtype == dtype and bool(torch.isfinite(lam).all())
+        assert bool((lam.sum(-1).abs() <= 1e-6 * lam.diagonal().abs()).all())
+        assert bool(torch.isfinite(torch.linalg.matrix_exp(lam.double() * 1e-300)).all())
     # ordinary raw values are untouched by the saturation (round trips as before)
+    rates = torch.tensor([[0.0, 0.3, 2.0], [1.5, 0.0, 5.0], [0.25, 1e3, 0.0]], dtype=dtype)
+    gen = Generator().to(dtype)
+    raw = gen.right_inverse(rates)
+    torch.testing.assert_close(gen(raw), rates - torch.diag_embed(rates.sum(-1)), rtol=1e-5, atol=1e-5)
+    assert bool((raw.abs() < 1e4).all())
     pd = PositiveDefinite().to(dtype)
     value = torch.tensor([[4.0, 1.0], [1.0, 2.0]], dtype=dtype)
     torch.testing.assert_close(pd(pd.right_inverse(value)), value)

@@ -449,7 +449,8 @@ class Generator(FlooredParametrization):
     ``Λ_ii = −Σ_{j≠i} Λ_ij`` (the diagonal of raw is unused).
 
     Off-diagonal rates are finite and > 0 for every finite raw tensor (no exponential of an
-    unbounded parameter), so ``expm(Λ dt)`` is a stochastic matrix for every dt ≥ 0.
+    unbounded parameter; raw entries beyond ``finfo.max ** (1/2)`` enter logarithmically, so
+    the diagonal's sums stay finite too), so ``expm(Λ dt)`` is a stochastic matrix for every dt ≥ 0.
     ``right_inverse`` accepts a generator or a matrix of off-diagonal rates (its diagonal is
     ignored); rates must be finite and > 0 (ValueError otherwise; use a fixed buffer for
     exactly zero rates). The floor is fixed and saved as :class:`Positive`'s.
@@ -460,7 +461,7 @@ class Generator(FlooredParametrization):
         self.name = name
 
     def forward(self, raw: Tensor) -> Tensor:
-        return generator_from_rates(softplus(raw) + self._floor(raw.dtype))
+        return generator_from_rates(softplus(_saturated(raw, _saturation_bound(raw.dtype, 1))) + self._floor(raw.dtype))
 
     def right_inverse(self, value: object) -> Tensor:
         v = self._as_raw_tensor(value, self.name)
@@ -473,7 +474,8 @@ class Generator(FlooredParametrization):
                 f"{float(v[..., off].min()):.3g} (shape {shape_str(v)})"
             )
         raw = softplus_inverse((v - self._floor(v.dtype)).clamp_min(torch.finfo(v.dtype).tiny))
-        return torch.where(off, raw, torch.zeros_like(raw))
+        raw = _unsaturated(torch.where(off, raw, torch.zeros_like(raw)), _saturation_bound(v.dtype, 1), self.name)
+        return raw
 
 
 class ModeProbabilities(Parametrization):
