@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -156,10 +156,13 @@ def _online_observed(y: Tensor, mask: Tensor | None) -> tuple[Tensor | None, Ten
     device sync only on the CPU), y0 = y with missing entries 0. Traced and off the CPU the
     masked path always runs (no data-dependent branch, no host sync; the same values)."""
     obs: Tensor | None = None
-    if tracing() or y.device.type != "cpu":
+    if tracing() or not y.is_cpu:
         obs = ~torch.isnan(y)
     elif y.numel() <= _FEW_VALUES:  # a few reports: read on the host (one call, no reduction)
-        if any(v != v for v in y.reshape(-1).tolist()):
+        values: list[Any] = y.tolist() if y.dim() else [y.item()]
+        for _ in range(y.dim() - 1):  # nested lists, flattened
+            values = [v for row in values for v in row]
+        if any(v != v for v in values):
             obs = ~torch.isnan(y)
     else:
         nan = torch.isnan(y)
@@ -289,34 +292,25 @@ def _joint_step(
     """:func:`kalman_step` with the joint update: batch flattened to one dimension b, batched
     matrix products (bmm, baddbmm: the fewest ops for a few tracks).
 
+    With ``M = I − K H`` the Joseph form is taken as
+    ``P = M P⁻ Mᵀ + K R Kᵀ = M P⁻ − (M P⁻ Hᵀ − K R) Kᵀ`` (three products after ``M P⁻``).
     Unobserved components get a zero row of H P⁻, zero innovation and a decoupled unit
     variance in S, so K has zero columns there and H, R enter the Joseph form unmasked."""
     n, m = A.shape[-1], y0.shape[-1]
     b = math.prod(mb)  # symbolic-safe (Size.numel() specialises a traced batch)
     traced = tracing()
+    flat_batch = not traced and len(mb) == 1  # (b, *event) is already each output's shape
 
     def flat(x: Tensor, *event: int) -> Tensor:
         if x.dim() == len(event):  # shared by every track: a stride-0 view
             return x.expand(b, *event)
-        if not traced and x.dim() == len(event) + 1 and x.shape[0] == b:  # already (b, *event)
+        if flat_batch and x.shape[0] == b:  # already (b, *event)
             return x
         return x.expand(*mb, *event).reshape(b, *event)
 
-    if traced and max(n, m) <= FUSED_MAX_INNER:  # products a compiler fuses with the elementwise ops
-
-        def mm(a: Tensor, x: Tensor) -> Tensor:
-            return fused_matmul(a, x)
-
-        def addmm(c: Tensor, a: Tensor, x: Tensor, beta: float = 1.0, alpha: float = 1.0) -> Tensor:
-            return c * beta + fused_matmul(a, x) * alpha
-
-    else:  # the fewest eager calls
-
-        def mm(a: Tensor, x: Tensor) -> Tensor:
-            return torch.bmm(a, x)
-
-        def addmm(c: Tensor, a: Tensor, x: Tensor, beta: float = 1.0, alpha: float = 1.0) -> Tensor:
-            return torch.baddbmm(c, a, x, beta=beta, alpha=alpha)
+    fused = traced and max(n, m) <= FUSED_MAX_INNER  # products a compiler fuses with the elementwise ops
+    mm: Callable[[Tensor, Tensor], Tensor] = fused_matmul if fused else torch.bmm
+    addmm: Callable[..., Tensor] = _fused_addmm if fused else torch.baddbmm  # else: the fewest eager calls
 
     A3, Q3, H3, R3 = flat(A, n, n), flat(Q, n, n), flat(H, m, n), flat(R, m, m)
     Ht = H3.mT
@@ -347,25 +341,31 @@ def _joint_step(
         W = torch.linalg.solve_triangular(L, torch.cat([HP, e], -1), upper=False)
         K = torch.linalg.solve_triangular(L, W[..., :n].mT, upper=False, left=False)  # K L = (L⁻¹ H P⁻)ᵀ
         Kt = K.mT
-    z = W[..., n]  # (b, m) the whitened innovation
+    z = W.select(-1, n)  # (b, m) the whitened innovation
     filt_mean = addmm(pm, K, e)
-    MP = addmm(pc, K, HP, alpha=-1.0)  # (I − K H) P⁻
-    P = addmm(MP, mm(MP, Ht), Kt, alpha=-1.0)  # … (I − K H)ᵀ
-    P = _sym(addmm(P, K, mm(R3, Kt), beta=0.5, alpha=0.5))  # + K R Kᵀ
+    MP = addmm(pc, K, HP, alpha=-1.0)  # M P⁻ = (I − K H) P⁻
+    T = addmm(mm(MP, Ht), K, R3, alpha=-1.0)  # M P⁻ Hᵀ − K R  (b, n, m)
+    P = _sym(addmm(MP, T, Kt, beta=0.5, alpha=-0.5))  # M P⁻ Mᵀ + K R Kᵀ
     # −log N(e; 0, S) per observed component: log L_jj + z_j²/2 + log(2π)/2 (an unobserved
     # component has L_jj = 1, z_j = 0: it adds log(2π)/2, taken off with n_obs)
-    nll = torch.addcmul(torch.log(torch.diagonal(L, dim1=-2, dim2=-1)), z, z, value=0.5).sum(-1)
+    nll = torch.addcmul(torch.log(torch.diagonal(L, 0, -2, -1)), z, z, value=0.5).sum(-1)
     if obs is None:
         ll = torch.rsub(nll, -0.5 * LOG_2PI * m)
     else:
         ll = torch.add(nll, o.sum((-2, -1)), alpha=0.5 * LOG_2PI).neg_()
+    if flat_batch:  # (b, n, 1) -> (b, n); matrices as they are
+        return KalmanState(filt_mean.view(b, n), P), KalmanStep(pm.view(b, n), pc, e.view(b, m), S_all, ll, observed)
+    vector, matrix = (*mb, n), (*mb, n, n)
+    return KalmanState(filt_mean.reshape(vector), P.reshape(matrix)), KalmanStep(
+        pm.reshape(vector), pc.reshape(matrix), e.reshape((*mb, m)), S_all.reshape((*mb, m, m)), ll.reshape(mb),
+        observed,
+    )  # fmt: skip
 
-    def shaped(x: Tensor, *event: int) -> Tensor:
-        return x if not traced and x.shape == (*mb, *event) else x.reshape((*mb, *event))
 
-    return KalmanState(shaped(filt_mean, n), shaped(P, n, n)), KalmanStep(
-        shaped(pm, n), shaped(pc, n, n), shaped(e, m), shaped(S_all, m, m), shaped(ll), observed
-    )
+def _fused_addmm(c: Tensor, a: Tensor, x: Tensor, *, beta: float = 1.0, alpha: float = 1.0) -> Tensor:
+    """``beta c + alpha a x`` (the signature of ``torch.baddbmm``) with
+    :func:`~torchsde_lti.core.linalg.fused_matmul` for ``a x``: a (b, r, k), x (b, k, s), c (b, r, s)."""
+    return c * beta + fused_matmul(a, x) * alpha
 
 
 def _sym(half: Tensor) -> Tensor:
