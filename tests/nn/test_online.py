@@ -586,3 +586,29 @@ def test_predict_and_forecast_check_the_state_like_step() -> None:
     for call in (lambda: imm.predict(ibad, 1.0), lambda: imm.forecast(ibad, 1.0)):
         with pytest.raises(ValueError, match="state.mode_mean contains NaN"):
             call()
+
+
+def test_float32_step_stays_psd_where_the_prior_dwarfs_r() -> None:
+    """A float32 update whose prior dwarfs R (gaps up to e^9, R = 1e-4) cancelled to covariances
+    with eigenvalues -100x the largest and NaN log-likelihoods; the step now computes in float64
+    and rounds once: PSD, and the float64 sequence filter's log-likelihood to float32 rounding."""
+    g = torch.Generator().manual_seed(0)
+    B, T = 64, 150
+    dt, y = torch.exp(3 * torch.randn(B, T, generator=g)), 10 * torch.randn(B, T, 1, generator=g)
+
+    def make(dtype: torch.dtype) -> tl.KalmanFilter:
+        sde = tl.models.singer(5.0, 2.0, dim=1, dtype=dtype)
+        H = tl.models.position_observation(sde)
+        return tl.KalmanFilter(sde, H, 1e-4 * torch.eye(1, dtype=dtype), P0=1e4 * torch.eye(3, dtype=dtype))
+
+    with torch.no_grad():
+        ref = make(torch.float64)(y.double(), dt.double())
+        kf = make(torch.float32)
+        state, total = kf.initial_state((B,)), torch.zeros(B, dtype=torch.float64)
+        for t in range(T):
+            state, out = kf.step(state, y[:, t], dt[:, t])
+            assert state.cov.dtype == out.log_likelihood.dtype == torch.float32
+            ev = torch.linalg.eigvalsh(state.cov.double())
+            assert bool((ev[:, 0] >= -1e-6 * ev[:, -1]).all()), t
+            total += out.log_likelihood.double()
+    torch.testing.assert_close(total, ref.log_likelihood, rtol=1e-5, atol=0)

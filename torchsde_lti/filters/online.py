@@ -186,7 +186,8 @@ def kalman_step(
 ) -> tuple[KalmanState, KalmanStep]:
     r"""One predict + update of every track (the sequence filter's step).
 
-    Arguments are taken as checked (the modules check them once at their boundary). Up to
+    Arguments are taken as checked (the modules check them once at their boundary). Float32
+    steps compute in float64 and round their results once (:func:`_widens`). Up to
     :data:`SMALL_BATCH` tracks (and always when traced) the update is the joint Joseph update
     ``K = P⁻Hᵀ S⁻¹`` (one Cholesky factor of S), ``P = (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ``;
     larger batches run the sequence loop's whitened scalar Joseph updates, eagerly on the CPU
@@ -205,6 +206,9 @@ def kalman_step(
     Returns:
         (:class:`KalmanState` after the update, :class:`KalmanStep`); batch dims broadcast.
     """
+    if _widens(state.cov):
+        w = _widened((state, y, A, Q, H, R, c))
+        return _narrowed(kalman_step(w[0], w[1], w[2], w[3], w[4], w[5], w[6], mask))
     if mask is not None and mask.dim() < y.dim():
         mask = mask.unsqueeze(-1)
     obs, y0 = _online_observed(y, mask)
@@ -226,6 +230,34 @@ def kalman_step(
 
     new, out = _by_chunks(chunk, args, mb, rows)
     return new, out  # type: ignore[return-value]
+
+
+def _widens(cov: Tensor) -> bool:
+    """Whether an online step of float32 covariances ``cov`` runs in float64: a float32 update
+    whose prior dwarfs R (a long gap, a precise sensor) cancels to a covariance that is not PSD
+    (a Singer track with R = 1e-4: eigenvalues −100× the largest, NaN log-likelihoods), which
+    float64 arithmetic and one rounding of the results avoid. Not on devices without float64."""
+    return cov.dtype == torch.float32 and cov.device.type != "mps"
+
+
+def _widened(args: tuple[Any, ...]) -> tuple[Any, ...]:
+    """``args`` (tensors, NamedTuples of tensors, None) with float32 tensors in float64."""
+
+    def wide(x: Any) -> Any:
+        if isinstance(x, Tensor):
+            return x.double() if x.dtype == torch.float32 else x
+        if isinstance(x, tuple):
+            return type(x)(*(wide(v) for v in x)) if hasattr(x, "_fields") else tuple(wide(v) for v in x)
+        return x
+
+    return tuple(wide(a) for a in args)
+
+
+def _narrowed(out: Any) -> Any:
+    """A step's results (NamedTuples of tensors) with float64 tensors rounded to float32."""
+    return tuple(
+        type(t)(*(v.float() if isinstance(v, Tensor) and v.dtype == torch.float64 else v for v in t)) for t in out
+    )
 
 
 def _rows_per_chunk(mb: torch.Size, bytes_per_track: int, like: Tensor) -> int:
@@ -481,8 +513,8 @@ class IMMStep(NamedTuple):
 def imm_step(
     state: IMMState, y: Tensor, A: Tensor, Q: Tensor, Pi: Tensor, H: Tensor, R: Tensor, mask: Tensor | None = None
 ) -> tuple[IMMState, IMMStep]:
-    """One IMM cycle of every track (the cycle of :func:`~torchsde_lti.filters.imm.imm_filter`);
-    eagerly on the CPU in chunks of tracks along the leading batch dimension beyond
+    """One IMM cycle of every track (the cycle of :func:`~torchsde_lti.filters.imm.imm_filter`;
+    float32 in float64, its results rounded once, as :func:`kalman_step`); eagerly on the CPU in chunks of tracks along the leading batch dimension beyond
     :data:`CHUNKED_STEP_MIN_BYTES` of covariances (one mode's per track).
 
     Args:
@@ -495,6 +527,9 @@ def imm_step(
     Returns:
         (:class:`IMMState`, :class:`IMMStep`).
     """
+    if _widens(state.mode_cov):
+        w = _widened((state, y, A, Q, Pi, H, R))
+        return _narrowed(imm_step(w[0], w[1], w[2], w[3], w[4], w[5], w[6], mask))
     if mask is not None and mask.dim() < y.dim():
         mask = mask.unsqueeze(-1)
     n = A.shape[-1]
