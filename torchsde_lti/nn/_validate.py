@@ -147,6 +147,7 @@ def check_outcome(
         why = (
             f"the covariances lost their positive definiteness or overflowed (observations up to |y| = {top:.3g}); "
             f"check the scales of Q, R and P0 against the data's{wider}"
+            + (", or algorithm='square_root' (PSD by construction)" if dtype != torch.float64 else "")
         )
     raise NonFiniteLikelihoodError(f"the log-likelihood is not finite in {dtype}: {why}")
 
