@@ -52,12 +52,14 @@ from torchsde_lti.core.validation import (
     shape_str,
 )
 from torchsde_lti.filters.inputs import check_mask
+from torchsde_lti.filters.results import serializable
 
 __all__ = ["IMMCycle", "IMMPrediction", "IMMResult", "imm_cycle", "imm_filter", "imm_predict"]
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
+@serializable
 class IMMResult(NamedTuple):
     """Output of :func:`imm_filter`.
 

@@ -41,6 +41,7 @@ from torchsde_lti.filters.inputs import (
     mask_observation_model,
     whiten,
 )
+from torchsde_lti.filters.results import serializable
 from torchsde_lti.filters.sequential import _joseph_step
 
 __all__ = [
@@ -55,6 +56,7 @@ __all__ = [
 ]
 
 
+@serializable
 class KalmanState(NamedTuple):
     """The filter's belief about live tracks, batch leading.
 
@@ -74,6 +76,7 @@ class KalmanState(NamedTuple):
         return cls(*(torch.cat(fields) for fields in zip(*states)))
 
 
+@serializable
 class KalmanStep(NamedTuple):
     """What one update saw, per track.
 
@@ -469,6 +472,7 @@ def _scalar_step(
     )
 
 
+@serializable
 class IMMState(NamedTuple):
     """The IMM filter's belief about live tracks, batch leading.
 
@@ -490,6 +494,7 @@ class IMMState(NamedTuple):
         return cls(*(torch.cat(fields) for fields in zip(*states)))
 
 
+@serializable
 class IMMStep(NamedTuple):
     """What one IMM update saw, per track.
 

@@ -5,10 +5,22 @@ from __future__ import annotations
 from typing import NamedTuple
 
 from torch import Tensor
+from torch.utils import _pytree as pytree
 
-__all__ = ["FilterResult", "SmootherResult"]
+__all__ = ["FilterResult", "SmootherResult", "serializable"]
 
 
+def serializable(cls: type) -> type:
+    """Register the NamedTuple ``cls`` with torch's pytree under its qualified name, so that an
+    exported program returning it saves and loads (``torch.export.save``); returns ``cls``."""
+    try:
+        pytree._register_namedtuple(cls, serialized_type_name=f"{cls.__module__}.{cls.__qualname__}")
+    except ValueError:  # registered already (a reloaded module)
+        pass
+    return cls
+
+
+@serializable
 class FilterResult(NamedTuple):
     """Output of :func:`kalman_filter` (every algorithm).
 
@@ -42,6 +54,7 @@ class FilterResult(NamedTuple):
     control: Tensor
 
 
+@serializable
 class SmootherResult(NamedTuple):
     """Output of :func:`rts_smoother` (every algorithm).
 

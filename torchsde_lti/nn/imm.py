@@ -59,6 +59,7 @@ from torchsde_lti.filters.imm import (
 )
 from torchsde_lti.filters.kalman import check_algorithm
 from torchsde_lti.filters.online import IMMState, IMMStep, imm_predict_state, imm_step
+from torchsde_lti.filters.results import serializable
 from torchsde_lti.nn._online import Series, check_batches, evaluated, tracks_shape
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_values, online_report
@@ -78,6 +79,7 @@ _LEARNABLE = ("H", "R", "rates", "mode_prob0", "m0", "P0")
 IMM_ALGORITHMS = ("auto", "sequential")
 
 
+@serializable
 class IMMForecast(NamedTuple):
     """Predictive mixture at future times (K horizons).
 

@@ -79,6 +79,7 @@ from torchsde_lti.filters import (
 )
 from torchsde_lti.filters.inputs import FilterInputs
 from torchsde_lti.filters.kalman import ALGORITHMS, check_algorithm, run_filter
+from torchsde_lti.filters.results import serializable
 from torchsde_lti.nn._kalman_online import KalmanOnline, state_batches
 from torchsde_lti.nn._online import check_batches, online_state
 from torchsde_lti.nn._register import register_tensor
@@ -91,6 +92,7 @@ __all__ = ["FilterMode", "Forecast", "KalmanFilter"]
 _LEARNABLE = ("H", "D", "R", "m0", "P0")
 
 
+@serializable
 class Forecast(NamedTuple):
     """Predictive moments at future times.
 
