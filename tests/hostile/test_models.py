@@ -198,7 +198,11 @@ CASES = [
         ),
         Raises(ValueError, r"P0 must be positive semi-definite"),
     ),
-    Case("deployed-filter-None", lambda: tl.DeployedFilter(None), Raises(TypeError, r"kf must be a KalmanFilter")),
+    Case(
+        "deployed-filter-None",
+        lambda: tl.DeployedFilter(None),
+        Raises(TypeError, r"kf must be a KalmanFilter or an IMMFilter"),
+    ),
 ]
 
 

@@ -612,3 +612,29 @@ def test_float32_step_stays_psd_where_the_prior_dwarfs_r() -> None:
             assert bool((ev[:, 0] >= -1e-6 * ev[:, -1]).all()), t
             total += out.log_likelihood.double()
     torch.testing.assert_close(total, ref.log_likelihood, rtol=1e-5, atol=0)
+
+
+def test_exported_imm_saves_loads_and_deploys() -> None:
+    """torch.export of an IMMFilter (IMMResult out) with a dynamic batch saves and loads, and
+    DeployedFilter takes an IMMFilter (it raised TypeError): both equal eager."""
+    import io
+
+    from torch.export import Dim
+
+    imm = _imm()
+    y, dt, _ = _series(3, 12, seed=2)
+    B = Dim("B", max=10_000)
+    with torch.no_grad():
+        ref = imm(y, dt)
+        ep = torch.export.export(imm, (y, dt), dynamic_shapes={"y": {0: B}, "dt": {0: B}})
+        buffer = io.BytesIO()
+        torch.export.save(ep, buffer)
+        buffer.seek(0)
+        out = torch.export.load(buffer).module()(y, dt)
+        torch.testing.assert_close(out.log_likelihood, ref.log_likelihood, rtol=0, atol=1e-10)
+        torch.testing.assert_close(out.mean, ref.mean, rtol=0, atol=1e-10)
+        ll, mean = tl.DeployedFilter(imm)(y, dt)
+    torch.testing.assert_close(ll, ref.log_likelihood, rtol=0, atol=0)
+    torch.testing.assert_close(mean, ref.mean, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="IMMFilter has no inputs"):
+        tl.DeployedFilter(imm)(y, dt, torch.zeros(3, 12, 1, dtype=F64))

@@ -24,29 +24,31 @@ from torch.utils import _pytree as pytree
 from torchsde_lti.core.validation import shape_str
 from torchsde_lti.filters.online import KalmanState
 from torchsde_lti.nn._kalman_online import OnlineModel
+from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
 
 __all__ = ["DeployedFilter", "OnlineStep", "PackagedProgram", "compile_package", "load_package"]
 
 
 class DeployedFilter(nn.Module):
-    """The entry point to ship a trained :class:`KalmanFilter` with ``torch.export`` (or
-    ``torch.jit``-free serving): plain tensor outputs instead of a :class:`FilterResult`.
+    """The entry point to ship a trained :class:`KalmanFilter` or :class:`IMMFilter` with
+    ``torch.export`` (or ``torch.jit``-free serving): plain tensor outputs instead of a
+    :class:`FilterResult` / :class:`IMMResult`.
 
     ``forward(y, dt, u=None)``: y (..., T, m) with NaN = missing, dt (..., T), optional inputs
-    u (..., T, p) of a model with B or D (as in :meth:`KalmanFilter.forward`; without them the
-    inputs count as 0) -> ``(log_likelihood (...), mean (..., T, n))``, the filter's
-    log-likelihood and filtered means.
+    u (..., T, p) of a Kalman filter's model with B or D (as in :meth:`KalmanFilter.forward`;
+    without them the inputs count as 0; an IMM takes none) -> ``(log_likelihood (...), mean
+    (..., T, n))``, the filter's log-likelihood and filtered (for an IMM: combined) means.
     """
 
-    def __init__(self, kf: KalmanFilter) -> None:
+    def __init__(self, kf: KalmanFilter | IMMFilter) -> None:
         super().__init__()
-        if not isinstance(kf, KalmanFilter):
-            raise TypeError(f"kf must be a KalmanFilter, got {type(kf).__name__}")
+        if not isinstance(kf, (KalmanFilter, IMMFilter)):
+            raise TypeError(f"kf must be a KalmanFilter or an IMMFilter, got {type(kf).__name__}")
         self.kf = kf
 
     def forward(self, y: Tensor, dt: Tensor, u: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        out = self.kf(y, dt, u)
+        out = self.kf(y, dt, u)  # (an IMMFilter refuses a u)
         return out.log_likelihood, out.mean
 
 
