@@ -78,3 +78,34 @@ def test_bad_grad_clip_norm_raises() -> None:
     module, _ = _nan_batch_module(skip=True)
     with pytest.raises(ValueError, match="grad_clip_norm"):
         KalmanFilterModule(module.kf, grad_clip_norm=-1.0)
+
+
+def test_k_step_loss_and_rmse_include_the_feedthrough() -> None:
+    """A filter with D (y = H x + D u + v): the k-step prediction and the logged one-step RMSE
+    are H m + D u (they left D u out: k = 1 gave 1163.2 where the filter's own one-step
+    predictive NLL is 105.7)."""
+    import math
+
+    import torchsde_lti as tl
+
+    torch.manual_seed(0)
+    sde = tl.models.constant_velocity(dim=1, q=1.0, dtype=torch.float64)
+    kf = tl.KalmanFilter(sde, tl.models.position_observation(sde), 0.25 * torch.eye(1, dtype=torch.float64),
+                         D=torch.tensor([[2.0]], dtype=torch.float64))  # fmt: skip
+    module = KalmanFilterModule(kf, k_step=1, k_step_weight=1.0)
+    B, T = 3, 20
+    dt = torch.rand(B, T, dtype=torch.float64) + 0.1
+    u = torch.full((B, T, 1), 3.0, dtype=torch.float64)
+    y = torch.randn(B, T, 1, dtype=torch.float64).cumsum(1) + 6.0
+    y[1, 4] = float("nan")
+    with torch.no_grad():
+        out = kf(y, dt, u=u)
+        k1 = module.k_step_nll(out, y, ~torch.isnan(y), 1, dt, u)
+        torch.testing.assert_close(k1, -out.step_log_likelihood[:, 1:].sum(), rtol=1e-12, atol=1e-12)
+        batch = TrackBatch(y=y, dt=dt, mask=torch.ones(B, T, dtype=torch.bool), lengths=torch.full((B,), T), u=u)
+        module._squared_errors.clear()
+        module._eval_step(batch, "val")
+        sums = module._squared_errors["val"]
+    observed = ~torch.isnan(y)
+    reference = math.sqrt(float((out.innovation[observed] ** 2).sum()) / int(observed.sum()))
+    assert math.sqrt(float(sums[0] / sums[1])) == pytest.approx(reference, rel=1e-12)

@@ -196,10 +196,24 @@ class KalmanFilterModule(LightningModule):
             obs = obs & mask.unsqueeze(-1)
         return obs
 
+    def feedthrough(self, u: Tensor | None) -> Tensor | None:
+        """D u (..., T, m) of a filter with a feedthrough D and inputs u (..., T, p), else None."""
+        D = getattr(self.kf, "D", None)
+        if D is None or u is None:
+            return None
+        return ((D.unsqueeze(-3) if D.dim() > 2 else D) @ u.unsqueeze(-1)).squeeze(-1)
+
     def k_step_nll(
-        self, out: Any, y: Tensor, observed: Tensor, k: int | None = None, dt: Tensor | None = None
+        self,
+        out: Any,
+        y: Tensor,
+        observed: Tensor,
+        k: int | None = None,
+        dt: Tensor | None = None,
+        u: Tensor | None = None,
     ) -> Tensor:
-        """Σ of the k-step-ahead predictive NLL of y_{t+k} given the filtered state at t.
+        """Σ of the k-step-ahead predictive NLL of y_{t+k} given the filtered state at t
+        (the prediction H m + D u where the filter has a feedthrough D and ``u`` is given).
 
         KalmanFilter: each step's exact (A_j, Q_j) and input term G_j u_j, as the filter used
         them (``out.transition``, ``out.process_noise``, ``out.control``): m ← A m + G u,
@@ -223,7 +237,9 @@ class KalmanFilterModule(LightningModule):
             P = Aj @ P @ Aj.mT + Qj
         H, R = self.kf.H, self.kf.R
         obs_k = observed[..., k:, :]
-        target = torch.where(obs_k, y[..., k:, :], torch.zeros_like(y[..., k:, :]))
+        Du = self.feedthrough(u)
+        target = y[..., k:, :] if Du is None else y[..., k:, :] - Du[..., k:, :]
+        target = torch.where(obs_k, target, torch.zeros_like(target))
         r = target - m @ H.mT
         S = H @ P @ H.mT + R
         return masked_gaussian_nll(r, S, obs_k).sum()
@@ -239,9 +255,9 @@ class KalmanFilterModule(LightningModule):
         nll = -out.log_likelihood.sum() / count
         loss = nll
         if self.k_steps and self.k_step_weight > 0:
-            kst = sum(self.k_step_nll(out, y, observed, k, dt) for k in self.k_steps)
+            kst = sum(self.k_step_nll(out, y, observed, k, dt, u) for k in self.k_steps)
             loss = loss + self.k_step_weight * kst / count
-        return loss, nll, out, {"y": y, "x": x, "observed": observed, "mask": mask, "count": count}
+        return loss, nll, out, {"y": y, "x": x, "observed": observed, "mask": mask, "count": count, "u": u}
 
     # ---------------------------------------------------------------- Lightning hooks
 
@@ -267,7 +283,9 @@ class KalmanFilterModule(LightningModule):
         y, observed = info["y"], info["observed"]
         count = int(info["count"])
         self.log(f"{stage}/nll", nll, on_epoch=True, prog_bar=stage == "val", batch_size=count, sync_dist=True)
-        pred = out.pred_mean @ self.kf.H.mT  # one-step-ahead predicted observation
+        pred = out.pred_mean @ self.kf.H.mT  # one-step-ahead predicted observation (+ D u)
+        Du = self.feedthrough(info["u"])
+        pred = pred if Du is None else pred + Du
         err = torch.where(observed, pred - y, torch.zeros_like(y))
         sums = [(err**2).sum(), observed.sum()]
         x, mask = info["x"], info["mask"]
