@@ -24,7 +24,15 @@ from torchsde_lti.core._doubling import discretization_series as _discretization
 from torchsde_lti.core._matrix_exp import matrix_exp
 from torchsde_lti.core.series import TerminatingSeries
 from torchsde_lti.core.threads import intra_op_threads
-from torchsde_lti.core.validation import SDEInputs, check_matrix, checks_values, sde_inputs, shape_str, tracing
+from torchsde_lti.core.validation import (
+    SDEInputs,
+    _psd_test,
+    check_matrix,
+    checks_values,
+    sde_inputs,
+    shape_str,
+    tracing,
+)
 
 __all__ = [
     "METHODS",
@@ -112,15 +120,13 @@ def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | No
 def check_matrix_exp_noise(Q: Tensor) -> None:
     """ValueError where ``method="matrix_exp"``'s Q (..., n, n) is not PSD beyond √eps of its
     largest entry: the cancellation ``Q = X Aᵀ`` of Van Loan's block (growing like
-    ``‖e^{F dt}‖ ‖e^{−F dt}‖``) has lost it. One Cholesky of ``Q + √eps max|Q| I`` and one
-    synchronisation; nothing while tracing."""
+    ``‖e^{F dt}‖ ‖e^{−F dt}‖``) has lost it. The PSD test of the argument checks
+    (``_psd_test``) at tolerance √eps and one synchronisation; nothing while tracing."""
     if tracing() or Q.numel() == 0:
         return
     with torch.no_grad():
-        scale = Q.abs().amax(dim=(-2, -1)).clamp_min(torch.finfo(Q.dtype).tiny)
-        tol = math.sqrt(torch.finfo(Q.dtype).eps)
-        eye = torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
-        if bool((torch.linalg.cholesky_ex(Q + (tol * scale)[..., None, None] * eye).info == 0).all()):
+        passes, _, scale = _psd_test(Q, math.sqrt(torch.finfo(Q.dtype).eps))
+        if bool(passes):
             return
         lowest = float((torch.linalg.eigvalsh(Q).amin(dim=-1) / scale).min())
     raise ValueError(

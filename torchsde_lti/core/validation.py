@@ -133,12 +133,12 @@ def _lapack_dtype(x: Tensor) -> Tensor:
     return x if x.dtype in (torch.float32, torch.float64) else x.to(torch.float32)
 
 
-def _psd_test(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _psd_test(x: Tensor, tol: float | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """(passes, asym, scale) without synchronising: ``passes`` (0-dim bool): x is symmetric
     within tol and x + tol·scale·I has a Cholesky factor; asym (...): relative asymmetry;
-    scale (...): max |x|."""
+    scale (...): max |x|. ``tol``: relative tolerance, :func:`psd_tolerance` by default."""
     scale = x.abs().amax(dim=(-2, -1)).clamp_min(torch.finfo(x.dtype).tiny)
-    tol = psd_tolerance(x)
+    tol = psd_tolerance(x) if tol is None else tol
     k = x.shape[-1]
     if k <= 2:  # the same test in closed form: the pivots of the shifted Cholesky factor
         shift = tol * scale

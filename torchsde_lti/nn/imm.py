@@ -424,18 +424,7 @@ class IMMFilter(ValidateArgs, nn.Module):
             y, mask = online_report(y, mask, H, F.dtype, F.device)
             check_batches([*_state_batches(state), ("y", y.shape[:-1]), ("dt", dt.shape)])
             if self.validate_args:
-                check_values(
-                    finite=[
-                        ("F", F),
-                        ("W", W),
-                        ("H", H),
-                        ("R", R),
-                        ("rates", online.rates),
-                        *zip(_STATE_NAMES, state),
-                    ],
-                    nonnegative=[("dt", dt)],
-                    no_inf=[("y", y)],
-                )
+                _check_online_values(F, W, online.rates, state, dt, H, R, y)
             d, Pi = self._discretize_bank(F, W, dt, validate_args=False, online=online)
             return imm_step(state, y, d.A, d.Q, Pi, H, R, mask)
 
@@ -446,15 +435,7 @@ class IMMFilter(ValidateArgs, nn.Module):
             online, state, dt = self._online_args(state, dt)
             check_batches([*_state_batches(state), ("dt", dt.shape)])
             if self.validate_args:
-                check_values(
-                    finite=[
-                        ("F", online.F),
-                        ("W", online.W),
-                        ("rates", online.rates),
-                        *zip(_STATE_NAMES, state),
-                    ],
-                    nonnegative=[("dt", dt)],
-                )
+                _check_online_values(online.F, online.W, online.rates, state, dt)
             d, Pi = self._discretize_bank(online.F, online.W, dt, validate_args=False, online=online)
             return imm_predict_state(state, d.A, d.Q, Pi)
 
@@ -513,17 +494,7 @@ class IMMFilter(ValidateArgs, nn.Module):
             check_batches([*_state_batches(IMMState(prob, mean, cov)), ("dt", dt.shape[:-1])])
             H, R = self._obs_model()
             if self.validate_args:
-                check_values(
-                    finite=[
-                        ("F", F),
-                        ("W", W),
-                        ("H", H),
-                        ("R", R),
-                        ("rates", self.rates),
-                        *zip(_STATE_NAMES, (prob, mean, cov)),
-                    ],
-                    nonnegative=[("dt", dt)],
-                )
+                _check_online_values(F, W, self.rates, (prob, mean, cov), dt, H, R)
             d, Pi = self._discretize_bank(F, W, dt, validate_args=False)  # (..., K, M, n, n), (..., K, M, M)
         p: IMMPrediction = imm_predict(prob, mean, cov, d.A, d.Q, Pi)
         ym = (H @ p.mode_mean.unsqueeze(-1)).squeeze(-1)  # (..., K, M, m)
@@ -553,6 +524,26 @@ def _imm_state(state: object, F: Tensor) -> IMMState:
             f"(..., {M}, {n}, {n})), got {shape_str(prob)}, {shape_str(mean)}, {shape_str(cov)}"
         )
     return IMMState(prob, mean, cov)
+
+
+def _check_online_values(
+    F: Tensor,
+    W: Tensor,
+    rates: Tensor,
+    state: tuple[Tensor, Tensor, Tensor],
+    dt: Tensor,
+    H: Tensor | None = None,
+    R: Tensor | None = None,
+    y: Tensor | None = None,
+) -> None:
+    """The value checks of an online call (step, predict, forecast): the bank (F, W), H and R
+    where the call uses them, the rates and the state finite; dt ≥ 0; y without ±Inf."""
+    obs = [] if H is None else [("H", H), ("R", R)]
+    check_values(
+        finite=[("F", F), ("W", W), *obs, ("rates", rates), *zip(_STATE_NAMES, state)],
+        nonnegative=[("dt", dt)],
+        no_inf=[] if y is None else [("y", y)],
+    )
 
 
 def _state_batches(state: IMMState) -> list[tuple[str, tuple[int, ...]]]:

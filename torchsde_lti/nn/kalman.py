@@ -517,9 +517,18 @@ class KalmanFilter(KalmanOnline):
         Hk = H.unsqueeze(-3) if H.dim() > 2 else H
         Rk = R.unsqueeze(-3) if R.dim() > 2 else R
         obs_mean = matvec(Hk, m)
-        if u is not None and D is not None:
-            obs_mean = obs_mean + matvec(D.unsqueeze(-3) if D.dim() > 2 else D, u)
+        Du = self.feedthrough(u)
+        if Du is not None:
+            obs_mean = obs_mean + Du
         return Forecast(m, P, obs_mean, sym(Hk @ P @ Hk.mT + Rk))
+
+    def feedthrough(self, u: Tensor | None) -> Tensor | None:
+        """``D u`` (..., K, m) of inputs u (..., K, p) (a batched D (..., m, p) shared over K),
+        or None without a feedthrough D or without inputs."""
+        D = self.D
+        if D is None or u is None:
+            return None
+        return matvec(D.unsqueeze(-3) if D.dim() > 2 else D, u)
 
     def extra_repr(self) -> str:
         return (

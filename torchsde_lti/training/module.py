@@ -196,13 +196,6 @@ class KalmanFilterModule(LightningModule):
             obs = obs & mask.unsqueeze(-1)
         return obs
 
-    def feedthrough(self, u: Tensor | None) -> Tensor | None:
-        """D u (..., T, m) of a filter with a feedthrough D and inputs u (..., T, p), else None."""
-        D = getattr(self.kf, "D", None)
-        if D is None or u is None:
-            return None
-        return ((D.unsqueeze(-3) if D.dim() > 2 else D) @ u.unsqueeze(-1)).squeeze(-1)
-
     def k_step_nll(
         self,
         out: Any,
@@ -237,7 +230,7 @@ class KalmanFilterModule(LightningModule):
             P = Aj @ P @ Aj.mT + Qj
         H, R = self.kf.H, self.kf.R
         obs_k = observed[..., k:, :]
-        Du = self.feedthrough(u)
+        Du = self.kf.feedthrough(u)
         target = y[..., k:, :] if Du is None else y[..., k:, :] - Du[..., k:, :]
         target = torch.where(obs_k, target, torch.zeros_like(target))
         r = target - m @ H.mT
@@ -284,7 +277,7 @@ class KalmanFilterModule(LightningModule):
         count = int(info["count"])
         self.log(f"{stage}/nll", nll, on_epoch=True, prog_bar=stage == "val", batch_size=count, sync_dist=True)
         pred = out.pred_mean @ self.kf.H.mT  # one-step-ahead predicted observation (+ D u)
-        Du = self.feedthrough(info["u"])
+        Du = self.kf.feedthrough(info["u"]) if isinstance(self.kf, KalmanFilter) else None
         pred = pred if Du is None else pred + Du
         err = torch.where(observed, pred - y, torch.zeros_like(y))
         sums = [(err**2).sum(), observed.sum()]
