@@ -102,6 +102,8 @@ def test_k_step_loss_and_rmse_include_the_feedthrough() -> None:
         out = kf(y, dt, u=u)
         k1 = module.k_step_nll(out, y, ~torch.isnan(y), 1, dt, u)
         torch.testing.assert_close(k1, -out.step_log_likelihood[:, 1:].sum(), rtol=1e-12, atol=1e-12)
+        with pytest.raises(ValueError, match=r"u must have shape \(\.\.\., K, 1\) to match D \(1, 1\)"):
+            kf.feedthrough(torch.ones(B, T, 2, dtype=torch.float64))
         batch = TrackBatch(y=y, dt=dt, mask=torch.ones(B, T, dtype=torch.bool), lengths=torch.full((B,), T), u=u)
         module._squared_errors.clear()
         module._eval_step(batch, "val")

@@ -528,6 +528,8 @@ class KalmanFilter(KalmanOnline):
         D = self.D
         if D is None or u is None:
             return None
+        if u.dim() < 2 or u.shape[-1] != D.shape[-1]:
+            raise ValueError(f"u must have shape (..., K, {D.shape[-1]}) to match D {shape_str(D)}, got {shape_str(u)}")
         return matvec(D.unsqueeze(-3) if D.dim() > 2 else D, u)
 
     def extra_repr(self) -> str:
