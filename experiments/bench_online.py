@@ -5,13 +5,15 @@ Rows (constant-velocity model in 2-D, state [x, vx, y, vy], positions observed, 
 
 - online step, B = 1: ``kf.step`` eager (value checks on and off), its parts (the SDE's
   matrices, the exact discretisation, the filter step itself), the exported program
-  (``torch.export`` of :class:`~torchsde_lti.OnlineStep`, dynamic batch) and its AOTInductor
-  package; filterpy's ``predict`` + ``update`` with the closed-form CV ``A(dt)``, ``Q(dt)`` set
+  (``torch.export`` of :class:`~torchsde_lti.OnlineStep`, dynamic batch, traced for Inductor and
+  for the eager runtime) and its AOTInductor package; filterpy's ``predict`` + ``update`` with the closed-form CV ``A(dt)``, ``Q(dt)`` set
   before each predict;
 - B = 1000 live tracks, each with its own dt: one eager step vs a loop over 1000 filterpy filters;
 - sequence B = 1, T = 200: the AOTInductor-packaged sequence filter (:class:`~torchsde_lti.DeployedFilter`
   exported with a dynamic batch and T) vs filterpy over the 200 reports;
-- the exported (not AOTI) sequence program vs eager ``kf(y, dt)`` at B = 1 and B = 100 (T = 200);
+- the exported (not AOTI) sequence program, traced for running as it is
+  (``DeployedFilter(kf, runtime="eager")``), vs eager ``kf(y, dt)`` at B = 1 and B = 100
+  (T = 200), and the program traced for Inductor run the same way;
 - Stone Soup's multi-target tracker (tests/test_interop.py's scenario: 4 targets, clutter,
   missed detections) per scan with the learned model through ``torchsde_lti.interop`` vs
   Stone Soup's own ``ConstantVelocity``.
@@ -174,7 +176,13 @@ def main() -> None:
     t_export_step = time.perf_counter() - t0
     prog_step = ep_step.module()
     with torch.no_grad():
+        prog_step_eager = torch.export.export(
+            tl.OnlineStep(kf, runtime="eager").eval(),
+            step_args(3, 1),
+            dynamic_shapes=({0: Dim("B", max=1_000_000)},) * 4,
+        ).module()
         t_exp_step = median_s(lambda: prog_step(mean, cov, y, dt), rep, inner=5)
+        t_exp_step_eager = median_s(lambda: prog_step_eager(mean, cov, y, dt), rep, inner=5)
     t0 = time.perf_counter()
     step_pkg = tl.compile_package(ep_step, workdir / "step.pt2")
     t_compile_step = time.perf_counter() - t0
@@ -191,7 +199,12 @@ def main() -> None:
     t_aoti_step, t_fp = paired_s(lambda: run_step(mean, cov, y, dt), lambda: filterpy_step(fp, z, h), rep, inner=20)
     t_aoti_stock = median_s(lambda: run_step_stock(mean, cov, y, dt), rep, inner=20)
     rows += [
-        ("online step B=1, exported program (torch.export, dynamic B)", t_exp_step, f"export {t_export_step:.1f} s"),
+        (
+            "online step B=1, exported program (torch.export, dynamic B)",
+            t_exp_step,
+            f"export {t_export_step:.1f} s; runtime='inductor'",
+        ),
+        ("online step B=1, exported program (runtime='eager')", t_exp_step_eager, "batched BLAS / LAPACK calls"),
         ("online step B=1, AOTInductor package", t_aoti_step, f"compile {t_compile_step:.0f} s; tl.load_package"),
         ("  the same package through torch._inductor.aoti_load_package", t_aoti_stock, "its call spec parsed per call"),
         ("filterpy predict+update B=1 (closed-form CV A, Q)", t_fp, ""),
@@ -235,6 +248,13 @@ def main() -> None:
             dynamic_shapes={"y": {0: Bd, 1: Td}, "dt": {0: Bd, 1: Td}},
         )
         t_export_seq = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        ep_seq_eager = torch.export.export(
+            tl.DeployedFilter(kf, runtime="eager").eval(),
+            (y_seq.expand(2, T, 2), dt_seq.expand(2, T)),
+            dynamic_shapes={"y": {0: Bd, 1: Td}, "dt": {0: Bd, 1: Td}},
+        )
+        t_export_seq_eager = time.perf_counter() - t0
         # AOTInductor cannot yet lower the structured scan with a symbolic T (inductor KeyError in
         # lower_to_while_loop): the package is built for a static (B, T) = (1, 200) bucket
         ep_seq_static = torch.export.export(tl.DeployedFilter(kf).eval(), (y_seq, dt_seq))
@@ -260,17 +280,27 @@ def main() -> None:
         ),
         ("sequence B=1 T=200, filterpy (200 predict+update)", t_fp_seq, ""),
     ]
-    prog_seq = ep_seq.module()
+    prog_seq, prog_seq_eager = ep_seq.module(), ep_seq_eager.module()
     for b in (1, 100):
         yb = torch.randn(b, T, 2, generator=g, dtype=F64).cumsum(1)
         dtb = 0.2 + torch.rand(b, T, generator=g, dtype=F64)
         with torch.no_grad():
+            assert torch.allclose(prog_seq_eager(yb, dtb)[0], kf(yb, dtb).log_likelihood, atol=1e-8)
             t_e, t_x = paired_s(
-                lambda yb=yb, dtb=dtb: kf(yb, dtb), lambda yb=yb, dtb=dtb: prog_seq(yb, dtb), max(rep // 8, 7), warmup=1
+                lambda yb=yb, dtb=dtb: kf(yb, dtb),
+                lambda yb=yb, dtb=dtb: prog_seq_eager(yb, dtb),
+                max(rep // 8, 7),
+                warmup=1,
             )
+            t_xi = median_s(lambda yb=yb, dtb=dtb: prog_seq(yb, dtb), max(rep // 16, 5), warmup=1)
         rows += [
             (f"sequence B={b} T=200, eager kf(y, dt)", t_e, f"algorithm {kf.algorithm_for(b, T, yb.device)!r}"),
-            (f"sequence B={b} T=200, exported program (not AOTI)", t_x, "one program for every (B, T)"),
+            (
+                f"sequence B={b} T=200, exported program (not AOTI)",
+                t_x,
+                f"runtime='eager': one program for every (B, T), export {t_export_seq_eager:.0f} s",
+            ),
+            (f"sequence B={b} T=200, exported program (runtime='inductor')", t_xi, "the program AOTI packages"),
         ]
 
     # ---------------------------------------------------------------- Stone Soup tracker

@@ -430,3 +430,77 @@ def test_deployed_filter_and_online_step_take_the_inputs_u():
         for k in range(12):
             mean, cov, *_ = step(mean, cov, y[:, k], dt[:, k], u[:, k])
         torch.testing.assert_close(mean, want.mean[:, -1], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_exported_for_the_eager_runtime_any_batch_and_time(dtype):
+    """DeployedFilter(kf, runtime="eager") exported ONCE with a dynamic batch and T: the program
+    picks the associative scan (its levels one while_loop, any T) for a few tracks and the loop
+    beyond (float32: the loop always), inside the program; at every shape it equals the eager
+    filter (missing components included), T = 1 and a long T included."""
+    from torch.export import Dim
+
+    torch._dynamo.reset()
+    kf = tl.KalmanFilter(
+        tl.models.constant_velocity(dim=2, q=0.8, dtype=dtype),
+        torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=dtype),
+        0.3 * torch.eye(2, dtype=dtype),
+        P0=50 * torch.eye(4, dtype=dtype),
+    )
+    B, T = Dim("B", max=100_000), Dim("T", max=100_000)
+    y0, dt0 = _data(2, 6, 2, seed=0)
+    with torch.no_grad():
+        ep = torch.export.export(
+            tl.DeployedFilter(kf, runtime="eager").eval(),
+            (y0.to(dtype), dt0.to(dtype)),
+            dynamic_shapes={"y": {0: B, 1: T}, "dt": {0: B, 1: T}},
+        )
+    ops = {getattr(node.target, "__name__", str(node.target)) for node in ep.graph.nodes}
+    if dtype == torch.float64:
+        assert "cond" in ops  # the choice by the batch size is inside the program
+    prog = ep.module()
+    atol = 1e-9 if dtype == torch.float64 else 2e-2
+    for b, t in ((1, 1), (1, 37), (3, 130), (40, 9)):
+        y, dt = (x.to(dtype) for x in _data(b, t, 2, seed=b + t)) if t > 3 else _short(b, t, dtype)
+        with torch.no_grad():
+            ref = kf(y, dt)
+        ll, mean = prog(y, dt)
+        torch.testing.assert_close(ll, ref.log_likelihood, rtol=1e-6 if dtype == torch.float32 else 0, atol=atol)
+        torch.testing.assert_close(mean, ref.mean, rtol=1e-5 if dtype == torch.float32 else 0, atol=atol)
+
+
+def _short(b: int, t: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(b * 10 + t)
+    return torch.randn(b, t, 2, generator=g, dtype=dtype), torch.rand(b, t, generator=g, dtype=dtype) + 0.1
+
+
+def test_exported_online_step_for_the_eager_runtime():
+    """OnlineStep(kf, runtime="eager") traces batched BLAS / LAPACK calls (no products unrolled
+    into elementwise ops: fewer nodes than the inductor program) and equals the eager step."""
+    from torch.export import Dim
+
+    kf = _cv_filter()
+    programs = {}
+    with torch.no_grad():
+        for runtime in ("inductor", "eager"):
+            programs[runtime] = torch.export.export(
+                tl.OnlineStep(kf, runtime=runtime).eval(), _step_args(3, 0), dynamic_shapes=({0: Dim("B")},) * 4
+            )
+    nodes = {k: len(ep.graph.nodes) for k, ep in programs.items()}
+    assert nodes["eager"] < nodes["inductor"]
+    assert any("cholesky" in str(n.target) for n in programs["eager"].graph.nodes)
+    prog = programs["eager"].module()
+    for b in (1, 7, 300):
+        args = _step_args(b, seed=b)
+        with torch.no_grad():
+            state, out = kf.step(tl.KalmanState(args[0], args[1]), args[2], args[3])
+        for x, ref in zip(prog(*args), (state.mean, state.cov, out.innovation, out.innovation_cov, out.log_likelihood)):
+            torch.testing.assert_close(x, ref, rtol=0, atol=1e-10)
+
+
+def test_deploy_modules_refuse_an_unknown_runtime():
+    kf = _cv_filter()
+    with pytest.raises(ValueError, match="runtime must be one of"):
+        tl.DeployedFilter(kf, runtime="aoti")
+    with pytest.raises(ValueError, match="runtime must be one of"):
+        tl.OnlineStep(kf, runtime="jit")

@@ -15,16 +15,18 @@ r"""The public Kalman filter function: one signature, one ``algorithm=`` argumen
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
+from torchsde_lti.core.linalg import eager_runtime_tracing
 from torchsde_lti.core.threads import with_threads
 from torchsde_lti.core.validation import common_float_dtype
-from torchsde_lti.filters.inputs import FilterInputs, prepare_inputs
+from torchsde_lti.filters.inputs import FilterInputs, PreparedInputs, complete_from_filtered, prepare_inputs
 from torchsde_lti.filters.results import FilterResult
-from torchsde_lti.filters.scan import chunked_scan, prefers_scan
-from torchsde_lti.filters.sequential import sequential_filter
+from torchsde_lti.filters.scan import SCAN_MAX_BATCH_CPU, chunked_scan, prefers_scan, scan_filtered
+from torchsde_lti.filters.sequential import sequential_filter, structured_filtered
 from torchsde_lti.filters.square_root import square_root_filter
 
 __all__ = ["ALGORITHMS", "check_algorithm", "choose_algorithm", "kalman_filter", "run_filter"]
@@ -48,7 +50,9 @@ def choose_algorithm(
     ``"auto"``: under ``torch.compile`` and ``torch.export`` the sequential loop, which
     then runs as torch's structured scan (one step compiled: seconds to compile, and an
     exported program takes any T; the associative scan traced whole takes minutes and fixes
-    T); otherwise the associative scan where
+    T); exported for a program run op by op
+    (:func:`~torchsde_lti.core.linalg.traced_for_eager_runtime`) ``"auto"`` stays, and the
+    program picks the scan or the loop by its batch size as eager calls do; otherwise the associative scan where
     :func:`~torchsde_lti.filters.prefers_scan` says so (few tracks on CPU, any batch on
     other devices; float64 only), else the sequential loop. ``batch_size``: tracks in the
     call; ``dtype``: the call's floating dtype.
@@ -56,8 +60,10 @@ def choose_algorithm(
     check_algorithm(algorithm)
     if algorithm != "auto":
         return algorithm
-    if torch.compiler.is_compiling():  # compile and export: the loop as one structured scan step
-        return "sequential"
+    if torch.compiler.is_compiling():
+        # traced for torch's compilers: the loop as one structured scan step; for a program
+        # run op by op ("auto" kept): chosen inside the program by the batch size
+        return "auto" if eager_runtime_tracing() else "sequential"
     return "scan" if prefers_scan(batch_size, T, device, dtype) else "sequential"
 
 
@@ -132,7 +138,7 @@ def run_filter(
     also outside a ``torch.compile`` trace (what :class:`~torchsde_lti.KalmanFilter` runs under
     ``torch.compile``, with its discretisation eager); inside a trace it always does.
     """
-    check_algorithm(algorithm, ALGORITHMS[1:])
+    check_algorithm(algorithm, ALGORITHMS if eager_runtime_tracing() else ALGORITHMS[1:])
     return with_threads(_work(args), _run_algorithm, args, algorithm, chunk, validate_args, compiled_loop)
 
 
@@ -140,6 +146,8 @@ def _run_algorithm(
     args: FilterInputs, algorithm: str, chunk: int | None, validate_args: bool, compiled_loop: bool
 ) -> FilterResult:
     """:func:`run_filter`'s body."""
+    if algorithm == "auto":  # traced for a program run op by op
+        return _chosen_in_program(prepare_inputs(args, validate_args))
     if algorithm == "scan":
         return chunked_scan(args, chunk, validate_args)
     prep = prepare_inputs(args, validate_args)
@@ -148,6 +156,35 @@ def _run_algorithm(
     # traced (torch.compile, torch.export): the loop as torch's structured scan, one step's
     # graph for any T (an exported program then takes any T: a dynamic time axis)
     return sequential_filter(prep, compiled_loop or torch.compiler.is_compiling())
+
+
+def _chosen_in_program(prep: PreparedInputs) -> FilterResult:
+    """The filter of a program traced to run op by op, with :func:`choose_algorithm`'s choice
+    between the associative scan (over any T: its levels one ``while_loop``) and the loop
+    (torch's structured scan) made inside the program (``torch.cond``) where the batch size is
+    dynamic."""
+    scan = prep.m0.device.type != "cpu" or math.prod(prep.mean_batch) <= SCAN_MAX_BATCH_CPU
+    if prep.A.dtype != torch.float64:  # (the scan in float32: see prefers_scan)
+        scan = False
+    if isinstance(scan, bool):
+        filtered = scan_filtered(prep) if scan else structured_filtered(prep)
+    else:  # (the branches take the tensors as operands and read every size from them)
+        slots = [i for i, x in enumerate(prep) if isinstance(x, Tensor)]
+
+        def branch(run: Callable[[PreparedInputs], tuple[Tensor, Tensor]]) -> Callable[..., tuple[Tensor, Tensor]]:
+            def from_operands(*tensors: Tensor) -> tuple[Tensor, Tensor]:
+                fields: list[object] = list(prep)
+                for i, t in zip(slots, tensors):
+                    fields[i] = t
+                y0 = tensors[slots.index(PreparedInputs._fields.index("y0"))]
+                fields[-2:] = [y0.shape[:-2], y0.shape[-2]]  # mean_batch, T
+                mean, cov = run(PreparedInputs(*fields))
+                return mean.contiguous(), cov.contiguous()  # (both branches' outputs: one layout)
+
+            return from_operands
+
+        filtered = torch.cond(scan, branch(scan_filtered), branch(structured_filtered), tuple(prep[i] for i in slots))
+    return complete_from_filtered(prep, *filtered)
 
 
 def _work(args: FilterInputs) -> int:

@@ -33,7 +33,16 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import cholesky, fused_matmul, matvec, solve_lower, solve_upper_t, sym, to_batch_last
+from torchsde_lti.core.linalg import (
+    cholesky,
+    compiler_tracing,
+    fused_matmul,
+    matvec,
+    solve_lower,
+    solve_upper_t,
+    sym,
+    to_batch_last,
+)
 from torchsde_lti.core.validation import broadcast_shapes, tracing
 from torchsde_lti.filters.imm import combine, imm_cycle, imm_predict
 from torchsde_lti.filters.inputs import (
@@ -343,7 +352,8 @@ def _joint_step(
             return x
         return x.expand(*mb, *event).reshape(b, *event)
 
-    fused = traced and max(n, m) <= FUSED_MAX_INNER  # products a compiler fuses with the elementwise ops
+    compiled = compiler_tracing()  # (not a program run op by op: traced_for_eager_runtime)
+    fused = compiled and max(n, m) <= FUSED_MAX_INNER  # products a compiler fuses with the elementwise ops
     mm: Callable[[Tensor, Tensor], Tensor] = fused_matmul if fused else torch.bmm
     addmm: Callable[..., Tensor] = _fused_addmm if fused else torch.baddbmm  # else: the fewest eager calls
 
@@ -364,7 +374,7 @@ def _joint_step(
         S = S_all * (o * o.mT) + torch.diag_embed(1.0 - o.squeeze(-1))
         HP = HP * o
         e = e * o
-    if traced:
+    if compiled:
         # unrolled over m (elementwise ops an AOTInductor program fuses; its calls of the
         # LAPACK kernels cost tens to hundreds of µs each through the fallback path)
         L = cholesky(S)

@@ -17,7 +17,15 @@ from torchsde_lti.core.validation import broadcast_batch
 from torchsde_lti.filters.inputs import FilterInputs, PreparedInputs, complete_from_filtered, prepare_inputs
 from torchsde_lti.filters.results import FilterResult
 
-__all__ = ["SCAN_MAX_BATCH_CPU", "SCAN_MAX_ELEMENTS", "associative_scan", "chunked_scan", "prefers_scan", "scan_filter"]
+__all__ = [
+    "SCAN_MAX_BATCH_CPU",
+    "SCAN_MAX_ELEMENTS",
+    "associative_scan",
+    "chunked_scan",
+    "prefers_scan",
+    "scan_filter",
+    "scan_filtered",
+]
 
 
 Elems = tuple[Tensor, ...]
@@ -60,6 +68,35 @@ def _scan(fn: Callable[[Elems, Elems], Elems], el: Elems) -> Elems:
     return tuple(out)
 
 
+def _shift_scan(fn: Callable[[Elems, Elems], Elems], el: Elems, event_ndims: Sequence[int]) -> Elems:
+    """The inclusive scan of :func:`_scan` by recursive doubling (Hillis & Steele 1986): at
+    level k every element e_t with t ≥ 2^k becomes ``fn(e_{t−2^k}, e_t)``; after ⌈log2 T⌉
+    levels e_t = e_0 ⊗ … ⊗ e_t. Each level keeps every shape (the elements, (T, *batch, *event)
+    with ``event_ndims`` event dims each, are broadcast to one batch first), so the levels run
+    as one ``while_loop`` for any T: what an exported program with a dynamic time axis runs.
+    O(T log T) work in ⌈log2 T⌉ combines."""
+    from torch._higher_order_ops import while_loop
+
+    T = el[0].shape[0]
+    lead = torch.broadcast_shapes(*(x.shape[1 : x.dim() - e] for x, e in zip(el, event_ndims)))
+    full = tuple(x.expand(T, *lead, *x.shape[x.dim() - e :]).contiguous() for x, e in zip(el, event_ndims))
+    steps = torch.arange(T, device=el[0].device)
+
+    def more(offset: Tensor, *xs: Tensor) -> Tensor:
+        return offset < T
+
+    def level(offset: Tensor, *xs: Tensor) -> tuple[Tensor, ...]:
+        earlier = (steps - offset).clamp_min(0)
+        combined = fn(tuple(x.index_select(0, earlier) for x in xs), xs)
+        kept = steps < offset
+        out = tuple(
+            torch.where(kept.view(-1, *[1] * (x.dim() - 1)), x, c.expand(x.shape)) for c, x in zip(combined, xs)
+        )
+        return (offset * 2, *out)
+
+    return tuple(while_loop(more, level, (torch.ones((), dtype=torch.int64, device=steps.device), *full))[1:])
+
+
 def _filter_combine(a: Elems, b: Elems) -> Elems:
     """Särkkä & García-Fernández (2021), Lemma 7: combine filtering elements a (earlier), b (later)."""
     Ai, bi, Ci, ei, Ji = a
@@ -84,7 +121,14 @@ def _filter_combine(a: Elems, b: Elems) -> Elems:
 
 
 def scan_filter(prep: PreparedInputs) -> FilterResult:
-    r"""Kalman filter by associative scan (Särkkä & García-Fernández 2021), O(log T) depth.
+    """Kalman filter by associative scan on prepared inputs (:func:`scan_filtered`), every
+    output of :class:`~torchsde_lti.filters.FilterResult` then formed batched over the steps."""
+    return complete_from_filtered(prep, *scan_filtered(prep))
+
+
+def scan_filtered(prep: PreparedInputs) -> tuple[Tensor, Tensor]:
+    r"""Filtered means (..., T, n) and covariances (..., T, n, n) by associative scan
+    (Särkkä & García-Fernández 2021), O(log T) depth.
 
     On prepared inputs; same results as the sequential loop (up to rounding). Step k's element
     (with whitened H', y' and R' = I, prior moments ``c_k = G_k u_k``, ``Q_k``; for k = 0 the
@@ -93,9 +137,9 @@ def scan_filter(prep: PreparedInputs) -> FilterResult:
         S = H' Q Hᵀ' + I,  K = Q H'ᵀ S⁻¹,  Ā = (I − K H') A,  b = c + K (y' − H' c),
         C = (I − K H') Q (I − K H')ᵀ + K Kᵀ,  η = Aᵀ H'ᵀ S⁻¹ (y' − H' c),  J = Aᵀ H'ᵀ S⁻¹ H' A.
 
-    The scan yields filtered (b, C); predictions and the log-likelihood are then computed
-    batched over all steps. Wins over the sequential loop when per-step Python overhead
-    dominates (small batch, long T); loses when the batch already fills the cores.
+    The scan yields filtered (b, C). Wins over the sequential loop when per-step Python
+    overhead dominates (small batch, long T); loses when the batch already fills the cores.
+    While torch.export traces, the scan is :func:`_shift_scan` (any T).
     """
     n = prep.A.shape[-1]
     T = prep.T
@@ -105,12 +149,14 @@ def scan_filter(prep: PreparedInputs) -> FilterResult:
     A0 = A_[..., 0, :, :]
     P0m = sym(A0 @ prep.P0 @ A0.mT + Qp[..., 0, :, :])
     m0m = matvec(A0, prep.m0) + (cp[..., 0, :] if prep.c is not None else 0.0)
-    lead = torch.broadcast_shapes(Qp.shape[:-3], P0m.shape[:-2])
-    Qe = torch.cat([P0m.expand(*lead, n, n).unsqueeze(-3), Qp[..., 1:, :, :].expand(*lead, T - 1, n, n)], dim=-3)
-    Ae = torch.cat([torch.zeros_like(A0).unsqueeze(-3), A_[..., 1:, :, :]], dim=-3)
+    # step 0 takes the prior (selected by a mask over the steps: no size-(T − 1) slice, which a
+    # traced program with a dynamic T would have to guard against being 1)
+    first = torch.arange(T, device=A_.device) == 0  # (T,)
+    Qe = torch.where(first[:, None, None], P0m.unsqueeze(-3), Qp)
+    Ae = torch.where(first[:, None, None], 0.0, A_)
     mb = prep.mean_batch
     cfull = cp.expand(*mb, T, n) if prep.c is not None else torch.zeros((*mb, T, n), dtype=A_.dtype, device=A_.device)
-    ce = torch.cat([m0m.expand(*mb, n).unsqueeze(-2), cfull[..., 1:, :]], dim=-2)
+    ce = torch.where(first[:, None], m0m.unsqueeze(-2), cfull)
 
     Hw, yw = prep.Hw, prep.yw
     HQ = Hw @ Qe  # (.., T, m, n)
@@ -132,11 +178,11 @@ def scan_filter(prep: PreparedInputs) -> FilterResult:
     elems = (Abar, b, C, eta, J)
     tm = [-3, -2, -3, -2, -3]
     moved = tuple(x.movedim(d, 0) for x, d in zip(elems, tm))
-    scanned = _scan(_filter_combine, moved)
-    mean = scanned[1].movedim(0, -2)
-    cov = scanned[2].movedim(0, -3)
-
-    return complete_from_filtered(prep, mean, cov)
+    if torch.compiler.is_exporting():  # an exported program takes any T: no recursion on T's value
+        scanned = _shift_scan(_filter_combine, moved, [-d - 1 for d in tm])
+    else:
+        scanned = _scan(_filter_combine, moved)
+    return scanned[1].movedim(0, -2), scanned[2].movedim(0, -3)
 
 
 # ----------------------------------------------------------------------------------------

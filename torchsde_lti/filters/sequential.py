@@ -30,7 +30,7 @@ from torchsde_lti.core.linalg import bl_matmul, bl_matvec, bl_sym_into, from_bat
 from torchsde_lti.filters.inputs import PreparedInputs, assemble_result, complete_from_filtered
 from torchsde_lti.filters.results import FilterResult
 
-__all__ = ["sequential_filter"]
+__all__ = ["sequential_filter", "structured_filtered"]
 
 
 def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterResult:
@@ -45,6 +45,8 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
     loop then yields the filtered moments alone, the rest is formed batched over the steps
     (:func:`~torchsde_lti.filters.inputs.complete_from_filtered`).
     """
+    if structured:
+        return complete_from_filtered(prep, *structured_filtered(prep))
     m_dim = prep.yw.shape[-1]
     # Batch-last layout: per-step tensors (n, n, *batch) keep the batch as the contiguous
     # inner dimension, so every elementwise op and the broadcast-and-sum products below run
@@ -66,24 +68,6 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
     mean = to_batch_last(prep.m0, 1)  # (n, *mb)
     P = to_batch_last(prep.P0, 2)  # (n, n, *cb)
     nd = len(prep.mean_batch)
-    if structured:
-        # The whole loop as torch's structured scan, compiled once: one step's graph, no
-        # unrolling, no Python per step. The loop carries and returns the filtered moments
-        # alone (each output of a step costs a compiled program buffers every iteration);
-        # predictions and the log-likelihood are then formed batched over the steps.
-        T = prep.T
-        c_all = to_batch_last(prep.c, 1, time=True) if prep.c is not None else torch.zeros_like(mean).unsqueeze(0)
-        loop = _scan_loop if torch.compiler.is_exporting() else _run_compiled_loop
-        fm_bl, fc_bl = loop(
-            to_batch_last(A_bf, 2, time=True),
-            to_batch_last(Q_bf, 2, time=True),
-            H_s.expand(T, *H_s.shape[1:]),
-            yw_bl,
-            c_all.expand(T, *c_all.shape[1:]),
-            _row_major(mean),
-            _row_major(P),
-        )
-        return complete_from_filtered(prep, from_batch_last(fm_bl, 1, nd), from_batch_last(fc_bl, 2, nd))
     means, covs, pmeans, pcovs, es, ss = [], [], [], [], [], []
     # Without autograd the covariances are written straight into (T, n, n, *cb) outputs
     # (no stack of T tensors at the end); with autograd they are stacked.
@@ -165,6 +149,32 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
     innovation = from_batch_last(innov, 1, nd)
     innovation_cov = from_batch_last(S, 2, nd)
     return assemble_result(prep, (mean_t, cov_t), (pmean_t, pcov_t), core, (innovation, innovation_cov))
+
+
+def structured_filtered(prep: PreparedInputs) -> tuple[Tensor, Tensor]:
+    """The filtered means (..., T, n) and covariances (..., T, n, n) of the loop run as torch's
+    structured scan (:func:`sequential_filter` with ``structured``): one step's graph, no
+    unrolling, no Python per step; the loop carries and returns the filtered moments alone
+    (each output of a step costs a compiled program buffers every iteration). Batch-last
+    layout as in the eager loop."""
+    H_s = to_batch_last(prep.Hw, 2, time=True)  # (T or 1, m, n, *cb or broadcastable)
+    cb = prep.A.shape[: prep.A.dim() - 3]
+    H_s = H_s.expand(*H_s.shape[:3], *torch.broadcast_shapes(H_s.shape[3:], cb)).contiguous()
+    mean = to_batch_last(prep.m0, 1)  # (n, *mb)
+    T = prep.T
+    c_all = to_batch_last(prep.c, 1, time=True) if prep.c is not None else torch.zeros_like(mean).unsqueeze(0)
+    loop = _scan_loop if torch.compiler.is_exporting() else _run_compiled_loop
+    fm_bl, fc_bl = loop(
+        to_batch_last(prep.A, 2, time=True),
+        to_batch_last(prep.Q, 2, time=True),
+        H_s.expand(T, *H_s.shape[1:]),
+        to_batch_last(prep.yw, 1, time=True),
+        c_all.expand(T, *c_all.shape[1:]),
+        _row_major(mean),
+        _row_major(to_batch_last(prep.P0, 2)),
+    )
+    nd = len(prep.mean_batch)
+    return from_batch_last(fm_bl, 1, nd), from_batch_last(fc_bl, 2, nd)
 
 
 def _joseph_step(

@@ -21,6 +21,7 @@ from torch import Tensor, nn
 from torch.export import ExportedProgram
 from torch.utils import _pytree as pytree
 
+from torchsde_lti.core.linalg import traced_for_eager_runtime
 from torchsde_lti.core.validation import shape_str
 from torchsde_lti.filters.online import KalmanState
 from torchsde_lti.nn._kalman_online import OnlineModel
@@ -28,6 +29,21 @@ from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
 
 __all__ = ["DeployedFilter", "OnlineStep", "PackagedProgram", "compile_package", "load_package"]
+
+#: What an exported program of :class:`DeployedFilter` or :class:`OnlineStep` is traced for:
+#: ``"inductor"`` (AOTInductor, :func:`compile_package`; torch.compile): small matrix products
+#: and factorisations unrolled into elementwise ops, which Inductor fuses, and a sequence filter's
+#: loop as one structured scan step; ``"eager"`` (the ``ExportedProgram`` run as it is, op by op):
+#: batched BLAS / LAPACK calls, and a sequence filter's algorithm chosen inside the program by its
+#: batch size as eager calls choose it (the associative scan for a few tracks, its levels one
+#: ``while_loop`` over any T; the loop beyond).
+RUNTIMES = ("inductor", "eager")
+
+
+def _check_runtime(runtime: str) -> str:
+    if runtime not in RUNTIMES:
+        raise ValueError(f"runtime must be one of {RUNTIMES}, got {runtime!r}")
+    return runtime
 
 
 class DeployedFilter(nn.Module):
@@ -39,16 +55,22 @@ class DeployedFilter(nn.Module):
     u (..., T, p) of a Kalman filter's model with B or D (as in :meth:`KalmanFilter.forward`;
     without them the inputs count as 0; an IMM takes none) -> ``(log_likelihood (...), mean
     (..., T, n))``, the filter's log-likelihood and filtered (for an IMM: combined) means.
+
+    ``runtime``: what ``torch.export`` traces the program for (:data:`RUNTIMES`):
+    ``"inductor"`` (default) to package it with :func:`compile_package`, ``"eager"`` to run the
+    ``ExportedProgram`` as it is. Eager calls of the module do not depend on it.
     """
 
-    def __init__(self, kf: KalmanFilter | IMMFilter) -> None:
+    def __init__(self, kf: KalmanFilter | IMMFilter, runtime: str = "inductor") -> None:
         super().__init__()
         if not isinstance(kf, (KalmanFilter, IMMFilter)):
             raise TypeError(f"kf must be a KalmanFilter or an IMMFilter, got {type(kf).__name__}")
         self.kf = kf
+        self.runtime = _check_runtime(runtime)
 
     def forward(self, y: Tensor, dt: Tensor, u: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        out = self.kf(y, dt, u)  # (an IMMFilter refuses a u)
+        with traced_for_eager_runtime(self.runtime == "eager"):
+            out = self.kf(y, dt, u)  # (an IMMFilter refuses a u)
         return out.log_likelihood, out.mean
 
 
@@ -65,14 +87,15 @@ class OnlineStep(nn.Module):
     R, D and the dt-independent part of its discretisation) are evaluated
     then, without gradients, and held as buffers, so an exported program runs the step alone
     and not the parametrisations. Build it after training (again after any change of ``kf``;
-    ``load_state_dict`` on the step re-evaluates it).
+    ``load_state_dict`` on the step re-evaluates it). ``runtime``: as in :class:`DeployedFilter`.
     """
 
-    def __init__(self, kf: KalmanFilter) -> None:
+    def __init__(self, kf: KalmanFilter, runtime: str = "inductor") -> None:
         super().__init__()
         if not isinstance(kf, KalmanFilter):
             raise TypeError(f"kf must be a KalmanFilter, got {type(kf).__name__}")
         self.kf = kf
+        self.runtime = _check_runtime(runtime)
         self._snapshot()
         self.register_load_state_dict_post_hook(lambda module, _incompatible: module._snapshot())
 
@@ -94,7 +117,8 @@ class OnlineStep(nn.Module):
         return pytree.tree_unflatten(leaves, self._model_spec)
 
     def forward(self, mean: Tensor, cov: Tensor, y: Tensor, dt: Tensor, u: Tensor | None = None) -> tuple[Tensor, ...]:
-        state, out = self.kf._step(self._model(), KalmanState(mean, cov), y, dt, u)
+        with traced_for_eager_runtime(self.runtime == "eager"):
+            state, out = self.kf._step(self._model(), KalmanState(mean, cov), y, dt, u)
         return state.mean, state.cov, out.innovation, out.innovation_cov, out.log_likelihood
 
 
