@@ -51,6 +51,29 @@ def test_chunked_scan_with_per_step_mask():
     np.testing.assert_allclose(out.log_likelihood.numpy(), seq.log_likelihood.numpy(), atol=1e-9)
 
 
+@pytest.mark.parametrize(
+    "shape, chunk",
+    [((2, 7, 1), 3), ((2, 7, 1), 2), ((7, 2), 2), ((2, 7), 2), ((2, 7, 2), 3), ((7, 1), 1)],
+)
+def test_chunked_scan_slices_every_mask_form(shape, chunk):
+    """Per-step masks (..., T) and (..., T, 1) and per-component ones (..., T, m) with fewer
+    dims than y, in chunks of any length (chunk == m, a last chunk of one step): the result of
+    the sequential filter on y with NaN where the mask is False."""
+    g = torch.Generator().manual_seed(3)
+    B, T, m, n = 2, 7, 2, 2
+    y = torch.randn(B, T, m, generator=g, dtype=F64)
+    A, Q = torch.eye(n, dtype=F64).expand(T, n, n), 0.1 * torch.eye(n, dtype=F64).expand(T, n, n)
+    H, R = torch.eye(m, n, dtype=F64), 0.5 * torch.eye(m, dtype=F64)
+    m0, P0 = torch.zeros(n, dtype=F64), torch.eye(n, dtype=F64)
+    mask = torch.rand(shape, generator=g) > 0.4
+    full = mask[..., None] if shape == (B, T) else mask
+    y_nan = torch.where(full.expand(B, T, m), y, float("nan"))
+    want = kalman_filter(y_nan, A, Q, H, R, m0, P0, algorithm="sequential")
+    out = kalman_filter(y, A, Q, H, R, m0, P0, mask=mask, algorithm="scan", chunk=chunk)
+    for name in ("mean", "cov", "step_log_likelihood", "log_likelihood"):
+        torch.testing.assert_close(getattr(out, name), getattr(want, name), rtol=0, atol=1e-9)
+
+
 def test_prefers_scan_rule():
     cpu = torch.device("cpu")
     assert prefers_scan(1, 200, cpu) and prefers_scan(16, 10_000, cpu)

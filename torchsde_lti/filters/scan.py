@@ -14,7 +14,14 @@ from torch import Tensor
 
 from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, sym
 from torchsde_lti.core.validation import broadcast_batch
-from torchsde_lti.filters.inputs import FilterInputs, PreparedInputs, complete_from_filtered, prepare_inputs
+from torchsde_lti.filters.inputs import (
+    FilterInputs,
+    PreparedInputs,
+    check_mask,
+    complete_from_filtered,
+    pad_dims,
+    prepare_inputs,
+)
 from torchsde_lti.filters.results import FilterResult
 
 __all__ = [
@@ -233,10 +240,13 @@ def chunked_scan(args: FilterInputs, chunk: int | None = None, validate_args: bo
         chunk = max(2, SCAN_MAX_ELEMENTS // max(1, batch.numel()))
     if chunk >= T:
         return scan_filter(prepare_inputs(args, validate_args))
-    m_dim = y.shape[-1]
-    mask_axis = -1
-    if mask is not None and mask.dim() >= 2 and mask.shape[-2] == T and mask.shape[-1] == m_dim:
-        mask_axis = -2
+    if mask is not None:
+        # as check_mask reads it, made (..., T, m) with at least y's dims: every chunk's slice
+        # then reads per component (a (..., T', 1) slice with T' = 1, or a (T', m) one with
+        # T' = m, would read as per step or be refused as ambiguous)
+        read = check_mask(mask, T, y.shape[-1], y.device, y.dim())
+        assert read is not None
+        mask = pad_dims(read.expand(*read.shape[:-1], y.shape[-1]), y.dim())
     parts: list[FilterResult] = []
     m, P = m0, P0
     for start in range(0, T, chunk):
@@ -252,7 +262,7 @@ def chunked_scan(args: FilterInputs, chunk: int | None = None, validate_args: bo
             P,
             sl(G, -3),
             sl(u, -2),
-            sl(mask, mask_axis),
+            sl(mask, -2),
             sl(D, -3),
         )
         out = scan_filter(prepare_inputs(piece, validate_args))
