@@ -487,6 +487,20 @@ def test_bad_input_raises(change, match):
         sequential_kf(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], G=t["G"], u=t["u"])
 
 
+@pytest.mark.parametrize("algorithm", ["sequential", "square_root", "scan", "auto"])
+@pytest.mark.parametrize("inf", [float("inf"), -float("inf")])
+def test_inf_in_y_raises(algorithm, inf):
+    """±Inf in y is refused as by imm_filter and the modules (NaN marks missing data)."""
+    t = _ok()
+    args = (t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"])
+    y = t["y"].clone()
+    y[1, 2, 0] = inf
+    with pytest.raises(ValueError, match=r"y contains Inf.*mark missing values with NaN or mask"):
+        kalman_filter(y, *args, algorithm=algorithm)
+    y[1, 2, 0] = float("nan")
+    assert torch.isfinite(kalman_filter(y, *args, algorithm=algorithm).log_likelihood).all()
+
+
 def test_bad_mask_raises():
     t = _ok()
     with pytest.raises(ValueError, match="mask"):

@@ -99,6 +99,12 @@ def check_finite(x: Tensor, name: str) -> None:
         raise ValueError(f"{name} contains NaN or Inf (shape {shape_str(x)})")
 
 
+def check_no_inf(x: Tensor, name: str) -> None:
+    """ValueError if ``x`` holds ±Inf (NaN allowed: a missing observation)."""
+    if not tracing() and bool(torch.isinf(x).any()):
+        raise ValueError(f"{name} contains Inf (shape {shape_str(x)}); mark missing values with NaN or mask")
+
+
 def check_nonnegative(x: Tensor, name: str) -> None:
     """ValueError if ``x`` holds NaN, ±Inf or a negative value."""
     check_finite(x, name)

@@ -47,6 +47,7 @@ from torchsde_lti.core.validation import (
     broadcast_batch,
     check_finite,
     check_matrix,
+    check_no_inf,
     check_symmetric_psd,
     checks_values,
     shape_str,
@@ -260,8 +261,7 @@ def _check_inputs(
     named += [("mode_prob0", mode_prob0.shape[:-1]), *([] if mask is None else [("mask", mask.shape[:-2])])]
     broadcast_batch(named)
     if checks_values(validate_args):
-        if bool(torch.isinf(y).any()):
-            raise ValueError(f"y contains Inf (shape {shape_str(y)}); mark missing values with NaN or mask")
+        check_no_inf(y, "y")
         for name, x in (("A", A), ("H", H), ("Pi", Pi), ("m0", m0), ("mode_prob0", mode_prob0)):
             check_finite(x, name)
         for name, x in (("Q", Q), ("R", R), ("P0", P0)):

@@ -32,6 +32,7 @@ from torchsde_lti.core.validation import (
     broadcast_batch,
     check_finite,
     check_matrix,
+    check_no_inf,
     check_symmetric_psd,
     checks_values,
     shape_str,
@@ -197,6 +198,7 @@ def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked
     broadcast_batch([("y", y.shape[:-2]), *per_step, *other, *([] if c is None else [("u", c.shape[:-2])])])
 
     if values:
+        check_no_inf(y, "y")
         check_finite(A, "A")
         check_finite(H, "H")
         check_finite(m0, "m0")

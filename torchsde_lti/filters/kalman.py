@@ -108,9 +108,9 @@ def kalman_filter(
             series) or ``"auto"`` (:func:`choose_algorithm`).
         chunk: with the scan, time steps per scan chunk (None: the largest chunk with
             batch · chunk ≤ :data:`~torchsde_lti.filters.scan.SCAN_MAX_ELEMENTS`).
-        validate_args: check the values (finite A, H, m0, u, D; Q, P0 symmetric PSD; R
-            positive definite); shapes are always checked. Modules that assemble already
-            valid matrices pass False.
+        validate_args: check the values (y without Inf; finite A, H, m0, u, D; Q, P0
+            symmetric PSD; R positive definite); shapes are always checked. Modules that
+            assemble already valid matrices pass False.
 
     Returns:
         :class:`FilterResult`; every output broadcasts to the full batch ``...``.

@@ -15,6 +15,7 @@ from torchsde_lti.core.validation import (
     as_float_tensor,
     broadcast_batch,
     check_finite,
+    check_no_inf,
     check_nonnegative,
     host_values,
     shape_str,
@@ -82,8 +83,7 @@ def check_values(finite: Named = (), nonnegative: Named = (), no_inf: Named = ()
     for name, value in nonneg:
         check_nonnegative(value, name)
     for name, value in noinf:
-        if bool(torch.isinf(value).any()):
-            raise ValueError(f"{name} contains Inf (shape {shape_str(value)}); mark missing values with NaN or mask")
+        check_no_inf(value, name)
 
 
 def _host_values_valid(finite: Present, nonnegative: Present, no_inf: Present) -> bool:
