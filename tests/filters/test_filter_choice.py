@@ -74,6 +74,15 @@ def test_chunked_scan_slices_every_mask_form(shape, chunk):
         torch.testing.assert_close(getattr(out, name), getattr(want, name), rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("chunk", [0, -1, 2.0, True])
+def test_chunked_scan_refuses_a_bad_chunk(chunk):
+    """chunk must be a positive int or None: a ValueError naming it (0, -1 and 2.0 raised
+    range()'s or torch.cat's errors; True ran)."""
+    t = to_torch(random_problem(np.random.default_rng(4), batch=(2,), T=5))
+    with pytest.raises(ValueError, match=rf"chunk must be a positive integer or None, got {chunk!r}"):
+        kalman_filter(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"], algorithm="scan", chunk=chunk)
+
+
 def test_prefers_scan_rule():
     cpu = torch.device("cpu")
     assert prefers_scan(1, 200, cpu) and prefers_scan(16, 10_000, cpu)

@@ -106,8 +106,8 @@ def kalman_filter(
             than 1/eps; slower), ``"scan"`` (associative scan, Särkkä & García-Fernández
             2021: O(log T) depth, wins when per-step overhead dominates: few tracks, long
             series) or ``"auto"`` (:func:`choose_algorithm`).
-        chunk: with the scan, time steps per scan chunk (None: the largest chunk with
-            batch · chunk ≤ :data:`~torchsde_lti.filters.scan.SCAN_MAX_ELEMENTS`).
+        chunk: with the scan, time steps per scan chunk, a positive int (None: the largest
+            chunk with batch · chunk ≤ :data:`~torchsde_lti.filters.scan.SCAN_MAX_ELEMENTS`).
         validate_args: check the values (y without Inf; finite A, H, m0, u, D; Q, P0
             symmetric PSD; R positive definite); shapes are always checked. Modules that
             assemble already valid matrices pass False.

@@ -231,8 +231,11 @@ def chunked_scan(args: FilterInputs, chunk: int | None = None, validate_args: bo
     the previous chunk's last filtered state (exact: the filter is Markov).
 
     Memory O(batch · chunk) instead of O(batch · T); depth (T / chunk) · O(log chunk).
-    ``chunk=None``: the largest chunk with batch · chunk ≤ :data:`SCAN_MAX_ELEMENTS`.
+    ``chunk``: a positive int, or None for the largest chunk with batch · chunk ≤
+    :data:`SCAN_MAX_ELEMENTS`; ValueError otherwise.
     """
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
+        raise ValueError(f"chunk must be a positive integer or None, got {chunk!r}")
     y, A, Q, H, R, m0, P0, G, u, mask, D = args
     T = y.shape[-2]
     batch = broadcast_batch([("y", y.shape[:-2]), ("A", A.shape[:-3] if A.dim() > 3 else ())])
