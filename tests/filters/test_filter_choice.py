@@ -186,3 +186,22 @@ def test_auto_runs_the_loop_in_float32_where_the_scan_loses_a_long_gap() -> None
         with torch.no_grad():
             lls[dtype] = float(kf(torch.tensor(y, dtype=dtype), torch.full((1, T), 0.5, dtype=dtype)).log_likelihood)
     assert abs(lls[torch.float32] - lls[torch.float64]) < 1e-3
+
+
+@pytest.mark.parametrize("algorithm", ["sequential", "square_root", "scan"])
+def test_a_per_step_mask_of_one_step_keeps_the_batch(algorithm):
+    """T = 1, m = 2: a per-step mask written (B, T, 1) = (3, 1, 1), y's number of dims, is read
+    as (..., T, 1) (it was read as (..., T) with a batch (3, 1): results (3, 3)); the result is
+    that of y with NaN where the mask is False."""
+    g = torch.Generator().manual_seed(5)
+    B, m, n = 3, 2, 2
+    y = torch.randn(B, 1, m, generator=g, dtype=F64)
+    A, Q = torch.eye(n, dtype=F64), 0.1 * torch.eye(n, dtype=F64)
+    H, R = torch.eye(m, n, dtype=F64), 0.5 * torch.eye(m, dtype=F64)
+    m0, P0 = torch.zeros(n, dtype=F64), torch.eye(n, dtype=F64)
+    mask = torch.tensor([True, False, True]).reshape(B, 1, 1)
+    want = kalman_filter(torch.where(mask, y, float("nan")), A, Q, H, R, m0, P0, algorithm="sequential")
+    out = kalman_filter(y, A, Q, H, R, m0, P0, mask=mask, algorithm=algorithm)
+    assert out.log_likelihood.shape == (B,)
+    torch.testing.assert_close(out.log_likelihood, want.log_likelihood, rtol=0, atol=1e-12)
+    torch.testing.assert_close(out.mean, want.mean, rtol=0, atol=1e-12)

@@ -102,13 +102,16 @@ def check_mask(mask: Tensor | None, T: int, m: int, device: torch.device, y_ndim
     ValueError naming its shape or dtype otherwise. None stays None. ``y_ndim``: the number of
     dimensions of y (..., T, m). When T == m a mask (..., T, T) fits both forms: it is read per
     component if it has y's number of dimensions (or more), and refused otherwise (write a
-    per-step mask as (..., T, 1), a per-component one with y's leading dimensions)."""
+    per-step mask as (..., T, 1), a per-component one with y's leading dimensions); a mask
+    (..., T, 1) with y's number of dimensions is read as such also when T = 1."""
     if mask is None:
         return None
     mask = torch.as_tensor(mask, device=device)
     if mask.dtype != torch.bool:
         raise ValueError(f"mask must be a bool tensor, got dtype {mask.dtype}")
-    per_component = mask.dim() >= 2 and mask.shape[-2] == T and mask.shape[-1] == m
+    # (..., T, 1) with y's dims is already in form (with T = 1 it also reads as (..., T))
+    in_form = mask.dim() >= max(2, y_ndim) and mask.shape[-2] == T and mask.shape[-1] == 1
+    per_component = mask.dim() >= 2 and mask.shape[-2] == T and (mask.shape[-1] == m or in_form)
     per_step = mask.dim() >= 1 and mask.shape[-1] == T
     if per_component and per_step and mask.dim() < y_ndim:
         raise ValueError(
