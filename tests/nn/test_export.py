@@ -432,17 +432,24 @@ def test_deployed_filter_and_online_step_take_the_inputs_u():
         torch.testing.assert_close(mean, want.mean[:, -1], rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_exported_for_the_eager_runtime_any_batch_and_time(dtype):
+@pytest.mark.parametrize(
+    "dtype, model", [(torch.float64, "cv"), (torch.float32, "cv"), (torch.float64, "integrated_ou")]
+)
+def test_exported_for_the_eager_runtime_any_batch_and_time(dtype, model):
     """DeployedFilter(kf, runtime="eager") exported ONCE with a dynamic batch and T: the program
     picks the associative scan (its levels one while_loop, any T) for a few tracks and the loop
     beyond (float32: the loop always), inside the program; at every shape it equals the eager
-    filter (missing components included), T = 1 and a long T included."""
+    filter (missing components included), T = 1 and a long T included. Integrated OU: an F that
+    is not nilpotent (the traced doubling in the program)."""
     from torch.export import Dim
 
     torch._dynamo.reset()
+    if model == "cv":
+        sde = tl.models.constant_velocity(dim=2, q=0.8, dtype=dtype)
+    else:
+        sde = tl.models.integrated_ou(k=0.5, q=1.0, dim=2, dtype=dtype)
     kf = tl.KalmanFilter(
-        tl.models.constant_velocity(dim=2, q=0.8, dtype=dtype),
+        sde,
         torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=dtype),
         0.3 * torch.eye(2, dtype=dtype),
         P0=50 * torch.eye(4, dtype=dtype),

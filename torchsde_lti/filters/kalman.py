@@ -170,10 +170,11 @@ def _chosen_in_program(prep: PreparedInputs) -> FilterResult:
         filtered = scan_filtered(prep) if scan else structured_filtered(prep)
     else:  # (the branches take the tensors as operands and read every size from them)
         slots = [i for i, x in enumerate(prep) if isinstance(x, Tensor)]
+        rest = [None if isinstance(x, Tensor) else x for x in prep]  # (no tensor reaches a branch but by operand)
 
         def branch(run: Callable[[PreparedInputs], tuple[Tensor, Tensor]]) -> Callable[..., tuple[Tensor, Tensor]]:
             def from_operands(*tensors: Tensor) -> tuple[Tensor, Tensor]:
-                fields: list[object] = list(prep)
+                fields: list[object] = list(rest)
                 for i, t in zip(slots, tensors):
                     fields[i] = t
                 y0 = tensors[slots.index(PreparedInputs._fields.index("y0"))]
@@ -183,7 +184,10 @@ def _chosen_in_program(prep: PreparedInputs) -> FilterResult:
 
             return from_operands
 
-        filtered = torch.cond(scan, branch(scan_filtered), branch(structured_filtered), tuple(prep[i] for i in slots))
+        # (operands are copied: a view among them can fail torch's transfer of its base's symbolic
+        # sizes into the branches' trace, and operands that share memory are refused)
+        operands = tuple(prep[i].clone() for i in slots)
+        filtered = torch.cond(scan, branch(scan_filtered), branch(structured_filtered), operands)
     return complete_from_filtered(prep, *filtered)
 
 

@@ -167,7 +167,8 @@ def scan_filtered(prep: PreparedInputs) -> tuple[Tensor, Tensor]:
 
     Hw, yw = prep.Hw, prep.yw
     HQ = Hw @ Qe  # (.., T, m, n)
-    S = sym(HQ @ Hw.mT) + torch.eye(Hw.shape[-2], dtype=Hw.dtype, device=Hw.device)
+    # (transpose, not .mT: inside torch.cond's trace Hw.mT became an input aliasing Hw)
+    S = sym(HQ @ Hw.transpose(-1, -2)) + torch.eye(Hw.shape[-2], dtype=Hw.dtype, device=Hw.device)
     LS = cholesky(S)
     Kt = cho_solve(LS, HQ)  # Kᵀ = S⁻¹ H' Q  (m, n)
     K = Kt.mT
