@@ -638,3 +638,28 @@ def test_exported_imm_saves_loads_and_deploys() -> None:
     torch.testing.assert_close(mean, ref.mean, rtol=0, atol=0)
     with pytest.raises(ValueError, match="IMMFilter has no inputs"):
         tl.DeployedFilter(imm)(y, dt, torch.zeros(3, 12, 1, dtype=F64))
+
+
+@pytest.mark.parametrize("B", [10, 200])  # 200: beyond SMALL_BATCH, the scalar updates
+def test_step_with_a_covariance_batch_of_fewer_dims_than_the_tracks(B):
+    """kf.step with a state whose covariance is shared (cov (n, n), mean (B, n)) and with reports
+    of an extra batch dim (y (2, B, m)): each equals the step of the state with its covariance
+    expanded, stepped slice by slice (beyond 128 tracks the first raised and the second gave
+    means off by up to 1.8)."""
+    kf = _kf()
+    g = torch.Generator().manual_seed(B)
+    mean = torch.randn(B, 4, generator=g, dtype=F64)
+    cov = torch.eye(4, dtype=F64) + 0.1
+    y = torch.randn(2, B, 2, generator=g, dtype=F64)
+    with torch.no_grad():
+        shared, shared_out = kf.step(tl.KalmanState(mean, cov), y[0], 0.5)
+        full, full_out = kf.step(tl.KalmanState(mean, cov.expand(B, 4, 4).clone()), y[0], 0.5)
+        torch.testing.assert_close(shared.mean, full.mean, rtol=0, atol=1e-12)
+        torch.testing.assert_close(shared.cov.expand(B, 4, 4), full.cov, rtol=0, atol=1e-12)
+        torch.testing.assert_close(shared_out.log_likelihood, full_out.log_likelihood, rtol=0, atol=1e-12)
+        both, both_out = kf.step(tl.KalmanState(mean, cov.expand(B, 4, 4).clone()), y, 0.5)
+        for i in range(2):
+            one, one_out = kf.step(tl.KalmanState(mean, cov.expand(B, 4, 4).clone()), y[i], 0.5)
+            torch.testing.assert_close(both.mean[i], one.mean, rtol=0, atol=1e-12)
+            torch.testing.assert_close(both.cov.expand(2, B, 4, 4)[i], one.cov, rtol=0, atol=1e-12)
+            torch.testing.assert_close(both_out.log_likelihood[i], one_out.log_likelihood, rtol=0, atol=1e-12)

@@ -443,6 +443,7 @@ def _scalar_step(
         Hw, yw, log_det = whiten(*mask_observation_model(H, R, obs), y0)
         yw_bl = to_batch_last(yw.expand(*mb, m), 1)
     cb = broadcast_shapes(state.cov.shape[:-2], A.shape[:-2], Q.shape[:-2], Hw.shape[:-2])
+    cb = torch.Size([1] * (len(mb) - len(cb)) + list(cb))  # (as many dims as mb: batch-last, they align)
     # batch-last layout (event dims first, batch contiguous), as in the sequence loop
     Ab, Qb, Pb, mean_b, cbl = _batch_last(state, A, Q, c, cb, mb)
     h_rows = to_batch_last(Hw.expand(*cb, m, n), 2).unbind(0)
