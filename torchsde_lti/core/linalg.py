@@ -11,9 +11,6 @@ filter loop and of the doubling (:func:`to_batch_last`, :func:`from_batch_last`,
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
-
 import torch
 from torch import Tensor
 from torch.autograd import forward_ad
@@ -26,8 +23,6 @@ __all__ = [
     "bl_sym_into",
     "cho_solve",
     "cholesky",
-    "compiler_tracing",
-    "eager_runtime_tracing",
     "from_batch_last",
     "fused_matmul",
     "matvec",
@@ -37,38 +32,7 @@ __all__ = [
     "solve_upper_t",
     "sym",
     "to_batch_last",
-    "traced_for_eager_runtime",
 ]
-
-#: Whether a trace in progress is for a program that runs op by op (set by
-#: :func:`traced_for_eager_runtime`; a plain flag, which torch.compile reads without a graph break).
-_EAGER_RUNTIME = [False]
-
-
-@contextmanager
-def traced_for_eager_runtime(on: bool = True) -> Iterator[None]:
-    """Trace (torch.export) a program that runs as it is, op by op (``ExportedProgram.module()``),
-    not through Inductor: small products stay batched BLAS / LAPACK calls, and a sequence filter
-    takes the algorithm that needs the fewest of them (:func:`eager_runtime_tracing`)."""
-    before = _EAGER_RUNTIME[0]
-    _EAGER_RUNTIME[0] = on
-    try:
-        yield
-    finally:
-        _EAGER_RUNTIME[0] = before
-
-
-def compiler_tracing() -> bool:
-    """Whether torch.compile or torch.export traces the call for torch's compilers (Inductor,
-    AOTInductor), which fuse small products written as elementwise ops (:func:`fused_matmul`):
-    tracing, and not inside :func:`traced_for_eager_runtime`."""
-    return (torch.compiler.is_compiling() or torch.compiler.is_exporting()) and not _EAGER_RUNTIME[0]
-
-
-def eager_runtime_tracing() -> bool:
-    """Whether torch.export traces the call for a program that runs op by op
-    (:func:`traced_for_eager_runtime`)."""
-    return _EAGER_RUNTIME[0] and (torch.compiler.is_compiling() or torch.compiler.is_exporting())
 
 
 def sym(P: Tensor) -> Tensor:

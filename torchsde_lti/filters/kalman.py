@@ -20,11 +20,11 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import eager_runtime_tracing
 from torchsde_lti.core.threads import with_threads
 from torchsde_lti.core.validation import common_float_dtype
 from torchsde_lti.filters.inputs import FilterInputs, PreparedInputs, complete_from_filtered, prepare_inputs
 from torchsde_lti.filters.results import FilterResult
+from torchsde_lti.filters.runtime import eager_runtime_tracing
 from torchsde_lti.filters.scan import SCAN_MAX_BATCH_CPU, chunked_scan, prefers_scan, scan_filtered
 from torchsde_lti.filters.sequential import sequential_filter, structured_filtered
 from torchsde_lti.filters.square_root import square_root_filter

@@ -33,16 +33,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import (
-    cholesky,
-    compiler_tracing,
-    fused_matmul,
-    matvec,
-    solve_lower,
-    solve_upper_t,
-    sym,
-    to_batch_last,
-)
+from torchsde_lti.core.linalg import cholesky, fused_matmul, matvec, solve_lower, solve_upper_t, sym, to_batch_last
 from torchsde_lti.core.validation import broadcast_shapes, tracing
 from torchsde_lti.filters.imm import combine, imm_cycle, imm_predict
 from torchsde_lti.filters.inputs import (
@@ -51,6 +42,7 @@ from torchsde_lti.filters.inputs import (
     whiten,
 )
 from torchsde_lti.filters.results import serializable
+from torchsde_lti.filters.runtime import compiler_tracing
 from torchsde_lti.filters.sequential import _joseph_step
 
 __all__ = [

@@ -21,9 +21,9 @@ from torch import Tensor, nn
 from torch.export import ExportedProgram
 from torch.utils import _pytree as pytree
 
-from torchsde_lti.core.linalg import traced_for_eager_runtime
 from torchsde_lti.core.validation import shape_str
 from torchsde_lti.filters.online import KalmanState
+from torchsde_lti.filters.runtime import traced_for_eager_runtime
 from torchsde_lti.nn._kalman_online import OnlineModel
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
