@@ -504,6 +504,40 @@ def test_kalman_step_of_many_tracks_in_chunks_equals_one_pass(dtype, monkeypatch
                 torch.testing.assert_close(got, want, rtol=0, atol=tol, msg=name)
 
 
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_kalman_step_shared_observation_model_equals_masked_path(dtype, monkeypatch):
+    """The scalar updates of one (H, R) for every track with every report observed (the
+    shared rows' matrix products) equal the general masked path (an all-True mask): values
+    and gradients, per-track and shared A, Q, with and without an input term."""
+    online = tl.filters.online
+    monkeypatch.setattr(online, "SMALL_BATCH", 0)
+    g = torch.Generator().manual_seed(12)
+    B, n, m = 9, 4, 2
+
+    def spd(*shape: int) -> torch.Tensor:
+        X = torch.randn(*shape, generator=g, dtype=F64)
+        return (X @ X.mT / shape[-1] + 0.5 * torch.eye(shape[-1], dtype=F64)).to(dtype)
+
+    mean = torch.randn(B, n, generator=g, dtype=F64).to(dtype)
+    cov, y = spd(B, n, n), torch.randn(B, m, generator=g, dtype=F64).to(dtype)
+    H, R = torch.randn(m, n, generator=g, dtype=F64).to(dtype), spd(m, m)
+    c = torch.randn(B, n, generator=g, dtype=F64).to(dtype)
+    A_cases = {"per track": (torch.randn(B, n, n, generator=g, dtype=F64).to(dtype), spd(B, n, n))}
+    A_cases["shared"] = (torch.randn(n, n, generator=g, dtype=F64).to(dtype), spd(n, n))
+    tol = 1e-12 if dtype == F64 else 1e-5
+    for name, (A, Q) in A_cases.items():
+        for extra in ({}, {"c": c}):
+            runs = []
+            for mask in (None, torch.ones(B, dtype=torch.bool)):
+                A_ = A.clone().requires_grad_(True)
+                state, out = online.kalman_step(tl.KalmanState(mean, cov), y, A_, Q, H, R, mask=mask, **extra)
+                (grad,) = torch.autograd.grad(out.log_likelihood.sum() + state.cov.sum() + out.innovation_cov.sum(), A_)
+                runs.append((*state, *out, grad))
+            for got, want in zip(runs[0], runs[1]):
+                assert got.shape == want.shape and got.dtype == want.dtype, name
+                torch.testing.assert_close(got, want, rtol=0, atol=tol, msg=name)
+
+
 def test_imm_step_of_many_tracks_in_chunks_equals_one_pass(monkeypatch):
     """The IMM cycle chunked along the leading batch dimension (forced small): the same values
     and gradients as one pass, with a second batch dimension and missing reports."""

@@ -163,14 +163,15 @@ def from_batch_last(x: Tensor, event_ndim: int, batch_ndim: int) -> Tensor:
 
 def _fma_matmul(a: Tensor, b: Tensor, c: Tensor | None, alpha: float = 1.0) -> Tensor:
     """c + α a b for a: (r, k, N), b: (k, s, N), c: (r, s, N), as k fused multiply-adds."""
+    cols, rows = a.split(1, 1), b.split(1, 0)  # a[:, j:j+1] (r, 1, N), b[j:j+1] (1, s, N)
     if c is None:
-        out = a[:, 0:1] * b[0:1]
+        out = cols[0] * rows[0]
         if alpha != 1.0:
             out.mul_(alpha)
     else:
-        out = torch.addcmul(c, a[:, 0:1], b[0:1], value=alpha)
-    for j in range(1, a.shape[1]):
-        out.addcmul_(a[:, j : j + 1], b[j : j + 1], value=alpha)
+        out = torch.addcmul(c, cols[0], rows[0], value=alpha)
+    for col, row in zip(cols[1:], rows[1:]):
+        out.addcmul_(col, row, value=alpha)
     return out
 
 
