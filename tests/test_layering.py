@@ -108,3 +108,11 @@ def test_layer_order_is_the_packages_and_true_in_the_code() -> None:
                 if target in order and order[target] > order[here]:
                     offences.append(f"{path.relative_to(PACKAGE)} ({here}) imports torchsde_lti.{target}")
     assert not offences, offences
+
+
+def test_no_module_over_600_lines() -> None:
+    """One job per module: none of the package's modules is over 600 lines."""
+    long = {
+        str(p.relative_to(PACKAGE)): n for p in PACKAGE.rglob("*.py") if (n := len(p.read_text().splitlines())) > 600
+    }
+    assert not long, long

@@ -25,17 +25,9 @@ Shapes and missing-data rules: :mod:`torchsde_lti.filters.inputs`.
 """
 
 from torchsde_lti.filters.imm import IMMResult, imm_filter
+from torchsde_lti.filters.imm_online import IMMState, IMMStep, imm_predict_state, imm_step
 from torchsde_lti.filters.kalman import ALGORITHMS, choose_algorithm, kalman_filter
-from torchsde_lti.filters.online import (
-    IMMState,
-    IMMStep,
-    KalmanState,
-    KalmanStep,
-    imm_predict_state,
-    imm_step,
-    kalman_predict,
-    kalman_step,
-)
+from torchsde_lti.filters.online import KalmanState, KalmanStep, kalman_predict, kalman_step
 from torchsde_lti.filters.results import FilterResult, SmootherResult
 from torchsde_lti.filters.scan import associative_scan, prefers_scan
 from torchsde_lti.filters.smoothers import SMOOTHER_ALGORITHMS, rts_smoother

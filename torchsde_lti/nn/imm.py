@@ -57,8 +57,8 @@ from torchsde_lti.filters.imm import (
     imm_filter,
     imm_predict,
 )
+from torchsde_lti.filters.imm_online import IMMState, IMMStep, imm_predict_state, imm_step
 from torchsde_lti.filters.kalman import check_algorithm
-from torchsde_lti.filters.online import IMMState, IMMStep, imm_predict_state, imm_step
 from torchsde_lti.filters.results import serializable
 from torchsde_lti.nn._online import Series, check_batches, evaluated, tracks_shape
 from torchsde_lti.nn._register import register_tensor
