@@ -649,24 +649,31 @@ def test_float32_step_stays_psd_where_the_prior_dwarfs_r() -> None:
 
 
 def test_exported_imm_saves_loads_and_deploys() -> None:
-    """torch.export of an IMMFilter (IMMResult out) with a dynamic batch saves and loads, and
-    DeployedFilter takes an IMMFilter (it raised TypeError): both equal eager."""
+    """torch.export of an IMMFilter (IMMResult out) with a dynamic batch AND T (the cycle as
+    torch's structured scan: T was fixed to the example's) saves and loads, runs at three
+    (B, T) shapes, T = 1 included, and DeployedFilter takes an IMMFilter (it raised
+    TypeError): all equal eager."""
     import io
 
     from torch.export import Dim
 
+    torch._dynamo.reset()  # (the scan's body is traced by dynamo: no frames cached by earlier exports)
     imm = _imm()
     y, dt, _ = _series(3, 12, seed=2)
-    B = Dim("B", max=10_000)
+    B, T = Dim("B", max=10_000), Dim("T", max=10_000)
     with torch.no_grad():
-        ref = imm(y, dt)
-        ep = torch.export.export(imm, (y, dt), dynamic_shapes={"y": {0: B}, "dt": {0: B}})
+        ep = torch.export.export(imm, (y, dt), dynamic_shapes={"y": {0: B, 1: T}, "dt": {0: B, 1: T}})
         buffer = io.BytesIO()
         torch.export.save(ep, buffer)
         buffer.seek(0)
-        out = torch.export.load(buffer).module()(y, dt)
-        torch.testing.assert_close(out.log_likelihood, ref.log_likelihood, rtol=0, atol=1e-10)
-        torch.testing.assert_close(out.mean, ref.mean, rtol=0, atol=1e-10)
+        program = torch.export.load(buffer).module()
+        for b, t, seed in ((3, 12, 2), (1, 1, 3), (5, 40, 4)):
+            y, dt, _ = _series(b, t, seed=seed)
+            ref = imm(y, dt)
+            out = program(y, dt)
+            torch.testing.assert_close(out.log_likelihood, ref.log_likelihood, rtol=0, atol=1e-10)
+            torch.testing.assert_close(out.mean, ref.mean, rtol=0, atol=1e-10)
+            torch.testing.assert_close(out.mode_probabilities, ref.mode_probabilities, rtol=0, atol=1e-12)
         ll, mean = tl.DeployedFilter(imm)(y, dt)
     torch.testing.assert_close(ll, ref.log_likelihood, rtol=0, atol=0)
     torch.testing.assert_close(mean, ref.mean, rtol=0, atol=0)

@@ -346,6 +346,13 @@ def _imm_steps(
     mean = m0 if m0.dim() >= 2 else m0.unsqueeze(-2)
     cov = P0
 
+    # the T axis goes before each output's event dims (vector over modes: -2, (M, n): -3, ...)
+    event_ndim = {"c": 1, "mu": 1, "mm": 2, "mc": 3, "pm": 2, "pc": 3, "e": 2, "S": 3, "ll": 0}
+    if torch.compiler.is_exporting():  # one step traced, any T: torch's structured scan
+        stk = _imm_scan(Hm, Rm, A4, Q4, Pi3, y0, n_obs, prob, mean, cov)
+        stk = {k: v.movedim(0, -1 - event_ndim[k]) for k, v in stk.items()}
+        return _imm_result(stk, obs, T, M, n, m)
+
     def at(x: Tensor, k: int, axis: int) -> Tensor:
         return x.select(axis, 0 if x.shape[axis] == 1 else k)
 
@@ -373,9 +380,70 @@ def _imm_steps(
         outs["e"].append(e)
         outs["S"].append(S)
         outs["ll"].append(step)
-    # the T axis goes before each output's event dims (vector over modes: -2, (M, n): -3, ...)
-    event_ndim = {"c": 1, "mu": 1, "mm": 2, "mc": 3, "pm": 2, "pc": 3, "e": 2, "S": 3, "ll": 0}
     stk = {k: torch.stack(torch.broadcast_tensors(*v), dim=-1 - event_ndim[k]) for k, v in outs.items()}
+    return _imm_result(stk, obs, T, M, n, m)
+
+
+def _imm_scan(
+    Hm: Tensor,
+    Rm: Tensor,
+    A4: Tensor,
+    Q4: Tensor,
+    Pi3: Tensor,
+    y0: Tensor,
+    n_obs: Tensor,
+    prob: Tensor,
+    mean: Tensor,
+    cov: Tensor,
+) -> dict[str, Tensor]:
+    """:func:`_imm_steps`' loop as torch's structured scan (``torch._higher_order_ops.scan``):
+    one cycle traced, T not unrolled (an exported program takes any T). Per-step arrays
+    (..., T or 1, ...) are broadcast to the full batch and T and scanned along a leading T; the
+    outputs keep T leading: c, mu (T, ..., M), mm, pm (T, ..., M, n), mc, pc (T, ..., M, n, n),
+    e (T, ..., M, m), S (T, ..., M, m, m), ll (T, ...)."""
+    from torch._higher_order_ops import scan
+
+    T, m, M, n = y0.shape[-2], y0.shape[-1], prob.shape[-1], A4.shape[-1]
+    batch = torch.broadcast_shapes(
+        Hm.shape[:-4], Rm.shape[:-4], A4.shape[:-4], Q4.shape[:-4], Pi3.shape[:-3], y0.shape[:-2], n_obs.shape[:-1],
+        prob.shape[:-1], mean.shape[:-2], cov.shape[:-3],
+    )  # fmt: skip
+
+    def steps(x: Tensor, *event: int) -> Tensor:  # (..., T or 1, *event) -> (T, *batch, *event)
+        return x.expand(*batch, T, *event).movedim(len(batch), 0)
+
+    xs = (
+        steps(Hm, M, m, n), steps(Rm, M, m, m), steps(A4, M, n, n), steps(Q4, M, n, n), steps(Pi3, M, M),
+        steps(y0, m), n_obs.expand(*batch, T).movedim(-1, 0),
+    )  # fmt: skip
+    carry = (prob.expand(*batch, M).clone(), mean.expand(*batch, M, n).clone(), cov.expand(*batch, M, n, n).clone())
+
+    def body(
+        state: tuple[Tensor, Tensor, Tensor], x: tuple[Tensor, ...]
+    ) -> tuple[tuple[Tensor, ...], tuple[Tensor, ...]]:
+        Hk, Rk, Ak, Qk, Pik, yk, nk = x
+        b = state[0].shape[:-1]  # (sizes from the step's tensors: no closure over symbolic sizes)
+        cyc = imm_cycle(*state, Pik, Ak, Qk, Hk, Rk, yk, nk)
+        new = (cyc.mode_prob, cyc.mode_mean, cyc.mode_cov)
+        out = (cyc.pred_mode_prob, cyc.mode_pred_mean, cyc.mode_pred_cov, cyc.mode_innovation)
+        out += (cyc.mode_innovation_cov, cyc.log_likelihood)
+        # (outputs must not alias the carry)
+        return new, (
+            *(t.clone() for t in new),
+            *(t.expand(*b, *t.shape[t.dim() - _EVENT[i] :]) for i, t in enumerate(out)),
+        )
+
+    _, outs = scan(body, carry, xs)
+    mu, mm, mc, c, pm, pc, e, S, ll = outs
+    return {"c": c, "mu": mu, "mm": mm, "mc": mc, "pm": pm, "pc": pc, "e": e, "S": S, "ll": ll}
+
+
+#: Event dims of the per-step outputs c, m⁻, P⁻, e, S, log-likelihood of a cycle.
+_EVENT = (1, 2, 3, 2, 3, 0)
+
+
+def _imm_result(stk: dict[str, Tensor], obs: Tensor, T: int, M: int, n: int, m: int) -> IMMResult:
+    """The :class:`IMMResult` of the per-step outputs ``stk`` (T axis before each event dims)."""
     batch = torch.broadcast_shapes(
         stk["mm"].shape[:-3], stk["ll"].shape[:-1], stk["mc"].shape[:-4], stk["mu"].shape[:-2], obs.shape[:-2]
     )
