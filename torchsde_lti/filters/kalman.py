@@ -51,11 +51,11 @@ def choose_algorithm(
     then runs as torch's structured scan (one step compiled: seconds to compile, and an
     exported program takes any T; the associative scan traced whole takes minutes and fixes
     T); exported for a program run op by op
-    (:func:`~torchsde_lti.core.linalg.traced_for_eager_runtime`) ``"auto"`` stays, and the
-    program picks the scan or the loop by its batch size as eager calls do; otherwise the associative scan where
-    :func:`~torchsde_lti.filters.prefers_scan` says so (few tracks on CPU, any batch on
-    other devices; float64 only), else the sequential loop. ``batch_size``: tracks in the
-    call; ``dtype``: the call's floating dtype.
+    (:func:`~torchsde_lti.filters.runtime.traced_for_eager_runtime`) ``"auto"`` stays, and
+    the program picks the scan or the loop by its batch size as eager calls do; otherwise the
+    associative scan where :func:`~torchsde_lti.filters.prefers_scan` says so (few tracks on
+    CPU, any batch on other devices; float64 only), else the sequential loop. ``batch_size``:
+    tracks in the call; ``dtype``: the call's floating dtype.
     """
     check_algorithm(algorithm)
     if algorithm != "auto":
