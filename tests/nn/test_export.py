@@ -467,8 +467,8 @@ def test_exported_for_the_eager_runtime_any_batch_and_time(dtype, model):
         assert "cond" in ops  # the choice by the batch size is inside the program
     prog = ep.module()
     atol = 1e-9 if dtype == torch.float64 else 2e-2
-    for b, t in ((1, 1), (1, 37), (3, 130), (40, 9)):
-        y, dt = (x.to(dtype) for x in _data(b, t, 2, seed=b + t)) if t > 3 else _short(b, t, dtype)
+    for b, t in ((1, 1), (1, 37), (3, 130), (40, 9), (0, 5)):  # (B = 0: inside the Dim's range)
+        y, dt = (x.to(dtype) for x in _data(b, t, 2, seed=b + t)) if t > 3 and b else _short(b, t, dtype)
         with torch.no_grad():
             ref = kf(y, dt)
         ll, mean = prog(y, dt)
@@ -511,3 +511,38 @@ def test_deploy_modules_refuse_an_unknown_runtime():
         tl.DeployedFilter(kf, runtime="aoti")
     with pytest.raises(ValueError, match="runtime must be one of"):
         tl.OnlineStep(kf, runtime="jit")
+
+
+def test_exported_for_the_eager_runtime_forced_scan_and_a_report_batch_smaller_than_dt():
+    """runtime="eager" with algorithm="scan" forced (one scan over any T while exporting, no
+    chunks: the chunking specialised B and T) and, in the auto program, reports y (1, T, m) shared
+    by dt (B, T): the branches read the batch from the prior mean, which has the whole batch."""
+    from torch.export import Dim
+
+    torch._dynamo.reset()
+    kf = _cv_filter()
+    B, T = Dim("B", max=10_000), Dim("T", max=10_000)
+    y0, dt0 = _data(2, 6, 2, seed=0)
+    with torch.no_grad():
+        forced = tl.KalmanFilter(kf.sde, kf.H, kf.R, P0=kf.P0, algorithm="scan")
+        programs = {
+            "scan": torch.export.export(
+                tl.DeployedFilter(forced, runtime="eager"),
+                (y0, dt0),
+                dynamic_shapes={"y": {0: B, 1: T}, "dt": {0: B, 1: T}},
+            ).module(),
+            "shared y": torch.export.export(
+                tl.DeployedFilter(kf, runtime="eager"), (y0[:1], dt0), dynamic_shapes={"y": {1: T}, "dt": {0: B, 1: T}}
+            ).module(),
+        }
+        for b, t in ((1, 9), (5, 33), (30, 4)):
+            y, dt = _data(b, t, 2, seed=b * t)
+            ll, mean = programs["scan"](y, dt)
+            ref = forced(y, dt)
+            torch.testing.assert_close(ll, ref.log_likelihood, rtol=0, atol=1e-9)
+            torch.testing.assert_close(mean, ref.mean, rtol=0, atol=1e-9)
+            ll, mean = programs["shared y"](y[:1], dt)
+            ref = kf(y[:1], dt)
+            assert ll.shape == (b,)
+            torch.testing.assert_close(ll, ref.log_likelihood, rtol=0, atol=1e-9)
+            torch.testing.assert_close(mean, ref.mean, rtol=0, atol=1e-9)

@@ -231,7 +231,8 @@ def _double_masked(
     has_q, has_g = Q is not None, G is not None
     # at least one iteration (one with no element active changes nothing): an AOTInductor
     # package returned wrong values after a while_loop of no iteration (torch 2.13)
-    steps = halvings.max().clamp_min(1).to(torch.int64).reshape(())
+    # (a zero-size call, which a traced program may get: the max of one more 0, not of none)
+    steps = torch.cat([halvings.reshape(-1), halvings.new_zeros(1)]).max().clamp_min(1).to(torch.int64)
 
     def body(j: Tensor, A: Tensor, X: Tensor, near: Tensor, *qg: Tensor):
         A, X, near, q, g = step(j, A, X, near, qg[0] if has_q else None, qg[-1] if has_g else None)

@@ -137,10 +137,12 @@ def _mix(prob: Tensor, Pi: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor, T
     c = torch.where(pos, c, torch.zeros_like(c))
     c_safe = torch.where(pos, c, torch.ones_like(c))
     w = joint / c_safe.unsqueeze(-2)  # w_ij = P(i at k−1 | j at k)
-    m_mix = torch.einsum("...ij,...in->...jn", w, mean)
+    # Σ_i w_ij m_i as a broadcast sum (a traced einsum's reshapes of symbolic sizes failed
+    # torch.export's scan of the cycle in grad mode; mean may broadcast over the modes)
+    m_mix = (w.unsqueeze(-1) * mean.unsqueeze(-2)).sum(-3)
     d = mean.unsqueeze(-2) - m_mix.unsqueeze(-3)  # (..., M_i, M_j, n)
     spread = cov.unsqueeze(-3) + d.unsqueeze(-1) * d.unsqueeze(-2)  # (..., M_i, M_j, n, n)
-    P_mix = torch.einsum("...ij,...ijab->...jab", w, spread)
+    P_mix = (w[..., None, None] * spread).sum(-4)  # Σ_i w_ij (P_i + d_ij d_ijᵀ)
     return c, m_mix, sym(P_mix)
 
 
@@ -409,12 +411,12 @@ def _imm_scan(
         prob.shape[:-1], mean.shape[:-2], cov.shape[:-3],
     )  # fmt: skip
 
-    def steps(x: Tensor, *event: int) -> Tensor:  # (..., T or 1, *event) -> (T, *batch, *event)
-        return x.expand(*batch, T, *event).movedim(len(batch), 0)
+    def steps(x: Tensor, *event: int) -> Tensor:  # (..., T or 1, *event) -> (T, *batch, *event), a fresh copy
+        return x.expand(*batch, T, *event).movedim(len(batch), 0).clone(memory_format=torch.contiguous_format)
 
     xs = (
         steps(Hm, M, m, n), steps(Rm, M, m, m), steps(A4, M, n, n), steps(Q4, M, n, n), steps(Pi3, M, M),
-        steps(y0, m), n_obs.expand(*batch, T).movedim(-1, 0),
+        steps(y0, m), steps(n_obs.unsqueeze(-1), 1).squeeze(-1),
     )  # fmt: skip
     carry = (prob.expand(*batch, M).clone(), mean.expand(*batch, M, n).clone(), cov.expand(*batch, M, n, n).clone())
 

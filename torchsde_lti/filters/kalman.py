@@ -177,8 +177,9 @@ def _chosen_in_program(prep: PreparedInputs) -> FilterResult:
                 fields: list[object] = list(rest)
                 for i, t in zip(slots, tensors):
                     fields[i] = t
-                y0 = tensors[slots.index(PreparedInputs._fields.index("y0"))]
-                fields[-2:] = [y0.shape[:-2], y0.shape[-2]]  # mean_batch, T
+                m0 = tensors[slots.index(PreparedInputs._fields.index("m0"))]  # (*mb, n)
+                y0 = tensors[slots.index(PreparedInputs._fields.index("y0"))]  # (..., T, m)
+                fields[-2:] = [m0.shape[:-1], y0.shape[-2]]  # mean_batch, T
                 mean, cov = run(PreparedInputs(*fields))
                 return mean.contiguous(), cov.contiguous()  # (both branches' outputs: one layout)
 

@@ -86,7 +86,11 @@ def _shift_scan(fn: Callable[[Elems, Elems], Elems], el: Elems, event_ndims: Seq
 
     T = el[0].shape[0]
     lead = torch.broadcast_shapes(*(x.shape[1 : x.dim() - e] for x, e in zip(el, event_ndims)))
-    full = tuple(x.expand(T, *lead, *x.shape[x.dim() - e :]).contiguous() for x, e in zip(el, event_ndims))
+    # (fresh row-major copies: each level's results have those strides, zero-size ones too)
+    full = tuple(
+        x.expand(T, *lead, *x.shape[x.dim() - e :]).clone(memory_format=torch.contiguous_format)
+        for x, e in zip(el, event_ndims)
+    )
     steps = torch.arange(T, device=el[0].device)
 
     def more(offset: Tensor, *xs: Tensor) -> Tensor:
@@ -237,6 +241,8 @@ def chunked_scan(args: FilterInputs, chunk: int | None = None, validate_args: bo
     """
     if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
         raise ValueError(f"chunk must be a positive integer or None, got {chunk!r}")
+    if torch.compiler.is_exporting():  # one scan over any T, no chunks (no guard on B or T)
+        return scan_filter(prepare_inputs(args, validate_args))
     y, A, Q, H, R, m0, P0, G, u, mask, D = args
     T = y.shape[-2]
     batch = broadcast_batch([("y", y.shape[:-2]), ("A", A.shape[:-3] if A.dim() > 3 else ())])

@@ -46,7 +46,22 @@ def _check_runtime(runtime: str) -> str:
     return runtime
 
 
-class DeployedFilter(nn.Module):
+class _TracedFor(nn.Module):
+    """The ``runtime`` attribute of the deployment modules, checked whenever it is set."""
+
+    _runtime: str
+
+    @property
+    def runtime(self) -> str:
+        """What ``torch.export`` traces the program for (:data:`RUNTIMES`)."""
+        return self._runtime
+
+    @runtime.setter
+    def runtime(self, value: str) -> None:
+        self._runtime = _check_runtime(value)
+
+
+class DeployedFilter(_TracedFor):
     """The entry point to ship a trained :class:`KalmanFilter` or :class:`IMMFilter` with
     ``torch.export`` (or ``torch.jit``-free serving): plain tensor outputs instead of a
     :class:`FilterResult` / :class:`IMMResult`.
@@ -66,7 +81,7 @@ class DeployedFilter(nn.Module):
         if not isinstance(kf, (KalmanFilter, IMMFilter)):
             raise TypeError(f"kf must be a KalmanFilter or an IMMFilter, got {type(kf).__name__}")
         self.kf = kf
-        self.runtime = _check_runtime(runtime)
+        self.runtime = runtime
 
     def forward(self, y: Tensor, dt: Tensor, u: Tensor | None = None) -> tuple[Tensor, Tensor]:
         with traced_for_eager_runtime(self.runtime == "eager"):
@@ -74,7 +89,7 @@ class DeployedFilter(nn.Module):
         return out.log_likelihood, out.mean
 
 
-class OnlineStep(nn.Module):
+class OnlineStep(_TracedFor):
     """:meth:`KalmanFilter.step` as a module's ``forward``, to export and package (torch.export,
     AOTInductor) for a live tracker: plain tensors in and out.
 
@@ -95,7 +110,7 @@ class OnlineStep(nn.Module):
         if not isinstance(kf, KalmanFilter):
             raise TypeError(f"kf must be a KalmanFilter, got {type(kf).__name__}")
         self.kf = kf
-        self.runtime = _check_runtime(runtime)
+        self.runtime = runtime
         self._snapshot()
         self.register_load_state_dict_post_hook(lambda module, _incompatible: module._snapshot())
 
