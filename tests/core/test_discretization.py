@@ -493,3 +493,46 @@ def test_matrix_exp_overflow_of_a_marginally_stable_f_names_the_method() -> None
     assert torch.isfinite(tl.discretize(m.F, m.L, m.Qc, dt).Q).all()
     with pytest.raises(ValueError, match="method='matrix_exp' overflows"):
         tl.discretize(m.F, m.L, m.Qc, dt, method="matrix_exp")
+
+
+@pytest.mark.parametrize("n, p", [(1, 2), (2, 3)])
+def test_matrix_exp_with_noise_and_more_inputs_than_states(n: int, p: int) -> None:
+    """method="matrix_exp" with W and B of p > n columns: G (n, p) as the doubling's and the
+    zero-order-hold quadrature's (the block's zero row took min(n, p) columns: a size error)."""
+    g = torch.Generator().manual_seed(n + p)
+    F = -torch.eye(n, dtype=torch.float64) + 0.3 * torch.randn(n, n, generator=g, dtype=torch.float64)
+    L, Qc = torch.eye(n, dtype=torch.float64), torch.eye(n, dtype=torch.float64)
+    B = torch.randn(n, p, generator=g, dtype=torch.float64)
+    d = tl.discretize(F, L, Qc, 0.7, B=B, method="matrix_exp")
+    ref = tl.discretize(F, L, Qc, 0.7, B=B)
+    Fn = F.numpy()
+    G_quad = scipy.linalg.expm(np.block([[Fn, B.numpy()], [np.zeros((p, n + p))]]) * 0.7)[:n, n:]
+    assert d.G is not None and d.G.shape == (n, p)
+    np.testing.assert_allclose(d.G.numpy(), G_quad, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(d.Q, ref.Q, rtol=1e-12, atol=1e-14)
+
+
+def test_propagate_returns_both_moments_over_the_whole_batch() -> None:
+    """propagate with one m0 (n,) and three P0 (3, n, n): m and P both of batch (3,) (m came back
+    (n,)), each the single-prior result."""
+    F = torch.tensor([[0.0, 1.0], [-1.0, -0.5]], dtype=torch.float64)
+    L, Qc = torch.tensor([[0.0], [1.0]], dtype=torch.float64), torch.eye(1, dtype=torch.float64)
+    m0 = torch.tensor([1.0, -2.0], dtype=torch.float64)
+    P0 = torch.stack([k * torch.eye(2, dtype=torch.float64) for k in (1.0, 2.0, 3.0)])
+    m, P = tl.propagate(m0, P0, F, L, Qc, torch.tensor(0.5, dtype=torch.float64))
+    assert m.shape == (3, 2) and P.shape == (3, 2, 2)
+    for i in range(3):
+        mi, Pi = tl.propagate(m0, P0[i], F, L, Qc, 0.5)
+        torch.testing.assert_close(m[i], mi, rtol=0, atol=0)
+        torch.testing.assert_close(P[i], Pi, rtol=0, atol=0)
+
+
+def test_matrix_exp_overflow_names_the_stable_block() -> None:
+    """A finite exact result that method="matrix_exp" overflows (a fast stable mode next to a slightly
+    unstable one): the error names the −Fᵀ block and the doubling, not the unstable mode or float64."""
+    F = torch.diag(torch.tensor([-50.0, 0.01], dtype=torch.float64))
+    I2 = torch.eye(2, dtype=torch.float64)
+    assert bool(torch.isfinite(tl.discretize(F, I2, I2, 100.0).Q).all())
+    with pytest.raises(ValueError, match=r"−Fᵀ block.*method='doubling'") as err:
+        tl.discretize(F, I2, I2, 100.0, method="matrix_exp")
+    assert "float64" not in str(err.value).split("(", 1)[1]

@@ -132,3 +132,17 @@ def test_unique_dt_gathers_exact_matrices():
         Q_ref = np.kron(np.eye(2) * 1.1, integrator_chain_Q(2, 1.0, h))
         np.testing.assert_allclose(d.A[idx].detach().numpy(), A_ref, atol=1e-14)
         np.testing.assert_allclose(d.Q[idx].detach().numpy(), Q_ref, rtol=1e-13, atol=1e-15)
+
+
+def test_unique_dt_with_one_parameter_set_of_size_one_batch_dims():
+    """discretize_series(unique=True) of one parameter set carried with batch dims of size 1
+    (F (1, 1, n, n): what a KalmanFilter of an SDE of batch (1,) passes) and few distinct dt:
+    the values of unique=False (it raised an expand error)."""
+    F = torch.tensor([[[[0.0, 1.0], [-2.0, -0.3]]]], dtype=torch.float64)
+    L = torch.tensor([[0.0], [1.0]], dtype=torch.float64).expand(1, 1, 2, 1)
+    Qc = torch.eye(1, dtype=torch.float64).expand(1, 1, 1, 1)
+    dt = torch.tensor([[0.5, 1.0, 0.5], [1.0, 2.0, 0.5]], dtype=torch.float64)
+    got = _discretize_series(F, L, Qc, dt, unique=True)
+    want = _discretize_series(F, L, Qc, dt, unique=False)
+    torch.testing.assert_close(got.A, want.A, rtol=0, atol=1e-15)
+    torch.testing.assert_close(got.Q, want.Q, rtol=0, atol=1e-15)

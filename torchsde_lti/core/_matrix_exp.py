@@ -40,8 +40,9 @@ def matrix_exp(x: SDEInputs) -> tuple[Tensor, Tensor | None, Tensor | None]:
         top.append((B * dt_mat).expand(*batch, n, p))
     rows = [torch.cat(top, -1)] if len(top) > 1 else top
     if W is not None:  # [0, −Fᵀ dt, 0]
-        zeros = Fd.new_zeros(()).expand(*batch, n, n)
-        rows.append(torch.cat([zeros, -rows[0][..., :n].mT] + ([zeros[..., :p]] if B is not None else []), -1))
+        zero = Fd.new_zeros(())
+        blocks = [zero.expand(*batch, n, n), -rows[0][..., :n].mT]
+        rows.append(torch.cat(blocks + ([zero.expand(*batch, n, p)] if B is not None else []), -1))
     if B is not None:  # [0, 0, 0]
         rows.append(Fd.new_zeros(()).expand(*batch, p, rows[0].shape[-1]))
     E = torch.matrix_exp(torch.cat(rows, -2))

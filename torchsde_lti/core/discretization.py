@@ -101,16 +101,17 @@ def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | No
         real = torch.linalg.eigvals(inputs.F.double()).real
         rightmost, leftmost = float(real.max()), float(real.min())
         dt_max = float(inputs.dt.max()) if inputs.dt is not None and inputs.dt.numel() else 0.0
-    if method == "matrix_exp" and leftmost < 0 and rightmost <= 0:
+    if method == "matrix_exp" and leftmost < 0 and -leftmost >= rightmost:
         cause = (
-            "method='matrix_exp' overflows for this F (no eigenvalue in the right half-plane): the −Fᵀ block of "
-            "Van Loan's exponential grows like e^(|Re λ| dt) for its stable modes; the default method='doubling' "
-            "does not"
+            f"method='matrix_exp' overflows for this F (leftmost eigenvalue real part {leftmost:.3g}): the −Fᵀ block of "
+            "Van Loan's exponential grows like e^(|Re λ| dt) for its stable modes, faster than the result itself; "
+            "the default method='doubling' does not"
         )
     else:
+        wider = "" if inputs.F.dtype == torch.float64 else ", or use float64"
         cause = (
             f"F's rightmost eigenvalue has real part {rightmost:.3g}; an unstable F grows like e^(Re λ dt); "
-            "shorten dt, rescale the state, or use float64"
+            f"shorten dt or rescale the state{wider}"
         )
     raise ValueError(
         f"the discretisation overflows {inputs.F.dtype}: {', '.join(bad)} not finite for dt up to {dt_max:.3g} ({cause})"
@@ -251,7 +252,12 @@ def discretize_series(
     if unique and not dt_tm.requires_grad:
         dt_tm, inverse = torch.unique(dt_tm, return_inverse=True)
     with intra_op_threads(inputs.work):
-        A, Q, G = inputs.finish(*doubling(inputs._replace(dt=dt_tm, batch=dt_tm.shape, host=None), batch_last=True))
+        # (the one parameter set without its size-1 batch dims, which dt_tm's layout does not have)
+        W, B_in = (None if x is None else x.reshape(x.shape[-2:]) for x in (inputs.W, inputs.B))
+        one = inputs._replace(
+            F=inputs.F.reshape(inputs.F.shape[-2:]), W=W, B=B_in, dt=dt_tm, batch=dt_tm.shape, host=None
+        )
+        A, Q, G = inputs.finish(*doubling(one, batch_last=True))
         assert A is not None
         if checks_values(validate_args):
             _check_result(inputs, A, Q, G, method)

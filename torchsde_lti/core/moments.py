@@ -68,7 +68,7 @@ def propagate(
         u: (..., p) input held constant over the horizon; requires B.
 
     Returns:
-        m (..., n), P (..., n, n) symmetric.
+        m (..., n), P (..., n, n) symmetric, both over the broadcast batch of every argument.
     """
     if u is not None and B is None:
         raise ValueError(f"u was given (shape {shape_str(torch.as_tensor(u))}) but the SDE has no input matrix B")
@@ -88,5 +88,6 @@ def propagate(
         if checks_values(validate_args):
             check_finite(u, "u")
     named = [("discretisation (F, L, Qc, B, dt)", d.A.shape[:-2]), ("m0", m0.shape[:-1]), ("P0", P0.shape[:-2])]
-    broadcast_batch(named + ([] if u is None else [("u", u.shape[:-1])]))
-    return predict_moments(m0, P0, d.A, d.Q, d.G, u)
+    batch = broadcast_batch(named + ([] if u is None else [("u", u.shape[:-1])]))
+    m, P = predict_moments(m0, P0, d.A, d.Q, d.G, u)
+    return m.expand(*batch, n), P.expand(*batch, n, n)  # (both with the whole batch)
