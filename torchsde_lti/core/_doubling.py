@@ -27,7 +27,7 @@ from torch import Tensor
 
 from torchsde_lti.core._power_series import _flat, few_elements_doubling, frobenius_norm
 from torchsde_lti.core.linalg import bl_matmul, nilpotency_index
-from torchsde_lti.core.series import TerminatingSeries, series_matrices, terminating_series
+from torchsde_lti.core.series import TerminatingSeries, derivative_order, series_matrices, terminating_series
 from torchsde_lti.core.thresholds import (
     BATCH_LAST_MAX_DIM,
     BATCH_LAST_MIN_ELEMENTS,
@@ -51,18 +51,22 @@ __all__ = [
     "shared_series",
 ]
 
-_TERMS: dict[tuple[torch.dtype, float, int], int] = {}
+_TERMS: dict[tuple[torch.dtype, float, int, int], int] = {}
 
 
-def series_terms(dtype: torch.dtype, theta: float, n: int) -> int:
+def series_terms(dtype: torch.dtype, theta: float, n: int, order: int = 0) -> int:
     """Taylor terms K for a sub-step with ‖F‖ h ≤ θ and n states: the first omitted term of the
     Q series, (2θ)^K / (K+1)!, is below eps/8 of its leading term (‖𝓛‖_F ≤ 2‖F‖_F), and
-    K ≥ 2n − 1 so that every entry (an integrator chain's q h^{2n−1}/… too) keeps its leading term."""
-    key = (dtype, theta, n)
+    K ≥ (order + 2) n − 1: the series of a nilpotent F (index m ≤ n) keeps every term whose
+    derivatives of order ≤ ``order`` with respect to F are not zero (E: powers j ≤ K, of which
+    (order+1) n − 1 are needed; φ₁ and G: j < K, (order+1) n; Q: 𝓛^k, k < K, (order+2) n − 1,
+    module :mod:`~torchsde_lti.core.series`) — with order 0 every entry (an integrator chain's
+    q h^{2n−1}/… too) keeps its leading term."""
+    key = (dtype, theta, n, order)
     K = _TERMS.get(key)
     if K is None:
         eps = torch.finfo(dtype).eps
-        K = max(1, 2 * n - 1)
+        K = max(1, (order + 2) * n - 1)
         while (2.0 * theta) ** K / math.factorial(K + 1) >= eps / 8.0:
             K += 1
         if not tracing():
@@ -301,7 +305,8 @@ def _per_element_flat(
         halvings = halvings_for(nu, dtf, THETA_SORTED)
     order: Tensor | None = None
     counts: list[int] = []
-    K = series_terms(Fb.dtype, THETA_SORTED, n)
+    grad_order = derivative_order(Fb)
+    K = series_terms(Fb.dtype, THETA_SORTED, n, grad_order)
     differentiable = traced and torch.is_grad_enabled() and not torch.compiler.is_exporting()
     differentiable = differentiable and any(t is not None and t.requires_grad for t in (Fb, Wb, Bb, dtf))
     if traced:
@@ -310,7 +315,7 @@ def _per_element_flat(
         with torch.no_grad():  # one synchronisation: the most halvings and the largest ‖F‖ dt
             top_f, x_max = torch.stack([halvings.max(), (nu * dtf).max()]).tolist()
             if not top_f:  # no element halves: the series for the largest ‖F‖ dt (a power of 2) suffices
-                K = series_terms(Fb.dtype, 2.0 ** math.ceil(math.log2(x_max)) if x_max > 0 else 0.0, n)
+                K = series_terms(Fb.dtype, 2.0 ** math.ceil(math.log2(x_max)) if x_max > 0 else 0.0, n, grad_order)
             order, counts = _schedule(halvings.to(torch.int64), int(top_f))
     if order is not None:
         Fb, dtf, halvings = Fb[order], dtf[order], halvings[order]
@@ -503,7 +508,7 @@ def shared_series(F: Tensor, W: Tensor | None, B: Tensor | None) -> SharedSeries
         absF = F.abs()
         nu = torch.maximum(absF.sum(-2).amax(-1), absF.sum(-1).amax(-1))
         nu = torch.where(nu > 0, nu, torch.ones_like(nu))
-    K = series_terms(dtype, THETA_SHARED, n)
+    K = series_terms(dtype, THETA_SHARED, n, derivative_order(F))
     Ft = F / nu
     k1 = torch.arange(1, K + 1, dtype=dtype, device=F.device)[:, None, None]
     eye = torch.eye(n, dtype=dtype, device=F.device)
@@ -527,8 +532,9 @@ def discretization_series(
     checked (no validation).
 
     F: (n, n); W = L Qc Lᵀ: (n, n) or None; B: (n, p) or None. A nilpotent F (F^index = 0)
-    gives its :class:`~torchsde_lti.core.series.TerminatingSeries` (exact polynomial in dt; with
-    the terms whose value is zero but whose derivative is not when F records gradients), any
+    gives its :class:`~torchsde_lti.core.series.TerminatingSeries` (exact polynomial in dt; when
+    F records a graph, with the terms whose value is zero but whose first or second derivative
+    with respect to F is not), any
     other F a :class:`SharedSeries` (series terms of a sub-step, then the doubling).
     ``index``: F's nilpotency index when the model's structure fixes it; with ``read_values``
     and ``index`` None it is found from F's values (one synchronisation), without
@@ -538,7 +544,7 @@ def discretization_series(
         index = nilpotency_index(F)
     if index is None:
         return shared_series(F, W, B)
-    return terminating_series(F, W, B, index, gradient_terms=torch.is_grad_enabled() and F.requires_grad)
+    return terminating_series(F, W, B, index, derivative_order(F))
 
 
 def shared_doubling(

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import sym
+from torchsde_lti.core.series import derivative_order
 from torchsde_lti.core.thresholds import THETA_PER_ELEMENT
 from torchsde_lti.core.validation import SDEInputs, tracing
 
@@ -28,16 +29,18 @@ def _flat(x: Tensor | None, batch: torch.Size, cols: int) -> Tensor | None:
     return x.expand(*batch, x.shape[-2], cols).reshape(-1, x.shape[-2], cols)
 
 
-_POWER_TERMS: dict[tuple[torch.dtype, float, int], int] = {}
+_POWER_TERMS: dict[tuple[torch.dtype, float, int, int], int] = {}
 
 
-def power_terms(dtype: torch.dtype, theta: float, n: int) -> int:
+def power_terms(dtype: torch.dtype, theta: float, n: int, order: int = 0) -> int:
     """Powers K of :func:`_series` for a sub-step with ‖F‖_F h ≤ θ and n states: the omitted
     terms, at most θ^K/K! e^{2θ} relative, are below eps/8 of the smallest leading term an
     entry can have, θ^{n−1}/(n−1)! (a graded Q's, an integrator chain's: each entry keeps its own
     relative accuracy; a Singer model's Q[0, 0] at dt = 1e-6 had 1.7e-7 with eps/8 alone); and
-    K ≥ n, so that a nilpotent F's series is exact."""
-    key = (dtype, theta, n)
+    K ≥ (order + 1) n, so that a nilpotent F's series (index m ≤ n) and its derivatives of order
+    ≤ ``order`` with respect to F are exact (those of M^j vanish for j ≥ (order+1) m, module
+    :mod:`~torchsde_lti.core.series`; Q's double sum over j, l < K needs no more)."""
+    key = (dtype, theta, n, order)
     K = _POWER_TERMS.get(key)
     if K is None:
         eps, K = torch.finfo(dtype).eps, 1
@@ -46,7 +49,7 @@ def power_terms(dtype: torch.dtype, theta: float, n: int) -> int:
         smallest, most = min(1.0, theta ** (n - 1) / math.factorial(n - 1)), K + n - 1
         while K < most and theta**K / math.factorial(K) * math.exp(2.0 * theta) >= eps / 8.0 * smallest:
             K += 1
-        K = max(K, n)
+        K = max(K, (order + 1) * n)
         if not tracing():
             _POWER_TERMS[key] = K
     return K
@@ -224,7 +227,7 @@ def few_elements_doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tenso
         s = math.ceil(math.log2(top) - math.log2(theta)) if top > theta else 0
     bound = theta if s else (2.0 ** math.ceil(math.log2(top)) if top > 0 else 0.0)  # (few cache keys)
     hc = _scaled(dtf, s).view(N, 1, 1)
-    E, Q, G = _series(Fb * hc, Wb, Bb, power_terms(F.dtype, bound, n))
+    E, Q, G = _series(Fb * hc, Wb, Bb, power_terms(F.dtype, bound, n, derivative_order(F)))
     Q, G = (None if t is None else t * hc for t in (Q, G))
     A, Q, G = _double_eager(E, Q, G, s) if s else (E + _eye(n, E), Q, G)
     if Q is not None:

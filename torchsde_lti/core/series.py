@@ -8,9 +8,16 @@ the series of expm(F s) terminate. With ν = max(‖F‖₁, ‖F‖∞) (1 for 
 
 (exact: every omitted term is zero). The matrices F̃^k, 𝓛̃^k(W), F̃^k B do not depend on dt:
 :func:`terminating_series` forms them once, and a batch of steps costs the rows r_k and one
-product for all three results (:class:`TerminatingSeries`). With ``gradient_terms`` the series
-keeps the terms whose value is zero but whose derivative with respect to F is not (2m,
-3m − 1 and 2m terms).
+product for all three results (:class:`TerminatingSeries`).
+
+Derivatives with respect to F need more terms than the values: the d-th derivative of F^k in
+directions Δ_1 … Δ_d is a sum of products of k factors, d of them Δs and k − d of them F, in
+d + 1 runs of consecutive Fs; for k ≥ (d+1) m one run has m or more Fs and the product
+vanishes. So the derivatives of order ≤ d at a nilpotent F are exact with the terms
+k < (d+1) m of A and G and k < (d+2) m − 1 of Q (𝓛^k(W) = Σ_j C(k, j) F^j W (F^{k−j})ᵀ:
+j < (d₁+1) m, k − j < (d₂+1) m, d₁ + d₂ = d). :func:`terminating_series` keeps those of
+``order`` d (:func:`derivative_order`: 2 where F records a graph — the second derivatives
+are exact, the third are not).
 """
 
 from __future__ import annotations
@@ -19,8 +26,22 @@ from typing import NamedTuple
 
 import torch
 from torch import Tensor
+from torch.autograd import forward_ad
 
-__all__ = ["TerminatingSeries", "terminating_series"]
+__all__ = ["TerminatingSeries", "derivative_order", "terminating_series"]
+
+
+def derivative_order(F: Tensor) -> int:
+    """The order of the derivatives with respect to F that a truncated series must keep exact
+    at a nilpotent F: 2 where a graph is recorded for F (a second derivative may follow: a
+    Hessian, a gradient penalty) or F carries a forward-mode tangent (torch.func.jvp,
+    ``forward_ad``), else 0 (values only). Derivatives with respect to dt, W and B need no more
+    terms than the values (polynomial in dt, linear in W and B)."""
+    if torch.is_grad_enabled() and F.requires_grad:
+        return 2
+    if not torch.compiler.is_compiling() and forward_ad.unpack_dual(F).tangent is not None:
+        return 2
+    return 0
 
 
 def series_matrices(F: Tensor, X: Tensor, count: int, lyapunov: bool = False) -> Tensor:
@@ -76,12 +97,11 @@ class TerminatingSeries(NamedTuple):
         return A, Q, G
 
 
-def terminating_series(
-    F: Tensor, W: Tensor | None, B: Tensor | None, index: int, gradient_terms: bool = False
-) -> TerminatingSeries:
-    """:class:`TerminatingSeries` of ONE parameter set: F (n, n) with F^index = 0, W = L Qc Lᵀ
-    (n, n) symmetric or None, B (n, p) or None. ``gradient_terms``: also the terms whose value is
-    zero but whose derivative with respect to F is not (for a gradient with respect to F)."""
+def terminating_series(F: Tensor, W: Tensor | None, B: Tensor | None, index: int, order: int = 0) -> TerminatingSeries:
+    """:class:`TerminatingSeries` of ONE parameter set: F (n, n) with F^index = 0 (m = index),
+    W = L Qc Lᵀ (n, n) symmetric or None, B (n, p) or None. ``order`` d: also the terms whose
+    value is zero but whose derivatives of order ≤ d with respect to F are not (module
+    docstring): F̃^k for k < (d+1) m (A, G), 𝓛̃^k(W) for k < (d+2) m − 1 (Q)."""
     n, p = F.shape[-1], 0 if B is None else B.shape[-1]
     work = torch.float64 if F.dtype == torch.float32 else F.dtype
     F = F.to(work)
@@ -91,8 +111,8 @@ def terminating_series(
         absF = F.abs()
         nu = torch.maximum(absF.sum(-2).amax(-1), absF.sum(-1).amax(-1))
         nu = torch.where(nu > 0, nu, torch.ones_like(nu))
-    m = 2 * index if gradient_terms else index  # terms of A (of G: r_1 … r_m)
-    mq = 3 * index - 1 if gradient_terms else 2 * index - 1  # of Q: r_1 … r_mq
+    m = (order + 1) * index  # terms of A (of G: r_1 … r_m)
+    mq = (order + 2) * index - 1  # of Q: r_1 … r_mq
     K = max(m - 1, mq if W is not None else 0, m if B is not None else 0)
     Ft = F / nu
     eye = torch.eye(n, dtype=work, device=F.device)
