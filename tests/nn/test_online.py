@@ -506,8 +506,8 @@ def test_kalman_step_of_many_tracks_in_chunks_equals_one_pass(dtype, monkeypatch
 
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
 def test_kalman_step_shared_observation_model_equals_masked_path(dtype, monkeypatch):
-    """The scalar updates of one (H, R) for every track with every report observed (the
-    shared rows' matrix products) equal the general masked path (an all-True mask): values
+    """The scalar updates of one (H, R) for every track with every report observed (one
+    whitening of all reports) equal the general masked path (an all-True mask): values
     and gradients, per-track and shared A, Q, with and without an input term."""
     online = tl.filters.online
     monkeypatch.setattr(online, "SMALL_BATCH", 0)

@@ -32,17 +32,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import (
-    bl_matmul,
-    bl_matvec,
-    cholesky,
-    fused_matmul,
-    matvec,
-    solve_lower,
-    solve_upper_t,
-    sym,
-    to_batch_last,
-)
+from torchsde_lti.core.linalg import cholesky, fused_matmul, matvec, solve_lower, solve_upper_t, sym, to_batch_last
 from torchsde_lti.core.validation import broadcast_shapes, tracing
 from torchsde_lti.filters.inputs import (
     LOG_2PI,
@@ -141,17 +131,13 @@ def _batch_last(
     state: KalmanState, A: Tensor, Q: Tensor, c: Tensor | None, cb: torch.Size, mb: torch.Size
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
     """A, Q, P (n, n, *cb), mean and c (n, *mb): the sequence loop's batch-last layout."""
-    Ab, Qb, Pb = (_to_batch_last(x, cb, 2) for x in (A, Q, state.cov))
-    return Ab, Qb, Pb, _to_batch_last(state.mean, mb, 1), None if c is None else _to_batch_last(c, mb, 1)
-
-
-def _to_batch_last(x: Tensor, batch: torch.Size, event_ndim: int) -> Tensor:
-    """``x`` (..., *event) broadcast to (*batch, *event), laid out (*event, *batch) contiguous
-    (no copy where its storage already is: the scalar updates' own results)."""
-    event = x.shape[x.dim() - event_ndim :]
-    if x.shape[: x.dim() - event_ndim] != batch:
-        x = x.expand(*batch, *event)
-    return to_batch_last(x, event_ndim)
+    n = A.shape[-1]
+    Ab = to_batch_last(A.expand(*cb, n, n), 2)
+    Qb = to_batch_last(Q.expand(*cb, n, n), 2)
+    Pb = to_batch_last(state.cov.expand(*cb, n, n), 2)
+    mean_b = to_batch_last(state.mean.expand(*mb, n), 1)
+    cbl = None if c is None else to_batch_last(c.expand(*mb, n), 1)
+    return Ab, Qb, Pb, mean_b, cbl
 
 
 #: Reports with at most this many values are checked for NaN as Python floats.
@@ -428,9 +414,15 @@ def _scalar_step(
     """:func:`kalman_step` with the sequence loop's whitened scalar Joseph updates (batch-last)."""
     n, m = A.shape[-1], y0.shape[-1]
     if obs is None and H.dim() == 2 and R.dim() == 2 and len(mb) == 1:
-        return _shared_scalar_step(state, y0, A, Q, H, R, c, mb)
-    Hw, yw, log_det = whiten(*mask_observation_model(H, R, obs), y0)
-    yw_bl = to_batch_last(yw.expand(*mb, m), 1)
+        # one (H, R) for every track, all observed: whiten with one LAPACK factor and one
+        # triangular solve of all reports at once, straight into the batch-last layout
+        LR = torch.linalg.cholesky(R)
+        Hw = torch.linalg.solve_triangular(LR, H, upper=False)
+        yw_bl = torch.linalg.solve_triangular(LR, y0.expand(*mb, m).mT, upper=False)  # (m, B)
+        log_det = torch.log(torch.diagonal(LR)).sum()
+    else:
+        Hw, yw, log_det = whiten(*mask_observation_model(H, R, obs), y0)
+        yw_bl = to_batch_last(yw.expand(*mb, m), 1)
     cb = broadcast_shapes(state.cov.shape[:-2], A.shape[:-2], Q.shape[:-2], Hw.shape[:-2])
     cb = torch.Size([1] * (len(mb) - len(cb)) + list(cb))  # (as many dims as mb: batch-last, they align)
     # batch-last layout (event dims first, batch contiguous), as in the sequence loop
@@ -469,62 +461,4 @@ def _scalar_step(
         innovation_cov.expand(*mb, m, m),
         ll.expand(mb),
         observed,
-    )
-
-
-def _shared_scalar_step(
-    state: KalmanState, y0: Tensor, A: Tensor, Q: Tensor, H: Tensor, R: Tensor, c: Tensor | None, mb: torch.Size
-) -> tuple[KalmanState, KalmanStep]:
-    r""":func:`_scalar_step` of one (H (m, n), R (m, m)) for every track, every report observed,
-    one batch dimension B = ``mb[0]``: the sequence loop's step
-    (:func:`~torchsde_lti.filters.sequential._joseph_step`), with the shared whitened rows
-    ``h_j`` (n,) of ``H' = L_R⁻¹ H`` (``L_R L_Rᵀ = R``) contracted by one matrix product each
-    over the batch-last storage instead of an elementwise product with h broadcast per track.
-
-    Batch-last (n, n, B) and (n, B), predict ``m⁻ = A m + c``, ``P⁻ = sym(A P Aᵀ + Q)``, then
-    for each whitened report ``y'_j`` (``y' = L_R⁻¹ y``)::
-
-        s = hᵀ P h + 1,   k = P h / s,   e = y'_j − hᵀ m,   m ← m + k e
-        M P = P − k (P h)ᵀ,   w = M P h,   P ← M P + (k − w) kᵀ      (Joseph form, R' = 1)
-
-    and ``P ← sym(P)``. The covariance is carried transposed: ``Pᵀ`` (n, n, B), so that
-    ``P h = (hᵀ Pᵀ)`` is one product with the (n, n·B) view (P⁻ is exactly symmetric;
-    the updates read ``(M P)ᵀ = Pᵀ − (P h) kᵀ``, ``Pᵀ ← (M P)ᵀ + k (k − w)ᵀ``, the same
-    elementwise values as the loop's). The log-likelihood is
-    ``−½ Σ_j (log s_j + e_j²/s_j) − ½ m log 2π − log det L_R``; the innovation
-    ``y − H m⁻`` and its covariance ``sym(H P⁻ Hᵀ + R)`` are single products on the
-    batch-last predictions (``(H ⊗ H) vec P⁻``)."""
-    n, m, b = A.shape[-1], y0.shape[-1], mb[0]
-    y0 = y0 if y0.shape[0] == b else y0.expand(b, m)
-    LR = torch.linalg.cholesky_ex(R)[0]  # (R is checked by the caller: SPD)
-    Hw = torch.linalg.solve_triangular(LR, H, upper=False)  # (m, n)
-    yw = torch.linalg.solve_triangular(LR, y0.mT, upper=False)  # (m, B): every report at once
-    Ab, Qb, Pb, mean, cbl = _batch_last(state, A, Q, c, mb, mb)
-    pm = bl_matvec(Ab, mean) if cbl is None else torch.add(bl_matvec(Ab, mean), cbl)
-    X = bl_matmul(bl_matmul(Ab, Pb), Ab.transpose(0, 1), Qb)  # A P Aᵀ + Q
-    pc = (X + X.transpose(0, 1)).mul_(0.5)
-    one = torch.ones((), dtype=pm.dtype, device=pm.device)
-    mean, PT, es, ss = pm, pc, [], []
-    for h, yj in zip(Hw.split(1), yw.split(1)):  # h (1, n), yj (1, B)
-        ph = torch.mm(h, PT.reshape(n, n * b)).view(n, b)  # P h
-        s = torch.addmm(one, h, ph)  # (1, B)
-        gain = ph / s
-        e = torch.addmm(yj, h, mean, alpha=-1.0)  # (1, B)
-        mean = torch.addcmul(mean, gain, e)
-        MT = torch.addcmul(PT, ph.view(n, 1, b), gain.view(1, n, b), value=-1.0)  # (M P)ᵀ
-        d = torch.addmm(gain.view(1, n * b), h, MT.reshape(n, n * b), alpha=-1.0)  # k − M P h
-        PT = torch.addcmul(MT, gain.view(n, 1, b), d.view(1, n, b))
-        es.append(e)
-        ss.append(s)
-    P = (PT + PT.transpose(0, 1)).mul_(0.5)
-    E, S2 = torch.cat(es), torch.cat(ss)  # (m, B)
-    half_log_det = torch.log(torch.diagonal(LR)).sum() + 0.5 * m * LOG_2PI
-    ll = torch.addcdiv(torch.log(S2), E * E, S2).sum(0).mul_(-0.5).sub_(half_log_det)
-    innovation = torch.addmm(y0, pm.mT, H.mT, alpha=-1.0)  # (B, m)
-    half = torch.addmm(R.reshape(m * m, 1), torch.kron(H, H), pc.reshape(n * n, b), beta=0.5, alpha=0.5)
-    half = half.view(m, m, b)  # (H P⁻ Hᵀ + R) / 2
-    innovation_cov = (half + half.transpose(0, 1)).permute(2, 0, 1)
-    observed = torch.ones((b, m), dtype=torch.bool, device=y0.device)
-    return KalmanState(mean.mT, P.permute(2, 0, 1)), KalmanStep(
-        pm.mT, pc.permute(2, 0, 1), innovation, innovation_cov, ll, observed
     )
