@@ -25,7 +25,7 @@ from torchsde_lti.core.validation import common_float_dtype
 from torchsde_lti.filters.inputs import FilterInputs, PreparedInputs, complete_from_filtered, prepare_inputs
 from torchsde_lti.filters.results import FilterResult
 from torchsde_lti.filters.runtime import eager_runtime_tracing
-from torchsde_lti.filters.scan import SCAN_MAX_BATCH_CPU, chunked_scan, prefers_scan, scan_filtered
+from torchsde_lti.filters.scan import _scan_suits, chunked_scan, prefers_scan, scan_filtered
 from torchsde_lti.filters.sequential import sequential_filter, structured_filtered
 from torchsde_lti.filters.square_root import square_root_filter
 
@@ -163,9 +163,7 @@ def _chosen_in_program(prep: PreparedInputs) -> FilterResult:
     between the associative scan (over any T: its levels one ``while_loop``) and the loop
     (torch's structured scan) made inside the program (``torch.cond``) where the batch size is
     dynamic."""
-    scan = prep.m0.device.type != "cpu" or math.prod(prep.mean_batch) <= SCAN_MAX_BATCH_CPU
-    if prep.A.dtype != torch.float64:  # (the scan in float32: see prefers_scan)
-        scan = False
+    scan = _scan_suits(math.prod(prep.mean_batch), prep.m0.device, prep.A.dtype)  # (T: the scan takes any)
     if isinstance(scan, bool):
         filtered = scan_filtered(prep) if scan else structured_filtered(prep)
     else:  # (the branches take the tensors as operands and read every size from them)

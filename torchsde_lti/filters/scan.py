@@ -217,11 +217,15 @@ def prefers_scan(batch_size: int, T: int, device: torch.device, dtype: torch.dty
     wrong log-likelihood; the loop's Joseph updates do not). CPU: scan for at most
     :data:`SCAN_MAX_BATCH_CPU` tracks and T > 1. Other devices (where every loop step costs
     kernel launches): always the scan."""
-    if T < 2 or dtype != torch.float64:
+    return T >= 2 and _scan_suits(batch_size, device, dtype)
+
+
+def _scan_suits(batch_size: int, device: torch.device, dtype: torch.dtype) -> bool:
+    """:func:`prefers_scan`'s rule without T (float64; at most :data:`SCAN_MAX_BATCH_CPU`
+    tracks on the CPU, any batch elsewhere): a symbolic ``batch_size`` gives a symbolic bool."""
+    if dtype != torch.float64:
         return False
-    if device.type == "cpu":
-        return batch_size <= SCAN_MAX_BATCH_CPU
-    return True
+    return device.type != "cpu" or batch_size <= SCAN_MAX_BATCH_CPU
 
 
 def _time_slice(x: Tensor | None, axis: int, T: int, start: int, stop: int) -> Tensor | None:

@@ -57,11 +57,7 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
     A_bf, Q_bf = prep.A, prep.Q  # (*cb, T, n, n)
     nb = A_bf.dim() - 3
     to_bl = list(range(nb, nb + 2)) + list(range(nb))
-    H_s = to_batch_last(prep.Hw, 2, time=True)  # (T or 1, m, n, *cb or broadcastable)
-    # Materialise H' over the batch: products with a stride-0 (broadcast) inner dimension
-    # take a slow path, same-shape ones do not.
-    cb = A_bf.shape[:nb]
-    H_s = H_s.expand(*H_s.shape[:3], *torch.broadcast_shapes(H_s.shape[3:], cb)).contiguous()
+    H_s = _observation_rows(prep)  # (T or 1, m, n, *cb)
     h_single = H_s.shape[0] == 1
     yw_bl = to_batch_last(prep.yw, 1, time=True)  # (T, m, *mb)
 
@@ -151,15 +147,22 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
     return assemble_result(prep, (mean_t, cov_t), (pmean_t, pcov_t), core, (innovation, innovation_cov))
 
 
+def _observation_rows(prep: PreparedInputs) -> Tensor:
+    """The whitened H' batch-last, (T or 1, m, n, *cb), materialised over the covariance batch
+    cb: products with a stride-0 (broadcast) inner dimension take a slow path, same-shape ones
+    do not."""
+    H_s = to_batch_last(prep.Hw, 2, time=True)  # (T or 1, m, n, *cb or broadcastable)
+    cb = prep.A.shape[: prep.A.dim() - 3]
+    return H_s.expand(*H_s.shape[:3], *torch.broadcast_shapes(H_s.shape[3:], cb)).contiguous()
+
+
 def structured_filtered(prep: PreparedInputs) -> tuple[Tensor, Tensor]:
     """The filtered means (..., T, n) and covariances (..., T, n, n) of the loop run as torch's
     structured scan (:func:`sequential_filter` with ``structured``): one step's graph, no
     unrolling, no Python per step; the loop carries and returns the filtered moments alone
     (each output of a step costs a compiled program buffers every iteration). Batch-last
     layout as in the eager loop."""
-    H_s = to_batch_last(prep.Hw, 2, time=True)  # (T or 1, m, n, *cb or broadcastable)
-    cb = prep.A.shape[: prep.A.dim() - 3]
-    H_s = H_s.expand(*H_s.shape[:3], *torch.broadcast_shapes(H_s.shape[3:], cb)).contiguous()
+    H_s = _observation_rows(prep)
     mean = to_batch_last(prep.m0, 1)  # (n, *mb)
     T = prep.T
     c_all = to_batch_last(prep.c, 1, time=True) if prep.c is not None else torch.zeros_like(mean).unsqueeze(0)
