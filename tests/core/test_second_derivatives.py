@@ -21,11 +21,11 @@ from torchsde_lti.core import _doubling, _power_series
 F64 = torch.float64
 
 # (path, number of steps, F shared by the steps or expanded to one per step):
-# few_elements_doubling: N n² ≤ FEW_ENTRIES; _per_element_flat: more entries, one F per step;
+# few_elements_series: N n² ≤ FEW_ENTRIES; _per_element_flat: more entries, one F per step;
 # terminating_series: ONE nilpotent F for ≥ SHARED_MIN_ELEMENTS steps.
 PATHS = {
-    "single": ("few_elements_doubling", 1, False),
-    "few": ("few_elements_doubling", 3, True),
+    "single": ("few_elements_series", 1, False),
+    "few": ("few_elements_series", 3, True),
     "per_element": ("_per_element_flat", 700, True),
     "terminating": ("terminating_series", 40, False),
 }

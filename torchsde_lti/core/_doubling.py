@@ -25,7 +25,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from torchsde_lti.core._power_series import _flat, few_elements_doubling, frobenius_norm
+from torchsde_lti.core._power_series import _flat, eye_matrix, few_elements_series, frobenius_norm
 from torchsde_lti.core.linalg import bl_matmul, nilpotency_index
 from torchsde_lti.core.series import TerminatingSeries, derivative_order, series_matrices, terminating_series
 from torchsde_lti.core.thresholds import (
@@ -124,12 +124,14 @@ class _Layout:
         return (x[:c], x[c:]) if self.batch_first else (x[..., :c], x[..., c:])
 
     def eye(self, n: int, like: Tensor) -> Tensor:
-        e = torch.eye(n, dtype=like.dtype, device=like.device)
+        e = eye_matrix(n, like)
         return e if self.batch_first else e[..., None]
 
-    def norm_sq(self, A: Tensor) -> Tensor:
-        """Squared Frobenius norm per element: (N,)."""
-        return (A * A).sum((-2, -1) if self.batch_first else (0, 1))
+    def norm(self, A: Tensor) -> Tensor:
+        """Frobenius norm per element, shaped as :meth:`col`."""
+        if self.batch_first:
+            return torch.linalg.vector_norm(A, dim=(-2, -1), keepdim=True)
+        return torch.linalg.vector_norm(A, dim=(0, 1))
 
     def put(self, x: Tensor) -> Tensor:
         """(N, r, c) -> this layout (contiguous)."""
@@ -155,7 +157,8 @@ class _Layout:
         xb = (x if self.batch_first else x.permute(2, 0, 1)).contiguous()
         if order is not None:  # (a gather of contiguous rows: the fastest way back)
             xb = xb.index_select(0, order)
-        xb = xb.reshape(*batch, *xb.shape[1:])
+        if xb.shape[:1] != batch:
+            xb = xb.reshape(*batch, *xb.shape[1:])
         return xb.movedim((-2, -1), (0, 1)).contiguous() if batch_last else xb
 
 
@@ -163,20 +166,27 @@ def _double(
     A: Tensor, X: Tensor, Q: Tensor | None, G: Tensor | None, near: Tensor | None, eye: Tensor, lo: _Layout
 ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
     """One doubling: Q ← A Q Aᵀ + Q, G ← A G + G and A ← A A, where X holds E = A − I
-    (E ← E + E A) for the elements with ``near`` = 1 and A for those with 0 (None: all E)."""
-    Q = None if Q is None else lo.mm(lo.mm(A, Q), lo.t(A), Q)
-    G = None if G is None else lo.mm(A, G, G)
-    if near is None:
-        X = lo.mm(X, A, X)
-        return X + eye, X, Q, G
-    X = lo.mm(X, A, X * near)
-    return torch.addcmul(X, near, eye), X, Q, G
+    (E ← E + A E) for the elements with ``near`` = 1 and A for those with 0 (None: all E).
+    Batch-first: one product A [X, Q, G] for the three. Returns (A, X, Q, G)."""
+    if lo.batch_first:
+        n = X.shape[-1]
+        parts = [X, *(t for t in (Q, G) if t is not None)]
+        R = torch.bmm(A, torch.cat(parts, -1) if len(parts) > 1 else X)
+        Q = None if Q is None else torch.baddbmm(Q, R[..., n : 2 * n], A.mT)
+        G = None if G is None else R[..., R.shape[-1] - G.shape[-1] :] + G
+        X = R[..., :n] + X if near is None else torch.addcmul(R[..., :n], near, X)
+    else:
+        Q = None if Q is None else lo.mm(lo.mm(A, Q), lo.t(A), Q)
+        G = None if G is None else lo.mm(A, G, G)
+        X = lo.mm(X, A, X if near is None else X * near)
+    return (X + eye if near is None else torch.addcmul(X, near, eye)), X, Q, G
 
 
 def _decayed(A: Tensor, lo: _Layout) -> Tensor:
-    """Per element (bool (N,)): ‖A‖_F < 1/2 — A has decayed and E = A − I no longer resolves it."""
+    """Per element (bool, shaped as :meth:`_Layout.col`): ‖A‖_F < 1/2 — A has decayed and
+    E = A − I no longer resolves it."""
     with torch.no_grad():
-        return lo.norm_sq(A) < 0.25
+        return lo.norm(A) < 0.5
 
 
 def _double_sorted(
@@ -197,9 +207,9 @@ def _double_sorted(
         if j:  # after a doubling: elements whose A has decayed carry A from now on
             switch = _decayed(A, lo)
             if near is not None:
-                switch = switch & (near.reshape(-1) > 0)
+                switch = switch & (near > 0)
             if bool(switch.any()):
-                sw = lo.col(switch.to(X.dtype))
+                sw = switch.to(X.dtype)
                 X = torch.addcmul(X, sw, eye)  # A where switched
                 near = 1.0 - sw if near is None else near * (1.0 - sw)
         A, X, Q, G = _double(A, X, Q, G, near, eye, lo)
@@ -219,7 +229,7 @@ def _double_masked(
     def step(j: Tensor | int, A: Tensor, X: Tensor, near: Tensor, Q: Tensor | None, G: Tensor | None):
         active = lo.col(halvings > j)
         first = j == 0 if isinstance(j, int) else (j == 0).reshape(())
-        switch = near & lo.col(_decayed(A, lo)) & ~torch.as_tensor(first)
+        switch = near & _decayed(A, lo) & ~torch.as_tensor(first)
         X = torch.where(switch, A, X)
         near = near & ~switch
         A2, X2, Q2, G2 = _double(A, X, Q, G, near.to(X.dtype), eye, lo)
@@ -263,7 +273,7 @@ def per_element_doubling(
     (with ``batch_last`` contiguous (n, n, *batch), …). ``masked``: the schedule without
     data-dependent control flow (default: while torch.compile / torch.export trace). Eager
     calls of at most :data:`FEW_ENTRIES` entries N n² take
-    :func:`~torchsde_lti.core._power_series.few_elements_doubling` (fewest torch calls); eager
+    :func:`~torchsde_lti.core._power_series.few_elements_series` (fewest torch calls); eager
     calls of many elements run chunk by chunk (:func:`chunk_elements`).
     """
     F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
@@ -271,8 +281,10 @@ def per_element_doubling(
     n, N = F.shape[-1], math.prod(batch)  # (a symbolic size while tracing: no guard on it)
     p = 0 if B is None else B.shape[-1]
     traced = tracing() if masked is None else masked
-    if not traced and N * n * n <= FEW_ENTRIES:
-        return few_elements_doubling(x, batch_last)
+    if not traced and N * n * n <= FEW_ENTRIES:  # one number of halvings s for all, no sort
+        E, Q, G, s = few_elements_series(x)
+        lo = _Layout(batch_first=True)
+        return _finish(_double_sorted(E + lo.eye(n, E), E, Q, G, [N] * s, lo), lo, None, batch, batch_last)
     Fb, Wb, Bb = _flat(F, batch, n), _flat(W, batch, n), _flat(B, batch, p)
     assert Fb is not None
     dtf = dt.expand(batch).reshape(N)

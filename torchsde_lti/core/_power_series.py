@@ -1,10 +1,9 @@
-r"""Scaling and doubling for an eager call of few elements (private).
+r"""The series of the doubling for an eager call of few elements (private).
 
 Every element takes the same number of halvings ``s = ⌈log₂(max ‖F‖_F dt / θ)⌉`` (from the host
-values of a small call, else one synchronisation), sums the Taylor
-series of :func:`_series` on its sub-step ``h = dt / 2^s`` and doubles s times (``Q ← A Q Aᵀ + Q``,
-``G ← A G + G``, ``A ← A A``), carrying ``E = A − I`` until ``‖A‖_F < 1/2``. Few torch calls: the
-powers of the series come from ⌈log₂ K⌉ products, one product doubles A, Q and G together.
+values of a small call, else one synchronisation) and sums the Taylor series of :func:`_series`
+on its sub-step ``h = dt / 2^s``, the powers from ⌈log₂ K⌉ products (few torch calls); module
+``_doubling`` doubles the result s times.
 """
 
 from __future__ import annotations
@@ -14,12 +13,11 @@ import math
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.series import derivative_order
 from torchsde_lti.core.thresholds import THETA_PER_ELEMENT
 from torchsde_lti.core.validation import SDEInputs, tracing
 
-__all__ = ["few_elements_doubling", "frobenius_norm"]
+__all__ = ["eye_matrix", "few_elements_series", "frobenius_norm"]
 
 
 def _flat(x: Tensor | None, batch: torch.Size, cols: int) -> Tensor | None:
@@ -105,7 +103,7 @@ def _series(M: Tensor, W: Tensor | None, B: Tensor | None, K: int) -> tuple[Tens
     three sums are contractions over the power index j.
     """
     N, n = M.shape[0], M.shape[-1]
-    eye = _eye(n, M).expand(N, n, n)
+    eye = eye_matrix(n, M).expand(N, n, n)
     S = torch.cat([eye, *(t for t in (W, B) if t is not None)], -1)  # power 0: (N, n, c)
     c = S.shape[-1]
     power, k = M, 1
@@ -128,7 +126,7 @@ def _series(M: Tensor, W: Tensor | None, B: Tensor | None, K: int) -> tuple[Tens
     return E, Q, G
 
 
-def _eye(n: int, like: Tensor) -> Tensor:
+def eye_matrix(n: int, like: Tensor) -> Tensor:
     """The (n, n) identity of ``like``'s dtype and device (cached except while tracing)."""
     key = (n, like.dtype, like.device)
     eye = _EYES.get(key)
@@ -140,50 +138,6 @@ def _eye(n: int, like: Tensor) -> Tensor:
 
 
 _EYES: dict[tuple[int, torch.dtype, torch.device], Tensor] = {}
-
-
-def _double_step(
-    A: Tensor, X: Tensor, near: Tensor | None, Q: Tensor | None, G: Tensor | None, eye: Tensor
-) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
-    """One doubling of every element: Q ← A Q Aᵀ + Q, G ← A G + G, A ← A A, where X holds
-    E = A − I (E ← E + A E) for the elements with ``near`` = 1 and A for those with 0 (None: all
-    E). One product A [X, Q, G] for the three. Returns (A, X, Q, G)."""
-    n = X.shape[-1]
-    parts = [X, *(t for t in (Q, G) if t is not None)]
-    R = torch.bmm(A, torch.cat(parts, -1) if len(parts) > 1 else X)
-    if Q is not None:
-        Q = torch.baddbmm(Q, R[..., n : 2 * n], A.mT)
-    if G is not None:
-        G = R[..., R.shape[-1] - G.shape[-1] :] + G
-    if near is None:
-        X = R[..., :n] + X
-        return X + eye, X, Q, G
-    X = torch.addcmul(R[..., :n], near, X)
-    return torch.addcmul(X, near, eye), X, Q, G
-
-
-def _has_decayed(A: Tensor) -> Tensor:
-    """Per element (bool (N, 1, 1)): ‖A‖_F < 1/2 — A has decayed and E = A − I no longer resolves it."""
-    with torch.no_grad():
-        return torch.linalg.vector_norm(A, dim=(-2, -1), keepdim=True) < 0.5
-
-
-def _double_eager(
-    E: Tensor, Q: Tensor | None, G: Tensor | None, steps: int
-) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    """``steps`` doublings of every element from E = A − I; an element switches from carrying E
-    to carrying A once its A has decayed (one synchronisation a doubling)."""
-    eye = _eye(E.shape[-1], E)
-    A, X, near = E + eye, E, None
-    for j in range(steps):
-        if j:
-            switch = _has_decayed(A) if near is None else _has_decayed(A) & (near > 0)
-            if bool(switch.any()):
-                sw = switch.to(A.dtype)
-                X = torch.addcmul(X, sw, eye)  # A where switched
-                near = 1.0 - sw if near is None else near * (1.0 - sw)
-        A, X, Q, G = _double_step(A, X, near, Q, G, eye)
-    return A, Q, G
 
 
 def _largest_reach(x: SDEInputs) -> float:
@@ -201,13 +155,14 @@ def _largest_reach(x: SDEInputs) -> float:
     return max(norms) * max(host["dt"])
 
 
-def few_elements_doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    """(A, Q, G) of an eager call of few elements, each with its own F, W, B and dt.
+def few_elements_series(x: SDEInputs) -> tuple[Tensor, Tensor | None, Tensor | None, int]:
+    """The series of an eager call of few elements, each with its own F, W, B and dt: (E_h, Q_h,
+    G_h, s) on the sub-step h = dt / 2^s, E_h = A_h − I, flat (N, n, n), (N, n, n) or None,
+    (N, n, p) or None for the N elements of ``x.batch``. Every element takes the same number of
+    halvings s = ⌈log₂(max ‖F‖_F dt / θ)⌉ (from :attr:`SDEInputs.host`, else one synchronisation).
 
     F: (..., n, n); W: (..., n, n) or None; B: (..., n, p) or None; dt: (...), broadcast to
-    ``x.batch``. Returns (*batch, n, n), (*batch, n, n) or None, (*batch, n, p) or None
-    (with ``batch_last`` contiguous (n, n, *batch), …). Every element takes the same number of
-    halvings s = ⌈log₂(max ‖F‖_F dt / θ)⌉ (from :attr:`SDEInputs.host`, else one synchronisation).
+    ``x.batch``.
     """
     F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
     assert dt is not None
@@ -228,11 +183,4 @@ def few_elements_doubling(x: SDEInputs, batch_last: bool = False) -> tuple[Tenso
     bound = theta if s else (2.0 ** math.ceil(math.log2(top)) if top > 0 else 0.0)  # (few cache keys)
     hc = _scaled(dtf, s).view(N, 1, 1)
     E, Q, G = _series(Fb * hc, Wb, Bb, power_terms(F.dtype, bound, n, derivative_order(F)))
-    Q, G = (None if t is None else t * hc for t in (Q, G))
-    A, Q, G = _double_eager(E, Q, G, s) if s else (E + _eye(n, E), Q, G)
-    if Q is not None:
-        Q = sym(Q)
-    out = [t if t is None or len(batch) == 1 else t.reshape(*batch, *t.shape[1:]) for t in (A, Q, G)]
-    if batch_last:
-        out = [None if t is None else t.movedim((-2, -1), (0, 1)).contiguous() for t in out]
-    return out[0], out[1], out[2]  # type: ignore[return-value]
+    return E, None if Q is None else Q * hc, None if G is None else G * hc, s
