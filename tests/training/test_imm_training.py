@@ -184,3 +184,29 @@ def test_imm_checkpoint_resume_continues_identically(tmp_path: Path) -> None:
         assert torch.equal(a[k], b[k]), k
     key = "kf.parametrizations.rates.original"
     assert not torch.equal(a[key], part["module"].state_dict()[key])  # training moved the rates
+
+
+@pytest.mark.parametrize("batch", [2, 3])  # equal to M (ran, with track b through mode b's H) and not (raised)
+def test_eval_rmse_of_an_imm_with_per_mode_H_scores_the_mixture_prediction(batch: int) -> None:
+    """val/rmse's one-step prediction of an IMM with H per mode (M, m, n) is the mixture's
+    Σ_j c_j H_j m⁻_j (written out here from the filter's per-mode outputs)."""
+    from torchsde_lti.data.tracks import TrackBatch
+
+    modes = [
+        models.constant_velocity(dim=2, dtype=torch.float64),
+        models.integrated_ou(0.5, 1.0, dim=2, dtype=torch.float64),
+    ]
+    H0 = models.position_observation(modes[0])
+    H = torch.stack([H0, 2.0 * H0])
+    imm = tl.IMMFilter(modes, H, torch.eye(2, dtype=torch.float64), torch.ones(2, 2, dtype=torch.float64))
+    module = KalmanFilterModule(imm)
+    g = torch.Generator().manual_seed(batch)
+    y = torch.randn(batch, 5, 2, generator=g, dtype=torch.float64)
+    dt = torch.rand(batch, 5, generator=g, dtype=torch.float64)
+    module._eval_step(
+        TrackBatch(y=y, dt=dt, mask=torch.ones(batch, 5, dtype=torch.bool), lengths=torch.full((batch,), 5)), "val"
+    )
+    out = imm(y, dt)
+    per_mode = torch.stack([out.mode_pred_mean[..., j, :] @ H[j].mT for j in range(2)], -2)  # (B, T, M, m)
+    pred = (out.pred_mode_probabilities.unsqueeze(-1) * per_mode).sum(-2)
+    assert module._squared_errors["val"][0].item() == pytest.approx(((pred - y) ** 2).sum().item(), rel=1e-12)

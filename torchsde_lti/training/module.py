@@ -276,7 +276,7 @@ class KalmanFilterModule(LightningModule):
         y, observed = info["y"], info["observed"]
         count = int(info["count"])
         self.log(f"{stage}/nll", nll, on_epoch=True, prog_bar=stage == "val", batch_size=count, sync_dist=True)
-        pred = out.pred_mean @ self.kf.H.mT  # one-step-ahead predicted observation (+ D u)
+        pred = self._predicted_observation(out)
         Du = self.kf.feedthrough(info["u"]) if isinstance(self.kf, KalmanFilter) else None
         pred = pred if Du is None else pred + Du
         err = torch.where(observed, pred - y, torch.zeros_like(y))
@@ -290,6 +290,15 @@ class KalmanFilterModule(LightningModule):
         previous = self._squared_errors.get(stage)
         self._squared_errors[stage] = total if previous is None else previous + total
         return loss
+
+    def _predicted_observation(self, out: Any) -> Tensor:
+        """The one-step-ahead predicted observation (..., T, m) (before the feedthrough D u):
+        ``H m⁻``; for an IMMFilter the mixture's ``Σ_j c_j H_j m⁻_j`` (H shared (m, n) or per
+        mode (M, m, n); c: the predicted mode probabilities)."""
+        if isinstance(self.kf, IMMFilter):
+            per_mode = (self.kf.H @ out.mode_pred_mean.unsqueeze(-1)).squeeze(-1)  # (..., T, M, m)
+            return (out.pred_mode_probabilities.unsqueeze(-1) * per_mode).sum(-2)
+        return out.pred_mean @ self.kf.H.mT
 
     def _log_rmse(self, stage: str) -> None:
         """``{stage}/rmse`` (and ``state_rmse``) over the whole epoch: √(Σ squared errors / Σ
