@@ -240,6 +240,30 @@ def test_smoother_explicit_A_Q_equal_stored():
     torch.testing.assert_close(a.mean, b.mean)
 
 
+@pytest.mark.parametrize("smoother", [sequential_rts, scan_rts], ids=["sequential", "scan"])
+def test_smoother_refuses_explicit_A_Q_the_filter_could_not_have_used(smoother):
+    """A, Q passed to the smoother take the filter's shapes: time axis absent, 1 or T, batch
+    broadcasting to the result's; anything else is a ValueError naming them (T − 1 steps too)."""
+    rng = np.random.default_rng(5)
+    d = random_problem(rng, batch=(3,), T=5, missing=False)
+    t = to_torch(d)
+    out = sequential_kf(t["y"], t["A"], t["Q"], t["H"], t["R"], t["m0"], t["P0"])
+    A, Q = t["A"], t["Q"]  # (3, 5, n, n)
+    n = A.shape[-1]
+    bad = {
+        "A": [A[:1].expand(4, 5, n, n), A[0, :2], A[0, 1:], A.unsqueeze(0).expand(2, 3, 5, n, n)],
+        "Q": [Q[:1].expand(4, 5, n, n), Q[0, :2]],
+    }
+    for name, shapes in bad.items():
+        for x in shapes:
+            with pytest.raises(ValueError, match=rf"\b{name}\b.*\({', '.join(map(str, x.shape[:-2]))}"):
+                smoother(out, **{name: x})
+    # accepted: a time axis of 1 (the same as that matrix at every step) or none, a batch of 1
+    const = smoother(out, A[:, 1:2], Q).mean
+    torch.testing.assert_close(smoother(out, A[:, 1:2].expand(3, 5, n, n), Q).mean, const)
+    torch.testing.assert_close(smoother(out, A[0, 1], Q[:1]).mean, smoother(out, A[:1, 1:2], Q).mean)
+
+
 # ----------------------------------------------------------------------------------------
 # NEES on data simulated from the true model
 # ----------------------------------------------------------------------------------------

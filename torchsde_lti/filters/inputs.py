@@ -46,6 +46,7 @@ __all__ = [
     "PreparedInputs",
     "assemble_result",
     "check_mask",
+    "check_time_axis",
     "complete_from_filtered",
     "mask_observation_model",
     "observed_components",
@@ -125,6 +126,16 @@ def check_mask(mask: Tensor | None, T: int, m: int, device: torch.device, y_ndim
     return mask
 
 
+def check_time_axis(x: Tensor, name: str, T: int, source: str) -> None:
+    """ValueError naming ``name`` unless the per-step matrix x (..., [T,] r, c) has no time
+    axis (2 dims) or one of length 1 or T; ``source`` says where T comes from ("y has T=5 …")."""
+    if x.dim() >= 3 and x.shape[-3] not in (1, T):
+        raise ValueError(
+            f"{name} has {x.shape[-3]} steps on its time axis (shape {shape_str(x)}) but {source}; "
+            "give a per-batch constant as (..., 1, r, c)"
+        )
+
+
 def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked:
     """Shapes (and, with ``validate_args``, values) of every argument; c = G u."""
     values = checks_values(validate_args)
@@ -170,8 +181,7 @@ def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked
             raise ValueError(
                 f"u must have shape (..., T={T}, {pD}) to match D {shape_str(D)}, got shape {shape_str(u)}"
             )
-        if D.dim() >= 3 and D.shape[-3] not in (1, T):
-            raise ValueError(f"D has {D.shape[-3]} steps on its time axis (shape {shape_str(D)}) but y has T={T}")
+        check_time_axis(D, "D", T, f"y has T={T} (shape {shape_str(y)})")
         if values:
             check_finite(D, "D")
             check_finite(u, "u")
@@ -188,12 +198,8 @@ def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked
     mask = check_mask(mask, T, m, device, y.dim())
 
     # Per-step arrays: check their T axis.
-    for name, x, k in (("A", A, 3), ("Q", Q, 3), ("H", H, 3), ("R", R, 3)):
-        if x.dim() >= k and x.shape[-k] not in (1, T):
-            raise ValueError(
-                f"{name} has {x.shape[-k]} steps on its time axis (shape {shape_str(x)}) but y has T={T} "
-                f"(shape {shape_str(y)}); give a per-batch constant as (..., 1, r, c)"
-            )
+    for name, x in (("A", A), ("Q", Q), ("H", H), ("R", R)):
+        check_time_axis(x, name, T, f"y has T={T} (shape {shape_str(y)})")
     if c is not None and c.shape[-2] not in (1, T):
         raise ValueError(f"u has {c.shape[-2]} steps but y has T={T}")
     per_step = [(name, x.shape[:-3]) for name, x in (("A", A), ("Q", Q), ("H", H), ("R", R)) if x.dim() > 3]

@@ -7,7 +7,8 @@ from torch import Tensor
 
 from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, sym
 from torchsde_lti.core.threads import with_threads
-from torchsde_lti.core.validation import check_matrix
+from torchsde_lti.core.validation import broadcast_shapes, check_matrix, shape_str
+from torchsde_lti.filters.inputs import check_time_axis
 from torchsde_lti.filters.kalman import check_algorithm
 from torchsde_lti.filters.results import FilterResult, SmootherResult
 from torchsde_lti.filters.scan import Elems, associative_scan, prefers_scan
@@ -18,6 +19,28 @@ __all__ = ["SMOOTHER_ALGORITHMS", "rts_smoother"]
 SMOOTHER_ALGORITHMS = ("auto", "sequential", "scan")
 
 
+def _check_model(x: Tensor, name: str, result: FilterResult) -> Tensor:
+    """x, an explicitly passed A or Q (..., [T,] n, n) of the filter that gave ``result``
+    (mean (*batch, T, n)): ValueError naming ``name`` and the shapes unless it is n × n, has
+    no time axis or one of length 1 or T, and its batch broadcasts to the result's."""
+    mean = result.mean
+    n, T, batch = mean.shape[-1], mean.shape[-2], tuple(mean.shape[:-2])
+    x = torch.as_tensor(x)
+    check_matrix(x, name, rows=n, cols=n)
+    check_time_axis(x, name, T, f"the filter result has T={T} (mean shape {shape_str(mean)})")
+    own = tuple(x.shape[:-3])
+    try:
+        fits = tuple(broadcast_shapes(batch, own)) == batch
+    except ValueError:
+        fits = False
+    if not fits:
+        raise ValueError(
+            f"{name} of shape {shape_str(x)} has batch shape ({', '.join(map(str, own))}), which does not "
+            f"broadcast to the filter result's batch ({', '.join(map(str, batch))}) (mean shape {shape_str(mean)})"
+        )
+    return x
+
+
 def _smoother_elements(result: FilterResult, A: Tensor | None, Q: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
     """Per-step (E_k, g_k, C_k) with ``x_k | x_{k+1}, y ~ N(g_k + E_k x_{k+1}, C_k)``.
 
@@ -26,12 +49,10 @@ def _smoother_elements(result: FilterResult, A: Tensor | None, Q: Tensor | None)
     C_k = (I − E_k A_{k+1}) P_k (I − E_k A_{k+1})ᵀ + E_k Q_{k+1} E_kᵀ (Joseph form of
     P_k − E_k P⁻_{k+1} E_kᵀ: a sum of PSD terms). The last step has E = 0, g = m, C = P.
     """
-    A = result.transition if A is None else A
-    Q = result.process_noise if Q is None else Q
+    A = result.transition if A is None else _check_model(A, "A", result)
+    Q = result.process_noise if Q is None else _check_model(Q, "Q", result)
     mf, Pf, pm, Pp = result.mean, result.cov, result.pred_mean, result.pred_cov
     n, T = mf.shape[-1], mf.shape[-2]
-    check_matrix(A, "A", rows=n, cols=n)
-    check_matrix(Q, "Q", rows=n, cols=n)
     # Work at the covariance batch (filtered covariances are usually broadcast views).
     A1 = A[..., 1:, :, :] if A.dim() >= 3 and A.shape[-3] == T else A
     Q1 = Q[..., 1:, :, :] if Q.dim() >= 3 and Q.shape[-3] == T else Q
@@ -67,7 +88,9 @@ def rts_smoother(
     Args:
         result: a :class:`FilterResult` (mean, cov, pred_mean, pred_cov over T steps).
         A, Q: (..., T, n, n) the transitions/noises the filter used; default: those stored
-            in ``result`` (``result.transition``, ``result.process_noise``).
+            in ``result`` (``result.transition``, ``result.process_noise``). As in the
+            filter, the time axis may be 1 or absent (a constant (n, n)); the batch must
+            broadcast to the result's. ValueError naming A or Q and the shapes otherwise.
         algorithm: one of :data:`SMOOTHER_ALGORITHMS`, same results up to rounding:
             ``"sequential"`` (backward loop), ``"scan"`` (reverse associative scan of
             (E, g, C), Särkkä & García-Fernández 2021, O(log T) depth) or ``"auto"`` (the
