@@ -11,7 +11,8 @@ broadcast, numpy rules, right-aligned)::
 Per-step arrays may omit or size-1 the T axis (a constant ``H (m, n)`` is fine); a
 per-batch constant matrix needs its T axis as 1, e.g. ``A (B, 1, n, n)``.
 
-Three stages: argument checks (shapes always; values while value checks are on), masking
+Three stages: argument checks (shapes always; values while value checks are on, and then
+Q, R, P0 taken as their symmetric parts: one function, one symmetric gradient), masking
 (a NaN in y or mask False = not observed: y is sanitised with ``where(observed, y, 0)``,
 unobserved components get a zero row in H and a decoupled unit variance in R, so every
 step keeps static shapes and the log-likelihood counts observed components only), and
@@ -52,6 +53,7 @@ __all__ = [
     "observed_components",
     "pad_dims",
     "prepare_inputs",
+    "symmetric_part",
     "whiten",
 ]
 
@@ -136,6 +138,17 @@ def check_time_axis(x: Tensor, name: str, T: int, source: str) -> None:
         )
 
 
+def symmetric_part(x: Tensor) -> Tensor:
+    """``(X + Xᵀ) / 2`` of x (..., k, k), formed at x's own extent: a broadcast (stride-0)
+    batch dim is symmetrised once and expanded again, so a shared matrix passed as a broadcast
+    view (B, T, k, k) costs one k × k matrix, not B·T. Its gradient is the symmetric part of
+    the incoming one, whatever an algorithm does with the upper and lower triangles."""
+    if x.dim() == 2:
+        return sym(x)
+    compact = tuple(slice(0, 1) if st == 0 and sz > 1 else slice(None) for sz, st in zip(x.shape[:-2], x.stride()))
+    return sym(x[compact]).expand(x.shape)
+
+
 def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked:
     """Shapes (and, with ``validate_args``, values) of every argument; c = G u."""
     values = checks_values(validate_args)
@@ -216,6 +229,8 @@ def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked
         check_symmetric_psd(P0, "P0")
         if bool((torch.linalg.cholesky_ex(R).info != 0).any()):
             raise ValueError(f"R must be positive definite (Cholesky failed; shape {shape_str(R)})")
+    if validate_args:  # (also while traced: no value is read)
+        Q, R, P0 = symmetric_part(Q), symmetric_part(R), symmetric_part(P0)
     return _Checked(FilterInputs(y, A, Q, H, R, m0, P0, G, u, mask, D), c, T, n)
 
 

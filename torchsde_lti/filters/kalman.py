@@ -109,8 +109,11 @@ def kalman_filter(
         chunk: with the scan, time steps per scan chunk, a positive int (None: the largest
             chunk with batch · chunk ≤ :data:`~torchsde_lti.filters.scan.SCAN_MAX_ELEMENTS`).
         validate_args: check the values (y without Inf; finite A, H, m0, u, D; Q, P0
-            symmetric PSD; R positive definite); shapes are always checked. Modules that
-            assemble already valid matrices pass False.
+            symmetric PSD; R positive definite), then use the checked Q, R, P0 as their
+            symmetric parts ``(X + Xᵀ) / 2``, so every algorithm computes the same function
+            of them and returns the same, symmetric gradient (a gradient step keeps a learned
+            Q symmetric); shapes are always checked. Modules that assemble already valid
+            (exactly symmetric) matrices pass False: the matrices are then used as given.
 
     Returns:
         :class:`FilterResult`; every output broadcasts to the full batch ``...``.
