@@ -388,6 +388,52 @@ def _batch_mismatches() -> dict[str, object]:
     }
 
 
+def _named_batch_mismatches() -> dict[str, tuple[object, str]]:
+    """Calls of 3 tracks against a batch of 4 in u or in the model (its H, R or parameters),
+    each with the argument the error must name."""
+    F64 = torch.float64
+    T, m, p = 5, 1, 1
+    H, R = torch.tensor([[1.0, 0.0]], dtype=F64), torch.eye(1, dtype=F64)
+    A, Q = torch.tensor([[1.0, 1.0], [0.0, 1.0]], dtype=F64), 0.1 * torch.eye(2, dtype=F64)
+    m0, P0 = torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64)
+    y, u4 = torch.randn(3, T, m, dtype=F64), torch.ones(4, T, p, dtype=F64)
+    col = torch.tensor([[0.0], [1.0]], dtype=F64)
+    sde_B = tl.LTISDE(torch.tensor([[0.0, 1.0], [-1.0, -0.3]], dtype=F64), col, torch.eye(1, dtype=F64), B=col)
+    kf_D = tl.KalmanFilter(sde_B, H, R, D=torch.ones(m, p, dtype=F64))
+    cv = tl.models.constant_velocity(dim=1, dtype=F64)
+    kf_H = tl.KalmanFilter(cv, H.expand(4, m, 2), R)
+    kf_R = tl.KalmanFilter(cv, H, R.expand(4, m, m))
+    kf_q = tl.KalmanFilter(tl.models.constant_velocity(dim=1, q=torch.ones(4, dtype=F64), dtype=F64), H, R, P0=P0)
+    state3 = (torch.zeros(3, 2, dtype=F64), P0.expand(3, 2, 2))
+    y3, dt = torch.randn(3, m, dtype=F64), torch.ones(2, dtype=F64)
+    return {
+        "kalman_filter, u batch (D)": (
+            lambda: tl.kalman_filter(y, A, Q, H, R, m0, P0, D=torch.ones(m, p, dtype=F64), u=u4),
+            "u: (4)",
+        ),
+        "kalman_filter, u batch (G)": (
+            lambda: tl.kalman_filter(y, A, Q, H, R, m0, P0, G=torch.ones(3, T, 2, p, dtype=F64), u=u4),
+            "u: (4)",
+        ),
+        "kf with B and D, u batch": (lambda: kf_D(y, torch.ones(3, T, dtype=F64), u=u4), "u: (4)"),
+        "kf.step with D, u batch": (lambda: kf_D.step(kf_D.initial_state(3), y3, 1.0, u=u4[:, 0]), "u: (4)"),
+        "kf.step, R batch": (lambda: kf_R.step(state3, y3, 1.0), "R: (4)"),
+        "kf.step, parameter batch": (lambda: kf_q.step(state3, y3, 1.0), "Qc: (4)"),
+        "kf.predict, parameter batch": (lambda: kf_q.predict(state3, 1.0), "Qc: (4)"),
+        "kf.forecast, H batch": (lambda: kf_H.forecast(state3, dt), "H: (4)"),
+        "kf.forecast, R batch": (lambda: kf_R.forecast(state3, dt), "R: (4)"),
+        "kf.forecast, parameter batch": (lambda: kf_q.forecast(state3, dt), "Qc: (4)"),
+    }
+
+
+@pytest.mark.parametrize("name", list(_named_batch_mismatches()))
+def test_batch_mismatches_in_u_or_the_model_name_that_argument(name: str) -> None:
+    call, named = _named_batch_mismatches()[name]
+    with pytest.raises(ValueError, match="batch shapes do not broadcast") as info:
+        call()  # type: ignore[operator]
+    assert named in str(info.value) and "(3)" in str(info.value), str(info.value)
+
+
 @pytest.mark.parametrize("name", list(_batch_mismatches()))
 def test_batch_shapes_that_do_not_broadcast_raise_value_errors_naming_the_arguments(name: str) -> None:
     with pytest.raises(ValueError, match="batch shapes do not broadcast|mask must have shape"):

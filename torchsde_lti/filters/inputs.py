@@ -149,6 +149,11 @@ def symmetric_part(x: Tensor) -> Tensor:
     return sym(x[compact]).expand(x.shape)
 
 
+def _batched(x: Tensor | None) -> bool:
+    """Whether the per-step matrix x (..., [T,] r, c) has batch dims (ahead of its time axis)."""
+    return x is not None and x.dim() > 3
+
+
 def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked:
     """Shapes (and, with ``validate_args``, values) of every argument; c = G u."""
     values = checks_values(validate_args)
@@ -187,7 +192,7 @@ def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked
             "but G and D are None"
         )
     if D is not None and u is not None:
-        # Feedthrough y = H x + D u + r: filter y − D u (NaN stays NaN, so missing data keep their meaning).
+        # Feedthrough y = H x + D u + r: filter y − D u (formed below, once the batches are checked).
         check_matrix(D, "D", rows=m)
         pD = D.shape[-1]
         if u.dim() < 2 or u.shape[-1] != pD or u.shape[-2] not in (1, T):
@@ -197,27 +202,32 @@ def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked
         check_time_axis(D, "D", T, f"y has T={T} (shape {shape_str(y)})")
         if values:
             check_finite(D, "D")
-            check_finite(u, "u")
-        y = y - matvec(D, u)
-    c = None
     if G is not None and u is not None:
         check_matrix(G, "G", rows=n)
         p = G.shape[-1]
         if u.dim() < 2 or u.shape[-1] != p:
             raise ValueError(f"u must have shape (..., T, {p}) to match G {shape_str(G)}, got shape {shape_str(u)}")
-        if values:
-            check_finite(u, "u")
-        c = matvec(G, u)  # (..., T, n)
+        if u.shape[-2] not in (1, T):
+            raise ValueError(f"u has {u.shape[-2]} steps (shape {shape_str(u)}) but y has T={T}")
+        check_time_axis(G, "G", T, f"y has T={T} (shape {shape_str(y)})")
+    if values and u is not None:
+        check_finite(u, "u")
     mask = check_mask(mask, T, m, device, y.dim())
 
-    # Per-step arrays: check their T axis.
+    # Per-step arrays: check their T axis; then every batch, before any arithmetic combines them.
     for name, x in (("A", A), ("Q", Q), ("H", H), ("R", R)):
         check_time_axis(x, name, T, f"y has T={T} (shape {shape_str(y)})")
-    if c is not None and c.shape[-2] not in (1, T):
-        raise ValueError(f"u has {c.shape[-2]} steps but y has T={T}")
-    per_step = [(name, x.shape[:-3]) for name, x in (("A", A), ("Q", Q), ("H", H), ("R", R)) if x.dim() > 3]
+    per_step = [
+        (k, x.shape[:-3]) for k, x in (("A", A), ("Q", Q), ("H", H), ("R", R), ("G", G), ("D", D)) if _batched(x)
+    ]
     other = [("m0", m0.shape[:-1]), ("P0", P0.shape[:-2]), *([] if mask is None else [("mask", mask.shape[:-2])])]
-    broadcast_batch([("y", y.shape[:-2]), *per_step, *other, *([] if c is None else [("u", c.shape[:-2])])])
+    broadcast_batch([("y", y.shape[:-2]), *per_step, *other, *([] if u is None else [("u", u.shape[:-2])])])
+    c = None
+    if u is not None:
+        if D is not None:
+            y = y - matvec(D, u)  # (NaN stays NaN, so missing data keep their meaning)
+        if G is not None:
+            c = matvec(G, u)  # (..., T, n)
 
     if values:
         check_no_inf(y, "y")

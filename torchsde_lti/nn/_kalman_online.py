@@ -44,7 +44,7 @@ from torchsde_lti.nn._online import (
 from torchsde_lti.nn._validate import ValidateArgs, online_report
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
 
-__all__ = ["KalmanOnline", "OnlineModel", "state_batches"]
+__all__ = ["KalmanOnline", "OnlineModel", "model_batches", "state_batches"]
 
 #: The evaluated model of online calls: (SDE matrices, H, R, D, the discretisation series of
 #: one parameter set or None), see :meth:`KalmanOnline._online_model`.
@@ -129,8 +129,16 @@ class KalmanOnline(ValidateArgs, nn.Module):
         mats, H, R, D, series = model
         state, dt, u = self._check_state(state, dt, u, mats)
         y, mask = online_report(y, mask, H, mats.F.dtype, mats.F.device)
-        check_batches([*state_batches(state), ("y", y.shape[:-1]), ("dt", dt.shape)])
         D = D if u is not None else None
+        check_batches(
+            [
+                *state_batches(state),
+                ("y", y.shape[:-1]),
+                ("dt", dt.shape),
+                *([] if u is None else [("u", u.shape[:-1])]),
+                *model_batches(mats, H=H, R=R, D=D),
+            ]
+        )
         if self.validate_args:
             self._check_values(mats, dt, y=y, u=u, H=H, R=R, D=D, mean=state.mean, cov=state.cov)
         A, Q, c = self._online_step_model(mats, dt, u, series)
@@ -142,7 +150,14 @@ class KalmanOnline(ValidateArgs, nn.Module):
         """Prediction only, each track over its own dt (...): ``m⁻ = A m + G u``, ``P⁻ = A P Aᵀ + Q``."""
         mats, _, _, _, series = evaluated(self, self._online_model)
         state, dt, u = self._check_state(state, dt, u, mats)
-        check_batches([*state_batches(state), ("dt", dt.shape), *([] if u is None else [("u", u.shape[:-1])])])
+        check_batches(
+            [
+                *state_batches(state),
+                ("dt", dt.shape),
+                *([] if u is None else [("u", u.shape[:-1])]),
+                *model_batches(mats),
+            ]
+        )
         if self.validate_args:
             self._check_values(mats, dt, u=u, mean=state.mean, cov=state.cov)
         return kalman_predict(state, *self._online_step_model(mats, dt, u, series))
@@ -201,3 +216,11 @@ class KalmanOnline(ValidateArgs, nn.Module):
 def state_batches(state: KalmanState) -> list[tuple[str, tuple[int, ...]]]:
     """The named batch shapes of a Kalman state's fields (for :func:`~torchsde_lti.nn._online.check_batches`)."""
     return [("state.mean", tuple(state.mean.shape[:-1])), ("state.cov", tuple(state.cov.shape[:-2]))]
+
+
+def model_batches(mats: SDEMatrices, **named: Tensor | None) -> list[tuple[str, tuple[int, ...]]]:
+    """The named batch shapes of a model's matrices (..., r, c): the SDE's F, L, Qc, B (a
+    parameter batch) and ``named`` ones such as H, R, D (None skipped), for
+    :func:`~torchsde_lti.nn._online.check_batches`."""
+    pairs = [*zip(SDEMatrices._fields, mats), *named.items()]
+    return [(f"sde.{k}" if k in SDEMatrices._fields else k, tuple(x.shape[:-2])) for k, x in pairs if x is not None]

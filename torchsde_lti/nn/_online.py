@@ -78,10 +78,11 @@ def tracks_shape(batch_shape: object) -> tuple[int, ...]:
 
 
 def check_batches(named: Sequence[tuple[str, Sequence[int]]]) -> None:
-    """ValueError naming the batch shapes ``named`` when they do not broadcast (nothing to
-    check when they are equal)."""
-    if any(tuple(shape) != tuple(named[0][1]) for _, shape in named[1:]):
-        broadcast_batch(named)
+    """ValueError naming the batch shapes ``named`` when they do not broadcast (an empty batch
+    broadcasts with any and is left out; nothing to check when the others are equal)."""
+    shaped = [(name, shape) for name, shape in named if len(shape)]
+    if any(tuple(shape) != tuple(shaped[0][1]) for _, shape in shaped[1:]):
+        broadcast_batch(shaped)
 
 
 def online_state(state: object, dt: Tensor | float, F: Tensor) -> tuple[KalmanState, Tensor]:

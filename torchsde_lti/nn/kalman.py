@@ -80,7 +80,7 @@ from torchsde_lti.filters import (
 from torchsde_lti.filters.inputs import FilterInputs
 from torchsde_lti.filters.kalman import ALGORITHMS, check_algorithm, run_filter
 from torchsde_lti.filters.results import serializable
-from torchsde_lti.nn._kalman_online import KalmanOnline, state_batches
+from torchsde_lti.nn._kalman_online import KalmanOnline, model_batches, state_batches
 from torchsde_lti.nn._online import check_batches, online_state
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import check_outcome, check_values
@@ -506,10 +506,15 @@ class KalmanFilter(KalmanOnline):
             if u is not None:
                 p = mats.B.shape[-1] if mats.B is not None else (self.D.shape[-1] if self.D is not None else 0)
                 u = self._check_u(u, p, dt.shape[-1], "K", F.dtype, F.device)
-            check_batches(
-                [*state_batches(checked), ("dt", dt.shape[:-1]), *([] if u is None else [("u", u.shape[:-2])])]
-            )
             H, R, D = self.H, self.R, self.D
+            check_batches(
+                [
+                    *state_batches(checked),
+                    ("dt", dt.shape[:-1]),
+                    *([] if u is None else [("u", u.shape[:-2])]),
+                    *model_batches(mats, H=H, R=R, D=D if u is not None else None),
+                ]
+            )
             if self.validate_args:
                 self._check_values(mats, dt, u=u, H=H, R=R, D=D, mean=mean, cov=cov)
             d = self._discretize(dt, mats, series_layout=False)
