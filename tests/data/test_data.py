@@ -244,6 +244,14 @@ def test_datamodule_splits_and_batches(dtype: str) -> None:
     assert not torch.equal(dm.tracks["train"].x[:3], dm.tracks["val"].x[:3])
 
 
+def test_datamodule_batch_size_null_is_a_whole_split_per_batch() -> None:
+    """data.batch_size=null (accepted by the config check, as by TrackDataModule): one batch a split."""
+    dm = _dm(batch_size=None)
+    dm.setup("fit")
+    assert [len(list(loader)) for loader in (dm.train_dataloader(), dm.val_dataloader())] == [1, 1]
+    assert next(iter(dm.train_dataloader())).y.shape[0] == 10
+
+
 @pytest.mark.parametrize(
     ("kw", "match"),
     [
@@ -253,6 +261,7 @@ def test_datamodule_splits_and_batches(dtype: str) -> None:
         ({"p_missing": 1.0}, "p_missing"),
         ({"num_tracks": {"train": 0, "val": 1, "test": 1}}, "num_tracks"),
         ({"dtype": "float16"}, "dtype"),
+        ({"batch_size": 0}, "batch_size"),
     ],
 )
 def test_datamodule_rejects_bad_values(kw: dict, match: str) -> None:

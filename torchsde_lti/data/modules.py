@@ -55,7 +55,7 @@ class SimulatedTracks(LightningDataModule):
         p_missing: probability that a step's observation is missing.
         control_std: i.i.d. Gaussian control inputs (needs ``sde.B``); None = no inputs.
         init_std: prior standard deviation of every state coordinate at t0 (m0 = 0).
-        batch_size: tracks per batch; seed: simulation and shuffling seed;
+        batch_size: tracks per batch (None: a whole split per batch); seed: simulation and shuffling seed;
         dtype: "float64" or "float32" for the batches.
 
     Attributes after construction: ``truth`` = {"sde", "R"} (for parameter errors),
@@ -74,7 +74,7 @@ class SimulatedTracks(LightningDataModule):
         p_missing: float = 0.0,
         control_std: float | None = None,
         init_std: float = 1.0,
-        batch_size: int = 64,
+        batch_size: int | None = 64,
         seed: int = 0,
         dtype: str = "float64",
     ) -> None:
@@ -89,8 +89,8 @@ class SimulatedTracks(LightningDataModule):
             raise ValueError(f"data.p_missing must be in [0, 1), got {p_missing}")
         if not init_std > 0:
             raise ValueError(f"data.init_std must be positive, got {init_std}")
-        if int(batch_size) < 1:
-            raise ValueError(f"data.batch_size must be >= 1, got {batch_size}")
+        if batch_size is not None and int(batch_size) < 1:
+            raise ValueError(f"data.batch_size must be >= 1 or null (a whole split per batch), got {batch_size}")
         if dtype not in ("float32", "float64"):
             raise ValueError(f"data.dtype must be 'float32' or 'float64', got {dtype!r}")
         splits = {"train": 200, "val": 50, "test": 50} if num_tracks is None else dict(num_tracks)
@@ -104,7 +104,8 @@ class SimulatedTracks(LightningDataModule):
         self.num_tracks = {k: int(splits[k]) for k in ("train", "val", "test")}
         self.dt_sampler = ExponentialDt(0.1) if dt is None else dt
         self.p_missing, self.control_std = float(p_missing), control_std
-        self.batch_size, self.seed, self.dtype = int(batch_size), int(seed), getattr(torch, dtype)
+        self.batch_size = None if batch_size is None else int(batch_size)
+        self.seed, self.dtype = int(seed), getattr(torch, dtype)
         self.R = isotropic_covariance(self.noise, m)
         self.m0 = torch.zeros(n, dtype=torch.float64)
         self.P0 = float(init_std) ** 2 * torch.eye(n, dtype=torch.float64)
@@ -138,7 +139,8 @@ class SimulatedTracks(LightningDataModule):
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         ds = self.dataset(split)
         sampler = EpochShuffleSampler(len(ds), self.seed) if shuffle else None
-        return DataLoader(ds, batch_size=self.batch_size, sampler=sampler, collate_fn=collate_tracks)
+        size = len(ds) if self.batch_size is None else self.batch_size
+        return DataLoader(ds, batch_size=max(size, 1), sampler=sampler, collate_fn=collate_tracks)
 
     def train_dataloader(self) -> DataLoader:
         return self._loader("train", shuffle=True)
