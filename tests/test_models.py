@@ -370,6 +370,22 @@ def test_positive_for_arbitrary_raw_values(raws: list[float]) -> None:
     assert np.trace(F) < 0 and np.linalg.det(F) > 0
 
 
+@pytest.mark.parametrize("nu", [0.5, 1.5, 2.5])
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("raws", [(-20.0, 100.0), (-1e6, 1e6), (1e6, -1e6), (0.0, 3e30)])
+def test_matern_matrices_finite_for_extreme_raw_values(
+    nu: float, dtype: torch.dtype, raws: tuple[float, float]
+) -> None:
+    """Qc = c σ² λ^{2ν} stays finite (and positive) for any finite raw lengthscale and variance:
+    float32 ν = 5/2 at the lengthscale floor overflowed to Inf."""
+    gp = models.matern(nu, dtype=dtype)
+    with torch.no_grad():
+        gp.parametrizations.lengthscale.original.fill_(raws[0])
+        gp.parametrizations.variance.original.fill_(raws[1])
+    mats = gp.matrices()
+    assert bool(torch.isfinite(mats.F).all()) and bool(torch.isfinite(mats.Qc).all()) and mats.Qc.item() > 0
+
+
 def test_scalars_stay_positive_under_large_learning_rate() -> None:
     s = models.singer(0.8, 1.2, dim=1, dtype=F64)
     opt = torch.optim.SGD(s.parameters(), lr=50.0)

@@ -59,7 +59,11 @@ class Matern(StructuredSDE):
         last = -self._binom * lam[..., None] ** self._powers  # (..., m)
         sel = self._top[:, 0]  # e_m
         F = self._chain + sel[:, None] * last[..., None, :]
-        qc = self._qc_const * var.expand(batch) * lam ** (2 * self.nu)
+        # Qc = c σ² λ^{2ν} in logs, capped below the dtype's largest number (/16: room for the
+        # discretisation's sums): finite for any finite raw lengthscale and variance
+        top = math.log(torch.finfo(lam.dtype).max / 16.0)
+        log_qc = math.log(self._qc_const) + torch.log(var.expand(batch)) + 2.0 * self.nu * torch.log(lam)
+        qc = torch.exp(log_qc.clamp_max(top))
         L = self._top.expand(*batch, m, 1)
         return SDEMatrices(F, L, qc[..., None, None], None)
 
