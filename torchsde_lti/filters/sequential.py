@@ -30,7 +30,20 @@ from torchsde_lti.core.linalg import bl_matmul, bl_matvec, bl_sym_into, from_bat
 from torchsde_lti.filters.inputs import PreparedInputs, assemble_result, complete_from_filtered
 from torchsde_lti.filters.results import FilterResult
 
-__all__ = ["sequential_filter", "structured_filtered"]
+__all__ = ["CHUNKED_MIN_BYTES", "CHUNK_BYTES", "sequential_filter", "structured_filtered"]
+
+#: Eager CPU filters at one intra-op thread whose per-track covariances (tracks · n² entries)
+#: take more than CHUNKED_MIN_BYTES run the loop chunk by chunk of tracks along the leading
+#: batch dimension, a chunk CHUNK_BYTES of covariances: each step's batch-last temporaries then
+#: stay in the caches, which a loop over all tracks at once streams through memory every
+#: operation (``python experiments/filter_chunks.py``).
+CHUNKED_MIN_BYTES = 1 << 23
+CHUNK_BYTES = 1 << 20
+
+#: Event dimensions of the fields of :class:`~torchsde_lti.filters.inputs.PreparedInputs`
+#: (the dimensions after the batch).
+_EVENT_DIMS = {"A": 3, "Q": 3, "Hw": 3, "yw": 2, "c": 2, "m0": 1, "P0": 2, "H": 3, "R": 3, "y0": 2, "obs": 2}
+_EVENT_DIMS["log_det_chol_R"] = 1
 
 
 def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterResult:
@@ -47,6 +60,75 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
     """
     if structured:
         return complete_from_filtered(prep, *structured_filtered(prep))
+    rows = _chunk_rows(prep)
+    pm_bl, pc_bl, fm_bl, fc_bl, e_t, s_t = _loop(prep) if rows is None else _chunked_loop(prep, rows)
+    m_dim, nd = prep.yw.shape[-1], len(prep.mean_batch)
+    # Innovations and their covariances, batched over all steps in the same layout.
+    H_bl = to_batch_last(prep.H, 2, time=True)  # (T or 1, m, n, *)
+    R_bl = to_batch_last(prep.R, 2, time=True)
+    y0_bl = to_batch_last(prep.y0, 1, time=True)
+    n = pm_bl.shape[1]
+    if H_bl.shape[0] == 1 and all(d == 1 for d in H_bl.shape[3:]):
+        # One H for every step and track: contract with a single matrix product (BLAS) on
+        # the flattened (T, n·n, batch) covariances.
+        Hm = H_bl.reshape(H_bl.shape[1:3])  # (m, n)
+        bshape = pc_bl.shape[3:]
+        mshape = pm_bl.shape[2:]  # explicit sizes below: -1 is ambiguous for an empty batch
+        innov = y0_bl - (Hm @ pm_bl.reshape(prep.T, n, math.prod(mshape))).reshape(prep.T, m_dim, *mshape)
+        HH = (Hm[:, None, :, None] * Hm[None, :, None, :]).reshape(m_dim * m_dim, n * n)  # (m², n²)
+        S = (HH @ pc_bl.reshape(prep.T, n * n, math.prod(bshape))).reshape(prep.T, m_dim, m_dim, *bshape) + R_bl
+    else:
+        # (accumulated over the contracted index: no (T, m, n, n, *batch) intermediate)
+        innov = y0_bl
+        HP = None
+        for j in range(n):
+            innov = innov - H_bl[:, :, j] * pm_bl[:, j : j + 1]
+            term = H_bl[:, :, j : j + 1] * pc_bl[:, j : j + 1]  # (T, m, n, *)
+            HP = term if HP is None else HP + term
+        assert HP is not None
+        S = R_bl
+        for j in range(n):
+            S = S + HP[:, :, j : j + 1] * H_bl[:, :, j].unsqueeze(1)  # (T, m, m, *)
+    S = 0.5 * (S + S.transpose(1, 2))
+    mean_t = from_batch_last(fm_bl, 1, nd)
+    cov_t = from_batch_last(fc_bl, 2, nd)
+    pmean_t = from_batch_last(pm_bl, 1, nd)
+    pcov_t = from_batch_last(pc_bl, 2, nd)
+    terms = torch.log(s_t) + e_t * e_t / s_t
+    core = -0.5 * terms.reshape(prep.T, m_dim, *terms.shape[1:]).sum(1)  # (T, *mb)
+    core = core.permute(*range(1, core.dim()), 0)  # (*mb, T)
+    innovation = from_batch_last(innov, 1, nd)
+    innovation_cov = from_batch_last(S, 2, nd)
+    return assemble_result(prep, (mean_t, cov_t), (pmean_t, pcov_t), core, (innovation, innovation_cov))
+
+
+def _chunk_rows(prep: PreparedInputs) -> int | None:
+    """Rows of the leading batch dimension per chunk of an eager CPU loop at one intra-op
+    thread (the caller's setting, or a busy machine's: :mod:`~torchsde_lti.core.threads`) whose
+    per-track covariances take more than :data:`CHUNKED_MIN_BYTES` (a chunk about
+    :data:`CHUNK_BYTES` of them); None where the loop runs on all tracks at once (traced, off
+    the CPU, more threads, a covariance batch that is not the tracks' leading dimension, or a
+    small one)."""
+    mb, A = prep.mean_batch, prep.A
+    if not mb or A.device.type != "cpu" or torch.compiler.is_compiling() or torch.compiler.is_exporting():
+        return None
+    if torch.get_num_threads() > 1:  # (chunks take many small ops: each a parallel region at 2+ threads)
+        return None
+    cb = torch.broadcast_shapes(A.shape[:-3], prep.P0.shape[:-2])
+    if len(cb) != len(mb) or cb[0] != mb[0] or mb[0] < 2:
+        return None
+    n = A.shape[-1]
+    row_bytes = math.prod(cb[1:]) * n * n * A.element_size()
+    if mb[0] * row_bytes <= CHUNKED_MIN_BYTES:
+        return None
+    rows = max(1, CHUNK_BYTES // max(row_bytes, 1))
+    return rows if rows < mb[0] else None
+
+
+def _loop(prep: PreparedInputs) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The loop of :func:`sequential_filter`, batch-last: predicted means (T, n, *mb) and
+    covariances (T, n, n, *cb), filtered ones (same shapes), innovations of the whitened
+    scalar updates (T m, *mb) and their variances (T m, *cb)."""
     m_dim = prep.yw.shape[-1]
     # Batch-last layout: per-step tensors (n, n, *batch) keep the batch as the contiguous
     # inner dimension, so every elementwise op and the broadcast-and-sum products below run
@@ -63,7 +145,6 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
 
     mean = to_batch_last(prep.m0, 1)  # (n, *mb)
     P = to_batch_last(prep.P0, 2)  # (n, n, *cb)
-    nd = len(prep.mean_batch)
     means, covs, pmeans, pcovs, es, ss = [], [], [], [], [], []
     # Without autograd the covariances are written straight into (T, n, n, *cb) outputs
     # (no stack of T tensors at the end); with autograd they are stacked.
@@ -108,43 +189,28 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
     fc_bl = torch.stack(covs) if fc_buf is None else fc_buf
     e_t = torch.stack(torch.broadcast_tensors(*es))  # (T m, *mb)
     s_t = torch.stack(ss)  # (T m, *cb)
-    # Innovations and their covariances, batched over all steps in the same layout.
-    H_bl = to_batch_last(prep.H, 2, time=True)  # (T or 1, m, n, *)
-    R_bl = to_batch_last(prep.R, 2, time=True)
-    y0_bl = to_batch_last(prep.y0, 1, time=True)
-    n = pm_bl.shape[1]
-    if H_bl.shape[0] == 1 and all(d == 1 for d in H_bl.shape[3:]):
-        # One H for every step and track: contract with a single matrix product (BLAS) on
-        # the flattened (T, n·n, batch) covariances.
-        Hm = H_bl.reshape(H_bl.shape[1:3])  # (m, n)
-        bshape = pc_bl.shape[3:]
-        mshape = pm_bl.shape[2:]  # explicit sizes below: -1 is ambiguous for an empty batch
-        innov = y0_bl - (Hm @ pm_bl.reshape(prep.T, n, math.prod(mshape))).reshape(prep.T, m_dim, *mshape)
-        HH = (Hm[:, None, :, None] * Hm[None, :, None, :]).reshape(m_dim * m_dim, n * n)  # (m², n²)
-        S = (HH @ pc_bl.reshape(prep.T, n * n, math.prod(bshape))).reshape(prep.T, m_dim, m_dim, *bshape) + R_bl
-    else:
-        # (accumulated over the contracted index: no (T, m, n, n, *batch) intermediate)
-        innov = y0_bl
-        HP = None
-        for j in range(n):
-            innov = innov - H_bl[:, :, j] * pm_bl[:, j : j + 1]
-            term = H_bl[:, :, j : j + 1] * pc_bl[:, j : j + 1]  # (T, m, n, *)
-            HP = term if HP is None else HP + term
-        assert HP is not None
-        S = R_bl
-        for j in range(n):
-            S = S + HP[:, :, j : j + 1] * H_bl[:, :, j].unsqueeze(1)  # (T, m, m, *)
-    S = 0.5 * (S + S.transpose(1, 2))
-    mean_t = from_batch_last(fm_bl, 1, nd)
-    cov_t = from_batch_last(fc_bl, 2, nd)
-    pmean_t = from_batch_last(pm_bl, 1, nd)
-    pcov_t = from_batch_last(pc_bl, 2, nd)
-    terms = torch.log(s_t) + e_t * e_t / s_t
-    core = -0.5 * terms.reshape(prep.T, m_dim, *terms.shape[1:]).sum(1)  # (T, *mb)
-    core = core.permute(*range(1, core.dim()), 0)  # (*mb, T)
-    innovation = from_batch_last(innov, 1, nd)
-    innovation_cov = from_batch_last(S, 2, nd)
-    return assemble_result(prep, (mean_t, cov_t), (pmean_t, pcov_t), core, (innovation, innovation_cov))
+    return pm_bl, pc_bl, fm_bl, fc_bl, e_t, s_t
+
+
+def _chunked_loop(prep: PreparedInputs, rows: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """:func:`_loop` on consecutive chunks of ``rows`` rows of the leading batch dimension (each
+    an independent filter of its tracks), its outputs joined along that dimension."""
+    nd, total = len(prep.mean_batch), prep.mean_batch[0]
+    sizes = [min(rows, total - start) for start in range(0, total, rows)]
+    # (one split a field: its backward is one concatenation, where a slice a chunk would
+    # materialise a full-size zero gradient per chunk)
+    pieces = {
+        name: x.split(sizes) if isinstance(x, Tensor) and x.dim() - _EVENT_DIMS[name] == nd and x.shape[0] > 1 else None
+        for name, x in prep._asdict().items()
+        if name in _EVENT_DIMS
+    }
+    parts = []
+    for i, size in enumerate(sizes):
+        fields = {name: split[i] for name, split in pieces.items() if split is not None}
+        part = prep._replace(**fields, mean_batch=torch.Size([size, *prep.mean_batch[1:]]))
+        parts.append(_loop(part))
+    # the batch position of each output: (T, n, *mb), (T, n, n, *cb), …, (T m, *mb), (T m, *cb)
+    return tuple(torch.cat(group, dim) for group, dim in zip(zip(*parts), (2, 3, 2, 3, 1, 1)))  # type: ignore[return-value]
 
 
 def _observation_rows(prep: PreparedInputs) -> Tensor:
