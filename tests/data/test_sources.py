@@ -130,6 +130,73 @@ def test_one_unreadable_time_among_fractional_seconds_drops_that_row_only(tmp_pa
     assert r.malformed == 1 and [str(t) for t in r.time] == ["2020-06-30T00:00:01.250000", "2020-06-30T00:00:02.500000"]
 
 
+COLS = {"id": "id", "time": "t", "lat": "lat", "lon": "lon"}
+
+
+def _time_csv(path: Path, times: list[str]) -> Path:
+    path.write_text("id,t,lat,lon\n" + "".join(f"1,{t},40.0,-74.0\n" for t in times))
+    return path
+
+
+@pytest.mark.parametrize(
+    "odd",
+    [
+        "2020-06-30T00:00:30.123456789",
+        " 2020-06-30T00:00:30.5",
+        "2020-06-30T00:00:30.5Z",
+        "2020-06-30T00:00:30.5+00:00",
+    ],
+)
+def test_one_odd_iso_time_does_not_make_the_other_rows_malformed(tmp_path: Path, odd: str) -> None:
+    # Arrow's cast reads a column all or nothing: one row it cannot read made all 21 malformed
+    times = [f"2020-06-30T00:{m:02d}:00.250" for m in range(20)]
+    r = read_reports(_time_csv(tmp_path / "odd.csv", [*times, odd]), COLS)
+    assert (r.rows, r.malformed) == (21, 0)
+    assert [str(t) for t in r.time[:20]] == [f"{t}000" for t in times]
+    assert str(r.time[20]).startswith("2020-06-30T00:00:30.")
+    # a row that is truly no time (30 February, hour 24, a 60-minute offset) is the only one lost
+    bad = ["2020-02-30T00:00:00", "2020-06-30T24:00:00", "2020-06-30T00:00:00+01:60", "yesterday"]
+    r = read_reports(_time_csv(tmp_path / "bad.csv", [*times, odd, *bad]), COLS)
+    assert (r.rows, r.malformed, len(r.time)) == (25, 4, 21)
+    assert all("time" in e for e in r.malformed_examples)
+
+
+def test_nanosecond_fractions_truncate_to_the_microsecond(tmp_path: Path) -> None:
+    times = [f"2020-06-30T00:{m:02d}:00.123456789" for m in range(10)]  # pandas' datetime64[ns] text
+    r = read_reports(_time_csv(tmp_path / "ns.csv", times), COLS)
+    assert r.malformed == 0 and [str(t) for t in r.time] == [t[:-3] for t in times]
+
+
+def test_zone_designators_and_plain_times_mix_in_one_column(tmp_path: Path) -> None:
+    # Z, offsets and no zone (taken as UTC) in one column: each converted to UTC, none dropped
+    times = ["2020-06-30T00:00:00Z", "2020-06-30 00:01:00", "2020-06-30T02:02:00+02:00", "2020-06-29T19:03:00-0500"]
+    r = read_reports(_time_csv(tmp_path / "zones.csv", times), COLS)
+    assert r.malformed == 0
+    assert [str(t) for t in r.time] == [f"2020-06-30T00:0{m}:00.000000" for m in range(4)]
+
+
+@pytest.mark.parametrize(
+    "form",
+    [
+        "2020-06-30",
+        "2020-06-30T12",
+        "2020-06-30 12:34",
+        "2020-06-30T12:34:56.1",
+        "2020-06-30T12:34:56.123456",
+        "2020-06-30T12Z",
+        "2020-06-30T12:34:56+02",
+        "2020-06-30T12:34:56+0230",
+        "2020-06-30 12:34:56.5-02:30",
+    ],
+)
+def test_a_time_reads_the_same_in_a_clean_column_and_beside_an_unreadable_row(tmp_path: Path, form: str) -> None:
+    # a clean column is read by one Arrow cast, a column with a bad row row by row: same times
+    alone = read_reports(_time_csv(tmp_path / "alone.csv", [form]), COLS)
+    beside = read_reports(_time_csv(tmp_path / "beside.csv", [form, "not a time"]), COLS)
+    assert (alone.malformed, beside.malformed) == (0, 1)
+    assert alone.time[0] == beside.time[0]
+
+
 def test_positions_above_a_header_line_do_not_count_it_as_a_row(tmp_path: Path) -> None:
     f = tmp_path / "pos.csv"
     data = "1,2020-06-30T00:00:00,10,20\n1,2020-06-30T00:00:10,10,20.001\n"

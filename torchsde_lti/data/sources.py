@@ -14,9 +14,10 @@ Parquet) is skipped and COUNTED, with the first few examples kept for the summar
   named per role (``columns={"id": ..., "time": ..., "lat": ..., "lon": ..., "alt": ...,
   "sog": ..., "cog": ...}``, header names or 0-based positions); without ``columns`` the
   MarineCadastre AIS header (:data:`AIS_COLUMNS`) is recognised. Leading ``#`` lines
-  (tracktable's point files) are skipped. Times: ISO 8601 strings (a ``±hhmm`` offset is
-  converted to UTC), a ``time_format`` for anything else, numbers (seconds since
-  1970-01-01 UTC) or Parquet timestamps.
+  (tracktable's point files) are skipped. Times: ISO 8601 strings, each row read on its own
+  (``Z`` or a ``±hh[:mm]`` offset converted to UTC, a time without one taken as UTC, fractions
+  finer than the microsecond truncated), a ``time_format`` for anything else, numbers (seconds
+  since 1970-01-01 UTC) or Parquet timestamps (converted to UTC, truncated to the microsecond).
 
 Files are found by path, or by file name among the example files of the optional package
 ``tracktable-data`` (located with ``importlib.util.find_spec``: its modules are never
@@ -52,7 +53,12 @@ AIS_COLUMNS: dict[str, str] = {
 RESERVED_FOR_EVALUATION = ("NYHarbor_2020_12_08.traj", "VirginiaBeach_2020_06_04_to_06_filtered.traj")
 _EXAMPLES = 3  # malformed examples kept
 _NUMBER = r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$"  # a decimal number, as text
-_ISO_8601 = r"^\s*\d{4}-\d{2}-\d{2}([T ]\d{2}:\d{2}(:\d{2}(\.\d+)?)?)?\s*(Z|[+-]\d{2}(:?\d{2})?)?\s*$"  # a date-time in ISO 8601
+# a date-time in ISO 8601, in named parts (a blank around it, a lower-case t and a comma before the fraction allowed)
+_ISO_8601 = (
+    r"^\s*(?P<date>\d{4}-\d{2}-\d{2})"
+    r"(?:[Tt ](?P<hour>\d{2})(?::(?P<minute>\d{2})(?::(?P<second>\d{2})(?:[.,](?P<fraction>\d+))?)?)?)?"
+    r"\s*(?P<zone>Z|[+-]\d{2}(?::?\d{2})?)?\s*$"
+)
 
 
 class Reports(NamedTuple):
@@ -338,47 +344,71 @@ def _epoch_seconds(seconds: object) -> object:
     return pc.cast(pc.cast(us, pa.int64()), pa.timestamp("us"))
 
 
-def _as_time(arr: object, time_format: str | None) -> tuple[np.ndarray, np.ndarray]:
-    """(datetime64[us], ok mask) from strings, numbers (seconds since the epoch) or timestamps."""
+def _iso_8601(arr: object) -> object:
+    """Each string of ``arr`` read alone as an ISO 8601 date-time (:data:`_ISO_8601`): a
+    timestamp[us] array in UTC, null where a string is not one (the other rows still read).
+
+    A fraction finer than the microsecond is truncated (as Parquet ns timestamps are); ``Z`` and a
+    ``±hh[[:]mm]`` offset are converted to UTC; a time without a zone is taken as written (UTC).
+    """
     import pyarrow as pa
     import pyarrow.compute as pc
 
-    us = pa.timestamp("us")
+    parts = pc.extract_regex(pc.cast(arr, pa.string()), _ISO_8601)  # null where the regex fails
+    part = {name: pc.struct_field(parts, name) for name in ("date", "hour", "minute", "second", "fraction", "zone")}
+    default = lambda name: pc.if_else(pc.equal(part[name], ""), "00", part[name])  # noqa: E731
+    clock = pc.binary_join_element_wise(default("hour"), default("minute"), default("second"), ":")
+    wall = pc.binary_join_element_wise(part["date"], clock, "T")
+    try:  # Arrow's cast checks the calendar (no 30 February), for all rows or none
+        seconds = pc.cast(wall, pa.timestamp("s"))
+    except pa.ArrowInvalid:  # row by row: strptime rolls 30 February into March, so read it back
+        fmt = "%Y-%m-%dT%H:%M:%S"
+        seconds = pc.strptime(wall, format=fmt, unit="s", error_is_null=True)
+        seconds = pc.if_else(pc.equal(pc.strftime(seconds, format=fmt), wall), seconds, pa.scalar(None, seconds.type))
+    fraction = pc.utf8_slice_codeunits(pc.utf8_rpad(part["fraction"], 6, "0"), 0, 6)
+    zone = part["zone"]  # "", "Z", "+hh", "+hhmm" or "+hh:mm"
+    digits = pc.utf8_rpad(pc.replace_substring(pc.utf8_slice_codeunits(zone, 1, 6), ":", ""), 4, "0")  # hhmm
+    hours = pc.cast(pc.utf8_slice_codeunits(digits, 0, 2), pa.int64())
+    minutes = pc.cast(pc.utf8_slice_codeunits(digits, 2, 4), pa.int64())
+    offset = pc.multiply(pc.add(pc.multiply(hours, 60), minutes), 60_000_000)
+    offset = pc.if_else(pc.starts_with(zone, "-"), pc.negate(offset), offset)
+    offset = pc.if_else(pc.and_(pc.less(hours, 24), pc.less(minutes, 60)), offset, pa.scalar(None, pa.int64()))
+    us = pc.add(pc.multiply(pc.cast(seconds, pa.int64()), 1_000_000), pc.cast(fraction, pa.int64()))
+    return pc.cast(pc.subtract(us, offset), pa.timestamp("us"))
+
+
+def _as_time(arr: object, time_format: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """(datetime64[us], ok mask) from strings, numbers (seconds since the epoch) or timestamps.
+
+    Strings: ``time_format`` (strptime) when given, else ISO 8601 or numbers (seconds since the
+    epoch), whichever reads more rows. Arrow's cast reads a clean ISO 8601 column in one call;
+    when one row fails it, each row is read alone (:func:`_iso_8601`, the same readings), so a
+    row that does not read is not ok and the others are unaffected.
+    """
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
     if pa.types.is_timestamp(arr.type):
         # (finer units truncated to the microsecond)
-        out = pc.cast(arr, pa.timestamp("us", tz=arr.type.tz) if arr.type.tz else us, safe=False)
+        us = pa.timestamp("us", tz=arr.type.tz) if arr.type.tz else pa.timestamp("us")
+        out = pc.cast(arr, us, safe=False)
     elif pa.types.is_integer(arr.type) or pa.types.is_floating(arr.type):
         out = _epoch_seconds(pc.cast(arr, pa.float64()))
+    elif time_format is not None:
+        out = pc.strptime(pc.cast(arr, pa.string()), format=time_format, unit="us", error_is_null=True)
     else:
         arr = pc.cast(arr, pa.string())
-        out = None
-        if time_format is None:
-            for target in (us, pa.timestamp("us", tz="UTC")):
-                try:
-                    out = pc.cast(arr, target)
-                    break
-                except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
-                    continue
-            formats = ["%Y-%m-%dT%H:%M:%S", "%Y-%m-%d %H:%M:%S", "%Y-%m-%d %H:%M:%S%z", "%Y-%m-%dT%H:%M:%S%z"]
-        else:
-            formats = [time_format]
-        if out is None:  # some rows do not parse: the format that reads most of them, the rest are malformed
-            candidates = [pc.strptime(arr, format=f, unit="us", error_is_null=True) for f in formats]
-            if time_format is None:
-                # the rows that look like ISO 8601 (fractional seconds and offsets too), cast alone
-                iso = pc.fill_null(pc.match_substring_regex(arr, _ISO_8601), False)
-                kept = pc.if_else(iso, arr, pa.scalar(None, pa.string()))
-                for target in (us, pa.timestamp("us", tz="UTC")):
-                    try:
-                        candidates.append(pc.cast(kept, target))
-                    except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
-                        continue
-                # CSV columns arrive as strings: numbers are seconds since the epoch
-                numeric = pc.fill_null(pc.match_substring_regex(pc.utf8_trim_whitespace(arr), _NUMBER), False)
-                candidates.append(
-                    _epoch_seconds(pc.cast(pc.if_else(numeric, arr, pa.scalar(None, pa.string())), pa.float64()))
-                )
-            out = min(candidates, key=lambda a: a.null_count)
+        for target in (pa.timestamp("us"), pa.timestamp("us", tz="UTC")):  # a clean column: one call
+            try:
+                out = pc.cast(arr, target)
+                break
+            except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+                continue
+        else:  # some row fails Arrow's cast (which reads all rows or none): each row alone
+            # CSV columns arrive as strings: numbers are seconds since the epoch
+            numeric = pc.fill_null(pc.match_substring_regex(pc.utf8_trim_whitespace(arr), _NUMBER), False)
+            epoch = _epoch_seconds(pc.cast(pc.if_else(numeric, arr, pa.scalar(None, pa.string())), pa.float64()))
+            out = min((_iso_8601(arr), epoch), key=lambda a: a.null_count)
     ok = np.asarray(pc.is_valid(out).to_numpy(zero_copy_only=False), dtype=bool)
     values = out.cast(pa.int64()).to_numpy(zero_copy_only=False)
     return np.where(ok, np.nan_to_num(values.astype(np.float64)), 0).astype(np.int64).astype("datetime64[us]"), ok
