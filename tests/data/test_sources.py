@@ -65,6 +65,21 @@ def test_traj_string_properties_with_commas_and_altitude(tmp_path: Path) -> None
     np.testing.assert_array_equal(r.lat, [p[1] for p in P3])
 
 
+def test_traj_altitude_kept_whatever_the_line_order(tmp_path: Path) -> None:
+    # the first readable line decided: a first line without altitude dropped every later altitude
+    with_alt = _traj_line("AB2", T3, P3, props=[("altitude", "1", ["3000", "3500", "4000"])])
+    without = _traj_line("AB1", T3, P3)
+    f = tmp_path / "alt.traj"
+    for lines, nan_first in (([with_alt, without], False), ([without, with_alt], True)):
+        f.write_text("\n".join(lines) + "\n")
+        r = read_reports(f)
+        assert r.alt is not None and len(r.alt) == 6
+        alt, nan = (r.alt[3:], r.alt[:3]) if nan_first else (r.alt[:3], r.alt[3:])
+        np.testing.assert_array_equal(alt, [3000.0, 3500.0, 4000.0])
+        assert np.isnan(nan).all()
+        assert load_tracks(f).dims == 3
+
+
 def test_traj_malformed_lines_are_counted_not_silent(tmp_path: Path) -> None:
     f = tmp_path / "c.traj"
     good = _traj_line("1", T3, P3)

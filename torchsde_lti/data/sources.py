@@ -218,9 +218,9 @@ def _read_traj(path: Path) -> Reports:
     ids: list[np.ndarray] = []
     times: list[np.ndarray] = []
     lonlat: list[np.ndarray] = []
-    alts: list[np.ndarray] = []
+    alts: list[np.ndarray | None] = []  # None: a line without an altitude property
     segs: list[np.ndarray] = []
-    malformed, examples, has_alt, lines, points = 0, [], None, 0, 0
+    malformed, examples, lines, points = 0, [], 0, 0
     with open(path, encoding="utf-8", errors="replace") as fh:
         for number, line in enumerate(fh, start=1):
             if not line.strip():
@@ -240,15 +240,11 @@ def _read_traj(path: Path) -> Reports:
                 if len(examples) < _EXAMPLES:
                     examples.append(f"line {number}: {err}")
                 continue
-            if has_alt is None:
-                has_alt = alt is not None
-            elif has_alt != (alt is not None):
-                alt = np.full(n, np.nan) if alt is None else None
             points += n
             ids.append(np.array(cols[0], dtype=str))
             times.append(when)
             lonlat.append(ll)
-            alts.append(alt if alt is not None else np.zeros(0))
+            alts.append(alt)
             segs.append(np.full(n, number, dtype=np.int64))
     if not ids:
         raise ValueError(
@@ -257,12 +253,15 @@ def _read_traj(path: Path) -> Reports:
     object_id = np.concatenate(ids)
     object_id = _object_ids(object_id, np.ones(len(object_id), dtype=bool))
     ll = np.concatenate(lonlat)
+    alt = None
+    if any(a is not None for a in alts):  # altitude when any line has it, NaN at the points of the lines without
+        alt = np.concatenate([np.full(len(t), np.nan) if a is None else a for a, t in zip(alts, times)])
     return Reports(
         object_id,
         np.concatenate(times),
         ll[:, 1].copy(),
         ll[:, 0].copy(),
-        np.concatenate(alts) if has_alt else None,
+        alt,
         None,
         None,
         np.concatenate(segs),
