@@ -80,6 +80,19 @@ def test_traj_altitude_kept_whatever_the_line_order(tmp_path: Path) -> None:
         assert load_tracks(f).dims == 3
 
 
+def test_a_utf8_byte_order_mark_loses_no_line(tmp_path: Path) -> None:
+    # the mark stayed in front of "*T*" (and of "#"): the first trajectory was malformed
+    f = tmp_path / "bom.traj"
+    f.write_text(_traj_line("1", T3, P3) + "\n" + _traj_line("2", T3, P3) + "\n", encoding="utf-8-sig")
+    r = read_reports(f)
+    assert r.malformed == 0 and sorted(set(r.object_id.tolist())) == [1, 2]
+    f = tmp_path / "bom.csv"
+    rows = "".join(f"F1,{t},{lon},{lat}\n" for t, (lon, lat) in zip(T3, P3))
+    f.write_text("# object_id timestamp longitude latitude\n" + rows, encoding="utf-8-sig")
+    r = read_reports(f, {"id": 0, "time": 1, "lon": 2, "lat": 3})
+    assert (r.rows, r.malformed) == (3, 0) and list(r.lat) == [p[1] for p in P3]
+
+
 def test_traj_malformed_lines_are_counted_not_silent(tmp_path: Path) -> None:
     f = tmp_path / "c.traj"
     good = _traj_line("1", T3, P3)

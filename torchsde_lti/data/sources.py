@@ -221,7 +221,7 @@ def _read_traj(path: Path) -> Reports:
     alts: list[np.ndarray | None] = []  # None: a line without an altitude property
     segs: list[np.ndarray] = []
     malformed, examples, lines, points = 0, [], 0, 0
-    with open(path, encoding="utf-8", errors="replace") as fh:
+    with open(path, encoding="utf-8-sig", errors="replace") as fh:
         for number, line in enumerate(fh, start=1):
             if not line.strip():
                 continue
@@ -307,7 +307,7 @@ def _resolve_columns(
 
 def _leading_comment_lines(path: Path) -> int:
     n = 0
-    with open(path, encoding="utf-8", errors="replace") as fh:
+    with open(path, encoding="utf-8-sig", errors="replace") as fh:
         for line in fh:
             if not line.startswith("#"):
                 break
