@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import io
+import os
 
 import numpy as np
 import pytest
@@ -141,6 +142,30 @@ def test_a_link_to_a_reserved_file_is_refused(tmp_path) -> None:
     link.symlink_to(locate_file("NYHarbor_2020_12_08.traj"))
     with pytest.raises(ValueError, match="reserved for evaluation"):
         TrackDataModule(str(link))
+
+
+def test_a_hard_link_or_renamed_copy_of_a_reserved_file_is_refused(tmp_path, monkeypatch) -> None:
+    # the names were checked only: a hard link or a copy under another name trained on the file
+    import shutil
+
+    from torchsde_lti.data import RESERVED_FOR_EVALUATION, sources
+
+    for name in RESERVED_FOR_EVALUATION:
+        shipped = locate_file(name)
+        copy = shutil.copy(shipped, tmp_path / f"copy_{name}.traj")
+        with pytest.raises(ValueError, match=f"is {name}, reserved for evaluation"):
+            TrackDataModule(str(copy))
+        try:
+            os.link(shipped, tmp_path / f"hard_{name}")
+        except OSError:  # another file system
+            continue
+        with pytest.raises(ValueError, match=f"is {name}, reserved for evaluation"):
+            TrackDataModule(str(tmp_path / f"hard_{name}"))
+    # the table of sizes and hashes alone (no tracktable-data found) still knows the copies
+    monkeypatch.setattr(sources, "_example_dirs", lambda: [])
+    for name in RESERVED_FOR_EVALUATION:
+        with pytest.raises(ValueError, match="reserved for evaluation"):
+            TrackDataModule(str(tmp_path / f"copy_{name}.traj"))
 
 
 def test_shuffled_batches_depend_only_on_seed_and_epoch() -> None:

@@ -292,6 +292,32 @@ print(json.dumps({"before": before, "imported": imported, "after": after, "track
 """
 
 
+def test_a_copy_of_the_installed_reserved_file_is_refused_by_content(tmp_path: Path, monkeypatch) -> None:
+    # whatever release of the reserved files the data folder holds: same file or same bytes is refused
+    from torchsde_lti.data import sources
+    from torchsde_lti.data.modules import TrackDataModule
+
+    shipped = tmp_path / "pkg" / "NYHarbor_2020_12_08.traj"
+    shipped.parent.mkdir()
+    shipped.write_text(_traj_line("1", T3, P3) + "\n")
+    monkeypatch.setattr(sources, "_example_dirs", lambda: [shipped.parent])
+    assert locate_file(shipped.name) == shipped
+    copy, other = tmp_path / "mine.traj", tmp_path / "other.traj"
+    copy.write_bytes(shipped.read_bytes())
+    links = [copy]
+    try:
+        os.link(shipped, tmp_path / "hard.traj")
+        links.append(tmp_path / "hard.traj")
+    except OSError:  # a file system without hard links
+        pass
+    for path in links:
+        with pytest.raises(ValueError, match="is NYHarbor_2020_12_08.traj, reserved for evaluation"):
+            TrackDataModule(str(path))
+    other.write_text(_traj_line("2", T3, P3) + "\n")  # same size, other bytes: a training file
+    assert other.stat().st_size == shipped.stat().st_size
+    assert TrackDataModule(str(other)).source == str(other)
+
+
 def test_loading_changes_no_global_state() -> None:
     """tracktable_data.data sets sys.tracebacklimit = 0 and configures the root logger at import:
     the loader finds the files without executing it, and changes nothing else either."""

@@ -7,6 +7,7 @@ The only place in :mod:`torchsde_lti.data` that imports Lightning; both yield
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 import os
@@ -23,7 +24,7 @@ from torch.utils.data import DataLoader, SequentialSampler
 
 from torchsde_lti.data.loaded_tracks import LoadSummary, Tracks
 from torchsde_lti.data.simulate import ExponentialDt, isotropic_covariance, simulate_tracks
-from torchsde_lti.data.sources import RESERVED_FOR_EVALUATION, locate_file
+from torchsde_lti.data.sources import _RESERVED_CONTENT, RESERVED_FOR_EVALUATION, locate_file
 from torchsde_lti.data.splits import split_objects, split_time, track_windows
 from torchsde_lti.data.tracks import (
     BucketBatchSampler,
@@ -187,15 +188,47 @@ class DataSummary:
         return "\n".join(lines)
 
 
-def _names_of(source: str | os.PathLike[str]) -> set[str]:
-    """The file names ``source`` stands for: as written ("x.traj/" and "x.traj/." name x.traj)
-    and, where it is found, the file it resolves to (through links)."""
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _reserved_file(source: str | os.PathLike[str]) -> str | None:
+    """The name of the file of :data:`~torchsde_lti.data.sources.RESERVED_FOR_EVALUATION` that
+    ``source`` is, else None.
+
+    By name: as written ("x.traj/" and "x.traj/." name x.traj) and the file it resolves to (through
+    links). By identity: the installed reserved file itself (a hard link). By content: the size and
+    sha256 of a reserved file as tracktable-data 1.7.3.1 ships it or as the installed
+    tracktable-data holds it (a renamed copy; only a file of a reserved file's size is hashed).
+    """
     names = {Path(str(source)).name}
     try:
-        names.add(locate_file(source).resolve().name)
+        path = locate_file(source)
+        names.add(path.resolve().name)
     except (FileNotFoundError, OSError):
-        pass
-    return names
+        path = None
+    for name in RESERVED_FOR_EVALUATION:
+        if name in names:
+            return name
+    if path is None:
+        return None
+    size = path.stat().st_size
+    same_size = [(name, digest) for name, (n, digest) in _RESERVED_CONTENT.items() if n == size]
+    for name in RESERVED_FOR_EVALUATION:
+        try:
+            shipped = locate_file(name)
+        except FileNotFoundError:
+            continue
+        if os.path.samefile(path, shipped):
+            return name
+        if shipped.stat().st_size == size:  # (another release of tracktable-data than the table's)
+            same_size.append((name, _sha256(shipped)))
+    mine = _sha256(path) if same_size else None
+    return next((name for name, digest in same_size if digest == mine), None)
 
 
 class TrackDataModule(LightningDataModule):
@@ -219,7 +252,8 @@ class TrackDataModule(LightningDataModule):
     After :meth:`setup`: ``tracks`` (all kept :class:`~torchsde_lti.data.Tracks`), ``splits``
     (name -> Tracks), ``windows`` (name -> list of Track) and ``summary``
     (:class:`DataSummary`, logged at INFO on rank 0; the training job saves it).
-    The files in :data:`~torchsde_lti.data.sources.RESERVED_FOR_EVALUATION` are refused.
+    The files in :data:`~torchsde_lti.data.sources.RESERVED_FOR_EVALUATION` are refused, by name,
+    link or content (a renamed copy too).
     """
 
     def __init__(
@@ -248,9 +282,10 @@ class TrackDataModule(LightningDataModule):
         dtype: str = "float32",
     ) -> None:
         super().__init__()
-        if _names_of(source) & set(RESERVED_FOR_EVALUATION):
+        reserved = _reserved_file(source)
+        if reserved is not None:
             raise ValueError(
-                f"data.source={source!r} is reserved for evaluation (never train, tune or select "
+                f"data.source={source!r} is {reserved}, reserved for evaluation (never train, tune or select "
                 "on it); evaluate frozen, already trained models on it instead"
             )
         if split not in ("objects", "time"):

@@ -51,6 +51,14 @@ AIS_COLUMNS: dict[str, str] = {
 }
 #: tracktable-data files kept for evaluation only: never train, tune or select models on them.
 RESERVED_FOR_EVALUATION = ("NYHarbor_2020_12_08.traj", "VirginiaBeach_2020_06_04_to_06_filtered.traj")
+# their content as tracktable-data 1.7.3.1 ships it, (size in bytes, sha256): a copy under another name is refused too
+_RESERVED_CONTENT = {
+    "NYHarbor_2020_12_08.traj": (446_635, "b23de3fd5442a941eb1a025308681d60cb086ab1bd0151a26b2726ea820aee5c"),
+    "VirginiaBeach_2020_06_04_to_06_filtered.traj": (
+        1_951_886,
+        "610f8e8cf09180e2db28dccc34d421aa8cb5e620c0c97c5bce8561456c287a6f",
+    ),
+}
 _EXAMPLES = 3  # malformed examples kept
 _NUMBER = r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$"  # a decimal number, as text
 # a date-time in ISO 8601, in named parts (a blank around it, a lower-case t and a comma before the fraction allowed)
