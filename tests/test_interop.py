@@ -133,6 +133,8 @@ def test_filterpy_helper_matches_kalman_filter_with_inputs():
         set_filterpy_step(filterpy_kalman.KalmanFilter(dim_x=3, dim_z=1), sde, 1.0)
     with pytest.raises(TypeError, match="filterpy KalmanFilter"):
         set_filterpy_step(object(), sde, 1.0)
+    with pytest.raises(TypeError, match="sde must be an LTISDE, got ndarray"):
+        set_filterpy_step(filterpy_kalman.KalmanFilter(dim_x=2, dim_z=1), np.eye(2), 1.0)
 
 
 # ------------------------------------------------------------------ a multi-target tracker

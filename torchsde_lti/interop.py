@@ -192,6 +192,8 @@ def set_filterpy_step(kf: Any, sde: LTISDE, dt: object, method: str = "doubling"
         sde: an unbatched :class:`~torchsde_lti.LTISDE`.
         dt: the gap to the next observation, seconds or a ``datetime.timedelta``.
     """
+    if not isinstance(sde, LTISDE):
+        raise TypeError(f"sde must be an LTISDE, got {type(sde).__name__}")
     n = sde.state_dim
     dim_x = getattr(kf, "dim_x", None)
     if dim_x is None or not hasattr(kf, "F") or not hasattr(kf, "Q"):

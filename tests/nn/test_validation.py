@@ -250,3 +250,24 @@ def test_a_nearly_singular_observation_noise_is_named_when_the_likelihood_is_not
     y, dt = torch.randn(3, 20, 2, generator=g), torch.full((3, 20), 0.5)
     with pytest.raises(NonFiniteLikelihoodError, match="observation noise R is nearly singular"):
         kf(y, dt)
+
+
+@pytest.mark.parametrize("online", [False, True])
+@pytest.mark.parametrize("imm", [False, True])
+def test_matrix_exp_whose_Q_overflows_is_refused_with_a_value_error(imm: bool, online: bool) -> None:
+    """method="matrix_exp" over a long gap: Van Loan's block overflows and Q is not finite. A
+    checked KalmanFilter raised a LAPACK error (eigvalsh of Inf), an IMMFilter returned NaN."""
+    f64 = torch.float64
+    slow = tl.models.singer(alpha=0.6, q=2.0, dim=1, dtype=f64)
+    H, R = tl.models.position_observation(slow), torch.eye(1, dtype=f64)
+    if imm:
+        rates = torch.tensor([[0.0, 0.1], [0.1, 0.0]], dtype=f64)
+        fast = tl.models.singer(alpha=2.0, q=1.0, dim=1, dtype=f64)
+        model = tl.IMMFilter([slow, fast], H, R, rates, method="matrix_exp")
+    else:
+        model = tl.KalmanFilter(slow, H, R, method="matrix_exp")
+    with pytest.raises(ValueError, match="matrix_exp"):
+        if online:
+            model.step(model.initial_state(1), torch.zeros(1, 1, dtype=f64), torch.tensor([2000.0], dtype=f64))
+        else:
+            model(torch.zeros(1, 3, 1, dtype=f64), torch.tensor([[1.0, 2000.0, 1.0]], dtype=f64))

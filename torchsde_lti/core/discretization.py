@@ -119,8 +119,8 @@ def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | No
 
 
 def check_matrix_exp_noise(Q: Tensor) -> None:
-    """ValueError where ``method="matrix_exp"``'s Q (..., n, n) is not PSD beyond √eps of its
-    largest entry: the cancellation ``Q = X Aᵀ`` of Van Loan's block (growing like
+    """ValueError where ``method="matrix_exp"``'s Q (..., n, n) is not finite, or not PSD beyond
+    √eps of its largest entry: the cancellation ``Q = X Aᵀ`` of Van Loan's block (growing like
     ``‖e^{F dt}‖ ‖e^{−F dt}‖``) has lost it. The PSD test of the argument checks
     (``_psd_test``) at tolerance √eps and one synchronisation; nothing while tracing."""
     if tracing() or Q.numel() == 0:
@@ -129,6 +129,12 @@ def check_matrix_exp_noise(Q: Tensor) -> None:
         passes, _, scale = _psd_test(Q, math.sqrt(torch.finfo(Q.dtype).eps))
         if bool(passes):
             return
+        if not bool(torch.isfinite(Q).all()):
+            raise ValueError(
+                f"method='matrix_exp' gave a process noise Q that is not finite (shape {shape_str(Q)}): Van Loan's "
+                "block exponential overflows for a large ‖F‖ dt (its −Fᵀ block grows like e^(|Re λ| dt)); the "
+                "default method='doubling' does not"
+            )
         lowest = float((torch.linalg.eigvalsh(Q).amin(dim=-1) / scale).min())
     raise ValueError(
         f"method='matrix_exp' gave a process noise Q that is not positive semi-definite (smallest eigenvalue "

@@ -33,7 +33,7 @@ from torchsde_lti.filters.results import FilterResult
 __all__ = ["CHUNKED_MIN_BYTES", "CHUNK_BYTES", "sequential_filter", "structured_filtered"]
 
 #: Eager CPU filters at one intra-op thread whose per-track covariances (tracks · n² entries)
-#: take more than CHUNKED_MIN_BYTES run the loop chunk by chunk of tracks along the leading
+#: take CHUNKED_MIN_BYTES or more run the loop chunk by chunk of tracks along the leading
 #: batch dimension, a chunk CHUNK_BYTES of covariances: each step's batch-last temporaries then
 #: stay in the caches, which a loop over all tracks at once streams through memory every
 #: operation (``python experiments/filter_chunks.py``).
@@ -105,7 +105,7 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
 def _chunk_rows(prep: PreparedInputs) -> int | None:
     """Rows of the leading batch dimension per chunk of an eager CPU loop at one intra-op
     thread (the caller's setting, or a busy machine's: :mod:`~torchsde_lti.core.threads`) whose
-    per-track covariances take more than :data:`CHUNKED_MIN_BYTES` (a chunk about
+    per-track covariances take at least :data:`CHUNKED_MIN_BYTES` (a chunk about
     :data:`CHUNK_BYTES` of them); None where the loop runs on all tracks at once (traced, off
     the CPU, more threads, a covariance batch that is not the tracks' leading dimension, or a
     small one)."""
@@ -119,7 +119,7 @@ def _chunk_rows(prep: PreparedInputs) -> int | None:
         return None
     n = A.shape[-1]
     row_bytes = math.prod(cb[1:]) * n * n * A.element_size()
-    if mb[0] * row_bytes <= CHUNKED_MIN_BYTES:
+    if mb[0] * row_bytes < CHUNKED_MIN_BYTES:
         return None
     rows = max(1, CHUNK_BYTES // max(row_bytes, 1))
     return rows if rows < mb[0] else None

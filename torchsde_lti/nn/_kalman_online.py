@@ -23,7 +23,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from torchsde_lti.core.discretization import discretize
+from torchsde_lti.core.discretization import check_matrix_exp_noise, discretize
 from torchsde_lti.core.linalg import matvec
 from torchsde_lti.core.validation import as_float_tensor, broadcast_batch, tracing
 from torchsde_lti.filters.online import (
@@ -198,6 +198,8 @@ class KalmanOnline(ValidateArgs, nn.Module):
             A, Q, G = discretize(
                 mats.F, mats.L, mats.Qc, dt, B=mats.B, method=self.discretization_method, validate_args=False
             )
+            if self.discretization_method == "matrix_exp" and self.validate_args:
+                check_matrix_exp_noise(Q)
         return A, Q, (matvec(G, u) if (u is not None and G is not None) else None)
 
     def _check_state(

@@ -39,7 +39,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from torchsde_lti.core.discretization import Discrete, discretization_series, discretize
+from torchsde_lti.core.discretization import Discrete, check_matrix_exp_noise, discretization_series, discretize
 from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.validation import (
     as_float_tensor,
@@ -303,8 +303,12 @@ class IMMFilter(ValidateArgs, nn.Module):
         if self.unique_dt and not dt.requires_grad and dt.numel() > 0:
             values, inverse = torch.unique(dt, return_inverse=True)
             d, Pi = self._discretize_flat(F, W, eye, values, validate_args, online)
-            return Discrete(d.A[inverse], d.Q[inverse], None), Pi[inverse]
-        return self._discretize_flat(F, W, eye, dt, validate_args, online)
+            d, Pi = Discrete(d.A[inverse], d.Q[inverse], None), Pi[inverse]
+        else:
+            d, Pi = self._discretize_flat(F, W, eye, dt, validate_args, online)
+        if self.method == "matrix_exp" and self.validate_args:  # (Van Loan's Q is not PSD by construction)
+            check_matrix_exp_noise(d.Q)
+        return d, Pi
 
     def _discretize_flat(
         self, F: Tensor, W: Tensor, eye: Tensor, dt: Tensor, validate_args: bool, online: OnlineIMM | None = None
