@@ -51,6 +51,7 @@ __all__ = [
     "complete_from_filtered",
     "mask_observation_model",
     "observed_components",
+    "own_extent",
     "pad_dims",
     "prepare_inputs",
     "symmetric_part",
@@ -138,15 +139,21 @@ def check_time_axis(x: Tensor, name: str, T: int, source: str) -> None:
         )
 
 
+def own_extent(x: Tensor) -> Tensor:
+    """x (..., r, c) without its broadcast (stride-0) leading dims: each of size 1 (a view of the
+    same values; it broadcasts back to x's shape). A shared matrix passed expanded, e.g. one
+    time grid's A (T, n, n) as (B, T, n, n), is then worked on once, not B times."""
+    if x.dim() <= 2 or all(st != 0 or sz == 1 for sz, st in zip(x.shape[:-2], x.stride())):
+        return x
+    return x[tuple(slice(0, 1) if st == 0 and sz > 1 else slice(None) for sz, st in zip(x.shape[:-2], x.stride()))]
+
+
 def symmetric_part(x: Tensor) -> Tensor:
-    """``(X + Xᵀ) / 2`` of x (..., k, k), formed at x's own extent: a broadcast (stride-0)
-    batch dim is symmetrised once and expanded again, so a shared matrix passed as a broadcast
-    view (B, T, k, k) costs one k × k matrix, not B·T. Its gradient is the symmetric part of
-    the incoming one, whatever an algorithm does with the upper and lower triangles."""
-    if x.dim() == 2:
-        return sym(x)
-    compact = tuple(slice(0, 1) if st == 0 and sz > 1 else slice(None) for sz, st in zip(x.shape[:-2], x.stride()))
-    return sym(x[compact]).expand(x.shape)
+    """``(X + Xᵀ) / 2`` of x (..., k, k), formed at x's own extent (:func:`own_extent`) and
+    expanded again: a shared matrix passed as a broadcast view (B, T, k, k) costs one k × k
+    matrix, not B·T. Its gradient is the symmetric part of the incoming one, whatever an
+    algorithm does with the upper and lower triangles."""
+    return x if x.dim() < 2 else sym(own_extent(x)).expand(x.shape)
 
 
 def _batched(x: Tensor | None) -> bool:
@@ -229,6 +236,10 @@ def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked
         if G is not None:
             c = matvec(G, u)  # (..., T, n)
 
+    # the model's matrices at their own extent (their shapes checked above): values are checked
+    # and the covariance recursion runs at their batch (once for a shared grid passed expanded
+    # over the tracks); every output broadcasts back to the full batch
+    A, Q, H, R, P0 = (own_extent(x) for x in (A, Q, H, R, P0))
     if values:
         check_no_inf(y, "y")
         check_finite(A, "A")
