@@ -41,6 +41,7 @@ from torch.nn.utils import parametrize
 
 from torchsde_lti.core.discretization import Discrete, check_matrix_exp_noise, discretization_series, discretize
 from torchsde_lti.core.linalg import sym
+from torchsde_lti.core.thresholds import SHARED_MIN_ELEMENTS
 from torchsde_lti.core.validation import (
     as_float_tensor,
     broadcast_batch,
@@ -313,9 +314,14 @@ class IMMFilter(ValidateArgs, nn.Module):
     def _discretize_flat(
         self, F: Tensor, W: Tensor, eye: Tensor, dt: Tensor, validate_args: bool, online: OnlineIMM | None = None
     ) -> tuple[Discrete, Tensor]:
-        if online is not None and online.series is not None and self.method == "doubling":
+        series = None if online is None else online.series
+        if series is None and self.method == "doubling" and not tracing() and dt.numel() >= SHARED_MIN_ELEMENTS:
+            # many gaps: each mode's series once (core's one-parameter-set route), not the bank
+            # broadcast to every (gap, mode) element
+            series = [discretization_series(F[j], W[j], None) for j in range(F.shape[0])]
+        if series is not None and self.method == "doubling":
             As, Qs = [], []
-            for mode in online.series:  # each mode over every gap: (..., n, n)
+            for mode in series:  # each mode over every gap: (..., n, n)
                 A_j, Q_j, _ = mode(dt)
                 assert Q_j is not None
                 As.append(A_j)
@@ -328,8 +334,11 @@ class IMMFilter(ValidateArgs, nn.Module):
         # the chain's transitions in float64 (an M × M exponential), rows renormalised: a
         # float32 exponential of Λ dt for dt ≫ 1/rate loses the row sums (and gives NaN mixing)
         rates = self.rates if online is None else online.rates
-        if online is not None and online.chain is not None:
-            Pi = online.chain(dt.double())[0].clamp_min(0.0)
+        chain = None if online is None else online.chain
+        if chain is None and not tracing() and dt.numel() >= SHARED_MIN_ELEMENTS:
+            chain = discretization_series(rates.double(), None, None)
+        if chain is not None:
+            Pi = chain(dt.double())[0].clamp_min(0.0)
         else:
             Pi = torch.matrix_exp(rates.double() * dt.double()[..., None, None]).clamp_min(0.0)
         Pi = (Pi / Pi.sum(-1, keepdim=True)).to(rates.dtype)
