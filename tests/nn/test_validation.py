@@ -271,3 +271,7 @@ def test_matrix_exp_whose_Q_overflows_is_refused_with_a_value_error(imm: bool, o
             model.step(model.initial_state(1), torch.zeros(1, 1, dtype=f64), torch.tensor([2000.0], dtype=f64))
         else:
             model(torch.zeros(1, 3, 1, dtype=f64), torch.tensor([[1.0, 2000.0, 1.0]], dtype=f64))
+    if not imm:  # a forecast over the same gap (it returned NaN covariances)
+        out = model(torch.zeros(1, 3, 1, dtype=f64), torch.ones(1, 3, dtype=f64))
+        with pytest.raises(ValueError, match="matrix_exp"):
+            model.forecast(out, torch.tensor([2000.0], dtype=f64))

@@ -198,9 +198,16 @@ class KalmanOnline(ValidateArgs, nn.Module):
             A, Q, G = discretize(
                 mats.F, mats.L, mats.Qc, dt, B=mats.B, method=self.discretization_method, validate_args=False
             )
-            if self.discretization_method == "matrix_exp" and self.validate_args:
-                check_matrix_exp_noise(Q)
+            self._check_van_loan_noise(Q)
         return A, Q, (matvec(G, u) if (u is not None and G is not None) else None)
+
+    def _check_van_loan_noise(self, Q: Tensor) -> None:
+        """With ``method="matrix_exp"`` and value checks on, ValueError where its Q (..., n, n)
+        is not finite or not PSD (:func:`~torchsde_lti.core.discretization.check_matrix_exp_noise`):
+        the discretisations of checked parameters skip core's result check, and Van Loan's Q,
+        unlike the doubling's, is not PSD by construction."""
+        if self.discretization_method == "matrix_exp" and self.validate_args:
+            check_matrix_exp_noise(Q)
 
     def _check_state(
         self, state: KalmanState | tuple[Tensor, Tensor], dt: Tensor | float, u: Tensor | None, mats: SDEMatrices

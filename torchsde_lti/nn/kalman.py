@@ -55,7 +55,6 @@ from torch.nn.utils import parametrize
 
 from torchsde_lti.core.discretization import (
     Discrete,
-    check_matrix_exp_noise,
     discretize,
     discretize_series,
     resolve_method,
@@ -422,8 +421,6 @@ class KalmanFilter(KalmanOnline):
                 algorithm = choose_algorithm(algorithm, math.prod(batch), T, y.device, y.dtype)
             # one batched discretisation of every step: A, Q (..., T, n, n), laid out for the algorithm
             d = self._discretize(dt, mats, series_layout=algorithm != "scan")
-            if validate and self.discretization_method == "matrix_exp":
-                check_matrix_exp_noise(d.Q)
             G = d.G if u is not None else None
             args = FilterInputs(y, d.A, d.Q, H, R, m0, P0, G, u, mask, D)
             out = run_filter(args, algorithm, validate_args=False, compiled_loop=compiled_loop)
@@ -444,7 +441,8 @@ class KalmanFilter(KalmanOnline):
 
     def _discretize(self, dt: Tensor, mats: SDEMatrices | None = None, series_layout: bool = True) -> Discrete:
         """All steps' (A, Q, G) over a checked dt (..., T) in one batched call (no value checks:
-        the matrices come from the SDE's parametrisations, checked by the caller).
+        the matrices come from the SDE's parametrisations, checked by the caller; a
+        ``"matrix_exp"`` Q is checked, :meth:`_check_van_loan_noise`).
 
         ``series_layout``: for one parameter set the doubling method returns batch-first
         views of batch-last storage, so the sequential loop's per-step moves to (n, n, batch)
@@ -460,10 +458,13 @@ class KalmanFilter(KalmanOnline):
         # a length-1 time axis in the matrices lines a parameter batch up with dt (..., T)
         m = SDEMatrices(*(None if x is None else x.unsqueeze(-3) for x in mats))
         if not series_layout and not self.unique_dt:
-            return discretize(m.F, m.L, m.Qc, dt, B=m.B, method=self.discretization_method, validate_args=False)
-        return discretize_series(
-            m.F, m.L, m.Qc, dt, m.B, method=self.discretization_method, unique=self.unique_dt, validate_args=False
-        )
+            d = discretize(m.F, m.L, m.Qc, dt, B=m.B, method=self.discretization_method, validate_args=False)
+        else:
+            d = discretize_series(
+                m.F, m.L, m.Qc, dt, m.B, method=self.discretization_method, unique=self.unique_dt, validate_args=False
+            )
+        self._check_van_loan_noise(d.Q)
+        return d
 
     def smooth(self, out: FilterResult) -> SmootherResult:
         """RTS smoother over the filter output (uses the A_k, Q_k stored in ``out``): the
