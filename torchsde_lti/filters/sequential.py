@@ -42,8 +42,9 @@ CHUNK_BYTES = 1 << 20
 
 #: Event dimensions of the fields of :class:`~torchsde_lti.filters.inputs.PreparedInputs`
 #: (the dimensions after the batch).
-_EVENT_DIMS = {"A": 3, "Q": 3, "Hw": 3, "yw": 2, "c": 2, "m0": 1, "P0": 2, "H": 3, "R": 3, "y0": 2, "obs": 2}
-_EVENT_DIMS["log_det_chol_R"] = 1
+_EVENT_DIMS = {
+    "A": 3, "Q": 3, "Hw": 3, "yw": 2, "c": 2, "m0": 1, "P0": 2, "H": 3, "R": 3, "y0": 2, "obs": 2, "log_det_chol_R": 1,
+}  # fmt: skip
 
 
 def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterResult:
