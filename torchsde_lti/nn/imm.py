@@ -8,11 +8,13 @@ r"""``IMMFilter``: an interacting multiple model filter over learned continuous-
 
 Modes switch by a continuous-time Markov chain with generator Λ (``imm.rates``, (M, M):
 off-diagonal rates Λ_ij ≥ 0 of jumping from mode i to j, rows summing to 0), so over a gap
-dt the mode transition matrix is ``Pi = expm(Λ dt)`` (``torch.matrix_exp``), exact for any
-irregular gap. Each mode's (A_j, Q_j) is the exact discretisation of its SDE; the whole
-bank is ONE batched :func:`torchsde_lti.discretize` call over (track, step, mode): the M
-drift matrices are stacked along a batch axis (each mode's noise enters as
-``L_j Qc_j L_jᵀ`` with L = I, so the noise dimensions of the modes may differ).
+dt the mode transition matrix is ``Pi = expm(Λ dt)``, exact for any irregular gap. Each
+mode's (A_j, Q_j) is the exact discretisation of its SDE (its noise enters as
+``L_j Qc_j L_jᵀ``, so the noise dimensions of the modes may differ). Over many gaps (at least
+``SHARED_MIN_ELEMENTS``, eagerly) each mode and the chain are discretised by their series,
+formed once (:func:`~torchsde_lti.core.discretization_series`); otherwise the whole bank is
+ONE batched :func:`torchsde_lti.discretize` call over (track, step, mode), the M drift
+matrices stacked along a batch axis, and Pi is ``torch.matrix_exp``.
 The IMM cycle itself is :func:`torchsde_lti.filters.imm.imm_filter`.
 
 The models must share the state space: same n, and the same meaning of each component
