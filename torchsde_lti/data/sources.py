@@ -36,10 +36,10 @@ from typing import NamedTuple
 
 import numpy as np
 
+from torchsde_lti.data.rules import ISO_8601, ROLES, CleaningRules
+
 __all__ = ["AIS_COLUMNS", "RESERVED_FOR_EVALUATION", "ROLES", "Reports", "locate_file", "read_reports"]
 
-#: The roles a column can play; id, time, lat and lon are required.
-ROLES = ("id", "time", "lat", "lon", "alt", "sog", "cog")
 #: MarineCadastre AIS column names (BaseDateTime ISO 8601 UTC, LAT/LON degrees, SOG knots, COG degrees).
 AIS_COLUMNS: dict[str, str] = {
     "id": "MMSI",
@@ -61,12 +61,6 @@ _RESERVED_CONTENT = {
 }
 _EXAMPLES = 3  # malformed examples kept
 _NUMBER = r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$"  # a decimal number, as text
-# a date-time in ISO 8601, in named parts (a blank around it, a lower-case t and a comma before the fraction allowed)
-_ISO_8601 = (
-    r"^\s*(?P<date>\d{4}-\d{2}-\d{2})"
-    r"(?:[Tt ](?P<hour>\d{2})(?::(?P<minute>\d{2})(?::(?P<second>\d{2})(?:[.,](?P<fraction>\d+))?)?)?)?"
-    r"\s*(?P<zone>Z|[+-]\d{2}(?::?\d{2})?)?\s*$"
-)
 
 
 class Reports(NamedTuple):
@@ -74,7 +68,7 @@ class Reports(NamedTuple):
 
     object_id: (N,) int64 or str; time: (N,) datetime64[us] (UTC where the file says so);
     lat, lon: (N,) float64 degrees as read; alt: (N,) metres or None; sog: (N,) knots or None;
-    cog: (N,) degrees or None; segment: (N,) int64 (a ``.traj`` line) or None (one track per id);
+    cog: (N,) degrees or None; heading: (N,) degrees or None (true heading); segment: (N,) int64 (a ``.traj`` line) or None (one track per id);
     rows: lines (``.traj``: points of the readable lines, plus one per malformed line) read;
     malformed: lines or rows skipped because a field could not be parsed; malformed_examples: the first few of them with the reason; path: the file read.
     """
@@ -91,6 +85,7 @@ class Reports(NamedTuple):
     malformed: int
     malformed_examples: tuple[str, ...]
     path: str
+    heading: np.ndarray | None = None
 
 
 def _example_dirs() -> list[Path]:
@@ -154,10 +149,10 @@ def read_reports(
     Returns:
         Reports: numpy columns, one entry per readable report, with the malformed ones counted.
     """
+    checked = CleaningRules(columns=columns, format=format, time_format=time_format, altitude_unit=altitude_unit)
+    columns = checked.columns
     path = locate_file(source)
-    fmt = (format or path.suffix.lstrip(".")).lower()
-    if altitude_unit not in ("m", "ft"):
-        raise ValueError(f"altitude_unit must be 'm' or 'ft', got {altitude_unit!r}")
+    fmt = (checked.format or path.suffix.lstrip(".")).lower()
     if fmt == "traj":
         if columns not in (None, "ais"):
             raise ValueError(f"columns are fixed by the .traj format; got columns={columns!r} for {path}")
@@ -296,15 +291,9 @@ def _resolve_columns(
             f"columns, e.g. columns={{'id': ..., 'time': ..., 'lat': ..., 'lon': ...}} "
             f"(header names or 0-based positions); header found: {header}"
         )
-    if isinstance(columns, str):
-        raise ValueError(f"columns must be a mapping role -> column, 'ais' or None, got {columns!r}")
-    cols = {str(k): (v if isinstance(v, int) else str(v)) for k, v in dict(columns).items() if v is not None}
-    unknown = set(cols) - set(ROLES)
-    missing = {"id", "time", "lat", "lon"} - set(cols)
-    if unknown or missing:
-        raise ValueError(
-            f"columns: unknown roles {sorted(unknown)} / missing roles {sorted(missing)}; roles are {ROLES}, got {cols}"
-        )
+    cols = (
+        dict(columns) if isinstance(columns, Mapping) else {}
+    )  # (checked by CleaningRules: known roles, the required ones, one role per column)
     if header is not None:
         absent: list[str | int] = [v for v in cols.values() if isinstance(v, str) and v not in header]
         absent += [v for v in cols.values() if isinstance(v, int) and not 0 <= v < len(header)]
@@ -352,7 +341,7 @@ def _epoch_seconds(seconds: object) -> object:
 
 
 def _iso_8601(arr: object) -> object:
-    """Each string of ``arr`` read alone as an ISO 8601 date-time (:data:`_ISO_8601`): a
+    """Each string of ``arr`` read alone as an ISO 8601 date-time (:data:`ISO_8601`): a
     timestamp[us] array in UTC, null where a string is not one (the other rows still read).
 
     A fraction finer than the microsecond is truncated (as Parquet ns timestamps are); ``Z`` and a
@@ -361,7 +350,7 @@ def _iso_8601(arr: object) -> object:
     import pyarrow as pa
     import pyarrow.compute as pc
 
-    parts = pc.extract_regex(pc.cast(arr, pa.string()), _ISO_8601)  # null where the regex fails
+    parts = pc.extract_regex(pc.cast(arr, pa.string()), ISO_8601)  # null where the regex fails
     part = {name: pc.struct_field(parts, name) for name in ("date", "hour", "minute", "second", "fraction", "zone")}
     default = lambda name: pc.if_else(pc.equal(part[name], ""), "00", part[name])  # noqa: E731
     clock = pc.binary_join_element_wise(default("hour"), default("minute"), default("second"), ":")
@@ -478,7 +467,7 @@ def _read_table(
     ok = np.ones(n, dtype=bool)
     reasons: dict[str, np.ndarray] = {}
     values: dict[str, np.ndarray] = {}
-    for role in ("lat", "lon", "alt", "sog", "cog"):
+    for role in ("lat", "lon", "alt", "sog", "cog", "heading"):
         if role in names:
             values[role], valid = _as_float(table[names[role]].combine_chunks(), role)
             if role in ("lat", "lon"):
@@ -511,6 +500,7 @@ def _read_table(
         int((~ok).sum()) + len(bad),
         tuple(examples),
         str(path),
+        take(values["heading"]) if "heading" in values else None,
     )
 
 

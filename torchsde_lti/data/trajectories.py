@@ -32,14 +32,15 @@ importable from here.
 
 from __future__ import annotations
 
-import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
 from torchsde_lti.data.frames import EARTH_MEAN_RADIUS, KNOT, angular_distance, local_positions, local_velocities
 from torchsde_lti.data.loaded_tracks import LoadSummary, Tracks, _ranges
+from torchsde_lti.data.rules import CleaningRules
 from torchsde_lti.data.sources import Reports, read_reports
 from torchsde_lti.data.splits import split_objects, split_time, track_windows, window_bounds
 
@@ -54,25 +55,13 @@ __all__ = [
     "window_bounds",
 ]
 
-_COURSE_ENCODINGS = ("ais", "ais_int12", "degrees")
-
 
 def load_tracks(
     source: str | os.PathLike[str],
     columns: Mapping[str, str | int] | str | None = None,
     *,
-    format: str | None = None,
-    time_format: str | None = None,
-    altitude_unit: str = "m",
-    dims: int | None = None,
-    frame: str = "local",
-    reference: Sequence[float] | None = None,
-    course_encoding: str = "ais",
-    max_gap: float | None = 1800.0,
-    v_max: float | None = None,
-    min_reports: int = 2,
-    max_extent: float | None = 250_000.0,
-    cut_times: Sequence[str | np.datetime64] = (),
+    rules: CleaningRules | Mapping[str, Any] | None = None,
+    **changes: Any,
 ) -> Tracks:
     """Tracks from a ``.traj``, CSV or Parquet file, in per-track local metric frames.
 
@@ -80,91 +69,44 @@ def load_tracks(
         source: a path, or a file name shipped by tracktable-data (e.g.
             ``"US_coastal_2020_06_30.traj"``); FileNotFoundError says where it looked.
         columns: CSV / Parquet role -> column (header name or 0-based position): id, time, lat,
-            lon and optionally alt, sog, cog; None recognises the MarineCadastre AIS header.
-        format: "traj", "csv" or "parquet" (default: the suffix).
-        time_format: strptime format when times are not ISO 8601.
-        altitude_unit: "m" or "ft".
-        dims: 2 or 3 (east, north, altitude); None = 3 when the file has a non-zero altitude.
-        frame: "local" (each track's own origin, its first report) or "common" (``reference``).
-        reference: (lat, lon[, alt]) of the common frame.
-        course_encoding: SOG/COG conventions: "ais" (SOG >= 102.3 kn and COG outside [0, 360)
-            unavailable), "ais_int12" (also decodes a COG stored as a signed 12-bit field:
-            negative v -> v + 409.6), "degrees" (any COG, taken modulo 360).
-        max_gap: cut tracks at gaps longer than this (s); None = never.
-        v_max: implied speed (m/s) above which a jump is implausible; None = no check.
-        min_reports: drop tracks with fewer reports (>= 2).
-        max_extent: cut tracks leaving this radius (m) around their origin (local frames only);
-            None = never.
-        cut_times: instants (ISO 8601 strings or datetime64) at which every track is cut, so
-            that a split in time keeps each part in its own frame.
+            lon and optionally alt, sog, cog; None recognises the MarineCadastre AIS header
+            (a shortcut for ``columns=`` of the rules).
+        rules: the reading and cleaning rules (:class:`~torchsde_lti.data.CleaningRules`, or a
+            mapping of its fields); None = its defaults.
+        **changes: fields of :class:`~torchsde_lti.data.CleaningRules` replacing those of
+            ``rules`` (``max_gap=600.0``, ``v_max=35.0``, ``min_reports=5``, ``cut_times=[...]``...).
 
     Returns:
         :class:`Tracks`, with ``.summary`` (:class:`LoadSummary`) counting every rule.
+
+    Raises:
+        TypeError, ValueError: for a rule of the wrong type or value (naming it), and for a file
+            that cannot be read or cleaned (naming the file, the column and, where there is one,
+            the row).
     """
-    reports = read_reports(source, columns, format=format, time_format=time_format, altitude_unit=altitude_unit)
-    return prepare_tracks(
-        reports,
-        dims=dims,
-        frame=frame,
-        reference=reference,
-        course_encoding=course_encoding,
-        max_gap=max_gap,
-        v_max=v_max,
-        min_reports=min_reports,
-        max_extent=max_extent,
-        cut_times=cut_times,
-    )
-
-
-def _check_rules(
-    frame: str,
-    reference: Sequence[float] | None,
-    course_encoding: str,
-    max_gap: float | None,
-    v_max: float | None,
-    min_reports: int,
-    max_extent: float | None,
-    dims: int | None,
-) -> None:
-    if frame not in ("local", "common"):
-        raise ValueError(f"frame must be 'local' or 'common', got {frame!r}")
-    if frame == "common" and (reference is None or len(reference) not in (2, 3)):
-        raise ValueError(f"frame='common' needs reference=(lat, lon[, alt]), got {reference!r}")
-    if course_encoding not in _COURSE_ENCODINGS:
-        raise ValueError(f"course_encoding must be one of {_COURSE_ENCODINGS}, got {course_encoding!r}")
-    for name, value in (("max_gap", max_gap), ("v_max", v_max), ("max_extent", max_extent)):
-        if value is not None and not (math.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be a positive number or None, got {value!r}")
-    if int(min_reports) < 2:
-        raise ValueError(f"min_reports must be >= 2 (a track needs a time step), got {min_reports}")
-    if dims not in (None, 2, 3):
-        raise ValueError(f"dims must be 2, 3 or None, got {dims!r}")
+    if columns is not None:
+        changes["columns"] = columns
+    checked = CleaningRules.coerce(rules, **changes)
+    reports = read_reports(source, **checked.reading)
+    return prepare_tracks(reports, rules=checked)
 
 
 def prepare_tracks(
-    reports: Reports,
-    *,
-    dims: int | None = None,
-    frame: str = "local",
-    reference: Sequence[float] | None = None,
-    course_encoding: str = "ais",
-    max_gap: float | None = 1800.0,
-    v_max: float | None = None,
-    min_reports: int = 2,
-    max_extent: float | None = 250_000.0,
-    cut_times: Sequence[str | np.datetime64] = (),
+    reports: Reports, *, rules: CleaningRules | Mapping[str, Any] | None = None, **changes: Any
 ) -> Tracks:
     """The cleaning rules and frames of :func:`load_tracks` applied to already-read :class:`Reports`.
 
     Args:
         reports: the reports of one file (:func:`~torchsde_lti.data.read_reports`).
-        dims, frame, reference, course_encoding, max_gap, v_max, min_reports, max_extent, cut_times:
-            as in :func:`load_tracks`.
+        rules: as in :func:`load_tracks` (its reading fields are not used here).
+        **changes: fields of :class:`~torchsde_lti.data.CleaningRules` replacing those of ``rules``.
 
     Returns:
         Tracks: with ``.summary`` counting every rule.
     """
-    _check_rules(frame, reference, course_encoding, max_gap, v_max, min_reports, max_extent, dims)
+    rules = CleaningRules.coerce(rules, **changes)
+    dims, frame, reference = rules.dims, rules.frame, rules.reference
+    max_gap, v_max, max_extent, min_reports = rules.max_gap, rules.v_max, rules.max_extent, rules.min_reports
     rep = reports
     has_alt = rep.alt is not None and bool(np.any(np.isfinite(rep.alt) & (rep.alt != 0)))
     if dims is None:
@@ -215,7 +157,7 @@ def prepare_tracks(
     start = ~same
 
     # 3. cuts at split times and at long gaps
-    cuts = np.sort(np.array([(np.datetime64(c, "us").astype(np.int64) - t0_us) / 1e6 for c in cut_times]))
+    cuts = (rules.cut_instants().astype(np.int64) - t0_us) / 1e6
     if len(cuts):
         bins = np.searchsorted(cuts, t, side="right")
         crossing = same & np.concatenate([[False], bins[1:] != bins[:-1]])
@@ -262,7 +204,7 @@ def prepare_tracks(
     pos = local_positions(lat, lon, o[:, 0], o[:, 1], alt, o[:, 2] if alt is not None else None)
     vel = sog = None
     if rep.sog is not None and rep.cog is not None:
-        sog, course, counts["courses_decoded"] = _speed_course(rep.sog[idx], rep.cog[idx], course_encoding)
+        sog, course, counts["courses_decoded"] = _speed_course(rep.sog[idx], rep.cog[idx], rules.course_encoding)
         vel = local_velocities(sog * KNOT, course, lat, lon, o[:, 0], o[:, 1])
 
     summary = LoadSummary(
@@ -275,15 +217,7 @@ def prepare_tracks(
         reports=len(t),
         dims=int(dims),
         frame=frame,
-        rules={
-            "max_gap": max_gap,
-            "v_max": v_max,
-            "min_reports": int(min_reports),
-            "max_extent": max_extent,
-            "cut_times": [str(c) for c in cut_times],
-            "course_encoding": course_encoding,
-            "reference": None if reference is None else [float(x) for x in reference],
-        },
+        rules=rules.as_dict(),
         **counts,
     )
     return Tracks(
