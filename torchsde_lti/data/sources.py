@@ -32,7 +32,7 @@ import os
 import re
 from collections.abc import Mapping
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -70,7 +70,11 @@ class Reports(NamedTuple):
     lat, lon: (N,) float64 degrees as read; alt: (N,) metres or None; sog: (N,) knots or None;
     cog: (N,) degrees or None; heading: (N,) degrees or None (true heading); segment: (N,) int64 (a ``.traj`` line) or None (one track per id);
     rows: lines (``.traj``: points of the readable lines, plus one per malformed line) read;
-    malformed: lines or rows skipped because a field could not be parsed; malformed_examples: the first few of them with the reason; path: the file read.
+    malformed: lines or rows skipped because a field could not be parsed; malformed_examples: the
+    first few of them with the reason; path: the file read; columns: role -> the column's name in
+    the file (None: ``.traj``, whose points are lon, lat); decoded: values converted from the
+    file format's own convention, counted by name (``"lon_unwrapped"``: a ``.traj`` longitude
+    outside [-180, 180), tracktable's unwrapped longitudes, mapped into it).
     """
 
     object_id: np.ndarray
@@ -86,6 +90,8 @@ class Reports(NamedTuple):
     malformed_examples: tuple[str, ...]
     path: str
     heading: np.ndarray | None = None
+    columns: dict[str, str] | None = None
+    decoded: dict[str, int] = {}  # noqa: RUF012 - a NamedTuple's default, never mutated
 
 
 def _example_dirs() -> list[Path]:
@@ -256,6 +262,11 @@ def _read_traj(path: Path) -> Reports:
     object_id = np.concatenate(ids)
     object_id = _object_ids(object_id, np.ones(len(object_id), dtype=bool))
     ll = np.concatenate(lonlat)
+    # tracktable writes a trajectory's longitudes unwrapped (continuous across the antimeridian: 190,
+    # -200): the format's convention, decoded into [-180, 180) here and counted
+    lon = ll[:, 0]
+    unwrapped = np.isfinite(lon) & ((lon < -180.0) | (lon >= 180.0))
+    lon = np.where(unwrapped, (lon + 180.0) % 360.0 - 180.0, lon)
     alt = None
     if any(a is not None for a in alts):  # altitude when any line has it, NaN at the points of the lines without
         alt = np.concatenate([np.full(len(t), np.nan) if a is None else a for a, t in zip(alts, times)])
@@ -263,7 +274,7 @@ def _read_traj(path: Path) -> Reports:
         object_id,
         np.concatenate(times),
         ll[:, 1].copy(),
-        ll[:, 0].copy(),
+        lon,
         alt,
         None,
         None,
@@ -272,13 +283,16 @@ def _read_traj(path: Path) -> Reports:
         malformed,
         tuple(examples),
         str(path),
+        decoded={"lon_unwrapped": int(unwrapped.sum())} if unwrapped.any() else {},
     )
 
 
 # ---------------------------------------------------------------------------- CSV / Parquet
 def _resolve_columns(
-    columns: Mapping[str, str | int] | str | None, header: list[str] | None, path: Path
+    columns: Mapping[str, str | int] | str | None, header: list[str] | None, path: Path, first_line: str
 ) -> dict[str, str | int]:
+    """role -> column of a CSV / Parquet file, checked against its ``header`` (None: a CSV read
+    by position without a header line, ``first_line`` its first data line)."""
     if columns is None or columns == "ais":
         if header is not None and set(AIS_COLUMNS.values()) <= set(header):
             return dict(AIS_COLUMNS)
@@ -291,38 +305,118 @@ def _resolve_columns(
             f"columns, e.g. columns={{'id': ..., 'time': ..., 'lat': ..., 'lon': ...}} "
             f"(header names or 0-based positions); header found: {header}"
         )
-    cols = (
-        dict(columns) if isinstance(columns, Mapping) else {}
-    )  # (checked by CleaningRules: known roles, the required ones, one role per column)
-    if header is not None:
-        absent: list[str | int] = [v for v in cols.values() if isinstance(v, str) and v not in header]
-        absent += [v for v in cols.values() if isinstance(v, int) and not 0 <= v < len(header)]
-        if absent:
-            raise ValueError(f"{path}: columns {absent} not in the header {header} (names or 0-based positions)")
+    cols = dict(columns) if isinstance(columns, Mapping) else {}  # (checked by CleaningRules)
+    fields = header if header is not None else _split_line(first_line)
+    for role, c in cols.items():
+        if isinstance(c, int) and c >= len(fields):
+            where = f"not in the header {header}" if header is not None else "out of range"
+            raise ValueError(
+                f"{path}: columns[{role!r}]={c} is {where}: the file has {len(fields)} columns "
+                f"(0-based positions 0 to {len(fields) - 1}); its first {'header' if header else 'data'} line: "
+                f"{first_line[:120]!r}"
+            )
+        if isinstance(c, str) and c not in fields:
+            raise ValueError(
+                f"{path}: columns[{role!r}]={c!r} is not in the header {header} (names or 0-based positions)"
+            )
     return cols
 
 
-def _leading_comment_lines(path: Path) -> int:
-    n = 0
+def _split_line(line: str) -> list[str]:
+    """The fields of one CSV line (quotes honoured)."""
+    import csv
+
+    return next(csv.reader([line]), [])
+
+
+def _looks_like_data(fields: list[str]) -> bool:
+    """Whether a line that should name the columns holds data: a field that is a number or an
+    ISO 8601 date-time (column names are neither)."""
+    return any(re.match(_NUMBER, f.strip()) or re.match(ISO_8601, f) for f in fields)
+
+
+# header names by role, lower case, to suggest a mapping when the names sit on a '#' line
+_ROLE_NAMES = {
+    "id": ("mmsi", "object_id", "id", "callsign", "icao24", "vessel", "track_id"),
+    "time": ("basedatetime", "timestamp", "time", "datetime", "ts", "t"),
+    "lat": ("lat", "latitude"),
+    "lon": ("lon", "lng", "long", "longitude"),
+    "alt": ("alt", "altitude"),
+    "sog": ("sog",),
+    "cog": ("cog",),
+    "heading": ("heading",),
+}
+
+
+def _suggest_columns(names: list[str]) -> dict[str, int]:
+    """role -> position of the names that say their role (:data:`_ROLE_NAMES`); {} unless the
+    required roles are all there."""
+    lower = [n.strip().lower() for n in names]
+    out = {role: lower.index(n) for role, known in _ROLE_NAMES.items() for n in known if n in lower}
+    out = {role: out[role] for role in _ROLE_NAMES if role in out}
+    return out if {"id", "time", "lat", "lon"} <= set(out) else {}
+
+
+def _check_header(path: Path, header: list[str], comments: list[str], recognising: bool) -> None:
+    """Refuse a data line read as the header, saying where the names are (a ``#`` line, which
+    is skipped as a comment) and how to name the columns by position instead."""
+    if not _looks_like_data(header):
+        return
+    last = comments[-1].lstrip("#").strip() if comments else ""
+    names = _split_line(last) if "," in last else last.split()
+    suggestion = {"id": 0, "time": 1, "lat": 2, "lon": 3}
+    if names and not _looks_like_data(names):
+        positions = ", ".join(f"{name.strip()}={i}" for i, name in enumerate(names))
+        where = (
+            f"the column names are on '#' comment line {len(comments)} ({comments[-1].strip()[:120]!r}), which is "
+            f"skipped as a comment; the line after it (line {len(comments) + 1}), where the header should be, "
+            f"holds data"
+        )
+        fix = f"name the columns by 0-based position (from the comment line: {positions})"
+        suggestion = _suggest_columns(names) or suggestion
+    else:
+        where = f"line {len(comments) + 1}, where the header should be, holds data: {','.join(header)[:120]!r}"
+        fix = "add a header line, or name the columns by 0-based position"
+    recognised = "no header recognised (not the MarineCadastre AIS header): " if recognising else ""
+    raise ValueError(
+        f"{path}: {recognised}{where}; {fix}, e.g. columns={suggestion} (positions read every line as data)"
+    )
+
+
+def _leading_comment_lines(path: Path) -> list[str]:
+    """The ``#`` lines at the top of a CSV (tracktable's point files)."""
+    lines = []
     with open(path, encoding="utf-8-sig", errors="replace") as fh:
         for line in fh:
             if not line.startswith("#"):
                 break
-            n += 1
-    return n
+            lines.append(line.rstrip("\r\n"))
+    return lines
 
 
-def _as_float(arr: object, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """(values float64, ok mask): nulls and unparsable strings are not ok."""
+def _as_float(arr: object, role: str, column: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(values float64, ok mask): nulls and unparsable strings are not ok.
+
+    Raises:
+        TypeError: for a column that holds neither numbers nor text (booleans, timestamps...),
+            naming the role, the column and the file.
+    """
     import pyarrow as pa
     import pyarrow.compute as pc
 
+    if pa.types.is_dictionary(arr.type):
+        arr = arr.dictionary_decode()
     if pa.types.is_string(arr.type) or pa.types.is_large_string(arr.type):
         ok = pc.fill_null(pc.match_substring_regex(pc.utf8_trim_whitespace(arr), _NUMBER), False)
         arr = pc.cast(pc.if_else(ok, arr, pa.scalar("nan")), pa.float64())
-    else:
+    elif pa.types.is_integer(arr.type) or pa.types.is_floating(arr.type) or pa.types.is_decimal(arr.type):
         ok = pc.is_valid(arr)
         arr = pc.cast(arr, pa.float64())
+    elif pa.types.is_null(arr.type):  # (a CSV column with no value at all)
+        ok = pa.array(np.zeros(len(arr), dtype=bool))
+        arr = pa.array(np.full(len(arr), np.nan))
+    else:
+        raise TypeError(f"{path}: the {role} column {column!r} holds {arr.type} values, not numbers")
     return np.asarray(arr.to_numpy(zero_copy_only=False), dtype=np.float64), np.asarray(
         ok.to_numpy(zero_copy_only=False), dtype=bool
     )
@@ -415,61 +509,90 @@ def _read_table(
 ) -> Reports:
     try:
         import pyarrow as pa
-        import pyarrow.compute as pc
-        import pyarrow.csv as pcsv
-        import pyarrow.parquet as pq
     except ImportError as err:  # pragma: no cover - depends on the environment
         raise ModuleNotFoundError(
             "reading CSV / Parquet trajectories needs pyarrow: pip install 'torchsde_lti[data]'"
         ) from err
+    try:
+        if fmt == "parquet":
+            table, names, bad = _parquet_table(path, columns)
+        else:
+            table, names, bad = _csv_table(path, columns)
+    except (pa.ArrowException, UnicodeDecodeError) as err:  # (the file's path is not in pyarrow's message)
+        raise ValueError(f"{path}: cannot be read as {fmt.upper()}: {err}") from err
+    return _table_reports(table, names, bad, path, time_format)
+
+
+def _parquet_table(path: Path, columns: Mapping[str, str | int] | str | None) -> tuple[Any, dict[str, str], list[str]]:
+    """(table of the used columns, role -> column name, no malformed rows) of a Parquet file."""
+    import pyarrow.parquet as pq
+
+    header = pq.read_schema(path).names
+    cols = _resolve_columns(columns, header, path, ",".join(header))
+    names = {role: (header[c] if isinstance(c, int) else c) for role, c in cols.items()}
+    return pq.read_table(path, columns=sorted(set(names.values()))), names, []
+
+
+def _csv_table(path: Path, columns: Mapping[str, str | int] | str | None) -> tuple[Any, dict[str, str], list[str]]:
+    """(table of the used columns, role -> column name, examples of malformed rows) of a CSV:
+    leading ``#`` lines skipped; columns by header name, or by position (a header line above
+    them, recognised by text at the latitude or longitude position, skipped)."""
+    import pyarrow as pa
+    import pyarrow.csv as pcsv
+
+    comments = _leading_comment_lines(path)
+    skip = len(comments)
+    first = _first_line(path, skip)
+    if not first.strip():
+        raise ValueError(f"{path}: no data: the file is empty" + (f" after {skip} '#' comment lines" if skip else ""))
+    if any(ord(ch) < 32 and ch != "\t" for ch in first):
+        raise ValueError(f"{path}: not a CSV text file: its first line holds control characters ({first[:40]!r})")
+    by_position = isinstance(columns, Mapping) and all(isinstance(v, int) for v in columns.values())
+    if by_position and isinstance(columns, Mapping) and _first_line_is_header(first, columns):
+        skip += 1  # positions above a header line: the header is not a row
+        first = _first_line(path, skip)
+    header = None if by_position else _split_line(first)
+    if header is not None:
+        _check_header(path, header, comments, recognising=not isinstance(columns, Mapping))
+    cols = _resolve_columns(columns, header, path, first)
+    # positions: pyarrow's generated names without a header, the header's names with one
+    names = {role: (c if isinstance(c, str) else f"f{c}" if header is None else header[c]) for role, c in cols.items()}
     bad: list[str] = []
-    if fmt == "parquet":
-        header = pq.read_schema(path).names
-        cols = _resolve_columns(columns, header, path)
-        names = {role: (header[c] if isinstance(c, int) else c) for role, c in cols.items()}
-        table = pq.read_table(path, columns=sorted(set(names.values())))
-    else:
-        skip = _leading_comment_lines(path)
-        by_position = isinstance(columns, Mapping) and all(
-            isinstance(v, int) for v in columns.values() if v is not None
-        )
-        if by_position and isinstance(columns, Mapping) and _first_line_is_header(path, skip, columns):
-            skip += 1  # positions above a header line: the header is not a row
-        header = None if by_position else _csv_header(path, skip)
-        cols = _resolve_columns(columns, header, path)
-        # positions: pyarrow's generated names without a header, the header's names with one
-        names = {
-            role: (c if isinstance(c, str) else f"f{c}" if header is None else header[c]) for role, c in cols.items()
-        }
 
-        def handler(row: object) -> str:
-            if len(bad) < _EXAMPLES:
-                bad.append(
-                    f"{getattr(row, 'text', '')[:80]!r}: {getattr(row, 'actual_columns', '?')} fields, "
-                    f"expected {getattr(row, 'expected_columns', '?')}"
-                )
-            else:
-                bad.append("")
-            return "skip"
+    def handler(row: object) -> str:
+        if len(bad) < _EXAMPLES:
+            bad.append(
+                f"{getattr(row, 'text', '')[:80]!r}: {getattr(row, 'actual_columns', '?')} fields, "
+                f"expected {getattr(row, 'expected_columns', '?')}"
+            )
+        else:
+            bad.append("")
+        return "skip"
 
-        read = pcsv.ReadOptions(skip_rows=skip, autogenerate_column_names=by_position)
-        string_cols = {names["id"]: pa.string(), names["time"]: pa.string()}
-        convert = pcsv.ConvertOptions(
-            include_columns=sorted(set(names.values())), column_types=string_cols, strings_can_be_null=True
-        )
-        table = pcsv.read_csv(
-            path,
-            read_options=read,
-            parse_options=pcsv.ParseOptions(invalid_row_handler=handler),
-            convert_options=convert,
-        )
+    read = pcsv.ReadOptions(skip_rows=skip, autogenerate_column_names=by_position)
+    string_cols = {names["id"]: pa.string(), names["time"]: pa.string()}
+    convert = pcsv.ConvertOptions(
+        include_columns=sorted(set(names.values())), column_types=string_cols, strings_can_be_null=True
+    )
+    table = pcsv.read_csv(
+        path, read_options=read, parse_options=pcsv.ParseOptions(invalid_row_handler=handler), convert_options=convert
+    )
+    return table, names, bad
+
+
+def _table_reports(table: Any, names: dict[str, str], bad: list[str], path: Path, time_format: str | None) -> Reports:
+    """Reports of a table: rows whose id, time, latitude or longitude does not read are skipped
+    and counted (an error naming the column, a row and its value when no row reads)."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
     n = table.num_rows
     ok = np.ones(n, dtype=bool)
     reasons: dict[str, np.ndarray] = {}
     values: dict[str, np.ndarray] = {}
     for role in ("lat", "lon", "alt", "sog", "cog", "heading"):
         if role in names:
-            values[role], valid = _as_float(table[names[role]].combine_chunks(), role)
+            values[role], valid = _as_float(table[names[role]].combine_chunks(), role, names[role], path)
             if role in ("lat", "lon"):
                 reasons[role] = ~valid
                 ok &= valid
@@ -478,13 +601,16 @@ def _read_table(
     ok &= valid
     raw_id = pc.cast(table[names["id"]].combine_chunks(), pa.string())
     id_ok = np.asarray(raw_id.is_valid().to_numpy(zero_copy_only=False), dtype=bool)
+    id_ok &= np.asarray(raw_id.fill_null("").to_numpy(zero_copy_only=False), dtype=str) != ""
     reasons["id"] = ~id_ok
     ok &= id_ok
+    if not ok.any():
+        _no_readable_row(table, names, reasons, bad, path, time_format)
     object_id = _object_ids(np.asarray(raw_id.fill_null("").to_numpy(zero_copy_only=False), dtype=str), ok)
     examples = [b for b in bad if b][:_EXAMPLES]
     for role, mask in reasons.items():
         for r in np.flatnonzero(mask)[: max(0, _EXAMPLES - len(examples))]:
-            examples.append(f"row {int(r) + 1}: {role} column {names[role]!r} unreadable")
+            examples.append(_unreadable(table, names, role, int(r)))
     keep = np.flatnonzero(ok)
     take = (lambda a: a[keep]) if not ok.all() else (lambda a: a)  # noqa: E731
     return Reports(
@@ -501,26 +627,61 @@ def _read_table(
         tuple(examples),
         str(path),
         take(values["heading"]) if "heading" in values else None,
+        {role: str(name) for role, name in names.items()},
     )
 
 
-def _csv_header(path: Path, skip: int) -> list[str]:
-    """Column names in the first line after ``skip`` comment lines."""
-    import io
+def _unreadable(table: Any, names: dict[str, str], role: str, row: int) -> str:
+    """'data row r: <role> column <name> unreadable: <value>' (r 1-based, after the header)."""
+    value = table[names[role]][row].as_py()
+    return f"data row {row + 1}: {role} column {names[role]!r} unreadable: {'empty' if value in (None, '') else repr(value)}"
 
-    import pyarrow.csv as pcsv
 
+def _no_readable_row(
+    table: Any,
+    names: dict[str, str],
+    reasons: dict[str, np.ndarray],
+    bad: list[str],
+    path: Path,
+    time_format: str | None,
+) -> None:
+    """Raise the ValueError for a file of which no row reads, saying which columns did not."""
+    n = table.num_rows
+    if n == 0:
+        why = f"{len(bad)} rows with the wrong number of fields, e.g. {bad[0]}" if bad else "a header and no data rows"
+        raise ValueError(f"{path}: no report can be read: the file has {why}")
+    parts = []
+    for role in ("id", "time", "lat", "lon"):
+        failed = reasons[role]
+        if failed.any():
+            how = ""
+            if role == "time":
+                how = (
+                    f" with time_format={time_format!r}"
+                    if time_format is not None
+                    else " (ISO 8601, or numbers: seconds since 1970-01-01 UTC, within ±292,000 years; "
+                    "else give time_format)"
+                )
+            what = "is empty" if role == "id" else "does not read"
+            parts.append(
+                f"the {role} column {names[role]!r} {what}{how} in {int(failed.sum())} of {n} rows, e.g. "
+                + _unreadable(table, names, role, int(np.flatnonzero(failed)[0]))
+            )
+    raise ValueError(f"{path}: no report can be read: " + "; ".join(parts))
+
+
+def _first_line(path: Path, skip: int) -> str:
+    """The line after the first ``skip`` lines, without its line break ('' at the end of the file)."""
     with open(path, "rb") as fh:
         for _ in range(skip):
             fh.readline()
         first = fh.readline().rstrip(b"\r\n")
-    return pcsv.read_csv(io.BytesIO(first + b"\n"), read_options=pcsv.ReadOptions()).schema.names
+    return first.decode("utf-8-sig", errors="replace")
 
 
-def _first_line_is_header(path: Path, skip: int, columns: Mapping[str, str | int]) -> bool:
-    """Whether the first line after ``skip`` has text, not a number, at the latitude or
-    longitude position of ``columns``."""
-    fields = _csv_header(path, skip)
+def _first_line_is_header(first: str, columns: Mapping[str, str | int]) -> bool:
+    """Whether ``first`` has text, not a number, at the latitude or longitude position of ``columns``."""
+    fields = _split_line(first)
     positions = [columns.get(role) for role in ("lat", "lon")]
     return any(
         isinstance(c, int) and c < len(fields) and re.match(_NUMBER, fields[c].strip()) is None for c in positions

@@ -40,7 +40,7 @@ import numpy as np
 
 from torchsde_lti.data.frames import EARTH_MEAN_RADIUS, KNOT, angular_distance, local_positions, local_velocities
 from torchsde_lti.data.loaded_tracks import LoadSummary, Tracks, _ranges
-from torchsde_lti.data.rules import CleaningRules
+from torchsde_lti.data.rules import REPORT_RULES, CleaningRules
 from torchsde_lti.data.sources import Reports, read_reports
 from torchsde_lti.data.splits import split_objects, split_time, track_windows, window_bounds
 
@@ -129,14 +129,14 @@ def prepare_tracks(
         0,
     )
 
-    # 1. valid positions
-    valid = np.isfinite(rep.lat) & np.isfinite(rep.lon) & (np.abs(rep.lat) <= 90.0)
-    if dims == 3:
-        valid &= np.isfinite(rep.alt)
+    # 1. valid positions (REPORT_RULES): invalid ones dropped, counted by reason; a likely swap refused
+    valid, invalid = _valid_positions(rep, dims)
+    _check_swap(rep, valid, recognised_header=rules.columns in (None, "ais"))
     counts["invalid_positions"] = int((~valid).sum())
     idx = np.flatnonzero(valid)
     if len(idx) == 0:
-        raise ValueError(f"{rep.path}: no report has a valid position ({rep.rows} read)")
+        reasons = ", ".join(f"{name} {count}" for name, count in invalid.items())
+        raise ValueError(f"{rep.path}: no report has a valid position ({rep.rows} read; {reasons})")
 
     # 2. group by (object, file segment), sort by time (stable: equal times keep file order)
     uniq, codes = np.unique(rep.object_id[idx], return_inverse=True)
@@ -153,7 +153,7 @@ def prepare_tracks(
 
     t0_us = int(tus.min())
     t = (tus - t0_us) / 1e6
-    lat, lon = rep.lat[idx], ((rep.lon[idx] + 180.0) % 360.0) - 180.0
+    lat, lon = rep.lat[idx], np.where(rep.lon[idx] == 180.0, -180.0, rep.lon[idx])  # (the same meridian)
     start = ~same
 
     # 3. cuts at split times and at long gaps
@@ -203,9 +203,14 @@ def prepare_tracks(
     o = origin[owner]
     pos = local_positions(lat, lon, o[:, 0], o[:, 1], alt, o[:, 2] if alt is not None else None)
     vel = sog = None
+    unavailable: dict[str, int] = {}
     if rep.sog is not None and rep.cog is not None:
-        sog, course, counts["courses_decoded"] = _speed_course(rep.sog[idx], rep.cog[idx], rules.course_encoding)
+        sog, course, counts["courses_decoded"], unavailable = _speed_course(
+            rep.sog[idx], rep.cog[idx], rules.course_encoding
+        )
         vel = local_velocities(sog * KNOT, course, lat, lon, o[:, 0], o[:, 1])
+    if rep.heading is not None:
+        unavailable.update(_counts(REPORT_RULES["heading"].classify(rep.heading[idx])))
 
     summary = LoadSummary(
         source=rep.path,
@@ -219,6 +224,9 @@ def prepare_tracks(
         frame=frame,
         rules=rules.as_dict(),
         **counts,
+        invalid=invalid,
+        unavailable=unavailable,
+        decoded=dict(rep.decoded),
     )
     return Tracks(
         object_id=rep.object_id[idx[first]],
@@ -237,20 +245,89 @@ def prepare_tracks(
     )
 
 
-def _speed_course(sog: np.ndarray, cog: np.ndarray, encoding: str) -> tuple[np.ndarray, np.ndarray, int]:
-    """(SOG knots with NaN = unavailable, COG degrees in [0, 360) or NaN, number of decoded COGs)."""
+def _counts(masks: dict[str, np.ndarray]) -> dict[str, int]:
+    """name -> number of True entries, the names with none left out."""
+    return {name: int(mask.sum()) for name, mask in masks.items() if mask.any()}
+
+
+def _valid_positions(rep: Reports, dims: int) -> tuple[np.ndarray, dict[str, int]]:
+    """(N,) the reports with a valid latitude, longitude (and, 3-D, a finite altitude), and the
+    invalid ones counted by their first reason (:data:`~torchsde_lti.data.REPORT_RULES`)."""
+    bad = np.zeros(len(rep.lat), dtype=bool)
+    invalid: dict[str, int] = {}
+    masks = {**REPORT_RULES["lat"].classify(rep.lat), **REPORT_RULES["lon"].classify(rep.lon)}
+    if dims == 3 and rep.alt is not None:
+        masks["alt_missing"] = ~np.isfinite(rep.alt)
+    for name, mask in masks.items():
+        first = mask & ~bad
+        if first.any():
+            invalid[name] = int(first.sum())
+        bad |= first
+    return ~bad, invalid
+
+
+def _check_swap(rep: Reports, valid: np.ndarray, recognised_header: bool) -> None:
+    """Refuse latitude and longitude columns that look exchanged: most positions invalid while
+    at least twice as many would be valid the other way round; or, with the MarineCadastre
+    header recognised (US waters: no report both south of the equator and east of Greenwich),
+    every valid position south-east and valid the other way round too."""
+    lat_rule, lon_rule = REPORT_RULES["lat"], REPORT_RULES["lon"]
+    # reports with two numbers, neither AIS's "not available": what a swap would show in
+    lat_masks, lon_masks = lat_rule.classify(rep.lat), lon_rule.classify(rep.lon)
+    numbers = ~(lat_masks["lat_missing"] | lat_masks["lat_not_available"])
+    numbers &= ~(lon_masks["lon_missing"] | lon_masks["lon_not_available"])
+    if not numbers.any():
+        return
+    other_way = lat_rule.valid(rep.lon) & lon_rule.valid(rep.lat) & numbers
+    n_valid, n_other, n = int((valid & numbers).sum()), int(other_way.sum()), int(numbers.sum())
+    most_invalid = n_valid < n / 2 and n_other >= 2 * n_valid
+    south_east = (
+        recognised_header
+        and n_valid > 0
+        and bool(np.all((rep.lat[valid] < 0) & (rep.lon[valid] > 0) & other_way[valid]))
+    )
+    if not (most_invalid or south_east):
+        return
+    names = rep.columns or {"lat": "lat", "lon": "lon"}
+    lat_col, lon_col = names.get("lat", "lat"), names.get("lon", "lon")
+    if most_invalid:
+        why = (
+            f"{n - n_valid} of {n} reports have no valid position (latitudes outside [-90, 90] in "
+            f"{lat_col!r}), and {n_other} would be valid with {lat_col!r} as the longitude and {lon_col!r} as the "
+            "latitude"
+        )
+    else:
+        why = (
+            f"all {n_valid} valid positions are south of the equator and east of Greenwich (latitude {lat_col!r} "
+            f"{np.min(rep.lat[valid]):g} to {np.max(rep.lat[valid]):g}, longitude {lon_col!r} "
+            f"{np.min(rep.lon[valid]):g} to {np.max(rep.lon[valid]):g}), where MarineCadastre (US waters) has no "
+            "reports; if they really are there, name the columns, e.g. columns={'id': 'MMSI', 'time': "
+            "'BaseDateTime', 'lat': 'LAT', 'lon': 'LON'}, which skips this check"
+        )
+    fix = {**names, "lat": lon_col, "lon": lat_col}
+    raise ValueError(f"{rep.path}: the latitude and longitude columns look swapped: {why}. Swap them: columns={fix}")
+
+
+def _speed_course(
+    sog: np.ndarray, cog: np.ndarray, encoding: str
+) -> tuple[np.ndarray, np.ndarray, int, dict[str, int]]:
+    """(SOG knots with NaN = unavailable, COG degrees in [0, 360) or NaN, number of decoded COGs,
+    the unavailable values counted by reason) under ``encoding`` (:class:`CleaningRules`)."""
     sog = np.asarray(sog, dtype=np.float64)
     cog = np.asarray(cog, dtype=np.float64)
     decoded = 0
-    if encoding == "degrees":
-        return np.where(sog >= 0, sog, np.nan), np.mod(cog, 360.0), 0
+    if encoding == "degrees":  # not AIS: any course modulo 360, a negative speed unavailable
+        with np.errstate(invalid="ignore"):
+            masks = {"sog_missing": ~np.isfinite(sog), "sog_out_of_range": sog < 0, "cog_missing": ~np.isfinite(cog)}
+        return np.where(sog >= 0, sog, np.nan), np.mod(cog, 360.0), 0, _counts(masks)
     if encoding == "ais_int12":
         negative = cog < 0.0
         decoded = int(negative.sum())
         cog = np.where(negative, cog + 409.6, cog)
-    sog = np.where((sog >= 0) & (sog < 102.25), sog, np.nan)
-    cog = np.where((cog >= 0.0) & (cog < 360.0), cog, np.nan)
-    return sog, cog, decoded
+    sog_masks, cog_masks = REPORT_RULES["sog"].classify(sog), REPORT_RULES["cog"].classify(cog)
+    sog = np.where(REPORT_RULES["sog"].valid(sog), sog, np.nan)
+    cog = np.where(REPORT_RULES["cog"].valid(cog), cog, np.nan)
+    return sog, cog, decoded, {**_counts(sog_masks), **_counts(cog_masks)}
 
 
 def _speeds(t: np.ndarray, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
