@@ -315,3 +315,24 @@ def test_track_windows_refuses_an_integer_dtype(tmp_path: Path) -> None:
     with pytest.raises(TypeError, match="dtype must be a floating-point"):
         track_windows(tracks, dtype=torch.int64)
     assert track_windows(tracks, dtype=torch.float64)[0].y.dtype == torch.float64
+
+
+def test_wrong_argument_types_name_the_argument(tmp_path: Path) -> None:
+    path = _write(tmp_path / "a.csv", _track(1))
+    with pytest.raises(TypeError, match="^source must be a path"):
+        load_tracks(123)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="^data.source must be a path"):
+        TrackDataModule(None)  # type: ignore[arg-type]
+    for name, value, error in (
+        ("max_len", "64", TypeError),
+        ("max_len", 1, ValueError),
+        ("batch_size", 0, ValueError),
+        ("batch_size", 2.5, TypeError),
+        ("pool_batches", None, TypeError),
+        ("seed", "0", TypeError),
+        ("fractions", "0.6,0.2,0.2", TypeError),
+    ):
+        with pytest.raises(error, match=f"data.{name}"):
+            TrackDataModule(str(path), **{name: value})
+    with pytest.raises(TypeError, match="max_gap must be a positive number"):
+        TrackDataModule(str(path), max_gap="30 min")

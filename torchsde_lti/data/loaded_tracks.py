@@ -178,7 +178,7 @@ class Tracks:
         lengths = self.lengths[idx]
         offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
         rows = _ranges(self.offsets[idx], lengths)
-        per_report = {
+        per_report: dict[str, Any] = {
             k: (None if getattr(self, k) is None else getattr(self, k)[rows])
             for k in ("t", "pos", "lat", "lon", "alt", "vel", "sog")
         }

@@ -232,6 +232,16 @@ def _reserved_file(source: str | os.PathLike[str]) -> str | None:
     return next((name for name, digest in same_size if digest == mine), None)
 
 
+def _check_count(name: str, value: object, low: int | None, allow_none: bool) -> None:
+    """An integer >= ``low`` (or None when allowed), else TypeError / ValueError naming ``name``."""
+    if value is None and allow_none:
+        return
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"{name} must be an integer{' or null' if allow_none else ''}, got {value!r}")
+    if low is not None and value < low:
+        raise ValueError(f"{name} must be >= {low}{' or null' if allow_none else ''}, got {value}")
+
+
 class TrackDataModule(LightningDataModule):
     """Real tracks from any trajectory file (:func:`~torchsde_lti.data.load_tracks`) as padded,
     masked :class:`~torchsde_lti.data.tracks.TrackBatch` es of similar-length windows.
@@ -277,6 +287,8 @@ class TrackDataModule(LightningDataModule):
         **changes: Any,
     ) -> None:
         super().__init__()
+        if not isinstance(source, (str, os.PathLike)):
+            raise TypeError(f"data.source must be a path, got {type(source).__name__} {source!r}")
         reserved = _reserved_file(source)
         if reserved is not None:
             raise ValueError(
@@ -287,8 +299,15 @@ class TrackDataModule(LightningDataModule):
             raise ValueError(f"data.split must be 'objects' or 'time', got {split!r}")
         if split == "time" and not boundaries:
             raise ValueError("data.split='time' needs data.boundaries (1 or 2 ISO 8601 instants)")
-        if batch_size is not None and int(batch_size) < 1:
-            raise ValueError(f"data.batch_size must be >= 1 or null, got {batch_size}")
+        for name, value, low in (
+            ("batch_size", batch_size, 1),
+            ("max_len", max_len, 2),
+            ("pool_batches", pool_batches, 1),
+        ):
+            _check_count(f"data.{name}", value, low, allow_none=name != "pool_batches")
+        _check_count("data.seed", seed, None, allow_none=False)
+        if isinstance(fractions, (str, bytes)) or not isinstance(fractions, Sequence):
+            raise TypeError(f"data.fractions must be 3 numbers (train, val, test), got {fractions!r}")
         if dtype not in ("float32", "float64"):
             raise ValueError(f"data.dtype must be 'float32' or 'float64', got {dtype!r}")
         base = CleaningRules.coerce(rules if rules is not None else {"min_reports": 5}, **changes)
@@ -298,7 +317,7 @@ class TrackDataModule(LightningDataModule):
         self.rules = base
         self.source = str(source)
         self.split = str(split)
-        self.fractions = [float(f) for f in fractions]
+        self.fractions = [float(f) for f in fractions]  # (checked by split_objects)
         self.boundaries = list(_instants("data.boundaries", boundaries)) if boundaries else []
         self.seed = int(seed)
         self.max_len = None if max_len is None else int(max_len)
@@ -332,10 +351,11 @@ class TrackDataModule(LightningDataModule):
         if self.tracks is not None:
             return
         self.tracks = load_tracks(self.source, rules=self.rules)
-        if self.split == "objects":
-            parts = split_objects(self.tracks, self.fractions, self.seed)
-        else:
-            parts = tuple(split_time(self.tracks, self.boundaries))
+        parts: Sequence[Tracks] = (
+            split_objects(self.tracks, self.fractions, self.seed)
+            if self.split == "objects"
+            else split_time(self.tracks, self.boundaries)
+        )
         self.splits = {name: part for name, part in zip(("train", "val", "test"), parts) if len(part)}
         for name in ("train", "val"):
             if name not in self.splits:
@@ -363,7 +383,7 @@ class TrackDataModule(LightningDataModule):
         )
         from lightning.fabric.utilities.rank_zero import rank_zero_only
 
-        if rank_zero_only.rank == 0:
+        if getattr(rank_zero_only, "rank", 0) == 0:
             log.info("data: %s", self.summary)
 
     def _lengths(self, split: str) -> list[int]:

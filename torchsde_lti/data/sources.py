@@ -154,7 +154,18 @@ def read_reports(
 
     Returns:
         Reports: numpy columns, one entry per readable report, with the malformed ones counted.
+
+    Raises:
+        FileNotFoundError: for no such file (:func:`locate_file`).
+        TypeError: for an argument of the wrong type (naming it), a column of booleans or
+            timestamps for a number (naming the file and the column).
+        ValueError: for a file that cannot be read (empty, not CSV text, not Parquet), columns
+            that are not in it (the role, the position and the file's column count), a data
+            line where the header should be, and a file of which no row reads (each column that
+            did not, with a row and its value); every message starts with the file's path.
     """
+    if not isinstance(source, (str, os.PathLike)):
+        raise TypeError(f"source must be a path (str or os.PathLike), got {type(source).__name__} {source!r}")
     checked = CleaningRules(columns=columns, format=format, time_format=time_format, altitude_unit=altitude_unit)
     columns = checked.columns
     path = locate_file(source)
@@ -229,7 +240,8 @@ def _read_traj(path: Path) -> Reports:
     lonlat: list[np.ndarray] = []
     alts: list[np.ndarray | None] = []  # None: a line without an altitude property
     segs: list[np.ndarray] = []
-    malformed, examples, lines, points = 0, [], 0, 0
+    examples: list[str] = []
+    malformed, lines, points = 0, 0, 0
     with open(path, encoding="utf-8-sig", errors="replace") as fh:
         for number, line in enumerate(fh, start=1):
             if not line.strip():
@@ -394,7 +406,7 @@ def _leading_comment_lines(path: Path) -> list[str]:
     return lines
 
 
-def _as_float(arr: object, role: str, column: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
+def _as_float(arr: Any, role: str, column: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(values float64, ok mask): nulls and unparsable strings are not ok.
 
     Raises:
@@ -413,7 +425,7 @@ def _as_float(arr: object, role: str, column: str, path: Path) -> tuple[np.ndarr
         ok = pc.is_valid(arr)
         arr = pc.cast(arr, pa.float64())
     elif pa.types.is_null(arr.type):  # (a CSV column with no value at all)
-        ok = pa.array(np.zeros(len(arr), dtype=bool))
+        ok = pa.array(np.zeros(len(arr), dtype=np.bool_))
         arr = pa.array(np.full(len(arr), np.nan))
     else:
         raise TypeError(f"{path}: the {role} column {column!r} holds {arr.type} values, not numbers")
@@ -422,7 +434,7 @@ def _as_float(arr: object, role: str, column: str, path: Path) -> tuple[np.ndarr
     )
 
 
-def _epoch_seconds(seconds: object) -> object:
+def _epoch_seconds(seconds: Any) -> Any:
     """Seconds since 1970-01-01 UTC (a float64 arrow array) as a timestamp[us] array, rounded to
     the microsecond; NaN, ±inf and values beyond the int64 range of microseconds are null."""
     import pyarrow as pa
@@ -434,7 +446,7 @@ def _epoch_seconds(seconds: object) -> object:
     return pc.cast(pc.cast(us, pa.int64()), pa.timestamp("us"))
 
 
-def _iso_8601(arr: object) -> object:
+def _iso_8601(arr: Any) -> Any:
     """Each string of ``arr`` read alone as an ISO 8601 date-time (:data:`ISO_8601`): a
     timestamp[us] array in UTC, null where a string is not one (the other rows still read).
 
@@ -467,7 +479,7 @@ def _iso_8601(arr: object) -> object:
     return pc.cast(pc.subtract(us, offset), pa.timestamp("us"))
 
 
-def _as_time(arr: object, time_format: str | None) -> tuple[np.ndarray, np.ndarray]:
+def _as_time(arr: Any, time_format: str | None) -> tuple[np.ndarray, np.ndarray]:
     """(datetime64[us], ok mask) from strings, numbers (seconds since the epoch) or timestamps.
 
     Strings: ``time_format`` (strptime) when given, else ISO 8601 or numbers (seconds since the

@@ -192,13 +192,13 @@ def prepare_tracks(
         raise ValueError(f"{rep.path}: no track of >= {min_reports} reports is left ({rep.rows} read)")
     offsets = np.concatenate([first, [len(t)]]).astype(np.int64)
     owner = np.repeat(np.arange(len(first)), lengths)
-    alt = rep.alt[idx] if dims == 3 else None
+    alt = rep.alt[idx] if dims == 3 and rep.alt is not None else None
 
     # frames
     if frame == "local":
         origin = np.stack([lat[first], lon[first], alt[first] if alt is not None else np.zeros(len(first))], -1)
     else:
-        ref = [float(x) for x in reference] + [0.0] * (3 - len(reference))
+        ref = [*(reference or ()), 0.0][:3]  # (a common frame has a checked reference: lat, lon[, alt])
         origin = np.tile(np.array(ref, dtype=np.float64), (len(first), 1))
     o = origin[owner]
     pos = local_positions(lat, lon, o[:, 0], o[:, 1], alt, o[:, 2] if alt is not None else None)
