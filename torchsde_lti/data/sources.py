@@ -29,14 +29,21 @@ from __future__ import annotations
 
 import importlib.util
 import os
-import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 
-from torchsde_lti.data.rules import ISO_8601, ROLES, CleaningRules
+from torchsde_lti.data.csv_header import (
+    check_header,
+    first_line,
+    first_line_is_header,
+    leading_comment_lines,
+    split_line,
+)
+from torchsde_lti.data.rules import ROLES, CleaningRules
+from torchsde_lti.data.values import column_numbers, column_times
 
 __all__ = ["AIS_COLUMNS", "RESERVED_FOR_EVALUATION", "ROLES", "Reports", "locate_file", "read_reports"]
 
@@ -60,7 +67,6 @@ _RESERVED_CONTENT = {
     ),
 }
 _EXAMPLES = 3  # malformed examples kept
-_NUMBER = r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$"  # a decimal number, as text
 
 
 class Reports(NamedTuple):
@@ -301,10 +307,10 @@ def _read_traj(path: Path) -> Reports:
 
 # ---------------------------------------------------------------------------- CSV / Parquet
 def _resolve_columns(
-    columns: Mapping[str, str | int] | str | None, header: list[str] | None, path: Path, first_line: str
+    columns: Mapping[str, str | int] | str | None, header: list[str] | None, path: Path, first: str
 ) -> dict[str, str | int]:
     """role -> column of a CSV / Parquet file, checked against its ``header`` (None: a CSV read
-    by position without a header line, ``first_line`` its first data line)."""
+    by position without a header line, ``first`` its first data line)."""
     if columns is None or columns == "ais":
         if header is not None and set(AIS_COLUMNS.values()) <= set(header):
             return dict(AIS_COLUMNS)
@@ -318,202 +324,20 @@ def _resolve_columns(
             f"(header names or 0-based positions); header found: {header}"
         )
     cols = dict(columns) if isinstance(columns, Mapping) else {}  # (checked by CleaningRules)
-    fields = header if header is not None else _split_line(first_line)
+    fields = header if header is not None else split_line(first)
     for role, c in cols.items():
         if isinstance(c, int) and c >= len(fields):
             where = f"not in the header {header}" if header is not None else "out of range"
             raise ValueError(
                 f"{path}: columns[{role!r}]={c} is {where}: the file has {len(fields)} columns "
                 f"(0-based positions 0 to {len(fields) - 1}); its first {'header' if header else 'data'} line: "
-                f"{first_line[:120]!r}"
+                f"{first[:120]!r}"
             )
         if isinstance(c, str) and c not in fields:
             raise ValueError(
                 f"{path}: columns[{role!r}]={c!r} is not in the header {header} (names or 0-based positions)"
             )
     return cols
-
-
-def _split_line(line: str) -> list[str]:
-    """The fields of one CSV line (quotes honoured)."""
-    import csv
-
-    return next(csv.reader([line]), [])
-
-
-def _looks_like_data(fields: list[str]) -> bool:
-    """Whether a line that should name the columns holds data: a field that is a number or an
-    ISO 8601 date-time (column names are neither)."""
-    return any(re.match(_NUMBER, f.strip()) or re.match(ISO_8601, f) for f in fields)
-
-
-# header names by role, lower case, to suggest a mapping when the names sit on a '#' line
-_ROLE_NAMES = {
-    "id": ("mmsi", "object_id", "id", "callsign", "icao24", "vessel", "track_id"),
-    "time": ("basedatetime", "timestamp", "time", "datetime", "ts", "t"),
-    "lat": ("lat", "latitude"),
-    "lon": ("lon", "lng", "long", "longitude"),
-    "alt": ("alt", "altitude"),
-    "sog": ("sog",),
-    "cog": ("cog",),
-    "heading": ("heading",),
-}
-
-
-def _suggest_columns(names: list[str]) -> dict[str, int]:
-    """role -> position of the names that say their role (:data:`_ROLE_NAMES`); {} unless the
-    required roles are all there."""
-    lower = [n.strip().lower() for n in names]
-    out = {role: lower.index(n) for role, known in _ROLE_NAMES.items() for n in known if n in lower}
-    out = {role: out[role] for role in _ROLE_NAMES if role in out}
-    return out if {"id", "time", "lat", "lon"} <= set(out) else {}
-
-
-def _check_header(path: Path, header: list[str], comments: list[str], recognising: bool) -> None:
-    """Refuse a data line read as the header, saying where the names are (a ``#`` line, which
-    is skipped as a comment) and how to name the columns by position instead."""
-    if not _looks_like_data(header):
-        return
-    last = comments[-1].lstrip("#").strip() if comments else ""
-    names = _split_line(last) if "," in last else last.split()
-    suggestion = {"id": 0, "time": 1, "lat": 2, "lon": 3}
-    if names and not _looks_like_data(names):
-        positions = ", ".join(f"{name.strip()}={i}" for i, name in enumerate(names))
-        where = (
-            f"the column names are on '#' comment line {len(comments)} ({comments[-1].strip()[:120]!r}), which is "
-            f"skipped as a comment; the line after it (line {len(comments) + 1}), where the header should be, "
-            f"holds data"
-        )
-        fix = f"name the columns by 0-based position (from the comment line: {positions})"
-        suggestion = _suggest_columns(names) or suggestion
-    else:
-        where = f"line {len(comments) + 1}, where the header should be, holds data: {','.join(header)[:120]!r}"
-        fix = "add a header line, or name the columns by 0-based position"
-    recognised = "no header recognised (not the MarineCadastre AIS header): " if recognising else ""
-    raise ValueError(
-        f"{path}: {recognised}{where}; {fix}, e.g. columns={suggestion} (positions read every line as data)"
-    )
-
-
-def _leading_comment_lines(path: Path) -> list[str]:
-    """The ``#`` lines at the top of a CSV (tracktable's point files)."""
-    lines = []
-    with open(path, encoding="utf-8-sig", errors="replace") as fh:
-        for line in fh:
-            if not line.startswith("#"):
-                break
-            lines.append(line.rstrip("\r\n"))
-    return lines
-
-
-def _as_float(arr: Any, role: str, column: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(values float64, ok mask): nulls and unparsable strings are not ok.
-
-    Raises:
-        TypeError: for a column that holds neither numbers nor text (booleans, timestamps...),
-            naming the role, the column and the file.
-    """
-    import pyarrow as pa
-    import pyarrow.compute as pc
-
-    if pa.types.is_dictionary(arr.type):
-        arr = arr.dictionary_decode()
-    if pa.types.is_string(arr.type) or pa.types.is_large_string(arr.type):
-        ok = pc.fill_null(pc.match_substring_regex(pc.utf8_trim_whitespace(arr), _NUMBER), False)
-        arr = pc.cast(pc.if_else(ok, arr, pa.scalar("nan")), pa.float64())
-    elif pa.types.is_integer(arr.type) or pa.types.is_floating(arr.type) or pa.types.is_decimal(arr.type):
-        ok = pc.is_valid(arr)
-        arr = pc.cast(arr, pa.float64())
-    elif pa.types.is_null(arr.type):  # (a CSV column with no value at all)
-        ok = pa.array(np.zeros(len(arr), dtype=np.bool_))
-        arr = pa.array(np.full(len(arr), np.nan))
-    else:
-        raise TypeError(f"{path}: the {role} column {column!r} holds {arr.type} values, not numbers")
-    return np.asarray(arr.to_numpy(zero_copy_only=False), dtype=np.float64), np.asarray(
-        ok.to_numpy(zero_copy_only=False), dtype=bool
-    )
-
-
-def _epoch_seconds(seconds: Any) -> Any:
-    """Seconds since 1970-01-01 UTC (a float64 arrow array) as a timestamp[us] array, rounded to
-    the microsecond; NaN, ±inf and values beyond the int64 range of microseconds are null."""
-    import pyarrow as pa
-    import pyarrow.compute as pc
-
-    us = pc.round(pc.multiply(seconds, 1e6))
-    valid = pc.and_(pc.is_finite(us), pc.less(pc.abs(us), 9.2e18))
-    us = pc.if_else(valid, us, pa.scalar(None, pa.float64()))
-    return pc.cast(pc.cast(us, pa.int64()), pa.timestamp("us"))
-
-
-def _iso_8601(arr: Any) -> Any:
-    """Each string of ``arr`` read alone as an ISO 8601 date-time (:data:`ISO_8601`): a
-    timestamp[us] array in UTC, null where a string is not one (the other rows still read).
-
-    A fraction finer than the microsecond is truncated (as Parquet ns timestamps are); ``Z`` and a
-    ``±hh[[:]mm]`` offset are converted to UTC; a time without a zone is taken as written (UTC).
-    """
-    import pyarrow as pa
-    import pyarrow.compute as pc
-
-    parts = pc.extract_regex(pc.cast(arr, pa.string()), ISO_8601)  # null where the regex fails
-    part = {name: pc.struct_field(parts, name) for name in ("date", "hour", "minute", "second", "fraction", "zone")}
-    default = lambda name: pc.if_else(pc.equal(part[name], ""), "00", part[name])  # noqa: E731
-    clock = pc.binary_join_element_wise(default("hour"), default("minute"), default("second"), ":")
-    wall = pc.binary_join_element_wise(part["date"], clock, "T")
-    try:  # Arrow's cast checks the calendar (no 30 February), for all rows or none
-        seconds = pc.cast(wall, pa.timestamp("s"))
-    except pa.ArrowInvalid:  # row by row: strptime rolls 30 February into March, so read it back
-        fmt = "%Y-%m-%dT%H:%M:%S"
-        seconds = pc.strptime(wall, format=fmt, unit="s", error_is_null=True)
-        seconds = pc.if_else(pc.equal(pc.strftime(seconds, format=fmt), wall), seconds, pa.scalar(None, seconds.type))
-    fraction = pc.utf8_slice_codeunits(pc.utf8_rpad(part["fraction"], 6, "0"), 0, 6)
-    zone = part["zone"]  # "", "Z", "+hh", "+hhmm" or "+hh:mm"
-    digits = pc.utf8_rpad(pc.replace_substring(pc.utf8_slice_codeunits(zone, 1, 6), ":", ""), 4, "0")  # hhmm
-    hours = pc.cast(pc.utf8_slice_codeunits(digits, 0, 2), pa.int64())
-    minutes = pc.cast(pc.utf8_slice_codeunits(digits, 2, 4), pa.int64())
-    offset = pc.multiply(pc.add(pc.multiply(hours, 60), minutes), 60_000_000)
-    offset = pc.if_else(pc.starts_with(zone, "-"), pc.negate(offset), offset)
-    offset = pc.if_else(pc.and_(pc.less(hours, 24), pc.less(minutes, 60)), offset, pa.scalar(None, pa.int64()))
-    us = pc.add(pc.multiply(pc.cast(seconds, pa.int64()), 1_000_000), pc.cast(fraction, pa.int64()))
-    return pc.cast(pc.subtract(us, offset), pa.timestamp("us"))
-
-
-def _as_time(arr: Any, time_format: str | None) -> tuple[np.ndarray, np.ndarray]:
-    """(datetime64[us], ok mask) from strings, numbers (seconds since the epoch) or timestamps.
-
-    Strings: ``time_format`` (strptime) when given, else ISO 8601 or numbers (seconds since the
-    epoch), whichever reads more rows. Arrow's cast reads a clean ISO 8601 column in one call;
-    when one row fails it, each row is read alone (:func:`_iso_8601`, the same readings), so a
-    row that does not read is not ok and the others are unaffected.
-    """
-    import pyarrow as pa
-    import pyarrow.compute as pc
-
-    if pa.types.is_timestamp(arr.type):
-        # (finer units truncated to the microsecond)
-        us = pa.timestamp("us", tz=arr.type.tz) if arr.type.tz else pa.timestamp("us")
-        out = pc.cast(arr, us, safe=False)
-    elif pa.types.is_integer(arr.type) or pa.types.is_floating(arr.type):
-        out = _epoch_seconds(pc.cast(arr, pa.float64()))
-    elif time_format is not None:
-        out = pc.strptime(pc.cast(arr, pa.string()), format=time_format, unit="us", error_is_null=True)
-    else:
-        arr = pc.cast(arr, pa.string())
-        for target in (pa.timestamp("us"), pa.timestamp("us", tz="UTC")):  # a clean column: one call
-            try:
-                out = pc.cast(arr, target)
-                break
-            except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
-                continue
-        else:  # some row fails Arrow's cast (which reads all rows or none): each row alone
-            # CSV columns arrive as strings: numbers are seconds since the epoch
-            numeric = pc.fill_null(pc.match_substring_regex(pc.utf8_trim_whitespace(arr), _NUMBER), False)
-            epoch = _epoch_seconds(pc.cast(pc.if_else(numeric, arr, pa.scalar(None, pa.string())), pa.float64()))
-            out = min((_iso_8601(arr), epoch), key=lambda a: a.null_count)
-    ok = np.asarray(pc.is_valid(out).to_numpy(zero_copy_only=False), dtype=bool)
-    values = out.cast(pa.int64()).to_numpy(zero_copy_only=False)
-    return np.where(ok, np.nan_to_num(values.astype(np.float64)), 0).astype(np.int64).astype("datetime64[us]"), ok
 
 
 def _read_table(
@@ -552,20 +376,20 @@ def _csv_table(path: Path, columns: Mapping[str, str | int] | str | None) -> tup
     import pyarrow as pa
     import pyarrow.csv as pcsv
 
-    comments = _leading_comment_lines(path)
+    comments = leading_comment_lines(path)
     skip = len(comments)
-    first = _first_line(path, skip)
+    first = first_line(path, skip)
     if not first.strip():
         raise ValueError(f"{path}: no data: the file is empty" + (f" after {skip} '#' comment lines" if skip else ""))
     if any(ord(ch) < 32 and ch != "\t" for ch in first):
         raise ValueError(f"{path}: not a CSV text file: its first line holds control characters ({first[:40]!r})")
     by_position = isinstance(columns, Mapping) and all(isinstance(v, int) for v in columns.values())
-    if by_position and isinstance(columns, Mapping) and _first_line_is_header(first, columns):
+    if by_position and isinstance(columns, Mapping) and first_line_is_header(first, columns):
         skip += 1  # positions above a header line: the header is not a row
-        first = _first_line(path, skip)
-    header = None if by_position else _split_line(first)
+        first = first_line(path, skip)
+    header = None if by_position else split_line(first)
     if header is not None:
-        _check_header(path, header, comments, recognising=not isinstance(columns, Mapping))
+        check_header(path, header, comments, recognising=not isinstance(columns, Mapping))
     cols = _resolve_columns(columns, header, path, first)
     # positions: pyarrow's generated names without a header, the header's names with one
     names = {role: (c if isinstance(c, str) else f"f{c}" if header is None else header[c]) for role, c in cols.items()}
@@ -604,11 +428,11 @@ def _table_reports(table: Any, names: dict[str, str], bad: list[str], path: Path
     values: dict[str, np.ndarray] = {}
     for role in ("lat", "lon", "alt", "sog", "cog", "heading"):
         if role in names:
-            values[role], valid = _as_float(table[names[role]].combine_chunks(), role, names[role], path)
+            values[role], valid = column_numbers(table[names[role]].combine_chunks(), role, names[role], path)
             if role in ("lat", "lon"):
                 reasons[role] = ~valid
                 ok &= valid
-    time, valid = _as_time(table[names["time"]].combine_chunks(), time_format)
+    time, valid = column_times(table[names["time"]].combine_chunks(), time_format)
     reasons["time"] = ~valid
     ok &= valid
     raw_id = pc.cast(table[names["id"]].combine_chunks(), pa.string())
@@ -680,24 +504,6 @@ def _no_readable_row(
                 + _unreadable(table, names, role, int(np.flatnonzero(failed)[0]))
             )
     raise ValueError(f"{path}: no report can be read: " + "; ".join(parts))
-
-
-def _first_line(path: Path, skip: int) -> str:
-    """The line after the first ``skip`` lines, without its line break ('' at the end of the file)."""
-    with open(path, "rb") as fh:
-        for _ in range(skip):
-            fh.readline()
-        first = fh.readline().rstrip(b"\r\n")
-    return first.decode("utf-8-sig", errors="replace")
-
-
-def _first_line_is_header(first: str, columns: Mapping[str, str | int]) -> bool:
-    """Whether ``first`` has text, not a number, at the latitude or longitude position of ``columns``."""
-    fields = _split_line(first)
-    positions = [columns.get(role) for role in ("lat", "lon")]
-    return any(
-        isinstance(c, int) and c < len(fields) and re.match(_NUMBER, fields[c].strip()) is None for c in positions
-    )
 
 
 def _object_ids(ids: np.ndarray, ok: np.ndarray) -> np.ndarray:
