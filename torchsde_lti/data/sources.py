@@ -47,7 +47,8 @@ from torchsde_lti.data.values import column_numbers, column_times
 
 __all__ = ["AIS_COLUMNS", "RESERVED_FOR_EVALUATION", "ROLES", "Reports", "locate_file", "read_reports"]
 
-#: MarineCadastre AIS column names (BaseDateTime ISO 8601 UTC, LAT/LON degrees, SOG knots, COG degrees).
+#: MarineCadastre AIS column names (BaseDateTime ISO 8601 UTC, LAT/LON degrees, SOG knots, COG degrees);
+#: a ``Heading`` column (true heading, degrees) is read too when the file has one.
 AIS_COLUMNS: dict[str, str] = {
     "id": "MMSI",
     "time": "BaseDateTime",
@@ -313,7 +314,7 @@ def _resolve_columns(
     by position without a header line, ``first`` its first data line)."""
     if columns is None or columns == "ais":
         if header is not None and set(AIS_COLUMNS.values()) <= set(header):
-            return dict(AIS_COLUMNS)
+            return {**AIS_COLUMNS, "heading": "Heading"} if "Heading" in header else dict(AIS_COLUMNS)
         if columns == "ais":
             raise ValueError(
                 f"{path}: columns='ais' needs the header columns {sorted(AIS_COLUMNS.values())}, found {header}"
