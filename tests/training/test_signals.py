@@ -169,10 +169,16 @@ def test_signal_guard_records_stops_between_phases_and_restores_handlers() -> No
         assert guard.received == signal.SIGTERM and guard.received_during == "plots"
         with pytest.raises(StopRun, match="SIGTERM"):
             guard.stop_if_received()
+    with SignalGuard() as guard:  # building the data and the model: nothing to keep, stop at once
+        with pytest.raises(StopRun, match="SIGTERM"):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1)  # the handler runs at the next bytecode
+        assert guard.received == signal.SIGTERM and guard.received_during == "setup"
     with SignalGuard() as guard:  # Ctrl-C: recorded as SIGINT, re-sent as SIGTERM (Lightning's graceful path)
+        guard.phase = "fit"
         os.kill(os.getpid(), signal.SIGINT)
         time.sleep(0.01)
-        assert guard.received == signal.SIGINT and guard.received_during == "setup"
+        assert guard.received == signal.SIGINT and guard.received_during == "fit"
         with pytest.raises(KeyboardInterrupt):  # a second Ctrl-C stops at once
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(1)

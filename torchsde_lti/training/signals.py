@@ -6,7 +6,8 @@ epoch-end checkpoint when the signal comes in the last batch). :class:`SignalGua
 by :func:`~torchsde_lti.training.train` around the whole run, only records the signal (Lightning
 composes its handler with it), re-sends a first SIGINT (Ctrl-C) as SIGTERM so that it takes the
 same path (a second one interrupts at once), and lets ``train`` stop between its phases
-(``stop_if_received``). :class:`StopOnSignal` raises Lightning's exception when training or
+(``stop_if_received``); while the data and the model are built (phase "setup": nothing to
+keep) it stops the run at once. :class:`StopOnSignal` raises Lightning's exception when training or
 testing starts after a signal that came before Lightning's handler was installed.
 
 The resume point is ``last.ckpt``, the end of the last completed epoch (Lightning's loaders are
@@ -92,13 +93,16 @@ class SignalGuard:
             raise StopRun(self.received)
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
-        if self.received is None:
-            self.received, self.received_during = signal.Signals(signum), self.phase
-            log.warning("received %s during %s: stopping at the next safe point", self.received.name, self.phase)
+        if self.received is not None:
             if signum == signal.SIGINT:
-                os.kill(os.getpid(), signal.SIGTERM)  # the graceful path Lightning takes for SIGTERM
-        elif signum == signal.SIGINT:
-            raise KeyboardInterrupt  # a second Ctrl-C: stop now
+                raise KeyboardInterrupt  # a second Ctrl-C: stop now
+            return
+        self.received, self.received_during = signal.Signals(signum), self.phase
+        log.warning("received %s during %s: stopping at the next safe point", self.received.name, self.phase)
+        if self.phase == "setup":
+            raise StopRun(signum)  # building the data and the model: nothing to keep, stop now
+        if signum == signal.SIGINT:
+            os.kill(os.getpid(), signal.SIGTERM)  # the graceful path Lightning takes for SIGTERM
 
 
 class StopOnSignal(Callback):

@@ -10,8 +10,8 @@ runs the phases (setup, fit, test, plots, outputs), which tests call with a comp
 A run writes into its Hydra output directory: Lightning's ``checkpoints/last.ckpt`` (end of the
 last completed epoch: the reported weights and the resume point) and ``checkpoints/best.ckpt``
 (lowest val/nll), the logger files, ``.hydra/config.yaml``, ``train.log`` (the resolved config,
-the data summary, one line per epoch, Lightning's records: the console shows the progress bar
-and the results only), ``metrics.json`` (strict JSON, :mod:`torchsde_lti.training.report`),
+the data summary, one line per epoch, Lightning's records; the console shows the progress bar,
+Lightning's messages and the results), ``metrics.json`` (strict JSON, :mod:`torchsde_lti.training.report`),
 ``results.md`` and the plots (a plot that fails is a warning, never a failed run).
 
 Interrupting: SIGTERM or SIGINT (Ctrl-C) stops the run at the next batch boundary
