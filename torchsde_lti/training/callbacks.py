@@ -110,7 +110,8 @@ class FollowMovedRun(Callback):
     restores a ModelCheckpoint's best score and files only when its directory is the one saved,
     so the next epoch would overwrite ``best.ckpt`` whatever its score, and a resume with no epoch
     left would report the old directory's files. Before Lightning loads their states (its
-    ``on_load_checkpoint`` hook), this points them at the files of the same names here."""
+    ``on_load_checkpoint`` hook), this points them at the files of the same names here, where
+    those exist."""
 
     def on_load_checkpoint(self, trainer: Trainer, pl_module: LightningModule, checkpoint: dict[str, Any]) -> None:
         states = checkpoint.get("callbacks") or {}
@@ -120,6 +121,8 @@ class FollowMovedRun(Callback):
             state, dirpath = states.get(cb.state_key), cb.dirpath
             if not state or state.get("dirpath") in (None, dirpath):
                 continue
+            if not (Path(dirpath) / Path(state.get("best_model_path") or "").name).is_file():
+                continue  # its file is not here (deleted): Lightning's fresh start is right
 
             def here(path: str | None, dirpath: str | Path = dirpath) -> str | None:
                 return str(Path(dirpath) / Path(path).name) if path else path
