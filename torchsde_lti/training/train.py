@@ -427,10 +427,12 @@ def _signal_of(stop: BaseException) -> int | None:
 def _process_state(num_threads: int | None) -> Iterator[None]:
     """Around a run: torch's intra-op thread count set to ``num_threads`` (the config's; null or 0:
     unchanged) — the one place the package sets it — and, on return, that count and the global
-    RNG states ``seed_everything`` seeds (Python, NumPy, torch, Lightning's seed variables) put back."""
+    RNG states ``seed_everything`` seeds (Python, NumPy, torch's CPU and, where CUDA was in use
+    when the run began, CUDA's; Lightning's seed variables) put back."""
     threads, py_rng, np_rng = torch.get_num_threads(), random.getstate(), np.random.get_state()
     env = {k: os.environ.get(k) for k in ("PL_GLOBAL_SEED", "PL_SEED_WORKERS")}
-    devices = list(range(torch.cuda.device_count())) if torch.cuda.is_available() else []
+    # CUDA's RNGs where CUDA is in use already: forking them would initialise it (ddp_fork needs it not)
+    devices = list(range(torch.cuda.device_count())) if torch.cuda.is_initialized() else []
     try:
         with torch.random.fork_rng(devices=devices):
             if num_threads:
