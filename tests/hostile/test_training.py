@@ -264,7 +264,7 @@ CONFIG_CASES = [
     _bad("+module.optimizer.eps", "0", r"module\.optimizer\.eps"),
     _bad("module.scheduler.T_max", "0"),
     _bad("module.scheduler.eta_min", "-1"),
-    _bad("module.grad_clip_norm", "-1"),
+    _bad("trainer.gradient_clip_val", "-1"),  # Lightning clips; a negative value would flip the gradients
     _bad("module.k_step", "-1", r"config module .*k_step must be >= 0"),
     _bad("data.batch_size", "0"),
     _bad("data.batch_size", "-3"),

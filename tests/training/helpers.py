@@ -97,6 +97,35 @@ class SummaryAttributeTracks(SimulatedTracks):
         self.summary = _track_counts(self)
 
 
+class FailAt(Callback):
+    """Raise in the first training batch of epoch ``epoch``: a RuntimeError (``error="runtime"``)
+    or a KeyboardInterrupt raised by code (``error="keyboard"``, which Lightning turns into an exit)."""
+
+    def __init__(self, epoch: int, error: str = "runtime") -> None:
+        self.epoch, self.error = int(epoch), error
+
+    def on_train_batch_start(self, trainer: Any, *args: Any) -> None:
+        if trainer.current_epoch == self.epoch:
+            raise KeyboardInterrupt if self.error == "keyboard" else RuntimeError("boom mid-epoch")
+
+
+class ThreadsSeen(Callback):
+    """The torch intra-op thread counts seen in the training batches (``seen``)."""
+
+    def __init__(self) -> None:
+        self.seen: set[int] = set()
+
+    def on_train_batch_end(self, *args: Any, **kwargs: Any) -> None:
+        import torch
+
+        self.seen.add(torch.get_num_threads())
+
+
+def failing_plot(*args: Any, **kwargs: Any) -> Any:
+    """A plot step that raises (as plotting a 4-state learner against a 6-state truth once did)."""
+    raise ValueError("plot failed: shapes (4,) and (6,) not aligned")
+
+
 class SignalOnInit(SimulatedTracks):
     """SimulatedTracks that sends this process SIGTERM while it is being built (before Lightning runs)."""
 

@@ -160,21 +160,29 @@ def test_interrupted_while_building_says_so(tmp_path: Path) -> None:
     assert summary["status"] == "interrupted" and summary["interruption"]["phase"] == "setup" and summary["epochs"] == 0
 
 
-def test_signal_guard_stops_at_once_outside_graceful_phases_and_restores_handlers() -> None:
-    before = signal.getsignal(signal.SIGTERM)
+def test_signal_guard_records_stops_between_phases_and_restores_handlers() -> None:
+    before = {signum: signal.getsignal(signum) for signum in (signal.SIGTERM, signal.SIGINT)}
     with SignalGuard() as guard:
+        guard.phase = "plots"
+        os.kill(os.getpid(), signal.SIGTERM)  # recorded; the phase finishes its work
+        time.sleep(0.01)
+        assert guard.received == signal.SIGTERM and guard.received_during == "plots"
+        with pytest.raises(StopRun, match="SIGTERM"):
+            guard.stop_if_received()
+    with SignalGuard() as guard:  # building the data and the model: nothing to keep, stop at once
         with pytest.raises(StopRun, match="SIGTERM"):
             os.kill(os.getpid(), signal.SIGTERM)
             time.sleep(1)  # the handler runs at the next bytecode
         assert guard.received == signal.SIGTERM and guard.received_during == "setup"
-    with SignalGuard() as guard:
-        with guard.graceful("plots"):
-            os.kill(os.getpid(), signal.SIGTERM)  # recorded; the phase finishes its work
-            time.sleep(0.01)
-        assert guard.received == signal.SIGTERM and guard.received_during == "plots"
-        with pytest.raises(StopRun):
-            guard.stop_if_received()
-    assert signal.getsignal(signal.SIGTERM) is before
+    with SignalGuard() as guard:  # Ctrl-C: recorded as SIGINT, re-sent as SIGTERM (Lightning's graceful path)
+        guard.phase = "fit"
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.01)
+        assert guard.received == signal.SIGINT and guard.received_during == "fit"
+        with pytest.raises(KeyboardInterrupt):  # a second Ctrl-C stops at once
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1)
+    assert {signum: signal.getsignal(signum) for signum in before} == before
 
 
 # --------------------------------------------------------------------------- the CLI
@@ -222,5 +230,5 @@ def test_cli_sigterm_exits_143_and_resumes_in_the_same_directory(tmp_path: Path,
     assert summary["status"] == "completed" and len(summary["resumed_from"]) == 1
     log = (run / "train.log").read_text()  # the log of both processes, the config and every epoch
     assert "resuming from" in log and "config:" in log
-    assert all(f"epoch {e}/{EPOCHS}:" in log for e in range(EPOCHS))
+    assert all(f"epoch {e}/{EPOCHS - 1}:" in log for e in range(EPOCHS))  # numbered as the progress bar
     assert "`Trainer.fit` stopped" in log  # Lightning's own records reach train.log too

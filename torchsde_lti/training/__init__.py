@@ -10,19 +10,19 @@ The only part of the package that imports Lightning, Hydra or matplotlib.
     selection.py    model selection on validation (select_model, validation_selection)
     calibration.py  HPD levels of a predictive mixture, a scalar covariance inflation fitted on
                     validation tracks (calibrate_filter), the one-step predictive of a filter
-    callbacks.py    ParameterHistory, RunLog (Lightning), BestRun (Hydra, best of a multirun)
+    callbacks.py    ParameterHistory, RunLog, ValidatedAt, FollowMovedRun (Lightning), BestRun (Hydra)
     plots.py        loss / parameter / track figures of a run
     checkpoints.py  read_checkpoint / load_filter_weights: clear errors for damaged files
-    config.py       check_config: nonsense values rejected before any work, naming the key
+    config.py       RunSchema (Hydra's ConfigStore) and check_config: nonsense values rejected before any work
     outputs.py      strict JSON, atomic files, the CSV log of a resumed run, the data summary
     report.py       metrics.json / results.md for a running, completed, interrupted, failed run
-    signals.py      SIGTERM / SIGINT: stop at a safe point, report, exit 128 + signal
+    signals.py      SIGTERM / SIGINT recorded around Lightning's own handling: report, exit 128 + signal
     train.py        train(cfg) behind @hydra.main (``python -m torchsde_lti.train``)
 """
 
 from torchsde_lti.training.baseline import tune_cv
 from torchsde_lti.training.calibration import calibrate_filter, fit_cov_scale, hpd_level
-from torchsde_lti.training.callbacks import BestRun, ParameterHistory, RunLog
+from torchsde_lti.training.callbacks import BestRun, FollowMovedRun, ParameterHistory, RunLog, ValidatedAt
 from torchsde_lti.training.checkpoints import (
     CheckpointError,
     load_filter_weights,
@@ -48,11 +48,13 @@ __all__ = [
     "BestRun",
     "CheckpointError",
     "EvalRecords",
+    "FollowMovedRun",
     "KalmanFilterModule",
     "ModelSelection",
     "ParameterHistory",
     "RunInterrupted",
     "RunLog",
+    "ValidatedAt",
     "calibrate_filter",
     "config_path",
     "evaluate_filter",

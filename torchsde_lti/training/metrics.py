@@ -17,14 +17,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import Tensor, nn
 
 from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.stationary import stationary_covariance
+from torchsde_lti.nn.imm import IMMFilter
+from torchsde_lti.nn.kalman import KalmanFilter
 from torchsde_lti.nn.parametrizations import IntegratorChain
+from torchsde_lti.nn.sde import LTISDE
 
 __all__ = [
     "filter_values",
@@ -65,7 +68,7 @@ def _scalar_names(sde: nn.Module) -> list[str]:
     return names
 
 
-def learned_values(sde: nn.Module, R: Tensor | None = None, names: Sequence[str] | None = None) -> dict[str, Tensor]:
+def learned_values(sde: LTISDE, R: Tensor | None = None, names: Sequence[str] | None = None) -> dict[str, Tensor]:
     """Current values of a model's interpretable parameters, detached.
 
     Named scalars (``names`` or the model's own list) come from ``getattr(sde, name)``;
@@ -74,8 +77,9 @@ def learned_values(sde: nn.Module, R: Tensor | None = None, names: Sequence[str]
     out: dict[str, Tensor] = {}
     for name in names if names is not None else _scalar_names(sde):
         out[name] = torch.as_tensor(_resolve(sde, name)).detach()
-    out["F"] = sde.F.detach()
-    out["Qc"] = sde.Qc.detach()
+    mats = sde.matrices()
+    out["F"] = mats.F.detach()
+    out["Qc"] = mats.Qc.detach()
     if R is not None:
         out["R"] = R.detach()
     return out
@@ -89,16 +93,16 @@ def _rel(a: Tensor, b: Tensor) -> float:
     return float(num / den) if float(den) > 0 else float(num)
 
 
-def same_model(learned: nn.Module, truth: nn.Module) -> bool:
+def same_model(learned: LTISDE, truth: LTISDE) -> bool:
     """Whether learner and truth are the same kind of model, so their named scalars pair up."""
 
     def kind(m: nn.Module) -> str:
         return type(m).__name__.removeprefix("Parametrized")
 
-    return kind(learned) == kind(truth) and learned.F.shape[-2:] == truth.F.shape[-2:]
+    return kind(learned) == kind(truth) and learned.matrices().F.shape[-2:] == truth.matrices().F.shape[-2:]
 
 
-def raw_f_identifiable(sde: nn.Module, H: Tensor | None) -> bool:
+def raw_f_identifiable(sde: LTISDE, H: Tensor | None) -> bool:
     """Whether the data determine F itself (not only up to a change of state basis).
 
     True for structured models (named scalars fix the basis), for a fixed structure such as
@@ -115,25 +119,25 @@ def raw_f_identifiable(sde: nn.Module, H: Tensor | None) -> bool:
     if H is None:
         return True
     H = H.detach().to(torch.float64)
-    return int(torch.linalg.matrix_rank(H)) >= sde.F.shape[-1]
+    return int(torch.linalg.matrix_rank(H)) >= sde.state_dim
 
 
-def observed_autocovariance(sde: nn.Module, H: Tensor, lags: Sequence[float]) -> Tensor:
+def observed_autocovariance(sde: LTISDE, H: Tensor, lags: Sequence[float]) -> Tensor:
     """Stationary autocovariance of the observed signal, ``H e^{F τ} P∞ Hᵀ`` at each lag.
 
     P∞ solves ``F P∞ + P∞ Fᵀ + L Qc Lᵀ = 0``; invariant under a change of state basis, so
     the data determine it whenever they determine anything. Returns (len(lags), m, m) in
     float64; ValueError (from ``stationary_covariance``) when F is not Hurwitz.
     """
-    F = sde.F.detach().to(torch.float64)
-    P = stationary_covariance(F, sde.L.detach().to(torch.float64), sde.Qc.detach().to(torch.float64))
+    F, L, Qc = (x.detach().to(torch.float64) for x in sde.matrices()[:3])
+    P = stationary_covariance(F, L, Qc)
     H = H.detach().to(torch.float64)
     return torch.stack([H @ torch.linalg.matrix_exp(F * float(t)) @ P @ H.mT for t in lags])
 
 
 def parameter_errors(
-    learned: nn.Module,
-    truth: nn.Module,
+    learned: LTISDE,
+    truth: LTISDE,
     *,
     R: Tensor | None = None,
     R_true: Tensor | None = None,
@@ -159,7 +163,8 @@ def parameter_errors(
     """
     errors: dict[str, float] = {}
     names = list(names) if names is not None else _scalar_names(learned)
-    same_shape = learned.F.shape[-2:] == truth.F.shape[-2:] and learned.Qc.shape[-2:] == truth.Qc.shape[-2:]
+    mine, theirs = learned.matrices(), truth.matrices()
+    same_shape = mine.F.shape[-2:] == theirs.F.shape[-2:] and mine.Qc.shape[-2:] == theirs.Qc.shape[-2:]
     for name in names if same_model(learned, truth) else ():  # a learner of another kind: nothing to pair
         errors[name] = _rel(torch.as_tensor(_resolve(learned, name)), torch.as_tensor(_resolve(truth, name)))
     identifiable = raw_f_identifiable(learned, H)
@@ -180,9 +185,9 @@ def parameter_errors(
                 scale = torch.linalg.matrix_norm(C_true[0])
                 errors["autocov"] = float((torch.linalg.matrix_norm(C - C_true) / scale).max())
     elif not names and "Qc" in compare and identifiable:  # (identifiable implies same_shape)
-        errors["Qc"] = _rel(learned.Qc, truth.Qc)
+        errors["Qc"] = _rel(mine.Qc, theirs.Qc)
     if "F" in compare and identifiable:
-        F, F_true = learned.F.detach().to(torch.float64), truth.F.detach().to(torch.float64)
+        F, F_true = mine.F.detach().to(torch.float64), theirs.F.detach().to(torch.float64)
         errors["expmF"] = max(_rel(torch.linalg.matrix_exp(F * t), torch.linalg.matrix_exp(F_true * t)) for t in dts)
     if R is not None and R_true is not None:
         errors["R"] = _rel(R, R_true)
@@ -209,7 +214,7 @@ def masked_gaussian_nll(r: Tensor, S: Tensor, observed: Tensor) -> Tensor:
     return 0.5 * ((z * z).sum(-1) + logdet + obs.sum(-1) * math.log(2.0 * math.pi))
 
 
-def filter_values(kf: nn.Module, names: Sequence[str] | None = None) -> dict[str, Tensor]:
+def filter_values(kf: KalmanFilter | IMMFilter, names: Sequence[str] | None = None) -> dict[str, Tensor]:
     """What a filter learned, detached: :func:`learned_values` of each of ``kf.modes()``.
 
     A single-model filter (``KalmanFilter``) gives exactly ``learned_values(sde, R, names)``.
@@ -225,7 +230,8 @@ def filter_values(kf: nn.Module, names: Sequence[str] | None = None) -> dict[str
     out: dict[str, Tensor] = {}
     for mode in modes:
         out.update({f"{mode.name}/{k}": v for k, v in learned_values(mode.sde, mode.R, names).items()})
-    rates, p0 = kf.rates.detach(), kf.mode_prob0.detach()
+    assert isinstance(kf, IMMFilter)  # only it has several modes
+    rates, p0 = cast(Tensor, kf.rates).detach(), cast(Tensor, kf.mode_prob0).detach()
     labels = [mode.name for mode in modes]
     for i, a in enumerate(labels):
         for j, b in enumerate(labels):

@@ -22,8 +22,8 @@ prediction error of y: √(Σ squared errors / Σ observed scalars)), ``val/stat
 (filtered mean vs true state, when batches carry ``x``), and when
 the truth is known ``val/param_error`` (largest relative error of the quantities the data
 determine: see :func:`parameter_errors`) plus ``val/param_error/<name>`` for each of them.
-Robustness: gradient-norm clipping before every step, and a non-finite loss or gradient
-skips the step (warned, counted in ``skipped_steps`` / ``train/skipped_steps``).
+Robustness: a non-finite loss or gradient skips the step (warned, counted in ``skipped_steps`` /
+``train/skipped_steps``); gradient-norm clipping is the Trainer's (``trainer.gradient_clip_val``).
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from typing import Any
 
 import torch
 from lightning.pytorch import LightningModule
-from torch import Tensor, nn
+from torch import Tensor
 
 from torchsde_lti.data.tracks import TrackBatch
 from torchsde_lti.nn import NonFiniteLikelihoodError
@@ -114,18 +114,16 @@ class KalmanFilterModule(LightningModule):
         param_names: names of the scalars to track (default: the model's own list).
         compare: which of "F", "Qc", "R" are compared with the truth in the parameter
             errors (which parameters are *trained* is the filter's and LTISDE's ``learn``).
-        grad_clip_norm: clip the global gradient 2-norm to this value before every
-            optimizer step (None or 0 = off). Works for every optimizer, L-BFGS included
-            (it runs inside the closure).
         skip_nonfinite: when the loss or any gradient is NaN/Inf, drop that step's
-            gradients (every ``grad`` set to None, so Adam leaves parameters and moments
-            untouched and L-BFGS stops its iteration), warn, and count it in
-            ``skipped_steps`` (logged as ``train/skipped_steps``, saved in checkpoints).
+            gradients before the Trainer clips them (every ``grad`` set to None, so Adam
+            leaves parameters and moments untouched and L-BFGS stops its iteration), warn,
+            and count it in ``skipped_steps`` (logged as ``train/skipped_steps``, saved in
+            checkpoints).
     """
 
     def __init__(
         self,
-        kf: nn.Module,
+        kf: KalmanFilter | IMMFilter,
         optimizer: Callable[..., torch.optim.Optimizer] | None = None,
         scheduler: Callable[..., Any] | None = None,
         truth: Mapping[str, Any] | None = None,
@@ -134,7 +132,6 @@ class KalmanFilterModule(LightningModule):
         dtype: str = "float64",
         param_names: Sequence[str] | None = None,
         compare: Sequence[str] = ("F", "Qc", "R"),
-        grad_clip_norm: float | None = 10.0,
         skip_nonfinite: bool = True,
     ) -> None:
         super().__init__()
@@ -152,8 +149,6 @@ class KalmanFilterModule(LightningModule):
                 f"or an IMMFilter, got {type(kf).__name__}; set k_step=0"
             )
         k_step = ks if isinstance(k_step, Sequence) else ks[0]
-        if grad_clip_norm is not None and not float(grad_clip_norm) >= 0:
-            raise ValueError(f"grad_clip_norm must be >= 0 or None, got {grad_clip_norm!r}")
         # plain containers only, so checkpoints load with torch.load(weights_only=True)
         compare = [str(x) for x in compare]
         param_names = [str(x) for x in param_names] if param_names is not None else None
@@ -169,9 +164,9 @@ class KalmanFilterModule(LightningModule):
         self.k_step, self.k_step_weight = max(ks), float(k_step_weight)
         self.param_names = list(param_names) if param_names is not None else None
         self.compare = tuple(compare)
-        self.grad_clip_norm = float(grad_clip_norm) if grad_clip_norm else None
         self.skip_nonfinite = bool(skip_nonfinite)
         self.skipped_steps = 0
+        self._finite_loss = True  # of the last training step (a closure call), read before the optimizer step
         self._squared_errors: dict[str, Tensor] = {}  # stage -> running sums of one epoch (_eval_step)
 
     # ---------------------------------------------------------------- helpers
@@ -184,7 +179,7 @@ class KalmanFilterModule(LightningModule):
         def cast(t: Tensor | None) -> Tensor | None:
             return t.to(self.float_dtype) if t is not None else None
 
-        return cast(batch.y), cast(batch.dt), batch.mask, cast(batch.u), cast(batch.x)
+        return batch.y.to(self.float_dtype), batch.dt.to(self.float_dtype), batch.mask, cast(batch.u), cast(batch.x)
 
     def forward(self, y: Tensor, dt: Tensor, u: Tensor | None = None) -> Any:
         """Run the filter: y (B, T, m), dt (B, T), u (B, T, p) -> the filter's output."""
@@ -237,7 +232,7 @@ class KalmanFilterModule(LightningModule):
         S = H @ P @ H.mT + R
         return masked_gaussian_nll(r, S, obs_k).sum()
 
-    def _step(self, batch: Any) -> tuple[Tensor, Tensor, Any, dict[str, Tensor]]:
+    def _step(self, batch: Any) -> tuple[Tensor, Tensor, Any, dict[str, Any]]:
         y, dt, mask, u, x = self.unpack(batch)
         observed = self._observed(y, mask)
         if mask is not None:  # padding: no observation, no motion
@@ -263,7 +258,9 @@ class KalmanFilterModule(LightningModule):
             # a NaN loss on the parameters' graph: the gradient guard skips, counts and warns
             # (and L-BFGS, seeing no gradient, ends its iteration)
             params = [p for p in self.parameters() if p.requires_grad]
+            self._finite_loss = False
             return sum((p.sum() * 0.0 for p in params), torch.zeros((), dtype=self.float_dtype)) + math.nan
+        self._finite_loss = bool(torch.isfinite(loss.detach()))
         # weighted by observed scalars: the epoch's value is the NLL per observed scalar of all its batches
         count = int(info["count"])
         self.log("train/nll", nll, on_step=False, on_epoch=True, prog_bar=True, batch_size=count, sync_dist=True)
@@ -361,34 +358,22 @@ class KalmanFilterModule(LightningModule):
 
     # ---------------------------------------------------------------- robust optimizer steps
 
-    def _guard_gradients(self, loss: Any) -> None:
-        """After backward: skip a non-finite step (grads -> None, counted), else clip the norm."""
+    def on_before_optimizer_step(self, optimizer: Any) -> None:
+        """After the backward of every closure call, before the Trainer clips the gradients: skip
+        a step whose loss or gradient is non-finite (grads -> None, counted, warned)."""
         params = [p for p in self.parameters() if p.grad is not None]
-        finite = loss is None or bool(torch.isfinite(torch.as_tensor(loss)).all())
-        finite = finite and all(bool(torch.isfinite(p.grad).all()) for p in params)
-        if not finite and self.skip_nonfinite:
-            for p in params:
-                p.grad = None
-            self.skipped_steps += 1
-            warnings.warn(
-                f"non-finite loss or gradient at epoch {self.current_epoch}, step {self.global_step}: "
-                f"step skipped ({self.skipped_steps} so far)",
-                RuntimeWarning,
-                stacklevel=2,
-            )
+        finite = self._finite_loss and all(bool(torch.isfinite(p.grad).all()) for p in params if p.grad is not None)
+        if finite or not self.skip_nonfinite:
             return
-        if self.grad_clip_norm is not None and params:
-            torch.nn.utils.clip_grad_norm_(params, self.grad_clip_norm)
-
-    def optimizer_step(self, epoch: int, batch_idx: int, optimizer: Any, optimizer_closure: Any = None) -> None:
-        """``optimizer.step`` with a closure that checks and clips the gradients it produces."""
-
-        def closure() -> Any:
-            loss = optimizer_closure() if optimizer_closure is not None else None
-            self._guard_gradients(loss)
-            return loss
-
-        optimizer.step(closure=closure)
+        for p in params:
+            p.grad = None
+        self.skipped_steps += 1
+        warnings.warn(
+            f"non-finite loss or gradient at epoch {self.current_epoch}, step {self.global_step}: "
+            f"step skipped ({self.skipped_steps} so far)",
+            RuntimeWarning,
+            stacklevel=2,
+        )
 
     def on_train_epoch_end(self) -> None:
         self.log("train/skipped_steps", float(self.skipped_steps), sync_dist=False)

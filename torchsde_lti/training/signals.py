@@ -1,24 +1,17 @@
-"""SIGTERM / SIGINT during a run: stop at a safe point, say so, exit non-zero.
+"""SIGTERM / SIGINT during a run: stop at a safe point, say so, exit ``128 + signal``.
 
-How a signal travels (:class:`SignalGuard`, installed by :func:`~torchsde_lti.training.train`
-for the whole run):
+Inside ``Trainer.fit`` / ``Trainer.test`` Lightning's own signal connector handles SIGTERM: it
+stops the loops at the next batch boundary by raising its ``SIGTERMException`` (after the
+epoch-end checkpoint when the signal comes in the last batch). :class:`SignalGuard`, installed
+by :func:`~torchsde_lti.training.train` around the whole run, only records the signal (Lightning
+composes its handler with it), re-sends a first SIGINT (Ctrl-C) as SIGTERM so that it takes the
+same path (a second one interrupts at once), and lets ``train`` stop between its phases
+(``stop_if_received``); while the data and the model are built (phase "setup": nothing to
+keep) it stops the run at once. :class:`StopOnSignal` raises Lightning's exception when training or
+testing starts after a signal that came before Lightning's handler was installed.
 
-* inside ``Trainer.fit`` / ``Trainer.test`` (``guard.graceful(...)``) a SIGTERM reaches
-  Lightning's own signal connector, which stops the loops at the next batch boundary by
-  raising its ``SIGTERMException`` (after the epoch-end checkpoint when the signal comes in
-  the last batch); this guard is composed into that handler and only records the signal.
-  A SIGINT (Ctrl-C) is re-sent as SIGTERM to this process, so it takes the same path; a
-  second SIGINT interrupts at once (Lightning's KeyboardInterrupt path).
-  :class:`StopOnSignal` covers the moments Lightning's handler is not installed yet
-  (data and model setup inside ``fit``): it raises the same exception when training starts;
-* everywhere else (building the data and the model) the guard raises :class:`StopRun` at
-  once; plots and output files are finished first (``graceful``), then the run stops.
-
-The resume point is the state at the end of the last completed epoch (``last.ckpt``, written
-by Lightning's ModelCheckpoint every epoch), not a mid-epoch snapshot: Lightning's loaders
-here are not resumable mid-epoch and the epoch means being accumulated are not in a
-checkpoint, so only an epoch-end state resumes bit-identically. The interrupted epoch is
-trained again on resume.
+The resume point is ``last.ckpt``, the end of the last completed epoch (Lightning's loaders are
+not resumable mid-epoch): the interrupted epoch is trained again on resume.
 """
 
 from __future__ import annotations
@@ -27,8 +20,6 @@ import logging
 import os
 import signal
 import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from types import FrameType
 from typing import Any
 
@@ -39,11 +30,9 @@ __all__ = ["RunInterrupted", "SignalGuard", "StopOnSignal", "StopRun"]
 
 log = logging.getLogger(__name__)
 
-SIGNALS = (signal.SIGTERM, signal.SIGINT)
-
 
 class StopRun(BaseException):
-    """Raised by :class:`SignalGuard` outside Lightning's loops (a BaseException, like
+    """Raised between the phases of a run after a signal (a BaseException, like
     KeyboardInterrupt, so that no ``except Exception`` on the way swallows it)."""
 
     def __init__(self, signum: int) -> None:
@@ -58,6 +47,7 @@ class RunInterrupted(RuntimeError):
         signum: the signal (``signal.SIGTERM`` / ``signal.SIGINT``).
         exit_code: ``128 + signum`` (143 for SIGTERM, 130 for SIGINT), what
             ``python -m torchsde_lti.train`` exits with.
+        phase: "setup", "fit", "test", "plots" or "outputs": where the signal came.
         run_dir: the run's directory.
         resume_from: the checkpoint to resume from (``ckpt_path=...``), or None when no
             epoch completed.
@@ -74,21 +64,21 @@ class RunInterrupted(RuntimeError):
 class SignalGuard:
     """Context manager: record SIGTERM / SIGINT for the duration of a run (see the module doc).
 
-    ``received`` is the first signal (None until one comes) and ``phase`` the phase it came
-    in. Previous handlers are restored on exit. Outside the main thread (where Python cannot
-    set handlers) it records nothing and installs nothing.
+    ``received`` is the first signal (None until one comes); ``phase`` names the phase running
+    now (set by the caller) and ``received_during`` the one the signal came in. Previous
+    handlers are restored on exit. Outside the main thread (where Python cannot set
+    handlers) it installs nothing.
     """
 
     def __init__(self) -> None:
         self.received: signal.Signals | None = None
-        self.phase = "setup"
         self.received_during: str | None = None
-        self._graceful = False
+        self.phase = "setup"
         self._previous: dict[int, Any] = {}
 
     def __enter__(self) -> SignalGuard:
         if threading.current_thread() is threading.main_thread():
-            for signum in SIGNALS:
+            for signum in (signal.SIGTERM, signal.SIGINT):
                 self._previous[signum] = signal.signal(signum, self._handle)
         return self
 
@@ -97,40 +87,27 @@ class SignalGuard:
             signal.signal(signum, handler)
         self._previous = {}
 
-    @contextmanager
-    def graceful(self, phase: str) -> Iterator[None]:
-        """Within: a signal is recorded and the work stops at its own safe point (see module doc)."""
-        self.phase, self._graceful = phase, True
-        try:
-            yield
-        finally:
-            self._graceful = False
-
-    def enter_phase(self, phase: str) -> None:
-        """Name the (non-graceful) phase that runs next, for the record of an interruption."""
-        self.phase = phase
-
     def stop_if_received(self) -> None:
         """Raise :class:`StopRun` if a signal came (call between phases)."""
         if self.received is not None:
             raise StopRun(self.received)
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
-        first = self.received is None
-        if first:
-            self.received, self.received_during = signal.Signals(signum), self.phase
-            log.warning("received %s during %s: stopping at the next safe point", self.received.name, self.phase)
-        if not self._graceful:
-            raise StopRun(signum)
-        if signum == signal.SIGINT:
-            if not first:
+        if self.received is not None:
+            if signum == signal.SIGINT:
                 raise KeyboardInterrupt  # a second Ctrl-C: stop now
+            return
+        self.received, self.received_during = signal.Signals(signum), self.phase
+        log.warning("received %s during %s: stopping at the next safe point", self.received.name, self.phase)
+        if self.phase == "setup":
+            raise StopRun(signum)  # building the data and the model: nothing to keep, stop now
+        if signum == signal.SIGINT:
             os.kill(os.getpid(), signal.SIGTERM)  # the graceful path Lightning takes for SIGTERM
 
 
 class StopOnSignal(Callback):
     """Raise Lightning's ``SIGTERMException`` when training or testing starts after a signal that
-    came before Lightning's own handler was installed (data/model setup inside ``fit``)."""
+    came before Lightning's own handler was installed (data and model setup inside ``fit``)."""
 
     def __init__(self, guard: SignalGuard) -> None:
         self.guard = guard
