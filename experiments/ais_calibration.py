@@ -23,8 +23,12 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import ais_study  # noqa: E402
 
-from torchsde_lti.training.calibration import NOMINAL_2SIGMA, hpd_level, one_step_predictive  # noqa: E402
-from torchsde_lti.training.evaluation import moving_reports  # noqa: E402
+from torchsde_lti.evaluation import (  # noqa: E402
+    NOMINAL_2SIGMA,
+    hpd_level,
+    moving_reports,  # noqa: E402
+    one_step_predictive,
+)
 
 LEVELS = (0.5, 0.8, NOMINAL_2SIGMA, 0.95, 0.99)
 SPEEDS = (0.0, 0.25, 1.0, 3.0, 6.0, 10.0, np.inf)

@@ -23,10 +23,10 @@ rates; one-step NLL + k-step forecast-mixture NLL at 4, 8, 12 reports), ``imm3_1
 IMM, one-step NLL only), ``integrated_ou`` (single model, the k-step loss), ``cv_train``
 (constant velocity learned on the training data, one-step NLL) and ``cv_oracle`` (constant
 velocity with q and R = r² I tuned by grid search on the EVALUATION tracks themselves: an
-in-sample oracle, :func:`torchsde_lti.training.baseline.tune_cv`).
+in-sample oracle, :func:`torchsde_lti.evaluation.baseline.tune_cv`).
 
 Model selection, on the set's VALIDATION split only (national day: its val vessels; NY week: 6 Dec),
-with the same evaluation as the hold-out (:func:`torchsde_lti.training.selection.validation_selection`):
+with the same evaluation as the hold-out (:func:`torchsde_lti.evaluation.selection.validation_selection`):
 every card's calibrated predictive is scored on the validation reports; ``best_single`` = the
 single-mode model of lowest validation NLL; the best model = the IMM of lowest validation NLL among
 those whose validation forecast RMSE at 5, 10 and 15 min is <= best_single's at every horizon; when
@@ -34,11 +34,11 @@ none is, the lowest validation NLL of all (reported as a fallback). The hold-out
 
 Calibration (``--calibrate``; also after ``--train``): each card's covariance inflation, one scalar
 c for every mode, fitted on the VALIDATION split so that 86.5 % of its reports lie in the 2σ HPD
-region (:func:`torchsde_lti.training.calibration.calibrate_filter`; ``--per-mode``: one scale per
+region (:func:`torchsde_lti.evaluation.calibration.calibrate_filter`; ``--per-mode``: one scale per
 mode instead); the evaluation scores every learned model's calibrated predictive
 (``evaluate_filter(..., cov_scale=c)``).
 
-Metrics (one implementation: :mod:`torchsde_lti.training.evaluation`): NLL per report (all, moving
+Metrics (one implementation: :mod:`torchsde_lti.evaluation`): NLL per report (all, moving
 and moored 1-h windows: median position-derived speed >= 1 m/s), 2σ coverage (86.5 % HPD region of
 the one-step predictive mixture), forecast RMSE at 5 / 10 / 15 min, paired vessel bootstrap (95 %)
 of every model minus ``cv_oracle`` and minus ``best_single``.
@@ -61,10 +61,17 @@ from torchsde_lti import IMMFilter, KalmanFilter
 from torchsde_lti.data import load_tracks
 from torchsde_lti.data.loaded_tracks import Tracks
 from torchsde_lti.data.splits import split_objects, split_time
-from torchsde_lti.training.baseline import cv_filter, tune_cv
-from torchsde_lti.training.evaluation import EvalRecords, evaluate_filter, paired_bootstrap, summary
+from torchsde_lti.evaluation import (
+    EvalRecords,
+    ModelSelection,
+    cv_filter,
+    evaluate_filter,
+    paired_bootstrap,
+    summary,
+    tune_cv,
+    validation_selection,
+)
 from torchsde_lti.training.outputs import write_json
-from torchsde_lti.training.selection import ModelSelection, validation_selection
 
 HERE = Path(__file__).resolve().parent
 MODELS_DIR = HERE / "results" / "models"
@@ -233,14 +240,15 @@ def holdout_tracks(set_name: str, file: str | None, cards: dict[str, dict[str, A
 def calibrate_cards(set_name: str, samples: int = 500, per_mode: bool = False) -> None:
     """Fit each card's covariance inflation c on the set's VALIDATION split (never the hold-out)
     and write it into the card (``calibration``), with the validation coverage and NLL before / after."""
-    from torchsde_lti.training.calibration import (
+    from torchsde_lti.evaluation import (
         NOMINAL_2SIGMA,
         calibrate_filter,
         hpd_level,
+        mixture_log_prob,
+        moving_reports,
         one_step_predictive,
         scale_vector,
     )
-    from torchsde_lti.training.evaluation import mixture_log_prob, moving_reports
 
     cards = load_cards(set_name)
     val = split_tracks(set_name, "val", cards)
@@ -278,7 +286,7 @@ def select_on_validation(
     set_name: str, cards: dict[str, dict[str, Any]], models: dict[str, KalmanFilter | IMMFilter], samples: int
 ) -> tuple[ModelSelection, dict[str, Any]]:
     """The best model and best single of the set, decided on its VALIDATION split only
-    (:func:`torchsde_lti.training.selection.validation_selection`, each card's calibrated
+    (:func:`torchsde_lti.evaluation.selection.validation_selection`, each card's calibrated
     predictive); and the record of the decision for the JSON / markdown."""
     t0 = time.perf_counter()
     val = split_tracks(set_name, "val", cards)
@@ -456,12 +464,12 @@ def markdown(payloads: list[dict[str, Any]], runtime: float, cmd: str) -> str:
             "Calibration: every learned model is scored with its *calibrated* predictive, every mode's "
             "covariance times the scalar c of its card (`calibration.cov_scale`), fitted on the set's "
             "VALIDATION split so that 86.5 % of the validation reports lie in the 2σ HPD region "
-            "(`torchsde_lti.training.calibration.calibrate_filter`); means, weights and forecasts' means are "
+            "(`torchsde_lti.evaluation.calibration.calibrate_filter`); means, weights and forecasts' means are "
             "unchanged, NLL and coverage use it. cv_oracle is not calibrated (c = 1). The best model's own "
             "predictive (c = 1) is listed below each table."
         ),
         "",
-        f"Model selection, on each set's VALIDATION split only (`training.selection.validation_selection`): {RULE}.",
+        f"Model selection, on each set's VALIDATION split only (`evaluation.selection.validation_selection`): {RULE}.",
         "",
         SELECTION_NOTE,
         "",

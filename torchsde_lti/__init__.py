@@ -18,6 +18,7 @@ LAYERS: tuple[tuple[str, str], ...] = (
     ("models", "the motion-model library (tl.models): factories of LTISDE subclasses"),
     ("interop", "Stone Soup transition model and filterpy helper (optional peers)"),
     ("data", "simulation, the track batch type, real trajectories (tl.data.load_tracks), the Lightning DataModules"),
+    ("evaluation", "research evaluation of frozen filters: metrics, calibration, baselines, selection"),
     ("training", "the Lightning module, metrics, callbacks, plots and the Hydra entry point"),
     ("train", "the `python -m torchsde_lti.train` shim"),
 )

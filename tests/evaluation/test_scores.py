@@ -1,6 +1,6 @@
-"""training.evaluation: the one evaluation of frozen filters (moving windows, HPD coverage,
-forecast RMSE, paired vessel bootstrap), with the CV oracle (training.baseline) and the model
-selection on validation (training.selection), on small synthetic tracks."""
+"""evaluation.scores: the one evaluation of frozen filters (moving windows, HPD coverage,
+forecast RMSE, paired vessel bootstrap), with the CV oracle (evaluation.baseline) and the model
+selection on validation (evaluation.selection), on small synthetic tracks."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ import torchsde_lti as tl
 from torchsde_lti import models
 from torchsde_lti.data import ExponentialDt, simulate_tracks
 from torchsde_lti.data.loaded_tracks import LoadSummary, Tracks
-from torchsde_lti.training.baseline import cv_filter, tune_cv
-from torchsde_lti.training.evaluation import (
+from torchsde_lti.evaluation.baseline import cv_filter, tune_cv
+from torchsde_lti.evaluation.scores import (
     NOMINAL_2SIGMA,
     EvalRecords,
     evaluate_filter,
@@ -26,7 +26,7 @@ from torchsde_lti.training.evaluation import (
     paired_bootstrap,
     summary,
 )
-from torchsde_lti.training.selection import select_model, validation_selection
+from torchsde_lti.evaluation.selection import select_model, validation_selection
 
 
 def make_tracks(object_id: list[int], times: list[np.ndarray], positions: list[np.ndarray]) -> Tracks:
@@ -307,18 +307,34 @@ def test_select_model_rule_on_given_summaries() -> None:
         select_model({"s1": {"nll": 1.0}}, ["s1"])
 
 
-def test_names_moved_out_of_evaluation_still_import_from_it() -> None:
-    """cv_filter and tune_cv (training.baseline) and the model selection (training.selection)
-    live in their own modules; the old path, training.evaluation, still gives the same objects."""
-    import torchsde_lti.training.baseline as baseline
-    import torchsde_lti.training.evaluation as evaluation
-    import torchsde_lti.training.selection as selection
+def test_evaluation_modules_import_downwards_only_and_training_re_exports_them() -> None:
+    """The subpackage has no import cycle (issue 40: calibration and evaluation imported each
+    other): each module imports only modules before it in predictive, calibration, scores,
+    baseline / selection, at any depth (function-level imports included); the names the
+    training package still re-exports are the same objects."""
+    import ast
+    from pathlib import Path
 
-    for module in (baseline, selection):
-        for name in module.__all__:
-            assert getattr(evaluation, name) is getattr(module, name)
-    with pytest.raises(AttributeError, match="has no attribute 'not_a_name'"):
-        evaluation.__getattr__("not_a_name")
+    import torchsde_lti.evaluation as ev
+    import torchsde_lti.training as training
+
+    order = ["predictive", "calibration", "scores", "baseline", "selection"]
+    folder = Path(ev.__file__).parent
+    assert sorted(p.stem for p in folder.glob("*.py") if p.stem != "__init__") == sorted(order)
+    for rank, name in enumerate(order):
+        tree = ast.parse((folder / f"{name}.py").read_text())
+        imported = {
+            node.module.split(".")[2]
+            for node in ast.walk(tree)
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("torchsde_lti.evaluation.")
+        }
+        later = imported & set(order[rank:]) - {name}
+        if name in ("baseline", "selection"):
+            later -= {"baseline", "selection"} - {name}
+            assert not ({"baseline", "selection"} & imported), f"{name} imports {imported}"
+        assert not later, f"evaluation.{name} imports later modules {sorted(later)}"
+    for name in ("EvalRecords", "evaluate_filter", "paired_bootstrap", "tune_cv", "calibrate_filter", "select_model"):
+        assert getattr(training, name) is getattr(ev, name)
 
 
 def test_a_horizon_without_pairs_summarises_as_nan_and_bootstraps() -> None:
@@ -346,7 +362,7 @@ def test_tune_cv_refuses_tracks_with_nothing_to_score() -> None:
 def test_scoring_leaves_the_callers_model_as_it_was() -> None:
     """evaluate_filter and one_step_predictive score a float64 eval-mode copy: the caller's
     float32 module in training mode stays so (both converted it in place)."""
-    from torchsde_lti.training.calibration import one_step_predictive
+    from torchsde_lti.evaluation.calibration import one_step_predictive
 
     t = np.arange(12) * 30.0
     tracks = make_tracks([1], [t], [np.stack([3 * t, t], -1)])

@@ -10,9 +10,9 @@ validation NLL; the best model is the candidate (a multi-mode model) of lowest v
 among those whose validation forecast RMSE is <= the best single's at every horizon; when
 none qualifies, the lowest validation NLL of all (and the selection says so).
 
-The summaries are those of :mod:`torchsde_lti.training.evaluation`
-(:func:`~torchsde_lti.training.evaluation.summary` of
-:func:`~torchsde_lti.training.evaluation.evaluate_filter`), so the validation split is scored
+The summaries are those of :mod:`torchsde_lti.evaluation.scores`
+(:func:`~torchsde_lti.evaluation.summary` of
+:func:`~torchsde_lti.evaluation.evaluate_filter`), so the validation split is scored
 exactly as the hold-out is.
 """
 
@@ -23,8 +23,9 @@ from collections.abc import Collection, Mapping, Sequence
 from typing import Any, NamedTuple
 
 from torchsde_lti.data.loaded_tracks import Tracks
+from torchsde_lti.evaluation.predictive import Model
+from torchsde_lti.evaluation.scores import HORIZONS, _key, evaluate_filter, summary
 from torchsde_lti.nn.kalman import KalmanFilter
-from torchsde_lti.training.evaluation import HORIZONS, Model, _key, evaluate_filter, summary
 
 __all__ = ["ModelSelection", "select_model", "validation_selection"]
 

@@ -1,4 +1,4 @@
-"""training.calibration: HPD levels (closed form vs Monte Carlo, uniform under the model), the
+"""evaluation.calibration: HPD levels (closed form vs Monte Carlo, uniform under the model), the
 scalar covariance inflation (recovers a known scale), and evaluate_filter's calibrated predictive
 (= the filter with Q, R and the prior all scaled, for a Kalman filter)."""
 
@@ -11,17 +11,17 @@ import pytest
 import torch
 
 import torchsde_lti as tl
-from tests.training.test_evaluation import simulated_cv
-from torchsde_lti.training.baseline import cv_filter
-from torchsde_lti.training.calibration import (
+from tests.evaluation.test_scores import simulated_cv
+from torchsde_lti.evaluation.baseline import cv_filter
+from torchsde_lti.evaluation.calibration import (
     NOMINAL_2SIGMA,
     calibrate_filter,
     fit_cov_scale,
     fit_mode_scales,
     hpd_level,
-    one_step_predictive,
 )
-from torchsde_lti.training.evaluation import evaluate_filter, summary
+from torchsde_lti.evaluation.predictive import one_step_predictive
+from torchsde_lti.evaluation.scores import evaluate_filter, summary
 
 f64 = torch.float64
 

@@ -4,7 +4,7 @@
     q, r_std, table = tune_cv(tracks)           # (q, r) of the lowest mean one-step NLL on ``tracks``
 
 :func:`tune_cv` scores each grid point by the mean one-step NLL of whole tracks, batched as
-:func:`~torchsde_lti.training.evaluation.evaluate_filter` batches them. Tuned on the very
+:func:`~torchsde_lti.evaluation.evaluate_filter` batches them. Tuned on the very
 tracks it is then scored on (``cv_oracle`` of ``experiments/ais_study.py``), it is an
 in-sample oracle for the constant-velocity model.
 """
@@ -17,8 +17,8 @@ import numpy as np
 import torch
 
 from torchsde_lti.data.loaded_tracks import Tracks
+from torchsde_lti.evaluation.predictive import _batches
 from torchsde_lti.nn.kalman import KalmanFilter
-from torchsde_lti.training.evaluation import _batches
 
 __all__ = ["cv_filter", "tune_cv"]
 

@@ -31,8 +31,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.data.loaded_tracks import Tracks
-from torchsde_lti.nn.imm import IMMFilter
-from torchsde_lti.nn.kalman import KalmanFilter
+from torchsde_lti.evaluation.predictive import Model, mixture_log_prob, one_step_predictive
 
 __all__ = [
     "NOMINAL_2SIGMA",
@@ -40,8 +39,6 @@ __all__ = [
     "fit_cov_scale",
     "fit_mode_scales",
     "hpd_level",
-    "mixture_log_prob",
-    "one_step_predictive",
     "scale_vector",
 ]
 
@@ -73,31 +70,6 @@ def _check(y: Tensor, w: Tensor, mu: Tensor, S: Tensor) -> None:
             f"y (N, m), w (N, M), mu (N, M, m) and S (N, M, m, m) must agree, got y {tuple(y.shape)}, "
             f"w {tuple(w.shape)}, mu {tuple(mu.shape)}, S {tuple(S.shape)}"
         )
-
-
-def mixture_log_prob(x: Tensor, w: Tensor, mu: Tensor, S: Tensor) -> Tensor:
-    """log Σ_j w_j N(x; mu_j, S_j) of points x (N, S, m) or (N, m).
-
-    Args:
-        x: (N, m) or (N, S, m) points (S draws per row).
-        w: (N, M) weights; mu: (N, M, m) means; S: (N, M, m, m) covariances (SPD).
-
-    Returns:
-        (N,) or (N, S) log densities. Elementwise over the m × m entries of the inverse
-        (no batched small solves: those dominate otherwise).
-    """
-    squeeze = x.dim() == 2
-    if squeeze:
-        x = x.unsqueeze(1)
-    m = x.shape[-1]
-    L = torch.linalg.cholesky(S)
-    Sinv = torch.cholesky_inverse(L).unsqueeze(1)  # (N, 1, M, m, m)
-    logdet = 2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1).unsqueeze(1)  # (N, 1, M)
-    d = x.unsqueeze(-2) - mu.unsqueeze(1)  # (N, S, M, m)
-    quad = sum(d[..., i] * Sinv[..., i, j] * d[..., j] for i in range(m) for j in range(m))
-    comp = -0.5 * (quad + logdet + m * math.log(2 * math.pi))
-    out = torch.logsumexp(comp + torch.log(w.clamp_min(1e-300)).unsqueeze(1), -1)
-    return out.squeeze(1) if squeeze else out
 
 
 def hpd_level(
@@ -267,37 +239,8 @@ def fit_mode_scales(
     return [float(x) for x in c]
 
 
-def one_step_predictive(model: KalmanFilter | IMMFilter, tracks: Tracks, max_steps: int = 50_000) -> dict[str, Tensor]:
-    """The one-step predictive of every report k >= 2 of every track (float64, no gradients).
-
-    Args:
-        model: a position-observing :class:`~torchsde_lti.KalmanFilter` or :class:`~torchsde_lti.IMMFilter`.
-        tracks: whole tracks (:func:`~torchsde_lti.data.load_tracks`).
-
-    Returns:
-        {"y": (N, m), "w": (N, M), "mu": (N, M, m), "S": (N, M, m, m), "index": (N,) flat report
-        index into ``tracks``}, in the order of :func:`~torchsde_lti.training.evaluation.evaluate_filter`.
-    """
-    from torchsde_lti.training.evaluation import _batches, _one_step, frozen_copy
-
-    model = frozen_copy(model)
-    parts: dict[str, list[Tensor]] = {k: [] for k in ("y", "w", "mu", "S", "index")}
-    batches, index = _batches(tracks, max_steps)
-    with torch.no_grad():
-        for batch, idx in zip(batches, index):
-            _, w, ym, S = _one_step(model, batch)
-            m = batch.mask.clone()
-            m[:, 0] = False
-            parts["y"].append(batch.y[m])
-            parts["w"].append(w[m])
-            parts["mu"].append(ym[m])
-            parts["S"].append(S[m])
-            parts["index"].append(torch.as_tensor(idx[m.numpy()]))
-    return {k: torch.cat(v) for k, v in parts.items()}
-
-
 def calibrate_filter(
-    model: KalmanFilter | IMMFilter,
+    model: Model,
     tracks: Tracks,
     target: float = NOMINAL_2SIGMA,
     samples: int = 500,
@@ -308,7 +251,7 @@ def calibrate_filter(
     """The covariance inflation of a frozen filter's one-step predictive, fitted on ``tracks``.
 
     Use validation tracks (never the data the result is judged on). Pass the result as
-    ``cov_scale`` to :func:`~torchsde_lti.training.evaluation.evaluate_filter`.
+    ``cov_scale`` to :func:`~torchsde_lti.evaluation.evaluate_filter`.
 
     Args:
         model: a position-observing KalmanFilter or IMMFilter.

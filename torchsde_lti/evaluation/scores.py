@@ -22,16 +22,12 @@ Every metric is a ratio of per-vessel sums, so that the paired bootstrap resampl
 vessels (all tracks of an object together) and recomputes each metric for both models on
 the same resample.
 
-Built on this module: the constant-velocity baseline and its grid-tuned oracle
-(:mod:`torchsde_lti.training.baseline`: ``cv_filter``, ``tune_cv``) and the model selection
-rule on validation summaries (:mod:`torchsde_lti.training.selection`: ``select_model``,
-``validation_selection``, ``ModelSelection``); those names are still importable from here.
+Built on :mod:`torchsde_lti.evaluation.predictive` (the predictive distributions) and
+:mod:`torchsde_lti.evaluation.calibration` (HPD levels, the covariance inflation ``cov_scale``).
 """
 
 from __future__ import annotations
 
-import copy
-import importlib
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -42,21 +38,18 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.data.loaded_tracks import Tracks
-from torchsde_lti.data.splits import track_windows
-from torchsde_lti.data.tracks import TrackBatch, pad_tracks
+from torchsde_lti.data.tracks import TrackBatch
+from torchsde_lti.evaluation.calibration import NOMINAL_2SIGMA, hpd_level, scale_vector
+from torchsde_lti.evaluation.predictive import Model, _forecast, frozen_copy, mixture_log_prob, predictive_batches
 from torchsde_lti.nn.imm import IMMFilter
-from torchsde_lti.nn.kalman import KalmanFilter
-from torchsde_lti.training.calibration import NOMINAL_2SIGMA, hpd_level, mixture_log_prob, scale_vector
 
 __all__ = [
     "HORIZONS",
     "EvalRecords",
     "evaluate_filter",
-    "frozen_copy",
     "evaluate_models",
     "forecast_pairs",
     "hpd_inside",
-    "mixture_log_prob",
     "moving_reports",
     "paired_bootstrap",
     "summary",
@@ -65,22 +58,6 @@ __all__ = [
 
 #: Forecast horizons (s) of :func:`evaluate_filter`: 5, 10, 15 min.
 HORIZONS: tuple[float, ...] = (300.0, 600.0, 900.0)
-
-#: The names that moved to their own modules, each still importable from here: their new
-#: module (imported on first use, by :func:`__getattr__`, since it imports this one).
-_MOVED = {
-    "cv_filter": "torchsde_lti.training.baseline",
-    "tune_cv": "torchsde_lti.training.baseline",
-    "ModelSelection": "torchsde_lti.training.selection",
-    "select_model": "torchsde_lti.training.selection",
-    "validation_selection": "torchsde_lti.training.selection",
-}
-
-
-def __getattr__(name: str) -> Any:
-    if name in _MOVED:
-        return getattr(importlib.import_module(_MOVED[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 @dataclass
@@ -122,7 +99,7 @@ def hpd_inside(
     One component: the ellipse of Mahalanobis² <= the chi-square quantile at ``level`` (the 2σ
     ellipse in 2-D for the default level), in closed form. Otherwise: y is inside when the
     share of ``samples`` seeded draws from the mixture with a higher density than y is at most
-    ``level`` (:func:`~torchsde_lti.training.calibration.hpd_level`).
+    ``level`` (:func:`~torchsde_lti.evaluation.calibration.hpd_level`).
 
     Args:
         y: (N, m) observations; w: (N, M) weights; mu: (N, M, m); S: (N, M, m, m).
@@ -198,67 +175,6 @@ def forecast_pairs(batch: TrackBatch, horizon: float, tol: float = 0.25) -> tupl
     return b, k, j[b, k]
 
 
-Model = KalmanFilter | IMMFilter
-
-
-def _one_step(model: Model, batch: TrackBatch) -> tuple[Any, Tensor, Tensor, Tensor]:
-    """Filter output and the one-step predictive of y: weights (B, T, M), means (B, T, M, m), covs."""
-    out = model(batch.y, batch.dt, mask=batch.mask)
-    if isinstance(model, IMMFilter):
-        H = model.H  # (m, n) shared or (M, m, n) per mode: broadcasts over (..., M, n, 1) either way
-        return (
-            out,
-            out.pred_mode_probabilities,
-            (H @ out.mode_pred_mean.unsqueeze(-1)).squeeze(-1),
-            out.mode_innovation_cov,
-        )
-    w = torch.ones(*out.pred_mean.shape[:-1], 1, dtype=out.pred_mean.dtype)
-    return out, w, (out.pred_mean @ model.H.mT).unsqueeze(-2), out.innovation_cov.unsqueeze(-3)
-
-
-def _forecast(model: Model, out: Any, b: Tensor, k: Tensor, lead: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Predictive of y at t_k + lead from the filtered state at (b, k): weights (P, M), means, covs."""
-    if isinstance(model, IMMFilter):
-        mix = model.forecast(
-            (out.mode_probabilities[b, k], out.mode_mean[b, k], out.mode_cov[b, k]), lead.unsqueeze(-1)
-        )
-        return mix.mode_probabilities[:, 0], mix.mode_obs_mean[:, 0], mix.mode_obs_cov[:, 0]
-    fc = model.forecast((out.mean[b, k], out.cov[b, k]), lead.unsqueeze(-1))
-    return torch.ones(len(b), 1, dtype=lead.dtype), fc.obs_mean[:, :1], fc.obs_cov[:, :1]
-
-
-def _batches(tracks: Tracks, max_steps: int) -> tuple[list[TrackBatch], list[np.ndarray]]:
-    """Whole tracks (float64, centred) as padded batches of <= max_steps (B x T) each, sorted by
-    length, and the flat report indices of each batch (B, T; -1 at padding)."""
-    windows = track_windows(tracks, None, center=True, dtype=torch.float64)
-    lengths = np.diff(tracks.offsets)
-    order = np.argsort(lengths, kind="stable")
-    groups: list[list[int]] = []
-    cur: list[int] = []
-    for i in order:
-        if cur and (len(cur) + 1) * lengths[i] > max_steps:
-            groups.append(cur)
-            cur = []
-        cur.append(int(i))
-    if cur:
-        groups.append(cur)
-    batches, index = [], []
-    for g in groups:
-        batches.append(pad_tracks([windows[i] for i in g]))
-        T = int(lengths[g].max())
-        idx = np.full((len(g), T), -1, dtype=np.int64)
-        for r, i in enumerate(g):
-            idx[r, : lengths[i]] = np.arange(tracks.offsets[i], tracks.offsets[i + 1])
-        index.append(idx)
-    return batches, index
-
-
-def frozen_copy(model: Model) -> Model:
-    """A float64 copy of ``model`` in eval mode, for scoring: the caller's module keeps its
-    dtype and training mode."""
-    return copy.deepcopy(model).to(torch.float64).eval()
-
-
 def evaluate_filter(
     model: Model,
     tracks: Tracks,
@@ -285,7 +201,7 @@ def evaluate_filter(
         cov_scale: the calibrated predictive: component j's covariance (one-step and forecast)
             times c_j > 0 (one number for all, or one per mode), the means and weights
             unchanged; the NLL and the HPD tests use it
-            (:func:`~torchsde_lti.training.calibration.calibrate_filter` fits it on validation
+            (:func:`~torchsde_lti.evaluation.calibration.calibrate_filter` fits it on validation
             tracks). 1.0: the filter's own predictive.
     """
     M = len(model.modes()) if isinstance(model, IMMFilter) else 1
@@ -300,12 +216,8 @@ def evaluate_filter(
     moving_flat = moving_reports(tracks.t, tracks.pos[:, :2], tracks.offsets, window, moving_speed)
     parts: dict[str, list[np.ndarray]] = {k: [] for k in ("vessel", "nll", "moving", "inside", "sq_err")}
     fc_parts: dict[float, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {h: [] for h in horizons}
-    batches, index = _batches(tracks, max_steps)
     with torch.no_grad():
-        for batch, idx in zip(batches, index):
-            out, w, ym, S = _one_step(model, batch)
-            m = batch.mask.clone()
-            m[:, 0] = False
+        for batch, idx, out, w, ym, S, m in predictive_batches(model, tracks, max_steps):
             flat = idx[m.numpy()]
             point = (w.unsqueeze(-1) * ym).sum(-2)
             parts["vessel"].append(vessel_flat[flat])
