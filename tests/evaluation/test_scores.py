@@ -223,6 +223,41 @@ def test_cv_oracle_grid_extends_until_the_optimum_is_inside() -> None:
     assert qs[0] < q < qs[-1]
 
 
+def harbour_tracks() -> Tracks:
+    """Five vessels of the NY harbour on 7 Dec 2020 (NYHarbor_2020_12_first_week.traj, tracktable-data;
+    the ny_week set's test split, per-track local east/north metres and seconds from each track's
+    first report): moored ones with positions quantised to ~0.84 m, and ships under way."""
+    from pathlib import Path
+
+    data = np.load(Path(__file__).parent / "data" / "ny_harbour_2020_12_07_five_vessels.npz")
+    off = data["offsets"]
+    times = [data["t"][a:b] for a, b in zip(off[:-1], off[1:])]
+    positions = [data["pos"][a:b] for a, b in zip(off[:-1], off[1:])]
+    return make_tracks(data["object_id"].tolist(), times, positions)
+
+
+def test_cv_oracle_refines_before_it_walks_and_stops_at_an_interior_optimum() -> None:
+    """On a harbour day the coarse grid's optimum (q = 0.1) sits where the NLL keeps falling as
+    R -> 0: walking at the coarse steps never stops (the old grid extension ended at r = 6e-7 m).
+    Refining first finds the valley floor (q ~ 0.056) and an interior r of metres, with a lower NLL
+    than any R -> 0 point scored."""
+    tr = harbour_tracks()
+    with pytest.raises(ValueError, match="no interior optimum"):
+        tune_cv(tr, refine=0, max_rounds=6)  # the walk at the coarse steps heads for R -> 0
+    q, r, table = tune_cv(tr)
+    assert 5.0 < r < 60.0 and 0.02 < q < 0.2
+    assert table[(q, r)] == min(table.values())
+    r_to_0 = summary(evaluate_filter(cv_filter(q, 1e-6), tr))["nll"]  # the boundary R -> 0 at the same q
+    assert table[(q, r)] < r_to_0 - 0.01
+    dq, dr = 0.25, math.log10(3.0) / 4  # the final steps: the coarse grid's (1 decade, 0.477) / 2^refine
+    for i in (-1, 0, 1):  # every neighbour at the final steps was scored, and is worse
+        for j in (-1, 0, 1):
+            if i or j:
+                nq, nr = q * 10 ** (i * dq), r * 10 ** (j * dr)
+                (value,) = [v for (a, b), v in table.items() if abs(a / nq - 1) < 1e-6 and abs(b / nr - 1) < 1e-6]
+                assert value > table[(q, r)]
+
+
 def wiggly_tracks(num: int, T: int, seed: int, q: float = 1e-3, sig: float = 60.0, tau: float = 300.0) -> Tracks:
     """Constant-velocity tracks (q) plus a slow Ornstein-Uhlenbeck wiggle of the position (std sig m,
     time constant tau s) and 3 m white noise, reported every ~15 s: a filter that tracks the wiggle
