@@ -617,3 +617,38 @@ def test_prior_covariance_refuses_a_bad_diffuse_variance() -> None:
     for bad in (-1.0, 0.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="diffuse_variance"):
             model.prior_covariance(diffuse_variance=bad)
+
+
+# ----------------------------------------------------------------------------- configs
+
+
+def _filter_of(experiment: str) -> tl.KalmanFilter | tl.IMMFilter:
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose("train", overrides=[f"experiment={experiment}"])
+    return instantiate(cfg.filter)
+
+
+def test_turning_bank_and_aircraft_axes_from_the_configs() -> None:
+    """model=imm_turn: left / straight / right modes (turn_rate with ω of both signs and constant
+    velocity); model=aircraft: horizontal and vertical constant velocity with their own q."""
+    imm = _filter_of("flights_turn")
+    assert isinstance(imm, tl.IMMFilter) and imm.mode_names == ("left", "straight", "right")
+    left, straight, right = (mode.sde for mode in imm.modes())
+    from torchsde_lti.models._turning import TurnRate
+
+    assert isinstance(left, TurnRate) and isinstance(right, TurnRate) and left.omega.item() > 0 > right.omega.item()
+    assert torch.equal(straight.F, models.constant_velocity(2).F.to(straight.F.dtype))
+    kf = _filter_of("flights_3d_axes")
+    horizontal, vertical = kf.sde.parts
+    assert horizontal.dim == 2 and vertical.dim == 1 and kf.sde.position_indices == (0, 2, 4)
+    assert horizontal.q.item() != vertical.q.item()
+    assert {n for n, _ in kf.sde.named_parameters()} == {
+        "parts.0.parametrizations.q.original",
+        "parts.1.parametrizations.q.original",
+    }
