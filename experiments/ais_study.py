@@ -77,15 +77,22 @@ RUNS: dict[str, dict[str, list[str]]] = {
         "flights-turn-imm": ["experiment=flights_turn", "trainer.max_epochs=8"],
         "flights-cv": ["experiment=flights", "trainer.max_epochs=8"],
     },
+    "flights3d": {  # 3-D: selected on its validation split, not in the (2-D) matrix
+        "flights3d-axes": ["experiment=flights_3d_axes"],
+        "flights3d-cv": ["experiment=flights_3d"],
+    },
 }
+#: The train and evaluation sets of the matrix (2-D positions).
+MATRIX = ("us", "ny", "june", "flights")
 #: The shipped names' prefix of each train set.
-PREFIX = {"us": "ais-us", "ny": "ais-ny", "june": "ais-june", "flights": "flights"}
+PREFIX = {"us": "ais-us", "ny": "ais-ny", "june": "ais-june", "flights": "flights", "flights3d": "flights3d"}
 #: What each shipped filter is (its card's description).
 DESCRIPTIONS = {
     "imm": "3-mode IMM (moored / manoeuvring / underway), one-step + k-step forecast loss",
     "iou": "integrated Ornstein-Uhlenbeck (velocity with drag)",
     "cv": "constant velocity, one-step loss",
     "turn-imm": "turning IMM (left / straight / right: turn_rate modes with learned omega)",
+    "axes": "aircraft in 3-D: horizontal and vertical constant velocity with their own q",
 }
 HORIZON_KEYS = ("fc_rmse_5", "fc_rmse_10", "fc_rmse_15")
 METRICS = ("nll", "nll_moving", "cover2s", "cover2s_moving", *HORIZON_KEYS)
@@ -131,13 +138,14 @@ def ship(train_set: str, name: str, run: Path, slice_vessels: int = 12) -> Path:
 
     from torchsde_lti.training.metrics import filter_values, flat_values
 
-    cfg = OmegaConf.to_container(OmegaConf.load(run / ".hydra" / "config.yaml"), resolve=True)
-    assert isinstance(cfg, dict)
+    raw = OmegaConf.load(run / ".hydra" / "config.yaml")
+    cfg = {k: OmegaConf.to_container(raw[k], resolve=True) for k in ("filter", "data")}  # not hydra's own nodes
     metrics = json.loads((run / "metrics.json").read_text())
     ckpt = torch.load(run / "checkpoints" / "best.ckpt", map_location="cpu", weights_only=True)
     state = {k.removeprefix("kf."): v for k, v in ckpt["state_dict"].items() if k.startswith("kf.")}
     torch.save(state, registry.FILES / f"{name}.pt")
     d = cfg["data"]
+    assert isinstance(d, dict)
     loader_args = set(inspect.signature(load_tracks).parameters) - {"source", "cut_times"}
     kind = name.split("-", 2)[-1]
     card: dict[str, Any] = {
@@ -151,7 +159,7 @@ def ship(train_set: str, name: str, run: Path, slice_vessels: int = 12) -> Path:
             "source": d["source"],
             "loader": {k: d[k] for k in loader_args if k in d},
             "split": d["split"],
-            "seed": int(d["seed"]),
+            "seed": int(d["seed"]),  # the run's seed (data.seed interpolates it)
             "fractions": list(d.get("fractions") or []),
             "boundaries": list(d.get("boundaries") or []),
             "trained_on": "train",
@@ -396,22 +404,22 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--runs", default="outputs/study", help="training runs, <runs>/<name>")
     parser.add_argument("--select", action="store_true", help="selection on validation -> results/ais_selection.json")
     parser.add_argument("--final", action="store_true", help="also score the two reserved files (final evaluation)")
-    parser.add_argument("--sets", nargs="*", default=list(RUNS), help="train sets")
-    parser.add_argument("--eval-sets", nargs="*", default=list(RUNS), help="evaluation sets")
+    parser.add_argument("--sets", nargs="*", default=None, help="train sets (default: all; the matrix: MATRIX)")
+    parser.add_argument("--eval-sets", nargs="*", default=list(MATRIX), help="evaluation sets")
     parser.add_argument("--samples", type=int, default=500, help="Monte Carlo draws of the mixture HPD test")
     parser.add_argument("--out", default=str(RESULTS / "ais_generalisation"), help="results file stem")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     if args.train:
-        train(args.sets, Path(args.runs))
+        train(args.sets or list(RUNS), Path(args.runs))
         return {}
     if args.select:
-        return select(args.sets, args.samples)
+        return select(args.sets or list(RUNS), args.samples)
     start = time.perf_counter()
     eval_sets = list(args.eval_sets)
     if args.final:
         eval_sets += list(tl.data.RESERVED_FOR_EVALUATION)
-    payload = matrix(args.sets, eval_sets, args.samples)
+    payload = matrix(args.sets or list(MATRIX), eval_sets, args.samples)
     runtime = time.perf_counter() - start
     payload["runtime_s"] = runtime
     out = Path(args.out)
