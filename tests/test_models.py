@@ -19,6 +19,7 @@ from stonesoup.models.transition.linear import (
     ConstantAcceleration,
     ConstantNthDerivative,
     ConstantVelocity,
+    KnownTurnRate,
     OrnsteinUhlenbeck,
     Singer,
 )
@@ -259,6 +260,10 @@ ALL_MODELS = {
     "block": lambda: models.block_diag(
         models.constant_velocity(1, 0.5, dtype=F64), models.matern(1.5, 0.9, 1.0, dtype=F64)
     ),
+    "turn": lambda: models.turn_rate(-0.07, 0.8, dtype=F64),
+    "aircraft": lambda: models.block_diag(  # horizontal turn + vertical CV, their own noise
+        models.turn_rate(0.03, 17.0, dtype=F64), models.constant_velocity(1, 0.27, dtype=F64)
+    ),
 }
 
 
@@ -398,6 +403,115 @@ def test_scalars_stay_positive_under_large_learning_rate() -> None:
         assert torch.isfinite(s(1.0).Q).all()
 
 
+# ----------------------------------------------------------------------------- turning
+
+
+def turn_noise_closed_form(omega: float, q: float, dt: float) -> np.ndarray:
+    """The exact Q of the coordinated turn, [x, vx, y, vy] (derived by hand: the docstring's forms)."""
+    s, c = math.sin(omega * dt), math.cos(omega * dt)
+    pp, pv, cross = 2 * q * (dt - s / omega) / omega**2, q * (1 - c) / omega**2, q * (dt - s / omega) / omega
+    return np.array([[pp, pv, 0.0, cross], [pv, q * dt, -cross, 0.0], [0.0, -cross, pp, pv], [cross, 0.0, pv, q * dt]])
+
+
+@pytest.mark.parametrize("omega", [0.1, -0.03, 1.5, -2.0])
+@pytest.mark.parametrize("dt", [0.5, 2.0, 30.0])
+def test_turn_rate_transition_is_stone_soups_known_turn_rate(omega: float, dt: float) -> None:
+    d = models.turn_rate(omega, 0.6, dtype=F64)(dt)
+    ss = KnownTurnRate(turn_noise_diff_coeffs=np.array([0.6, 0.6]), turn_rate=omega)
+    np.testing.assert_allclose(np64(d.A), ss.matrix(time_interval=delta(dt)), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("omega,dt", [(0.1, 2.0), (-0.1, 2.0), (0.02, 15.0), (1.3, 0.7), (-0.5, 9.0)])
+def test_turn_rate_noise_is_the_exact_integral(omega: float, dt: float) -> None:
+    """Q against quadrature of ∫ e^{Fτ} L Qc Lᵀ e^{Fτ}ᵀ dτ (scipy) and the closed form; Stone Soup's
+    KnownTurnRate covariance is the constant-velocity one and lacks the cross terms."""
+    from scipy.integrate import quad_vec
+
+    q = 0.8
+    model = models.turn_rate(omega, q, dtype=F64)
+    F, L = np64(model.F), np64(model.L)
+    quad, _ = quad_vec(lambda t: (E := scipy.linalg.expm(F * t) @ L) @ E.T * q, 0.0, dt, epsabs=1e-14, epsrel=1e-13)
+    Q = np64(model(dt).Q)
+    np.testing.assert_allclose(Q, quad, rtol=1e-9, atol=1e-12 * np.abs(quad).max())
+    np.testing.assert_allclose(Q, turn_noise_closed_form(omega, q, dt), rtol=1e-9, atol=1e-12 * np.abs(quad).max())
+    if (omega, dt) == (0.1, 2.0):  # the issue's figure: ±0.133 where Stone Soup has 0 (here q = 0.8)
+        assert Q[0, 3] / q == pytest.approx(0.1331, abs=5e-4) and Q[1, 2] / q == pytest.approx(-0.1331, abs=5e-4)
+        ss = KnownTurnRate(turn_noise_diff_coeffs=np.array([q, q]), turn_rate=omega).covar(time_interval=delta(dt))
+        assert ss[0, 3] == 0.0 and ss[1, 2] == 0.0
+
+
+def turn_closed_form_mp(omega: float, q: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """A and Q of the coordinated turn in 50-digit arithmetic (mpmath): no cancellation at small ω."""
+    with mpmath.workdps(50):
+        w, h, q_ = mpmath.mpf(omega), mpmath.mpf(dt), mpmath.mpf(q)
+        if w == 0:
+            sw, cw, dw = h, mpmath.mpf(0), h**3 / 6  # sin(ωh)/ω, (1 - cos ωh)/ω, (h - sin(ωh)/ω)/ω² at ω = 0
+            cos_, sin_ = mpmath.mpf(1), mpmath.mpf(0)
+            one_c = h**2 / 2  # (1 - cos ωh)/ω²
+        else:
+            sw, cw = mpmath.sin(w * h) / w, (1 - mpmath.cos(w * h)) / w
+            dw, cos_, sin_ = (h - mpmath.sin(w * h) / w) / w**2, mpmath.cos(w * h), mpmath.sin(w * h)
+            one_c = (1 - mpmath.cos(w * h)) / w**2
+        A = [[1, sw, 0, -cw], [0, cos_, 0, -sin_], [0, cw, 1, sw], [0, sin_, 0, cos_]]
+        pp, pv, cross = 2 * q_ * dw, q_ * one_c, q_ * dw * w
+        Q = [[pp, pv, 0, cross], [pv, q_ * h, -cross, 0], [0, -cross, pp, pv], [cross, 0, pv, q_ * h]]
+        return np.array(A, dtype=float), np.array(Q, dtype=float)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_turn_rate_tends_to_constant_velocity_as_omega_goes_to_zero(dtype: torch.dtype) -> None:
+    """ω → 0 is continuous (no 1/ω is evaluated): A and Q match the closed form (50 digits) at
+    tiny ω, equal constant velocity at ω = 0, and stay PSD in float32."""
+    tol = 2e-6 if dtype == torch.float32 else 1e-12
+    for dt in (0.5, 10.0, 120.0):
+        for omega in (1e-3, -1e-5, 1e-8, 0.0, -1e-12):
+            d = models.turn_rate(omega, 0.9, dtype=dtype)(torch.tensor(dt, dtype=dtype))
+            A, Q = turn_closed_form_mp(omega, 0.9, dt)
+            np.testing.assert_allclose(np64(d.A), A, rtol=0, atol=tol * np.abs(A).max())
+            np.testing.assert_allclose(np64(d.Q), Q, rtol=0, atol=tol * np.abs(Q).max())
+            assert bool((torch.linalg.eigvalsh(d.Q.double()) > -tol * d.Q.abs().amax()).all())
+    dt = torch.tensor([0.5, 10.0, 120.0], dtype=F64)
+    exact, cv = models.turn_rate(0.0, 0.9, dtype=F64)(dt), models.constant_velocity(2, 0.9, dtype=F64)(dt)
+    torch.testing.assert_close(exact.A, cv.A, rtol=0, atol=1e-13)
+    torch.testing.assert_close(exact.Q, cv.Q, rtol=1e-12, atol=1e-12)
+
+
+def test_turn_rate_gradients_at_zero_and_batched_rates_equal_loop() -> None:
+    """gradcheck through ω at 0 (straight flight) and ±; left/straight/right as one batched module."""
+    dt = torch.tensor([0.7, 4.0], dtype=F64)
+    for w0 in (0.0, 0.2, -0.2):
+        omega = torch.tensor(w0, dtype=F64, requires_grad=True)
+
+        def fn(w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            model = models.turn_rate(0.0, 0.5, dtype=F64)
+            d = functional_call(model, {"parametrizations.omega.original": w}, (dt,))
+            return d.A, d.Q
+
+        assert torch.autograd.gradcheck(fn, (omega,))
+    rates = torch.tensor([0.05, 0.0, -0.05], dtype=F64)
+    bank = models.turn_rate(rates, 2.0)
+    assert bank.batch_shape == (3,) and bank.omega.dtype == F64
+    d = bank(torch.tensor([3.0, 3.0, 3.0], dtype=F64))
+    for i, w in enumerate(rates.tolist()):
+        one = models.turn_rate(w, 2.0, dtype=F64)(3.0)
+        torch.testing.assert_close(d.A[i], one.A, rtol=1e-14, atol=1e-14)
+        torch.testing.assert_close(d.Q[i], one.Q, rtol=1e-13, atol=1e-13)
+    bank.omega = torch.tensor([0.1, 0.0, -0.1])
+    assert bank.omega.tolist() == pytest.approx([0.1, 0.0, -0.1])
+    assert models.position_observation(bank).tolist() == [[1, 0, 0, 0], [0, 0, 1, 0]]
+
+
+def test_aircraft_composition_keeps_horizontal_and_vertical_noise_apart() -> None:
+    """block_diag(turn_rate, constant_velocity(1)): [x, vx, y, vy, z, vz], the horizontal turn and
+    the vertical CV with their own q; positions (0, 2, 4)."""
+    model = ALL_MODELS["aircraft"]()
+    d = model(5.0)
+    turn, vert = models.turn_rate(0.03, 17.0, dtype=F64)(5.0), models.constant_velocity(1, 0.27, dtype=F64)(5.0)
+    torch.testing.assert_close(d.A, torch.block_diag(turn.A, vert.A))
+    torch.testing.assert_close(d.Q, torch.block_diag(turn.Q, vert.Q))
+    assert model.position_indices == (0, 2, 4)
+
+
 # ----------------------------------------------------------------------------- bad input
 @pytest.mark.parametrize(
     "make,match",
@@ -423,6 +537,9 @@ def test_scalars_stay_positive_under_large_learning_rate() -> None:
         (lambda: models.block_diag(models.constant_velocity(1, 1.0), torch.eye(2)), "sdes"),
         (lambda: models.singer(torch.tensor([0.1, 0.2]), torch.tensor([1.0, 2.0, 3.0])), "alpha.*q"),
         (lambda: models.companion(torch.ones(2, 3), q=torch.ones(3)), "a.*q"),
+        (lambda: models.turn_rate(float("nan"), 1.0), "omega"),
+        (lambda: models.turn_rate(0.1, 0.0), "q"),
+        (lambda: models.turn_rate(torch.zeros(2), torch.ones(3)), "omega.*q"),
     ],
 )
 def test_bad_input_raises_value_error(make, match: str) -> None:
@@ -500,3 +617,38 @@ def test_prior_covariance_refuses_a_bad_diffuse_variance() -> None:
     for bad in (-1.0, 0.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="diffuse_variance"):
             model.prior_covariance(diffuse_variance=bad)
+
+
+# ----------------------------------------------------------------------------- configs
+
+
+def _filter_of(experiment: str) -> tl.KalmanFilter | tl.IMMFilter:
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose("train", overrides=[f"experiment={experiment}"])
+    return instantiate(cfg.filter)
+
+
+def test_turning_bank_and_aircraft_axes_from_the_configs() -> None:
+    """model=imm_turn: left / straight / right modes (turn_rate with ω of both signs and constant
+    velocity); model=aircraft: horizontal and vertical constant velocity with their own q."""
+    imm = _filter_of("flights_turn")
+    assert isinstance(imm, tl.IMMFilter) and imm.mode_names == ("left", "straight", "right")
+    left, straight, right = (mode.sde for mode in imm.modes())
+    from torchsde_lti.models._turning import TurnRate
+
+    assert isinstance(left, TurnRate) and isinstance(right, TurnRate) and left.omega.item() > 0 > right.omega.item()
+    assert torch.equal(straight.F, models.constant_velocity(2).F.to(straight.F.dtype))
+    kf = _filter_of("flights_3d_axes")
+    horizontal, vertical = kf.sde.parts
+    assert horizontal.dim == 2 and vertical.dim == 1 and kf.sde.position_indices == (0, 2, 4)
+    assert horizontal.q.item() != vertical.q.item()
+    assert {n for n, _ in kf.sde.named_parameters()} == {
+        "parts.0.parametrizations.q.original",
+        "parts.1.parametrizations.q.original",
+    }

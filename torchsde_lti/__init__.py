@@ -18,13 +18,15 @@ LAYERS: tuple[tuple[str, str], ...] = (
     ("models", "the motion-model library (tl.models): factories of LTISDE subclasses"),
     ("interop", "Stone Soup transition model and filterpy helper (optional peers)"),
     ("data", "simulation, the track batch type, real trajectories (tl.data.load_tracks), the Lightning DataModules"),
+    ("evaluation", "research evaluation of frozen filters: metrics, calibration, baselines, selection"),
+    ("pretrained", "shipped trained filters with their cards, loaded by name (tl.pretrained.load)"),
     ("training", "the Lightning module, metrics, callbacks, plots and the Hydra entry point"),
     ("train", "the `python -m torchsde_lti.train` shim"),
 )
 if __doc__ is not None:  # (python -OO strips docstrings)
     __doc__ += "\n" + "\n".join(f"- :mod:`torchsde_lti.{name}` — {job}." for name, job in LAYERS) + "\n"
 
-from torchsde_lti import data, models  # noqa: E402 — after LAYERS, which the docstring reads
+from torchsde_lti import data, models, pretrained  # noqa: E402 — after LAYERS, which the docstring reads
 from torchsde_lti.core import (  # noqa: E402
     METHODS,
     Discrete,
@@ -96,6 +98,7 @@ __all__ = [
     "load_package",
     "models",
     "parametrizations",
+    "pretrained",
     "process_noise",
     "propagate",
     "rts_smoother",

@@ -4,7 +4,8 @@ One public name per model, the factory (``tl.models.singer(...)``); the classes 
 are :class:`~torchsde_lti.StructuredSDE` subclasses whose matrices are functions of a few
 named scalars (``q``, ``alpha``, ``k``, ``theta``, ``lengthscale``, ``variance``, ``m``,
 ``c`` …) that are learnable ``nn.Parameter``\ s, positive by construction
-(:class:`~torchsde_lti.nn.parametrizations.Positive`, ``softplus + floor``). Read and set them
+(:class:`~torchsde_lti.nn.parametrizations.Positive`, ``softplus + floor``), except the signed
+turn rate ``omega`` of :func:`turn_rate` (a plain parameter). Read and set them
 by name: ``model.q`` is the current positive value, ``model.q = 2.0`` stores it (in place);
 the raw tensor is ``model.parametrizations.q.original``. Scalars may carry a batch shape
 (``q`` of shape (16,) gives 16 models in one module, matrices (16, n, n)); Python floats
@@ -22,7 +23,8 @@ position components (:func:`position_observation` builds the matching H).
 
 Families: integrator chains and drag models (:func:`integrated_wiener`,
 :func:`constant_velocity`, :func:`constant_acceleration`, :func:`singer`,
-:func:`integrated_ou`, :func:`ornstein_uhlenbeck`, :func:`moored`); Gaussian processes
+:func:`integrated_ou`, :func:`ornstein_uhlenbeck`, :func:`moored`); turning targets
+(:func:`turn_rate`: the velocity rotating at a learned, signed rate ω); Gaussian processes
 (:func:`matern`); ODE systems (:func:`mass_spring_damper`, :func:`companion`,
 :func:`from_transfer_function`); composition (:func:`shaped`, :func:`block_diag`,
 :func:`position_observation`).
@@ -40,6 +42,7 @@ from torchsde_lti.models._kinematics import (
     singer,
 )
 from torchsde_lti.models._ode import companion, from_transfer_function, mass_spring_damper
+from torchsde_lti.models._turning import turn_rate
 
 __all__ = [
     "block_diag",
@@ -56,4 +59,5 @@ __all__ = [
     "position_observation",
     "shaped",
     "singer",
+    "turn_rate",
 ]

@@ -3,6 +3,8 @@ the observation of positions."""
 
 from __future__ import annotations
 
+from typing import cast
+
 import torch
 from torch import Tensor, nn
 
@@ -23,6 +25,10 @@ __all__ = ["block_diag", "position_observation", "shaped"]
 
 class ShapedSDE(StructuredSDE):
     """A system driven by coloured noise (see :func:`shaped`)."""
+
+    system: LTISDE
+    shaping: LTISDE
+    shaping_output: Tensor
 
     def __init__(
         self, system: LTISDE, shaping: LTISDE, C: Tensor | None = None, *, validate_args: bool | None = None
@@ -65,7 +71,7 @@ class ShapedSDE(StructuredSDE):
     def _build(self) -> SDEMatrices:
         ms, mf = self.system.matrices(), self.shaping.matrices()
         n_s, n_f = ms.F.shape[-1], mf.F.shape[-1]
-        C_f = self.shaping.C if self._c_from_shaping else self.shaping_output  # follows a learned shaping C
+        C_f = cast(Tensor, self.shaping.C) if self._c_from_shaping else self.shaping_output  # a learned C too
         coupling = ms.L @ C_f  # L_s C_f (..., n_s, n_f)
         batch = torch.broadcast_shapes(ms.F.shape[:-2], coupling.shape[:-2], mf.F.shape[:-2])
         top = torch.cat([ms.F.expand(*batch, n_s, n_s), coupling.expand(*batch, n_s, n_f)], dim=-1)
@@ -136,6 +142,8 @@ def shaped(system: LTISDE, shaping: LTISDE, C: Tensor | None = None, *, validate
 class BlockDiagSDE(StructuredSDE):
     """Independent SDEs side by side (see :func:`block_diag`)."""
 
+    parts: nn.ModuleList
+
     def __init__(self, *sdes: LTISDE, validate_args: bool | None = None) -> None:
         super().__init__(validate_args)
         if len(sdes) == 0:
@@ -158,7 +166,7 @@ class BlockDiagSDE(StructuredSDE):
             self.position_indices = tuple(idx)
 
     def _build(self) -> SDEMatrices:
-        mats = [s.matrices() for s in self.parts]
+        mats = [s.matrices() for s in self._parts()]
         F = block_diag_matrix([m.F for m in mats])
         L = block_diag_matrix([m.L for m in mats])
         Qc = block_diag_matrix([m.Qc for m in mats])
@@ -168,13 +176,16 @@ class BlockDiagSDE(StructuredSDE):
             B = block_diag_matrix([m.B if m.B is not None else m.F.new_zeros(*m.F.shape[:-1], 0) for m in mats])
         return SDEMatrices(F, L, Qc, B)
 
+    def _parts(self) -> list[LTISDE]:
+        return [p for p in self.parts if isinstance(p, LTISDE)]  # every part (checked at construction)
+
     def _prior_covariance(self, m: SDEMatrices, validate: bool, diffuse_variance: float | None) -> Tensor:
         """The parts' own priors, block diagonally (..., n, n): each part's ``prior_covariance``
         of its diagonal blocks of ``m`` (a shaped part: its steady-state start),
         ``diffuse_variance · I`` for a part without one (F not Hurwitz when the model was built;
         ValueError when ``diffuse_variance`` is None)."""
         blocks = []
-        parts: list[LTISDE] = list(self.parts)  # type: ignore[arg-type]
+        parts = self._parts()
         a = b = 0  # offsets of the part's state and noise blocks
         for i, (part, own, (n, s)) in enumerate(zip(parts, self._own_prior, self._block_sizes)):
             if own:

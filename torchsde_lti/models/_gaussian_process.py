@@ -20,6 +20,13 @@ _MATERN_NU = (0.5, 1.5, 2.5)
 class Matern(StructuredSDE):
     """State-space Matérn-ν Gaussian process (see :func:`matern`)."""
 
+    lengthscale: Tensor
+    variance: Tensor
+    _chain: Tensor
+    _top: Tensor
+    _binom: Tensor
+    _powers: Tensor
+
     def __init__(self, nu: float, lengthscale: Scalar, variance: Scalar, **options: Unpack[ModelOptions]) -> None:
         super().__init__(options.get("validate_args"))
         try:
@@ -36,12 +43,13 @@ class Matern(StructuredSDE):
         self._add_positive("variance", variance, dt_, dev)
         self._check_scalars(("lengthscale", "variance"))
         m = self.order
-        kw = {"dtype": dt_, "device": dev}
         chain, top = integrator_chain(m, 1, dt_, dev)  # one axis: [f, f', …], top = e_m
         self.register_buffer("_chain", chain, persistent=False)
         self.register_buffer("_top", top, persistent=False)
-        self.register_buffer("_binom", torch.tensor([float(math.comb(m, j)) for j in range(m)], **kw), persistent=False)
-        self.register_buffer("_powers", torch.arange(m, 0, -1, **kw), persistent=False)  # m−j
+        self.register_buffer(
+            "_binom", torch.tensor([float(math.comb(m, j)) for j in range(m)], dtype=dt_, device=dev), persistent=False
+        )
+        self.register_buffer("_powers", torch.arange(m, 0, -1, dtype=dt_, device=dev), persistent=False)  # m−j
         self.position_indices = (0,)
         self._qc_const = 2.0 * math.sqrt(math.pi) * math.gamma(self.nu + 0.5) / math.gamma(self.nu)
 
@@ -71,8 +79,8 @@ class Matern(StructuredSDE):
         """Closed-form Matérn covariance ``k(τ)``; ``tau`` broadcasts against the batch."""
         lam, var = self.rate, self.variance
         r = lam * tau.abs()
-        poly = {0.5: 1.0, 1.5: 1.0 + r, 2.5: 1.0 + r + r**2 / 3.0}[self.nu]
-        return var * poly * torch.exp(-r)
+        poly: dict[float, Tensor | float] = {0.5: 1.0, 1.5: 1.0 + r, 2.5: 1.0 + r + r**2 / 3.0}
+        return var * poly[self.nu] * torch.exp(-r)
 
     def extra_repr(self) -> str:
         return f"nu={self.nu}, " + self._scalar_repr(["lengthscale", "variance"])

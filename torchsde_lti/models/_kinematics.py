@@ -25,6 +25,10 @@ __all__ = [
 class ChainSDE(StructuredSDE):
     """Shared layout: ``dim`` axes of ``order`` derivatives each, noise on the highest one."""
 
+    q: Tensor
+    _chain: Tensor
+    _top: Tensor
+
     def _init_chain(self, order: int, dim: int, dtype: torch.dtype, device: torch.device | None) -> None:
         self.order = order
         self.dim = dim
@@ -213,12 +217,13 @@ class Moored(DragSDE):
     """A vessel at rest (see :func:`moored`): the drag chain with the noise on the positions."""
 
     _order, _rate_name = 2, "k"
+    _pos: Tensor
 
     def __init__(self, k: Scalar, q: Scalar, dim: int = 2, **options: Unpack[ModelOptions]) -> None:
         super().__init__(k, q, dim, **options)
         pos = torch.zeros_like(self._top)
-        for axis, idx in enumerate(self.position_indices):
-            pos[idx, axis] = 1.0
+        for axis in range(dim):
+            pos[axis * self._order, axis] = 1.0  # the axis's position (its first state)
         self.register_buffer("_pos", pos, persistent=False)
 
     def _noise_gain(self) -> Tensor:
@@ -249,6 +254,9 @@ def moored(k: Scalar = 0.1, q: Scalar = 1e-3, dim: int = 2, **options: Unpack[Mo
 
 class OrnsteinUhlenbeck(StructuredSDE):
     """Mean-reverting position per axis (see :func:`ornstein_uhlenbeck`)."""
+
+    theta: Tensor
+    q: Tensor
 
     def __init__(self, theta: Scalar, q: Scalar, dim: int = 1, **options: Unpack[ModelOptions]) -> None:
         super().__init__(options.get("validate_args"))

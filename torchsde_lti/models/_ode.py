@@ -39,6 +39,11 @@ class OutputEquation:
 class MassSpringDamper(OutputEquation, StructuredSDE):
     """Mass–spring–damper with force input (see :func:`mass_spring_damper`)."""
 
+    m: Tensor
+    k: Tensor
+    c: Tensor
+    q: Tensor
+
     def __init__(self, m: Scalar, k: Scalar, c: Scalar, q: Scalar = 1.0, **options: Unpack[ModelOptions]) -> None:
         super().__init__(options.get("validate_args"))
         dt_, dev = scalar_dtype_device([m, k, c, q], options)
@@ -90,6 +95,11 @@ def mass_spring_damper(
 class Companion(OutputEquation, StructuredSDE):
     """Order-n ODE in companion form (see :func:`companion`)."""
 
+    a: Tensor
+    q: Tensor
+    _chain: Tensor
+    _e_n: Tensor
+
     def __init__(self, a: Sequence[float] | Tensor, q: Scalar = 1.0, **options: Unpack[ModelOptions]) -> None:
         super().__init__(options.get("validate_args"))
         dt_, dev = scalar_dtype_device([a, q], options)
@@ -106,11 +116,10 @@ class Companion(OutputEquation, StructuredSDE):
         broadcast_batch([("a", coeffs.shape[:-1]), ("q", self.q.shape)])
         n = coeffs.shape[-1] - 1
         self.order = n
-        kw = {"dtype": dt_, "device": dev}
         chain, e_n = integrator_chain(n, 1, dt_, dev)  # one axis: [y, y', …], e_n (n, 1)
         self.register_buffer("_chain", chain, persistent=False)
         self.register_buffer("_e_n", e_n[:, 0], persistent=False)
-        out = torch.zeros(1, n, **kw)
+        out = torch.zeros(1, n, dtype=dt_, device=dev)
         out[0, 0] = 1.0
         self.register_buffer("output_matrix", out, persistent=False)
         self.position_indices = (0,)
@@ -205,10 +214,12 @@ class TransferFunction(Companion):
             )
         n1 = a.shape[-1]
         b = nn.functional.pad(b, (n1 - b.shape[-1], 0))  # same length as den
-        super().__init__(torch.flip(a, (-1,)), q, **{**options, "dtype": dt_, "device": dev})
+        super().__init__(torch.flip(a, (-1,)), q, dtype=dt_, device=dev, validate_args=options.get("validate_args"))
         broadcast_batch([("num", b.shape[:-1]), ("den", a.shape[:-1])])
         self.register_buffer("numerator", torch.flip(b, (-1,)), persistent=False)  # ascending b_0..b_n
         self.position_indices = None  # the output is C x + D u, not a state component: use model.C as H
+
+    numerator: Tensor
 
     def _output(self) -> tuple[Tensor, Tensor]:
         a, b = self.a, self.numerator
