@@ -25,10 +25,11 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from torch import Tensor, nn
+from torch.nn.utils import parametrize
 
 from torchsde_lti.core.discretization import check_matrix_exp_noise
 from torchsde_lti.core.linalg import matvec
-from torchsde_lti.core.validation import as_float_tensor, broadcast_batch
+from torchsde_lti.core.validation import as_float_tensor, broadcast_batch, check_matrix
 from torchsde_lti.filters.online import KalmanState, KalmanStep, kalman_predict, kalman_step
 from torchsde_lti.nn._online import (
     Series,
@@ -39,7 +40,9 @@ from torchsde_lti.nn._online import (
     online_state,
     tracks_shape,
 )
+from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_outcome, online_report
+from torchsde_lti.nn.parametrizations import PositiveDefinite
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
 
 __all__ = ["KalmanOnline", "OnlineModel", "model_batches", "state_batches"]
@@ -62,8 +65,9 @@ class OnlineModel(NamedTuple):
 
 
 class KalmanOnline(ValidateArgs, nn.Module):
-    """Base of :class:`~torchsde_lti.KalmanFilter` with its online calls :meth:`initial_state`,
-    :meth:`step` and :meth:`predict` (module docstring); the filter provides the rest."""
+    """Base of :class:`~torchsde_lti.KalmanFilter` with its prior and its online calls
+    :meth:`initial_state`, :meth:`step` and :meth:`predict` (module docstring); the filter
+    provides the rest."""
 
     if TYPE_CHECKING:  # what the online calls read of their KalmanFilter
         sde: LTISDE
@@ -77,7 +81,10 @@ class KalmanOnline(ValidateArgs, nn.Module):
         @property
         def discretization_method(self) -> str: ...
 
-        def _prior(self, mats: SDEMatrices, validate_args: bool) -> tuple[Tensor, Tensor]: ...
+        m0: Tensor
+        P0: Tensor | None
+        prior_mode: str
+        diffuse_variance: float
 
         def _check_u(
             self, u: Tensor, p: int, T: int, axis: str, dtype: torch.dtype, device: torch.device
@@ -86,6 +93,64 @@ class KalmanOnline(ValidateArgs, nn.Module):
         def _check_values(
             self, mats: SDEMatrices, dt: Tensor, psd: tuple[tuple[str, Tensor], ...] = (), **named: Tensor | None
         ) -> None: ...
+
+    def _init_prior(
+        self, P0: Tensor | str | None, learned: bool, n: int, dtype: torch.dtype, device: torch.device
+    ) -> None:
+        """:attr:`prior_mode` and the P0 parameter/buffer (None unless the mode is "given")."""
+        diffuse = self.diffuse_variance * torch.eye(n, dtype=dtype, device=device)
+        if isinstance(P0, str):
+            if P0 != "diffuse":
+                raise ValueError(f"P0 must be a tensor, None (the model's prior_covariance()) or 'diffuse', got {P0!r}")
+            self.prior_mode, P0_t = "diffuse", diffuse
+        elif P0 is not None:
+            P0_t = as_float_tensor(P0, "P0", dtype, device).detach().clone()
+            check_matrix(P0_t, "P0", rows=n, cols=n)
+            self.prior_mode = "given"
+        else:
+            try:
+                with torch.no_grad():
+                    P0_t = self.sde.prior_covariance(validate_args=True, diffuse_variance=self.diffuse_variance)
+                    P0_t = P0_t.detach().clone()
+                self.prior_mode = "model"
+            except ValueError:
+                self.prior_mode, P0_t = "diffuse", diffuse
+        if learned:
+            if bool((torch.linalg.cholesky_ex(P0_t).info != 0).any()):
+                raise ValueError(
+                    f"learn contains 'P0', but the {self.prior_mode} prior covariance is singular (e.g. a shaped "
+                    "model's steady-state start: every entry involving a system state is 0) and a learnable P0 is "
+                    "parametrised positive definite; pass an initial P0 tensor"
+                )
+            self.prior_mode = "given"  # learnable, initialised at that prior's value
+        if self.prior_mode == "given":
+            register_tensor(self, "P0", P0_t, learned)
+            parametrize.register_parametrization(
+                self, "P0", PositiveDefinite(name="P0", size=n).to(dtype=dtype, device=device)
+            )
+        else:
+            self.register_buffer("P0", None)
+
+    def _prior(self, mats: SDEMatrices, validate_args: bool, P0: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """(m0, P0) from already evaluated (and checked) SDE matrices; ``P0``: the given prior's
+        value when the caller has read it already (each parametrisation is read once a call)."""
+        if self.prior_mode == "given":
+            P0 = self.P0 if P0 is None else P0
+        elif self.prior_mode == "model":
+            try:
+                P0 = self.sde.prior_covariance(
+                    mats, validate_args=validate_args, diffuse_variance=self.diffuse_variance
+                )
+            except ValueError as err:
+                raise ValueError(
+                    "the default prior P0 is the model's prior_covariance(), but its F is no longer Hurwitz; "
+                    "pass P0 explicitly or constrain F (F_constraint='hurwitz')"
+                ) from err
+        else:
+            F = mats.F
+            P0 = self.diffuse_variance * torch.eye(F.shape[-1], dtype=F.dtype, device=F.device)
+        assert P0 is not None
+        return self.m0, P0
 
     def initial_state(self, batch_shape: torch.Size | tuple[int, ...] | int = ()) -> KalmanState:
         """The prior N(m0, P0) at t₀ for ``batch_shape`` new tracks, for :meth:`step`.

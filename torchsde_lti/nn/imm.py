@@ -46,7 +46,7 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from torchsde_lti.core.discretization import Discrete, check_matrix_exp_noise, discretization_series
-from torchsde_lti.core.linalg import noise_covariance, sym
+from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.validation import (
     as_float_tensor,
     broadcast_batch,
@@ -65,7 +65,8 @@ from torchsde_lti.filters.imm import (
 from torchsde_lti.filters.imm_online import IMMState, IMMStep, imm_predict_state, imm_step
 from torchsde_lti.filters.kalman import check_algorithm
 from torchsde_lti.filters.results import serializable
-from torchsde_lti.nn._online import Series, check_batches, discretize_steps, evaluated, model_series, tracks_shape
+from torchsde_lti.nn._imm_model import IMMModel, bank_of, check_model_values, imm_state, state_batches
+from torchsde_lti.nn._online import check_batches, discretize_steps, evaluated, model_series, tracks_shape
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_outcome, check_values, online_report
 from torchsde_lti.nn.kalman import FilterMode
@@ -75,7 +76,7 @@ from torchsde_lti.nn.parametrizations import (
     PositiveDefinite,
     generator_from_rates,
 )
-from torchsde_lti.nn.sde import LTISDE, SDEMatrices
+from torchsde_lti.nn.sde import LTISDE
 
 __all__ = ["IMMFilter", "IMMForecast"]
 
@@ -104,21 +105,6 @@ class IMMForecast(NamedTuple):
     obs_cov: Tensor
     mode_obs_mean: Tensor
     mode_obs_cov: Tensor
-
-
-class IMMModel(NamedTuple):
-    """The evaluated model of an :class:`IMMFilter` call (:meth:`IMMFilter.imm_model`), each
-    parametrisation read once: modes: each mode's SDE matrices; series: each mode's
-    discretisation series (:func:`~torchsde_lti.nn._online.model_series`); H (M or 1, m, n),
-    R (M or 1, m, m); rates (M, M) the generator Λ; chain: the mode chain's series
-    (``expm(Λ dt)``, float64)."""
-
-    modes: tuple[SDEMatrices, ...]
-    series: tuple[Series | None, ...]
-    H: Tensor
-    R: Tensor
-    rates: Tensor
-    chain: Series
 
 
 class IMMFilter(ValidateArgs, nn.Module):
@@ -284,7 +270,7 @@ class IMMFilter(ValidateArgs, nn.Module):
 
     def bank(self) -> tuple[Tensor, Tensor]:
         """Stacked mode matrices: F (M, n, n) and noise intensity ``L Qc Lᵀ`` (M, n, n)."""
-        return _bank(self.imm_model().modes)
+        return bank_of(self.imm_model().modes)
 
     def imm_model(self) -> IMMModel:
         """:class:`IMMModel`: what a call reads of the filter, each parametrisation evaluated
@@ -307,10 +293,10 @@ class IMMFilter(ValidateArgs, nn.Module):
         dt = as_float_tensor(dt, "dt", model.rates.dtype, model.rates.device)
         if self._validates(validate_args):
             check_values(nonnegative=[("dt", dt)])
-        d, Pi = self._discretize_bank(model, dt.unsqueeze(-1))
+        d, Pi = self._discretizebank_of(model, dt.unsqueeze(-1))
         return Discrete(d.A.select(-4, 0), d.Q.select(-4, 0), None), Pi.select(-3, 0)
 
-    def _discretize_bank(self, model: IMMModel, dt: Tensor) -> tuple[Discrete, Tensor]:
+    def _discretizebank_of(self, model: IMMModel, dt: Tensor) -> tuple[Discrete, Tensor]:
         """Every mode over every step dt (..., T): A, Q (..., T, M, n, n), each mode as a
         :class:`~torchsde_lti.KalmanFilter` of it discretises
         (:func:`~torchsde_lti.nn._online.discretize_steps`), and the chain's transitions
@@ -362,15 +348,15 @@ class IMMFilter(ValidateArgs, nn.Module):
         m0, P0, p0 = self.m0, self.P0, self.mode_prob0
         validate = self.validate_args
         if validate:
-            _check_model_values(model, dt, y=y, finite=[("m0", m0), ("P0", P0), ("mode_prob0", p0)])
-        d, Pi = self._discretize_bank(model, dt)
+            check_model_values(model, dt, y=y, finite=[("m0", m0), ("P0", P0), ("mode_prob0", p0)])
+        d, Pi = self._discretizebank_of(model, dt)
         out = imm_filter(
             y, d.A, d.Q, model.H, model.R, Pi, m0, P0, p0.expand(self.num_modes), mask=mask, validate_args=False
         )
         if validate:  # (the state it ends in: a NaN or Inf there persists into every later step)
             final = (out.log_likelihood, out.mode_probabilities[..., -1, :], out.mode_mean[..., -1, :, :])
             update = (model.H, out.observed.unsqueeze(-2), out.mode_cov)
-            check_outcome(final, (out.mode_cov,), d, y, dt, _bank(model.modes)[0], model.R, update)
+            check_outcome(final, (out.mode_cov,), d, y, dt, bank_of(model.modes)[0], model.R, update)
         return out
 
     # ------------------------------------------------------------------ online
@@ -414,11 +400,11 @@ class IMMFilter(ValidateArgs, nn.Module):
         model, state, dt = self._online_args(state, dt)
         H, R = model.H, model.R
         y, mask = online_report(y, mask, H, H.dtype, H.device)
-        check_batches([*_state_batches(state), ("y", y.shape[:-1]), ("dt", dt.shape)])
+        check_batches([*state_batches(state), ("y", y.shape[:-1]), ("dt", dt.shape)])
         validate = self.validate_args
         if validate:
-            _check_model_values(model, dt, state, y=y)
-        d, Pi = self._discretize_bank(model, dt.unsqueeze(-1))
+            check_model_values(model, dt, state, y=y)
+        d, Pi = self._discretizebank_of(model, dt.unsqueeze(-1))
         A, Q, Pi = d.A.select(-4, 0), d.Q.select(-4, 0), Pi.select(-3, 0)
         new, out = imm_step(state, y, A, Q, Pi, H, R, mask)
         if validate:
@@ -426,17 +412,17 @@ class IMMFilter(ValidateArgs, nn.Module):
                 (out.log_likelihood, new.mode_prob, new.mode_mean),
                 (H, out.observed.unsqueeze(-2), new.mode_cov),
             )
-            check_outcome(final, (new.mode_cov,), (A, Q), y, dt, _bank(model.modes)[0], R, update)
+            check_outcome(final, (new.mode_cov,), (A, Q), y, dt, bank_of(model.modes)[0], R, update)
         return new, out
 
     def predict(self, state: IMMState, dt: Tensor | float) -> IMMState:
         """Prediction only, each track over its own dt (...): mixing with ``expm(Λ dt)``, then
         each mode's exact A_j, Q_j (the predicted :class:`~torchsde_lti.IMMState`)."""
         model, state, dt = self._online_args(state, dt)
-        check_batches([*_state_batches(state), ("dt", dt.shape)])
+        check_batches([*state_batches(state), ("dt", dt.shape)])
         if self.validate_args:
-            _check_model_values(model, dt, state)
-        d, Pi = self._discretize_bank(model, dt.unsqueeze(-1))
+            check_model_values(model, dt, state)
+        d, Pi = self._discretizebank_of(model, dt.unsqueeze(-1))
         return imm_predict_state(state, d.A.select(-4, 0), d.Q.select(-4, 0), Pi.select(-3, 0))
 
     def _online_args(self, state: IMMState, dt: Tensor | float) -> tuple[IMMModel, IMMState, Tensor]:
@@ -446,7 +432,7 @@ class IMMFilter(ValidateArgs, nn.Module):
         model = evaluated(self, self.imm_model)
         F = model.modes[0].F
         M, n = self.num_modes, F.shape[-1]
-        return model, _imm_state(state, M, n, F.dtype, F.device), as_float_tensor(dt, "dt", F.dtype, F.device)
+        return model, imm_state(state, M, n, F.dtype, F.device), as_float_tensor(dt, "dt", F.dtype, F.device)
 
     def forecast(
         self,
@@ -471,15 +457,15 @@ class IMMFilter(ValidateArgs, nn.Module):
             )
         model = self.imm_model()
         F = model.modes[0].F
-        prob, mean, cov = _imm_state(state, self.num_modes, F.shape[-1], F.dtype, F.device)
+        prob, mean, cov = imm_state(state, self.num_modes, F.shape[-1], F.dtype, F.device)
         dt = as_float_tensor(dt, "dt", F.dtype, F.device)
         if dt.dim() == 0:
             dt = dt.reshape(1)
-        check_batches([*_state_batches(IMMState(prob, mean, cov)), ("dt", dt.shape[:-1])])
+        check_batches([*state_batches(IMMState(prob, mean, cov)), ("dt", dt.shape[:-1])])
         H, R = model.H, model.R
         if self.validate_args:
-            _check_model_values(model, dt, IMMState(prob, mean, cov))
-        d, Pi = self._discretize_bank(model, dt)  # (..., K, M, n, n), (..., K, M, M)
+            check_model_values(model, dt, IMMState(prob, mean, cov))
+        d, Pi = self._discretizebank_of(model, dt)  # (..., K, M, n, n), (..., K, M, M)
         p: IMMPrediction = imm_predict(prob, mean, cov, d.A, d.Q, Pi)
         ym = (H @ p.mode_mean.unsqueeze(-1)).squeeze(-1)  # (..., K, M, m)
         S = H @ p.mode_cov @ H.mT + R
@@ -489,52 +475,3 @@ class IMMFilter(ValidateArgs, nn.Module):
 
     def extra_repr(self) -> str:
         return f"modes={list(self.mode_names)}, obs_dim={self.obs_dim}, unique_dt={self.unique_dt}"
-
-
-#: The names of an IMM state's fields in error messages.
-_STATE_NAMES = ("state.mode_prob", "state.mode_mean", "state.mode_cov")
-
-
-def _imm_state(state: object, M: int, n: int, dtype: torch.dtype, device: torch.device) -> IMMState:
-    """An online call's state as an :class:`~torchsde_lti.IMMState` of the filter's dtype and
-    device, shapes checked against M modes and n states; TypeError or ValueError naming it."""
-    if not isinstance(state, tuple) or len(state) != 3:
-        raise TypeError(f"state must be an IMMState (mode_prob, mode_mean, mode_cov), got {type(state).__name__}")
-    prob, mean, cov = (as_float_tensor(t, name, dtype, device) for name, t in zip(_STATE_NAMES, state))
-    if prob.dim() < 1 or prob.shape[-1] != M or mean.shape[-2:] != (M, n) or cov.shape[-3:] != (M, n, n):
-        raise ValueError(
-            f"state must be (mode_prob (..., {M}), mode_mean (..., {M}, {n}), mode_cov "
-            f"(..., {M}, {n}, {n})), got {shape_str(prob)}, {shape_str(mean)}, {shape_str(cov)}"
-        )
-    return IMMState(prob, mean, cov)
-
-
-def _bank(modes: Sequence[SDEMatrices]) -> tuple[Tensor, Tensor]:
-    """Stacked F (M, n, n) and noise intensities ``L Qc Lᵀ`` (M, n, n) of the modes' matrices."""
-    return torch.stack([m.F for m in modes]), torch.stack([noise_covariance(m.L, m.Qc) for m in modes])
-
-
-def _check_model_values(
-    model: IMMModel,
-    dt: Tensor,
-    state: IMMState | None = None,
-    y: Tensor | None = None,
-    finite: Sequence[tuple[str, Tensor]] = (),
-) -> None:
-    """The value checks of a call (one synchronisation): every mode's matrices, H, R, the
-    rates and ``finite`` finite; dt ≥ 0; y without ±Inf; the state's mode probabilities
-    probability vectors, its means finite and covariances symmetric PSD."""
-    F, W = _bank(model.modes)
-    check_values(
-        finite=[("F", F), ("W", W), ("H", model.H), ("R", model.R), ("rates", model.rates), *finite,
-                *([] if state is None else [("state.mode_mean", state.mode_mean)])],
-        nonnegative=[("dt", dt)],
-        no_inf=[("y", y)],
-        psd=[] if state is None else [("state.mode_cov", state.mode_cov)],
-        probabilities=[] if state is None else [("state.mode_prob", state.mode_prob)],
-    )  # fmt: skip
-
-
-def _state_batches(state: IMMState) -> list[tuple[str, tuple[int, ...]]]:
-    """The named batch shapes of an IMM state's fields."""
-    return [(name, tuple(t.shape[: t.dim() - k])) for name, t, k in zip(_STATE_NAMES, state, (1, 2, 3))]

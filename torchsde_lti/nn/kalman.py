@@ -227,43 +227,6 @@ class KalmanFilter(KalmanOnline):
         register_tensor(self, "m0", m0_t.detach().clone(), "m0" in names)
         self._init_prior(P0, "P0" in names, n, dtype, device)
 
-    def _init_prior(
-        self, P0: Tensor | str | None, learned: bool, n: int, dtype: torch.dtype, device: torch.device
-    ) -> None:
-        """:attr:`prior_mode` and the P0 parameter/buffer (None unless the mode is "given")."""
-        diffuse = self.diffuse_variance * torch.eye(n, dtype=dtype, device=device)
-        if isinstance(P0, str):
-            if P0 != "diffuse":
-                raise ValueError(f"P0 must be a tensor, None (the model's prior_covariance()) or 'diffuse', got {P0!r}")
-            self.prior_mode, P0_t = "diffuse", diffuse
-        elif P0 is not None:
-            P0_t = as_float_tensor(P0, "P0", dtype, device).detach().clone()
-            check_matrix(P0_t, "P0", rows=n, cols=n)
-            self.prior_mode = "given"
-        else:
-            try:
-                with torch.no_grad():
-                    P0_t = self.sde.prior_covariance(validate_args=True, diffuse_variance=self.diffuse_variance)
-                    P0_t = P0_t.detach().clone()
-                self.prior_mode = "model"
-            except ValueError:
-                self.prior_mode, P0_t = "diffuse", diffuse
-        if learned:
-            if bool((torch.linalg.cholesky_ex(P0_t).info != 0).any()):
-                raise ValueError(
-                    f"learn contains 'P0', but the {self.prior_mode} prior covariance is singular (e.g. a shaped "
-                    "model's steady-state start: every entry involving a system state is 0) and a learnable P0 is "
-                    "parametrised positive definite; pass an initial P0 tensor"
-                )
-            self.prior_mode = "given"  # learnable, initialised at that prior's value
-        if self.prior_mode == "given":
-            register_tensor(self, "P0", P0_t, learned)
-            parametrize.register_parametrization(
-                self, "P0", PositiveDefinite(name="P0", size=n).to(dtype=dtype, device=device)
-            )
-        else:
-            self.register_buffer("P0", None)
-
     # ------------------------------------------------------------------ helpers
     @property
     def algorithm(self) -> str:
@@ -285,26 +248,6 @@ class KalmanFilter(KalmanOnline):
     def modes(self) -> list[FilterMode]:
         """The filter's one motion model and observation: ``[FilterMode("", sde, H, R)]``."""
         return [FilterMode("", self.sde, self.H, self.R)]
-
-    def _prior(self, mats: SDEMatrices, validate_args: bool, P0: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """(m0, P0) from already evaluated (and checked) SDE matrices; ``P0``: the given prior's
-        value when the caller has read it already (each parametrisation is read once a call)."""
-        if self.prior_mode == "given":
-            P0 = self.P0 if P0 is None else P0
-        elif self.prior_mode == "model":
-            try:
-                P0 = self.sde.prior_covariance(
-                    mats, validate_args=validate_args, diffuse_variance=self.diffuse_variance
-                )
-            except ValueError as err:
-                raise ValueError(
-                    "the default prior P0 is the model's prior_covariance(), but its F is no longer Hurwitz; "
-                    "pass P0 explicitly or constrain F (F_constraint='hurwitz')"
-                ) from err
-        else:
-            F = mats.F
-            P0 = self.diffuse_variance * torch.eye(F.shape[-1], dtype=F.dtype, device=F.device)
-        return self.m0, P0
 
     def _check_inputs(
         self, y: Tensor, dt: Tensor, u: Tensor | None, mats: SDEMatrices
