@@ -18,6 +18,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import torchsde_lti as tl
+from tests.nn.test_online import _imm
 
 F64 = torch.float64
 H2 = [[1.0, 0, 0, 0], [0, 0, 1.0, 0]]
@@ -48,19 +49,6 @@ def _kalman(dtype: torch.dtype, model: str) -> tl.KalmanFilter:
     # values to rounding where the problem is well conditioned)
     return tl.KalmanFilter(
         sde, torch.tensor(H2, dtype=dtype), R, P0=20 * torch.eye(4, dtype=dtype), algorithm="sequential"
-    )
-
-
-def _imm(dtype: torch.dtype) -> tl.IMMFilter:
-    cv = tl.models.constant_velocity(dim=2, q=0.5, dtype=dtype)
-    iou = tl.models.integrated_ou(1.5, 0.05, dim=2, dtype=dtype)
-    return tl.IMMFilter(
-        [cv, iou],
-        torch.tensor(H2, dtype=dtype),
-        0.4 * torch.eye(2, dtype=dtype),
-        torch.tensor([[0.0, 0.2], [0.4, 0.0]], dtype=dtype),
-        P0=30 * torch.eye(4, dtype=dtype),
-        mode_prob0=torch.tensor([0.3, 0.7], dtype=dtype),
     )
 
 
