@@ -125,25 +125,28 @@ def discretize_steps(
 
     With ``method="doubling"`` and one parameter set (``series``, :func:`model_series`, not
     None) the series over dt, as batch-first views (..., T, r, c) of batch-last storage
-    (r, c, ..., T) with ``batch_last`` (the sequence loop's layout: its per-step moves are row
+    (r, c, T, ...) with ``batch_last`` (the sequence loop's layout: its per-step moves are row
     copies), else plain batch-first; otherwise core's
     :func:`~torchsde_lti.core.discretize` of the matrices with a length-1 time axis (a
     parameter batch (..., 1, n, n) lines up with dt (..., T)), no value checks (the caller
     checked). ``unique``: discretise the distinct values of dt only and gather them (one
     parameter set and a dt that does not require grad; same values)."""
     if method == "doubling" and series is not None:
+        # storage (r, c, T, ...): each step's matrices of all tracks contiguous (the loop's moves
+        # to (r, c, tracks) are then row copies)
+        dt_tm = dt.movedim(-1, 0) if dt.dim() else dt
         inverse = None
         if unique and not dt.requires_grad and dt.numel() > 0:
-            values, inverse = torch.unique(dt, return_inverse=True)
+            values, inverse = torch.unique(dt_tm, return_inverse=True)
             out = series(values, batch_last=True)
         else:
-            out = series(dt, batch_last=True)
+            out = series(dt_tm, batch_last=True)
         picked: list[Tensor | None] = []
         for x in out:
-            if x is not None and inverse is not None:  # (r, c, U) -> (r, c, *dt.shape)
-                x = x.index_select(-1, inverse.reshape(-1)).reshape(*x.shape[:2], *dt.shape)
-            if x is not None:
-                x = x.movedim((0, 1), (-2, -1))
+            if x is not None and inverse is not None:  # (r, c, U) -> (r, c, T, ...)
+                x = x.index_select(-1, inverse.reshape(-1)).reshape(*x.shape[:2], *dt_tm.shape)
+            if x is not None:  # (r, c, T, ...) -> (..., T, r, c)
+                x = x.permute(*range(3, x.dim()), 2, 0, 1) if dt.dim() else x.movedim((0, 1), (-2, -1))
                 x = x if batch_last else x.contiguous()
             picked.append(x)
         A, Q, G = picked
