@@ -318,34 +318,38 @@ def test_subnormal_mode_probability_through_zero_dt_padding_has_finite_gradients
         assert p.grad is not None and bool(torch.isfinite(p.grad).all()), name
 
 
-def test_module_over_many_gaps_discretises_each_mode_once_with_the_same_values(monkeypatch) -> None:
-    """IMMFilter over at least SHARED_MIN_ELEMENTS gaps: each mode's (and the chain's) series
-    once, not the bank broadcast to every (gap, mode) element (10–14× faster at 2–4 modes and
-    2·10⁵ gaps); values and gradients equal the per-element route."""
+def test_module_discretises_each_mode_once_as_its_kalman_filter_does(monkeypatch) -> None:
+    """IMMFilter: each mode's series and the chain's formed once a call (not the bank broadcast
+    to every (gap, mode) element), the same route for every batch size; each mode's A, Q equal
+    a KalmanFilter's of that mode (the shared plumbing) and core's per-element discretize, and
+    Pi equals torch.matrix_exp(Λ dt)."""
+    import torchsde_lti.nn._online as nn_online
     import torchsde_lti.nn.imm as nn_imm
 
     f64 = torch.float64
     cv = tl.models.constant_velocity(dim=2, q=0.3, dtype=f64)
     iou = tl.models.integrated_ou(0.5, 1.0, dim=2, dtype=f64)
-    imm = tl.IMMFilter(
-        [cv, iou], tl.models.position_observation(cv), torch.eye(2, dtype=f64), torch.ones(2, 2, dtype=f64)
-    )
+    H = tl.models.position_observation(cv)
+    imm = tl.IMMFilter([cv, iou], H, torch.eye(2, dtype=f64), torch.ones(2, 2, dtype=f64))
     g = torch.Generator().manual_seed(0)
     y = torch.randn(5, 12, 2, generator=g, dtype=f64).cumsum(1)
     dt = torch.rand(5, 12, generator=g, dtype=f64) * 3.0
-
-    def run() -> tuple[torch.Tensor, ...]:
-        out = imm(y, dt)
-        grads = torch.autograd.grad(out.log_likelihood.sum(), [p for p in imm.parameters() if p.requires_grad])
-        return (out.log_likelihood, out.mean, out.cov, out.mode_probabilities, *grads)
-
     calls = []
-    series = nn_imm.discretization_series
-    monkeypatch.setattr(nn_imm, "discretization_series", lambda *a, **k: calls.append(1) or series(*a, **k))
-    fast = run()
+    for module in (nn_online, nn_imm):
+        series = module.discretization_series
+        monkeypatch.setattr(module, "discretization_series", lambda *a, _s=series, **k: calls.append(1) or _s(*a, **k))
+    imm(y, dt)
     assert len(calls) == 3  # two modes and the chain
-    monkeypatch.setattr(nn_imm, "SHARED_MIN_ELEMENTS", 10**9)
-    per_element = run()
-    assert len(calls) == 3
-    for a, b in zip(fast, per_element):
-        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+    with torch.no_grad():
+        d, Pi = imm.discretize(dt)
+        for j, sde in enumerate((cv, iou)):
+            kf = tl.KalmanFilter(sde, H, torch.eye(2, dtype=f64))
+            d_kf = kf._discretize(dt, series_layout=False)
+            torch.testing.assert_close(d.A[..., j, :, :], d_kf.A, rtol=0, atol=0)
+            torch.testing.assert_close(d.Q[..., j, :, :], d_kf.Q, rtol=0, atol=0)
+            m = sde.matrices()
+            ref = tl.discretize(m.F, m.L, m.Qc, dt, method="matrix_exp")
+            torch.testing.assert_close(d.A[..., j, :, :], ref.A, rtol=1e-10, atol=1e-12)
+            torch.testing.assert_close(d.Q[..., j, :, :], ref.Q, rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(Pi, torch.matrix_exp(imm.rates * dt[..., None, None]), rtol=1e-10, atol=1e-12)
+

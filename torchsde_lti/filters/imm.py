@@ -8,7 +8,7 @@ generator Λ: ``Pi_k = expm(Λ dt_k)``). One IMM cycle, for k = 0 … T−1:
 1. mixing:      c_j = Σ_i Pi_ij μ_i,   w_ij = Pi_ij μ_i / c_j,
                 m̄_j = Σ_i w_ij m_i,    P̄_j = Σ_i w_ij (P_i + (m_i − m̄_j)(m_i − m̄_j)ᵀ);
 2. predict:     m⁻_j = A_j m̄_j,       P⁻_j = A_j P̄_j A_jᵀ + Q_j          (mode j's matrices);
-3. update:      ŷ_j = H_j m⁻_j, S_j = H_j P⁻_j H_jᵀ + R_j, Kalman update (Joseph form),
+3. update:      ŷ_j = H_j m⁻_j, S_j = H_j P⁻_j H_jᵀ + R_j, the Kalman update,
                 ℓ_j = log N(y_k; ŷ_j, S_j) over the observed components of y_k;
 4. modes:       log p(y_k | y_<k) = log Σ_j c_j exp(ℓ_j)  (log-sum-exp),  μ_j ∝ c_j exp(ℓ_j);
 5. output:      x = Σ_j μ_j m_j,  P = Σ_j μ_j (P_j + (m_j − x)(m_j − x)ᵀ)  (moment matching).
@@ -25,11 +25,15 @@ lead and broadcast right-aligned)::
 
 so a mode-dependent, time-constant H is (M, m, n), one H for every mode is (m, n), and a
 per-step H without mode dependence is (T, 1, m, n). Missing data (NaN in y or mask False)
-are handled as in :mod:`torchsde_lti.filtering`: unobserved components get a zero row in H
-and a decoupled unit variance in R, so a fully missing step is a pure prediction (ℓ_j = 0,
-μ = c) and contributes 0 to the log-likelihood; no NaN reaches any arithmetic or gradient.
+are handled as in the Kalman filter: unobserved components get a zero row in H and a
+decoupled unit variance in R, so a fully missing step is a pure prediction (ℓ_j = 0, μ = c)
+and contributes 0 to the log-likelihood; no NaN reaches any arithmetic or gradient.
 
-No matrix is inverted: S_j is factored by Cholesky (unrolled for m ≤ 4) and solved.
+Steps 2–3 of every mode are the Kalman filter's own step
+(:func:`~torchsde_lti.filters.online.kalman_step`, the sequence loop's whitened scalar Joseph
+updates, the modes a batch dimension): no matrix is inverted, and each mode is filtered with
+the arithmetic of a Kalman filter of that mode (in float32 too, where a joint Joseph update
+over a long gap lost the measurement's variance).
 """
 
 from __future__ import annotations
@@ -40,8 +44,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, solve_lower, sym
-from torchsde_lti.core.threads import with_threads
+from torchsde_lti.core.linalg import matvec, sym
 from torchsde_lti.core.validation import (
     as_float_tensors,
     broadcast_batch,
@@ -53,11 +56,10 @@ from torchsde_lti.core.validation import (
     shape_str,
 )
 from torchsde_lti.filters.inputs import check_mask
+from torchsde_lti.filters.online import KalmanState, kalman_step
 from torchsde_lti.filters.results import serializable
 
 __all__ = ["IMMCycle", "IMMPrediction", "IMMResult", "imm_cycle", "imm_filter", "imm_predict"]
-
-_LOG_2PI = math.log(2.0 * math.pi)
 
 
 @serializable
@@ -154,7 +156,7 @@ class IMMCycle(NamedTuple):
     mode_pred_mean: (..., M, n) m⁻_j; mode_pred_cov: (..., M, n, n) P⁻_j.
     mode_innovation: (..., M, m) y − H_j m⁻_j (0 where unobserved);
     mode_innovation_cov: (..., M, m, m) S_j. log_likelihood: (...) the step's
-    ``log Σ_j c_j N(y; ŷ_j, S_j)`` (0 for a fully missing report).
+    ``log Σ_j c_j N(y; ŷ_j, S_j)`` (0 for a fully missing report). observed: (..., m) bool.
     """
 
     mode_prob: Tensor
@@ -166,49 +168,36 @@ class IMMCycle(NamedTuple):
     mode_innovation: Tensor
     mode_innovation_cov: Tensor
     log_likelihood: Tensor
+    observed: Tensor
 
 
 def imm_cycle(
-    prob: Tensor,
-    mean: Tensor,
-    cov: Tensor,
-    Pi: Tensor,
-    A: Tensor,
-    Q: Tensor,
-    Hm: Tensor,
-    Rm: Tensor,
-    y0: Tensor,
-    n_obs: Tensor,
+    prob: Tensor, mean: Tensor, cov: Tensor, Pi: Tensor, A: Tensor, Q: Tensor, H: Tensor, R: Tensor, y: Tensor
 ) -> IMMCycle:
-    r"""One IMM cycle (mixing, mode-matched predict and Joseph update, mode probabilities):
-    the step of :func:`imm_filter`'s loop and of the online step.
+    r"""One IMM cycle: mixing, each mode's Kalman step, the mode probabilities. The step of
+    :func:`imm_filter`'s loop and of the online :func:`~torchsde_lti.filters.imm_online.imm_step`.
+
+    Each mode's predict and update is :func:`~torchsde_lti.filters.online.kalman_step` (the
+    sequence Kalman filter's step: whitened scalar Joseph updates) with the mode axis as a
+    batch dimension, so every mode is filtered exactly as a Kalman filter of that mode is.
 
     prob (..., M), mean (..., M, n), cov (..., M, n, n) before the step; Pi (..., M, M);
-    A, Q (..., M, n, n); Hm (..., M, m, n), Rm (..., M, m, m) the masked observation model
-    (zero rows and unit variances for unobserved components); y0 (..., m) the report with
-    missing entries 0; n_obs (...) the number of observed components.
+    A, Q (..., M, n, n); H (..., M or 1, m, n), R (..., M or 1, m, m); y (..., m) the report
+    (NaN = missing component).
     """
     c, m_mix, P_mix = _mix(prob, Pi, mean, cov)
-    m_pred = matvec(A, m_mix)
-    P_pred = sym(A @ P_mix @ A.mT + Q)
-    e = y0.unsqueeze(-2) - matvec(Hm, m_pred)  # (..., M, m); 0 in unobserved components
-    HP = Hm @ P_pred  # (..., M, m, n)
-    S = sym(HP @ Hm.mT + Rm)
-    LS = cholesky(S)
-    gain = cho_solve(LS, HP).mT  # K = P Hᵀ S⁻¹ (..., M, n, m)
-    mean = m_pred + matvec(gain, e)
-    IKH = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device) - gain @ Hm
-    cov = sym(IKH @ P_pred @ IKH.mT + gain @ Rm @ gain.mT)
-    z = solve_lower(LS, e.unsqueeze(-1)).squeeze(-1)
-    ll = -0.5 * (z * z).sum(-1) - torch.log(torch.diagonal(LS, dim1=-2, dim2=-1)).sum(-1)
-    ll = ll - 0.5 * n_obs[..., None] * _LOG_2PI  # (..., M): log N over observed components
+    state, step = kalman_step(KalmanState(m_mix, P_mix), y.unsqueeze(-2), A, Q, H, R)
     log_c = torch.where(c > 0, torch.log(torch.where(c > 0, c, torch.ones_like(c))), torch.full_like(c, -math.inf))
-    joint = log_c + ll
-    step = torch.logsumexp(joint, dim=-1)
-    prob = torch.exp(joint - step.unsqueeze(-1))
+    joint = log_c + step.log_likelihood  # (..., M)
+    total = torch.logsumexp(joint, dim=-1)
+    prob = torch.exp(joint - total.unsqueeze(-1))
+    observed = step.observed.select(-2, 0)  # (..., m): the same for every mode
     # Σ_j c_j = 1 exactly in theory: a fully missing step contributes exactly 0
-    step = torch.where(n_obs > 0, step, torch.zeros_like(step))
-    return IMMCycle(prob, mean, cov, c, m_pred, P_pred, e, S, step)
+    total = torch.where(observed.any(-1), total, torch.zeros_like(total))
+    return IMMCycle(
+        prob, state.mean, state.cov, c, step.pred_mean, step.pred_cov, step.innovation, step.innovation_cov, total,
+        observed,
+    )  # fmt: skip
 
 
 def _check_inputs(
@@ -223,9 +212,11 @@ def _check_inputs(
     mode_prob0: Tensor,
     mask: Tensor | None,
     validate_args: bool = True,
-) -> tuple[Tensor, ...]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor | None]:
     t = as_float_tensors(y=y, A=A, Q=Q, H=H, R=R, Pi=Pi, m0=m0, P0=P0, mode_prob0=mode_prob0)
-    y, A, Q, H, R, Pi, m0, P0, mode_prob0 = (t[k] for k in ("y", "A", "Q", "H", "R", "Pi", "m0", "P0", "mode_prob0"))
+    checked = [t[k] for k in ("y", "A", "Q", "H", "R", "Pi", "m0", "P0", "mode_prob0")]
+    assert all(x is not None for x in checked)
+    y, A, Q, H, R, Pi, m0, P0, mode_prob0 = checked  # type: ignore[assignment]
     dtype, device = y.dtype, y.device
     if y.dim() < 2 or y.shape[-2] < 1 or y.shape[-1] < 1:
         raise ValueError(f"y must have shape (..., T, m) with T, m >= 1, got shape {shape_str(y)}")
@@ -310,154 +301,107 @@ def imm_filter(
         :class:`IMMResult`; every output broadcasts to the full batch ``...``.
     """
     y, A, Q, H, R, Pi, m0, P0, prob, mask = _check_inputs(y, A, Q, H, R, Pi, m0, P0, mode_prob0, mask, validate_args)
-    work = y.numel() // y.shape[-1] * prob.shape[-1] * A.shape[-1] ** 2
-    return with_threads(work, _imm_steps, y, A, Q, H, R, Pi, m0, P0, prob, mask)
-
-
-def _imm_steps(
-    y: Tensor,
-    A: Tensor,
-    Q: Tensor,
-    H: Tensor,
-    R: Tensor,
-    Pi: Tensor,
-    m0: Tensor,
-    P0: Tensor,
-    prob: Tensor,
-    mask: Tensor | None,
-) -> IMMResult:
-    """:func:`imm_filter` on checked arguments."""
+    if mask is not None:  # (a report not observed is a missing one: NaN)
+        y = torch.where(mask, y, torch.nan)
     T, m = y.shape[-2], y.shape[-1]
     M, n = prob.shape[-1], A.shape[-1]
-    dtype, device = y.dtype, y.device
-    nan = torch.isnan(y)
-    obs = ~nan
-    if mask is not None:
-        obs = obs & mask
-    y0 = torch.where(obs, y, torch.zeros((), dtype=dtype, device=device))
-    o = obs.to(dtype).expand(*obs.shape[:-1], m)  # (..., T, m)
-    n_obs = o.sum(-1)  # (..., T)
-    # Masked observation model, per step and mode: (..., T, M, m, n), (..., T, M, m, m).
-    om = o.unsqueeze(-2)  # (..., T, 1, m)
-    Hm = H * om.unsqueeze(-1)
-    Rm = R * (om.unsqueeze(-1) * om.unsqueeze(-2)) + torch.diag_embed(1.0 - om)
-    # Time-constant arrays get a size-1 time axis; then step k reads index 0 or k.
+    # time-constant arrays get a size-1 time axis; step k then reads index 0 or k
+    H4, R4 = (x.reshape((1,) * (4 - x.dim()) + tuple(x.shape)) if x.dim() < 4 else x for x in (H, R))
     A4 = A if A.dim() >= 4 else A.unsqueeze(-4)
     Q4 = Q if Q.dim() >= 4 else Q.unsqueeze(-4)
     Pi3 = Pi if Pi.dim() >= 3 else Pi.unsqueeze(-3)
     mean = m0 if m0.dim() >= 2 else m0.unsqueeze(-2)
-    cov = P0
-
     # the T axis goes before each output's event dims (vector over modes: -2, (M, n): -3, ...)
-    event_ndim = {"c": 1, "mu": 1, "mm": 2, "mc": 3, "pm": 2, "pc": 3, "e": 2, "S": 3, "ll": 0}
     if torch.compiler.is_exporting():  # one step traced, any T: torch's structured scan
-        stk = _imm_scan(Hm, Rm, A4, Q4, Pi3, y0, n_obs, prob, mean, cov)
-        stk = {k: v.movedim(0, -1 - event_ndim[k]) for k, v in stk.items()}
-        return _imm_result(stk, obs, T, M, n, m)
+        stk = _imm_scan(H4, R4, A4, Q4, Pi3, y, prob, mean, P0)
+    else:
 
-    def at(x: Tensor, k: int, axis: int) -> Tensor:
-        return x.select(axis, 0 if x.shape[axis] == 1 else k)
+        def at(x: Tensor, k: int, axis: int) -> Tensor:
+            return x.select(axis, 0 if x.shape[axis] == 1 else k)
 
-    outs: dict[str, list[Tensor]] = {k: [] for k in ("c", "mu", "mm", "mc", "pm", "pc", "e", "S", "ll")}
-    for k in range(T):
-        Hk, Rk = at(Hm, k, -4), at(Rm, k, -4)  # (..., M, m, n), (..., M, m, m)
-        cyc = imm_cycle(
-            prob, mean, cov, at(Pi3, k, -3), at(A4, k, -4), at(Q4, k, -4), Hk, Rk, y0[..., k, :], n_obs[..., k]
-        )
-        prob, mean, cov = cyc.mode_prob, cyc.mode_mean, cyc.mode_cov
-        c, m_pred, P_pred, e, S, step = (
-            cyc.pred_mode_prob,
-            cyc.mode_pred_mean,
-            cyc.mode_pred_cov,
-            cyc.mode_innovation,
-            cyc.mode_innovation_cov,
-            cyc.log_likelihood,
-        )
-        outs["c"].append(c)
-        outs["mu"].append(prob)
-        outs["mm"].append(mean)
-        outs["mc"].append(cov)
-        outs["pm"].append(m_pred)
-        outs["pc"].append(P_pred)
-        outs["e"].append(e)
-        outs["S"].append(S)
-        outs["ll"].append(step)
-    stk = {k: torch.stack(torch.broadcast_tensors(*v), dim=-1 - event_ndim[k]) for k, v in outs.items()}
-    return _imm_result(stk, obs, T, M, n, m)
+        steps = []
+        cov = P0
+        for k in range(T):
+            cyc = imm_cycle(
+                prob,
+                mean,
+                cov,
+                at(Pi3, k, -3),
+                at(A4, k, -4),
+                at(Q4, k, -4),
+                at(H4, k, -4),
+                at(R4, k, -4),
+                y[..., k, :],
+            )
+            prob, mean, cov = cyc.mode_prob, cyc.mode_mean, cyc.mode_cov
+            steps.append(cyc)
+        stk = {
+            k: torch.stack(torch.broadcast_tensors(*v), dim=-1 - _EVENT_NDIM[k])
+            for k, v in zip(IMMCycle._fields, zip(*steps))
+        }
+    return _imm_result(stk, T, M, n, m)
+
+
+#: The event dims of each field of :class:`IMMCycle` (the T axis goes before them).
+_EVENT_NDIM = dict(zip(IMMCycle._fields, (1, 2, 3, 1, 2, 3, 2, 3, 0, 1)))
 
 
 def _imm_scan(
-    Hm: Tensor,
-    Rm: Tensor,
-    A4: Tensor,
-    Q4: Tensor,
-    Pi3: Tensor,
-    y0: Tensor,
-    n_obs: Tensor,
-    prob: Tensor,
-    mean: Tensor,
-    cov: Tensor,
+    H4: Tensor, R4: Tensor, A4: Tensor, Q4: Tensor, Pi3: Tensor, y: Tensor, prob: Tensor, mean: Tensor, cov: Tensor
 ) -> dict[str, Tensor]:
-    """:func:`_imm_steps`' loop as torch's structured scan (``torch._higher_order_ops.scan``):
+    """:func:`imm_filter`'s loop as torch's structured scan (``torch._higher_order_ops.scan``):
     one cycle traced, T not unrolled (an exported program takes any T). Per-step arrays
-    (..., T or 1, ...) are broadcast to the full batch and T and scanned along a leading T; the
-    outputs keep T leading: c, mu (T, ..., M), mm, pm (T, ..., M, n), mc, pc (T, ..., M, n, n),
-    e (T, ..., M, m), S (T, ..., M, m, m), ll (T, ...)."""
+    (..., T or 1, ...) are broadcast to the full batch and T and scanned along a leading T;
+    the outputs are the fields of :class:`IMMCycle` with the T axis before their event dims."""
     from torch._higher_order_ops import scan
 
-    T, m, M, n = y0.shape[-2], y0.shape[-1], prob.shape[-1], A4.shape[-1]
+    T, m, M, n = y.shape[-2], y.shape[-1], prob.shape[-1], A4.shape[-1]
     batch = torch.broadcast_shapes(
-        Hm.shape[:-4], Rm.shape[:-4], A4.shape[:-4], Q4.shape[:-4], Pi3.shape[:-3], y0.shape[:-2], n_obs.shape[:-1],
-        prob.shape[:-1], mean.shape[:-2], cov.shape[:-3],
+        H4.shape[:-4], R4.shape[:-4], A4.shape[:-4], Q4.shape[:-4], Pi3.shape[:-3], y.shape[:-2], prob.shape[:-1],
+        mean.shape[:-2], cov.shape[:-3],
     )  # fmt: skip
 
     def steps(x: Tensor, *event: int) -> Tensor:  # (..., T or 1, *event) -> (T, *batch, *event), a fresh copy
         return x.expand(*batch, T, *event).movedim(len(batch), 0).clone(memory_format=torch.contiguous_format)
 
+    MH, MR = H4.shape[-3], R4.shape[-3]
     xs = (
-        steps(Hm, M, m, n), steps(Rm, M, m, m), steps(A4, M, n, n), steps(Q4, M, n, n), steps(Pi3, M, M),
-        steps(y0, m), steps(n_obs.unsqueeze(-1), 1).squeeze(-1),
-    )  # fmt: skip
+        steps(H4, MH, m, n),
+        steps(R4, MR, m, m),
+        steps(A4, M, n, n),
+        steps(Q4, M, n, n),
+        steps(Pi3, M, M),
+        steps(y, m),
+    )
     carry = (prob.expand(*batch, M).clone(), mean.expand(*batch, M, n).clone(), cov.expand(*batch, M, n, n).clone())
 
     def body(
         state: tuple[Tensor, Tensor, Tensor], x: tuple[Tensor, ...]
     ) -> tuple[tuple[Tensor, ...], tuple[Tensor, ...]]:
-        Hk, Rk, Ak, Qk, Pik, yk, nk = x
-        b = state[0].shape[:-1]  # (sizes from the step's tensors: no closure over symbolic sizes)
-        cyc = imm_cycle(*state, Pik, Ak, Qk, Hk, Rk, yk, nk)
-        new = (cyc.mode_prob, cyc.mode_mean, cyc.mode_cov)
-        out = (cyc.pred_mode_prob, cyc.mode_pred_mean, cyc.mode_pred_cov, cyc.mode_innovation)
-        out += (cyc.mode_innovation_cov, cyc.log_likelihood)
-        # (outputs must not alias the carry)
-        return new, (
-            *(t.clone() for t in new),
-            *(t.expand(*b, *t.shape[t.dim() - _EVENT[i] :]) for i, t in enumerate(out)),
-        )
+        Hk, Rk, Ak, Qk, Pik, yk = x
+        cyc = imm_cycle(*state, Pik, Ak, Qk, Hk, Rk, yk)
+        # (outputs must not alias the carry, and have one layout)
+        carry = tuple(t.contiguous() for t in (cyc.mode_prob, cyc.mode_mean, cyc.mode_cov))
+        return carry, tuple(t.contiguous().clone() for t in cyc[:-1])  # (observed: no tangent, taken from y)
 
     _, outs = scan(body, carry, xs)
-    mu, mm, mc, c, pm, pc, e, S, ll = outs
-    return {"c": c, "mu": mu, "mm": mm, "mc": mc, "pm": pm, "pc": pc, "e": e, "S": S, "ll": ll}
+    stk = {k: v.movedim(0, -1 - _EVENT_NDIM[k]) for k, v in zip(IMMCycle._fields[:-1], outs)}
+    return {**stk, "observed": ~torch.isnan(y)}
 
 
-#: Event dims of the per-step outputs c, m⁻, P⁻, e, S, log-likelihood of a cycle.
-_EVENT = (1, 2, 3, 2, 3, 0)
-
-
-def _imm_result(stk: dict[str, Tensor], obs: Tensor, T: int, M: int, n: int, m: int) -> IMMResult:
-    """The :class:`IMMResult` of the per-step outputs ``stk`` (T axis before each event dims)."""
-    batch = torch.broadcast_shapes(
-        stk["mm"].shape[:-3], stk["ll"].shape[:-1], stk["mc"].shape[:-4], stk["mu"].shape[:-2], obs.shape[:-2]
-    )
-    mu = stk["mu"].expand(*batch, T, M)
-    cc = stk["c"].expand(*batch, T, M)
-    mm = stk["mm"].expand(*batch, T, M, n)
-    mc = stk["mc"].expand(*batch, T, M, n, n)
-    pm = stk["pm"].expand(*batch, T, M, n)
-    pc = stk["pc"].expand(*batch, T, M, n, n)
+def _imm_result(stk: dict[str, Tensor], T: int, M: int, n: int, m: int) -> IMMResult:
+    """The :class:`IMMResult` of the per-step fields of :class:`IMMCycle` ``stk`` (the T axis
+    before each one's event dims)."""
+    batch = torch.broadcast_shapes(*(v.shape[: v.dim() - 1 - _EVENT_NDIM[k]] for k, v in stk.items()))
+    mu = stk["mode_prob"].expand(*batch, T, M)
+    cc = stk["pred_mode_prob"].expand(*batch, T, M)
+    mm = stk["mode_mean"].expand(*batch, T, M, n)
+    mc = stk["mode_cov"].expand(*batch, T, M, n, n)
+    pm = stk["mode_pred_mean"].expand(*batch, T, M, n)
+    pc = stk["mode_pred_cov"].expand(*batch, T, M, n, n)
     x, P = combine(mu, mm, mc)
     xp, Pp = combine(cc, pm, pc)
-    step_ll = stk["ll"].expand(*batch, T)
+    step_ll = stk["log_likelihood"].expand(*batch, T)
     return IMMResult(
         log_likelihood=step_ll.sum(-1),
         step_log_likelihood=step_ll,
@@ -471,9 +415,9 @@ def _imm_result(stk: dict[str, Tensor], obs: Tensor, T: int, M: int, n: int, m: 
         pred_cov=Pp,
         mode_pred_mean=pm,
         mode_pred_cov=pc,
-        mode_innovation=stk["e"].expand(*batch, T, M, m),
-        mode_innovation_cov=stk["S"].expand(*batch, T, M, m, m),
-        observed=obs.expand(*batch, T, m),
+        mode_innovation=stk["mode_innovation"].expand(*batch, T, M, m),
+        mode_innovation_cov=stk["mode_innovation_cov"].expand(*batch, T, M, m, m),
+        observed=stk["observed"].expand(*batch, T, m),
     )
 
 

@@ -6,54 +6,68 @@ r"""The online API of :class:`~torchsde_lti.KalmanFilter`: one report per live t
 
 :class:`KalmanOnline` (private to nn/) is the part of ``KalmanFilter`` that serves live
 trackers: each track carries its own :class:`~torchsde_lti.KalmanState` and its own gap dt,
-and every call predicts each track over its gap and updates it with its report (the same
-step as the sequence filter's loop). The model's matrices are evaluated once per parameter
-version while no gradient is recorded (:func:`~torchsde_lti.nn._online.evaluated`), with
-the dt-independent part of the exact discretisation (:data:`OnlineModel`); the deployed
-:class:`~torchsde_lti.OnlineStep` snapshots that model and calls :meth:`KalmanOnline._step`.
-The sequence API (forward, smooth, forecast) and the parameters, prior and checks the online
-calls read are the filter's own (:mod:`torchsde_lti.nn.kalman`).
+and every call predicts each track over its gap and updates it with its report. Online =
+sequence: the step is the sequence filter's loop step
+(:func:`~torchsde_lti.filters.online.kalman_step`), its (A, Q, G) the sequence filter's
+discretisation (:func:`~torchsde_lti.nn._online.discretize_steps`), its checks the sequence
+filter's (arguments once at the boundary; with value checks on, the outputs too), so a
+series of steps gives :meth:`forward`'s values and raises its errors.
+
+The model's matrices are evaluated once per parameter version while no gradient is recorded
+(:func:`~torchsde_lti.nn._online.evaluated`), with the dt-independent part of the exact
+discretisation (:class:`OnlineModel`, :meth:`KalmanOnline.online_model`); the deployed
+:class:`~torchsde_lti.OnlineStep` snapshots that model and passes it to :meth:`KalmanOnline.step`.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from torchsde_lti.core.discretization import check_matrix_exp_noise, discretize
+from torchsde_lti.core.discretization import check_matrix_exp_noise
 from torchsde_lti.core.linalg import matvec
-from torchsde_lti.core.validation import as_float_tensor, broadcast_batch, tracing
-from torchsde_lti.filters.online import (
-    KalmanState,
-    KalmanStep,
-    kalman_predict,
-    kalman_step,
-)
+from torchsde_lti.core.validation import as_float_tensor, broadcast_batch, check_matrix
+from torchsde_lti.filters.online import KalmanState, KalmanStep, kalman_predict, kalman_step
 from torchsde_lti.nn._online import (
     Series,
     check_batches,
+    discretize_steps,
     evaluated,
     model_series,
     online_state,
-    series_step,
     tracks_shape,
 )
-from torchsde_lti.nn._validate import ValidateArgs, online_report
+from torchsde_lti.nn._register import register_tensor
+from torchsde_lti.nn._validate import ValidateArgs, check_outcome, online_report
+from torchsde_lti.nn.parametrizations import PositiveDefinite
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
 
 __all__ = ["KalmanOnline", "OnlineModel", "model_batches", "state_batches"]
 
-#: The evaluated model of online calls: (SDE matrices, H, R, D, the discretisation series of
-#: one parameter set or None), see :meth:`KalmanOnline._online_model`.
-OnlineModel = tuple[SDEMatrices, Tensor, Tensor, Tensor | None, Series | None]
+
+class OnlineModel(NamedTuple):
+    """The evaluated model of a :class:`~torchsde_lti.KalmanFilter`'s online calls
+    (:meth:`~torchsde_lti.KalmanFilter.online_model`): what a step reads of the filter.
+
+    mats: the SDE's matrices (F, L, Qc, B); H: (..., m, n); R: (..., m, m); D: (..., m, p) or
+    None; series: the dt-independent part of the exact discretisation of one parameter set
+    (:func:`~torchsde_lti.core.discretization.discretization_series`), None for a parameter batch.
+    """
+
+    mats: SDEMatrices
+    H: Tensor
+    R: Tensor
+    D: Tensor | None
+    series: Series | None
 
 
 class KalmanOnline(ValidateArgs, nn.Module):
-    """Base of :class:`~torchsde_lti.KalmanFilter` with its online calls :meth:`initial_state`,
-    :meth:`step` and :meth:`predict` (module docstring); the filter provides the rest."""
+    """Base of :class:`~torchsde_lti.KalmanFilter` with its prior and its online calls
+    :meth:`initial_state`, :meth:`step` and :meth:`predict` (module docstring); the filter
+    provides the rest."""
 
     if TYPE_CHECKING:  # what the online calls read of their KalmanFilter
         sde: LTISDE
@@ -67,13 +81,76 @@ class KalmanOnline(ValidateArgs, nn.Module):
         @property
         def discretization_method(self) -> str: ...
 
-        def _prior(self, mats: SDEMatrices, validate_args: bool) -> tuple[Tensor, Tensor]: ...
+        m0: Tensor
+        P0: Tensor | None
+        prior_mode: str
+        diffuse_variance: float
 
         def _check_u(
             self, u: Tensor, p: int, T: int, axis: str, dtype: torch.dtype, device: torch.device
         ) -> Tensor: ...
 
-        def _check_values(self, mats: SDEMatrices, dt: Tensor, **named: Tensor | None) -> None: ...
+        def _check_values(
+            self, mats: SDEMatrices, dt: Tensor, psd: tuple[tuple[str, Tensor], ...] = (), **named: Tensor | None
+        ) -> None: ...
+
+    def _init_prior(
+        self, P0: Tensor | str | None, learned: bool, n: int, dtype: torch.dtype, device: torch.device
+    ) -> None:
+        """:attr:`prior_mode` and the P0 parameter/buffer (None unless the mode is "given")."""
+        diffuse = self.diffuse_variance * torch.eye(n, dtype=dtype, device=device)
+        if isinstance(P0, str):
+            if P0 != "diffuse":
+                raise ValueError(f"P0 must be a tensor, None (the model's prior_covariance()) or 'diffuse', got {P0!r}")
+            self.prior_mode, P0_t = "diffuse", diffuse
+        elif P0 is not None:
+            P0_t = as_float_tensor(P0, "P0", dtype, device).detach().clone()
+            check_matrix(P0_t, "P0", rows=n, cols=n)
+            self.prior_mode = "given"
+        else:
+            try:
+                with torch.no_grad():
+                    P0_t = self.sde.prior_covariance(validate_args=True, diffuse_variance=self.diffuse_variance)
+                    P0_t = P0_t.detach().clone()
+                self.prior_mode = "model"
+            except ValueError:
+                self.prior_mode, P0_t = "diffuse", diffuse
+        if learned:
+            if bool((torch.linalg.cholesky_ex(P0_t).info != 0).any()):
+                raise ValueError(
+                    f"learn contains 'P0', but the {self.prior_mode} prior covariance is singular (e.g. a shaped "
+                    "model's steady-state start: every entry involving a system state is 0) and a learnable P0 is "
+                    "parametrised positive definite; pass an initial P0 tensor"
+                )
+            self.prior_mode = "given"  # learnable, initialised at that prior's value
+        if self.prior_mode == "given":
+            register_tensor(self, "P0", P0_t, learned)
+            parametrize.register_parametrization(
+                self, "P0", PositiveDefinite(name="P0", size=n).to(dtype=dtype, device=device)
+            )
+        else:
+            self.register_buffer("P0", None)
+
+    def _prior(self, mats: SDEMatrices, validate_args: bool, P0: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """(m0, P0) from already evaluated (and checked) SDE matrices; ``P0``: the given prior's
+        value when the caller has read it already (each parametrisation is read once a call)."""
+        if self.prior_mode == "given":
+            P0 = self.P0 if P0 is None else P0
+        elif self.prior_mode == "model":
+            try:
+                P0 = self.sde.prior_covariance(
+                    mats, validate_args=validate_args, diffuse_variance=self.diffuse_variance
+                )
+            except ValueError as err:
+                raise ValueError(
+                    "the default prior P0 is the model's prior_covariance(), but its F is no longer Hurwitz; "
+                    "pass P0 explicitly or constrain F (F_constraint='hurwitz')"
+                ) from err
+        else:
+            F = mats.F
+            P0 = self.diffuse_variance * torch.eye(F.shape[-1], dtype=F.dtype, device=F.device)
+        assert P0 is not None
+        return self.m0, P0
 
     def initial_state(self, batch_shape: torch.Size | tuple[int, ...] | int = ()) -> KalmanState:
         """The prior N(m0, P0) at t₀ for ``batch_shape`` new tracks, for :meth:`step`.
@@ -85,48 +162,47 @@ class KalmanOnline(ValidateArgs, nn.Module):
         ``batch_shape`` when it is not a shape or does not broadcast with the prior's.
         """
         shape = tracks_shape(batch_shape)
-        with parametrize.cached():
-            m0, P0 = self._prior(self.sde.matrices(), self.validate_args)
+        m0, P0 = self._prior(self.sde.matrices(), self.validate_args)
         n = self.state_dim
         batch = broadcast_batch([("batch_shape", shape), ("m0", m0.shape[:-1]), ("P0", P0.shape[:-2])])
         return KalmanState(m0.expand(*batch, n), P0.expand(*batch, n, n))
 
     def step(
-        self, state: KalmanState, y: Tensor, dt: Tensor | float, u: Tensor | None = None, mask: Tensor | None = None
+        self,
+        state: KalmanState,
+        y: Tensor,
+        dt: Tensor | float,
+        u: Tensor | None = None,
+        mask: Tensor | None = None,
+        *,
+        model: OnlineModel | None = None,
     ) -> tuple[KalmanState, KalmanStep]:
         """One report per live track: predict each track over its own dt, then update.
 
-        The same step as the sequence filter's loop: iterating it over a series gives
-        :meth:`forward`'s filtered moments and step log-likelihoods (to rounding). Without
-        gradients the model's matrices are evaluated once per parameter version (in-place
-        updates and assignments are seen; writes through ``tensor.data`` are not).
+        The step of the sequence filter's loop with the sequence filter's discretisation and
+        checks: iterating it over a series gives :meth:`forward`'s filtered moments and step
+        log-likelihoods, and raises where :meth:`forward` raises (with value checks on, a
+        non-finite log-likelihood or state is a
+        :class:`~torchsde_lti.NonFiniteLikelihoodError`). Without gradients the model's
+        matrices are evaluated once per parameter version (in-place updates and assignments
+        are seen; writes through ``tensor.data`` are not).
 
         Args:
-            state: :class:`~torchsde_lti.KalmanState` (mean (..., n), cov (..., n, n)), from
-                :meth:`initial_state` or a previous step.
+            state: :class:`~torchsde_lti.KalmanState` (mean (..., n), cov (..., n, n)
+                symmetric PSD), from :meth:`initial_state` or a previous step.
             y: (..., m) one report per track; NaN = missing component.
             dt: (...) non-negative time since each track's state (a float: shared).
             u: optional (..., p) inputs held over the step.
             mask: optional bool (...) or (..., m); False = not observed (a pure prediction).
+            model: the evaluated model to step with (:meth:`online_model`, e.g. a snapshot
+                held by :class:`~torchsde_lti.OnlineStep`); default the filter's current one.
 
         Returns:
             (new :class:`~torchsde_lti.KalmanState`, :class:`~torchsde_lti.KalmanStep` with
             pred_mean, pred_cov, innovation (..., m), innovation_cov (..., m, m),
             log_likelihood (...), observed).
         """
-        return self._step(evaluated(self, self._online_model), state, y, dt, u, mask)
-
-    def _step(
-        self,
-        model: OnlineModel,
-        state: KalmanState,
-        y: Tensor,
-        dt: Tensor | float,
-        u: Tensor | None = None,
-        mask: Tensor | None = None,
-    ) -> tuple[KalmanState, KalmanStep]:
-        """:meth:`step` with the model's evaluated matrices given (:meth:`_online_model`)."""
-        mats, H, R, D, series = model
+        mats, H, R, D, series = evaluated(self, self.online_model) if model is None else model
         state, dt, u = self._check_state(state, dt, u, mats)
         y, mask = online_report(y, mask, H, mats.F.dtype, mats.F.device)
         D = D if u is not None else None
@@ -139,16 +215,21 @@ class KalmanOnline(ValidateArgs, nn.Module):
                 *model_batches(mats, H=H, R=R, D=D),
             ]
         )
-        if self.validate_args:
-            self._check_values(mats, dt, y=y, u=u, H=H, R=R, D=D, mean=state.mean, cov=state.cov)
-        A, Q, c = self._online_step_model(mats, dt, u, series)
+        validate = self.validate_args
+        if validate:
+            self._check_values(mats, dt, psd=(("state.cov", state.cov),), y=y, u=u, H=H, R=R, D=D, mean=state.mean)
+        A, Q, c = self._step_model(mats, dt, u, series)
         if D is not None and u is not None:  # (D is None without u)
             y = y - matvec(D, u)
-        return kalman_step(state, y, A, Q, H, R, c, mask)
+        new, out = kalman_step(state, y, A, Q, H, R, c, mask)
+        if validate:
+            update = (H, out.observed, new.cov)
+            check_outcome((out.log_likelihood, new.mean), (new.cov,), (A, Q, c), y, dt, mats.F, R, update)
+        return new, out
 
     def predict(self, state: KalmanState, dt: Tensor | float, u: Tensor | None = None) -> KalmanState:
         """Prediction only, each track over its own dt (...): ``m⁻ = A m + G u``, ``P⁻ = A P Aᵀ + Q``."""
-        mats, _, _, _, series = evaluated(self, self._online_model)
+        mats, _, _, _, series = evaluated(self, self.online_model)
         state, dt, u = self._check_state(state, dt, u, mats)
         check_batches(
             [
@@ -159,47 +240,28 @@ class KalmanOnline(ValidateArgs, nn.Module):
             ]
         )
         if self.validate_args:
-            self._check_values(mats, dt, u=u, mean=state.mean, cov=state.cov)
-        return kalman_predict(state, *self._online_step_model(mats, dt, u, series))
+            self._check_values(mats, dt, psd=(("state.cov", state.cov),), u=u, mean=state.mean)
+        return kalman_predict(state, *self._step_model(mats, dt, u, series))
 
-    def _online_model(self) -> OnlineModel:
-        """(SDE matrices, H, R, D, the model's discretisation series or None), each
-        parametrisation evaluated once. The series (:func:`~torchsde_lti.nn._online.model_series`:
-        the dt-independent part of the exact discretisation, formed here: a nilpotent F's
-        terminating series, any other F's doubling series terms): eagerly without gradients,
-        where :func:`~torchsde_lti.nn._online.evaluated` caches this per parameter version (F's
-        nilpotency read from its values); while traced (torch.export of
-        :class:`~torchsde_lti.OnlineStep`) from the model's structure (the series then inside
-        the program); otherwise None (core's discretisation)."""
-        with parametrize.cached():
-            mats = self.sde.matrices()
-            series = None
-            if tracing():
-                series = self._structural_series(mats)
-            elif not torch.is_grad_enabled():
-                series = model_series(*mats)
-            return mats, self.H, self.R, self.D, series
+    def online_model(self) -> OnlineModel:
+        """:class:`OnlineModel`: the SDE's matrices, H, R, D, each parametrisation evaluated
+        once, and the dt-independent part of the exact discretisation of one parameter set
+        (:func:`~torchsde_lti.nn._online.model_series`, F's nilpotency from the model's
+        structure: no value read). What :meth:`step` reads; pass it as ``model=`` to step with
+        a snapshot (:class:`~torchsde_lti.OnlineStep`)."""
+        mats = self.sde.matrices()
+        return OnlineModel(mats, self.H, self.R, self.D, model_series(*mats, index=self.sde.structural_nilpotency()))
 
-    def _structural_series(self, mats: SDEMatrices) -> Series | None:
-        """The discretisation series of one parameter set with F's nilpotency taken from the
-        model's structure (no value of F read: traceable), else None (a parameter batch)."""
-        return model_series(*mats, index=self.sde.structural_nilpotency(), read_values=False)
-
-    def _online_step_model(
-        self, mats: SDEMatrices, dt: Tensor, u: Tensor | None, series: Series | None = None
+    def _step_model(
+        self, mats: SDEMatrices, dt: Tensor, u: Tensor | None, series: Series | None
     ) -> tuple[Tensor, Tensor, Tensor | None]:
-        """(A, Q, G u or None) of each track's gap dt (...): one batched exact discretisation,
-        with the doubling method from the model's ``series`` (its dt-independent part formed
-        once: no value checks, the same values as core's doubling to rounding), else core's
-        :func:`~torchsde_lti.core.discretize`."""
-        if series is not None and self.discretization_method == "doubling":
-            A, Q, G = series_step(series, dt)
-        else:
-            A, Q, G = discretize(
-                mats.F, mats.L, mats.Qc, dt, B=mats.B, method=self.discretization_method, validate_args=False
-            )
-            self._check_van_loan_noise(Q)
-        return A, Q, (matvec(G, u) if (u is not None and G is not None) else None)
+        """(A, Q, G u or None) of each track's gap dt (...): the sequence filter's
+        discretisation (:func:`~torchsde_lti.nn._online.discretize_steps`) of a one-step series."""
+        d = discretize_steps(mats, dt.unsqueeze(-1), self.discretization_method, series)
+        self._check_van_loan_noise(d.Q)
+        A, Q = d.A.select(-3, 0), d.Q.select(-3, 0)
+        c = None if (u is None or d.G is None) else matvec(d.G.select(-3, 0), u)
+        return A, Q, c
 
     def _check_van_loan_noise(self, Q: Tensor) -> None:
         """With ``method="matrix_exp"`` and value checks on, ValueError where its Q (..., n, n)

@@ -6,17 +6,19 @@ series, any other F's doubling series terms) is formed with them."""
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import torch
 from torch import Tensor, nn
 
-from torchsde_lti.core.discretization import SharedSeries, discretization_series
+from torchsde_lti.core.discretization import Discrete, SharedSeries, discretization_series, discretize
 from torchsde_lti.core.linalg import noise_covariance
 from torchsde_lti.core.series import TerminatingSeries
 from torchsde_lti.core.validation import as_float_tensor, broadcast_batch, shape_str, tracing
-from torchsde_lti.filters import online
 from torchsde_lti.filters.online import KalmanState
+
+if TYPE_CHECKING:  # (nn.sde imports the parametrisations, which import this module)
+    from torchsde_lti.nn.sde import SDEMatrices
 
 T = TypeVar("T")
 
@@ -100,32 +102,56 @@ def online_state(state: object, dt: Tensor | float, F: Tensor) -> tuple[KalmanSt
     return KalmanState(mean, cov), as_float_tensor(dt, "dt", dtype, device)
 
 
-def model_series(
-    F: Tensor, L: Tensor, Qc: Tensor, B: Tensor | None, index: int | None = None, read_values: bool = True
-) -> Series | None:
+def model_series(F: Tensor, L: Tensor, Qc: Tensor, B: Tensor | None, index: int | None = None) -> Series | None:
     """Core's :func:`~torchsde_lti.core.discretization.discretization_series` of a model's
-    matrices (F (n, n), L (n, s), Qc (s, s), B (n, p) or None, no batch dims): its exact
-    discretisation's dt-independent part, formed once per parameter version (a nilpotent F's
-    terminating series, else the series terms of the doubling); None for a batch of
-    parameters (those take core's discretisation).
+    matrices (F (n, n), L (n, s), Qc (s, s), B (n, p) or None, no batch dims): the
+    dt-independent part of its exact discretisation (a nilpotent F's terminating series, else
+    the series terms of the doubling); None for a batch of parameters (those take core's
+    :func:`~torchsde_lti.core.discretize`).
 
-    ``index``, ``read_values``: F's nilpotency index when the model's structure fixes it
-    (F^index = 0 whatever the parameter values: an integrator chain); without ``read_values``
-    no value is read (no synchronisation, and the series may be formed inside a traced
-    program), None then meaning not structurally nilpotent."""
+    ``index``: F's nilpotency index when the model's structure fixes it (F^index = 0 whatever
+    the parameter values: an integrator chain, :meth:`~torchsde_lti.LTISDE.structural_nilpotency`).
+    No value is read (no synchronisation; the same series eager, compiled and exported)."""
     if any(t is not None and t.dim() != 2 for t in (F, L, Qc, B)):
         return None
-    return discretization_series(F, noise_covariance(L, Qc), B, index, read_values)
+    return discretization_series(F, noise_covariance(L, Qc), B, index, read_values=False)
 
 
-def series_step(series: Series, dt: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
-    """(A, Q, G or None) of the online steps dt (...) from the model's series: plain batch-first
-    tensors for at most :data:`~torchsde_lti.filters.online.SMALL_BATCH` steps (the joint
-    update) and while traced; for more, batch-first views of batch-last storage (the layout of
-    the scalar updates)."""
-    if tracing() or dt.numel() <= online.SMALL_BATCH:
-        A, Q, G = series(dt)
-    else:  # (n, c, ...) -> (..., n, c) views
-        A, Q, G = (None if t is None else t.movedim((0, 1), (-2, -1)) for t in series(dt, batch_last=True))  # type: ignore[assignment]
-    assert A is not None and Q is not None
-    return A, Q, G
+def discretize_steps(
+    mats: SDEMatrices, dt: Tensor, method: str, series: Series | None, batch_last: bool = True, unique: bool = False
+) -> Discrete:
+    """(A, Q, G) of every step dt (..., T) of a model: THE discretisation of the modules'
+    calls (sequence, online step, prediction, forecast, each mode of an IMM), so they agree.
+
+    With ``method="doubling"`` and one parameter set (``series``, :func:`model_series`, not
+    None) the series over dt, as batch-first views (..., T, r, c) of batch-last storage
+    (r, c, T, ...) with ``batch_last`` (the sequence loop's layout: its per-step moves are row
+    copies), else plain batch-first; otherwise core's
+    :func:`~torchsde_lti.core.discretize` of the matrices with a length-1 time axis (a
+    parameter batch (..., 1, n, n) lines up with dt (..., T)), no value checks (the caller
+    checked). ``unique``: discretise the distinct values of dt only and gather them (one
+    parameter set and a dt that does not require grad; same values)."""
+    if method == "doubling" and series is not None:
+        # storage (r, c, T, ...): each step's matrices of all tracks contiguous (the loop's moves
+        # to (r, c, tracks) are then row copies)
+        dt_tm = dt.movedim(-1, 0) if dt.dim() else dt
+        inverse = None
+        if unique and not dt.requires_grad and dt.numel() > 0:
+            values, inverse = torch.unique(dt_tm, return_inverse=True)
+            out = series(values, batch_last=True)
+        else:
+            out = series(dt_tm, batch_last=True)
+        picked: list[Tensor | None] = []
+        for x in out:
+            if x is not None and inverse is not None:  # (r, c, U) -> (r, c, T, ...)
+                x = x.index_select(-1, inverse.reshape(-1)).reshape(*x.shape[:2], *dt_tm.shape)
+            if x is not None:  # (r, c, T, ...) -> (..., T, r, c)
+                x = x.permute(*range(3, x.dim()), 2, 0, 1) if dt.dim() else x.movedim((0, 1), (-2, -1))
+                x = x if batch_last else x.contiguous()
+            picked.append(x)
+        A, Q, G = picked
+        assert A is not None and Q is not None
+        return Discrete(A, Q, G)
+    F, L, Qc, B = (None if x is None else x.unsqueeze(-3) for x in mats)
+    assert F is not None and L is not None and Qc is not None
+    return discretize(F, L, Qc, dt, B=B, method=method, validate_args=False)

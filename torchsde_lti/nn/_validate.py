@@ -3,21 +3,18 @@ default, as in torch.distributions, and one fused check of a call's arguments.""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import ClassVar
 
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.thresholds import PYTHON_CHECK_MAX_VALUES
 from torchsde_lti.core.validation import (
     as_float_tensor,
     broadcast_batch,
     check_finite,
     check_no_inf,
-    check_nonnegative,
-    host_values,
+    check_symmetric_psd,
     shape_str,
     tracing,
 )
@@ -55,46 +52,81 @@ class ValidateArgs:
         return self.validate_args if validate_args is None else bool(validate_args)
 
 
-def check_values(finite: Named = (), nonnegative: Named = (), no_inf: Named = ()) -> None:
-    """ValueError naming the first bad tensor: NaN/Inf in ``finite`` and ``nonnegative``,
-    a negative entry in ``nonnegative``, ±Inf in ``no_inf`` (NaN allowed: missing data).
-    One synchronisation when everything is valid (no-op while tracing): for at most
-    :data:`~torchsde_lti.core.thresholds.PYTHON_CHECK_MAX_VALUES` values in all (one live
-    track's step) the values are read in one transfer and checked as Python floats."""
+def check_values(
+    finite: Named = (), nonnegative: Named = (), no_inf: Named = (), psd: Named = (), probabilities: Named = ()
+) -> None:
+    """ValueError naming the first bad tensor: NaN/Inf in ``finite``, ``nonnegative``, ``psd``
+    and ``probabilities``; a negative entry in ``nonnegative``; ±Inf in ``no_inf`` (NaN allowed:
+    missing data); a ``psd`` matrix (..., k, k) that is not symmetric positive semi-definite up
+    to rounding (a covariance); a ``probabilities`` vector (..., M) with a negative entry or not
+    summing to 1 (within 1e3 · eps · M).
+
+    All tests run as tensor ops and are read in ONE synchronisation (no-op while tracing): the
+    values are never copied to the host or changed. Only when one fails do the per-argument
+    checks run, to name it."""
     if tracing():
         return
     fin: Present = [(k, v) for k, v in finite if v is not None]
     nonneg: Present = [(k, v) for k, v in nonnegative if v is not None and v.numel()]
     noinf: Present = [(k, v) for k, v in no_inf if v is not None]
-    if not (fin or nonneg or noinf):
+    cov: Present = [(k, v) for k, v in psd if v is not None and v.numel()]
+    prob: Present = [(k, v) for k, v in probabilities if v is not None and v.numel()]
+    if not (fin or nonneg or noinf or cov or prob):
         return
     with torch.no_grad():
-        if sum(v.numel() for _, v in (*fin, *nonneg, *noinf)) <= PYTHON_CHECK_MAX_VALUES:
-            if _host_values_valid(fin, nonneg, noinf):
-                return
-        else:
-            flags = [torch.stack([v.sum() for _, v in (*fin, *nonneg)]).isfinite().all()] if fin or nonneg else []
-            flags += [v.amin() >= 0 for _, v in nonneg]
-            flags += [~torch.isinf(v).any() for _, v in noinf]
-            if bool(torch.stack(flags).all()):
-                return
-    for name, value in fin:  # a finite sum that overflowed passes these
+        flags = [v.isfinite().all() for _, v in (*fin, *nonneg, *cov, *prob)]
+        flags += [v.amin() >= 0 for _, v in nonneg]
+        flags += [~torch.isinf(v).any() for _, v in noinf]
+        flags += [_psd_passes(v) for _, v in cov]
+        flags += [_probabilities_pass(v) for _, v in prob]
+        if bool(torch.stack(flags).all()):
+            return
+    for name, value in (*fin, *nonneg, *cov, *prob):
         check_finite(value, name)
     for name, value in nonneg:
-        check_nonnegative(value, name)
+        if bool((value < 0).any()):
+            raise ValueError(
+                f"{name} must be non-negative, got min {float(value.min()):.3g} (shape {shape_str(value)})"
+            )
     for name, value in noinf:
         check_no_inf(value, name)
+    for name, value in cov:
+        check_symmetric_psd(value, name)
+    for name, value in prob:
+        if not bool(_probabilities_pass(value)):
+            sums = value.sum(-1)
+            raise ValueError(
+                f"{name} must be probability vectors (entries >= 0, summing to 1 over the last axis), got shape "
+                f"{shape_str(value)}, min {float(value.min()):.3g}, sums in [{float(sums.min()):.6g}, "
+                f"{float(sums.max()):.6g}]"
+            )
+    named = ", ".join(name for name, _ in (*fin, *nonneg, *noinf, *cov, *prob))
+    raise ValueError(f"invalid values among {named} (a covariance not PSD within rounding?)")
 
 
-def _host_values_valid(finite: Present, nonnegative: Present, no_inf: Present) -> bool:
-    """:func:`check_values`'s test on Python floats (one transfer of every value)."""
-    values = host_values([v for _, v in (*finite, *nonnegative, *no_inf)])
-    k1, k2 = len(finite), len(finite) + len(nonnegative)
-    return (
-        all(math.isfinite(x) for part in values[:k1] for x in part)
-        and all(math.isfinite(x) and x >= 0 for part in values[k1:k2] for x in part)
-        and not any(math.isinf(x) for part in values[k2:] for x in part)
-    )
+def _psd_passes(x: Tensor) -> Tensor:
+    """0-dim bool: x (..., k, k) is symmetric and PSD up to rounding, as
+    :func:`~torchsde_lti.core.validation.check_symmetric_psd` tests it (100 k eps relative to
+    its largest entry): a Cholesky factor exists of x shifted by that tolerance. No
+    synchronisation."""
+    scale = x.abs().amax(dim=(-2, -1), keepdim=True).clamp_min(torch.finfo(x.dtype).tiny)
+    tol = 100.0 * x.shape[-1] * torch.finfo(x.dtype).eps
+    asym = ((x - x.mT).abs() <= tol * scale).all()
+    eye = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
+    return asym & (torch.linalg.cholesky_ex(x + tol * scale * eye).info == 0).all()
+
+
+def _measurement_kept(H: Tensor, observed: Tensor, P: Tensor, R: Tensor) -> Tensor:
+    """0-dim bool: every observed component's filtered variance ``(H P Hᵀ)_jj`` is at most
+    ``2 R_jj`` (exactly it is below R_jj; :func:`check_outcome`). No synchronisation."""
+    variance = (H @ P @ H.mT).diagonal(0, -2, -1)
+    return ((variance <= 2 * R.diagonal(0, -2, -1)) | ~observed).all()
+
+
+def _probabilities_pass(p: Tensor) -> Tensor:
+    """0-dim bool: p (..., M) has entries ≥ 0 summing to 1 within 1e3 · eps · M. No synchronisation."""
+    tol = 1e3 * torch.finfo(p.dtype).eps * p.shape[-1]
+    return (p >= 0).all() & ((p.sum(-1) - 1).abs() <= tol).all()
 
 
 class NonFiniteLikelihoodError(ValueError):
@@ -105,17 +137,43 @@ class NonFiniteLikelihoodError(ValueError):
 
 
 def check_outcome(
-    log_likelihood: Tensor, steps: Sequence[Tensor | None], y: Tensor, dt: Tensor, F: Tensor, R: Tensor | None = None
+    outputs: Sequence[Tensor],
+    covariances: Sequence[Tensor],
+    steps: Sequence[Tensor | None],
+    y: Tensor,
+    dt: Tensor,
+    F: Tensor,
+    R: Tensor | None = None,
+    update: tuple[Tensor, Tensor, Tensor] | None = None,
 ) -> None:
-    """:class:`NonFiniteLikelihoodError` when a checked call's log-likelihood is not finite although its arguments
-    were valid, saying why: the discretisation over-/underflows the dtype (an unstable F over
-    a long step), the observation noise R is nearly singular in the dtype, or the observations
-    are too large for it (the squared residuals overflow). One synchronisation (no-op while
-    tracing). ``steps``: the discrete matrices the filter used; R: (..., m, m) or None."""
+    """:class:`NonFiniteLikelihoodError` when a checked call's ``outputs`` (its log-likelihood,
+    the mean it ends in: a NaN or Inf there persists into every later step) are not finite or
+    its filtered ``covariances`` (..., k, k) are not symmetric PSD up to rounding (the test of
+    :func:`check_values`) although its arguments were valid, saying why: the discretisation
+    over-/underflows the dtype (an unstable F, or an integrator chain's noise, over a long
+    step), the observation noise R is nearly singular in the dtype, the observations are too
+    large for it (the squared residuals overflow), or the update cancelled (a prior that dwarfs
+    R by more than 1/eps). One synchronisation (no-op while tracing). ``steps``: the discrete
+    matrices the call used; F: the drift matrix (or the bank's); R: (..., m, m) or None.
+
+    ``update``: (H (..., m, n), observed (..., m) bool, P (..., n, n)) of the updates, P the
+    filtered covariances (broadcasting with H, R): an update that lost the measurement to
+    rounding (a prior that dwarfs R by more than 1/eps: the Joseph form then returns a finite,
+    even PSD, covariance unrelated to the data) is an error too. Exactly, the posterior
+    covariance of the observed components is below R (``R − R S⁻¹ R``), so an observed
+    component whose filtered variance ``(H P Hᵀ)_jj`` exceeds ``2 R_jj`` is that loss.
+
+    The sequence filters check every step's covariance, the online steps the new state's, so
+    a series of online steps raises exactly where the sequence filter of the reports seen so
+    far raises."""
     if tracing():
         return
     with torch.no_grad():
-        if bool(torch.isfinite(log_likelihood).all()):
+        flags = [t.isfinite().all() for t in (*outputs, *covariances)]
+        flags += [_psd_passes(c) for c in covariances if c.numel()]
+        if update is not None and R is not None:
+            flags.append(_measurement_kept(*update, R))
+        if bool(torch.stack(flags).all()):
             return
         bad = [t for t in steps if t is not None and not bool(torch.isfinite(t).all())]
         dtype = y.dtype
@@ -123,7 +181,8 @@ def check_outcome(
             rightmost = float(torch.linalg.eigvals(torch.nan_to_num(F.detach().double())).real.max())
             raise NonFiniteLikelihoodError(
                 f"the discretisation overflows {dtype} for dt up to {float(dt.max()):.3g} (F's rightmost eigenvalue "
-                f"has real part {rightmost:.3g}; an unstable F grows like e^(Re λ dt)): shorten dt, constrain F "
+                f"has real part {rightmost:.3g}; an unstable F grows like e^(Re λ dt), an integrator chain's noise "
+                "like a power of dt): shorten dt, constrain F "
                 "(F_constraint='hurwitz') or use float64"
             )
         top = float(torch.nan_to_num(y.detach(), nan=0.0).abs().max())
@@ -133,10 +192,18 @@ def check_outcome(
             lam = torch.linalg.eigvalsh(torch.nan_to_num(R.detach().double()))
             ratio = float((lam[..., 0] / lam[..., -1].clamp_min(torch.finfo(torch.float64).tiny)).min())
     wider = " or use float64" if dtype != torch.float64 else ""
+    lost = update is not None and R is not None and not bool(_measurement_kept(*update, R))
     if ratio is not None and ratio < 1e3 * info.eps:
         why = (
             f"the observation noise R is nearly singular in {dtype} (smallest / largest eigenvalue {ratio:.3g}): "
             f"the updates lose the covariances' positive definiteness; keep R's eigenvalues apart{wider}"
+        )
+    elif lost:
+        why = (
+            f"an update lost the measurement to rounding: an observed component's filtered variance exceeds twice "
+            f"its noise variance R (exactly it is below R), which happens where the predicted variance dwarfs R by "
+            f"more than 1/eps of {dtype} (a gap too long for the model's noise, or a prior too broad); shorten the "
+            f"gaps or start new tracks after them{wider}"
         )
     elif top * top > info.max**0.5:
         why = (
@@ -149,7 +216,7 @@ def check_outcome(
             f"check the scales of Q, R and P0 against the data's{wider}"
             + (", or algorithm='square_root' (PSD by construction)" if dtype != torch.float64 else "")
         )
-    raise NonFiniteLikelihoodError(f"the log-likelihood is not finite in {dtype}: {why}")
+    raise NonFiniteLikelihoodError(f"the log-likelihood or the filtered state is not finite in {dtype}: {why}")
 
 
 def online_report(

@@ -16,6 +16,7 @@ import json
 import os
 from typing import Any
 
+import sympy
 import torch
 from torch import Tensor, nn
 from torch.export import ExportedProgram
@@ -96,7 +97,8 @@ class OnlineStep(_TracedFor):
     ``forward(mean, cov, y, dt, u=None)``: mean (B, n), cov (B, n, n), y (B, m) (NaN = missing),
     dt (B,), optional inputs u (B, p) held over the step (as in :meth:`KalmanFilter.step`)
     -> ``(mean, cov, innovation (B, m), innovation_cov (B, m, m), log_likelihood (B,))``.
-    Value checks are off inside (check reports where they enter the tracker).
+    The step is :meth:`KalmanFilter.step` with the snapshot as its ``model``; an exported
+    program skips the value checks (check reports where they enter the tracker).
 
     The step is a snapshot of the filter when it is built: the model's matrices (the SDE's, H,
     R, D and the dt-independent part of its discretisation) are evaluated
@@ -117,7 +119,7 @@ class OnlineStep(_TracedFor):
     def _snapshot(self) -> None:
         """Evaluate ``kf``'s online model now and hold its tensors as (non-persistent) buffers."""
         with torch.no_grad():
-            leaves, self._model_spec = pytree.tree_flatten(self.kf._online_model())
+            leaves, self._model_spec = pytree.tree_flatten(self.kf.online_model())
         self._model_slots = [i for i, leaf in enumerate(leaves) if isinstance(leaf, Tensor)]
         for i in self._model_slots:
             self.register_buffer(f"_model_{i}", leaves[i].detach().clone(), persistent=False)
@@ -125,7 +127,7 @@ class OnlineStep(_TracedFor):
         self._model_leaves = leaves  # the non-tensor leaves (flags, sizes); None in a tensor's slot
 
     def _model(self) -> OnlineModel:
-        """The snapshot of ``kf._online_model()`` (its tensors the buffers)."""
+        """The snapshot of ``kf.online_model()`` (its tensors the buffers)."""
         leaves = list(self._model_leaves)
         for i in self._model_slots:
             leaves[i] = getattr(self, f"_model_{i}")
@@ -133,7 +135,7 @@ class OnlineStep(_TracedFor):
 
     def forward(self, mean: Tensor, cov: Tensor, y: Tensor, dt: Tensor, u: Tensor | None = None) -> tuple[Tensor, ...]:
         with traced_for_eager_runtime(self.runtime == "eager"):
-            state, out = self.kf._step(self._model(), KalmanState(mean, cov), y, dt, u)
+            state, out = self.kf.step(KalmanState(mean, cov), y, dt, u, model=self._model())
         return state.mean, state.cov, out.innovation, out.innovation_cov, out.log_likelihood
 
 
@@ -160,12 +162,15 @@ def _dim_record(d: int | torch.SymInt) -> int | str | None:
 
 
 def _ranges(program: ExportedProgram) -> dict[str, list[int | None]]:
-    """symbol -> [lowest, highest or None] of the program's dynamic dims."""
-    out: dict[str, list[int | None]] = {}
-    for sym, vr in program.range_constraints.items():
-        lower, upper = vr.lower, vr.upper
-        out[str(sym)] = [int(lower) if lower.is_finite else 0, int(upper) if upper.is_finite else None]
-    return out
+    """symbol -> [lowest, highest or None] of the program's dynamic dims (None: unbounded, as
+    a ``Dim`` without ``max=`` or a size the trace creates, such as a scan's)."""
+    return {str(sym): [_bound(vr.lower) or 0, _bound(vr.upper)] for sym, vr in program.range_constraints.items()}
+
+
+def _bound(value: object) -> int | None:
+    """A range bound as an int, None for an unbounded one: torch marks those with its own
+    infinity (``int_oo``), which says it is finite and has no int value, or sympy's ``oo``."""
+    return int(value) if isinstance(value, (int, sympy.Integer)) else None
 
 
 def compile_package(

@@ -10,12 +10,16 @@ Modes switch by a continuous-time Markov chain with generator Λ (``imm.rates``,
 off-diagonal rates Λ_ij ≥ 0 of jumping from mode i to j, rows summing to 0), so over a gap
 dt the mode transition matrix is ``Pi = expm(Λ dt)``, exact for any irregular gap. Each
 mode's (A_j, Q_j) is the exact discretisation of its SDE (its noise enters as
-``L_j Qc_j L_jᵀ``, so the noise dimensions of the modes may differ). Over many gaps (at least
-``SHARED_MIN_ELEMENTS``, eagerly) each mode and the chain are discretised by their series,
-formed once (:func:`~torchsde_lti.core.discretization_series`); otherwise the whole bank is
-ONE batched :func:`torchsde_lti.discretize` call over (track, step, mode), the M drift
-matrices stacked along a batch axis, and Pi is ``torch.matrix_exp``.
-The IMM cycle itself is :func:`torchsde_lti.filters.imm.imm_filter`.
+``L_j Qc_j L_jᵀ``, so the noise dimensions of the modes may differ).
+
+The IMM shares the Kalman filter's plumbing: each mode is discretised exactly as a
+:class:`~torchsde_lti.KalmanFilter` of that mode discretises it (its series, formed once per
+call, :func:`~torchsde_lti.nn._online.discretize_steps`), the chain by its own series in
+float64; each mode's predict and update in the cycle (:func:`torchsde_lti.filters.imm.imm_filter`)
+is the Kalman filter's step; the sequence call (:meth:`IMMFilter.forward`), the online
+:meth:`IMMFilter.step` and the exported program take the same route and the same checks
+(arguments once; with value checks on, a non-finite outcome raises
+:class:`~torchsde_lti.NonFiniteLikelihoodError`).
 
 The models must share the state space: same n, and the same meaning of each component
 (e.g. [x, vx, y, vy] for :func:`~torchsde_lti.models.constant_velocity`,
@@ -41,9 +45,8 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from torchsde_lti.core.discretization import Discrete, check_matrix_exp_noise, discretization_series, discretize
+from torchsde_lti.core.discretization import Discrete, check_matrix_exp_noise, discretization_series
 from torchsde_lti.core.linalg import sym
-from torchsde_lti.core.thresholds import SHARED_MIN_ELEMENTS
 from torchsde_lti.core.validation import (
     as_float_tensor,
     broadcast_batch,
@@ -51,7 +54,6 @@ from torchsde_lti.core.validation import (
     check_matrix,
     parse_learn,
     shape_str,
-    tracing,
 )
 from torchsde_lti.filters.imm import (
     IMMPrediction,
@@ -63,9 +65,10 @@ from torchsde_lti.filters.imm import (
 from torchsde_lti.filters.imm_online import IMMState, IMMStep, imm_predict_state, imm_step
 from torchsde_lti.filters.kalman import check_algorithm
 from torchsde_lti.filters.results import serializable
-from torchsde_lti.nn._online import Series, check_batches, evaluated, tracks_shape
+from torchsde_lti.nn._imm_model import IMMModel, bank_of, check_model_values, imm_state, state_batches
+from torchsde_lti.nn._online import check_batches, discretize_steps, evaluated, model_series, tracks_shape
 from torchsde_lti.nn._register import register_tensor
-from torchsde_lti.nn._validate import ValidateArgs, check_values, online_report
+from torchsde_lti.nn._validate import ValidateArgs, check_outcome, check_values, online_report
 from torchsde_lti.nn.kalman import FilterMode
 from torchsde_lti.nn.parametrizations import (
     Generator,
@@ -102,21 +105,6 @@ class IMMForecast(NamedTuple):
     obs_cov: Tensor
     mode_obs_mean: Tensor
     mode_obs_cov: Tensor
-
-
-class OnlineIMM(NamedTuple):
-    """The evaluated model of an :class:`IMMFilter`'s online calls: F, W (M, n, n) the bank,
-    H (M or 1, m, n), R (M or 1, m, m), rates (M, M) the generator Λ; ``series`` each mode's
-    and ``chain`` the mode chain's discretisation series (float64), or None (while recording
-    gradients or traced: the calls then discretise from F, W and the rates)."""
-
-    F: Tensor
-    W: Tensor
-    H: Tensor
-    R: Tensor
-    rates: Tensor
-    series: list[Series] | None
-    chain: Series | None
 
 
 class IMMFilter(ValidateArgs, nn.Module):
@@ -282,68 +270,48 @@ class IMMFilter(ValidateArgs, nn.Module):
 
     def bank(self) -> tuple[Tensor, Tensor]:
         """Stacked mode matrices: F (M, n, n) and noise intensity ``L Qc Lᵀ`` (M, n, n)."""
-        mats = [sde.matrices() for sde in self.models]
-        F = torch.stack([mm.F for mm in mats])
-        W = torch.stack([mm.L @ mm.Qc @ mm.L.mT for mm in mats])
-        return F, sym(W)
+        return bank_of(self.imm_model().modes)
+
+    def imm_model(self) -> IMMModel:
+        """:class:`IMMModel`: what a call reads of the filter, each parametrisation evaluated
+        once; each mode's discretisation series as a :class:`~torchsde_lti.KalmanFilter` of
+        that mode forms it (F's nilpotency from the model's structure: no value read)."""
+        modes = tuple(sde.matrices() for sde in self.models)
+        series = tuple(model_series(*mats, index=sde.structural_nilpotency()) for mats, sde in zip(modes, self.models))
+        H, R = self._obs_model()
+        rates = self.rates
+        chain = discretization_series(rates.double(), None, None, read_values=False)
+        return IMMModel(modes, series, H, R, rates, chain)
 
     def discretize(self, dt: Tensor, validate_args: bool | None = None) -> tuple[Discrete, Tensor]:
-        """Every mode over every gap, in ONE batched discretisation, and the chain's transitions.
+        """Every mode over every gap and the chain's transitions.
 
-        dt: (...) gaps (``validate_args``: check them, default :attr:`validate_args`; False for
-        a dt already checked). Returns ``Discrete`` with A, Q (..., M, n, n) and Pi (..., M, M)
-        = ``expm(Λ dt)``.
+        dt: (...) gaps (``validate_args``: check them, default :attr:`validate_args`). Returns
+        ``Discrete`` with A, Q (..., M, n, n) and Pi (..., M, M) = ``expm(Λ dt)``.
         """
-        return self._discretize_bank(*self.bank(), dt, self._validates(validate_args))
+        model = self.imm_model()
+        dt = as_float_tensor(dt, "dt", model.rates.dtype, model.rates.device)
+        if self._validates(validate_args):
+            check_values(nonnegative=[("dt", dt)])
+        d, Pi = self._discretizebank_of(model, dt.unsqueeze(-1))
+        return Discrete(d.A.select(-4, 0), d.Q.select(-4, 0), None), Pi.select(-3, 0)
 
-    def _discretize_bank(
-        self, F: Tensor, W: Tensor, dt: Tensor, validate_args: bool, online: OnlineIMM | None = None
-    ) -> tuple[Discrete, Tensor]:
-        """:meth:`discretize` for the stacked bank (F, W) already read; with ``online`` (the
-        evaluated model of an online call, :meth:`_online_model`) its rates and, where it holds
-        them, each mode's and the chain's discretisation series (the same values to rounding)."""
-        eye = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device)
-        if self.unique_dt and not dt.requires_grad and dt.numel() > 0:
-            values, inverse = torch.unique(dt, return_inverse=True)
-            d, Pi = self._discretize_flat(F, W, eye, values, validate_args, online)
-            d, Pi = Discrete(d.A[inverse], d.Q[inverse], None), Pi[inverse]
-        else:
-            d, Pi = self._discretize_flat(F, W, eye, dt, validate_args, online)
+    def _discretizebank_of(self, model: IMMModel, dt: Tensor) -> tuple[Discrete, Tensor]:
+        """Every mode over every step dt (..., T): A, Q (..., T, M, n, n), each mode as a
+        :class:`~torchsde_lti.KalmanFilter` of it discretises
+        (:func:`~torchsde_lti.nn._online.discretize_steps`), and the chain's transitions
+        Pi (..., T, M, M) = expm(Λ dt) from its series in float64 (a float32 exponential of
+        Λ dt for dt ≫ 1/rate loses the row sums), rows renormalised. Eager, online, compiled
+        and exported calls alike."""
+        steps = [
+            discretize_steps(mats, dt, self.method, series, batch_last=False, unique=self.unique_dt)
+            for mats, series in zip(model.modes, model.series)
+        ]
+        d = Discrete(torch.stack([s.A for s in steps], -3), torch.stack([s.Q for s in steps], -3), None)
         if self.method == "matrix_exp" and self.validate_args:  # (Van Loan's Q is not PSD by construction)
             check_matrix_exp_noise(d.Q)
-        return d, Pi
-
-    def _discretize_flat(
-        self, F: Tensor, W: Tensor, eye: Tensor, dt: Tensor, validate_args: bool, online: OnlineIMM | None = None
-    ) -> tuple[Discrete, Tensor]:
-        series = None if online is None else online.series
-        if series is None and self.method == "doubling" and not tracing() and dt.numel() >= SHARED_MIN_ELEMENTS:
-            # many gaps: each mode's series once (core's one-parameter-set route), not the bank
-            # broadcast to every (gap, mode) element
-            series = [discretization_series(F[j], W[j], None) for j in range(F.shape[0])]
-        if series is not None and self.method == "doubling":
-            As, Qs = [], []
-            for mode in series:  # each mode over every gap: (..., n, n)
-                A_j, Q_j, _ = mode(dt)
-                assert Q_j is not None
-                As.append(A_j)
-                Qs.append(Q_j)
-            d = Discrete(torch.stack(As, -3), torch.stack(Qs, -3), None)
-        else:
-            d = discretize(
-                F, eye, W, dt.unsqueeze(-1), method=self.method, validate_args=validate_args
-            )  # F (M,·,·) with dt (..., 1)
-        # the chain's transitions in float64 (an M × M exponential), rows renormalised: a
-        # float32 exponential of Λ dt for dt ≫ 1/rate loses the row sums (and gives NaN mixing)
-        rates = self.rates if online is None else online.rates
-        chain = None if online is None else online.chain
-        if chain is None and not tracing() and dt.numel() >= SHARED_MIN_ELEMENTS:
-            chain = discretization_series(rates.double(), None, None)
-        if chain is not None:
-            Pi = chain(dt.double())[0].clamp_min(0.0)
-        else:
-            Pi = torch.matrix_exp(rates.double() * dt.double()[..., None, None]).clamp_min(0.0)
-        Pi = (Pi / Pi.sum(-1, keepdim=True)).to(rates.dtype)
+        Pi = model.chain(dt.double())[0].clamp_min(0.0)
+        Pi = (Pi / Pi.sum(-1, keepdim=True)).to(model.rates.dtype)
         return d, Pi
 
     def _obs_model(self) -> tuple[Tensor, Tensor]:
@@ -359,43 +327,37 @@ class IMMFilter(ValidateArgs, nn.Module):
         has no inputs, a non-None u raises ValueError.
 
         Returns :class:`~torchsde_lti.filters.imm.IMMResult` (log_likelihood (...),
-        step_log_likelihood (..., T), mode_probabilities (..., T, M), mean, cov, …).
+        step_log_likelihood (..., T), mode_probabilities (..., T, M), mean, cov, …). With
+        value checks on, a non-finite log-likelihood or final state raises
+        :class:`~torchsde_lti.NonFiniteLikelihoodError`, as :meth:`step` does.
         """
         if u is not None:
             raise ValueError(f"u was given (shape {shape_str(torch.as_tensor(u))}) but IMMFilter has no inputs")
-        with parametrize.cached():  # each parametrisation evaluated once per call
-            F, W = self.bank()
-            y = as_float_tensor(y, "y", F.dtype, F.device)
-            if y.dim() < 2 or y.shape[-1] != self.obs_dim:
-                raise ValueError(
-                    f"y must have shape (..., T, m={self.obs_dim}) to match H {shape_str(self.H)}, "
-                    f"got shape {shape_str(y)}"
-                )
-            dt = as_float_tensor(dt, "dt", F.dtype, F.device)
-            if dt.dim() < 1 or dt.shape[-1] != y.shape[-2]:
-                raise ValueError(
-                    f"dt must have shape (..., T={y.shape[-2]}) to match y {shape_str(y)}, got shape {shape_str(dt)}"
-                )
-            H, R = self._obs_model()
-            rates, m0, P0, p0 = self.rates, self.m0, self.P0, self.mode_prob0
-            if self.validate_args:
-                check_values(
-                    finite=[
-                        ("F", F),
-                        ("W", W),
-                        ("H", H),
-                        ("R", R),
-                        ("rates", rates),
-                        ("m0", m0),
-                        ("P0", P0),
-                        ("mode_prob0", p0),
-                    ],
-                    nonnegative=[("dt", dt)],
-                    no_inf=[("y", y)],
-                )
-            # the bank is valid by construction (parametrisations, PSD doubling) and dt checked above
-            d, Pi = self._discretize_bank(F, W, dt, validate_args=False)
-            return imm_filter(y, d.A, d.Q, H, R, Pi, m0, P0, p0.expand(self.num_modes), mask=mask, validate_args=False)
+        model = self.imm_model()
+        dtype, device = model.rates.dtype, model.rates.device
+        y = as_float_tensor(y, "y", dtype, device)
+        if y.dim() < 2 or y.shape[-1] != self.obs_dim:
+            raise ValueError(
+                f"y must have shape (..., T, m={self.obs_dim}) to match H {shape_str(self.H)}, got shape {shape_str(y)}"
+            )
+        dt = as_float_tensor(dt, "dt", dtype, device)
+        if dt.dim() < 1 or dt.shape[-1] != y.shape[-2]:
+            raise ValueError(
+                f"dt must have shape (..., T={y.shape[-2]}) to match y {shape_str(y)}, got shape {shape_str(dt)}"
+            )
+        m0, P0, p0 = self.m0, self.P0, self.mode_prob0
+        validate = self.validate_args
+        if validate:
+            check_model_values(model, dt, y=y, finite=[("m0", m0), ("P0", P0), ("mode_prob0", p0)])
+        d, Pi = self._discretizebank_of(model, dt)
+        out = imm_filter(
+            y, d.A, d.Q, model.H, model.R, Pi, m0, P0, p0.expand(self.num_modes), mask=mask, validate_args=False
+        )
+        if validate:  # (the state it ends in: a NaN or Inf there persists into every later step)
+            final = (out.log_likelihood, out.mode_probabilities[..., -1, :], out.mode_mean[..., -1, :, :])
+            update = (model.H, out.observed.unsqueeze(-2), out.mode_cov)
+            check_outcome(final, (out.mode_cov,), d, y, dt, bank_of(model.modes)[0], model.R, update)
+        return out
 
     # ------------------------------------------------------------------ online
     def initial_state(self, batch_shape: torch.Size | tuple[int, ...] | int = ()) -> IMMState:
@@ -416,11 +378,13 @@ class IMMFilter(ValidateArgs, nn.Module):
     ) -> tuple[IMMState, IMMStep]:
         """One report per live track: one IMM cycle of each track over its own dt (...).
 
-        The cycle of :meth:`forward`'s loop: iterating it over a series gives the same
-        mode probabilities, moments and step log-likelihoods (to rounding).
+        The cycle of :meth:`forward`'s loop with its discretisation and checks: iterating it
+        over a series gives the same mode probabilities, moments and step log-likelihoods, and
+        raises where :meth:`forward` raises.
 
         Args:
-            state: :class:`~torchsde_lti.IMMState` from :meth:`initial_state` or a previous step.
+            state: :class:`~torchsde_lti.IMMState` from :meth:`initial_state` or a previous
+                step (mode_prob probability vectors, mode_cov symmetric PSD).
             y: (..., m) reports; NaN = missing component.
             dt: (...) non-negative time since each track's state.
             u: must be None (the IMM has no inputs).
@@ -433,51 +397,42 @@ class IMMFilter(ValidateArgs, nn.Module):
         """
         if u is not None:
             raise ValueError(f"u was given (shape {shape_str(torch.as_tensor(u))}) but IMMFilter has no inputs")
-        with parametrize.cached():
-            online, state, dt = self._online_args(state, dt)
-            F, W, H, R = online.F, online.W, online.H, online.R
-            y, mask = online_report(y, mask, H, F.dtype, F.device)
-            check_batches([*_state_batches(state), ("y", y.shape[:-1]), ("dt", dt.shape)])
-            if self.validate_args:
-                _check_online_values(F, W, online.rates, state, dt, H, R, y)
-            d, Pi = self._discretize_bank(F, W, dt, validate_args=False, online=online)
-            return imm_step(state, y, d.A, d.Q, Pi, H, R, mask)
+        model, state, dt = self._online_args(state, dt)
+        H, R = model.H, model.R
+        y, mask = online_report(y, mask, H, H.dtype, H.device)
+        check_batches([*state_batches(state), ("y", y.shape[:-1]), ("dt", dt.shape)])
+        validate = self.validate_args
+        if validate:
+            check_model_values(model, dt, state, y=y)
+        d, Pi = self._discretizebank_of(model, dt.unsqueeze(-1))
+        A, Q, Pi = d.A.select(-4, 0), d.Q.select(-4, 0), Pi.select(-3, 0)
+        new, out = imm_step(state, y, A, Q, Pi, H, R, mask)
+        if validate:
+            final, update = (
+                (out.log_likelihood, new.mode_prob, new.mode_mean),
+                (H, out.observed.unsqueeze(-2), new.mode_cov),
+            )
+            check_outcome(final, (new.mode_cov,), (A, Q), y, dt, bank_of(model.modes)[0], R, update)
+        return new, out
 
     def predict(self, state: IMMState, dt: Tensor | float) -> IMMState:
         """Prediction only, each track over its own dt (...): mixing with ``expm(Λ dt)``, then
         each mode's exact A_j, Q_j (the predicted :class:`~torchsde_lti.IMMState`)."""
-        with parametrize.cached():
-            online, state, dt = self._online_args(state, dt)
-            check_batches([*_state_batches(state), ("dt", dt.shape)])
-            if self.validate_args:
-                _check_online_values(online.F, online.W, online.rates, state, dt)
-            d, Pi = self._discretize_bank(online.F, online.W, dt, validate_args=False, online=online)
-            return imm_predict_state(state, d.A, d.Q, Pi)
+        model, state, dt = self._online_args(state, dt)
+        check_batches([*state_batches(state), ("dt", dt.shape)])
+        if self.validate_args:
+            check_model_values(model, dt, state)
+        d, Pi = self._discretizebank_of(model, dt.unsqueeze(-1))
+        return imm_predict_state(state, d.A.select(-4, 0), d.Q.select(-4, 0), Pi.select(-3, 0))
 
-    def _online_args(self, state: IMMState, dt: Tensor | float) -> tuple[OnlineIMM, IMMState, Tensor]:
-        """The evaluated model (:meth:`_online_model`), the state and dt of an online call,
-        converted and shape-checked; without gradients the model is evaluated once per
-        parameter version."""
-        online = evaluated(self, self._online_model)
-        F = online.F
-        return online, _imm_state(state, F), as_float_tensor(dt, "dt", F.dtype, F.device)
-
-    def _online_model(self) -> OnlineIMM:
-        """:class:`OnlineIMM`: :meth:`bank`, the observation model and the rates, each
-        parametrisation evaluated once, and, eagerly without gradients (where
-        :func:`~torchsde_lti.nn._online.evaluated` caches this per parameter version), the
-        discretisation series (:func:`~torchsde_lti.core.discretization.discretization_series`:
-        what a step's discretisation needs that does not depend on dt) of each mode and of the
-        mode chain (``expm(Λ dt)`` in float64)."""
-        with parametrize.cached():
-            F, W = self.bank()
-            H, R = self._obs_model()
-            rates = self.rates
-            series = chain = None
-            if not torch.is_grad_enabled() and not tracing():
-                series = [discretization_series(F[j], W[j], None) for j in range(F.shape[0])]
-                chain = discretization_series(rates.double(), None, None)
-            return OnlineIMM(F, W, H, R, rates, series, chain)
+    def _online_args(self, state: IMMState, dt: Tensor | float) -> tuple[IMMModel, IMMState, Tensor]:
+        """The evaluated model (:meth:`imm_model`; without gradients once per parameter
+        version, :func:`~torchsde_lti.nn._online.evaluated`), the state and dt of an online
+        call, converted and shape-checked."""
+        model = evaluated(self, self.imm_model)
+        F = model.modes[0].F
+        M, n = self.num_modes, F.shape[-1]
+        return model, imm_state(state, M, n, F.dtype, F.device), as_float_tensor(dt, "dt", F.dtype, F.device)
 
     def forecast(
         self,
@@ -500,17 +455,17 @@ class IMMFilter(ValidateArgs, nn.Module):
                 state.mode_mean[..., -1, :, :],
                 state.mode_cov[..., -1, :, :, :],
             )
-        with parametrize.cached():
-            F, W = self.bank()
-            prob, mean, cov = _imm_state(state, F)
-            dt = as_float_tensor(dt, "dt", F.dtype, F.device)
-            if dt.dim() == 0:
-                dt = dt.reshape(1)
-            check_batches([*_state_batches(IMMState(prob, mean, cov)), ("dt", dt.shape[:-1])])
-            H, R = self._obs_model()
-            if self.validate_args:
-                _check_online_values(F, W, self.rates, (prob, mean, cov), dt, H, R)
-            d, Pi = self._discretize_bank(F, W, dt, validate_args=False)  # (..., K, M, n, n), (..., K, M, M)
+        model = self.imm_model()
+        F = model.modes[0].F
+        prob, mean, cov = imm_state(state, self.num_modes, F.shape[-1], F.dtype, F.device)
+        dt = as_float_tensor(dt, "dt", F.dtype, F.device)
+        if dt.dim() == 0:
+            dt = dt.reshape(1)
+        check_batches([*state_batches(IMMState(prob, mean, cov)), ("dt", dt.shape[:-1])])
+        H, R = model.H, model.R
+        if self.validate_args:
+            check_model_values(model, dt, IMMState(prob, mean, cov))
+        d, Pi = self._discretizebank_of(model, dt)  # (..., K, M, n, n), (..., K, M, M)
         p: IMMPrediction = imm_predict(prob, mean, cov, d.A, d.Q, Pi)
         ym = (H @ p.mode_mean.unsqueeze(-1)).squeeze(-1)  # (..., K, M, m)
         S = H @ p.mode_cov @ H.mT + R
@@ -520,47 +475,3 @@ class IMMFilter(ValidateArgs, nn.Module):
 
     def extra_repr(self) -> str:
         return f"modes={list(self.mode_names)}, obs_dim={self.obs_dim}, unique_dt={self.unique_dt}"
-
-
-#: The names of an IMM state's fields in error messages.
-_STATE_NAMES = ("state.mode_prob", "state.mode_mean", "state.mode_cov")
-
-
-def _imm_state(state: object, F: Tensor) -> IMMState:
-    """An online call's state as an :class:`~torchsde_lti.IMMState` of F's dtype and device
-    (F: (M, n, n)), shapes checked; TypeError or ValueError naming it."""
-    M, n = F.shape[-3], F.shape[-1]
-    if not isinstance(state, tuple) or len(state) != 3:
-        raise TypeError(f"state must be an IMMState (mode_prob, mode_mean, mode_cov), got {type(state).__name__}")
-    prob, mean, cov = (as_float_tensor(t, name, F.dtype, F.device) for name, t in zip(_STATE_NAMES, state))
-    if prob.dim() < 1 or prob.shape[-1] != M or mean.shape[-2:] != (M, n) or cov.shape[-3:] != (M, n, n):
-        raise ValueError(
-            f"state must be (mode_prob (..., {M}), mode_mean (..., {M}, {n}), mode_cov "
-            f"(..., {M}, {n}, {n})), got {shape_str(prob)}, {shape_str(mean)}, {shape_str(cov)}"
-        )
-    return IMMState(prob, mean, cov)
-
-
-def _check_online_values(
-    F: Tensor,
-    W: Tensor,
-    rates: Tensor,
-    state: tuple[Tensor, Tensor, Tensor],
-    dt: Tensor,
-    H: Tensor | None = None,
-    R: Tensor | None = None,
-    y: Tensor | None = None,
-) -> None:
-    """The value checks of an online call (step, predict, forecast): the bank (F, W), H and R
-    where the call uses them, the rates and the state finite; dt ≥ 0; y without ±Inf."""
-    obs = [] if H is None else [("H", H), ("R", R)]
-    check_values(
-        finite=[("F", F), ("W", W), *obs, ("rates", rates), *zip(_STATE_NAMES, state)],
-        nonnegative=[("dt", dt)],
-        no_inf=[] if y is None else [("y", y)],
-    )
-
-
-def _state_batches(state: IMMState) -> list[tuple[str, tuple[int, ...]]]:
-    """The named batch shapes of an IMM state's fields."""
-    return [(name, tuple(t.shape[: t.dim() - k])) for name, t, k in zip(_STATE_NAMES, state, (1, 2, 3))]

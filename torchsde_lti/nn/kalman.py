@@ -53,12 +53,7 @@ import torch
 from torch import Tensor
 from torch.nn.utils import parametrize
 
-from torchsde_lti.core.discretization import (
-    Discrete,
-    discretize,
-    discretize_series,
-    resolve_method,
-)
+from torchsde_lti.core.discretization import Discrete, resolve_method
 from torchsde_lti.core.linalg import matvec, sym
 from torchsde_lti.core.moments import predict_moments
 from torchsde_lti.core.validation import (
@@ -68,7 +63,6 @@ from torchsde_lti.core.validation import (
     check_matrix,
     parse_learn,
     shape_str,
-    tracing,
 )
 from torchsde_lti.filters import (
     FilterResult,
@@ -80,7 +74,7 @@ from torchsde_lti.filters.inputs import FilterInputs
 from torchsde_lti.filters.kalman import ALGORITHMS, check_algorithm, run_filter
 from torchsde_lti.filters.results import serializable
 from torchsde_lti.nn._kalman_online import KalmanOnline, model_batches, state_batches
-from torchsde_lti.nn._online import check_batches, online_state
+from torchsde_lti.nn._online import Series, check_batches, discretize_steps, model_series, online_state
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import check_outcome, check_values
 from torchsde_lti.nn.parametrizations import PositiveDefinite
@@ -233,43 +227,6 @@ class KalmanFilter(KalmanOnline):
         register_tensor(self, "m0", m0_t.detach().clone(), "m0" in names)
         self._init_prior(P0, "P0" in names, n, dtype, device)
 
-    def _init_prior(
-        self, P0: Tensor | str | None, learned: bool, n: int, dtype: torch.dtype, device: torch.device
-    ) -> None:
-        """:attr:`prior_mode` and the P0 parameter/buffer (None unless the mode is "given")."""
-        diffuse = self.diffuse_variance * torch.eye(n, dtype=dtype, device=device)
-        if isinstance(P0, str):
-            if P0 != "diffuse":
-                raise ValueError(f"P0 must be a tensor, None (the model's prior_covariance()) or 'diffuse', got {P0!r}")
-            self.prior_mode, P0_t = "diffuse", diffuse
-        elif P0 is not None:
-            P0_t = as_float_tensor(P0, "P0", dtype, device).detach().clone()
-            check_matrix(P0_t, "P0", rows=n, cols=n)
-            self.prior_mode = "given"
-        else:
-            try:
-                with torch.no_grad():
-                    P0_t = self.sde.prior_covariance(validate_args=True, diffuse_variance=self.diffuse_variance)
-                    P0_t = P0_t.detach().clone()
-                self.prior_mode = "model"
-            except ValueError:
-                self.prior_mode, P0_t = "diffuse", diffuse
-        if learned:
-            if bool((torch.linalg.cholesky_ex(P0_t).info != 0).any()):
-                raise ValueError(
-                    f"learn contains 'P0', but the {self.prior_mode} prior covariance is singular (e.g. a shaped "
-                    "model's steady-state start: every entry involving a system state is 0) and a learnable P0 is "
-                    "parametrised positive definite; pass an initial P0 tensor"
-                )
-            self.prior_mode = "given"  # learnable, initialised at that prior's value
-        if self.prior_mode == "given":
-            register_tensor(self, "P0", P0_t, learned)
-            parametrize.register_parametrization(
-                self, "P0", PositiveDefinite(name="P0", size=n).to(dtype=dtype, device=device)
-            )
-        else:
-            self.register_buffer("P0", None)
-
     # ------------------------------------------------------------------ helpers
     @property
     def algorithm(self) -> str:
@@ -291,25 +248,6 @@ class KalmanFilter(KalmanOnline):
     def modes(self) -> list[FilterMode]:
         """The filter's one motion model and observation: ``[FilterMode("", sde, H, R)]``."""
         return [FilterMode("", self.sde, self.H, self.R)]
-
-    def _prior(self, mats: SDEMatrices, validate_args: bool) -> tuple[Tensor, Tensor]:
-        """:meth:`initial_state` from already evaluated (and checked) SDE matrices."""
-        if self.prior_mode == "given":
-            P0 = self.P0
-        elif self.prior_mode == "model":
-            try:
-                P0 = self.sde.prior_covariance(
-                    mats, validate_args=validate_args, diffuse_variance=self.diffuse_variance
-                )
-            except ValueError as err:
-                raise ValueError(
-                    "the default prior P0 is the model's prior_covariance(), but its F is no longer Hurwitz; "
-                    "pass P0 explicitly or constrain F (F_constraint='hurwitz')"
-                ) from err
-        else:
-            F = mats.F
-            P0 = self.diffuse_variance * torch.eye(F.shape[-1], dtype=F.dtype, device=F.device)
-        return self.m0, P0
 
     def _check_inputs(
         self, y: Tensor, dt: Tensor, u: Tensor | None, mats: SDEMatrices
@@ -345,13 +283,16 @@ class KalmanFilter(KalmanOnline):
             raise ValueError(f"u must have shape (..., {axis}={T}, p={p}), got shape {shape_str(u)}")
         return u
 
-    def _check_values(self, mats: SDEMatrices, dt: Tensor, **named: Tensor | None) -> None:
-        """One fused value check of a call: dt finite and ≥ 0, the model's matrices and the
-        ``named`` tensors finite (NaN/Inf after a diverged optimiser step fails loudly here,
-        so the unchecked discretisation cannot hide it); y (if named) without Inf."""
+    def _check_values(
+        self, mats: SDEMatrices, dt: Tensor, psd: tuple[tuple[str, Tensor], ...] = (), **named: Tensor | None
+    ) -> None:
+        """One fused value check of a call (one synchronisation): dt finite and ≥ 0, the
+        model's matrices and the ``named`` tensors finite (NaN/Inf after a diverged optimiser
+        step fails loudly here, so the unchecked discretisation cannot hide it); y (if named)
+        without Inf; the ``psd`` (name, covariance) pairs symmetric PSD (an online state)."""
         y = named.pop("y", None)
         finite = [*zip(("F", "L", "Qc", "B"), mats), *named.items()]
-        check_values(finite=finite, nonnegative=[("dt", dt)], no_inf=[("y", y)])
+        check_values(finite=finite, nonnegative=[("dt", dt)], no_inf=[("y", y)], psd=psd)
 
     # ------------------------------------------------------------------ API
     def forward(
@@ -401,32 +342,33 @@ class KalmanFilter(KalmanOnline):
         algorithm: str,
         compiled_loop: bool = False,
     ) -> FilterResult:
-        with parametrize.cached():  # each parametrisation evaluated once per call
-            mats = self.sde.matrices()
-            y, dt, u = self._check_inputs(y, dt, u, mats)
-            H, R, m0 = self.H, self.R, self.m0
-            D = self.D if u is not None else None  # no known input: D u = 0
-            validate = self.validate_args
-            if validate:
-                self._check_values(mats, dt, y=y, u=u, H=H, R=R, m0=m0, D=D, P0=self.P0)
-            _, P0 = self._prior(mats, validate)
-            # A batch of observation models (..., m, n) is constant over time: insert the T axis.
-            H = H.unsqueeze(-3) if H.dim() > 2 else H
-            R = R.unsqueeze(-3) if R.dim() > 2 else R
-            if D is not None and D.dim() > 2:
-                D = D.unsqueeze(-3)
-            T = y.shape[-2]
-            if algorithm == "auto":
-                batch = broadcast_batch([("y", y.shape[:-2]), ("dt", dt.shape[:-1])])
-                algorithm = choose_algorithm(algorithm, math.prod(batch), T, y.device, y.dtype)
-            # one batched discretisation of every step: A, Q (..., T, n, n), laid out for the algorithm
-            d = self._discretize(dt, mats, series_layout=algorithm != "scan")
-            G = d.G if u is not None else None
-            args = FilterInputs(y, d.A, d.Q, H, R, m0, P0, G, u, mask, D)
-            out = run_filter(args, algorithm, validate_args=False, compiled_loop=compiled_loop)
-            if validate and not tracing():
-                check_outcome(out.log_likelihood, d, y, dt, mats.F, R)
-            return out
+        mats = self.sde.matrices()  # (each parametrisation read once a call)
+        y, dt, u = self._check_inputs(y, dt, u, mats)
+        H, R, m0 = self.H, self.R, self.m0
+        P0_given = self.P0 if self.prior_mode == "given" else None
+        D = self.D if u is not None else None  # no known input: D u = 0
+        validate = self.validate_args
+        if validate:
+            self._check_values(mats, dt, y=y, u=u, H=H, R=R, m0=m0, D=D, P0=P0_given)
+        _, P0 = self._prior(mats, validate, P0_given)
+        # A batch of observation models (..., m, n) is constant over time: insert the T axis.
+        H = H.unsqueeze(-3) if H.dim() > 2 else H
+        R = R.unsqueeze(-3) if R.dim() > 2 else R
+        if D is not None and D.dim() > 2:
+            D = D.unsqueeze(-3)
+        T = y.shape[-2]
+        if algorithm == "auto":
+            batch = broadcast_batch([("y", y.shape[:-2]), ("dt", dt.shape[:-1])])
+            algorithm = choose_algorithm(algorithm, math.prod(batch), T, y.device, y.dtype)
+        # one batched discretisation of every step: A, Q (..., T, n, n), laid out for the algorithm
+        d = self._discretize(dt, mats, series_layout=algorithm != "scan")
+        G = d.G if u is not None else None
+        args = FilterInputs(y, d.A, d.Q, H, R, m0, P0, G, u, mask, D)
+        out = run_filter(args, algorithm, validate_args=False, compiled_loop=compiled_loop)
+        if validate:  # (the state it ends in: a NaN or Inf there persists into every later step)
+            update = (H, out.observed, out.cov)
+            check_outcome((out.log_likelihood, out.mean[..., -1, :]), (out.cov,), d, y, dt, mats.F, R, update)
+        return out
 
     def algorithm_for(self, batch_size: int, T: int, device: torch.device, dtype: torch.dtype | None = None) -> str:
         """The algorithm a call with ``batch_size`` tracks of T steps on ``device`` runs:
@@ -439,30 +381,21 @@ class KalmanFilter(KalmanOnline):
         """The method used for every step: :attr:`method`, else the SDE's."""
         return self.method or self.sde.method
 
-    def _discretize(self, dt: Tensor, mats: SDEMatrices | None = None, series_layout: bool = True) -> Discrete:
-        """All steps' (A, Q, G) over a checked dt (..., T) in one batched call (no value checks:
-        the matrices come from the SDE's parametrisations, checked by the caller; a
-        ``"matrix_exp"`` Q is checked, :meth:`_check_van_loan_noise`).
-
-        ``series_layout``: for one parameter set the doubling method returns batch-first
-        views of batch-last storage, so the sequential loop's per-step moves to (n, n, batch)
-        are cheap row copies (:func:`~torchsde_lti.core.discretize_series`); the scan wants
-        plain batch-first tensors (``series_layout=False``, unless ``unique_dt``).
-        """
+    def _discretize(
+        self, dt: Tensor, mats: SDEMatrices | None = None, series_layout: bool = True, series: Series | None = None
+    ) -> Discrete:
+        """All steps' (A, Q, G) over a checked dt (..., T) in one batched call: the modules'
+        one discretisation (:func:`~torchsde_lti.nn._online.discretize_steps`, the same in
+        :meth:`step`), with the model's series (:func:`~torchsde_lti.nn._online.model_series`)
+        formed here unless given; no value checks (the matrices come from the SDE's
+        parametrisations, checked by the caller; a ``"matrix_exp"`` Q is checked,
+        :meth:`_check_van_loan_noise`). ``series_layout``: batch-first views of batch-last
+        storage for the sequential loop (plain batch-first for the scan)."""
         if mats is None:
             mats = self.sde.matrices()
-        if tracing() and self.discretization_method == "doubling":  # an exported sequence program
-            series = self._structural_series(mats)
-            if series is not None:  # one parameter set: its series (an integrator chain's closed form)
-                return Discrete(*series(dt))
-        # a length-1 time axis in the matrices lines a parameter batch up with dt (..., T)
-        m = SDEMatrices(*(None if x is None else x.unsqueeze(-3) for x in mats))
-        if not series_layout and not self.unique_dt:
-            d = discretize(m.F, m.L, m.Qc, dt, B=m.B, method=self.discretization_method, validate_args=False)
-        else:
-            d = discretize_series(
-                m.F, m.L, m.Qc, dt, m.B, method=self.discretization_method, unique=self.unique_dt, validate_args=False
-            )
+        if series is None:
+            series = model_series(*mats, index=self.sde.structural_nilpotency())
+        d = discretize_steps(mats, dt, self.discretization_method, series, series_layout, self.unique_dt)
         self._check_van_loan_noise(d.Q)
         return d
 
@@ -497,28 +430,27 @@ class KalmanFilter(KalmanOnline):
         """
         if isinstance(state, (FilterResult, SmootherResult)):
             state = (state.mean[..., -1, :], state.cov[..., -1, :, :])
-        with parametrize.cached():
-            mats = self.sde.matrices()
-            F = mats.F
-            checked, dt = online_state(state, dt, F)
-            mean, cov = checked
-            if dt.dim() == 0:
-                dt = dt.reshape(1)
-            if u is not None:
-                p = mats.B.shape[-1] if mats.B is not None else (self.D.shape[-1] if self.D is not None else 0)
-                u = self._check_u(u, p, dt.shape[-1], "K", F.dtype, F.device)
-            H, R, D = self.H, self.R, self.D
-            check_batches(
-                [
-                    *state_batches(checked),
-                    ("dt", dt.shape[:-1]),
-                    *([] if u is None else [("u", u.shape[:-2])]),
-                    *model_batches(mats, H=H, R=R, D=D if u is not None else None),
-                ]
-            )
-            if self.validate_args:
-                self._check_values(mats, dt, u=u, H=H, R=R, D=D, mean=mean, cov=cov)
-            d = self._discretize(dt, mats, series_layout=False)
+        mats = self.sde.matrices()
+        F = mats.F
+        checked, dt = online_state(state, dt, F)
+        mean, cov = checked
+        if dt.dim() == 0:
+            dt = dt.reshape(1)
+        if u is not None:
+            p = mats.B.shape[-1] if mats.B is not None else (self.D.shape[-1] if self.D is not None else 0)
+            u = self._check_u(u, p, dt.shape[-1], "K", F.dtype, F.device)
+        H, R, D = self.H, self.R, self.D
+        check_batches(
+            [
+                *state_batches(checked),
+                ("dt", dt.shape[:-1]),
+                *([] if u is None else [("u", u.shape[:-2])]),
+                *model_batches(mats, H=H, R=R, D=D if u is not None else None),
+            ]
+        )
+        if self.validate_args:
+            self._check_values(mats, dt, psd=(("state.cov", cov),), u=u, H=H, R=R, D=D, mean=mean)
+        d = self._discretize(dt, mats, series_layout=False)
         m, P = predict_moments(mean.unsqueeze(-2), cov.unsqueeze(-3), d.A, d.Q, d.G, u)
         Hk = H.unsqueeze(-3) if H.dim() > 2 else H
         Rk = R.unsqueeze(-3) if R.dim() > 2 else R

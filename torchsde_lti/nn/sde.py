@@ -28,8 +28,9 @@ Save and load with ``state_dict()`` / ``load_state_dict()`` (or ``copy.deepcopy`
 :mod:`torch.nn.utils.parametrize` does not support pickling whole parametrised modules.
 
 Each read of a parametrised matrix re-evaluates its (small) parametrisation; inside one
-computation use :meth:`LTISDE.matrices`, which reads all four once under
-``torch.nn.utils.parametrize.cached()`` (or wrap a longer block in that context manager).
+computation use :meth:`LTISDE.matrices`, which reads all four once. The library never enters
+``torch.nn.utils.parametrize.cached()``: its cache is one per process, shared by every thread,
+so modules used from several threads at once would read each other's tensors.
 """
 
 from __future__ import annotations
@@ -194,9 +195,9 @@ class LTISDE(ValidateArgs, nn.Module):
 
     # ------------------------------------------------------------------ matrices
     def matrices(self) -> SDEMatrices:
-        """All four matrices, each parametrisation evaluated once."""
-        with parametrize.cached():
-            return SDEMatrices(self.F, self.L, self.Qc, self.B)
+        """All four matrices, each parametrisation evaluated once (no process-wide cache:
+        ``torch.nn.utils.parametrize.cached()`` is shared by every thread)."""
+        return SDEMatrices(self.F, self.L, self.Qc, self.B)
 
     def _shapes(self) -> SDEMatrices:
         with torch.no_grad():
@@ -387,8 +388,7 @@ class StructuredSDE(LTISDE):
         raise NotImplementedError
 
     def matrices(self) -> SDEMatrices:
-        with parametrize.cached():
-            return self._build()
+        return self._build()
 
     def _read_only(self, name: str) -> None:
         params = [n.replace("parametrizations.", "").replace(".original", "") for n, _ in self.named_parameters()]
