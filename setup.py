@@ -11,6 +11,6 @@ from setuptools import find_packages, setup
 setup(
     packages=[*find_packages(include=["torchsde_lti", "torchsde_lti.*"]), "torchsde_lti.conf"],
     package_dir={"torchsde_lti.conf": "conf"},
-    package_data={"torchsde_lti.conf": ["*.yaml", "**/*.yaml"]},
+    package_data={"torchsde_lti": ["py.typed"], "torchsde_lti.conf": ["*.yaml", "**/*.yaml"]},  # PEP 561 marker
     include_package_data=False,
 )
