@@ -67,14 +67,14 @@ tl.load_package(path) runs it.""",
 
 
 def _parser() -> argparse.ArgumentParser:
-    from torchsde_lti import __version__
+    import torchsde_lti
 
     parser = argparse.ArgumentParser(
         prog="torchsde-lti",
         description="Train learned motion models and run trained ones over tracks.",
         epilog="Each command has its own --help with examples.",
     )
-    parser.add_argument("--version", action="version", version=f"torchsde_lti {__version__}")
+    parser.add_argument("--version", action="version", version=f"torchsde_lti {torchsde_lti.__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def command(name: str, summary: str) -> argparse.ArgumentParser:
