@@ -99,7 +99,7 @@ def test_load_run_last_and_float32(tmp_path: Path) -> None:
 def test_load_run_errors_name_the_problem(cv_run: Path, tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError, match="run_dir: no such directory"):
         load_run(tmp_path / "nowhere")
-    with pytest.raises(FileNotFoundError, match=r"not a run directory \(no .hydra/config.yaml\)"):
+    with pytest.raises(FileNotFoundError, match=r"not a run directory \(no .hydra/config.yaml, no config.yaml\)"):
         load_run(tmp_path)
     with pytest.raises(FileNotFoundError, match="checkpoint: no such file"):
         load_run(cv_run, checkpoint=tmp_path / "x.ckpt")

@@ -3,7 +3,7 @@ tracks read from a file (:func:`track_states`: what ``torchsde-lti filter`` / ``
 
 A run of ``python -m torchsde_lti.train`` (or ``torchsde-lti train``) leaves in its directory
 
-    .hydra/config.yaml          the composed config (Hydra)
+    .hydra/config.yaml          the composed config (Hydra; or config.yaml at the top of the run)
     checkpoints/best.ckpt       the epoch with the lowest val/nll (Lightning)
     checkpoints/last.ckpt       the end of the last completed epoch
     metrics.json                the run's card: status, metrics, learned values (strict JSON)
@@ -65,11 +65,11 @@ class Run(NamedTuple):
 
 
 def _config(run_dir: Path) -> DictConfig:
-    path = run_dir / ".hydra" / "config.yaml"
-    if not path.is_file():
+    path = next((p for p in (run_dir / ".hydra" / "config.yaml", run_dir / "config.yaml") if p.is_file()), None)
+    if path is None:
         raise FileNotFoundError(
-            f"run_dir: {run_dir} is not a run directory (no .hydra/config.yaml); give the directory a "
-            "training run wrote, e.g. outputs/<date>/<time>"
+            f"run_dir: {run_dir} is not a run directory (no .hydra/config.yaml, no config.yaml); give the "
+            "directory a training run wrote, e.g. outputs/<date>/<time>"
         )
     cfg = OmegaConf.load(path)
     if not isinstance(cfg, DictConfig) or cfg.get("filter") is None:
