@@ -17,7 +17,7 @@ If even the static program with eager's own algorithm is slower than eager, the 
 exported graph's runtime (every view, expand and decomposed op a separate aten call from
 Python) and not the choice of algorithm.
 
-    PYTHONPATH=$PWD python experiments/probe_export_runtime.py
+    PYTHONPATH=$PWD python experiments/probe_export_runtime.py   # writes experiments/results/probe_export_runtime.md
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ import torchsde_lti.nn.kalman as nn_kalman
 from torchsde_lti.filters.scan import prefers_scan
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _timing import machine_line, paired_s  # noqa: E402
+from _timing import machine_line, paired_s, saved  # noqa: E402
 from bench_online import F64, build_filter  # noqa: E402
 
 
@@ -117,4 +117,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with saved("probe_export_runtime.md"):
+        main()
