@@ -281,3 +281,32 @@ def test_python_dash_m_and_train_pass_hydra_flags_through(tmp_path: Path) -> Non
 
 def test_the_package_is_typed() -> None:
     assert (Path(tl.__file__).parent / "py.typed").is_file()
+
+
+def test_a_real_data_run_reads_files_with_its_own_rules(cv_run: Path, csv_file: Path, tmp_path: Path) -> None:
+    """A run trained on real tracks names how its files are read (data.columns, min_reports, ...):
+    filter / smooth read a new file the same way, with no option given."""
+    import shutil
+
+    from omegaconf import OmegaConf
+
+    run_dir = tmp_path / "run"
+    shutil.copytree(cv_run, run_dir)
+    cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
+    cfg.data = {
+        "_target_": "torchsde_lti.data.modules.TrackDataModule",
+        "source": "unused.csv",
+        "columns": {"id": "ship", "time": "when", "lat": "la", "lon": "lo"},
+        "min_reports": 13,  # every test track has 12 reports: all dropped, and counted
+        "center": True,
+    }
+    OmegaConf.save(cfg, run_dir / ".hydra" / "config.yaml")
+    renamed = tmp_path / "renamed.csv"
+    renamed.write_text(csv_file.read_text().replace("MMSI,BaseDateTime,LAT,LON", "ship,when,la,lo", 1))
+    run = load_run(run_dir)
+    with pytest.raises(ValueError, match="no track of >= 13 reports is left"):
+        track_states(run, read_tracks(run, renamed))
+    tracks = read_tracks(run, renamed, min_reports=2)  # an argument of load_tracks overrides the run's
+    assert len(tracks) == 5 and tracks.summary.as_dict()
+    with pytest.raises(TypeError, match="unknown load_tracks arguments"):
+        read_tracks(run, renamed, colums={})
