@@ -13,6 +13,7 @@ setup(
     packages=[*find_packages(include=["torchsde_lti", "torchsde_lti.*"]), "torchsde_lti.conf"],
     package_dir={"torchsde_lti.conf": "conf"},
     package_data={
+        "torchsde_lti": ["py.typed"],  # PEP 561 marker
         "torchsde_lti.conf": ["*.yaml", "**/*.yaml"],
         "torchsde_lti.pretrained": ["files/*.json", "files/*.pt", "files/*.npz"],  # shipped filters, cards, slices
     },

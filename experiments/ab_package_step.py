@@ -30,7 +30,8 @@ from torch.export import Dim
 import torchsde_lti as tl
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_online import build_filter, median_s  # noqa: E402
+from _timing import median_s, paired_s  # noqa: E402
+from bench_online import build_filter  # noqa: E402
 from bench_online import step_args as cv_args  # noqa: E402
 
 
@@ -96,7 +97,6 @@ def series_vs_discretize() -> None:
     against the same step with core's ``discretize`` on every call, timed in alternation; the
     same for an IMM step (constant velocity + integrated OU, each mode's and the mode chain's
     series, against core's discretize and torch.matrix_exp of Λ dt)."""
-    from bench_online import paired_s
 
     from torchsde_lti.nn._online import evaluated
 
@@ -143,7 +143,6 @@ def small_batch_crossover() -> None:
     """The eager constant-velocity step (float64 and float32) with the joint update against the
     scalar updates, by number of tracks, timed in alternation: what sets
     ``torchsde_lti.filters.online.SMALL_BATCH``."""
-    from bench_online import paired_s
 
     import torchsde_lti.filters.online as online
 

@@ -27,14 +27,13 @@ from __future__ import annotations
 import argparse
 import contextlib
 import io
-import os
-import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import torch
+from _timing import Tee, machine_line, median_s
 from bench_filter_choice import filterpy_cv  # the same filterpy contestant
 
 import torchsde_lti as tl
@@ -58,12 +57,8 @@ def data(B: int, T: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def median_ms(fn, repeats: int = 7) -> float:
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts) * 1e3
+    """Median wall milliseconds of ``repeats`` calls (compiled and packaged calls: wall time)."""
+    return 1e3 * median_s(fn, repeats, warmup=0, clock=time.perf_counter)
 
 
 def bench_compile() -> None:
@@ -174,24 +169,8 @@ def main() -> None:
     args.out.write_text(copy.getvalue())
 
 
-class Tee(io.TextIOBase):
-    """Writes to several text streams (the terminal and the saved copy)."""
-
-    def __init__(self, *streams: io.TextIOBase) -> None:
-        self.streams = streams
-
-    def write(self, text: str) -> int:
-        for stream in self.streams:
-            stream.write(text)
-            stream.flush()
-        return len(text)
-
-
 def run(args: argparse.Namespace) -> None:
-    print(
-        f"# deploy benchmark (torch {torch.__version__}, {args.threads} thread(s), load "
-        f"{os.getloadavg()[0]:.2f}; shared machine, noisy: medians)"
-    )
+    print(f"# deploy benchmark ({machine_line()})")
     bench_compile()
     print("\n### checkpoint → torch.export → save → load → run (float64, no grad)\n")
     print(
@@ -209,7 +188,7 @@ def run(args: argparse.Namespace) -> None:
         )
         print("|---|---|---|---|---|---|---|---|---|---|")
         print("\n".join(AOTI_ROWS))
-    print(f"\nload at end {os.getloadavg()[0]:.2f}")
+    print(f"\nat the end: {machine_line()}")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Agreement and cost of the issue-13 features, printed as a small table.
 
-    PYTHONPATH=$PWD python experiments/interop_agreement.py
+    PYTHONPATH=$PWD python experiments/interop_agreement.py   # writes experiments/results/interop_agreement.txt
 
 Agreement (float64, max abs deviation over an irregular 200-step track with missing steps):
 Stone Soup KalmanPredictor/KalmanUpdater with the LTISDE-backed transition model vs
@@ -14,7 +14,9 @@ of two ConstantVelocity models (closed form), same track.
 from __future__ import annotations
 
 import datetime
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import scipy.signal
@@ -134,4 +136,8 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from _timing import saved
+
+    with saved("interop_agreement.txt"):
+        main()

@@ -3,12 +3,11 @@
 
 Run it with a fresh cache directory (the FX graph cache is switched off here)::
 
-    TORCHINDUCTOR_CACHE_DIR=$(mktemp -d) PYTHONPATH=$PWD python experiments/probe_compile_cold.py
+    TORCHINDUCTOR_CACHE_DIR=$(mktemp -d) PYTHONPATH=$PWD python experiments/probe_compile_cold.py  # -> results/probe_compile_cold.txt
 """
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 from pathlib import Path
@@ -17,6 +16,7 @@ import torch
 import torch._inductor.config as inductor_config
 
 sys.path.insert(0, str(Path(__file__).parent))
+from _timing import machine_line, saved  # noqa: E402
 from bench_deploy import data, make_filter  # noqa: E402
 
 
@@ -34,10 +34,11 @@ def main() -> None:
     second = time.perf_counter() - t0
     err = float((out.log_likelihood - kf(y, dt).log_likelihood).detach().abs().max())
     print(
-        f"torch {torch.__version__}, load {os.getloadavg()[0]:.1f}: torch.compile(kf) first call (B = 1, T = 200, "
+        f"{machine_line()}: torch.compile(kf) first call (B = 1, T = 200, "
         f"cold cache) {first:.1f} s, second call {second * 1e3:.1f} ms, |log-likelihood − eager| {err:.1e}"
     )
 
 
 if __name__ == "__main__":
-    main()
+    with saved("probe_compile_cold.txt"):
+        main()

@@ -17,12 +17,11 @@ If even the static program with eager's own algorithm is slower than eager, the 
 exported graph's runtime (every view, expand and decomposed op a separate aten call from
 Python) and not the choice of algorithm.
 
-    PYTHONPATH=$PWD python experiments/probe_export_runtime.py
+    PYTHONPATH=$PWD python experiments/probe_export_runtime.py   # writes experiments/results/probe_export_runtime.md
 """
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 from pathlib import Path
@@ -35,7 +34,8 @@ import torchsde_lti.nn.kalman as nn_kalman
 from torchsde_lti.filters.scan import prefers_scan
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_online import F64, build_filter, paired_s  # noqa: E402
+from _timing import machine_line, paired_s, saved  # noqa: E402
+from bench_online import F64, build_filter  # noqa: E402
 
 
 def aten_calls(fn: object) -> int:
@@ -77,8 +77,7 @@ def main() -> None:
     kf = build_filter(validate=False)
     T = 200
     g = torch.Generator().manual_seed(3)
-    load = os.getloadavg()[0]
-    print(f"# exported program vs eager (torch {torch.__version__}, 1 thread, load {load:.1f})\n")
+    print(f"# exported program vs eager ({machine_line()})\n")
     print(
         "| B | program | export s | graph nodes | eager ms | exported ms | exported / eager time | aten calls eager / exported |"
     )
@@ -114,8 +113,9 @@ def main() -> None:
                 f"| {b} | {name} | {t_export:.1f} | {len(ep.graph.nodes)} | {t_e * 1e3:.2f} | {t_x * 1e3:.2f} | "
                 f"{t_x / t_e:.2f} | {n_e} / {n_x} |"
             )
-    print(f"\nload at the end {os.getloadavg()[0]:.1f}")
+    print(f"\nat the end: {machine_line()}")
 
 
 if __name__ == "__main__":
-    main()
+    with saved("probe_export_runtime.md"):
+        main()

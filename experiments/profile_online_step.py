@@ -26,13 +26,12 @@ from torch.export import Dim
 from torch.profiler import profile
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _timing import median_s, paired_s  # noqa: E402
 from bench_online import (  # noqa: E402
     build_filter,
     discretize,
     filterpy_filter,
     filterpy_step,
-    median_s,
-    paired_s,
     step_args,
 )
 

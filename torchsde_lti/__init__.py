@@ -22,6 +22,9 @@ LAYERS: tuple[tuple[str, str], ...] = (
     ("pretrained", "shipped trained filters with their cards, loaded by name (tl.pretrained.load)"),
     ("training", "the Lightning module, metrics, callbacks, plots and the Hydra entry point"),
     ("train", "the `python -m torchsde_lti.train` shim"),
+    ("runs", "a trained run rebuilt from its directory (tl.load_run), its filter over tracks from a file"),
+    ("cli", "the `torchsde-lti` command: train, filter / smooth a file of tracks, evaluate, export"),
+    ("__main__", "`python -m torchsde_lti`: the `torchsde-lti` command"),
 )
 if __doc__ is not None:  # (python -OO strips docstrings)
     __doc__ += "\n" + "\n".join(f"- :mod:`torchsde_lti.{name}` — {job}." for name, job in LAYERS) + "\n"
@@ -86,6 +89,7 @@ __all__ = [
     "NonFiniteLikelihoodError",
     "OnlineStep",
     "PackagedProgram",
+    "Run",
     "SDEMatrices",
     "SmootherResult",
     "StructuredSDE",
@@ -96,6 +100,7 @@ __all__ = [
     "discretize",
     "kalman_filter",
     "load_package",
+    "load_run",
     "models",
     "parametrizations",
     "pretrained",
@@ -108,3 +113,15 @@ __all__ = [
 ]
 
 __version__ = "0.1.0"
+
+#: Names made on first use, with their module: ``tl.load_run`` imports Hydra, which
+#: ``import torchsde_lti`` does not (the core runs with torch and numpy only).
+_LAZY = {"Run": "torchsde_lti.runs", "load_run": "torchsde_lti.runs"}
+
+
+def __getattr__(name: str) -> object:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'torchsde_lti' has no attribute {name!r}")

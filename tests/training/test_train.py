@@ -214,7 +214,7 @@ def test_float32_training_keeps_float32(tmp_path: Path) -> None:
 
 def test_plots_and_table_written(tmp_path: Path) -> None:
     metrics, _ = train(_cfg(tmp_path, *TINY, "plots=true", "test=false"))
-    for name in ("loss.png", "params.png", "track.png", "results.md"):
+    for name in ("loss.png", "params.png", "map.png", "results.md"):
         assert (tmp_path / name).stat().st_size > 0
     summary = json.loads((tmp_path / "metrics.json").read_text())
     assert {r["name"] for r in summary["table"]} >= {"k", "q", "R[0,0]"}

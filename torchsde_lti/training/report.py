@@ -38,6 +38,7 @@ key                       value
 from __future__ import annotations
 
 import json
+import math
 import shlex
 import signal
 import sys
@@ -45,10 +46,71 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from torchsde_lti.training.metrics import format_table
 from torchsde_lti.training.outputs import SCHEMA_VERSION, write_json, write_text
 
-__all__ = ["RunReport"]
+__all__ = ["RunReport", "markdown_table", "parameter_rows", "score_rows"]
+
+#: The scores results.md shows per split, in order: metric name, column title, unit kind
+#: ("nll": per observed scalar; "y": the observations' unit; "share").
+SCORES = (
+    ("nll", "NLL", "nats per observed scalar"),
+    ("rmse", "one-step RMSE", "y"),
+    ("state_rmse", "state RMSE", "y"),
+    ("cover2s", "2σ coverage", "share"),
+)
+#: The figures results.md links when the run drew them (training.plots.plot_run), with captions.
+FIGURES = (
+    ("map.png", "tracks on a map: reports, filtered and smoothed paths, 2σ ellipses"),
+    ("track.png", "one track against time: reports, filtered and smoothed means ±2σ"),
+    ("modes.png", "mode probabilities over time"),
+    ("forecast.png", "forecast error against lead time"),
+    ("loss.png", "loss curves"),
+    ("params.png", "learned parameters per epoch"),
+)
+
+
+def _number(x: Any, spec: str = ".4g") -> str:
+    """A table cell: '' for a missing / non-finite value."""
+    if not isinstance(x, (int, float)) or isinstance(x, bool) or not math.isfinite(x):
+        return ""
+    return format(x, spec)
+
+
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]], align: str = "") -> str:
+    """A Markdown table of the columns that hold a value in some row (the first always kept).
+
+    ``align``: one character per column, ``l`` or ``r`` (default: the first left, the rest right).
+    """
+    keep = [j for j in range(len(header)) if j == 0 or any(r[j] for r in rows)]
+    align = align or "l" + "r" * (len(header) - 1)
+    lines = [
+        "| " + " | ".join(header[j] for j in keep) + " |",
+        "|" + "|".join("---" if align[j] == "l" else "---:" for j in keep) + "|",
+    ]
+    lines += ["| " + " | ".join(r[j] for j in keep) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def parameter_rows(table: Sequence[dict[str, Any]]) -> str:
+    """The learned values (and, where a truth is known, the true values and relative errors)."""
+    rows = [
+        [r["name"], _number(r.get("true")), _number(r.get("learned")), _number(100 * r["rel_error"], ".2f") + " %"
+         if _number(r.get("rel_error")) else ""]
+        for r in table
+    ]  # fmt: skip
+    return markdown_table(["parameter", "true", "learned", "rel. error"], rows)
+
+
+def score_rows(metrics: dict[str, Any], unit: str) -> str:
+    """Validation and test scores of ``metrics`` (``val/<name>``, ``test/<name>`` for each of
+    :data:`SCORES`), with their units (``unit``: the observations'); '' when none was logged."""
+    header = ["split"] + [f"{title} ({unit if kind == 'y' else kind})" for _, title, kind in SCORES]
+    rows = [
+        [split] + [_number(metrics.get(f"{prefix}/{name}")) for name, _, _ in SCORES]
+        for split, prefix in (("validation", "val"), ("test", "test"))
+    ]
+    rows = [r for r in rows if any(r[1:])]
+    return markdown_table(header, rows) if rows else ""
 
 
 def _relative(path: str | None, root: Path) -> str | None:
@@ -197,15 +259,23 @@ class RunReport:
             else "the final weights (no checkpoint written)"
         )
         text = f"# {title} ({s['wall_time']:.1f} s)\n\n"
-        text += f"Completed {s['epochs']} epochs. The table, the parameter errors and the metrics are those of {where}: {rep['description']}.\n"
+        text += (
+            f"Completed {s['epochs']} epochs. The scores and the table are those of {where}: {rep['description']}.\n"
+        )
         if s["resumed_from"]:
             text += (
                 f"Resumed {len(s['resumed_from'])}× (from "
                 + ", ".join(f"epoch {r['epoch']}" for r in s["resumed_from"])
                 + ").\n"
             )
+        # real tracks are positions in metres; simulated ones are in the model's own units
+        unit = "m" if isinstance(s.get("data_summary"), dict) and "load" in s["data_summary"] else "units of y"
+        scores = score_rows(s["metrics"], unit)
+        if scores:
+            text += f"\n## Scores\n\n{scores}\n"
         if s["table"]:
-            text += f"\n{format_table(s['table'])}\n"
+            heading = "True vs learned" if any(_number(r.get("true")) for r in s["table"]) else "Learned values"
+            text += f"\n## {heading}\n\n{parameter_rows(s['table'])}\n"
         best = s["best"]
         if best is not None and best.get("checkpoint"):
             val = best.get("val/nll")
@@ -215,10 +285,17 @@ class RunReport:
                     f"\nThe lowest val/nll is this epoch's too: `{best['checkpoint']}` holds the same weights{score}.\n"
                 )
             elif best.get("table"):
-                text += f"\nLowest val/nll: `{best['checkpoint']}` (epoch {best['epoch']}{score}):\n\n{format_table(best['table'])}\n"
+                text += f"\nLowest val/nll: `{best['checkpoint']}` (epoch {best['epoch']}{score}):\n\n{parameter_rows(best['table'])}\n"
         text += f"\nskipped optimizer steps (non-finite loss or gradient): {s['skipped_steps']}\n"
         if s["identifiability"]:
             text += f"\nNot identifiable: {s['identifiability']}\n"
+        figures = [(name, caption) for name, caption in FIGURES if (self.run_dir / name).is_file()]
+        if figures:
+            text += (
+                "\n## Figures\n\n"
+                + "\n\n".join(f"{caption}:\n\n![{caption}]({name})" for name, caption in figures)
+                + "\n"
+            )
         return text
 
     def interrupted(
