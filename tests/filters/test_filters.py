@@ -374,16 +374,21 @@ def test_gradient_wrt_symmetric_inputs_is_symmetric_and_the_same_for_every_algor
         assert torch.equal(Q, Q.mT)
 
 
-def test_symmetric_part_of_a_broadcast_view_stays_a_view():
-    """A shared matrix passed as a broadcast view (B, T, n, n) is symmetrised once, not B·T times."""
-    from torchsde_lti.filters.inputs import symmetric_part
+def test_a_shared_matrix_passed_as_a_broadcast_view_is_symmetrised_once():
+    """Q, R, P0 shared by the tracks and passed as broadcast views (B, T, n, n) are symmetrised
+    (and laid out) at their own extent, not B·T times: the prepared Q, R, P0 keep a batch of 1."""
+    from torchsde_lti.filters.inputs import FilterInputs, prepare_inputs
 
-    X = torch.randn(3, 3, dtype=F64)
-    Y = symmetric_part(X.expand(4, 5, 3, 3))
-    assert Y.shape == (4, 5, 3, 3) and Y.stride()[:2] == (0, 0)
-    torch.testing.assert_close(Y[2, 3], (X + X.mT) / 2, rtol=0, atol=0)
-    Z = torch.randn(4, 1, 3, 3, dtype=F64).expand(4, 5, 3, 3)
-    torch.testing.assert_close(symmetric_part(Z), (Z + Z.mT) / 2, rtol=0, atol=0)
+    t = to_torch(random_problem(np.random.default_rng(3), batch=(4,), T=5, missing=False))
+    X = torch.randn(4, 4, dtype=F64)
+    Q, R, P0 = (
+        (X @ X.mT).expand(4, 5, 4, 4),
+        (0.5 * torch.eye(2, dtype=F64)).expand(4, 5, 2, 2),
+        torch.eye(4, dtype=F64),
+    )
+    prep = prepare_inputs(FilterInputs(t["y"], t["A"], Q, t["H"], R, t["m0"], P0.expand(4, 4, 4)))
+    assert prep.Q.shape == (5, 4, 4, 1) and prep.R.shape[-1] == 1 and prep.P0.shape == (4, 4, 1)
+    torch.testing.assert_close(prep.Q[2, :, :, 0], (X @ X.mT + (X @ X.mT).mT) / 2, rtol=0, atol=0)
 
 
 def test_gradients_finite_for_fully_missing_track():

@@ -30,8 +30,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import cholesky, matvec, solve_lower
-from torchsde_lti.core.linalg import sym as sym_bf
+from torchsde_lti.core.linalg import matvec
 from torchsde_lti.core.validation import (
     as_float_tensors,
     broadcast_batch,
@@ -42,7 +41,7 @@ from torchsde_lti.core.validation import (
     checks_values,
     shape_str,
 )
-from torchsde_lti.filters.layout import batch_first, batch_last, mm, mv, sym, tr
+from torchsde_lti.filters.layout import batch_first, batch_last, lower_solve, mm, mv, psd_cholesky, sym, tr
 from torchsde_lti.filters.results import FilterResult
 
 __all__ = [
@@ -58,7 +57,6 @@ __all__ = [
     "own_extent",
     "pad_dims",
     "prepare_inputs",
-    "symmetric_part",
     "whiten",
 ]
 
@@ -161,14 +159,6 @@ def own_extent(x: Tensor) -> Tensor:
     return x[tuple(slice(0, 1) if st == 0 and sz > 1 else slice(None) for sz, st in zip(x.shape[:-2], x.stride()))]
 
 
-def symmetric_part(x: Tensor) -> Tensor:
-    """``(X + Xᵀ) / 2`` of x (..., k, k), formed at x's own extent (:func:`own_extent`) and
-    expanded again: a shared matrix passed as a broadcast view (B, T, k, k) costs one k × k
-    matrix, not B·T. Its gradient is the symmetric part of the incoming one, whatever an
-    algorithm does with the upper and lower triangles."""
-    return x if x.dim() < 2 else sym_bf(own_extent(x)).expand(x.shape)
-
-
 def _given(converted: dict[str, Tensor | None], name: str) -> Tensor:
     """A required argument after conversion (never None)."""
     x = converted[name]
@@ -269,8 +259,6 @@ def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked
         check_symmetric_psd(P0, "P0")
         if bool((torch.linalg.cholesky_ex(R).info != 0).any()):
             raise ValueError(f"R must be positive definite (Cholesky failed; shape {shape_str(R)})")
-    # what every algorithm reads: the symmetric parts (whatever validate_args says)
-    Q, R, P0 = symmetric_part(Q), symmetric_part(R), symmetric_part(P0)
     return _Checked(FilterInputs(y, A, Q, H, R, m0, P0, G, u, mask, D), c, T, n)
 
 
@@ -284,28 +272,27 @@ def observed_components(y: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]
     return obs, torch.where(obs, y, torch.zeros((), dtype=y.dtype, device=y.device))
 
 
-def mask_observation_model(H: Tensor, R: Tensor, obs: Tensor | None) -> tuple[Tensor, Tensor]:
+def mask_observation_model(H: Tensor, R: Tensor, obs: Tensor | None, at: int | None = None) -> tuple[Tensor, Tensor]:
     """(Hm, Rm): unobserved components get a zero row in H and a decoupled unit variance in R,
-    so every step keeps static shapes. H (..., T or 1, m, n), R (..., T or 1, m, m), obs
-    (..., T, m) bool padded to H's number of dims, or None."""
+    so every step keeps static shapes. H (…, m, n, *b), R (…, m, m, *b), obs (…, m, *b) bool or
+    None; ``at``: the position of H's (m, n) dims (default: last, batch-first, b empty)."""
     if obs is None:
         return H, R
-    m = R.shape[-1]
-    o = obs.to(H.dtype)
-    o = o.expand(*o.shape[:-1], m)
-    eye_m = torch.eye(m, dtype=H.dtype, device=H.device)
-    Hm = H * o.unsqueeze(-1)
-    Rm = R * (o.unsqueeze(-1) * o.unsqueeze(-2)) + torch.diag_embed(1.0 - o) * eye_m
-    return Hm, Rm
+    tail = 0 if at is None else H.dim() - at - 2
+    m, o = R.shape[R.dim() - tail - 1], obs.to(H.dtype)
+    row, col = o.unsqueeze(o.dim() - tail), o.unsqueeze(o.dim() - tail - 1)  # (…, m, 1, *b), (…, 1, m, *b)
+    eye = torch.eye(m, dtype=H.dtype, device=H.device).reshape(m, m, *[1] * tail)
+    return H * row, R * (row * col) + (1.0 - row) * eye
 
 
-def whiten(H: Tensor, R: Tensor, y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def whiten(H: Tensor, R: Tensor, y: Tensor, at: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """(H', y', Σ log diag L) with L Lᵀ = R, H' = L⁻¹ H, y' = L⁻¹ y: the whitened model has
-    R' = I. H (..., m, n), R (..., m, m) symmetric PD, y (..., m)."""
-    LR = cholesky(R)
-    Hw = solve_lower(LR, H)
-    yw = solve_lower(LR, y.unsqueeze(-1)).squeeze(-1)
-    return Hw, yw, torch.log(torch.diagonal(LR, dim1=-2, dim2=-1)).sum(-1)
+    R' = I. H (…, m, n, *b), R (…, m, m, *b) symmetric PD, y (…, m, *b); ``at``: the position of
+    H's (m, n) dims (default: last, batch-first, b empty). Elementwise over the batch."""
+    tail = 0 if at is None else H.dim() - at - 2
+    L, d = psd_cholesky(R, R.dim() - tail - 2)
+    yw = lower_solve(L, d, y.unsqueeze(y.dim() - tail), tail).squeeze(y.dim() - tail)
+    return lower_solve(L, d, H, tail), yw, -torch.log(d).sum(d.dim() - tail - 1)
 
 
 def prepare_inputs(args: FilterInputs, validate_args: bool = True) -> PreparedInputs:
@@ -323,22 +310,23 @@ def prepare_inputs(args: FilterInputs, validate_args: bool = True) -> PreparedIn
     if batch_t[-1] != T:
         raise ValueError(f"time axes do not broadcast to T={T}: {named}")
     nd = len(batch_t) - 1
-    H, R, obs, y0 = pad_dims(H, nd + 3), pad_dims(R, nd + 3), pad_dims(obs, nd + 2), pad_dims(y0, nd + 2)
-    Hw, yw, log_det = whiten(*mask_observation_model(H, R, obs), y0)
-    steps = lambda x, event: (lambda t: t.expand(T, *t.shape[1:]))(batch_last(x, event, nd))  # noqa: E731
+    H, R = batch_last(H, 2, nd), sym(batch_last(R, 2, nd), 1)  # (T or 1, m, ·, *b)
+    obs, y0 = batch_last(obs, 1, nd), batch_last(y0, 1, nd)  # (T, m, *b)
+    Hw, yw, log_det = whiten(*mask_observation_model(H, R, obs, 1), y0, 1)
+    steps = lambda x: x.expand(T, *x.shape[1:])  # noqa: E731  (a shared matrix: a view over the steps)
     return PreparedInputs(
-        steps(A, 2),
-        steps(Q, 2),
-        batch_last(Hw, 2, nd),
-        batch_last(yw, 1, nd),
-        None if c is None else steps(c, 1),
+        steps(batch_last(A, 2, nd)),
+        steps(sym(batch_last(Q, 2, nd), 1)),
+        Hw,
+        yw,
+        None if c is None else steps(batch_last(c, 1, nd)),
         batch_last(m0, 1, nd, time=False),
-        batch_last(P0, 2, nd, time=False),
-        batch_last(H, 2, nd),
-        batch_last(R, 2, nd),
-        batch_last(y0, 1, nd),
-        batch_last(obs, 1, nd),
-        batch_last(log_det, 0, nd),
+        sym(batch_last(P0, 2, nd, time=False)),
+        H,
+        R,
+        y0,
+        obs,
+        log_det,
         batch_t[:-1],
         T,
     )
@@ -401,11 +389,10 @@ def complete_from_filtered(prep: PreparedInputs, mean: Tensor, cov: Tensor) -> F
     ``L_k L_kᵀ = H'_k P⁻_k H'_kᵀ + I``, all batched over the steps (an unobserved component has
     a zero row of H' and y': it adds 0)."""
     pred_mean, pred_cov = predictions(prep, mean, cov)
-    Hw, nd = prep.Hw, len(prep.mean_batch)
-    S = sym(mm(mm(Hw, pred_cov, 1), tr(Hw, 1), 1), 1)
-    S_bf = batch_first(S, 2, nd) + torch.eye(Hw.shape[1], dtype=Hw.dtype, device=Hw.device)
-    L = cholesky(S_bf)  # (*b, T, m, m)
-    v = batch_first(prep.yw - mv(Hw, pred_mean, 1), 1, nd)
-    z = solve_lower(L, v.unsqueeze(-1)).squeeze(-1)
-    core = -0.5 * (2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1) + (z * z).sum(-1))  # (*b, T)
-    return assemble_result(prep, (mean, cov), (pred_mean, pred_cov), core.movedim(-1, 0))
+    Hw, m = prep.Hw, prep.Hw.shape[1]
+    eye = torch.eye(m, dtype=Hw.dtype, device=Hw.device).reshape(1, m, m, *[1] * len(prep.mean_batch))
+    L, d = psd_cholesky(sym(mm(mm(Hw, pred_cov, 1), tr(Hw, 1), 1), 1) + eye, 1)  # (T, m, m, *b)
+    v = (prep.yw - mv(Hw, pred_mean, 1)).unsqueeze(2)
+    z = lower_solve(L, d, v, len(prep.mean_batch)).squeeze(2)  # (T, m, *b)
+    core = torch.log(d).sum(1) - 0.5 * (z * z).sum(1)  # −½ (log det S + zᵀ z), det S = Π 1 / d_j²
+    return assemble_result(prep, (mean, cov), (pred_mean, pred_cov), core)

@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["batch_first", "batch_last", "mm", "mv", "psd_cholesky", "psd_solve", "solve", "sym", "tr"]
+__all__ = ["batch_first", "batch_last", "lower_solve", "mm", "mv", "psd_cholesky", "psd_solve", "solve", "sym", "tr"]
 
 
 def batch_last(x: Tensor, event_ndim: int, batch_ndim: int, time: bool = True) -> Tensor:
@@ -38,8 +38,12 @@ def mm(a: Tensor, b: Tensor, at: int = 0) -> Tensor:
     multiply-adds of (r, 1, *B) by (1, s, *B) (batch dims broadcast)."""
     cols, rows = a.split(1, at + 1), b.split(1, at)
     out = cols[0] * rows[0]
-    for col, row in zip(cols[1:], rows[1:]):
-        out = torch.addcmul(out, col, row)
+    if torch.is_grad_enabled() and (a.requires_grad or b.requires_grad):
+        for col, row in zip(cols[1:], rows[1:]):
+            out = torch.addcmul(out, col, row)
+    else:  # (no graph to record: accumulate in place, one buffer)
+        for col, row in zip(cols[1:], rows[1:]):
+            out.addcmul_(col, row)
     return out
 
 
@@ -114,23 +118,30 @@ def psd_cholesky(P: Tensor, at: int = 1) -> tuple[Tensor, Tensor]:
     return torch.stack(rows, at), torch.stack(torch.broadcast_tensors(*inv), at)
 
 
+def lower_solve(L: Tensor, d: Tensor, B: Tensor, tail: int) -> Tensor:
+    """``L⁻¹ B`` for L (…, k, k, *b) lower triangular with inverted pivots d (…, k, *b)
+    (:func:`psd_cholesky`; a zero pivot gives a zero row) and B (…, k, r, *b), ``tail`` = len(b)
+    (leading dims broadcast, right-aligned)."""
+    at, at_b = L.dim() - tail - 2, B.dim() - tail - 2
+    z: list[Tensor] = []
+    for j, row in enumerate(B.unbind(at_b)):  # (…, r, *b)
+        for t in range(j):
+            row = row - L.select(at, j).narrow(at, t, 1) * z[t]
+        z.append(row * d.narrow(at, j, 1))
+    return torch.stack(z, at_b)
+
+
 def psd_solve(P: Tensor, B: Tensor, at: int = 1) -> Tensor:
     """``P⁻ B`` for symmetric PSD P (*L, k, k, *b) and B (*L, k, r, *b) by the factor of
     :func:`psd_cholesky`: a dropped pivot gives a zero component of the solution, so a singular
     P gives a generalised inverse (``P P⁻ P = P``; the solution where B lies in P's range)."""
-    k = P.shape[at]
+    k, tail = P.shape[at], P.dim() - at - 2
     L, d = psd_cholesky(P, at)
-    entry = lambda i, j: L.select(at, i).narrow(at, j, 1)  # noqa: E731  (*L, 1, *b)
-    pivot = [d.narrow(at, j, 1) for j in range(k)]
-    z: list[Tensor] = []
-    for j, row in enumerate(B.unbind(at)):  # L z = B, row by row (*L, r, *b)
-        for t in range(j):
-            row = row - entry(j, t) * z[t]
-        z.append(row * pivot[j])
-    x: list[Tensor] = [z[-1] * pivot[-1]]
+    z = lower_solve(L, d, B, tail).unbind(at)
+    x: list[Tensor] = [z[-1] * d.narrow(at, k - 1, 1)]
     for j in reversed(range(k - 1)):  # Lᵀ x = z
         v = z[j]
         for t, xt in zip(range(k - 1, j, -1), x):
-            v = v - entry(t, j) * xt
-        x.append(v * pivot[j])
+            v = v - L.select(at, t).narrow(at, j, 1) * xt
+        x.append(v * d.narrow(at, j, 1))
     return torch.stack(x[::-1], at)
