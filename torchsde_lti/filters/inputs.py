@@ -66,17 +66,17 @@ LOG_2PI = math.log(2.0 * math.pi)
 class FilterInputs(NamedTuple):
     """The arguments of every filter, as given (shapes in the module docstring)."""
 
-    y: Tensor
-    A: Tensor
-    Q: Tensor
-    H: Tensor
-    R: Tensor
-    m0: Tensor
-    P0: Tensor
-    G: Tensor | None = None
-    u: Tensor | None = None
-    mask: Tensor | None = None
-    D: Tensor | None = None
+    y: Tensor  # (..., T, m)
+    A: Tensor  # (..., T, n, n)
+    Q: Tensor  # (..., T, n, n)
+    H: Tensor  # (..., T, m, n)
+    R: Tensor  # (..., T, m, m)
+    m0: Tensor  # (..., n)
+    P0: Tensor  # (..., n, n)
+    G: Tensor | None = None  # (..., T, n, p)
+    u: Tensor | None = None  # (..., T, p)
+    mask: Tensor | None = None  # (..., T) or (..., T, m) bool
+    D: Tensor | None = None  # (..., [T,] m, p)
 
 
 class PreparedInputs(NamedTuple):

@@ -90,16 +90,13 @@ def _augmented(X: Tensor, B: Tensor, at: int) -> Tensor:
     return torch.cat([X.expand(*X.shape[: at + 2], *batch), B.expand(*B.shape[: at + 2], *batch)], at + 1)
 
 
-def psd_cholesky(P: Tensor, at: int = 1) -> tuple[Tensor, Tensor]:
-    """(L, d) for symmetric PSD P (*L, k, k, *b): the lower Cholesky factor, unrolled over k and
-    elementwise over the batch, and its inverted pivots ``d_j = 1 / L_jj`` (*L, k, *b). A pivot
-    ``L_jj² ≤ k · eps · P_jj`` (zero to the rounding of its own diagonal entry, so badly scaled
-    matrices keep their small pivots) gives a zero column of L and ``d_j = 0``, with gradient 0;
-    no jitter."""
+def _factor(P: Tensor, at: int) -> tuple[list[list[Tensor]], list[Tensor]]:
+    """The entries ``L_ij`` (j ≤ i) of :func:`psd_cholesky`'s factor and its inverted pivots,
+    each (*L, *b)."""
     k = P.shape[at]
     rel = k * torch.finfo(P.dtype).eps
     one = torch.ones((), dtype=P.dtype, device=P.device)
-    low: list[list[Tensor]] = [[] for _ in range(k)]  # low[i][j] = L_ij, j ≤ i, each (*L, *b)
+    low: list[list[Tensor]] = [[] for _ in range(k)]
     inv: list[Tensor] = []
     for j in range(k):
         d = P.select(at, j).select(at, j)
@@ -113,7 +110,17 @@ def psd_cholesky(P: Tensor, at: int = 1) -> tuple[Tensor, Tensor]:
             for t in range(j):
                 v = v - low[i][t] * low[j][t]
             low[i].append(v * inv[j])
-    zero = torch.zeros_like(low[0][0])
+    return low, inv
+
+
+def psd_cholesky(P: Tensor, at: int = 1) -> tuple[Tensor, Tensor]:
+    """(L, d) for symmetric PSD P (*L, k, k, *b): the lower Cholesky factor, unrolled over k and
+    elementwise over the batch, and its inverted pivots ``d_j = 1 / L_jj`` (*L, k, *b). A pivot
+    ``L_jj² ≤ k · eps · P_jj`` (zero to the rounding of its own diagonal entry, so badly scaled
+    matrices keep their small pivots) gives a zero column of L and ``d_j = 0``, with gradient 0;
+    no jitter."""
+    low, inv = _factor(P, at)
+    k, zero = len(inv), torch.zeros_like(low[0][0])
     rows = [torch.stack(torch.broadcast_tensors(*row, *[zero] * (k - len(row))), at) for row in low]
     return torch.stack(rows, at), torch.stack(torch.broadcast_tensors(*inv), at)
 
@@ -135,13 +142,19 @@ def psd_solve(P: Tensor, B: Tensor, at: int = 1) -> Tensor:
     """``P⁻ B`` for symmetric PSD P (*L, k, k, *b) and B (*L, k, r, *b) by the factor of
     :func:`psd_cholesky`: a dropped pivot gives a zero component of the solution, so a singular
     P gives a generalised inverse (``P P⁻ P = P``; the solution where B lies in P's range)."""
-    k, tail = P.shape[at], P.dim() - at - 2
-    L, d = psd_cholesky(P, at)
-    z = lower_solve(L, d, B, tail).unbind(at)
-    x: list[Tensor] = [z[-1] * d.narrow(at, k - 1, 1)]
+    low, inv = _factor(P, at)
+    k = len(inv)
+    entry = [[x.unsqueeze(at) for x in row] for row in low]  # (*L, 1, *b) against a row of B
+    pivot = [x.unsqueeze(at) for x in inv]
+    z: list[Tensor] = []
+    for j, row in enumerate(B.unbind(at)):  # L z = B, row by row (*L, r, *b)
+        for t in range(j):
+            row = row - entry[j][t] * z[t]
+        z.append(row * pivot[j])
+    x: list[Tensor] = [z[-1] * pivot[-1]]
     for j in reversed(range(k - 1)):  # Lᵀ x = z
         v = z[j]
         for t, xt in zip(range(k - 1, j, -1), x):
-            v = v - L.select(at, t).narrow(at, j, 1) * xt
-        x.append(v * d.narrow(at, j, 1))
+            v = v - entry[t][j] * xt
+        x.append(v * pivot[j])
     return torch.stack(x[::-1], at)

@@ -78,11 +78,8 @@ def rts_smoother(
     Pf, Pp = (batch_last(x, 2, nd) for x in (result.cov, result.pred_cov))  # (T, n, n, *b)
     A = batch_last(own_extent(A), 2, nd)  # (T or 1, n, n, *b)
     A1 = A[1:] if A.shape[0] > 1 else A  # A_{k+1}, k = 0 … T − 2
-    if choose_algorithm(algorithm) == "scan":
-        ms, Ps, E = _scan_smoother(mf, Pf, pm, Pp, A1)
-    else:
-        ms, Ps, E = _loop_smoother(mf, Pf, pm, Pp, A1)
-    gain = torch.cat([E.expand(T - 1, *Pf.shape[1:]), torch.zeros_like(Pf[:1])])
+    run = _scan_smoother if choose_algorithm(algorithm) == "scan" else _loop_smoother
+    ms, Ps, gain = run(mf, Pf, pm, Pp, A1)  # (gains with E_{T−1} = 0)
     return SmootherResult(
         *(batch_first(x, x.dim() - 1 - nd, nd).expand(*batch, T, *x.shape[1 : x.dim() - nd]) for x in (ms, Ps, gain))
     )
@@ -96,7 +93,7 @@ def _gain(P: Tensor, P_next: Tensor, A_next: Tensor, at: int) -> tuple[Tensor, T
 
 def _loop_smoother(mf: Tensor, Pf: Tensor, pm: Tensor, Pp: Tensor, A1: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The backward loop, each step's gain formed in the loop (on one step's tensors, which stay
-    in the caches): smoothed means (T, n, *b), covariances (T, n, n, *b), gains (T − 1, n, n, *b)."""
+    in the caches): smoothed means (T, n, *b), covariances (T, n, n, *b), gains (T, n, n, *b)."""
     ms, Ps = mf[-1], Pf[-1]
     means, covs, gains = [ms], [Ps], []
     m_k, P_k, pm_k, Pp_k, A_k = mf.unbind(0), Pf.unbind(0), pm.unbind(0), Pp.unbind(0), A1.unbind(0)
@@ -107,8 +104,8 @@ def _loop_smoother(mf: Tensor, Pf: Tensor, pm: Tensor, Pp: Tensor, A1: Tensor) -
         means.append(ms)
         covs.append(Ps)
         gains.append(E)
-    E_all = torch.stack(gains[::-1]) if gains else Pf[:0]
-    return torch.stack(means[::-1]), torch.stack(covs[::-1]), E_all
+    gains = [*gains[::-1], torch.zeros_like(Pf[-1]).expand_as(gains[0] if gains else Pf[-1])]
+    return torch.stack(means[::-1]), torch.stack(covs[::-1]), torch.stack(torch.broadcast_tensors(*gains))
 
 
 def _smoother_combine(a: Elems, b: Elems) -> Elems:
@@ -128,4 +125,4 @@ def _scan_smoother(mf: Tensor, Pf: Tensor, pm: Tensor, Pp: Tensor, A1: Tensor) -
     _, ms, Ps = associative_scan(
         _smoother_combine, (E_all, g.expand(*E_all.shape[:2], *E_all.shape[3:]), C), reverse=True
     )
-    return ms, Ps, E
+    return ms, Ps, E_all
