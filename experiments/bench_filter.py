@@ -4,10 +4,9 @@
 dt, float32 and float64. Contestants, run side by side in one process (round-robin over
 repeats so machine load hits all of them alike; wall-clock medians):
 
-- ``ours``            tl.KalmanFilter(sde, H, R)(y, dt) — the default (automatic choice:
-                      associative scan for ≤ 16 tracks on CPU, else the sequential loop),
-                      including the exact discretisation of every step;
-- ``ours-loop``       the same with ``algorithm="sequential"`` (the loop, the old default);
+- ``ours``            tl.KalmanFilter(sde, H, R)(y, dt) — the default (``"auto"``: the
+                      sequential loop), including the exact discretisation of every step;
+- ``ours-loop``       the same with ``algorithm="sequential"`` (the loop, named);
 - ``ours-scan``       the same with ``algorithm="scan"`` (associative scan);
 - ``torch-kf+VL``     torch-kf, per-step (A, Q) from naive Van Loan (torch.matrix_exp of the
                       8×8 block for all B·T steps at once), predict/update loop;

@@ -1,184 +1,182 @@
-r"""Benchmark: the filter's automatic algorithm choice (issue 10, item 3), side by side.
+"""Which filter algorithm to run: loop vs scan vs square root, and the smoother against a plain loop.
 
-1. Grid B ∈ {1, 10, 100, 1000} × T ∈ {200, 1e4}: 2-D constant velocity (n = 4, m = 2),
-   irregular dt, float64, no grad: ``KalmanFilter(algorithm="sequential")`` (the loop),
-   ``algorithm="scan"`` (associative scan, chunked), and the default ``algorithm="auto"``.
-   Reported: ms per call and default / min(loop, scan) speed ratio (≥ 0.8 wanted).
-2. One Matérn-3/2 temporal GP series, N = 4000 irregular times: the default filter's log
-   marginal likelihood vs scikit-learn's exact GP (``GaussianProcessRegressor(...,
-   optimizer=None).log_marginal_likelihood``) — same value (tests/test_gp_equivalence.py).
-3. B = 1, T = 200 irregular constant velocity: the default vs filterpy (closed-form A, Q,
-   Python loop).
+Tables (ms per call, medians of interleaved repeats, ``torch.no_grad``, one process):
 
-Medians of repeats (1 repeat for cells over ~2 s); at 1 and 2 threads. The machine is shared
-with other sessions: numbers are noisy.
+- ``choice``: ``kalman_filter`` with ``algorithm="sequential"``, ``"scan"``, ``"square_root"`` on
+  a 2-D constant-velocity model (n = 4, m = 2) with irregular dt, B tracks × T steps, float64
+  and float32 (cells whose scan would hold more than 10⁶ track·steps are not run);
+- ``matern``: one Matérn-3/2 series (B = 1, T = 10⁴), float64 and float32, loop and scan
+  (the float32 / float64 ratio of the default);
+- ``smoother``: ``rts_smoother`` (loop and scan) at 10⁴ tracks × 100 steps against a plain
+  batched RTS loop of ``torch.linalg.solve`` and ``@`` on the same filter result.
 
-    python experiments/bench_filter_choice.py [--threads 1 2] [--quick]
+Usage: python experiments/bench_filter_choice.py [--tables choice,matern,smoother] [--threads 1]
+[--repeats 5] [--out FILE] — prints the tables (and writes FILE, default
+experiments/results/bench_filter_choice.md). Runs against any checkout that has
+``kalman_filter(..., algorithm=, validate_args=)`` and ``rts_smoother(..., algorithm=)``.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
 import os
+import platform
 import statistics
 import time
+from collections.abc import Callable
+from pathlib import Path
 
-import numpy as np
 import torch
 
 import torchsde_lti as tl
+from torchsde_lti.filters import kalman_filter, rts_smoother
 
-F64 = torch.float64
-
-
-def cv_filter(algorithm: str) -> tl.KalmanFilter:
-    cv = tl.models.constant_velocity(dim=2, q=1.0, dtype=F64)
-    H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=F64)
-    return tl.KalmanFilter(cv, H, 0.5 * torch.eye(2, dtype=F64), P0=100 * torch.eye(4, dtype=F64), algorithm=algorithm)
+RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def cv_data(B: int, T: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    g = torch.Generator().manual_seed(seed)
-    dt = torch.rand(B, T, generator=g, dtype=F64) * 1.95 + 0.05
-    vel = (torch.randn(B, T, 2, generator=g, dtype=F64) * dt.sqrt()[..., None]).cumsum(1)
-    y = (vel * dt[..., None]).cumsum(1) + math.sqrt(0.5) * torch.randn(B, T, 2, generator=g, dtype=F64)
-    return y, dt
-
-
-def timed(fn, repeats: int) -> float:
-    t0 = time.perf_counter()
-    fn()
-    first = time.perf_counter() - t0
-    if first > 2.0:
-        return first
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
+def medians(fns: dict[str, Callable[[], object]], repeats: int) -> dict[str, float]:
+    """ms per call of each function, run in turn (A B C A B C …) after one warm-up each."""
+    times: dict[str, list[float]] = {k: [] for k in fns}
+    for fn in fns.values():
         fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            times[name].append(1e3 * (time.perf_counter() - t0))
+    return {k: statistics.median(v) for k, v in times.items()}
 
 
-def grid(threads: int, quick: bool) -> None:
-    print(f"\n### Filter algorithm choice, {threads} thread(s): ms per call (2-D CV, irregular dt, float64)\n")
-    print("| B | T | loop | scan | default | default picks | default / faster |")
-    print("|---|---|---|---|---|---|---|")
-    Ts = (200, 2000) if quick else (200, 10_000)
-    for T in Ts:
-        for B in (1, 10, 100, 1000):
-            y, dt = cv_data(B, T)
-            res = {}
-            for name, algorithm in (("loop", "sequential"), ("scan", "scan"), ("default", "auto")):
-                if algorithm == "scan" and B >= 100 and T > 2000:
-                    res[name] = float("nan")  # ≥ 5× the loop already at B = 100, T = 200 (see row)
-                    continue
-                kf = cv_filter(algorithm)
-                with torch.no_grad():
-                    res[name] = timed(lambda: kf(y, dt), 3 if quick else 5)
-            picks = {"scan": "scan", "sequential": "loop"}[cv_filter("auto").algorithm_for(B, T, torch.device("cpu"))]
-            best = min(v for k, v in res.items() if k != "default" and not math.isnan(v))
-            fmt = lambda v: "skipped" if math.isnan(v) else f"{v * 1e3:.1f}"  # noqa: E731
-            print(
-                f"| {B} | {T} | {fmt(res['loop'])} | {fmt(res['scan'])} | {fmt(res['default'])} | {picks} | "
-                f"{best / res['default']:.2f} |",
-                flush=True,
-            )
+def cv_problem(B: int, T: int, dtype: torch.dtype, seed: int = 0) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    dt = torch.rand(B, T, generator=g, dtype=torch.float64) * 1.9 + 0.1
+    sde = tl.models.constant_velocity(dim=2, q=1.0, dtype=torch.float64)
+    with torch.no_grad():
+        d = sde(dt)
+    y = torch.randn(B, T, 2, generator=g, dtype=torch.float64).cumsum(1)
+    H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1.0, 0]], dtype=torch.float64)
+    kw = dict(y=y, A=d.A, Q=d.Q, H=H, R=0.5 * torch.eye(2, dtype=torch.float64))
+    kw.update(m0=torch.zeros(4, dtype=torch.float64), P0=100 * torch.eye(4, dtype=torch.float64))
+    return {k: v.to(dtype) for k, v in kw.items()}
 
 
-def gp_vs_sklearn(threads: int, N: int) -> None:
-    from sklearn.gaussian_process import GaussianProcessRegressor
-    from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
+def fmt(x: float | None) -> str:
+    return "–" if x is None else (f"{x:.0f}" if x >= 100 else f"{x:.1f}")
 
-    rng = np.random.default_rng(0)
-    ell, var, noise = 0.7, 1.9, 0.05
-    t = np.sort(rng.uniform(0.0, N / 5.0, N))
-    y = np.sin(t) + 0.3 * rng.standard_normal(N)
-    kernel = ConstantKernel(var) * Matern(length_scale=ell, nu=1.5) + WhiteKernel(noise)
-    gp = GaussianProcessRegressor(kernel=kernel, optimizer=None, alpha=0.0)
 
-    def sk() -> float:
-        gp.fit(t[:, None], y)
-        return gp.log_marginal_likelihood_value_
-
-    sde = tl.models.matern(1.5, lengthscale=ell, variance=var, dtype=F64)
-    yt, dtt = torch.as_tensor(y)[:, None], torch.as_tensor(np.diff(t, prepend=t[0]))
-    out = {}
-    for name, algorithm in (("default", "auto"), ("loop", "sequential")):
-        kf = tl.KalmanFilter(
-            sde, torch.tensor([[1.0, 0.0]], dtype=F64), torch.tensor([[noise]], dtype=F64), algorithm=algorithm
-        )
-
-        def run(kf: tl.KalmanFilter = kf) -> float:
+def table_choice(repeats: int) -> list[str]:
+    lines = ["| dtype | B | T | sequential | scan | square_root |", "|---|---:|---:|---:|---:|---:|"]
+    for dtype in (torch.float64, torch.float32):
+        for B, T in ((1, 200), (10, 200), (100, 200), (1000, 200), (1, 10_000), (10, 10_000), (100, 10_000)):
+            kw = cv_problem(B, T, dtype)
+            fns = {a: (lambda a=a: kalman_filter(**kw, algorithm=a, validate_args=False)) for a in ALGS}
+            if B * T > 1_000_000:
+                del fns["scan"]
+            if T > 1000:
+                del fns["square_root"]
             with torch.no_grad():
-                return float(kf(yt, dtt).log_likelihood)
-
-        out[name] = (timed(run, 5), run())
-    t_sk = timed(sk, 3)
-    print(f"\n### One Matérn-3/2 series, N = {N}, {threads} thread(s)\n")
-    print("| contestant | ms | log-likelihood | sklearn / contestant |")
-    print("|---|---|---|---|")
-    print(f"| scikit-learn exact GP | {t_sk * 1e3:.1f} | {sk():.10f} | 1.00 |")
-    for name, (tm, ll) in out.items():
-        print(f"| KalmanFilter {name} | {tm * 1e3:.1f} | {ll:.10f} | {t_sk / tm:.1f}× |")
+                ms = medians(fns, repeats if T <= 1000 else max(3, repeats // 2))
+            lines.append(f"| {str(dtype)[6:]} | {B} | {T} | " + " | ".join(fmt(ms.get(a)) for a in ALGS) + " |")
+            print(lines[-1], flush=True)
+    return lines
 
 
-def filterpy_cv(y: torch.Tensor, dt: torch.Tensor, R: np.ndarray, p0: float = 100.0):
-    """filterpy on ONE track y (1, T, 2) with gaps dt (1, T): closed-form constant-velocity
-    A, Q (q = 1, state [x, vx, y, vy]) precomputed, not timed. Returns the timed call."""
-    from filterpy.kalman import KalmanFilter as FPKalman
-
-    T = y.shape[-2]
-    A, Q = np.zeros((T, 4, 4)), np.zeros((T, 4, 4))
-    for k, h in enumerate(dt[0].numpy()):  # closed-form CV per axis
-        a, q = np.array([[1.0, h], [0.0, 1.0]]), np.array([[h**3 / 3, h**2 / 2], [h**2 / 2, h]])
-        A[k], Q[k] = np.kron(np.eye(2), a), np.kron(np.eye(2), q)
-    H = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
-    yn = y[0].numpy()
-
-    def run() -> None:
-        f = FPKalman(dim_x=4, dim_z=2)
-        f.x, f.P, f.H, f.R = np.zeros(4), p0 * np.eye(4), H, R
-        for k in range(T):
-            f.predict(F=A[k], Q=Q[k])
-            f.update(yn[k])
-
-    return run
+ALGS = ("sequential", "scan", "square_root")
 
 
-def vs_filterpy(threads: int) -> None:
-    T = 200
-    y, dt = cv_data(1, T)
-    kf = cv_filter("auto")
-    fp = filterpy_cv(y, dt, 0.5 * np.eye(2))
+def table_matern(repeats: int) -> list[str]:
+    T = 10_000
+    sde = tl.models.matern(nu=1.5, lengthscale=10.0, variance=1.0, dtype=torch.float64)
+    g = torch.Generator().manual_seed(1)
+    y = torch.sin(torch.arange(T, dtype=torch.float64) / 15.0)[None, :, None] + 0.3 * torch.randn(
+        1, T, 1, generator=g, dtype=torch.float64
+    )
+    with torch.no_grad():
+        d = sde(torch.ones(1, T, dtype=torch.float64), series=True)
+        P0 = sde.stationary_covariance()
+    kw64 = dict(y=y, A=d.A, Q=d.Q, H=tl.models.position_observation(sde), R=0.09 * torch.eye(1, dtype=torch.float64))
+    kw64.update(m0=torch.zeros(2, dtype=torch.float64), P0=P0)
+    kw32 = {k: v.float() for k, v in kw64.items()}
+    fns = {
+        f"{a} {name}": (lambda a=a, kw=kw: kalman_filter(**kw, algorithm=a, validate_args=False))
+        for a in ("sequential", "scan")
+        for name, kw in (("float64", kw64), ("float32", kw32))
+    }
+    fns["default float64"] = lambda: kalman_filter(**kw64)
+    fns["default float32"] = lambda: kalman_filter(**kw32)
+    with torch.no_grad():
+        ms = medians(fns, repeats)
+    lines = [
+        "| call (Matérn-3/2, B = 1, T = 10⁴) | float64 ms | float32 ms | float32 / float64 |",
+        "|---|---:|---:|---:|",
+    ]
+    for a in ("sequential", "scan", "default"):
+        f64, f32 = ms[f"{a} float64"], ms[f"{a} float32"]
+        lines.append(f"| {a} | {fmt(f64)} | {fmt(f32)} | {f32 / f64:.2f} |")
+        print(lines[-1], flush=True)
+    return lines
 
-    def ours() -> None:
+
+def plain_rts(out: tl.filters.FilterResult) -> tuple[torch.Tensor, torch.Tensor]:
+    """The textbook batched RTS loop: per step one ``linalg.solve`` and a few ``@``."""
+    A, m, P, pm, pP = out.transition, out.mean, out.cov, out.pred_mean, out.pred_cov
+    T = m.shape[-2]
+    ms, Ps = m[:, -1], P[:, -1]
+    means, covs = [ms], [Ps]
+    for k in range(T - 2, -1, -1):
+        E = torch.linalg.solve(pP[:, k + 1], A[:, k + 1] @ P[:, k]).mT
+        ms = m[:, k] + (E @ (ms - pm[:, k + 1]).unsqueeze(-1)).squeeze(-1)
+        Ps = P[:, k] + E @ (Ps - pP[:, k + 1]) @ E.mT
+        means.append(ms)
+        covs.append(Ps)
+    return torch.stack(means[::-1], 1), torch.stack(covs[::-1], 1)
+
+
+def table_smoother(repeats: int) -> list[str]:
+    lines = ["| dtype | B × T | plain loop ms | rts_smoother loop ms | plain / ours | rts_smoother scan ms |"]
+    lines.append("|---|---|---:|---:|---:|---:|")
+    for dtype in (torch.float64, torch.float32):
+        kw = cv_problem(10_000, 100, dtype)
         with torch.no_grad():
-            kf(y, dt)
-
-    t_fp, t_ours = timed(fp, 7), timed(ours, 7)
-    print(f"\n### B = 1, T = 200 irregular CV, {threads} thread(s)\n")
-    print("| contestant | ms | filterpy / contestant |")
-    print("|---|---|---|")
-    print(f"| filterpy (closed-form A, Q) | {t_fp * 1e3:.2f} | 1.00 |")
-    print(f"| KalmanFilter default (exact discretisation included) | {t_ours * 1e3:.2f} | {t_fp / t_ours:.1f}× |")
+            out = kalman_filter(**kw, algorithm="sequential", validate_args=False)
+            fns = {
+                "plain": lambda: plain_rts(out),
+                "loop": lambda: rts_smoother(out, algorithm="sequential"),
+                "scan": lambda: rts_smoother(out, algorithm="scan"),
+            }
+            ms = medians(fns, repeats)
+            ref, got = plain_rts(out), rts_smoother(out, algorithm="sequential")
+            assert torch.allclose(
+                ref[0],
+                got.mean,
+                rtol=1e-3 if dtype == torch.float32 else 1e-9,
+                atol=1e-3 if dtype == torch.float32 else 1e-8,
+            )
+        row = f"| {str(dtype)[6:]} | 10⁴ × 100 | {fmt(ms['plain'])} | {fmt(ms['loop'])} | {ms['plain'] / ms['loop']:.2f} | {fmt(ms['scan'])} |"
+        lines.append(row)
+        print(row, flush=True)
+    return lines
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
-    ap.add_argument("--quick", action="store_true")
-    args = ap.parse_args()
-    print(
-        f"# filter choice benchmark (torch {torch.__version__}, cpu_count {os.cpu_count()}, "
-        f"load {os.getloadavg()[0]:.2f}; shared machine, noisy: medians)"
-    )
-    for threads in args.threads:
-        torch.set_num_threads(threads)
-        grid(threads, args.quick)
-        gp_vs_sklearn(threads, 4000)
-        vs_filterpy(threads)
-    print(f"\nload at end {os.getloadavg()[0]:.2f}")
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tables", default="choice,matern,smoother")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--out", type=Path, default=RESULTS / "bench_filter_choice.md")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    load = os.getloadavg()[0]
+    lines = [
+        f"# filter algorithms (torch {torch.__version__}, {platform.machine()}, {args.threads} thread(s), "
+        f"load {load:.1f} at start; a shared machine: medians of {args.repeats} interleaved repeats)",
+    ]
+    tables = {"choice": table_choice, "matern": table_matern, "smoother": table_smoother}
+    for name in args.tables.split(","):
+        lines += ["", f"## {name}", ""] + tables[name](args.repeats)
+    lines.append(f"\nload {os.getloadavg()[0]:.1f} at the end")
+    args.out.parent.mkdir(exist_ok=True)
+    args.out.write_text("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

@@ -374,16 +374,21 @@ def test_gradient_wrt_symmetric_inputs_is_symmetric_and_the_same_for_every_algor
         assert torch.equal(Q, Q.mT)
 
 
-def test_symmetric_part_of_a_broadcast_view_stays_a_view():
-    """A shared matrix passed as a broadcast view (B, T, n, n) is symmetrised once, not B·T times."""
-    from torchsde_lti.filters.inputs import symmetric_part
+def test_a_shared_matrix_passed_as_a_broadcast_view_is_symmetrised_once():
+    """Q, R, P0 shared by the tracks and passed as broadcast views (B, T, n, n) are symmetrised
+    (and laid out) at their own extent, not B·T times: the prepared Q, R, P0 keep a batch of 1."""
+    from torchsde_lti.filters.inputs import FilterInputs, prepare_inputs
 
-    X = torch.randn(3, 3, dtype=F64)
-    Y = symmetric_part(X.expand(4, 5, 3, 3))
-    assert Y.shape == (4, 5, 3, 3) and Y.stride()[:2] == (0, 0)
-    torch.testing.assert_close(Y[2, 3], (X + X.mT) / 2, rtol=0, atol=0)
-    Z = torch.randn(4, 1, 3, 3, dtype=F64).expand(4, 5, 3, 3)
-    torch.testing.assert_close(symmetric_part(Z), (Z + Z.mT) / 2, rtol=0, atol=0)
+    t = to_torch(random_problem(np.random.default_rng(3), batch=(4,), T=5, missing=False))
+    X = torch.randn(4, 4, dtype=F64)
+    Q, R, P0 = (
+        (X @ X.mT).expand(4, 5, 4, 4),
+        (0.5 * torch.eye(2, dtype=F64)).expand(4, 5, 2, 2),
+        torch.eye(4, dtype=F64),
+    )
+    prep = prepare_inputs(FilterInputs(t["y"], t["A"], Q, t["H"], R, t["m0"], P0.expand(4, 4, 4)))
+    assert prep.Q.shape == (5, 4, 4, 1) and prep.R.shape[-1] == 1 and prep.P0.shape == (4, 4, 1)
+    torch.testing.assert_close(prep.Q[2, :, :, 0], (X @ X.mT + (X @ X.mT).mT) / 2, rtol=0, atol=0)
 
 
 def test_gradients_finite_for_fully_missing_track():
@@ -626,21 +631,15 @@ def test_result_is_namedtuple():
     assert isinstance(out, FilterResult)
 
 
-def test_shared_grid_passed_expanded_runs_the_covariance_recursion_once(monkeypatch):
+@pytest.mark.parametrize("algorithm", ["sequential", "scan", "square_root"])
+def test_shared_grid_passed_expanded_equals_shared(algorithm):
     """A, Q of one time grid passed as a broadcast view (B, T, n, n) (``A.expand(B, …)``): the
-    same results and gradients as (T, n, n), with the covariance recursion run once (it ran
-    per track: 3–10× slower at 2,000–20,000 tracks); a batch that does not broadcast is still refused."""
-    from torchsde_lti.filters import sequential
-
+    same results and gradients as (T, n, n); a batch that does not broadcast is still refused."""
     kw = to_torch(random_problem(np.random.default_rng(5), batch=(6,), T=7, missing=False))
     A0, Q0 = kw["A"][0].clone().requires_grad_(), kw["Q"][0].clone().requires_grad_()
-    args = dict(y=kw["y"], H=kw["H"], R=kw["R"], m0=kw["m0"][0], P0=kw["P0"][0], algorithm="sequential")
-    seen = []
-    loop = sequential._loop
-    monkeypatch.setattr(sequential, "_loop", lambda prep: seen.append(tuple(prep.A.shape[:-3])) or loop(prep))
+    args = dict(y=kw["y"], H=kw["H"], R=kw["R"], m0=kw["m0"][0], P0=kw["P0"][0], algorithm=algorithm)
     shared = kalman_filter(A=A0, Q=Q0, **args)
     expanded = kalman_filter(A=A0.expand(6, 7, 4, 4), Q=Q0.expand(6, 7, 4, 4), **args)
-    assert seen == [(1,), (1,)]
     for name in ("log_likelihood", "mean", "cov", "innovation_cov"):
         torch.testing.assert_close(getattr(expanded, name), getattr(shared, name), rtol=1e-14, atol=1e-14)
     g_shared = torch.autograd.grad(shared.log_likelihood.sum(), [A0, Q0])

@@ -15,10 +15,9 @@ y_k; pass A_0 = I, Q_0 = 0 to put the prior at the first observation).
 Shapes and missing-data rules: :mod:`torchsde_lti.filters.inputs`.
 
 - :func:`kalman_filter` (``kalman``), ``algorithm=`` one of :data:`ALGORITHMS`: the Joseph-form
-  loop (``sequential``), the Cholesky-factor loop (``square_root``: QR predict, Givens update,
-  PSD by construction), the associative scan (``scan``: O(log T) depth, ``chunk=`` scans in
-  memory-bounded time chunks) or ``"auto"`` (:func:`choose_algorithm`, built on
-  :func:`prefers_scan`);
+  loop (``sequential``), the Cholesky-factor loop (``square_root``: Givens predict and update,
+  PSD by construction), the associative scan (``scan``: O(log T) depth) or ``"auto"``
+  (:func:`choose_algorithm`); all on one batch-last layout (``layout``);
 - :func:`rts_smoother` (``smoothers``), ``algorithm="sequential"`` or ``"scan"`` (or ``"auto"``);
 - :func:`imm_filter` (``imm``): interacting multiple models over a bank of per-mode matrices;
 - :func:`kalman_step`, :func:`imm_step` (``online``): one report per live track, the loops' own steps.
@@ -29,7 +28,7 @@ from torchsde_lti.filters.imm_online import IMMState, IMMStep, imm_predict_state
 from torchsde_lti.filters.kalman import ALGORITHMS, choose_algorithm, kalman_filter
 from torchsde_lti.filters.online import KalmanState, KalmanStep, kalman_predict, kalman_step
 from torchsde_lti.filters.results import FilterResult, SmootherResult
-from torchsde_lti.filters.scan import associative_scan, prefers_scan
+from torchsde_lti.filters.scan import associative_scan
 from torchsde_lti.filters.smoothers import SMOOTHER_ALGORITHMS, rts_smoother
 
 __all__ = [
@@ -50,6 +49,5 @@ __all__ = [
     "kalman_predict",
     "kalman_step",
     "kalman_filter",
-    "prefers_scan",
     "rts_smoother",
 ]

@@ -11,23 +11,26 @@ broadcast, numpy rules, right-aligned)::
 Per-step arrays may omit or size-1 the T axis (a constant ``H (m, n)`` is fine); a
 per-batch constant matrix needs its T axis as 1, e.g. ``A (B, 1, n, n)``.
 
-Three stages: argument checks (shapes always; values while value checks are on, and then
-Q, R, P0 taken as their symmetric parts: one function, one symmetric gradient), masking
-(a NaN in y or mask False = not observed: y is sanitised with ``where(observed, y, 0)``,
-unobserved components get a zero row in H and a decoupled unit variance in R, so every
-step keeps static shapes and the log-likelihood counts observed components only), and
-whitening with the Cholesky factor of the masked R (R' = I).
+Three stages, the same for every algorithm: argument checks (shapes always; values with
+``validate_args``, which only raises), masking (a NaN in y or mask False = not observed: y is
+sanitised with ``where(observed, y, 0)``, unobserved components get a zero row in H and a
+decoupled unit variance in R, so every step keeps static shapes and the log-likelihood counts
+observed components only; always, so the route never depends on y's values), and whitening
+with the Cholesky factor of the masked R (R' = I). Every algorithm reads Q, R and P0 through
+their symmetric parts ``(X + Xᵀ) / 2`` (formed here, once): the function computed, and its
+gradient (a symmetric matrix), are the same under every ``algorithm=`` and ``validate_args``.
+The prepared inputs are laid out batch-last (:mod:`~torchsde_lti.filters.layout`).
 """
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import cholesky, matvec, solve_lower, sym
+from torchsde_lti.core.linalg import matvec
 from torchsde_lti.core.validation import (
     as_float_tensors,
     broadcast_batch,
@@ -37,8 +40,8 @@ from torchsde_lti.core.validation import (
     check_symmetric_psd,
     checks_values,
     shape_str,
-    tracing,
 )
+from torchsde_lti.filters.layout import batch_first, batch_last, lower_solve, mm, mv, psd_cholesky, sym, tr
 from torchsde_lti.filters.results import FilterResult
 
 __all__ = [
@@ -54,37 +57,45 @@ __all__ = [
     "own_extent",
     "pad_dims",
     "prepare_inputs",
-    "symmetric_part",
     "whiten",
 ]
 
 LOG_2PI = math.log(2.0 * math.pi)
 
 
-_REQUIRED, _OPTIONAL = ("y", "A", "Q", "H", "R", "m0", "P0"), ("G", "u", "mask", "D")
-#: The arguments of every filter, as given: y, A, Q, H, R, m0, P0 and the optional G, u,
-#: mask, D (default None); shapes in the module docstring.
-FilterInputs = NamedTuple(  # type: ignore[misc]
-    "FilterInputs", [(k, Tensor) for k in _REQUIRED] + [(k, Optional[Tensor]) for k in _OPTIONAL]
-)
-FilterInputs.__new__.__defaults__ = (None,) * len(_OPTIONAL)
+class FilterInputs(NamedTuple):
+    """The arguments of every filter, as given (shapes in the module docstring)."""
+
+    y: Tensor  # (..., T, m)
+    A: Tensor  # (..., T, n, n)
+    Q: Tensor  # (..., T, n, n)
+    H: Tensor  # (..., T, m, n)
+    R: Tensor  # (..., T, m, m)
+    m0: Tensor  # (..., n)
+    P0: Tensor  # (..., n, n)
+    G: Tensor | None = None  # (..., T, n, p)
+    u: Tensor | None = None  # (..., T, p)
+    mask: Tensor | None = None  # (..., T) or (..., T, m) bool
+    D: Tensor | None = None  # (..., [T,] m, p)
 
 
 class PreparedInputs(NamedTuple):
-    """Checked, masked, whitened and broadcast filter inputs (cb: covariance batch, mb: mean batch)."""
+    """Checked, symmetrised, masked and whitened filter inputs, batch-last: every tensor's batch
+    dims (``*b``) are its own, left-padded to ``len(mean_batch)`` dims (size 1 where shared), so
+    they broadcast to the call's batch ``mean_batch``."""
 
-    A: Tensor  # (*cb, T, n, n) broadcast view; cb has len(mean batch) dims
-    Q: Tensor  # (*cb, T, n, n)
-    Hw: Tensor  # (..., T or 1, m, n) whitened, masked observation matrix (broadcastable to cb)
-    yw: Tensor  # (*mb, T, m) whitened, sanitised observations
-    c: Tensor | None  # (*mb, T, n) control term G u
-    m0: Tensor  # (*mb, n)
-    P0: Tensor  # (*cb, n, n)
-    H: Tensor  # (..., T or 1, m, n) unwhitened (for innovations), broadcastable to (*cb, T, m, n)
-    R: Tensor  # (..., T or 1, m, m) unmasked (for innovation covariances)
-    y0: Tensor  # (*mb, T, m) sanitised y
-    obs: Tensor | None  # (*ob, T, m) bool, None when all observed
-    log_det_chol_R: Tensor  # (*cb, T) Σ log diag of the whitening factor (observed part)
+    A: Tensor  # (T, n, n, *b) (a broadcast view where one matrix serves every step)
+    Q: Tensor  # (T, n, n, *b) symmetric part (idem)
+    Hw: Tensor  # (T, m, n, *b) whitened, masked observation matrix
+    yw: Tensor  # (T, m, *b) whitened, sanitised observations
+    c: Tensor | None  # (T, n, *b) control term G u (idem)
+    m0: Tensor  # (n, *b)
+    P0: Tensor  # (n, n, *b) symmetric part
+    H: Tensor  # (T or 1, m, n, *b) as given (for innovations)
+    R: Tensor  # (T or 1, m, m, *b) symmetric part, unmasked (for innovation covariances)
+    y0: Tensor  # (T, m, *b) sanitised y
+    obs: Tensor  # (T, m, *b) bool, the observed components
+    log_det_chol_R: Tensor  # (T, *b) Σ log diag of the whitening factor (observed part)
     mean_batch: torch.Size
     T: int
 
@@ -148,17 +159,12 @@ def own_extent(x: Tensor) -> Tensor:
     return x[tuple(slice(0, 1) if st == 0 and sz > 1 else slice(None) for sz, st in zip(x.shape[:-2], x.stride()))]
 
 
-def symmetric_part(x: Tensor) -> Tensor:
-    """``(X + Xᵀ) / 2`` of x (..., k, k), formed at x's own extent (:func:`own_extent`) and
-    expanded again: a shared matrix passed as a broadcast view (B, T, k, k) costs one k × k
-    matrix, not B·T. Its gradient is the symmetric part of the incoming one, whatever an
-    algorithm does with the upper and lower triangles."""
-    return x if x.dim() < 2 else sym(own_extent(x)).expand(x.shape)
-
-
-def _batched(x: Tensor | None) -> bool:
-    """Whether the per-step matrix x (..., [T,] r, c) has batch dims (ahead of its time axis)."""
-    return x is not None and x.dim() > 3
+def _given(converted: dict[str, Tensor | None], name: str) -> Tensor:
+    """A required argument after conversion (never None)."""
+    x = converted[name]
+    if x is None:
+        raise TypeError(f"{name} is required, got None")
+    return x
 
 
 def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked:
@@ -166,7 +172,8 @@ def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked
     values = checks_values(validate_args)
     t = as_float_tensors(**{k: v for k, v in args._asdict().items() if k != "mask"})
     mask = args.mask
-    y, A, Q, H, R, m0, P0, G, u, D = (t[k] for k in ("y", "A", "Q", "H", "R", "m0", "P0", "G", "u", "D"))
+    y, A, Q, H, R, m0, P0 = (_given(t, k) for k in ("y", "A", "Q", "H", "R", "m0", "P0"))
+    G, u, D = t["G"], t["u"], t["D"]
     device = y.device
 
     if y.dim() < 2:
@@ -225,7 +232,9 @@ def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked
     for name, x in (("A", A), ("Q", Q), ("H", H), ("R", R)):
         check_time_axis(x, name, T, f"y has T={T} (shape {shape_str(y)})")
     per_step = [
-        (k, x.shape[:-3]) for k, x in (("A", A), ("Q", Q), ("H", H), ("R", R), ("G", G), ("D", D)) if _batched(x)
+        (k, x.shape[:-3])
+        for k, x in (("A", A), ("Q", Q), ("H", H), ("R", R), ("G", G), ("D", D))
+        if x is not None and x.dim() > 3
     ]
     other = [("m0", m0.shape[:-1]), ("P0", P0.shape[:-2]), *([] if mask is None else [("mask", mask.shape[:-2])])]
     broadcast_batch([("y", y.shape[:-2]), *per_step, *other, *([] if u is None else [("u", u.shape[:-2])])])
@@ -250,166 +259,140 @@ def _check_arguments(args: FilterInputs, validate_args: bool = True) -> _Checked
         check_symmetric_psd(P0, "P0")
         if bool((torch.linalg.cholesky_ex(R).info != 0).any()):
             raise ValueError(f"R must be positive definite (Cholesky failed; shape {shape_str(R)})")
-    if validate_args:  # (also while traced: no value is read)
-        Q, R, P0 = symmetric_part(Q), symmetric_part(R), symmetric_part(P0)
     return _Checked(FilterInputs(y, A, Q, H, R, m0, P0, G, u, mask, D), c, T, n)
 
 
-def observed_components(y: Tensor, mask: Tensor | None) -> tuple[Tensor | None, Tensor]:
-    """(obs, y0): the observed components (NaN in y or mask False = missing; None when all
-    are observed) and y with every missing entry replaced by 0, so no NaN reaches any
-    arithmetic or gradient. y (..., T, m); mask (..., T, 1 or m) bool or None."""
-    # Observed components: NaN in y or mask False.
-    nan = torch.isnan(y)
-    obs: Tensor | None = None
-    if tracing() or bool(nan.any()):  # traced: always the masked path (same values)
-        obs = ~nan
+def observed_components(y: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+    """(obs, y0): the observed components (NaN in y or mask False = missing), (..., T, m) bool,
+    and y with every missing entry replaced by 0, so no NaN reaches any arithmetic or gradient.
+    y (..., T, m); mask (..., T, 1 or m) bool or None. Nothing is read to the host."""
+    obs = ~torch.isnan(y)
     if mask is not None:
-        obs = mask if obs is None else (obs & mask)
-    y0 = y if obs is None else torch.where(obs, y, torch.zeros((), dtype=y.dtype, device=y.device))
-    return obs, y0
+        obs = obs & mask
+    return obs, torch.where(obs, y, torch.zeros((), dtype=y.dtype, device=y.device))
 
 
-def mask_observation_model(H: Tensor, R: Tensor, obs: Tensor | None) -> tuple[Tensor, Tensor]:
+def mask_observation_model(H: Tensor, R: Tensor, obs: Tensor | None, at: int | None = None) -> tuple[Tensor, Tensor]:
     """(Hm, Rm): unobserved components get a zero row in H and a decoupled unit variance in R,
-    so every step keeps static shapes. H (..., T or 1, m, n), R (..., T or 1, m, m), obs
-    (..., T, m) bool padded to H's number of dims, or None."""
+    so every step keeps static shapes. H (…, m, n, *b), R (…, m, m, *b), obs (…, m, *b) bool or
+    None; ``at``: the position of H's (m, n) dims (default: last, batch-first, b empty)."""
     if obs is None:
         return H, R
-    m = R.shape[-1]
-    o = obs.to(H.dtype)
-    o = o.expand(*o.shape[:-1], m)
-    eye_m = torch.eye(m, dtype=H.dtype, device=H.device)
-    Hm = H * o.unsqueeze(-1)
-    Rm = R * (o.unsqueeze(-1) * o.unsqueeze(-2)) + torch.diag_embed(1.0 - o) * eye_m
-    return Hm, Rm
+    tail = 0 if at is None else H.dim() - at - 2
+    m, o = R.shape[R.dim() - tail - 1], obs.to(H.dtype)
+    row, col = o.unsqueeze(o.dim() - tail), o.unsqueeze(o.dim() - tail - 1)  # (…, m, 1, *b), (…, 1, m, *b)
+    eye = torch.eye(m, dtype=H.dtype, device=H.device).reshape(m, m, *[1] * tail)
+    return H * row, R * (row * col) + (1.0 - row) * eye
 
 
-def whiten(H: Tensor, R: Tensor, y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def whiten(H: Tensor, R: Tensor, y: Tensor, at: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """(H', y', Σ log diag L) with L Lᵀ = R, H' = L⁻¹ H, y' = L⁻¹ y: the whitened model has
-    R' = I. H (..., m, n), R (..., m, m) symmetric PD, y (..., m)."""
-    LR = cholesky(R)
-    Hw = solve_lower(LR, H)
-    yw = solve_lower(LR, y.unsqueeze(-1)).squeeze(-1)
-    return Hw, yw, torch.log(torch.diagonal(LR, dim1=-2, dim2=-1)).sum(-1)
+    R' = I. H (…, m, n, *b), R (…, m, m, *b) symmetric PD, y (…, m, *b); ``at``: the position of
+    H's (m, n) dims (default: last, batch-first, b empty). Elementwise over the batch."""
+    tail = 0 if at is None else H.dim() - at - 2
+    L, d = psd_cholesky(R, R.dim() - tail - 2)
+    yw = lower_solve(L, d, y.unsqueeze(y.dim() - tail), tail).squeeze(y.dim() - tail)
+    return lower_solve(L, d, H, tail), yw, -torch.log(d).sum(d.dim() - tail - 1)
 
 
 def prepare_inputs(args: FilterInputs, validate_args: bool = True) -> PreparedInputs:
-    """Check, mask, broadcast and whiten the filter arguments (shapes: :mod:`torchsde_lti.filters`).
-
-    With a feedthrough D (..., [T,] m, p) and inputs u, the observations become ``y − D u``.
-
-    The covariance path's batch excludes y (and u) unless data are missing, so with a shared
-    dt grid and no missing data the covariance recursion runs once for all tracks.
-    """
+    """Check, symmetrise, mask and whiten the filter arguments (shapes: :mod:`torchsde_lti.filters`)
+    and lay them out batch-last. With a feedthrough D (..., [T,] m, p) and inputs u, the
+    observations become ``y − D u``."""
     checked = _check_arguments(args, validate_args)
     y, A, Q, H, R, m0, P0 = checked.args[:7]
-    c = checked.c
-    T, n = checked.T, checked.n
+    c, T = checked.c, checked.T
     obs, y0 = observed_components(y, checked.args.mask)
-
-    # Batch shapes: the covariance path excludes y (and u) unless data are missing.
-    tshape = lambda s: tuple(s)  # noqa: E731
-    cov_named = [
-        ("A", tshape(A.shape[:-2])),
-        ("Q", tshape(Q.shape[:-2])),
-        ("H", tshape(H.shape[:-2])),
-        ("R", tshape(R.shape[:-2])),
-        ("P0", tshape(P0.shape[:-2]) + (1,)),
-        ("T", (T,)),
-    ]
-    if obs is not None:
-        cov_named.append(("mask", tshape(obs.shape[:-1])))
-    cov_bt = broadcast_batch(cov_named)  # (*cb, T)
-    mean_named = cov_named + [("y", tshape(y.shape[:-1])), ("m0", tshape(m0.shape[:-1]) + (1,))]
-    if c is not None:
-        mean_named.append(("u", tshape(c.shape[:-1])))
-    mean_bt = broadcast_batch(mean_named)
-    if mean_bt[-1] != T:
-        raise ValueError(f"time axes do not broadcast to T={T}: {mean_named}")
-    nd = len(mean_bt) - 1
-    cov_bt = torch.Size((1,) * (len(mean_bt) - len(cov_bt)) + tuple(cov_bt))
-    cb = cov_bt[:-1]
-
-    A = pad_dims(A, nd + 3).expand(*cov_bt, n, n)
-    Q = pad_dims(Q, nd + 3).expand(*cov_bt, n, n)
-    # H, R and everything derived from them keep their own (broadcastable) shapes.
-    H = pad_dims(H, nd + 3)
-    R = pad_dims(R, nd + 3)
-    P0 = pad_dims(P0, nd + 2).expand(*cb, n, n)
-    m0 = pad_dims(m0, nd + 1).expand(*mean_bt[:-1], n)
-    y0 = pad_dims(y0, nd + 2)
-    if c is not None:
-        c = pad_dims(c, nd + 2)
-
-    o = None if obs is None else pad_dims(obs, nd + 2)
-    Hw, yw, log_det = whiten(*mask_observation_model(H, R, o), y0)
-    return PreparedInputs(A, Q, Hw, yw, c, m0, P0, H, R, y0, obs, log_det, mean_bt[:-1], T)
+    named: list[tuple[str, tuple[int, ...]]] = [("A", A.shape[:-2]), ("Q", Q.shape[:-2]), ("H", H.shape[:-2])]
+    named += [("R", R.shape[:-2]), ("P0", (*P0.shape[:-2], 1)), ("T", (T,)), ("y", y.shape[:-1])]
+    named += [("mask", obs.shape[:-1]), ("m0", (*m0.shape[:-1], 1))] + ([] if c is None else [("u", c.shape[:-1])])
+    batch_t = broadcast_batch(named)  # (*mean batch, T)
+    if batch_t[-1] != T:
+        raise ValueError(f"time axes do not broadcast to T={T}: {named}")
+    nd = len(batch_t) - 1
+    H, R = batch_last(H, 2, nd), sym(batch_last(R, 2, nd), 1)  # (T or 1, m, ·, *b)
+    obs, y0 = batch_last(obs, 1, nd), batch_last(y0, 1, nd)  # (T, m, *b)
+    Hw, yw, log_det = whiten(*mask_observation_model(H, R, obs, 1), y0, 1)
+    steps = lambda x: x.expand(T, *x.shape[1:])  # noqa: E731  (a shared matrix: a view over the steps)
+    return PreparedInputs(
+        steps(batch_last(A, 2, nd)),
+        steps(sym(batch_last(Q, 2, nd), 1)),
+        Hw,
+        yw,
+        None if c is None else steps(batch_last(c, 1, nd)),
+        batch_last(m0, 1, nd, time=False),
+        sym(batch_last(P0, 2, nd, time=False)),
+        H,
+        R,
+        y0,
+        obs,
+        log_det,
+        batch_t[:-1],
+        T,
+    )
 
 
 def assemble_result(
-    prep: PreparedInputs,
-    filtered: tuple[Tensor, Tensor],
-    predicted: tuple[Tensor, Tensor],
-    step_ll_core: Tensor,
-    innovations: tuple[Tensor, Tensor] | None = None,
+    prep: PreparedInputs, filtered: tuple[Tensor, Tensor], predicted: tuple[Tensor, Tensor], step_ll_core: Tensor
 ) -> FilterResult:
-    """The :class:`FilterResult` of an algorithm's moments: filtered and predicted (mean
-    (..., T, n), cov (..., T, n, n)) pairs, the whitened per-step log-likelihood core
-    (..., T), and optionally the innovations and their covariances (else computed here, in
-    the original space); log-likelihood constants added, outputs broadcast to the full batch."""
+    """The :class:`FilterResult` of an algorithm's batch-last moments: filtered and predicted
+    (mean (T, n, *b), cov (T, n, n, *b)) pairs and the whitened per-step log-likelihood core
+    (T, *b); the innovations and their covariances formed here in the original space, the
+    log-likelihood constants added, every output a batch-first view of the full batch."""
     (mean, cov), (pred_mean, pred_cov) = filtered, predicted
-    innovation, innovation_cov = (None, None) if innovations is None else innovations
-    mb, T = prep.mean_batch, prep.T
-    n, m = mean.shape[-1], prep.yw.shape[-1]
-    if innovation is None or innovation_cov is None:
-        innovation = prep.y0 - matvec(prep.H, pred_mean)
-        innovation_cov = sym(prep.H @ pred_cov @ prep.H.mT + prep.R)
-    if prep.obs is None:
-        n_obs = torch.full((), float(m), dtype=mean.dtype, device=mean.device)
-        observed = torch.ones((*mb, T, m), dtype=torch.bool, device=mean.device)
-    else:
-        o = pad_dims(prep.obs, len(mb) + 2).expand(*mb, T, m)
-        innovation = innovation * o
-        n_obs = o.to(mean.dtype).sum(-1)
-        observed = o
-    step_ll = step_ll_core - 0.5 * n_obs * LOG_2PI - prep.log_det_chol_R
-    step_ll = step_ll.expand(*mb, T)
+    mb, T, nd = prep.mean_batch, prep.T, len(prep.mean_batch)
+    n, m = mean.shape[1], prep.yw.shape[1]
+    obs = prep.obs.to(mean.dtype)
+    innovation = (prep.y0 - mv(prep.H, pred_mean, 1)) * obs
+    innovation_cov = sym(mm(mm(prep.H, pred_cov, 1), tr(prep.H, 1), 1), 1) + prep.R
+    step_ll = step_ll_core - 0.5 * LOG_2PI * obs.sum(1) - prep.log_det_chol_R
+    c = prep.c if prep.c is not None else mean.new_zeros((1, n, *(1,) * nd))
+
+    def out(x: Tensor, event: tuple[int, ...]) -> Tensor:
+        return batch_first(x, len(event), nd).expand(*mb, T, *event)
+
+    step_ll = out(step_ll.unsqueeze(1), (1,)).squeeze(-1)
     return FilterResult(
-        mean=mean.expand(*mb, T, n),
-        cov=cov.expand(*mb, T, n, n),
-        pred_mean=pred_mean.expand(*mb, T, n),
-        pred_cov=pred_cov.expand(*mb, T, n, n),
-        innovation=innovation.expand(*mb, T, m),
-        innovation_cov=innovation_cov.expand(*mb, T, m, m),
+        mean=out(mean, (n,)),
+        cov=out(cov, (n, n)),
+        pred_mean=out(pred_mean, (n,)),
+        pred_cov=out(pred_cov, (n, n)),
+        innovation=out(innovation, (m,)),
+        innovation_cov=out(innovation_cov, (m, m)),
         log_likelihood=step_ll.sum(-1),
         step_log_likelihood=step_ll,
-        transition=prep.A,
-        process_noise=prep.Q,
-        observed=observed,
-        control=(mean.new_zeros(()) if prep.c is None else prep.c).expand(*mb, T, n),
+        transition=out(prep.A, (n, n)),
+        process_noise=out(prep.Q, (n, n)),
+        observed=out(prep.obs, (m,)),
+        control=out(c, (n,)),
     )
+
+
+def predictions(prep: PreparedInputs, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
+    """The predictions ``m⁻_k = A_k m_{k−1} + c_k``, ``P⁻_k = A_k P_{k−1} A_kᵀ + Q_k`` (step 0
+    from the prior) of the filtered moments mean (T, n, *b), cov (T, n, n, *b), batched over
+    the steps."""
+    # (the prior put in front, the last step dropped: no size-(T − 1) tensor, which a traced
+    # program with a dynamic T would have to guard against being 1)
+    prev_m = torch.cat([prep.m0.expand(mean.shape[1:]).unsqueeze(0), mean])[:-1]
+    prev_P = torch.cat([prep.P0.expand(cov.shape[1:]).unsqueeze(0), cov])[:-1]
+    pred_mean = mv(prep.A, prev_m, 1)
+    if prep.c is not None:
+        pred_mean = pred_mean + prep.c
+    return pred_mean, sym(mm(mm(prep.A, prev_P, 1), tr(prep.A, 1), 1), 1) + prep.Q
 
 
 def complete_from_filtered(prep: PreparedInputs, mean: Tensor, cov: Tensor) -> FilterResult:
     """The :class:`FilterResult` of an algorithm that yields the filtered moments alone, mean
-    (..., T, n) and cov (..., T, n, n): the predictions ``m⁻_k = A_k m_{k−1} + c_k``,
-    ``P⁻_k = A_k P_{k−1} A_kᵀ + Q_k`` (step 0 from the prior) and the log-likelihood from the
-    whitened innovations ``z_k = L_k⁻¹ (y'_k − H'_k m⁻_k)``, ``L_k L_kᵀ = H'_k P⁻_k H'_kᵀ + I``,
-    all batched over the steps (an unobserved component has a zero row of H' and y': it adds 0)."""
-    n = mean.shape[-1]
-    # (the prior put in front, the last step dropped: no size-(T − 1) tensor, which a traced
-    # program with a dynamic T would have to guard against being 1)
-    prev_m = torch.cat([prep.m0.unsqueeze(-2), mean], dim=-2)[..., :-1, :]
-    lead = torch.broadcast_shapes(prep.P0.shape[:-2], cov.shape[:-3])
-    prev_P = torch.cat([prep.P0.expand(*lead, n, n).unsqueeze(-3), cov.expand(*lead, -1, n, n)], dim=-3)[..., :-1, :, :]
-    pred_mean = matvec(prep.A, prev_m)
-    if prep.c is not None:
-        pred_mean = pred_mean + prep.c
-    pred_cov = sym(prep.A @ prev_P @ prep.A.mT + prep.Q)
-    Hw = prep.Hw
-    S = sym(Hw @ pred_cov @ Hw.mT) + torch.eye(Hw.shape[-2], dtype=Hw.dtype, device=Hw.device)
-    L = cholesky(S)
-    z = solve_lower(L, (prep.yw - matvec(Hw, pred_mean)).unsqueeze(-1)).squeeze(-1)
-    logdet = 2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
-    return assemble_result(prep, (mean, cov), (pred_mean, pred_cov), -0.5 * (logdet + (z * z).sum(-1)))
+    (T, n, *b) and cov (T, n, n, *b): the predictions (:func:`predictions`) and the
+    log-likelihood from the whitened innovations ``z_k = L_k⁻¹ (y'_k − H'_k m⁻_k)``,
+    ``L_k L_kᵀ = H'_k P⁻_k H'_kᵀ + I``, all batched over the steps (an unobserved component has
+    a zero row of H' and y': it adds 0)."""
+    pred_mean, pred_cov = predictions(prep, mean, cov)
+    Hw, m = prep.Hw, prep.Hw.shape[1]
+    eye = torch.eye(m, dtype=Hw.dtype, device=Hw.device).reshape(1, m, m, *[1] * len(prep.mean_batch))
+    L, d = psd_cholesky(sym(mm(mm(Hw, pred_cov, 1), tr(Hw, 1), 1), 1) + eye, 1)  # (T, m, m, *b)
+    v = (prep.yw - mv(Hw, pred_mean, 1)).unsqueeze(2)
+    z = lower_solve(L, d, v, len(prep.mean_batch)).squeeze(2)  # (T, m, *b)
+    core = torch.log(d).sum(1) - 0.5 * (z * z).sum(1)  # −½ (log det S + zᵀ z), det S = Π 1 / d_j²
+    return assemble_result(prep, (mean, cov), (pred_mean, pred_cov), core)

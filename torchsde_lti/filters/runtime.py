@@ -9,7 +9,7 @@ from contextlib import contextmanager
 
 from torchsde_lti.core.validation import tracing
 
-__all__ = ["compiler_tracing", "eager_runtime_tracing", "traced_for_eager_runtime"]
+__all__ = ["compiler_tracing", "traced_for_eager_runtime"]
 
 #: Whether a trace in progress is for a program that runs op by op (set by
 #: :func:`traced_for_eager_runtime`; a plain flag, which torch.compile reads without a graph break).
@@ -19,8 +19,8 @@ _EAGER_RUNTIME = [False]
 @contextmanager
 def traced_for_eager_runtime(on: bool = True) -> Iterator[None]:
     """Trace (torch.export) a program that runs as it is, op by op (``ExportedProgram.module()``),
-    not through Inductor: small products stay batched BLAS / LAPACK calls, and a sequence filter
-    takes the algorithm that needs the fewest of them (:func:`eager_runtime_tracing`)."""
+    not through Inductor: small products stay batched BLAS / LAPACK calls (read by
+    :func:`compiler_tracing`). The sequence filters run the same algorithm either way."""
     before = _EAGER_RUNTIME[0]
     _EAGER_RUNTIME[0] = on
     try:
@@ -34,9 +34,3 @@ def compiler_tracing() -> bool:
     AOTInductor), which fuse small products written as elementwise ops (:func:`~torchsde_lti.core.linalg.fused_matmul`):
     tracing, and not inside :func:`traced_for_eager_runtime`."""
     return tracing() and not _EAGER_RUNTIME[0]
-
-
-def eager_runtime_tracing() -> bool:
-    """Whether torch.export traces the call for a program that runs op by op
-    (:func:`traced_for_eager_runtime`)."""
-    return _EAGER_RUNTIME[0] and tracing()
