@@ -1,0 +1,649 @@
+"""Out-of-core preparation: many raw trajectory files -> cleaned, windowed tracks in a Parquet dataset.
+
+    summary = prepare_dataset("AIS_2024_*.csv", "prepared/", max_len=128, workers=2)
+    print(summary)                       # the loader's counted summary, summed over every file
+
+The same reading (:func:`~torchsde_lti.data.read_reports`) and the same cleaning rules
+(:func:`~torchsde_lti.data.prepare_tracks`) as :func:`~torchsde_lti.data.load_tracks`, in
+memory bounded independently of the data's size, in two passes of independent tasks run by a
+pool of ``workers`` processes:
+
+1. **scatter** (a task per input file): the file is read ``chunk_bytes`` at a time (CSV, the CSV
+   inside a zip, ``.traj`` lines; Parquet row groups), each chunk with ``read_reports``, and
+   its reports are appended to ``B`` Parquet files by a hash of the object id (MMSI): bucket b
+   holds every report of about 1/B of the objects, from every file. ``B`` is chosen from the
+   inputs' size (about ``bucket_reports`` reports a bucket) and fixed in the plan.
+2. **gather** (a task per bucket): a bucket's reports are cleaned into tracks with
+   ``prepare_tracks``, exactly as ``load_tracks`` cleans one file, cut into windows of at most
+   ``max_len`` reports (:func:`~torchsde_lti.data.window_bounds`) and written as
+   ``windows/bucket=BBBBB.parquet``, one row per window.
+
+A task's outputs are written under temporary names and published by a rename, then recorded in
+``_manifest/`` (the plan, one entry per scattered file and per gathered bucket), so a killed
+run resumes where it stopped and gives the same dataset; ``summary.json`` is written last (the
+:class:`~torchsde_lti.data.LoadSummary` counts summed over the buckets; ``rows`` and
+``malformed`` over the files). Since an object's reports all land in one bucket, each bucket is
+cleaned like a file of its own: the counts add up, objects included, and preparing ONE file gives
+the tracks ``load_tracks`` gives (tested on the national day).
+
+Per-chunk reading: a chunk of one file is read on its own, so what ``read_reports`` decides per
+file (integer or text ids, ISO 8601 or epoch seconds when a time column mixes them) is decided
+per chunk; a malformed row's example names the file and the chunk's first line.
+
+A window row (``windows/*.parquet``): ``object_id``, ``bucket``, ``track`` (its index in the
+bucket), ``length`` (T), ``time`` (T,) int64 microseconds since 1970 UTC, ``lat``, ``lon`` (T,)
+degrees, ``east``, ``north`` [, ``up``] (T,) metres in the track's frame, ``origin_lat``,
+``origin_lon``, ``origin_alt`` (the frame's origin), and where the files have SOG/COG
+``vel_east``, ``vel_north`` (T,) m/s and ``sog`` (T,) knots (NaN: unavailable).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import glob
+import hashlib
+import json
+import math
+import os
+import shutil
+import zipfile
+from collections.abc import Iterator, Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from torchsde_lti.data.loaded_tracks import LoadSummary, Tracks, _ranges
+from torchsde_lti.data.sources import Reports, locate_file, read_reports
+from torchsde_lti.data.splits import window_bounds
+from torchsde_lti.data.trajectories import prepare_tracks
+
+__all__ = ["PREPARED_FORMAT", "PreparedSummary", "find_sources", "prepare_dataset"]
+
+#: Version of the prepared dataset's layout (in ``_manifest/plan.json`` and ``summary.json``).
+PREPARED_FORMAT = 1
+_SUFFIXES = (".csv", ".zip", ".traj", ".parquet", ".pq")
+_READING = ("columns", "format", "time_format", "altitude_unit")
+_EXAMPLES = 3
+_BYTES_PER_REPORT = {".csv": 85, ".zip": 85, ".traj": 45, ".parquet": 0, ".pq": 0}  # 0: rows from the metadata
+
+
+@dataclass(frozen=True)
+class PreparedSummary:
+    """What :func:`prepare_dataset` read, removed and kept, and what it wrote.
+
+    ``load`` is the loader's :class:`~torchsde_lti.data.LoadSummary` over all the files (its
+    ``source`` names the inputs); ``files``: input files; ``buckets``: B; ``windows``: rows
+    written; ``max_len``; ``out``: the dataset's folder.
+    """
+
+    load: LoadSummary
+    files: int
+    buckets: int
+    windows: int
+    max_len: int | None
+    out: str
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain Python values (JSON-ready)."""
+        return {
+            "format": PREPARED_FORMAT,
+            "load": self.load.as_dict(),
+            "files": self.files,
+            "buckets": self.buckets,
+            "windows": self.windows,
+            "max_len": self.max_len,
+            "out": self.out,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> PreparedSummary:
+        load = dict(d["load"])
+        load["malformed_examples"] = tuple(load["malformed_examples"])
+        known = {f.name for f in dataclasses.fields(LoadSummary)}
+        return cls(
+            LoadSummary(**{k: v for k, v in load.items() if k in known}),
+            int(d["files"]),
+            int(d["buckets"]),
+            int(d["windows"]),
+            d["max_len"],
+            str(d["out"]),
+        )
+
+    def __str__(self) -> str:
+        return (
+            f"{self.load}\n  prepared: {self.windows} windows of <= {self.max_len or 'all'} reports from "
+            f"{self.files} files in {self.buckets} buckets under {self.out}"
+        )
+
+
+# ---------------------------------------------------------------------------- inputs and plan
+def find_sources(source: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]) -> list[Path]:
+    """The input files of ``source``: a file, a directory (its trajectory files, recursively), a
+    glob pattern, or a list of those; sorted, without duplicates.
+
+    Args:
+        source: as above (or the name of a file shipped by tracktable-data); trajectory files end
+            in .csv, .zip (a CSV inside), .traj, .parquet or .pq.
+
+    Returns:
+        list[Path]: the files, resolved.
+
+    Raises:
+        FileNotFoundError: when ``source`` names no trajectory file (naming it).
+        ValueError: for a file reserved for evaluation.
+    """
+    from torchsde_lti.data.modules import _reserved_file
+
+    items = [source] if isinstance(source, (str, os.PathLike)) else list(source)
+    found: set[Path] = set()
+    for item in items:
+        text = os.path.expanduser(str(item))
+        path = Path(text)
+        if path.is_dir():
+            matches = [p for p in path.rglob("*") if p.is_file() and p.suffix.lower() in _SUFFIXES]
+        elif path.is_file():
+            matches = [path]
+        else:
+            matches = [Path(p) for p in glob.glob(text, recursive=True) if Path(p).is_file()]
+            matches = [p for p in matches if p.suffix.lower() in _SUFFIXES]
+        if not matches and not glob.has_magic(text):
+            matches = [locate_file(text)]  # a file shipped by tracktable-data (FileNotFoundError says where it looked)
+        if not matches:
+            raise FileNotFoundError(f"source={str(item)!r}: no trajectory file ({', '.join(_SUFFIXES)}) there")
+        found.update(p.resolve() for p in matches)
+    files = sorted(found)
+    for f in files:
+        reserved = _reserved_file(f)
+        if reserved is not None:
+            raise ValueError(f"source: {f} is {reserved}, reserved for evaluation (never train, tune or select on it)")
+    return files
+
+
+def _file_key(path: Path) -> str:
+    """A name for the file's scattered parts: its path, size and modification time, hashed."""
+    st = path.stat()
+    return hashlib.sha1(f"{path}\0{st.st_size}\0{st.st_mtime_ns}".encode()).hexdigest()[:16]
+
+
+def _estimated_reports(path: Path) -> int:
+    suffix = path.suffix.lower()
+    if suffix in (".parquet", ".pq"):
+        import pyarrow.parquet as pq
+
+        return int(pq.ParquetFile(path).metadata.num_rows)
+    size = path.stat().st_size
+    if suffix == ".zip":
+        with zipfile.ZipFile(path) as z:
+            size = sum(i.file_size for i in z.infolist())
+    return max(1, size // _BYTES_PER_REPORT[suffix])
+
+
+def _plan(
+    files: list[Path], rules: dict[str, Any], max_len: int | None, buckets: int | None, bucket_reports: int
+) -> dict[str, Any]:
+    """The dataset's plan: its inputs, settings and number of buckets (fixed once written)."""
+    if buckets is None:
+        buckets = max(1, math.ceil(sum(_estimated_reports(f) for f in files) / bucket_reports))
+    return {
+        "format": PREPARED_FORMAT,
+        "files": [{"path": str(f), "key": _file_key(f), "size": f.stat().st_size} for f in files],
+        "rules": rules,
+        "max_len": max_len,
+        "buckets": int(buckets),
+    }
+
+
+# ---------------------------------------------------------------------------- reading in chunks
+def _chunks(path: Path, tmp: Path, chunk_bytes: int, reading: dict[str, Any]) -> Iterator[Reports]:
+    """The reports of each chunk of ``path``, read by ``read_reports`` from a temporary file that
+    holds the chunk (after the file's header)."""
+    if path.suffix.lower() == ".zip":
+        with zipfile.ZipFile(path) as z:
+            members = [i for i in z.infolist() if not i.is_dir()]
+            if len(members) != 1:
+                raise ValueError(f"{path}: a zipped source must hold one file, found {[m.filename for m in members]}")
+            fmt = (reading.get("format") or Path(members[0].filename).suffix.lstrip(".") or "csv").lower()
+            with z.open(members[0]) as fh:
+                yield from _text_chunks(fh, fmt, tmp, chunk_bytes, reading, f"{path}!{members[0].filename}")
+        return
+    fmt = (reading.get("format") or path.suffix.lstrip(".")).lower()
+    if fmt in ("parquet", "pq"):
+        yield from _parquet_chunks(path, tmp, chunk_bytes, reading)
+        return
+    with open(path, "rb") as fh:
+        yield from _text_chunks(fh, fmt, tmp, chunk_bytes, reading, str(path))
+
+
+def _text_chunks(
+    fh: Any, fmt: str, tmp: Path, chunk_bytes: int, reading: dict[str, Any], name: str
+) -> Iterator[Reports]:
+    """Chunks of whole lines. Every CSV chunk after the first starts with the file's leading
+    comment lines and its header line (when it has one), so that it reads as the file would."""
+    preamble = rest = b""
+    if fmt == "csv":
+        head = [fh.readline()]
+        while head[-1].startswith(b"#"):
+            head.append(fh.readline())
+        preamble = b"".join(head if _has_header(head[-1], reading.get("columns")) else head[:-1])
+        rest = b"".join(head)  # the first chunk is the file's own beginning
+    line, k = 1, 0
+    while True:
+        block = fh.read(chunk_bytes)
+        data = rest + block
+        cut = len(data) if not block else data.rfind(b"\n") + 1
+        body, rest = data[:cut], data[cut:]
+        if body.strip():
+            yield _read_chunk(body if k == 0 else preamble + body, fmt, tmp, reading, name, line, k)
+            line += body.count(b"\n")
+            k += 1
+        if not block:
+            return
+
+
+def _has_header(first: bytes, columns: object) -> bool:
+    """Whether a CSV's first non-comment line is a header: yes unless every column is given by
+    position and the line has a number at the latitude position."""
+    if not isinstance(columns, Mapping) or not all(isinstance(v, int) for v in columns.values() if v is not None):
+        return True
+    fields = first.decode("utf-8", errors="replace").strip().split(",")
+    lat = columns.get("lat")
+    if not isinstance(lat, int) or lat >= len(fields):
+        return True
+    try:
+        float(fields[lat])
+    except ValueError:
+        return True
+    return False
+
+
+def _read_chunk(data: bytes, fmt: str, tmp: Path, reading: dict[str, Any], name: str, line: int, k: int) -> Reports:
+    chunk = tmp / f"chunk{k}.{fmt}"
+    chunk.write_bytes(data)
+    try:
+        rep = read_reports(chunk, **{**reading, "format": fmt})
+    except ValueError as err:
+        raise ValueError(f"{name} (the chunk from line {line}): {err}".replace(str(chunk), name)) from None
+    finally:
+        chunk.unlink(missing_ok=True)
+    examples = tuple(f"{name}, chunk from line {line}: {e}" for e in rep.malformed_examples)
+    segment = rep.segment + (line - 1) if rep.segment is not None else None  # .traj: the file's line numbers
+    return rep._replace(malformed_examples=examples, segment=segment, path=name)
+
+
+def _parquet_chunks(path: Path, tmp: Path, chunk_bytes: int, reading: dict[str, Any]) -> Iterator[Reports]:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    source = pq.ParquetFile(path)
+    rows = max(1, chunk_bytes // max(1, _row_bytes(source)))
+    first = 1
+    for k, batch in enumerate(source.iter_batches(batch_size=rows)):
+        chunk = tmp / f"chunk{k}.parquet"
+        pq.write_table(pa.Table.from_batches([batch]), chunk)
+        try:
+            rep = read_reports(chunk, **{**reading, "format": "parquet"})
+        except ValueError as err:
+            raise ValueError(f"{path} (the chunk from row {first}): {err}".replace(str(chunk), str(path))) from None
+        finally:
+            chunk.unlink(missing_ok=True)
+        examples = tuple(f"{path}, chunk from row {first}: {e}" for e in rep.malformed_examples)
+        yield rep._replace(malformed_examples=examples, path=str(path))
+        first += batch.num_rows
+
+
+def _row_bytes(source: Any) -> int:
+    meta = source.metadata
+    return max(
+        1, meta.serialized_size + sum(meta.row_group(i).total_byte_size for i in range(meta.num_row_groups))
+    ) // max(1, meta.num_rows)
+
+
+# ---------------------------------------------------------------------------- scatter
+_ARRAY_FIELDS = ("object_id", "time", "lat", "lon", "alt", "sog", "cog", "segment")
+
+
+def _bucket_of(object_id: np.ndarray, buckets: int) -> np.ndarray:
+    """(N,) bucket of each object id: a multiplicative hash of integer ids (MMSI), CRC-32 of text ids."""
+    if object_id.dtype.kind in "iu":
+        mixed = object_id.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+        return ((mixed >> np.uint64(32)) % np.uint64(buckets)).astype(np.int64)
+    import zlib
+
+    uniq, inverse = np.unique(object_id.astype(str), return_inverse=True)
+    codes = np.array([zlib.crc32(u.encode()) for u in uniq.tolist()], dtype=np.int64)
+    return (codes % buckets)[inverse]
+
+
+def _scatter_file(task: dict[str, Any]) -> dict[str, Any]:
+    """Pass 1 for one file: its reports, chunk by chunk, into its part of every bucket."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    path, key, out = Path(task["path"]), task["key"], Path(task["out"])
+    buckets, reading = int(task["buckets"]), task["reading"]
+    tmp = out / "_tmp" / key
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    writers: dict[int, Any] = {}
+    rows = malformed = reports = 0
+    examples: list[str] = []
+    try:
+        for rep in _chunks(path, tmp, int(task["chunk_bytes"]), reading):
+            rows += rep.rows
+            malformed += rep.malformed
+            examples += list(rep.malformed_examples)[: max(0, _EXAMPLES - len(examples))]
+            if len(rep.time) == 0:
+                continue
+            reports += len(rep.time)
+            table = _reports_table(rep)
+            bucket = _bucket_of(rep.object_id, buckets)
+            order = np.argsort(bucket, kind="stable")
+            table = table.take(pa.array(order))
+            sorted_b = bucket[order]
+            edges = np.flatnonzero(np.diff(sorted_b)) + 1
+            for a, z in zip(np.concatenate([[0], edges]), np.concatenate([edges, [len(order)]])):
+                b = int(sorted_b[a])
+                if b not in writers:
+                    writers[b] = pq.ParquetWriter(tmp / f"{b}.parquet", table.schema)
+                part = table.slice(int(a), int(z - a))
+                if part.schema != writers[b].schema:  # (a chunk of text ids after integer ones, say)
+                    raise ValueError(
+                        f"{path}: object ids read as {part.schema} after {writers[b].schema} in an earlier chunk"
+                    )
+                writers[b].write_table(part)
+    finally:
+        for w in writers.values():
+            w.close()
+    for b in writers:  # publish: rename into the buckets (a rerun of an unfinished file overwrites)
+        folder = out / "_scatter" / f"bucket={b:05d}"
+        folder.mkdir(parents=True, exist_ok=True)
+        os.replace(tmp / f"{b}.parquet", folder / f"{key}.parquet")
+    shutil.rmtree(tmp, ignore_errors=True)
+    entry = {"path": str(path), "key": key, "rows": rows, "malformed": malformed, "examples": examples}
+    entry |= {"reports": reports, "buckets": sorted(writers)}
+    _write_json(out / "_manifest" / "scatter" / f"{key}.json", entry)
+    return entry
+
+
+def _reports_table(rep: Reports) -> Any:
+    """The array fields of ``rep`` as a pyarrow table (times as int64 microseconds)."""
+    import pyarrow as pa
+
+    cols: dict[str, Any] = {}
+    for name in _ARRAY_FIELDS:
+        v = getattr(rep, name, None)
+        if v is None:
+            continue
+        if name == "time":
+            v = v.astype("datetime64[us]").astype(np.int64)
+        cols[name] = pa.array(v.astype(str) if v.dtype.kind == "U" else v)
+    return pa.table(cols)
+
+
+# ---------------------------------------------------------------------------- gather
+def _gather_bucket(task: dict[str, Any]) -> dict[str, Any]:
+    """Pass 2 for one bucket: clean its reports into tracks, cut windows, write them."""
+    import pyarrow.parquet as pq
+
+    out, b = Path(task["out"]), int(task["bucket"])
+    parts = sorted((out / "_scatter" / f"bucket={b:05d}").glob("*.parquet"))
+    name = f"{task['source']} (bucket {b} of {task['buckets']})"
+    entry: dict[str, Any] = {"bucket": b, "windows": 0, "counts": None}
+    if parts:
+        table = _concat([pq.read_table(p) for p in parts])
+        rep = _table_reports(table, name)
+        cleaning = {k: v for k, v in task["rules"].items() if k not in _READING}
+        try:
+            tracks = prepare_tracks(rep, **cleaning)
+        except ValueError as err:
+            if "no report has a valid position" not in str(err) and "no track of" not in str(err):
+                raise
+            tracks = None  # (every report of this bucket removed: counted below)
+            entry["counts"] = _empty_counts(rep, str(err))
+        if tracks is not None:
+            windows = _windows_table(tracks, task["max_len"], b)
+            target = out / "windows" / f"bucket={b:05d}.parquet"
+            target.parent.mkdir(parents=True, exist_ok=True)
+            tmp = target.with_name(f".{target.name}.tmp")
+            pq.write_table(windows, tmp, row_group_size=int(task["row_group_windows"]), compression="zstd")
+            os.replace(tmp, target)
+            entry["windows"] = windows.num_rows
+            entry["counts"] = tracks.summary.as_dict()
+            entry["dims"] = tracks.dims
+    _write_json(out / "_manifest" / "gather" / f"{b:05d}.json", entry)
+    return entry
+
+
+def _concat(tables: list[Any]) -> Any:
+    import pyarrow as pa
+
+    if len({t.schema.field("object_id").type for t in tables}) > 1:  # integer ids in some files, text in others
+        tables = [
+            t.set_column(t.schema.get_field_index("object_id"), "object_id", t["object_id"].cast(pa.string()))
+            for t in tables
+        ]
+    return pa.concat_tables(tables, promote_options="default")
+
+
+def _table_reports(table: Any, name: str) -> Reports:
+    """A bucket's scattered reports as :class:`Reports` (one report a row, nothing malformed)."""
+    cols = {}
+    for field_name in _ARRAY_FIELDS:
+        if field_name in table.column_names:
+            arr = table[field_name].to_numpy()
+            cols[field_name] = arr.astype(str) if arr.dtype == object else arr
+    cols["time"] = cols["time"].astype("datetime64[us]")
+    n = table.num_rows
+    values = {f: cols.get(f) for f in _ARRAY_FIELDS}
+    return Reports(**values, rows=n, malformed=0, malformed_examples=(), path=name)
+
+
+def _empty_counts(rep: Reports, reason: str) -> dict[str, Any]:
+    """The counts of a bucket that keeps nothing (its reports are all accounted as invalid)."""
+    return {"rows": rep.rows, "dropped_all": reason}
+
+
+def _windows_table(tracks: Tracks, max_len: int | None, bucket: int) -> Any:
+    """One row per window (the module docstring's columns), list columns without a Python loop."""
+    import pyarrow as pa
+
+    owner, a, b = window_bounds(tracks.lengths, max_len)
+    a = a + tracks.offsets[owner]
+    b = b + tracks.offsets[owner]
+    lengths = (b - a).astype(np.int64)
+    offsets = pa.array(np.concatenate([[0], np.cumsum(lengths)]).astype(np.int32))
+    rows = _ranges(a, lengths)
+    t0 = tracks.t0.astype("datetime64[us]").astype(np.int64)
+    time = t0 + np.round(tracks.t[rows] * 1e6).astype(np.int64)
+
+    def listed(values: np.ndarray) -> Any:
+        return pa.ListArray.from_arrays(offsets, pa.array(np.ascontiguousarray(values)))
+
+    cols: dict[str, Any] = {
+        "object_id": pa.array(
+            tracks.object_id[owner].astype(str) if tracks.object_id.dtype.kind == "U" else tracks.object_id[owner]
+        ),
+        "bucket": pa.array(np.full(len(owner), bucket, dtype=np.int32)),
+        "track": pa.array(owner.astype(np.int64)),
+        "length": pa.array(lengths.astype(np.int32)),
+        "time": listed(time),
+        "lat": listed(tracks.lat[rows]),
+        "lon": listed(tracks.lon[rows]),
+        "east": listed(tracks.pos[rows, 0]),
+        "north": listed(tracks.pos[rows, 1]),
+    }
+    if tracks.dims == 3:
+        cols["up"] = listed(tracks.pos[rows, 2])
+    cols["origin_lat"] = pa.array(tracks.origin[owner, 0])
+    cols["origin_lon"] = pa.array(tracks.origin[owner, 1])
+    cols["origin_alt"] = pa.array(tracks.origin[owner, 2])
+    if tracks.vel is not None:
+        cols["vel_east"] = listed(tracks.vel[rows, 0])
+        cols["vel_north"] = listed(tracks.vel[rows, 1])
+    if tracks.sog is not None:
+        cols["sog"] = listed(tracks.sog[rows])
+    return pa.table(cols)
+
+
+# ---------------------------------------------------------------------------- the summary
+def _merge(
+    files: list[dict[str, Any]], buckets: list[dict[str, Any]], source: str, rules: dict[str, Any]
+) -> LoadSummary:
+    """One LoadSummary: rows and malformed over the files, every other count over the buckets."""
+    kept = [b["counts"] for b in buckets if b["counts"] and "dropped_all" not in b["counts"]]
+    if not kept:
+        raise ValueError(f"{source}: no track is left after cleaning ({sum(f['rows'] for f in files)} reports read)")
+    counts: dict[str, Any] = {}
+    for f in dataclasses.fields(LoadSummary):
+        values = [k[f.name] for k in kept if f.name in k]
+        if f.type in ("int", int) and f.name not in ("dims",):
+            counts[f.name] = int(sum(values))
+        elif values and all(isinstance(v, dict) and all(isinstance(x, int) for x in v.values()) for v in values):
+            counts[f.name] = {
+                key: sum(v.get(key, 0) for v in values) for key in dict.fromkeys(k for v in values for k in v)
+            }
+        elif values:
+            counts[f.name] = values[0]
+    dropped = sum(b["counts"]["rows"] for b in buckets if b["counts"] and "dropped_all" in b["counts"])
+    counts["invalid_positions"] = counts.get("invalid_positions", 0) + dropped  # buckets where nothing was valid
+    counts["rows"] = int(sum(f["rows"] for f in files))
+    counts["malformed"] = int(sum(f["malformed"] for f in files))
+    counts["malformed_examples"] = tuple(e for f in files for e in f["examples"])[:_EXAMPLES]
+    counts["source"] = source
+    return LoadSummary(**counts)
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(obj, indent=1, default=str) + "\n")
+    os.replace(tmp, path)
+
+
+def _read_json(path: Path) -> Any:
+    return json.loads(path.read_text())
+
+
+# ---------------------------------------------------------------------------- the job
+def prepare_dataset(
+    source: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
+    out: str | os.PathLike[str],
+    *,
+    max_len: int | None = 128,
+    workers: int = 1,
+    buckets: int | None = None,
+    bucket_reports: int = 1_000_000,
+    chunk_bytes: int = 32 << 20,
+    row_group_windows: int = 1024,
+    keep_scatter: bool = False,
+    **rules: Any,
+) -> PreparedSummary:
+    """Prepare ``source`` into the Parquet dataset ``out`` (see the module docstring); resumes an
+    unfinished preparation of the same inputs and settings into ``out``.
+
+    Args:
+        source: a file, a directory, a glob pattern or a list of them (:func:`find_sources`).
+        out: the dataset's folder (created).
+        max_len: the longest window (reports); None = whole tracks.
+        workers: processes of the pool (1: in this process).
+        buckets: B, the number of object buckets; None = about ``bucket_reports`` reports each.
+        bucket_reports: reports per bucket when ``buckets`` is None (the gather's memory: about
+            200 bytes a report, so 1 M reports ~ 200 MB a worker).
+        chunk_bytes: bytes of a file read at once by the scatter (its memory: ~10x this).
+        row_group_windows: windows per Parquet row group (the streaming reader's unit).
+        keep_scatter: keep the bucketed reports (``_scatter/``) after the gather.
+        **rules: the loader's reading and cleaning settings, as for
+            :func:`~torchsde_lti.data.load_tracks` (columns, format, time_format, altitude_unit,
+            dims, frame, reference, course_encoding, max_gap, v_max, min_reports, max_extent,
+            cut_times).
+
+    Returns:
+        PreparedSummary: also written to ``out/summary.json``.
+
+    Raises:
+        ValueError: ``out`` holds a preparation of other inputs or settings (naming what differs),
+            or bad settings (as ``load_tracks`` raises them).
+    """
+    if max_len is not None and int(max_len) < 2:
+        raise ValueError(f"max_len must be >= 2 or None, got {max_len}")
+    if int(workers) < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if buckets is not None and int(buckets) < 1:
+        raise ValueError(f"buckets must be >= 1 or None, got {buckets}")
+    out = Path(out).expanduser().resolve()
+    files = find_sources(source)
+    plain = json.loads(json.dumps(rules, default=str))
+    plan_path = out / "_manifest" / "plan.json"
+    plan = _plan(files, plain, None if max_len is None else int(max_len), buckets, int(bucket_reports))
+    if plan_path.is_file():
+        old = _read_json(plan_path)
+        differs = [k for k in ("format", "files", "rules", "max_len") if old.get(k) != plan[k]]
+        if buckets is not None and old.get("buckets") != plan["buckets"]:
+            differs.append("buckets")
+        if differs:
+            raise ValueError(
+                f"out={str(out)!r} holds a preparation with other {', '.join(differs)}; "
+                "prepare into a new folder (or delete it)"
+            )
+        plan = old
+        summary_path = out / "summary.json"
+        if summary_path.is_file():
+            return PreparedSummary.from_dict(_read_json(summary_path))
+    else:
+        _write_json(plan_path, plan)
+    source_name = ", ".join(map(str, [source] if isinstance(source, (str, os.PathLike)) else source))
+    reading = {k: v for k, v in plain.items() if k in _READING}
+    common = {"out": str(out), "buckets": plan["buckets"]}
+    scatter = [
+        {**common, "path": f["path"], "key": f["key"], "reading": reading, "chunk_bytes": int(chunk_bytes)}
+        for f in plan["files"]
+        if not (out / "_manifest" / "scatter" / f"{f['key']}.json").is_file()
+    ]
+    gather = [
+        {**common, "bucket": b, "rules": plain, "max_len": plan["max_len"], "source": source_name}
+        | {"row_group_windows": int(row_group_windows)}
+        for b in range(plan["buckets"])
+    ]
+    with _pool(int(workers)) as run:
+        run(_scatter_file, scatter)
+        gather = [g for g in gather if not (out / "_manifest" / "gather" / f"{g['bucket']:05d}.json").is_file()]
+        run(_gather_bucket, gather)
+    file_entries = [_read_json(out / "_manifest" / "scatter" / f"{f['key']}.json") for f in plan["files"]]
+    bucket_entries = [_read_json(out / "_manifest" / "gather" / f"{b:05d}.json") for b in range(plan["buckets"])]
+    load = _merge(file_entries, bucket_entries, source_name, plain)
+    summary = PreparedSummary(
+        load, len(files), plan["buckets"], sum(b["windows"] for b in bucket_entries), plan["max_len"], str(out)
+    )
+    _write_json(out / "summary.json", summary.as_dict())
+    if not keep_scatter:
+        shutil.rmtree(out / "_scatter", ignore_errors=True)
+    shutil.rmtree(out / "_tmp", ignore_errors=True)
+    return summary
+
+
+class _pool:
+    """``run(fn, tasks)``: every task, in this process (1 worker) or a spawned process pool."""
+
+    def __init__(self, workers: int) -> None:
+        self.workers = workers
+        self.executor: ProcessPoolExecutor | None = None
+
+    def __enter__(self) -> Any:
+        if self.workers > 1:
+            import multiprocessing
+
+            self.executor = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
+
+        def run(fn: Any, tasks: list[dict[str, Any]]) -> list[Any]:
+            if self.executor is None:
+                return [fn(t) for t in tasks]
+            return list(self.executor.map(fn, tasks))
+
+        return run
+
+    def __exit__(self, *exc: object) -> None:
+        if self.executor is not None:
+            self.executor.shutdown(cancel_futures=True)
