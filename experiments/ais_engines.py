@@ -8,8 +8,10 @@ LON, SOG, COG), add a bucket number (a hash of the MMSI modulo ``--buckets``) an
 as Parquet, one folder per bucket (so that a bucket, ~1/B of the vessels, can later be read
 alone). Each engine runs in a fresh process at ``--threads`` threads; the table gives the wall
 time, the rows per second and per thread, and the process's peak resident memory (``ru_maxrss``)
-on the first file alone and on all of them (memory flat in the data's size or not). The machine may
-be shared: ``uptime``'s load is printed beside every figure.
+on the first file alone and on all of them (memory flat in the data's size or not). Wall time and
+peak resident memory are those of the whole process tree, interpreter start included
+(:func:`ais_scale.measure`). The machine may be shared: the load before and after each run is
+printed beside it.
 """
 
 from __future__ import annotations
@@ -18,11 +20,12 @@ import argparse
 import json
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from ais_scale import measure  # (experiments/ is the script's folder, on sys.path)
 
 COLUMNS = ["MMSI", "BaseDateTime", "LAT", "LON", "SOG", "COG"]
 
@@ -157,7 +160,7 @@ def main() -> None:
         return
     sizes = {"1 file": args.files[:1], f"{len(args.files)} files": args.files}
     rows = {k: rows_of(v) for k, v in sizes.items()}
-    print("| engine | input | rows | wall s | rows/s | rows/s/thread | peak RSS MiB | load |")
+    print("| engine | input | rows | wall s | rows/s | rows/s/thread | peak RSS / PSS MiB | load before / after |")
     print("|---|---|---:|---:|---:|---:|---:|---|")
     for _ in range(args.repeat):
         for label, files in sizes.items():
@@ -165,17 +168,12 @@ def main() -> None:
                 out = tempfile.mkdtemp(prefix=f"engine-{engine}-", dir=os.environ.get("TMPDIR"))
                 cmd = [sys.executable, __file__, *files, "--child", engine, "--out", out]
                 cmd += ["--buckets", str(args.buckets), "--threads", str(args.threads)]
-                res = subprocess.run(cmd, capture_output=True, text=True)
+                r = measure(cmd)  # wall and peak RSS of the whole process tree (the library's workers too)
                 shutil.rmtree(out, ignore_errors=True)
-                if res.returncode:
-                    print(f"| {engine} | {label} | failed: {res.stderr.strip().splitlines()[-1]} |")
-                    continue
-                r = json.loads(res.stdout.strip().splitlines()[-1])
-                load = os.getloadavg()[0]
                 n = rows[label]
                 print(
                     f"| {engine} | {label} | {n:,} | {r['wall']:.1f} | {n / r['wall']:,.0f} | "
-                    f"{n / r['wall'] / args.threads:,.0f} | {r['rss_mib']:.0f} | {load:.1f} |",
+                    f"{n / r['wall'] / args.threads:,.0f} | {r['rss_mib']:.0f} / {r['pss_mib']:.0f} | {r['load0']:.1f} / {r['load1']:.1f} |",
                     flush=True,
                 )
 

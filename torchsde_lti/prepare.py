@@ -6,6 +6,7 @@ The work is :func:`torchsde_lti.data.prepare_dataset`; this entry point only rea
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
@@ -21,8 +22,7 @@ def prepare(cfg: DictConfig) -> object:
     """Prepare per ``cfg`` (conf/prepare.yaml); returns the :class:`~torchsde_lti.data.prepare.PreparedSummary`."""
     from torchsde_lti.data.prepare import prepare_dataset
 
-    options = OmegaConf.to_container(cfg, resolve=True)
-    assert isinstance(options, dict)
+    options: dict[str, Any] = {str(k): v for k, v in OmegaConf.to_container(cfg, resolve=True).items()}  # type: ignore[union-attr]
     options.pop("hydra", None)
     rules = options.pop("rules", None) or {}
     source, out = options.pop("source"), options.pop("out")

@@ -437,7 +437,7 @@ def _table_reports(table: Any, name: str) -> Reports:
             cols[field_name] = arr.astype(str) if arr.dtype == object else arr
     cols["time"] = cols["time"].astype("datetime64[us]")
     n = table.num_rows
-    values = {f: cols.get(f) for f in _ARRAY_FIELDS}
+    values: dict[str, Any] = {f: cols.get(f) for f in _ARRAY_FIELDS}
     return Reports(**values, rows=n, malformed=0, malformed_examples=(), path=name)
 
 

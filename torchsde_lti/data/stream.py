@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch.utils.data import IterableDataset, get_worker_info
+from torch.utils.data import IterableDataset, Sampler, get_worker_info
 
 from torchsde_lti.data.tracks import BucketBatchSampler, Track, TrackBatch, collate_tracks
 
@@ -88,7 +88,7 @@ def object_split(object_id: np.ndarray, fractions: Sequence[float], seed: int) -
     return np.where(u < f[0], 0, np.where(u < f[0] + f[1], 1, 2)).astype(np.int8)
 
 
-class _Positions:
+class _Positions(Sampler[int]):
     """0, 1, ..., n - 1 with an ``epoch`` (what BucketBatchSampler reads from its sampler)."""
 
     def __init__(self, n: int, epoch: int) -> None:
@@ -285,7 +285,7 @@ class WindowStream(IterableDataset):
         dt = np.diff(time, prepend=time[0]) / 1e6
         as_t = lambda x: torch.tensor(x, dtype=torch.float64).to(self.dtype)  # noqa: E731
         vel = np.stack([unit["vel_east"][a:b], unit["vel_north"][a:b]], axis=-1) if "vel_east" in unit else None
-        return Track(
+        return Track(  # type: ignore[call-arg]  # (Track is made from TrackBatch's fields)
             y=as_t(pos - origin),
             dt=as_t(dt),
             t=as_t((time - time[0]) / 1e6),

@@ -15,9 +15,11 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader
@@ -26,7 +28,25 @@ from torchsde_lti.data.prepare import PreparedSummary
 from torchsde_lti.data.stream import SPLITS, WindowStream, object_split
 from torchsde_lti.data.tracks import TrackBatch
 
-__all__ = ["StreamDataModule"]
+__all__ = ["StreamDataModule", "StreamSummary"]
+
+
+@dataclass(frozen=True)
+class StreamSummary:
+    """What a :class:`StreamDataModule` trains on: the preparation's summary (the loader's counts
+    over every file) and, per split, the windows and batches of this process."""
+
+    prepared: PreparedSummary
+    splits: dict[str, dict[str, int]]
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"prepared": self.prepared.as_dict(), "splits": self.splits}
+
+    def __str__(self) -> str:
+        lines = [str(self.prepared)]
+        for name, row in self.splits.items():
+            lines.append(f"  {name:>5}: {row['windows']} windows, {row['batches']} batches (this process)")
+        return "\n".join(lines)
 
 
 class _EpochLoader(DataLoader):
@@ -69,8 +89,7 @@ class StreamDataModule(LightningDataModule):
         center: subtract each window's first position (kept in ``origin``).
         dtype: "float32" or "float64" for the batches.
 
-    After :meth:`setup`: ``summary`` (the dataset's :class:`~torchsde_lti.data.prepare.PreparedSummary`
-    with, per split, windows and batches of this process).
+    After :meth:`setup`: ``summary`` (:class:`StreamSummary`; the training job saves it).
     """
 
     def __init__(
@@ -90,7 +109,7 @@ class StreamDataModule(LightningDataModule):
             raise ValueError(f"data.dtype must be 'float32' or 'float64', got {dtype!r}")
         if isinstance(num_workers, bool) or not isinstance(num_workers, int) or num_workers < 0:
             raise ValueError(f"data.num_workers must be an integer >= 0, got {num_workers!r}")
-        object_split([], fractions, 0)  # checks the fractions
+        object_split(np.zeros(0, dtype=np.int64), fractions, 0)  # checks the fractions
         self.root = Path(str(root)).expanduser()
         if not (self.root / "summary.json").is_file():
             raise FileNotFoundError(
@@ -110,7 +129,7 @@ class StreamDataModule(LightningDataModule):
         self.save_hyperparameters(
             {"root": str(root), **{**self.options, "dtype": dtype}, "num_workers": self.num_workers}
         )
-        self.summary: dict[str, Any] | None = None
+        self.summary: StreamSummary | None = None
         self._done = 0  # training batches of the current epoch that reached the model
         self._epoch = 0
         self._resume: tuple[int, int] | None = None
@@ -145,7 +164,7 @@ class StreamDataModule(LightningDataModule):
                 raise ValueError(
                     f"data.root={str(self.root)!r}: the {split} split has no windows (fractions {self.options['fractions']})"
                 )
-        self.summary = {"prepared": prepared.as_dict(), "splits": splits}
+        self.summary = StreamSummary(prepared, splits)
 
     # ------------------------------------------------------------------ loaders
     def _loader(self, split: str) -> _EpochLoader:
