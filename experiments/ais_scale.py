@@ -13,7 +13,9 @@ its whole process tree (workers and DDP processes summed, sampled every 0.2 s fr
 sum, which counts the pages of torch & co. shared by several processes once per process, and the
 PSS sum, which counts them once), with
 the load average (``uptime``) before and after: the machine is shared with other sessions, so a
-load above the number of cores means every figure is slowed by others' work. Rows are appended
+load above the number of cores means every wall-clock figure is slowed by others' work. The
+throughput per core is therefore given from CPU time (user + system seconds of the job and all
+its processes, ``wait4``): reports per CPU-second, what one core does when it is the job's alone. Rows are appended
 to ``--results`` (Markdown).
 """
 
@@ -78,13 +80,15 @@ def measure(cmd: list[str], env: dict[str, str] | None = None) -> dict[str, floa
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
-    code = proc.wait()
+    _, status, usage = os.wait4(proc.pid, 0)  # (its CPU time includes that of the children it waited for)
+    proc.returncode = code = os.waitstatus_to_exitcode(status)
     stop.set()
     sampler.join()
     if code:
         raise SystemExit(f"{shlex.join(cmd)} failed with exit code {code}")
     return {
         "wall": time.perf_counter() - t0,
+        "cpu": usage.ru_utime + usage.ru_stime,
         "rss_mib": peak[0] / 2**20,
         "pss_mib": peak[1] / 2**20,
         "load0": load0,
@@ -119,13 +123,13 @@ def prepare(args: argparse.Namespace) -> None:
     rows = load["rows"]
     header = (
         "| input | reports read | kept | windows | buckets | workers | wall s | scatter s | gather s | "
-        "reports/s | reports/s per worker | peak RSS / PSS MiB | dataset MB | load before / after |\n"
+        "reports/s | reports per CPU-second | peak RSS / PSS MiB | dataset MB | load before / after |\n"
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|---|\n"
     )
     row = (
         f"| {args.label or args.source} | {rows:,} | {load['reports']:,} | {summary['windows']:,} | {summary['buckets']} | "
         f"{args.workers} | {r['wall']:.0f} | {scattered - start:.0f} | {gathered - scattered:.0f} | "
-        f"{rows / r['wall']:,.0f} | {rows / r['wall'] / args.workers:,.0f} | {r['rss_mib']:.0f} / {r['pss_mib']:.0f} | "
+        f"{rows / r['wall']:,.0f} | {rows / r['cpu']:,.0f} | {r['rss_mib']:.0f} / {r['pss_mib']:.0f} | "
         f"{size / 1e6:.0f} | "
         f"{r['load0']:.1f} / {r['load1']:.1f} |"
     )
@@ -162,12 +166,13 @@ def train(args: argparse.Namespace) -> None:
         e = _epochs(run)[0][-1]
     secs = e["end"] - e["start"]
     header = (
-        "| dataset | batches | windows | reports | epoch s | reports/s (1 process, 1 thread) | peak RSS / PSS MiB | "
-        "load before / after |\n|---|---:|---:|---:|---:|---:|---:|---|\n"
+        "| dataset | batches | windows | reports | epoch s | reports/s | reports per CPU-second | peak RSS / PSS MiB | "
+        "load before / after |\n|---|---:|---:|---:|---:|---:|---:|---:|---|\n"
     )
     row = (
         f"| {args.label or args.root} | {args.batches or 'all'} | {int(e['windows']):,} | {int(e['reports']):,} | "
-        f"{secs:.0f} | {e['reports'] / secs:,.0f} | {r['rss_mib']:.0f} / {r['pss_mib']:.0f} | "
+        f"{secs:.0f} | {e['reports'] / secs:,.0f} | {e['reports'] / (e['cpu_end'] - e['cpu_start']):,.0f} | "
+        f"{r['rss_mib']:.0f} / {r['pss_mib']:.0f} | "
         f"{r['load0']:.1f} / {r['load1']:.1f} |"
     )
     _append(Path(args.results), header, row)

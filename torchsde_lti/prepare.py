@@ -24,9 +24,8 @@ def prepare(cfg: DictConfig) -> object:
 
     options: dict[str, Any] = {str(k): v for k, v in OmegaConf.to_container(cfg, resolve=True).items()}  # type: ignore[union-attr]
     options.pop("hydra", None)
-    rules = options.pop("rules", None) or {}
     source, out = options.pop("source"), options.pop("out")
-    summary = prepare_dataset(source, out, **options, **rules)
+    summary = prepare_dataset(source, out, **options)
     log.info("%s", summary)
     return summary
 

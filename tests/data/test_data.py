@@ -327,3 +327,10 @@ def test_bucket_sampler_shards_by_track_under_ddp() -> None:
     both = set(shards[0]) & set(shards[1])
     assert len(both) <= 1  # DistributedSampler repeats one item to make 1001 split evenly
     assert set(shards[0]) | set(shards[1]) == set(range(1001))
+
+
+def test_track_has_the_fields_of_a_batch_without_mask_and_lengths() -> None:
+    from torchsde_lti.data import Track, TrackBatch
+
+    assert Track._fields == tuple(f for f in TrackBatch._fields if f not in ("mask", "lengths"))
+    assert Track(y=torch.zeros(2, 1), dt=torch.zeros(2)).u is None

@@ -4,6 +4,8 @@ and, in :mod:`torchsde_lti.data.modules`, the only module here that imports Ligh
 DataModules.
 
     tracks = tl.data.load_tracks("US_coastal_2020_06_30.traj")   # also CSV (named columns), Parquet
+    rules = tl.data.CleaningRules(max_gap=600.0, v_max=35.0)     # the rules, shared by every loader
+    tracks = tl.data.load_tracks("US_coastal_2020_06_30.traj", rules=rules)
     print(tracks.summary)                                        # what every cleaning rule removed
     train, val, test = tl.data.split_objects(tracks, (0.6, 0.2, 0.2), seed=0)
     windows = tl.data.track_windows(train, max_len=128)          # list of Track, metres and seconds
@@ -15,6 +17,7 @@ cleaned by the same rules into a Parquet dataset, then streamed in batches
 
 from torchsde_lti.data.loaded_tracks import LoadSummary, Tracks
 from torchsde_lti.data.prepare import PreparedSummary, find_sources, prepare_dataset
+from torchsde_lti.data.rules import AIS_NOT_AVAILABLE, REPORT_RULES, CleaningRules, ValueRule, parse_instant
 from torchsde_lti.data.simulate import (
     BurstDt,
     ExponentialDt,
@@ -43,9 +46,12 @@ from torchsde_lti.data.trajectories import load_tracks, prepare_tracks
 
 __all__ = [
     "AIS_COLUMNS",
+    "AIS_NOT_AVAILABLE",
+    "REPORT_RULES",
     "RESERVED_FOR_EVALUATION",
     "BucketBatchSampler",
     "BurstDt",
+    "CleaningRules",
     "EpochShuffleSampler",
     "ExponentialDt",
     "LoadSummary",
@@ -76,5 +82,7 @@ __all__ = [
     "split_time",
     "track_windows",
     "unpad_tracks",
+    "ValueRule",
+    "parse_instant",
     "window_bounds",
 ]

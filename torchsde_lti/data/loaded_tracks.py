@@ -25,7 +25,16 @@ __all__ = ["LoadSummary", "Tracks"]
 class LoadSummary:
     """What :func:`load_tracks` read, removed and kept; every report read is accounted for:
     ``rows = malformed + invalid_positions + repeated_timestamps + jump_reports_dropped +
-    short_reports + reports``."""
+    short_reports + reports``.
+
+    ``invalid`` counts the dropped positions by their first reason (``"lat_not_available"``,
+    ``"lon_out_of_range"``, ``"lat_missing"``, ``"alt_missing"``...; its values sum to
+    ``invalid_positions``); ``unavailable`` counts the speeds, courses and headings of the kept
+    reports that are unavailable (NaN), by reason (``"sog_not_available"``, ``"cog_missing"``...);
+    reasons with no report are left out (:data:`~torchsde_lti.data.REPORT_RULES`); ``decoded``
+    counts values the reader converted from the file format's convention
+    (:attr:`~torchsde_lti.data.Reports.decoded`: ``"lon_unwrapped"``).
+    """
 
     source: str
     rows: int
@@ -47,6 +56,9 @@ class LoadSummary:
     dims: int
     frame: str
     rules: dict[str, Any]
+    invalid: dict[str, int] = dataclasses.field(default_factory=dict)
+    unavailable: dict[str, int] = dataclasses.field(default_factory=dict)
+    decoded: dict[str, int] = dataclasses.field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         """Plain Python values (JSON-ready)."""
@@ -59,7 +71,7 @@ class LoadSummary:
         off = lambda key, text: text.format(r[key]) if r.get(key) is not None else f"{key} off"  # noqa: E731
         rows = [
             ("malformed lines / rows skipped", self.malformed),
-            ("invalid positions dropped", self.invalid_positions),
+            ("invalid positions dropped", f"{self.invalid_positions}{_reasons(self.invalid)}"),
             ("repeated timestamps dropped", self.repeated_timestamps),
             (f"cuts at split times ({len(r.get('cut_times') or ())})", self.time_cuts),
             (f"cuts at gaps: {off('max_gap', '> {} s')}", self.gap_splits),
@@ -71,6 +83,10 @@ class LoadSummary:
                 f"{self.short_tracks} ({self.short_reports})",
             ),
         ]
+        if self.unavailable:
+            rows.append(("speeds / courses unavailable (reports kept)", _reasons(self.unavailable).strip(" ()")))
+        if self.decoded:
+            rows.append(("values decoded from the file's convention", _reasons(self.decoded).strip(" ()")))
         if self.courses_decoded:
             rows.append(("COG decoded from signed 12-bit AIS", self.courses_decoded))
         width = max(len(k) for k, _ in rows)
@@ -138,18 +154,42 @@ class Tracks:
         return out
 
     def subset(self, indices: Sequence[int] | np.ndarray) -> Tracks:
-        """The tracks ``indices`` (in that order), same frames and summary."""
-        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+        """The tracks ``indices`` (in that order), same frames and summary.
+
+        Args:
+            indices: track numbers in [0, len(self)) (no negative ones, no boolean mask:
+                ``np.flatnonzero(mask)`` gives the numbers of a mask).
+
+        Raises:
+            TypeError: for indices that are not integers; IndexError: for one out of range,
+                naming it.
+        """
+        given = np.asarray(indices).reshape(-1)
+        if given.size and not np.issubdtype(given.dtype, np.integer):
+            raise TypeError(
+                f"Tracks.subset: indices must be integers (np.flatnonzero(mask) for a mask), got {given.dtype} values"
+            )
+        idx = given.astype(np.int64)
+        outside = (idx < 0) | (idx >= len(self))
+        if outside.any():
+            raise IndexError(
+                f"Tracks.subset: index {int(idx[outside][0])} is out of range for {len(self)} tracks (0 to {len(self) - 1})"
+            )
         lengths = self.lengths[idx]
         offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
         rows = _ranges(self.offsets[idx], lengths)
-        per_report = {
+        per_report: dict[str, Any] = {
             k: (None if getattr(self, k) is None else getattr(self, k)[rows])
             for k in ("t", "pos", "lat", "lon", "alt", "vel", "sog")
         }
         return dataclasses.replace(
             self, object_id=self.object_id[idx], offsets=offsets, origin=self.origin[idx], **per_report
         )
+
+
+def _reasons(counts: dict[str, int]) -> str:
+    """' (name n, name n)' for the summary's text, '' for none."""
+    return f" ({', '.join(f'{name} {n}' for name, n in counts.items())})" if counts else ""
 
 
 def _ranges(starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:

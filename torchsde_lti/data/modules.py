@@ -23,6 +23,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader, SequentialSampler
 
 from torchsde_lti.data.loaded_tracks import LoadSummary, Tracks
+from torchsde_lti.data.rules import CleaningRules, _instants
 from torchsde_lti.data.simulate import ExponentialDt, isotropic_covariance, simulate_tracks
 from torchsde_lti.data.sources import _RESERVED_CONTENT, RESERVED_FOR_EVALUATION, locate_file
 from torchsde_lti.data.splits import split_objects, split_time, track_windows
@@ -231,13 +232,24 @@ def _reserved_file(source: str | os.PathLike[str]) -> str | None:
     return next((name for name, digest in same_size if digest == mine), None)
 
 
+def _check_count(name: str, value: object, low: int | None, allow_none: bool) -> None:
+    """An integer >= ``low`` (or None when allowed), else TypeError / ValueError naming ``name``."""
+    if value is None and allow_none:
+        return
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"{name} must be an integer{' or null' if allow_none else ''}, got {value!r}")
+    if low is not None and value < low:
+        raise ValueError(f"{name} must be >= {low}{' or null' if allow_none else ''}, got {value}")
+
+
 class TrackDataModule(LightningDataModule):
     """Real tracks from any trajectory file (:func:`~torchsde_lti.data.load_tracks`) as padded,
     masked :class:`~torchsde_lti.data.tracks.TrackBatch` es of similar-length windows.
 
-    Loading arguments (``source`` ... ``max_extent``) are those of :func:`load_tracks`. Then:
-
     Args:
+        source: the file (:func:`load_tracks`).
+        rules: the reading and cleaning rules (:class:`~torchsde_lti.data.CleaningRules` or a
+            mapping of its fields); None = its defaults with ``min_reports=5``.
         split: "objects" (object-disjoint train/val/test with ``fractions`` and ``seed``:
             every track of a vessel or flight lands in one split) or "time" (``boundaries``:
             train before the first, val before the second, test after it; tracks are cut at
@@ -248,6 +260,9 @@ class TrackDataModule(LightningDataModule):
         pool_batches: batches per length-sorted pool of the training sampler.
         center: subtract each window's first position (kept in ``origin``).
         dtype: "float32" or "float64" for the batches.
+        **changes: fields of :class:`~torchsde_lti.data.CleaningRules` replacing those of
+            ``rules`` (what the ``data=`` configs set: ``max_gap``, ``v_max``, ``min_reports``,
+            ``columns``...). With ``split="time"`` the ``boundaries`` are added to its ``cut_times``.
 
     After :meth:`setup`: ``tracks`` (all kept :class:`~torchsde_lti.data.Tracks`), ``splits``
     (name -> Tracks), ``windows`` (name -> list of Track) and ``summary``
@@ -259,18 +274,7 @@ class TrackDataModule(LightningDataModule):
     def __init__(
         self,
         source: str,
-        columns: Mapping[str, str | int] | str | None = None,
-        format: str | None = None,
-        time_format: str | None = None,
-        altitude_unit: str = "m",
-        dims: int | None = None,
-        frame: str = "local",
-        reference: Sequence[float] | None = None,
-        course_encoding: str = "ais",
-        max_gap: float | None = 1800.0,
-        v_max: float | None = None,
-        min_reports: int = 5,
-        max_extent: float | None = 250_000.0,
+        rules: CleaningRules | Mapping[str, Any] | None = None,
         split: str = "objects",
         fractions: Sequence[float] = (0.6, 0.2, 0.2),
         boundaries: Sequence[str] | None = None,
@@ -280,8 +284,11 @@ class TrackDataModule(LightningDataModule):
         pool_batches: int = 50,
         center: bool = True,
         dtype: str = "float32",
+        **changes: Any,
     ) -> None:
         super().__init__()
+        if not isinstance(source, (str, os.PathLike)):
+            raise TypeError(f"data.source must be a path, got {type(source).__name__} {source!r}")
         reserved = _reserved_file(source)
         if reserved is not None:
             raise ValueError(
@@ -292,32 +299,26 @@ class TrackDataModule(LightningDataModule):
             raise ValueError(f"data.split must be 'objects' or 'time', got {split!r}")
         if split == "time" and not boundaries:
             raise ValueError("data.split='time' needs data.boundaries (1 or 2 ISO 8601 instants)")
-        if batch_size is not None and int(batch_size) < 1:
-            raise ValueError(f"data.batch_size must be >= 1 or null, got {batch_size}")
+        for name, value, low in (
+            ("batch_size", batch_size, 1),
+            ("max_len", max_len, 2),
+            ("pool_batches", pool_batches, 1),
+        ):
+            _check_count(f"data.{name}", value, low, allow_none=name != "pool_batches")
+        _check_count("data.seed", seed, None, allow_none=False)
+        if isinstance(fractions, (str, bytes)) or not isinstance(fractions, Sequence):
+            raise TypeError(f"data.fractions must be 3 numbers (train, val, test), got {fractions!r}")
         if dtype not in ("float32", "float64"):
             raise ValueError(f"data.dtype must be 'float32' or 'float64', got {dtype!r}")
-        plain = lambda x: None if x is None else [float(v) for v in x]  # noqa: E731
-        self.load_args: dict[str, Any] = {
-            "columns": columns
-            if columns is None or isinstance(columns, str)
-            else {str(k): (v if isinstance(v, int) else str(v)) for k, v in dict(columns).items()},
-            "format": format,
-            "time_format": time_format,
-            "altitude_unit": str(altitude_unit),
-            "dims": None if dims is None else int(dims),
-            "frame": str(frame),
-            "reference": plain(reference),
-            "course_encoding": str(course_encoding),
-            "max_gap": None if max_gap is None else float(max_gap),
-            "v_max": None if v_max is None else float(v_max),
-            "min_reports": int(min_reports),
-            "max_extent": None if max_extent is None else float(max_extent),
-            "cut_times": [str(b) for b in boundaries] if split == "time" else [],
-        }
+        base = CleaningRules.coerce(rules if rules is not None else {"min_reports": 5}, **changes)
+        if split == "time":  # tracks are cut at the split boundaries, so that none spans one
+            cuts = [*base.cut_times, *(str(b) for b in _instants("data.boundaries", boundaries))]
+            base = base.replace(cut_times=list(dict.fromkeys(cuts)))
+        self.rules = base
         self.source = str(source)
         self.split = str(split)
-        self.fractions = [float(f) for f in fractions]
-        self.boundaries = [str(b) for b in boundaries] if boundaries else []
+        self.fractions = [float(f) for f in fractions]  # (checked by split_objects)
+        self.boundaries = list(_instants("data.boundaries", boundaries)) if boundaries else []
         self.seed = int(seed)
         self.max_len = None if max_len is None else int(max_len)
         self.batch_size = None if batch_size is None else int(batch_size)
@@ -328,7 +329,7 @@ class TrackDataModule(LightningDataModule):
         self.save_hyperparameters(
             {
                 "source": self.source,
-                **self.load_args,
+                **self.rules.as_dict(),
                 "split": self.split,
                 "fractions": self.fractions,
                 "boundaries": self.boundaries,
@@ -349,11 +350,12 @@ class TrackDataModule(LightningDataModule):
         """Load, clean, split and window once (deterministic, so every DDP rank agrees)."""
         if self.tracks is not None:
             return
-        self.tracks = load_tracks(self.source, **self.load_args)
-        if self.split == "objects":
-            parts = split_objects(self.tracks, self.fractions, self.seed)
-        else:
-            parts = tuple(split_time(self.tracks, self.boundaries))
+        self.tracks = load_tracks(self.source, rules=self.rules)
+        parts: Sequence[Tracks] = (
+            split_objects(self.tracks, self.fractions, self.seed)
+            if self.split == "objects"
+            else split_time(self.tracks, self.boundaries)
+        )
         self.splits = {name: part for name, part in zip(("train", "val", "test"), parts) if len(part)}
         for name in ("train", "val"):
             if name not in self.splits:
@@ -381,7 +383,7 @@ class TrackDataModule(LightningDataModule):
         )
         from lightning.fabric.utilities.rank_zero import rank_zero_only
 
-        if rank_zero_only.rank == 0:
+        if getattr(rank_zero_only, "rank", 0) == 0:
             log.info("data: %s", self.summary)
 
     def _lengths(self, split: str) -> list[int]:

@@ -56,6 +56,7 @@ from typing import Any
 import numpy as np
 
 from torchsde_lti.data.loaded_tracks import LoadSummary, Tracks, _ranges
+from torchsde_lti.data.rules import CleaningRules
 from torchsde_lti.data.sources import Reports, locate_file, read_reports
 from torchsde_lti.data.splits import window_bounds
 from torchsde_lti.data.trajectories import prepare_tracks
@@ -65,7 +66,6 @@ __all__ = ["PREPARED_FORMAT", "PreparedSummary", "find_sources", "prepare_datase
 #: Version of the prepared dataset's layout (in ``_manifest/plan.json`` and ``summary.json``).
 PREPARED_FORMAT = 1
 _SUFFIXES = (".csv", ".zip", ".traj", ".parquet", ".pq")
-_READING = ("columns", "format", "time_format", "altitude_unit")
 _EXAMPLES = 3
 _BYTES_PER_REPORT = {".csv": 85, ".zip": 85, ".traj": 45, ".parquet": 0, ".pq": 0}  # 0: rows from the metadata
 
@@ -302,7 +302,7 @@ def _row_bytes(source: Any) -> int:
 
 
 # ---------------------------------------------------------------------------- scatter
-_ARRAY_FIELDS = ("object_id", "time", "lat", "lon", "alt", "sog", "cog", "segment")
+_ARRAY_FIELDS = ("object_id", "time", "lat", "lon", "alt", "sog", "cog", "heading", "segment")
 
 
 def _bucket_of(object_id: np.ndarray, buckets: int) -> np.ndarray:
@@ -330,10 +330,15 @@ def _scatter_file(task: dict[str, Any]) -> dict[str, Any]:
     writers: dict[int, Any] = {}
     rows = malformed = reports = 0
     examples: list[str] = []
+    decoded: dict[str, int] = {}
+    columns: dict[str, str] | None = None
     try:
         for rep in _chunks(path, tmp, int(task["chunk_bytes"]), reading):
             rows += rep.rows
             malformed += rep.malformed
+            columns = columns or rep.columns
+            for name, count in rep.decoded.items():
+                decoded[name] = decoded.get(name, 0) + int(count)
             examples += list(rep.malformed_examples)[: max(0, _EXAMPLES - len(examples))]
             if len(rep.time) == 0:
                 continue
@@ -363,7 +368,7 @@ def _scatter_file(task: dict[str, Any]) -> dict[str, Any]:
         os.replace(tmp / f"{b}.parquet", folder / f"{key}.parquet")
     shutil.rmtree(tmp, ignore_errors=True)
     entry = {"path": str(path), "key": key, "rows": rows, "malformed": malformed, "examples": examples}
-    entry |= {"reports": reports, "buckets": sorted(writers)}
+    entry |= {"reports": reports, "buckets": sorted(writers), "columns": columns, "decoded": decoded}
     _write_json(out / "_manifest" / "scatter" / f"{key}.json", entry)
     return entry
 
@@ -394,15 +399,15 @@ def _gather_bucket(task: dict[str, Any]) -> dict[str, Any]:
     entry: dict[str, Any] = {"bucket": b, "windows": 0, "counts": None}
     if parts:
         table = _concat([pq.read_table(p) for p in parts])
-        rep = _table_reports(table, name)
-        cleaning = {k: v for k, v in task["rules"].items() if k not in _READING}
+        rep = _table_reports(table, name, task["columns"])
+        rules = CleaningRules.coerce(task["rules"])
         try:
-            tracks = prepare_tracks(rep, **cleaning)
+            tracks = prepare_tracks(rep, rules=rules)
         except ValueError as err:
             if "no report has a valid position" not in str(err) and "no track of" not in str(err):
                 raise
-            tracks = None  # (every report of this bucket removed: counted below)
-            entry["counts"] = _empty_counts(rep, str(err))
+            tracks = None  # (no track left in this bucket: counted below)
+            entry["counts"] = _empty_counts(rep, rules)
         if tracks is not None:
             windows = _windows_table(tracks, task["max_len"], b)
             target = out / "windows" / f"bucket={b:05d}.parquet"
@@ -428,8 +433,9 @@ def _concat(tables: list[Any]) -> Any:
     return pa.concat_tables(tables, promote_options="default")
 
 
-def _table_reports(table: Any, name: str) -> Reports:
-    """A bucket's scattered reports as :class:`Reports` (one report a row, nothing malformed)."""
+def _table_reports(table: Any, name: str, columns: dict[str, str] | None) -> Reports:
+    """A bucket's scattered reports as :class:`Reports` (one report a row, nothing malformed; the
+    values the reader decoded are counted by the scatter, per file)."""
     cols = {}
     for field_name in _ARRAY_FIELDS:
         if field_name in table.column_names:
@@ -438,12 +444,22 @@ def _table_reports(table: Any, name: str) -> Reports:
     cols["time"] = cols["time"].astype("datetime64[us]")
     n = table.num_rows
     values: dict[str, Any] = {f: cols.get(f) for f in _ARRAY_FIELDS}
-    return Reports(**values, rows=n, malformed=0, malformed_examples=(), path=name)
+    return Reports(**values, rows=n, malformed=0, malformed_examples=(), path=name, columns=columns, decoded={})
 
 
-def _empty_counts(rep: Reports, reason: str) -> dict[str, Any]:
-    """The counts of a bucket that keeps nothing (its reports are all accounted as invalid)."""
-    return {"rows": rep.rows, "dropped_all": reason}
+def _empty_counts(rep: Reports, rules: CleaningRules) -> dict[str, Any]:
+    """The counts of a bucket that keeps no track: its invalid positions by reason, the rest of
+    its reports counted as in short tracks (a few objects whose every track is too short)."""
+    from torchsde_lti.data.trajectories import _valid_positions
+
+    dims = rules.dims or (3 if rep.alt is not None and bool(np.any(np.isfinite(rep.alt) & (rep.alt != 0))) else 2)
+    valid, invalid = _valid_positions(rep, dims)
+    return {
+        "empty": True,
+        "invalid": invalid,
+        "invalid_positions": int((~valid).sum()),
+        "short_reports": int(valid.sum()),
+    }
 
 
 def _windows_table(tracks: Tracks, max_len: int | None, bucket: int) -> Any:
@@ -493,25 +509,27 @@ def _merge(
     files: list[dict[str, Any]], buckets: list[dict[str, Any]], source: str, rules: dict[str, Any]
 ) -> LoadSummary:
     """One LoadSummary: rows and malformed over the files, every other count over the buckets."""
-    kept = [b["counts"] for b in buckets if b["counts"] and "dropped_all" not in b["counts"]]
+    kept = [b["counts"] for b in buckets if b["counts"] and "empty" not in b["counts"]]
+    empty = [b["counts"] for b in buckets if b["counts"] and "empty" in b["counts"]]
     if not kept:
-        raise ValueError(f"{source}: no track is left after cleaning ({sum(f['rows'] for f in files)} reports read)")
+        raise ValueError(f"{source}: no track is left after cleaning ({sum(e['rows'] for e in files)} reports read)")
     counts: dict[str, Any] = {}
-    for f in dataclasses.fields(LoadSummary):
-        values = [k[f.name] for k in kept if f.name in k]
-        if f.type in ("int", int) and f.name not in ("dims",):
-            counts[f.name] = int(sum(values))
+    for field in dataclasses.fields(LoadSummary):
+        values = [k[field.name] for k in kept + empty if field.name in k]
+        if field.type in ("int", int) and field.name != "dims":
+            counts[field.name] = int(sum(values))
         elif values and all(isinstance(v, dict) and all(isinstance(x, int) for x in v.values()) for v in values):
-            counts[f.name] = {
-                key: sum(v.get(key, 0) for v in values) for key in dict.fromkeys(k for v in values for k in v)
-            }
+            names = dict.fromkeys(name for v in values for name in v)
+            counts[field.name] = {name: sum(v.get(name, 0) for v in values) for name in names}
         elif values:
-            counts[f.name] = values[0]
-    dropped = sum(b["counts"]["rows"] for b in buckets if b["counts"] and "dropped_all" in b["counts"])
-    counts["invalid_positions"] = counts.get("invalid_positions", 0) + dropped  # buckets where nothing was valid
-    counts["rows"] = int(sum(f["rows"] for f in files))
-    counts["malformed"] = int(sum(f["malformed"] for f in files))
-    counts["malformed_examples"] = tuple(e for f in files for e in f["examples"])[:_EXAMPLES]
+            counts[field.name] = values[0]
+    counts["rows"] = int(sum(e["rows"] for e in files))
+    counts["malformed"] = int(sum(e["malformed"] for e in files))
+    counts["malformed_examples"] = tuple(x for e in files for x in e["examples"])[:_EXAMPLES]
+    counts["decoded"] = {}
+    for entry in files:
+        for name, count in entry["decoded"].items():
+            counts["decoded"][name] = counts["decoded"].get(name, 0) + int(count)
     counts["source"] = source
     return LoadSummary(**counts)
 
@@ -532,14 +550,15 @@ def prepare_dataset(
     source: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
     out: str | os.PathLike[str],
     *,
+    rules: CleaningRules | Mapping[str, Any] | None = None,
     max_len: int | None = 128,
     workers: int = 1,
     buckets: int | None = None,
-    bucket_reports: int = 1_000_000,
+    bucket_reports: int = 500_000,
     chunk_bytes: int = 32 << 20,
     row_group_windows: int = 1024,
     keep_scatter: bool = False,
-    **rules: Any,
+    **changes: Any,
 ) -> PreparedSummary:
     """Prepare ``source`` into the Parquet dataset ``out`` (see the module docstring); resumes an
     unfinished preparation of the same inputs and settings into ``out``.
@@ -547,26 +566,27 @@ def prepare_dataset(
     Args:
         source: a file, a directory, a glob pattern or a list of them (:func:`find_sources`).
         out: the dataset's folder (created).
+        rules: the reading and cleaning rules (:class:`~torchsde_lti.data.CleaningRules` or a
+            mapping of its fields), as :func:`~torchsde_lti.data.load_tracks` takes them.
         max_len: the longest window (reports); None = whole tracks.
         workers: processes of the pool (1: in this process).
         buckets: B, the number of object buckets; None = about ``bucket_reports`` reports each.
-        bucket_reports: reports per bucket when ``buckets`` is None (the gather's memory: about
-            200 bytes a report, so 1 M reports ~ 200 MB a worker).
+        bucket_reports: reports per bucket when ``buckets`` is None (the gather's memory grows
+            with it: about 0.5 kB a report at its peak, so 500 k reports ~ 250 MB a worker).
         chunk_bytes: bytes of a file read at once by the scatter (its memory: ~10x this).
         row_group_windows: windows per Parquet row group (the streaming reader's unit).
         keep_scatter: keep the bucketed reports (``_scatter/``) after the gather.
-        **rules: the loader's reading and cleaning settings, as for
-            :func:`~torchsde_lti.data.load_tracks` (columns, format, time_format, altitude_unit,
-            dims, frame, reference, course_encoding, max_gap, v_max, min_reports, max_extent,
-            cut_times).
+        **changes: fields of :class:`~torchsde_lti.data.CleaningRules` replacing those of
+            ``rules`` (``v_max=35.0``, ``min_reports=5``...).
 
     Returns:
         PreparedSummary: also written to ``out/summary.json``.
 
     Raises:
         ValueError: ``out`` holds a preparation of other inputs or settings (naming what differs),
-            or bad settings (as ``load_tracks`` raises them).
+            or bad settings (TypeError / ValueError naming them, as ``load_tracks`` raises them).
     """
+    checked = CleaningRules.coerce(rules, **changes)
     if max_len is not None and int(max_len) < 2:
         raise ValueError(f"max_len must be >= 2 or None, got {max_len}")
     if int(workers) < 1:
@@ -575,7 +595,7 @@ def prepare_dataset(
         raise ValueError(f"buckets must be >= 1 or None, got {buckets}")
     out = Path(out).expanduser().resolve()
     files = find_sources(source)
-    plain = json.loads(json.dumps(rules, default=str))
+    plain = checked.as_dict()
     plan_path = out / "_manifest" / "plan.json"
     plan = _plan(files, plain, None if max_len is None else int(max_len), buckets, int(bucket_reports))
     if plan_path.is_file():
@@ -595,23 +615,24 @@ def prepare_dataset(
     else:
         _write_json(plan_path, plan)
     source_name = ", ".join(map(str, [source] if isinstance(source, (str, os.PathLike)) else source))
-    reading = {k: v for k, v in plain.items() if k in _READING}
+    reading = checked.reading
     common = {"out": str(out), "buckets": plan["buckets"]}
     scatter = [
         {**common, "path": f["path"], "key": f["key"], "reading": reading, "chunk_bytes": int(chunk_bytes)}
         for f in plan["files"]
         if not (out / "_manifest" / "scatter" / f"{f['key']}.json").is_file()
     ]
-    gather = [
-        {**common, "bucket": b, "rules": plain, "max_len": plan["max_len"], "source": source_name}
-        | {"row_group_windows": int(row_group_windows)}
-        for b in range(plan["buckets"])
-    ]
     with _pool(int(workers)) as run:
         run(_scatter_file, scatter)
-        gather = [g for g in gather if not (out / "_manifest" / "gather" / f"{g['bucket']:05d}.json").is_file()]
+        file_entries = [_read_json(out / "_manifest" / "scatter" / f"{f['key']}.json") for f in plan["files"]]
+        columns = next((f["columns"] for f in file_entries if f["columns"]), None)
+        gather = [
+            {**common, "bucket": b, "rules": plain, "max_len": plan["max_len"], "source": source_name}
+            | {"row_group_windows": int(row_group_windows), "columns": columns}
+            for b in range(plan["buckets"])
+            if not (out / "_manifest" / "gather" / f"{b:05d}.json").is_file()
+        ]
         run(_gather_bucket, gather)
-    file_entries = [_read_json(out / "_manifest" / "scatter" / f"{f['key']}.json") for f in plan["files"]]
     bucket_entries = [_read_json(out / "_manifest" / "gather" / f"{b:05d}.json") for b in range(plan["buckets"])]
     load = _merge(file_entries, bucket_entries, source_name, plain)
     summary = PreparedSummary(
@@ -625,7 +646,9 @@ def prepare_dataset(
 
 
 class _pool:
-    """``run(fn, tasks)``: every task, in this process (1 worker) or a spawned process pool."""
+    """``run(fn, tasks)``: every task, in this process (1 worker) or a pool of processes (started
+    by ``forkserver`` or ``spawn``: a script that calls :func:`prepare_dataset` with ``workers > 1``
+    needs the ``if __name__ == "__main__":`` guard, as any multiprocessing program)."""
 
     def __init__(self, workers: int) -> None:
         self.workers = workers
@@ -635,7 +658,13 @@ class _pool:
         if self.workers > 1:
             import multiprocessing
 
-            self.executor = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
+            # forkserver: workers forked from a fresh server that imported this module once (no
+            # threads of this process inherited, the imported libraries' pages shared); else spawn
+            methods = multiprocessing.get_all_start_methods()
+            context = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+            if context.get_start_method() == "forkserver":
+                context.set_forkserver_preload([__name__])
+            self.executor = ProcessPoolExecutor(self.workers, mp_context=context)
 
         def run(fn: Any, tasks: list[dict[str, Any]]) -> list[Any]:
             if self.executor is None:

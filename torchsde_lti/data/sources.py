@@ -29,17 +29,24 @@ from __future__ import annotations
 
 import importlib.util
 import os
-import re
 from collections.abc import Mapping
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
+from torchsde_lti.data.csv_header import (
+    check_header,
+    first_line,
+    first_line_is_header,
+    leading_comment_lines,
+    split_line,
+)
+from torchsde_lti.data.rules import ROLES, CleaningRules
+from torchsde_lti.data.values import column_numbers, column_times
+
 __all__ = ["AIS_COLUMNS", "RESERVED_FOR_EVALUATION", "ROLES", "Reports", "locate_file", "read_reports"]
 
-#: The roles a column can play; id, time, lat and lon are required.
-ROLES = ("id", "time", "lat", "lon", "alt", "sog", "cog")
 #: MarineCadastre AIS column names (BaseDateTime ISO 8601 UTC, LAT/LON degrees, SOG knots, COG degrees).
 AIS_COLUMNS: dict[str, str] = {
     "id": "MMSI",
@@ -60,13 +67,6 @@ _RESERVED_CONTENT = {
     ),
 }
 _EXAMPLES = 3  # malformed examples kept
-_NUMBER = r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$"  # a decimal number, as text
-# a date-time in ISO 8601, in named parts (a blank around it, a lower-case t and a comma before the fraction allowed)
-_ISO_8601 = (
-    r"^\s*(?P<date>\d{4}-\d{2}-\d{2})"
-    r"(?:[Tt ](?P<hour>\d{2})(?::(?P<minute>\d{2})(?::(?P<second>\d{2})(?:[.,](?P<fraction>\d+))?)?)?)?"
-    r"\s*(?P<zone>Z|[+-]\d{2}(?::?\d{2})?)?\s*$"
-)
 
 
 class Reports(NamedTuple):
@@ -74,9 +74,13 @@ class Reports(NamedTuple):
 
     object_id: (N,) int64 or str; time: (N,) datetime64[us] (UTC where the file says so);
     lat, lon: (N,) float64 degrees as read; alt: (N,) metres or None; sog: (N,) knots or None;
-    cog: (N,) degrees or None; segment: (N,) int64 (a ``.traj`` line) or None (one track per id);
+    cog: (N,) degrees or None; heading: (N,) degrees or None (true heading); segment: (N,) int64 (a ``.traj`` line) or None (one track per id);
     rows: lines (``.traj``: points of the readable lines, plus one per malformed line) read;
-    malformed: lines or rows skipped because a field could not be parsed; malformed_examples: the first few of them with the reason; path: the file read.
+    malformed: lines or rows skipped because a field could not be parsed; malformed_examples: the
+    first few of them with the reason; path: the file read; columns: role -> the column's name in
+    the file (None: ``.traj``, whose points are lon, lat); decoded: values converted from the
+    file format's own convention, counted by name (``"lon_unwrapped"``: a ``.traj`` longitude
+    outside [-180, 180), tracktable's unwrapped longitudes, mapped into it).
     """
 
     object_id: np.ndarray
@@ -91,6 +95,9 @@ class Reports(NamedTuple):
     malformed: int
     malformed_examples: tuple[str, ...]
     path: str
+    heading: np.ndarray | None = None
+    columns: dict[str, str] | None = None
+    decoded: dict[str, int] = {}  # noqa: RUF012 - a NamedTuple's default, never mutated
 
 
 def _example_dirs() -> list[Path]:
@@ -153,11 +160,22 @@ def read_reports(
 
     Returns:
         Reports: numpy columns, one entry per readable report, with the malformed ones counted.
+
+    Raises:
+        FileNotFoundError: for no such file (:func:`locate_file`).
+        TypeError: for an argument of the wrong type (naming it), a column of booleans or
+            timestamps for a number (naming the file and the column).
+        ValueError: for a file that cannot be read (empty, not CSV text, not Parquet), columns
+            that are not in it (the role, the position and the file's column count), a data
+            line where the header should be, and a file of which no row reads (each column that
+            did not, with a row and its value); every message starts with the file's path.
     """
+    if not isinstance(source, (str, os.PathLike)):
+        raise TypeError(f"source must be a path (str or os.PathLike), got {type(source).__name__} {source!r}")
+    checked = CleaningRules(columns=columns, format=format, time_format=time_format, altitude_unit=altitude_unit)
+    columns = checked.columns
     path = locate_file(source)
-    fmt = (format or path.suffix.lstrip(".")).lower()
-    if altitude_unit not in ("m", "ft"):
-        raise ValueError(f"altitude_unit must be 'm' or 'ft', got {altitude_unit!r}")
+    fmt = (checked.format or path.suffix.lstrip(".")).lower()
     if fmt == "traj":
         if columns not in (None, "ais"):
             raise ValueError(f"columns are fixed by the .traj format; got columns={columns!r} for {path}")
@@ -228,7 +246,8 @@ def _read_traj(path: Path) -> Reports:
     lonlat: list[np.ndarray] = []
     alts: list[np.ndarray | None] = []  # None: a line without an altitude property
     segs: list[np.ndarray] = []
-    malformed, examples, lines, points = 0, [], 0, 0
+    examples: list[str] = []
+    malformed, lines, points = 0, 0, 0
     with open(path, encoding="utf-8-sig", errors="replace") as fh:
         for number, line in enumerate(fh, start=1):
             if not line.strip():
@@ -261,6 +280,11 @@ def _read_traj(path: Path) -> Reports:
     object_id = np.concatenate(ids)
     object_id = _object_ids(object_id, np.ones(len(object_id), dtype=bool))
     ll = np.concatenate(lonlat)
+    # tracktable writes a trajectory's longitudes unwrapped (continuous across the antimeridian: 190,
+    # -200): the format's convention, decoded into [-180, 180) here and counted
+    lon = ll[:, 0]
+    unwrapped = np.isfinite(lon) & ((lon < -180.0) | (lon >= 180.0))
+    lon = np.where(unwrapped, (lon + 180.0) % 360.0 - 180.0, lon)
     alt = None
     if any(a is not None for a in alts):  # altitude when any line has it, NaN at the points of the lines without
         alt = np.concatenate([np.full(len(t), np.nan) if a is None else a for a, t in zip(alts, times)])
@@ -268,7 +292,7 @@ def _read_traj(path: Path) -> Reports:
         object_id,
         np.concatenate(times),
         ll[:, 1].copy(),
-        ll[:, 0].copy(),
+        lon,
         alt,
         None,
         None,
@@ -277,13 +301,16 @@ def _read_traj(path: Path) -> Reports:
         malformed,
         tuple(examples),
         str(path),
+        decoded={"lon_unwrapped": int(unwrapped.sum())} if unwrapped.any() else {},
     )
 
 
 # ---------------------------------------------------------------------------- CSV / Parquet
 def _resolve_columns(
-    columns: Mapping[str, str | int] | str | None, header: list[str] | None, path: Path
+    columns: Mapping[str, str | int] | str | None, header: list[str] | None, path: Path, first: str
 ) -> dict[str, str | int]:
+    """role -> column of a CSV / Parquet file, checked against its ``header`` (None: a CSV read
+    by position without a header line, ``first`` its first data line)."""
     if columns is None or columns == "ais":
         if header is not None and set(AIS_COLUMNS.values()) <= set(header):
             return dict(AIS_COLUMNS)
@@ -296,129 +323,21 @@ def _resolve_columns(
             f"columns, e.g. columns={{'id': ..., 'time': ..., 'lat': ..., 'lon': ...}} "
             f"(header names or 0-based positions); header found: {header}"
         )
-    if isinstance(columns, str):
-        raise ValueError(f"columns must be a mapping role -> column, 'ais' or None, got {columns!r}")
-    cols = {str(k): (v if isinstance(v, int) else str(v)) for k, v in dict(columns).items() if v is not None}
-    unknown = set(cols) - set(ROLES)
-    missing = {"id", "time", "lat", "lon"} - set(cols)
-    if unknown or missing:
-        raise ValueError(
-            f"columns: unknown roles {sorted(unknown)} / missing roles {sorted(missing)}; roles are {ROLES}, got {cols}"
-        )
-    if header is not None:
-        absent: list[str | int] = [v for v in cols.values() if isinstance(v, str) and v not in header]
-        absent += [v for v in cols.values() if isinstance(v, int) and not 0 <= v < len(header)]
-        if absent:
-            raise ValueError(f"{path}: columns {absent} not in the header {header} (names or 0-based positions)")
+    cols = dict(columns) if isinstance(columns, Mapping) else {}  # (checked by CleaningRules)
+    fields = header if header is not None else split_line(first)
+    for role, c in cols.items():
+        if isinstance(c, int) and c >= len(fields):
+            where = f"not in the header {header}" if header is not None else "out of range"
+            raise ValueError(
+                f"{path}: columns[{role!r}]={c} is {where}: the file has {len(fields)} columns "
+                f"(0-based positions 0 to {len(fields) - 1}); its first {'header' if header else 'data'} line: "
+                f"{first[:120]!r}"
+            )
+        if isinstance(c, str) and c not in fields:
+            raise ValueError(
+                f"{path}: columns[{role!r}]={c!r} is not in the header {header} (names or 0-based positions)"
+            )
     return cols
-
-
-def _leading_comment_lines(path: Path) -> int:
-    n = 0
-    with open(path, encoding="utf-8-sig", errors="replace") as fh:
-        for line in fh:
-            if not line.startswith("#"):
-                break
-            n += 1
-    return n
-
-
-def _as_float(arr: object, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """(values float64, ok mask): nulls and unparsable strings are not ok."""
-    import pyarrow as pa
-    import pyarrow.compute as pc
-
-    if pa.types.is_string(arr.type) or pa.types.is_large_string(arr.type):
-        ok = pc.fill_null(pc.match_substring_regex(pc.utf8_trim_whitespace(arr), _NUMBER), False)
-        arr = pc.cast(pc.if_else(ok, arr, pa.scalar("nan")), pa.float64())
-    else:
-        ok = pc.is_valid(arr)
-        arr = pc.cast(arr, pa.float64())
-    return np.asarray(arr.to_numpy(zero_copy_only=False), dtype=np.float64), np.asarray(
-        ok.to_numpy(zero_copy_only=False), dtype=bool
-    )
-
-
-def _epoch_seconds(seconds: object) -> object:
-    """Seconds since 1970-01-01 UTC (a float64 arrow array) as a timestamp[us] array, rounded to
-    the microsecond; NaN, ±inf and values beyond the int64 range of microseconds are null."""
-    import pyarrow as pa
-    import pyarrow.compute as pc
-
-    us = pc.round(pc.multiply(seconds, 1e6))
-    valid = pc.and_(pc.is_finite(us), pc.less(pc.abs(us), 9.2e18))
-    us = pc.if_else(valid, us, pa.scalar(None, pa.float64()))
-    return pc.cast(pc.cast(us, pa.int64()), pa.timestamp("us"))
-
-
-def _iso_8601(arr: object) -> object:
-    """Each string of ``arr`` read alone as an ISO 8601 date-time (:data:`_ISO_8601`): a
-    timestamp[us] array in UTC, null where a string is not one (the other rows still read).
-
-    A fraction finer than the microsecond is truncated (as Parquet ns timestamps are); ``Z`` and a
-    ``±hh[[:]mm]`` offset are converted to UTC; a time without a zone is taken as written (UTC).
-    """
-    import pyarrow as pa
-    import pyarrow.compute as pc
-
-    parts = pc.extract_regex(pc.cast(arr, pa.string()), _ISO_8601)  # null where the regex fails
-    part = {name: pc.struct_field(parts, name) for name in ("date", "hour", "minute", "second", "fraction", "zone")}
-    default = lambda name: pc.if_else(pc.equal(part[name], ""), "00", part[name])  # noqa: E731
-    clock = pc.binary_join_element_wise(default("hour"), default("minute"), default("second"), ":")
-    wall = pc.binary_join_element_wise(part["date"], clock, "T")
-    try:  # Arrow's cast checks the calendar (no 30 February), for all rows or none
-        seconds = pc.cast(wall, pa.timestamp("s"))
-    except pa.ArrowInvalid:  # row by row: strptime rolls 30 February into March, so read it back
-        fmt = "%Y-%m-%dT%H:%M:%S"
-        seconds = pc.strptime(wall, format=fmt, unit="s", error_is_null=True)
-        seconds = pc.if_else(pc.equal(pc.strftime(seconds, format=fmt), wall), seconds, pa.scalar(None, seconds.type))
-    fraction = pc.utf8_slice_codeunits(pc.utf8_rpad(part["fraction"], 6, "0"), 0, 6)
-    zone = part["zone"]  # "", "Z", "+hh", "+hhmm" or "+hh:mm"
-    digits = pc.utf8_rpad(pc.replace_substring(pc.utf8_slice_codeunits(zone, 1, 6), ":", ""), 4, "0")  # hhmm
-    hours = pc.cast(pc.utf8_slice_codeunits(digits, 0, 2), pa.int64())
-    minutes = pc.cast(pc.utf8_slice_codeunits(digits, 2, 4), pa.int64())
-    offset = pc.multiply(pc.add(pc.multiply(hours, 60), minutes), 60_000_000)
-    offset = pc.if_else(pc.starts_with(zone, "-"), pc.negate(offset), offset)
-    offset = pc.if_else(pc.and_(pc.less(hours, 24), pc.less(minutes, 60)), offset, pa.scalar(None, pa.int64()))
-    us = pc.add(pc.multiply(pc.cast(seconds, pa.int64()), 1_000_000), pc.cast(fraction, pa.int64()))
-    return pc.cast(pc.subtract(us, offset), pa.timestamp("us"))
-
-
-def _as_time(arr: object, time_format: str | None) -> tuple[np.ndarray, np.ndarray]:
-    """(datetime64[us], ok mask) from strings, numbers (seconds since the epoch) or timestamps.
-
-    Strings: ``time_format`` (strptime) when given, else ISO 8601 or numbers (seconds since the
-    epoch), whichever reads more rows. Arrow's cast reads a clean ISO 8601 column in one call;
-    when one row fails it, each row is read alone (:func:`_iso_8601`, the same readings), so a
-    row that does not read is not ok and the others are unaffected.
-    """
-    import pyarrow as pa
-    import pyarrow.compute as pc
-
-    if pa.types.is_timestamp(arr.type):
-        # (finer units truncated to the microsecond)
-        us = pa.timestamp("us", tz=arr.type.tz) if arr.type.tz else pa.timestamp("us")
-        out = pc.cast(arr, us, safe=False)
-    elif pa.types.is_integer(arr.type) or pa.types.is_floating(arr.type):
-        out = _epoch_seconds(pc.cast(arr, pa.float64()))
-    elif time_format is not None:
-        out = pc.strptime(pc.cast(arr, pa.string()), format=time_format, unit="us", error_is_null=True)
-    else:
-        arr = pc.cast(arr, pa.string())
-        for target in (pa.timestamp("us"), pa.timestamp("us", tz="UTC")):  # a clean column: one call
-            try:
-                out = pc.cast(arr, target)
-                break
-            except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
-                continue
-        else:  # some row fails Arrow's cast (which reads all rows or none): each row alone
-            # CSV columns arrive as strings: numbers are seconds since the epoch
-            numeric = pc.fill_null(pc.match_substring_regex(pc.utf8_trim_whitespace(arr), _NUMBER), False)
-            epoch = _epoch_seconds(pc.cast(pc.if_else(numeric, arr, pa.scalar(None, pa.string())), pa.float64()))
-            out = min((_iso_8601(arr), epoch), key=lambda a: a.null_count)
-    ok = np.asarray(pc.is_valid(out).to_numpy(zero_copy_only=False), dtype=bool)
-    values = out.cast(pa.int64()).to_numpy(zero_copy_only=False)
-    return np.where(ok, np.nan_to_num(values.astype(np.float64)), 0).astype(np.int64).astype("datetime64[us]"), ok
 
 
 def _read_table(
@@ -426,76 +345,108 @@ def _read_table(
 ) -> Reports:
     try:
         import pyarrow as pa
-        import pyarrow.compute as pc
-        import pyarrow.csv as pcsv
-        import pyarrow.parquet as pq
     except ImportError as err:  # pragma: no cover - depends on the environment
         raise ModuleNotFoundError(
             "reading CSV / Parquet trajectories needs pyarrow: pip install 'torchsde_lti[data]'"
         ) from err
+    try:
+        if fmt == "parquet":
+            table, names, bad = _parquet_table(path, columns)
+        else:
+            table, names, bad = _csv_table(path, columns)
+    except (pa.ArrowException, UnicodeDecodeError) as err:  # (the file's path is not in pyarrow's message)
+        raise ValueError(f"{path}: cannot be read as {fmt.upper()}: {err}") from err
+    return _table_reports(table, names, bad, path, time_format)
+
+
+def _parquet_table(path: Path, columns: Mapping[str, str | int] | str | None) -> tuple[Any, dict[str, str], list[str]]:
+    """(table of the used columns, role -> column name, no malformed rows) of a Parquet file."""
+    import pyarrow.parquet as pq
+
+    header = pq.read_schema(path).names
+    cols = _resolve_columns(columns, header, path, ",".join(header))
+    names = {role: (header[c] if isinstance(c, int) else c) for role, c in cols.items()}
+    return pq.read_table(path, columns=sorted(set(names.values()))), names, []
+
+
+def _csv_table(path: Path, columns: Mapping[str, str | int] | str | None) -> tuple[Any, dict[str, str], list[str]]:
+    """(table of the used columns, role -> column name, examples of malformed rows) of a CSV:
+    leading ``#`` lines skipped; columns by header name, or by position (a header line above
+    them, recognised by text at the latitude or longitude position, skipped)."""
+    import pyarrow as pa
+    import pyarrow.csv as pcsv
+
+    comments = leading_comment_lines(path)
+    skip = len(comments)
+    first = first_line(path, skip)
+    if not first.strip():
+        raise ValueError(f"{path}: no data: the file is empty" + (f" after {skip} '#' comment lines" if skip else ""))
+    if any(ord(ch) < 32 and ch != "\t" for ch in first):
+        raise ValueError(f"{path}: not a CSV text file: its first line holds control characters ({first[:40]!r})")
+    by_position = isinstance(columns, Mapping) and all(isinstance(v, int) for v in columns.values())
+    if by_position and isinstance(columns, Mapping) and first_line_is_header(first, columns):
+        skip += 1  # positions above a header line: the header is not a row
+        first = first_line(path, skip)
+    header = None if by_position else split_line(first)
+    if header is not None:
+        check_header(path, header, comments, recognising=not isinstance(columns, Mapping))
+    cols = _resolve_columns(columns, header, path, first)
+    # positions: pyarrow's generated names without a header, the header's names with one
+    names = {role: (c if isinstance(c, str) else f"f{c}" if header is None else header[c]) for role, c in cols.items()}
     bad: list[str] = []
-    if fmt == "parquet":
-        header = pq.read_schema(path).names
-        cols = _resolve_columns(columns, header, path)
-        names = {role: (header[c] if isinstance(c, int) else c) for role, c in cols.items()}
-        table = pq.read_table(path, columns=sorted(set(names.values())))
-    else:
-        skip = _leading_comment_lines(path)
-        by_position = isinstance(columns, Mapping) and all(
-            isinstance(v, int) for v in columns.values() if v is not None
-        )
-        if by_position and isinstance(columns, Mapping) and _first_line_is_header(path, skip, columns):
-            skip += 1  # positions above a header line: the header is not a row
-        header = None if by_position else _csv_header(path, skip)
-        cols = _resolve_columns(columns, header, path)
-        # positions: pyarrow's generated names without a header, the header's names with one
-        names = {
-            role: (c if isinstance(c, str) else f"f{c}" if header is None else header[c]) for role, c in cols.items()
-        }
 
-        def handler(row: object) -> str:
-            if len(bad) < _EXAMPLES:
-                bad.append(
-                    f"{getattr(row, 'text', '')[:80]!r}: {getattr(row, 'actual_columns', '?')} fields, "
-                    f"expected {getattr(row, 'expected_columns', '?')}"
-                )
-            else:
-                bad.append("")
-            return "skip"
+    def handler(row: object) -> str:
+        if len(bad) < _EXAMPLES:
+            bad.append(
+                f"{getattr(row, 'text', '')[:80]!r}: {getattr(row, 'actual_columns', '?')} fields, "
+                f"expected {getattr(row, 'expected_columns', '?')}"
+            )
+        else:
+            bad.append("")
+        return "skip"
 
-        read = pcsv.ReadOptions(skip_rows=skip, autogenerate_column_names=by_position)
-        string_cols = {names["id"]: pa.string(), names["time"]: pa.string()}
-        convert = pcsv.ConvertOptions(
-            include_columns=sorted(set(names.values())), column_types=string_cols, strings_can_be_null=True
-        )
-        table = pcsv.read_csv(
-            path,
-            read_options=read,
-            parse_options=pcsv.ParseOptions(invalid_row_handler=handler),
-            convert_options=convert,
-        )
+    read = pcsv.ReadOptions(skip_rows=skip, autogenerate_column_names=by_position)
+    string_cols = {names["id"]: pa.string(), names["time"]: pa.string()}
+    convert = pcsv.ConvertOptions(
+        include_columns=sorted(set(names.values())), column_types=string_cols, strings_can_be_null=True
+    )
+    table = pcsv.read_csv(
+        path, read_options=read, parse_options=pcsv.ParseOptions(invalid_row_handler=handler), convert_options=convert
+    )
+    return table, names, bad
+
+
+def _table_reports(table: Any, names: dict[str, str], bad: list[str], path: Path, time_format: str | None) -> Reports:
+    """Reports of a table: rows whose id, time, latitude or longitude does not read are skipped
+    and counted (an error naming the column, a row and its value when no row reads)."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
     n = table.num_rows
     ok = np.ones(n, dtype=bool)
     reasons: dict[str, np.ndarray] = {}
     values: dict[str, np.ndarray] = {}
-    for role in ("lat", "lon", "alt", "sog", "cog"):
+    for role in ("lat", "lon", "alt", "sog", "cog", "heading"):
         if role in names:
-            values[role], valid = _as_float(table[names[role]].combine_chunks(), role)
+            values[role], valid = column_numbers(table[names[role]].combine_chunks(), role, names[role], path)
             if role in ("lat", "lon"):
                 reasons[role] = ~valid
                 ok &= valid
-    time, valid = _as_time(table[names["time"]].combine_chunks(), time_format)
+    time, valid = column_times(table[names["time"]].combine_chunks(), time_format)
     reasons["time"] = ~valid
     ok &= valid
     raw_id = pc.cast(table[names["id"]].combine_chunks(), pa.string())
     id_ok = np.asarray(raw_id.is_valid().to_numpy(zero_copy_only=False), dtype=bool)
+    id_ok &= np.asarray(raw_id.fill_null("").to_numpy(zero_copy_only=False), dtype=str) != ""
     reasons["id"] = ~id_ok
     ok &= id_ok
+    if not ok.any():
+        _no_readable_row(table, names, reasons, bad, path, time_format)
     object_id = _object_ids(np.asarray(raw_id.fill_null("").to_numpy(zero_copy_only=False), dtype=str), ok)
     examples = [b for b in bad if b][:_EXAMPLES]
     for role, mask in reasons.items():
         for r in np.flatnonzero(mask)[: max(0, _EXAMPLES - len(examples))]:
-            examples.append(f"row {int(r) + 1}: {role} column {names[role]!r} unreadable")
+            examples.append(_unreadable(table, names, role, int(r)))
     keep = np.flatnonzero(ok)
     take = (lambda a: a[keep]) if not ok.all() else (lambda a: a)  # noqa: E731
     return Reports(
@@ -511,30 +462,48 @@ def _read_table(
         int((~ok).sum()) + len(bad),
         tuple(examples),
         str(path),
+        take(values["heading"]) if "heading" in values else None,
+        {role: str(name) for role, name in names.items()},
     )
 
 
-def _csv_header(path: Path, skip: int) -> list[str]:
-    """Column names in the first line after ``skip`` comment lines."""
-    import io
-
-    import pyarrow.csv as pcsv
-
-    with open(path, "rb") as fh:
-        for _ in range(skip):
-            fh.readline()
-        first = fh.readline().rstrip(b"\r\n")
-    return pcsv.read_csv(io.BytesIO(first + b"\n"), read_options=pcsv.ReadOptions()).schema.names
+def _unreadable(table: Any, names: dict[str, str], role: str, row: int) -> str:
+    """'data row r: <role> column <name> unreadable: <value>' (r 1-based, after the header)."""
+    value = table[names[role]][row].as_py()
+    return f"data row {row + 1}: {role} column {names[role]!r} unreadable: {'empty' if value in (None, '') else repr(value)}"
 
 
-def _first_line_is_header(path: Path, skip: int, columns: Mapping[str, str | int]) -> bool:
-    """Whether the first line after ``skip`` has text, not a number, at the latitude or
-    longitude position of ``columns``."""
-    fields = _csv_header(path, skip)
-    positions = [columns.get(role) for role in ("lat", "lon")]
-    return any(
-        isinstance(c, int) and c < len(fields) and re.match(_NUMBER, fields[c].strip()) is None for c in positions
-    )
+def _no_readable_row(
+    table: Any,
+    names: dict[str, str],
+    reasons: dict[str, np.ndarray],
+    bad: list[str],
+    path: Path,
+    time_format: str | None,
+) -> None:
+    """Raise the ValueError for a file of which no row reads, saying which columns did not."""
+    n = table.num_rows
+    if n == 0:
+        why = f"{len(bad)} rows with the wrong number of fields, e.g. {bad[0]}" if bad else "a header and no data rows"
+        raise ValueError(f"{path}: no report can be read: the file has {why}")
+    parts = []
+    for role in ("id", "time", "lat", "lon"):
+        failed = reasons[role]
+        if failed.any():
+            how = ""
+            if role == "time":
+                how = (
+                    f" with time_format={time_format!r}"
+                    if time_format is not None
+                    else " (ISO 8601, or numbers: seconds since 1970-01-01 UTC, within ±292,000 years; "
+                    "else give time_format)"
+                )
+            what = "is empty" if role == "id" else "does not read"
+            parts.append(
+                f"the {role} column {names[role]!r} {what}{how} in {int(failed.sum())} of {n} rows, e.g. "
+                + _unreadable(table, names, role, int(np.flatnonzero(failed)[0]))
+            )
+    raise ValueError(f"{path}: no report can be read: " + "; ".join(parts))
 
 
 def _object_ids(ids: np.ndarray, ok: np.ndarray) -> np.ndarray:

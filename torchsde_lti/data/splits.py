@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from torchsde_lti.data.loaded_tracks import Tracks
+from torchsde_lti.data.rules import _instants, parse_instant
 from torchsde_lti.data.tracks import Track
 
 __all__ = ["split_objects", "split_time", "track_windows", "window_bounds"]
@@ -32,6 +33,9 @@ def split_objects(
 
     The sorted distinct object ids (K of them) are permuted with ``seed`` and cut into
     val = round(f_val K), test = round(f_test K) (at most what val leaves), train = the rest.
+    A split with a positive share must receive an object: a ValueError says when K is too small
+    for the shares (2 objects and (0.34, 0.33, 0.33) leave train empty); a share of 0 gives an
+    empty split.
 
     Args:
         tracks: the tracks to split.
@@ -40,6 +44,10 @@ def split_objects(
 
     Returns:
         tuple[Tracks, Tracks, Tracks]: train, val and test.
+
+    Raises:
+        ValueError: for fractions that are not 3 shares summing to 1, and for a split with a
+            positive share that receives no object (naming it, K and the fractions).
     """
     if len(fractions) != 3 or any(f < 0 for f in fractions) or not math.isclose(sum(fractions), 1.0):
         raise ValueError(f"fractions must be 3 non-negative numbers summing to 1, got {list(fractions)}")
@@ -49,6 +57,14 @@ def split_objects(
     n_val = min(round(fractions[1] * k), k)
     n_test = min(round(fractions[2] * k), k - n_val)  # (both rounded up: they may exceed K together)
     n_train = k - n_val - n_test
+    for name, share, n in zip(("train", "val", "test"), fractions, (n_train, n_val, n_test)):
+        if share > 0 and n == 0:
+            raise ValueError(
+                f"split_objects: {k} objects cannot fill the splits of fractions {list(fractions)}: the {name} split "
+                f"(share {share}) would get none (val = round({fractions[1]} x {k}) = {n_val}, test = "
+                f"round({fractions[2]} x {k}) = {n_test}, train the rest); load more objects, or give {name} a "
+                "share of 0 to leave it empty"
+            )
     parts = (perm[:n_train], perm[n_train : n_train + n_val], perm[n_train + n_val :])
     out = []
     for part in parts:
@@ -69,11 +85,12 @@ def split_time(tracks: Tracks, boundaries: Sequence[str | np.datetime64]) -> lis
         list[Tracks]: k + 1 groups, in time order.
 
     Raises:
-        ValueError: for boundaries that do not increase, or a track spanning one.
+        TypeError: for a single string or instant in place of a sequence.
+        ValueError: for a boundary that is not an instant (naming it), boundaries that do not
+            increase, or a track spanning one.
     """
-    cuts = np.array(
-        [(np.datetime64(b, "us") - tracks.t0).astype("timedelta64[us]").astype(np.int64) / 1e6 for b in boundaries]
-    )
+    instants = [parse_instant(b, f"boundaries[{i}]") for i, b in enumerate(_instants("boundaries", boundaries))]
+    cuts = np.array([(b - tracks.t0).astype("timedelta64[us]").astype(np.int64) / 1e6 for b in instants])
     if np.any(np.diff(cuts) <= 0):
         raise ValueError(f"boundaries must increase, got {list(map(str, boundaries))}")
     first_t, last_t = tracks.t[tracks.offsets[:-1]], tracks.t[tracks.offsets[1:] - 1]
@@ -116,7 +133,8 @@ def track_windows(
         tracks: the tracks to cut.
         max_len: the longest window (reports); None = whole tracks.
         center: subtract each window's first report from its positions (kept in ``origin``).
-        dtype: of the returned tensors.
+        dtype: of the returned tensors, a floating-point dtype (TypeError otherwise: an integer
+            dtype would truncate positions to whole metres).
 
     Returns:
         list[Track]: per window y (T, d) positions, dt (T,) seconds from the previous report
@@ -124,6 +142,10 @@ def track_windows(
         vel (T, 2) and sog (T,) where the file has SOG/COG, and track_id, the track's index in
         ``tracks`` (``tracks.object_id[track_id]`` is the object).
     """
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+        raise TypeError(
+            f"track_windows: dtype must be a floating-point torch.dtype (torch.float32, ...), got {dtype!r}"
+        )
     owner, a, b = window_bounds(tracks.lengths, max_len)
     a = a + tracks.offsets[owner]
     b = b + tracks.offsets[owner]

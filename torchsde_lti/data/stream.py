@@ -285,7 +285,7 @@ class WindowStream(IterableDataset):
         dt = np.diff(time, prepend=time[0]) / 1e6
         as_t = lambda x: torch.tensor(x, dtype=torch.float64).to(self.dtype)  # noqa: E731
         vel = np.stack([unit["vel_east"][a:b], unit["vel_north"][a:b]], axis=-1) if "vel_east" in unit else None
-        return Track(  # type: ignore[call-arg]  # (Track is made from TrackBatch's fields)
+        return Track(
             y=as_t(pos - origin),
             dt=as_t(dt),
             t=as_t((time - time[0]) / 1e6),

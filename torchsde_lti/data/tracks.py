@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -66,12 +66,20 @@ class TrackBatch(NamedTuple):
     track_id: Tensor | None = None
 
 
-_TRACK_FIELDS = [(f, TrackBatch.__annotations__[f]) for f in TrackBatch._fields if f not in ("mask", "lengths")]
-#: One track of T steps: the fields of :class:`TrackBatch` without the batch dimension and
-#: without ``mask`` / ``lengths`` (y (T, m) and dt (T,) required; ``origin`` (m,) and
-#: ``track_id`` () are per-track; the rest optional, default None).
-Track = NamedTuple("Track", _TRACK_FIELDS)  # type: ignore[misc]
-Track.__new__.__defaults__ = (None,) * (len(_TRACK_FIELDS) - 2)
+class Track(NamedTuple):
+    """One track of T steps: the fields of :class:`TrackBatch` without the batch dimension and
+    without ``mask`` / ``lengths`` (y (T, m) and dt (T,) required; ``origin`` (m,) and
+    ``track_id`` () are per-track; the rest optional, default None)."""
+
+    y: Tensor
+    dt: Tensor
+    u: Tensor | None = None
+    x: Tensor | None = None
+    t: Tensor | None = None
+    vel: Tensor | None = None
+    sog: Tensor | None = None
+    origin: Tensor | None = None
+    track_id: Tensor | None = None
 
 
 # Per-step fields and their padding rule: a fill value, or None = repeat the last value.
@@ -140,7 +148,7 @@ def unpad_tracks(batch: TrackBatch) -> list[Track]:
     """
     out = []
     for i, Ti in enumerate(batch.lengths.tolist()):
-        values = {}
+        values: dict[str, Any] = {}
         for name in Track._fields:
             v = getattr(batch, name)
             values[name] = None if v is None else (v[i, :Ti] if name in _PAD else v[i])

@@ -32,14 +32,15 @@ importable from here.
 
 from __future__ import annotations
 
-import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
 from torchsde_lti.data.frames import EARTH_MEAN_RADIUS, KNOT, angular_distance, local_positions, local_velocities
 from torchsde_lti.data.loaded_tracks import LoadSummary, Tracks, _ranges
+from torchsde_lti.data.rules import REPORT_RULES, CleaningRules
 from torchsde_lti.data.sources import Reports, read_reports
 from torchsde_lti.data.splits import split_objects, split_time, track_windows, window_bounds
 
@@ -54,25 +55,13 @@ __all__ = [
     "window_bounds",
 ]
 
-_COURSE_ENCODINGS = ("ais", "ais_int12", "degrees")
-
 
 def load_tracks(
     source: str | os.PathLike[str],
     columns: Mapping[str, str | int] | str | None = None,
     *,
-    format: str | None = None,
-    time_format: str | None = None,
-    altitude_unit: str = "m",
-    dims: int | None = None,
-    frame: str = "local",
-    reference: Sequence[float] | None = None,
-    course_encoding: str = "ais",
-    max_gap: float | None = 1800.0,
-    v_max: float | None = None,
-    min_reports: int = 2,
-    max_extent: float | None = 250_000.0,
-    cut_times: Sequence[str | np.datetime64] = (),
+    rules: CleaningRules | Mapping[str, Any] | None = None,
+    **changes: Any,
 ) -> Tracks:
     """Tracks from a ``.traj``, CSV or Parquet file, in per-track local metric frames.
 
@@ -80,91 +69,44 @@ def load_tracks(
         source: a path, or a file name shipped by tracktable-data (e.g.
             ``"US_coastal_2020_06_30.traj"``); FileNotFoundError says where it looked.
         columns: CSV / Parquet role -> column (header name or 0-based position): id, time, lat,
-            lon and optionally alt, sog, cog; None recognises the MarineCadastre AIS header.
-        format: "traj", "csv" or "parquet" (default: the suffix).
-        time_format: strptime format when times are not ISO 8601.
-        altitude_unit: "m" or "ft".
-        dims: 2 or 3 (east, north, altitude); None = 3 when the file has a non-zero altitude.
-        frame: "local" (each track's own origin, its first report) or "common" (``reference``).
-        reference: (lat, lon[, alt]) of the common frame.
-        course_encoding: SOG/COG conventions: "ais" (SOG >= 102.3 kn and COG outside [0, 360)
-            unavailable), "ais_int12" (also decodes a COG stored as a signed 12-bit field:
-            negative v -> v + 409.6), "degrees" (any COG, taken modulo 360).
-        max_gap: cut tracks at gaps longer than this (s); None = never.
-        v_max: implied speed (m/s) above which a jump is implausible; None = no check.
-        min_reports: drop tracks with fewer reports (>= 2).
-        max_extent: cut tracks leaving this radius (m) around their origin (local frames only);
-            None = never.
-        cut_times: instants (ISO 8601 strings or datetime64) at which every track is cut, so
-            that a split in time keeps each part in its own frame.
+            lon and optionally alt, sog, cog; None recognises the MarineCadastre AIS header
+            (a shortcut for ``columns=`` of the rules).
+        rules: the reading and cleaning rules (:class:`~torchsde_lti.data.CleaningRules`, or a
+            mapping of its fields); None = its defaults.
+        **changes: fields of :class:`~torchsde_lti.data.CleaningRules` replacing those of
+            ``rules`` (``max_gap=600.0``, ``v_max=35.0``, ``min_reports=5``, ``cut_times=[...]``...).
 
     Returns:
         :class:`Tracks`, with ``.summary`` (:class:`LoadSummary`) counting every rule.
+
+    Raises:
+        TypeError, ValueError: for a rule of the wrong type or value (naming it), and for a file
+            that cannot be read or cleaned (naming the file, the column and, where there is one,
+            the row).
     """
-    reports = read_reports(source, columns, format=format, time_format=time_format, altitude_unit=altitude_unit)
-    return prepare_tracks(
-        reports,
-        dims=dims,
-        frame=frame,
-        reference=reference,
-        course_encoding=course_encoding,
-        max_gap=max_gap,
-        v_max=v_max,
-        min_reports=min_reports,
-        max_extent=max_extent,
-        cut_times=cut_times,
-    )
-
-
-def _check_rules(
-    frame: str,
-    reference: Sequence[float] | None,
-    course_encoding: str,
-    max_gap: float | None,
-    v_max: float | None,
-    min_reports: int,
-    max_extent: float | None,
-    dims: int | None,
-) -> None:
-    if frame not in ("local", "common"):
-        raise ValueError(f"frame must be 'local' or 'common', got {frame!r}")
-    if frame == "common" and (reference is None or len(reference) not in (2, 3)):
-        raise ValueError(f"frame='common' needs reference=(lat, lon[, alt]), got {reference!r}")
-    if course_encoding not in _COURSE_ENCODINGS:
-        raise ValueError(f"course_encoding must be one of {_COURSE_ENCODINGS}, got {course_encoding!r}")
-    for name, value in (("max_gap", max_gap), ("v_max", v_max), ("max_extent", max_extent)):
-        if value is not None and not (math.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be a positive number or None, got {value!r}")
-    if int(min_reports) < 2:
-        raise ValueError(f"min_reports must be >= 2 (a track needs a time step), got {min_reports}")
-    if dims not in (None, 2, 3):
-        raise ValueError(f"dims must be 2, 3 or None, got {dims!r}")
+    if columns is not None:
+        changes["columns"] = columns
+    checked = CleaningRules.coerce(rules, **changes)
+    reports = read_reports(source, **checked.reading)
+    return prepare_tracks(reports, rules=checked)
 
 
 def prepare_tracks(
-    reports: Reports,
-    *,
-    dims: int | None = None,
-    frame: str = "local",
-    reference: Sequence[float] | None = None,
-    course_encoding: str = "ais",
-    max_gap: float | None = 1800.0,
-    v_max: float | None = None,
-    min_reports: int = 2,
-    max_extent: float | None = 250_000.0,
-    cut_times: Sequence[str | np.datetime64] = (),
+    reports: Reports, *, rules: CleaningRules | Mapping[str, Any] | None = None, **changes: Any
 ) -> Tracks:
     """The cleaning rules and frames of :func:`load_tracks` applied to already-read :class:`Reports`.
 
     Args:
         reports: the reports of one file (:func:`~torchsde_lti.data.read_reports`).
-        dims, frame, reference, course_encoding, max_gap, v_max, min_reports, max_extent, cut_times:
-            as in :func:`load_tracks`.
+        rules: as in :func:`load_tracks` (its reading fields are not used here).
+        **changes: fields of :class:`~torchsde_lti.data.CleaningRules` replacing those of ``rules``.
 
     Returns:
         Tracks: with ``.summary`` counting every rule.
     """
-    _check_rules(frame, reference, course_encoding, max_gap, v_max, min_reports, max_extent, dims)
+    rules = CleaningRules.coerce(rules, **changes)
+    dims, frame, reference = rules.dims, rules.frame, rules.reference
+    max_gap, v_max, max_extent, min_reports = rules.max_gap, rules.v_max, rules.max_extent, rules.min_reports
     rep = reports
     has_alt = rep.alt is not None and bool(np.any(np.isfinite(rep.alt) & (rep.alt != 0)))
     if dims is None:
@@ -187,14 +129,14 @@ def prepare_tracks(
         0,
     )
 
-    # 1. valid positions
-    valid = np.isfinite(rep.lat) & np.isfinite(rep.lon) & (np.abs(rep.lat) <= 90.0)
-    if dims == 3:
-        valid &= np.isfinite(rep.alt)
+    # 1. valid positions (REPORT_RULES): invalid ones dropped, counted by reason; a likely swap refused
+    valid, invalid = _valid_positions(rep, dims)
+    _check_swap(rep, valid, recognised_header=rules.columns in (None, "ais"))
     counts["invalid_positions"] = int((~valid).sum())
     idx = np.flatnonzero(valid)
     if len(idx) == 0:
-        raise ValueError(f"{rep.path}: no report has a valid position ({rep.rows} read)")
+        reasons = ", ".join(f"{name} {count}" for name, count in invalid.items())
+        raise ValueError(f"{rep.path}: no report has a valid position ({rep.rows} read; {reasons})")
 
     # 2. group by (object, file segment), sort by time (stable: equal times keep file order)
     uniq, codes = np.unique(rep.object_id[idx], return_inverse=True)
@@ -211,11 +153,11 @@ def prepare_tracks(
 
     t0_us = int(tus.min())
     t = (tus - t0_us) / 1e6
-    lat, lon = rep.lat[idx], ((rep.lon[idx] + 180.0) % 360.0) - 180.0
+    lat, lon = rep.lat[idx], np.where(rep.lon[idx] == 180.0, -180.0, rep.lon[idx])  # (the same meridian)
     start = ~same
 
     # 3. cuts at split times and at long gaps
-    cuts = np.sort(np.array([(np.datetime64(c, "us").astype(np.int64) - t0_us) / 1e6 for c in cut_times]))
+    cuts = (rules.cut_instants().astype(np.int64) - t0_us) / 1e6
     if len(cuts):
         bins = np.searchsorted(cuts, t, side="right")
         crossing = same & np.concatenate([[False], bins[1:] != bins[:-1]])
@@ -250,20 +192,25 @@ def prepare_tracks(
         raise ValueError(f"{rep.path}: no track of >= {min_reports} reports is left ({rep.rows} read)")
     offsets = np.concatenate([first, [len(t)]]).astype(np.int64)
     owner = np.repeat(np.arange(len(first)), lengths)
-    alt = rep.alt[idx] if dims == 3 else None
+    alt = rep.alt[idx] if dims == 3 and rep.alt is not None else None
 
     # frames
     if frame == "local":
         origin = np.stack([lat[first], lon[first], alt[first] if alt is not None else np.zeros(len(first))], -1)
     else:
-        ref = [float(x) for x in reference] + [0.0] * (3 - len(reference))
+        ref = [*(reference or ()), 0.0][:3]  # (a common frame has a checked reference: lat, lon[, alt])
         origin = np.tile(np.array(ref, dtype=np.float64), (len(first), 1))
     o = origin[owner]
     pos = local_positions(lat, lon, o[:, 0], o[:, 1], alt, o[:, 2] if alt is not None else None)
     vel = sog = None
+    unavailable: dict[str, int] = {}
     if rep.sog is not None and rep.cog is not None:
-        sog, course, counts["courses_decoded"] = _speed_course(rep.sog[idx], rep.cog[idx], course_encoding)
+        sog, course, counts["courses_decoded"], unavailable = _speed_course(
+            rep.sog[idx], rep.cog[idx], rules.course_encoding
+        )
         vel = local_velocities(sog * KNOT, course, lat, lon, o[:, 0], o[:, 1])
+    if rep.heading is not None:
+        unavailable.update(_counts(REPORT_RULES["heading"].classify(rep.heading[idx])))
 
     summary = LoadSummary(
         source=rep.path,
@@ -275,16 +222,11 @@ def prepare_tracks(
         reports=len(t),
         dims=int(dims),
         frame=frame,
-        rules={
-            "max_gap": max_gap,
-            "v_max": v_max,
-            "min_reports": int(min_reports),
-            "max_extent": max_extent,
-            "cut_times": [str(c) for c in cut_times],
-            "course_encoding": course_encoding,
-            "reference": None if reference is None else [float(x) for x in reference],
-        },
+        rules=rules.as_dict(),
         **counts,
+        invalid=invalid,
+        unavailable=unavailable,
+        decoded=dict(rep.decoded),
     )
     return Tracks(
         object_id=rep.object_id[idx[first]],
@@ -303,20 +245,89 @@ def prepare_tracks(
     )
 
 
-def _speed_course(sog: np.ndarray, cog: np.ndarray, encoding: str) -> tuple[np.ndarray, np.ndarray, int]:
-    """(SOG knots with NaN = unavailable, COG degrees in [0, 360) or NaN, number of decoded COGs)."""
+def _counts(masks: dict[str, np.ndarray]) -> dict[str, int]:
+    """name -> number of True entries, the names with none left out."""
+    return {name: int(mask.sum()) for name, mask in masks.items() if mask.any()}
+
+
+def _valid_positions(rep: Reports, dims: int) -> tuple[np.ndarray, dict[str, int]]:
+    """(N,) the reports with a valid latitude, longitude (and, 3-D, a finite altitude), and the
+    invalid ones counted by their first reason (:data:`~torchsde_lti.data.REPORT_RULES`)."""
+    bad = np.zeros(len(rep.lat), dtype=bool)
+    invalid: dict[str, int] = {}
+    masks = {**REPORT_RULES["lat"].classify(rep.lat), **REPORT_RULES["lon"].classify(rep.lon)}
+    if dims == 3 and rep.alt is not None:
+        masks["alt_missing"] = ~np.isfinite(rep.alt)
+    for name, mask in masks.items():
+        first = mask & ~bad
+        if first.any():
+            invalid[name] = int(first.sum())
+        bad |= first
+    return ~bad, invalid
+
+
+def _check_swap(rep: Reports, valid: np.ndarray, recognised_header: bool) -> None:
+    """Refuse latitude and longitude columns that look exchanged: most positions invalid while
+    at least twice as many would be valid the other way round; or, with the MarineCadastre
+    header recognised (US waters: no report both south of the equator and east of Greenwich),
+    every valid position south-east and valid the other way round too."""
+    lat_rule, lon_rule = REPORT_RULES["lat"], REPORT_RULES["lon"]
+    # reports with two numbers, neither AIS's "not available": what a swap would show in
+    lat_masks, lon_masks = lat_rule.classify(rep.lat), lon_rule.classify(rep.lon)
+    numbers = ~(lat_masks["lat_missing"] | lat_masks["lat_not_available"])
+    numbers &= ~(lon_masks["lon_missing"] | lon_masks["lon_not_available"])
+    if not numbers.any():
+        return
+    other_way = lat_rule.valid(rep.lon) & lon_rule.valid(rep.lat) & numbers
+    n_valid, n_other, n = int((valid & numbers).sum()), int(other_way.sum()), int(numbers.sum())
+    most_invalid = n_valid < n / 2 and n_other >= 2 * n_valid
+    south_east = (
+        recognised_header
+        and n_valid > 0
+        and bool(np.all((rep.lat[valid] < 0) & (rep.lon[valid] > 0) & other_way[valid]))
+    )
+    if not (most_invalid or south_east):
+        return
+    names = rep.columns or {"lat": "lat", "lon": "lon"}
+    lat_col, lon_col = names.get("lat", "lat"), names.get("lon", "lon")
+    if most_invalid:
+        why = (
+            f"{n - n_valid} of {n} reports have no valid position (latitudes outside [-90, 90] in "
+            f"{lat_col!r}), and {n_other} would be valid with {lat_col!r} as the longitude and {lon_col!r} as the "
+            "latitude"
+        )
+    else:
+        why = (
+            f"all {n_valid} valid positions are south of the equator and east of Greenwich (latitude {lat_col!r} "
+            f"{np.min(rep.lat[valid]):g} to {np.max(rep.lat[valid]):g}, longitude {lon_col!r} "
+            f"{np.min(rep.lon[valid]):g} to {np.max(rep.lon[valid]):g}), where MarineCadastre (US waters) has no "
+            "reports; if they really are there, name the columns, e.g. columns={'id': 'MMSI', 'time': "
+            "'BaseDateTime', 'lat': 'LAT', 'lon': 'LON'}, which skips this check"
+        )
+    fix = {**names, "lat": lon_col, "lon": lat_col}
+    raise ValueError(f"{rep.path}: the latitude and longitude columns look swapped: {why}. Swap them: columns={fix}")
+
+
+def _speed_course(
+    sog: np.ndarray, cog: np.ndarray, encoding: str
+) -> tuple[np.ndarray, np.ndarray, int, dict[str, int]]:
+    """(SOG knots with NaN = unavailable, COG degrees in [0, 360) or NaN, number of decoded COGs,
+    the unavailable values counted by reason) under ``encoding`` (:class:`CleaningRules`)."""
     sog = np.asarray(sog, dtype=np.float64)
     cog = np.asarray(cog, dtype=np.float64)
     decoded = 0
-    if encoding == "degrees":
-        return np.where(sog >= 0, sog, np.nan), np.mod(cog, 360.0), 0
+    if encoding == "degrees":  # not AIS: any course modulo 360, a negative speed unavailable
+        with np.errstate(invalid="ignore"):
+            masks = {"sog_missing": ~np.isfinite(sog), "sog_out_of_range": sog < 0, "cog_missing": ~np.isfinite(cog)}
+        return np.where(sog >= 0, sog, np.nan), np.mod(cog, 360.0), 0, _counts(masks)
     if encoding == "ais_int12":
         negative = cog < 0.0
         decoded = int(negative.sum())
         cog = np.where(negative, cog + 409.6, cog)
-    sog = np.where((sog >= 0) & (sog < 102.25), sog, np.nan)
-    cog = np.where((cog >= 0.0) & (cog < 360.0), cog, np.nan)
-    return sog, cog, decoded
+    sog_masks, cog_masks = REPORT_RULES["sog"].classify(sog), REPORT_RULES["cog"].classify(cog)
+    sog = np.where(REPORT_RULES["sog"].valid(sog), sog, np.nan)
+    cog = np.where(REPORT_RULES["cog"].valid(cog), cog, np.nan)
+    return sog, cog, decoded, {**_counts(sog_masks), **_counts(cog_masks)}
 
 
 def _speeds(t: np.ndarray, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
