@@ -188,3 +188,33 @@ def test_resume_mid_epoch_through_a_checkpoint_sees_every_window_once(prepared: 
     for epoch in (0, 1):
         seen = Counter(i for e, ids in log if e == epoch for i in ids)
         assert set(seen.values()) == {1} and sorted(seen) == sorted(member.tolist())
+
+
+# ---------------------------------------------------------------------------- the one training path
+def test_prepare_and_train_through_hydra(tmp_path: Path) -> None:
+    """``python -m torchsde_lti.prepare source=... out=...`` then ``python -m torchsde_lti.train
+    data=stream data.root=...`` (configs composed as the commands compose them)."""
+    from hydra import compose, initialize_config_dir
+
+    from torchsde_lti.prepare import prepare
+    from torchsde_lti.training.train import config_path, train
+
+    src = _ais_csv(tmp_path / "AIS_2024_01_01.csv", 40, seed=30)
+    out = tmp_path / "prepared"
+    with initialize_config_dir(config_dir=config_path(), version_base="1.3"):
+        summary = prepare(
+            compose("prepare", overrides=[f"source={src}", f"out={out}", "max_len=32", "rules.v_max=null"])
+        )
+        assert summary.load.rules["v_max"] is None and summary.load.rules["min_reports"] == 5
+        cfg = compose(
+            "train",
+            overrides=[
+                "experiment=ais_us_coastal", "data=stream", f"data.root={out}", "data.batch_size=16",
+                "trainer.max_epochs=1", "test=true", "plots=false", f"output_dir={tmp_path / 'run'}",
+            ],
+        )  # fmt: skip
+    metrics, objects = train(cfg)
+    assert metrics["status"] == "completed" and np.isfinite(metrics["val/nll"])
+    dm = objects["datamodule"]
+    assert dm.summary.prepared.windows == summary.windows
+    assert '"prepared": {' in (tmp_path / "run" / "metrics.json").read_text()
