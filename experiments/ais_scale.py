@@ -15,7 +15,8 @@ PSS sum, which counts them once), with
 the load average (``uptime``) before and after: the machine is shared with other sessions, so a
 load above the number of cores means every wall-clock figure is slowed by others' work. The
 throughput per core is therefore given from CPU time (user + system seconds of the job and all
-its processes, ``wait4``): reports per CPU-second, what one core does when it is the job's alone. Rows are appended
+its processes, sampled from /proc): reports per CPU-second, what one core does when it is the
+job's alone. Rows are appended
 to ``--results`` (Markdown).
 """
 
@@ -46,7 +47,16 @@ def _children(pid: int) -> list[int]:
     return out
 
 
-def _tree_memory(pid: int) -> tuple[int, int]:
+_TICK = os.sysconf("SC_CLK_TCK")
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of ``pid`` so far (/proc/<pid>/stat)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / _TICK
+
+
+def _tree_memory(pid: int, cpu: dict[int, float] | None = None) -> tuple[int, int]:
     """(resident bytes, proportional set size bytes) of ``pid`` and all its descendants: the RSS sum
     counts a library page shared by k processes k times, the PSS sum once."""
     rss = pss = 0
@@ -54,6 +64,8 @@ def _tree_memory(pid: int) -> tuple[int, int]:
     while todo:
         p = todo.pop()
         try:
+            if cpu is not None:
+                cpu[p] = _cpu_seconds(p)
             for line in Path(f"/proc/{p}/smaps_rollup").read_text().splitlines():
                 if line.startswith("Rss:"):
                     rss += int(line.split()[1]) * 1024
@@ -71,24 +83,24 @@ def measure(cmd: list[str], env: dict[str, str] | None = None) -> dict[str, floa
     t0 = time.perf_counter()
     proc = subprocess.Popen(["nice", "-n", "10", *cmd], env={**os.environ, **(env or {})})
     peak = [0, 0]
+    cpu: dict[int, float] = {}  # pid -> its CPU seconds at the last sample (the tree's forkserver workers too)
     stop = threading.Event()
 
     def sample() -> None:
         while not stop.is_set():
-            peak[:] = [max(a, b) for a, b in zip(peak, _tree_memory(proc.pid))]
+            peak[:] = [max(a, b) for a, b in zip(peak, _tree_memory(proc.pid, cpu))]
             stop.wait(0.2)
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
-    _, status, usage = os.wait4(proc.pid, 0)  # (its CPU time includes that of the children it waited for)
-    proc.returncode = code = os.waitstatus_to_exitcode(status)
+    code = proc.wait()
     stop.set()
     sampler.join()
     if code:
         raise SystemExit(f"{shlex.join(cmd)} failed with exit code {code}")
     return {
         "wall": time.perf_counter() - t0,
-        "cpu": usage.ru_utime + usage.ru_stime,
+        "cpu": sum(cpu.values()),  # (sampled every 0.2 s: a process's last 0.2 s may be missed)
         "rss_mib": peak[0] / 2**20,
         "pss_mib": peak[1] / 2**20,
         "load0": load0,

@@ -20,6 +20,7 @@ LAYERS: tuple[tuple[str, str], ...] = (
     ("data", "simulation, the track batch type, real trajectories (tl.data.load_tracks), the Lightning DataModules"),
     ("training", "the Lightning module, metrics, callbacks, plots and the Hydra entry point"),
     ("train", "the `python -m torchsde_lti.train` shim"),
+    ("prepare", "the `python -m torchsde_lti.prepare` entry point (out-of-core preparation, Hydra)"),
 )
 if __doc__ is not None:  # (python -OO strips docstrings)
     __doc__ += "\n" + "\n".join(f"- :mod:`torchsde_lti.{name}` — {job}." for name, job in LAYERS) + "\n"
