@@ -12,9 +12,10 @@ pool of ``workers`` processes:
    inside a zip, ``.traj`` lines; Parquet row groups), each chunk with ``read_reports``, and
    its reports are appended to ``B`` Parquet files by a hash of the object id (MMSI): bucket b
    holds every report of about 1/B of the objects, from every file. ``B`` is chosen from the
-   inputs' size (about ``bucket_reports`` reports a bucket) and fixed in the plan.
-2. **gather** (a task per bucket): a bucket's reports are cleaned into tracks with
-   ``prepare_tracks``, exactly as ``load_tracks`` cleans one file, cut into windows of at most
+   inputs' size (about ``bucket_reports`` reports a bucket) and fixed in the plan. (The chunks:
+   :mod:`torchsde_lti.data.chunks`.)
+2. **gather** (a task per bucket): a bucket's reports, in the files' order, are cleaned into
+   tracks with ``prepare_tracks``, exactly as ``load_tracks`` cleans one file, cut into windows of at most
    ``max_len`` reports (:func:`~torchsde_lti.data.window_bounds`) and written as
    ``windows/bucket=BBBBB.parquet``, one row per window.
 
@@ -290,7 +291,8 @@ def _gather_bucket(task: dict[str, Any]) -> dict[str, Any]:
     import pyarrow.parquet as pq
 
     out, b = Path(task["out"]), int(task["bucket"])
-    parts = sorted((out / "_scatter" / f"bucket={b:05d}").glob("*.parquet"))
+    folder = out / "_scatter" / f"bucket={b:05d}"
+    parts = [folder / f"{key}.parquet" for key in task["keys"] if (folder / f"{key}.parquet").is_file()]  # file order
     name = f"{task['source']} (bucket {b} of {task['buckets']})"
     entry: dict[str, Any] = {"bucket": b, "windows": 0, "counts": None}
     if parts:
@@ -524,7 +526,11 @@ def prepare_dataset(
         columns = next((f["columns"] for f in file_entries if f["columns"]), None)
         gather = [
             {**common, "bucket": b, "rules": plain, "max_len": plan["max_len"], "source": source_name}
-            | {"row_group_windows": int(row_group_windows), "columns": columns}
+            | {
+                "row_group_windows": int(row_group_windows),
+                "columns": columns,
+                "keys": [f["key"] for f in plan["files"]],
+            }
             for b in range(plan["buckets"])
             if not (out / "_manifest" / "gather" / f"{b:05d}.json").is_file()
         ]
