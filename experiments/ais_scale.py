@@ -176,14 +176,14 @@ def train(args: argparse.Namespace) -> None:
         cmd = _train_cmd(args.root, run, args.batches, False, 1, args.workers)
         r = measure(cmd, env={"PYTHONPATH": str(HERE)})
         e = _epochs(run)[0][-1]
-    secs = e["end"] - e["start"]
+    secs = e["seconds"]
     header = (
         "| dataset | batches | windows | reports | epoch s | reports/s | reports per CPU-second | peak RSS / PSS MiB | "
         "load before / after |\n|---|---:|---:|---:|---:|---:|---:|---:|---|\n"
     )
     row = (
         f"| {args.label or args.root} | {args.batches or 'all'} | {int(e['windows']):,} | {int(e['reports']):,} | "
-        f"{secs:.0f} | {e['reports'] / secs:,.0f} | {e['reports'] / (e['cpu_end'] - e['cpu_start']):,.0f} | "
+        f"{secs:.0f} | {e['reports'] / secs:,.0f} | {e['reports'] / e['cpu_seconds']:,.0f} | "
         f"{r['rss_mib']:.0f} / {r['pss_mib']:.0f} | "
         f"{r['load0']:.1f} / {r['load1']:.1f} |"
     )
@@ -202,8 +202,8 @@ def ddp(args: argparse.Namespace) -> None:
                 r = measure(_train_cmd(args.root, run, args.batches, mode, 2, 0), env={"PYTHONPATH": str(HERE)})
                 loads.append((r["load0"] + r["load1"]) / 2)
                 ranks = [ep[-1] for ep in _epochs(run)]
-            wall = max(e["end"] - e["start"] for e in ranks)
-            cpu = max(e["cpu_end"] - e["cpu_start"] for e in ranks)
+            wall = max(e["seconds"] for e in ranks)
+            cpu = max(e["cpu_seconds"] for e in ranks)
             reports = sum(e["reports"] for e in ranks)
             rates[mode], cpus[mode] = reports / wall, reports / cpu
         ratios.append(rates[True] / rates[False])

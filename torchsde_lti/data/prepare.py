@@ -69,6 +69,7 @@ __all__ = ["PREPARED_FORMAT", "PreparedSummary", "find_sources", "prepare_datase
 PREPARED_FORMAT = 1
 _SUFFIXES = (".csv", ".zip", ".traj", ".parquet", ".pq")
 _EXAMPLES = 3
+_BUFFER_REPORTS = 1_000_000  # reports a scatter task buffers before writing (~70 MB)
 _BYTES_PER_REPORT = {".csv": 85, ".zip": 85, ".traj": 45, ".parquet": 0, ".pq": 0}  # 0: rows from the metadata
 
 
@@ -215,57 +216,73 @@ def _bucket_of(object_id: np.ndarray, buckets: int) -> np.ndarray:
 
 
 def _scatter_file(task: dict[str, Any]) -> dict[str, Any]:
-    """Pass 1 for one file: its reports, chunk by chunk, into its part of every bucket."""
+    """Pass 1 for one file: its reports, chunk by chunk, into its part of every bucket.
+
+    A bucket's reports are buffered across chunks and written out (a Parquet file each time,
+    no writer held open) when the buffers hold more than :data:`_BUFFER_REPORTS` reports (the
+    largest buffer first) and at the file's end: memory does not grow with the number of buckets.
+    """
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     path, key, out = Path(task["path"]), task["key"], Path(task["out"])
     buckets, reading = int(task["buckets"]), task["reading"]
     tmp = out / "_tmp" / key
-    shutil.rmtree(tmp, ignore_errors=True)
+    if tmp.exists():  # an earlier attempt at this file was stopped: remove whatever of it was published
+        shutil.rmtree(tmp)
+        for stale in (out / "_scatter").glob(f"bucket=*/{key}-*.parquet"):
+            stale.unlink()
     tmp.mkdir(parents=True)
-    writers: dict[int, Any] = {}
+    pending: dict[int, list[Any]] = {}
+    sizes: dict[int, int] = {}
+    parts: dict[int, int] = {}  # bucket -> files written
     rows = malformed = reports = 0
     examples: list[str] = []
     decoded: dict[str, int] = {}
     columns: dict[str, str] | None = None
-    try:
-        for rep in report_chunks(path, tmp, int(task["chunk_bytes"]), reading):
-            rows += rep.rows
-            malformed += rep.malformed
-            columns = columns or rep.columns
-            for name, count in rep.decoded.items():
-                decoded[name] = decoded.get(name, 0) + int(count)
-            examples += list(rep.malformed_examples)[: max(0, _EXAMPLES - len(examples))]
-            if len(rep.time) == 0:
-                continue
-            reports += len(rep.time)
-            table = _reports_table(rep)
-            bucket = _bucket_of(rep.object_id, buckets)
-            order = np.argsort(bucket, kind="stable")
-            table = table.take(pa.array(order))
-            sorted_b = bucket[order]
-            edges = np.flatnonzero(np.diff(sorted_b)) + 1
-            for a, z in zip(np.concatenate([[0], edges]), np.concatenate([edges, [len(order)]])):
-                b = int(sorted_b[a])
-                if b not in writers:
-                    writers[b] = pq.ParquetWriter(tmp / f"{b}.parquet", table.schema)
-                part = table.slice(int(a), int(z - a))
-                if part.schema != writers[b].schema:  # (a chunk of text ids after integer ones, say)
-                    raise ValueError(
-                        f"{path}: object ids read as {part.schema} after {writers[b].schema} in an earlier chunk"
-                    )
-                writers[b].write_table(part)
-    finally:
-        for w in writers.values():
-            w.close()
-    for b in writers:  # publish: rename into the buckets (a rerun of an unfinished file overwrites)
+    schema = None
+
+    def flush(b: int) -> None:
+        pq.write_table(pa.concat_tables(pending.pop(b)), tmp / f"{b}-{parts.get(b, 0):06d}.parquet")
+        parts[b] = parts.get(b, 0) + 1
+        sizes.pop(b)
+
+    for rep in report_chunks(path, tmp, int(task["chunk_bytes"]), reading):
+        rows += rep.rows
+        malformed += rep.malformed
+        columns = columns or rep.columns
+        for name, count in rep.decoded.items():
+            decoded[name] = decoded.get(name, 0) + int(count)
+        examples += list(rep.malformed_examples)[: max(0, _EXAMPLES - len(examples))]
+        if len(rep.time) == 0:
+            continue
+        reports += len(rep.time)
+        table = _reports_table(rep)
+        if schema is None:
+            schema = table.schema
+        elif table.schema != schema:  # (text ids in a chunk after integer ones, say)
+            raise ValueError(f"{path}: a chunk read as {table.schema} after {schema} in an earlier chunk")
+        bucket = _bucket_of(rep.object_id, buckets)
+        order = np.argsort(bucket, kind="stable")
+        table = table.take(pa.array(order))
+        sorted_b = bucket[order]
+        edges = np.flatnonzero(np.diff(sorted_b)) + 1
+        for a, z in zip(np.concatenate([[0], edges]), np.concatenate([edges, [len(order)]])):
+            b = int(sorted_b[a])
+            pending.setdefault(b, []).append(table.slice(int(a), int(z - a)))
+            sizes[b] = sizes.get(b, 0) + int(z - a)
+        while sum(sizes.values()) > _BUFFER_REPORTS:
+            flush(max(sizes, key=lambda k: sizes[k]))
+    for b in sorted(pending):
+        flush(b)
+    for b, n in parts.items():  # publish: rename into the buckets
         folder = out / "_scatter" / f"bucket={b:05d}"
         folder.mkdir(parents=True, exist_ok=True)
-        os.replace(tmp / f"{b}.parquet", folder / f"{key}.parquet")
+        for k in range(n):
+            os.replace(tmp / f"{b}-{k:06d}.parquet", folder / f"{key}-{k:06d}.parquet")
     shutil.rmtree(tmp, ignore_errors=True)
     entry = {"path": str(path), "key": key, "rows": rows, "malformed": malformed, "examples": examples}
-    entry |= {"reports": reports, "buckets": sorted(writers), "columns": columns, "decoded": decoded}
+    entry |= {"reports": reports, "buckets": sorted(parts), "columns": columns, "decoded": decoded}
     _write_json(out / "_manifest" / "scatter" / f"{key}.json", entry)
     return entry
 
@@ -292,7 +309,7 @@ def _gather_bucket(task: dict[str, Any]) -> dict[str, Any]:
 
     out, b = Path(task["out"]), int(task["bucket"])
     folder = out / "_scatter" / f"bucket={b:05d}"
-    parts = [folder / f"{key}.parquet" for key in task["keys"] if (folder / f"{key}.parquet").is_file()]  # file order
+    parts = [p for key in task["keys"] for p in sorted(folder.glob(f"{key}-*.parquet"))]  # the files' order
     name = f"{task['source']} (bucket {b} of {task['buckets']})"
     entry: dict[str, Any] = {"bucket": b, "windows": 0, "counts": None}
     if parts:
