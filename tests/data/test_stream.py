@@ -218,3 +218,15 @@ def test_prepare_and_train_through_hydra(tmp_path: Path) -> None:
     dm = objects["datamodule"]
     assert dm.summary.prepared.windows == summary.windows
     assert '"prepared": {' in (tmp_path / "run" / "metrics.json").read_text()
+
+
+def test_datamodule_without_a_prepared_dataset_says_how_to_make_one(tmp_path: Path) -> None:
+    from torchsde_lti.data.stream_module import StreamDataModule
+
+    dm = StreamDataModule(str(tmp_path / "nothing"))  # (built by Hydra before any data is read)
+    with pytest.raises(FileNotFoundError, match="no prepared dataset.*python -m torchsde_lti.prepare"):
+        dm.setup("fit")
+    with pytest.raises(ValueError, match="dtype"):
+        StreamDataModule(str(tmp_path), dtype="float16")
+    with pytest.raises(ValueError, match="fractions"):
+        StreamDataModule(str(tmp_path), fractions=(0.5, 0.5, 0.5))

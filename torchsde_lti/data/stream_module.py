@@ -111,11 +111,6 @@ class StreamDataModule(LightningDataModule):
             raise ValueError(f"data.num_workers must be an integer >= 0, got {num_workers!r}")
         object_split(np.zeros(0, dtype=np.int64), fractions, 0)  # checks the fractions
         self.root = Path(str(root)).expanduser()
-        if not (self.root / "summary.json").is_file():
-            raise FileNotFoundError(
-                f"data.root={str(root)!r} holds no prepared dataset (no summary.json): prepare it with "
-                f"python -m torchsde_lti.prepare source=... out={root}"
-            )
         self.options = {
             "fractions": [float(f) for f in fractions],
             "seed": int(seed),
@@ -151,6 +146,11 @@ class StreamDataModule(LightningDataModule):
         """Read the dataset's summary and count this process's windows and batches per split."""
         if self.summary is not None:
             return
+        if not (self.root / "summary.json").is_file():
+            raise FileNotFoundError(
+                f"data.root={str(self.root)!r} holds no prepared dataset (no summary.json): prepare it with "
+                f"python -m torchsde_lti.prepare source=... out={self.root}"
+            )
         prepared = PreparedSummary.from_dict(json.loads((self.root / "summary.json").read_text()))
         splits = {}
         for split in SPLITS:
@@ -168,6 +168,7 @@ class StreamDataModule(LightningDataModule):
 
     # ------------------------------------------------------------------ loaders
     def _loader(self, split: str) -> _EpochLoader:
+        self.setup()
         try:
             stream = self.stream(split)
         except ValueError as err:
