@@ -201,7 +201,7 @@ def test_resume_after_a_kill_gives_the_same_dataset(tmp_path: Path) -> None:
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     done = sorted(p.name for p in manifest.iterdir())
-    assert not (out / "summary.json").exists() and 1 <= len(done) < 6
+    assert not (out / "summary.json").exists() and len(done) >= 1  # (stopped in the scatter, or in the gather)
     stamps = {p.name: p.stat().st_mtime_ns for p in manifest.iterdir()}
     resumed = prepare_dataset(src, out, max_len=32, buckets=5)
     assert {p: (manifest / p).stat().st_mtime_ns for p in done} == {p: stamps[p] for p in done}  # not redone
