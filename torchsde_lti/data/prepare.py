@@ -69,7 +69,7 @@ __all__ = ["PREPARED_FORMAT", "PreparedSummary", "find_sources", "prepare_datase
 PREPARED_FORMAT = 1
 _SUFFIXES = (".csv", ".zip", ".traj", ".parquet", ".pq")
 _EXAMPLES = 3
-_BUFFER_REPORTS = 1_000_000  # reports a scatter task buffers before writing (~70 MB)
+_BUFFER_REPORTS = 500_000  # reports a scatter task buffers before writing (~30 MB as columns)
 _BYTES_PER_REPORT = {".csv": 85, ".zip": 85, ".traj": 45, ".parquet": 0, ".pq": 0}  # 0: rows from the metadata
 
 
@@ -264,12 +264,12 @@ def _scatter_file(task: dict[str, Any]) -> dict[str, Any]:
             raise ValueError(f"{path}: a chunk read as {table.schema} after {schema} in an earlier chunk")
         bucket = _bucket_of(rep.object_id, buckets)
         order = np.argsort(bucket, kind="stable")
-        table = table.take(pa.array(order))
         sorted_b = bucket[order]
         edges = np.flatnonzero(np.diff(sorted_b)) + 1
         for a, z in zip(np.concatenate([[0], edges]), np.concatenate([edges, [len(order)]])):
             b = int(sorted_b[a])
-            pending.setdefault(b, []).append(table.slice(int(a), int(z - a)))
+            # a copy of the bucket's rows (a slice would keep the whole chunk alive while it waits)
+            pending.setdefault(b, []).append(table.take(pa.array(order[a:z])))
             sizes[b] = sizes.get(b, 0) + int(z - a)
         while sum(sizes.values()) > _BUFFER_REPORTS:
             flush(max(sizes, key=lambda k: sizes[k]))
@@ -470,7 +470,7 @@ def prepare_dataset(
     workers: int = 1,
     buckets: int | None = None,
     bucket_reports: int = 500_000,
-    chunk_bytes: int = 32 << 20,
+    chunk_bytes: int = 16 << 20,
     row_group_windows: int = 1024,
     keep_scatter: bool = False,
     **changes: Any,
