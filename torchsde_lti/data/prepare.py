@@ -488,7 +488,8 @@ def prepare_dataset(
         buckets: B, the number of object buckets; None = about ``bucket_reports`` reports each.
         bucket_reports: reports per bucket when ``buckets`` is None (the gather's memory grows
             with it: about 0.5 kB a report at its peak, so 500 k reports ~ 250 MB a worker).
-        chunk_bytes: bytes of a file read at once by the scatter (its memory: ~10x this).
+        chunk_bytes: bytes of a file read at once by the scatter (a scatter worker's memory grows
+            by roughly 20x this, measured on a MarineCadastre-format day).
         row_group_windows: windows per Parquet row group (the streaming reader's unit).
         keep_scatter: keep the bucketed reports (``_scatter/``) after the gather.
         **changes: fields of :class:`~torchsde_lti.data.CleaningRules` replacing those of
