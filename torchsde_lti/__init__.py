@@ -22,8 +22,9 @@ LAYERS: tuple[tuple[str, str], ...] = (
     ("pretrained", "shipped trained filters with their cards, loaded by name (tl.pretrained.load)"),
     ("training", "the Lightning module, metrics, callbacks, plots and the Hydra entry point"),
     ("train", "the `python -m torchsde_lti.train` shim"),
+    ("prepare", "the `python -m torchsde_lti.prepare` entry point (out-of-core preparation, Hydra)"),
     ("runs", "a trained run rebuilt from its directory (tl.load_run), its filter over tracks from a file"),
-    ("cli", "the `torchsde-lti` command: train, filter / smooth a file of tracks, evaluate, export"),
+    ("cli", "the `torchsde-lti` command: train, prepare, filter / smooth a file of tracks, evaluate, export"),
     ("__main__", "`python -m torchsde_lti`: the `torchsde-lti` command"),
 )
 if __doc__ is not None:  # (python -OO strips docstrings)
