@@ -22,7 +22,7 @@ latitude and longitude.
 
 from __future__ import annotations
 
-import inspect
+import dataclasses
 import json
 import os
 import warnings
@@ -35,7 +35,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
-from torchsde_lti.data import Tracks, load_tracks, pad_tracks, track_windows
+from torchsde_lti.data import CleaningRules, Tracks, load_tracks, pad_tracks, track_windows
 from torchsde_lti.nn import IMMFilter, KalmanFilter
 
 __all__ = ["CHECKPOINTS", "Run", "load_run", "read_tracks", "track_states"]
@@ -202,7 +202,9 @@ def read_tracks(run: Run, source: str | os.PathLike[str], **overrides: Any) -> T
     Returns:
         :class:`~torchsde_lti.data.Tracks` (with ``.summary`` counting what every rule removed).
     """
-    accepted = set(inspect.signature(load_tracks).parameters) - {"source", "cut_times"}
+    # load_tracks takes the cleaning rules as keywords (the fields of CleaningRules); cut_times are
+    # the training data's own instants, not a rule for a new file
+    accepted = {f.name for f in dataclasses.fields(CleaningRules)} - {"cut_times"}
     data = run.config.get("data") or {}
     rules: dict[str, Any] = {}
     if str(data.get("_target_", "")).endswith("TrackDataModule"):
