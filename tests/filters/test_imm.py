@@ -319,9 +319,9 @@ def test_subnormal_mode_probability_through_zero_dt_padding_has_finite_gradients
 
 
 def test_module_over_many_gaps_discretises_each_mode_once_with_the_same_values(monkeypatch) -> None:
-    """IMMFilter over at least SHARED_MIN_ELEMENTS gaps: each mode's (and the chain's) series
-    once, not the bank broadcast to every (gap, mode) element (10–14× faster at 2–4 modes and
-    2·10⁵ gaps); values and gradients equal the per-element route."""
+    """IMMFilter eagerly: each mode's (and the chain's) series once, not the bank broadcast to
+    every (gap, mode) element (10–14× faster at 2–4 modes and 2·10⁵ gaps); values and gradients
+    equal the per-element route (the traced one, forced here)."""
     import torchsde_lti.nn.imm as nn_imm
 
     f64 = torch.float64
@@ -344,7 +344,7 @@ def test_module_over_many_gaps_discretises_each_mode_once_with_the_same_values(m
     monkeypatch.setattr(nn_imm, "discretization_series", lambda *a, **k: calls.append(1) or series(*a, **k))
     fast = run()
     assert len(calls) == 3  # two modes and the chain
-    monkeypatch.setattr(nn_imm, "SHARED_MIN_ELEMENTS", 10**9)
+    monkeypatch.setattr(nn_imm, "tracing", lambda: True)
     per_element = run()
     assert len(calls) == 3
     for a, b in zip(fast, per_element):

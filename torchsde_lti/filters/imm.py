@@ -41,7 +41,6 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, solve_lower, sym
-from torchsde_lti.core.threads import with_threads
 from torchsde_lti.core.validation import (
     as_float_tensors,
     broadcast_batch,
@@ -310,8 +309,7 @@ def imm_filter(
         :class:`IMMResult`; every output broadcasts to the full batch ``...``.
     """
     y, A, Q, H, R, Pi, m0, P0, prob, mask = _check_inputs(y, A, Q, H, R, Pi, m0, P0, mode_prob0, mask, validate_args)
-    work = y.numel() // y.shape[-1] * prob.shape[-1] * A.shape[-1] ** 2
-    return with_threads(work, _imm_steps, y, A, Q, H, R, Pi, m0, P0, prob, mask)
+    return _imm_steps(y, A, Q, H, R, Pi, m0, P0, prob, mask)
 
 
 def _imm_steps(

@@ -20,7 +20,6 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.threads import with_threads
 from torchsde_lti.core.validation import common_float_dtype
 from torchsde_lti.filters.inputs import FilterInputs, PreparedInputs, complete_from_filtered, prepare_inputs
 from torchsde_lti.filters.results import FilterResult
@@ -142,7 +141,7 @@ def run_filter(
     ``torch.compile``, with its discretisation eager); inside a trace it always does.
     """
     check_algorithm(algorithm, ALGORITHMS if eager_runtime_tracing() else ALGORITHMS[1:])
-    return with_threads(_work(args), _run_algorithm, args, algorithm, chunk, validate_args, compiled_loop)
+    return _run_algorithm(args, algorithm, chunk, validate_args, compiled_loop)
 
 
 def _run_algorithm(
@@ -191,9 +190,3 @@ def _chosen_in_program(prep: PreparedInputs) -> FilterResult:
         operands = tuple(prep[i].clone() for i in slots)
         filtered = torch.cond(scan, branch(scan_filtered), branch(structured_filtered), operands)
     return complete_from_filtered(prep, *filtered)
-
-
-def _work(args: FilterInputs) -> int:
-    """Covariance entries the filter touches (tracks · T · n²): the size that sets its threads."""
-    n = args.A.shape[-1]
-    return args.y.numel() // max(args.y.shape[-1], 1) * n * n

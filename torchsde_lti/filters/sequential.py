@@ -105,7 +105,7 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
 
 def _chunk_rows(prep: PreparedInputs) -> int | None:
     """Rows of the leading batch dimension per chunk of an eager CPU loop at one intra-op
-    thread (the caller's setting, or a busy machine's: :mod:`~torchsde_lti.core.threads`) whose
+    thread (the caller's ``torch.set_num_threads``) whose
     per-track covariances take at least :data:`CHUNKED_MIN_BYTES` (a chunk about
     :data:`CHUNK_BYTES` of them); None where the loop runs on all tracks at once (traced, off
     the CPU, more threads, a covariance batch that is not the tracks' leading dimension, or a

@@ -6,7 +6,6 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, sym
-from torchsde_lti.core.threads import with_threads
 from torchsde_lti.core.validation import broadcast_shapes, check_matrix, shape_str
 from torchsde_lti.filters.inputs import check_time_axis
 from torchsde_lti.filters.kalman import check_algorithm
@@ -104,7 +103,7 @@ def rts_smoother(
         raise TypeError(
             f"result must be a FilterResult (the output of kalman_filter or KalmanFilter), got {type(result).__name__}"
         )
-    return with_threads(result.cov.numel(), _rts, result, A, Q, algorithm)
+    return _rts(result, A, Q, algorithm)
 
 
 def _rts(result: FilterResult, A: Tensor | None, Q: Tensor | None, algorithm: str) -> SmootherResult:

@@ -3,21 +3,18 @@ default, as in torch.distributions, and one fused check of a call's arguments.""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import ClassVar
 
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.thresholds import PYTHON_CHECK_MAX_VALUES
 from torchsde_lti.core.validation import (
     as_float_tensor,
     broadcast_batch,
     check_finite,
     check_no_inf,
     check_nonnegative,
-    host_values,
     shape_str,
     tracing,
 )
@@ -58,9 +55,7 @@ class ValidateArgs:
 def check_values(finite: Named = (), nonnegative: Named = (), no_inf: Named = ()) -> None:
     """ValueError naming the first bad tensor: NaN/Inf in ``finite`` and ``nonnegative``,
     a negative entry in ``nonnegative``, ±Inf in ``no_inf`` (NaN allowed: missing data).
-    One synchronisation when everything is valid (no-op while tracing): for at most
-    :data:`~torchsde_lti.core.thresholds.PYTHON_CHECK_MAX_VALUES` values in all (one live
-    track's step) the values are read in one transfer and checked as Python floats."""
+    One synchronisation when everything is valid (no-op while tracing)."""
     if tracing():
         return
     fin: Present = [(k, v) for k, v in finite if v is not None]
@@ -69,32 +64,17 @@ def check_values(finite: Named = (), nonnegative: Named = (), no_inf: Named = ()
     if not (fin or nonneg or noinf):
         return
     with torch.no_grad():
-        if sum(v.numel() for _, v in (*fin, *nonneg, *noinf)) <= PYTHON_CHECK_MAX_VALUES:
-            if _host_values_valid(fin, nonneg, noinf):
-                return
-        else:
-            flags = [torch.stack([v.sum() for _, v in (*fin, *nonneg)]).isfinite().all()] if fin or nonneg else []
-            flags += [v.amin() >= 0 for _, v in nonneg]
-            flags += [~torch.isinf(v).any() for _, v in noinf]
-            if bool(torch.stack(flags).all()):
-                return
+        flags = [torch.stack([v.sum() for _, v in (*fin, *nonneg)]).isfinite().all()] if fin or nonneg else []
+        flags += [v.amin() >= 0 for _, v in nonneg]
+        flags += [~torch.isinf(v).any() for _, v in noinf]
+        if bool(torch.stack(flags).all()):
+            return
     for name, value in fin:  # a finite sum that overflowed passes these
         check_finite(value, name)
     for name, value in nonneg:
         check_nonnegative(value, name)
     for name, value in noinf:
         check_no_inf(value, name)
-
-
-def _host_values_valid(finite: Present, nonnegative: Present, no_inf: Present) -> bool:
-    """:func:`check_values`'s test on Python floats (one transfer of every value)."""
-    values = host_values([v for _, v in (*finite, *nonnegative, *no_inf)])
-    k1, k2 = len(finite), len(finite) + len(nonnegative)
-    return (
-        all(math.isfinite(x) for part in values[:k1] for x in part)
-        and all(math.isfinite(x) and x >= 0 for part in values[k1:k2] for x in part)
-        and not any(math.isinf(x) for part in values[k2:] for x in part)
-    )
 
 
 class NonFiniteLikelihoodError(ValueError):

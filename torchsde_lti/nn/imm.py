@@ -10,11 +10,10 @@ Modes switch by a continuous-time Markov chain with generator Λ (``imm.rates``,
 off-diagonal rates Λ_ij ≥ 0 of jumping from mode i to j, rows summing to 0), so over a gap
 dt the mode transition matrix is ``Pi = expm(Λ dt)``, exact for any irregular gap. Each
 mode's (A_j, Q_j) is the exact discretisation of its SDE (its noise enters as
-``L_j Qc_j L_jᵀ``, so the noise dimensions of the modes may differ). Over many gaps (at least
-``SHARED_MIN_ELEMENTS``, eagerly) each mode and the chain are discretised by their series,
-formed once (:func:`~torchsde_lti.core.discretization_series`); otherwise the whole bank is
-ONE batched :func:`torchsde_lti.discretize` call over (track, step, mode), the M drift
-matrices stacked along a batch axis, and Pi is ``torch.matrix_exp``.
+``L_j Qc_j L_jᵀ``, so the noise dimensions of the modes may differ). Eagerly each mode and the
+chain are discretised by their series, formed once (:func:`~torchsde_lti.core.discretization_series`);
+while traced the whole bank is ONE batched :func:`torchsde_lti.discretize` call over (track,
+step, mode), the M drift matrices stacked along a batch axis, and Pi is ``torch.matrix_exp``.
 The IMM cycle itself is :func:`torchsde_lti.filters.imm.imm_filter`.
 
 The models must share the state space: same n, and the same meaning of each component
@@ -43,7 +42,6 @@ from torch.nn.utils import parametrize
 
 from torchsde_lti.core.discretization import Discrete, check_matrix_exp_noise, discretization_series, discretize
 from torchsde_lti.core.linalg import sym
-from torchsde_lti.core.thresholds import SHARED_MIN_ELEMENTS
 from torchsde_lti.core.validation import (
     as_float_tensor,
     broadcast_batch,
@@ -317,7 +315,7 @@ class IMMFilter(ValidateArgs, nn.Module):
         self, F: Tensor, W: Tensor, eye: Tensor, dt: Tensor, validate_args: bool, online: OnlineIMM | None = None
     ) -> tuple[Discrete, Tensor]:
         series = None if online is None else online.series
-        if series is None and self.method == "doubling" and not tracing() and dt.numel() >= SHARED_MIN_ELEMENTS:
+        if series is None and self.method == "doubling" and not tracing():
             # many gaps: each mode's series once (core's one-parameter-set route), not the bank
             # broadcast to every (gap, mode) element
             series = [discretization_series(F[j], W[j], None) for j in range(F.shape[0])]
@@ -337,7 +335,7 @@ class IMMFilter(ValidateArgs, nn.Module):
         # float32 exponential of Λ dt for dt ≫ 1/rate loses the row sums (and gives NaN mixing)
         rates = self.rates if online is None else online.rates
         chain = None if online is None else online.chain
-        if chain is None and not tracing() and dt.numel() >= SHARED_MIN_ELEMENTS:
+        if chain is None and not tracing():
             chain = discretization_series(rates.double(), None, None)
         if chain is not None:
             Pi = chain(dt.double())[0].clamp_min(0.0)
