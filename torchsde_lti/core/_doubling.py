@@ -149,7 +149,7 @@ def run_steps(step: Step, count: Tensor, elems: list[Tensor], shared: list[Tenso
     loop of none). Eagerly: the same arithmetic on the elements grouped by count — sorted, step j
     runs on the prefix of those with count > j (the read of the counts to the host is the one
     read of values) — measured 1.7× faster for per-element F, forward and backward, and
-    ≈ 2× for one parameter set (experiments/bench_per_element.py, bench_discretize.py). Eagerly
+    1.5–1.8× for one parameter set, B = 1e5 (1 thread, CPU time, on a shared machine) (experiments/bench_per_element.py, bench_discretize.py). Eagerly
     the elements come sorted by count, descending (:func:`grouping`)."""
     if tracing():
         from torch._higher_order_ops import while_loop
