@@ -31,6 +31,6 @@ def traced_for_eager_runtime(on: bool = True) -> Iterator[None]:
 
 def compiler_tracing() -> bool:
     """Whether torch.compile or torch.export traces the call for torch's compilers (Inductor,
-    AOTInductor), which fuse small products written as elementwise ops (:func:`~torchsde_lti.core.linalg.fused_matmul`):
+    AOTInductor), which fuse small products written as elementwise ops:
     tracing, and not inside :func:`traced_for_eager_runtime`."""
     return tracing() and not _EAGER_RUNTIME[0]
