@@ -192,8 +192,12 @@ def test_imm_filter_writes_mode_probabilities(imm_run: Path, csv_file: Path, tmp
     table = pyarrow.csv.read_csv(out).to_pydict()
     probs = np.stack([np.asarray(table["prob_moored"]), np.asarray(table["prob_underway"])], -1)
     np.testing.assert_allclose(probs.sum(-1), 1.0, atol=1e-12)
-    # an IMM has no smoother (yet): a clear error, status 2
-    assert main(["smooth", str(imm_run), str(csv_file), "-o", str(out)]) == 2
+    # the IMM smoother (IMMFilter.smooth): smoothed mode probabilities
+    smoothed = tmp_path / "imm_smoothed.csv"
+    assert main(["smooth", str(imm_run), str(csv_file), "-o", str(smoothed)]) == 0
+    table = pyarrow.csv.read_csv(smoothed).to_pydict()
+    probs = np.stack([np.asarray(table["prob_moored"]), np.asarray(table["prob_underway"])], -1)
+    np.testing.assert_allclose(probs.sum(-1), 1.0, atol=1e-12)
 
 
 def test_columns_option_reads_other_headers(cv_run: Path, csv_file: Path, tmp_path: Path) -> None:
