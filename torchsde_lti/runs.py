@@ -253,7 +253,7 @@ def track_states(run: Run, tracks: Tracks, *, smooth: bool = False, batch_size: 
     Args:
         run: a :class:`Run` (:func:`load_run`).
         tracks: the tracks (:func:`read_tracks` reads them as the run's data were).
-        smooth: the RTS smoother's states (a KalmanFilter) instead of the filter's.
+        smooth: the smoother's states (RTS for a KalmanFilter, imm.smooth for an IMMFilter) instead of the filter's.
         batch_size: tracks per filter call.
 
     Returns:
