@@ -352,4 +352,3 @@ def test_module_discretises_each_mode_once_as_its_kalman_filter_does(monkeypatch
             torch.testing.assert_close(d.A[..., j, :, :], ref.A, rtol=1e-10, atol=1e-12)
             torch.testing.assert_close(d.Q[..., j, :, :], ref.Q, rtol=1e-10, atol=1e-12)
         torch.testing.assert_close(Pi, torch.matrix_exp(imm.rates * dt[..., None, None]), rtol=1e-10, atol=1e-12)
-
