@@ -211,8 +211,8 @@ def _unit(score: str) -> str:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from torchsde_lti.runs import load_run, read_tracks
     from torchsde_lti.evaluation.scores import evaluate_filter, summary
+    from torchsde_lti.runs import load_run, read_tracks
 
     run = load_run(args.run, args.checkpoint)
     tracks = read_tracks(run, args.tracks, **_columns(args.columns))

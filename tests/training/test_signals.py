@@ -19,12 +19,11 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from tests.training.helpers import load_strict_json
 from torchsde_lti.training import RunInterrupted, train
 from torchsde_lti.training.plots import epoch_rows
-from lightning.pytorch.utilities.exceptions import SIGTERMException
-
 from torchsde_lti.training.signals import SignalGuard
 
 ROOT = Path(__file__).resolve().parents[2]
