@@ -29,10 +29,11 @@ class RunLog(Callback):
     numbered as the progress bar numbers it (``epoch 3/39``)."""
 
     def setup(self, trainer: Trainer, pl_module: LightningModule, stage: str) -> None:
-        summary = data_summary(trainer.datamodule) if trainer.datamodule is not None else None
+        datamodule = getattr(trainer, "datamodule", None)
+        summary = data_summary(datamodule)
         if summary is not None and trainer.is_global_zero:
             text = summary if isinstance(summary, str) else json.dumps(summary, indent=1)
-            details.info("data summary (%s):\n%s", type(trainer.datamodule).__name__, text)
+            details.info("data summary (%s):\n%s", type(datamodule).__name__, text)
 
     def on_train_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         if trainer.sanity_checking or not trainer.is_global_zero:

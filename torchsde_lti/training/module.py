@@ -78,37 +78,25 @@ def imm_k_step_nll(imm: IMMFilter, out: Any, y: Tensor, dt: Tensor, observed: Te
     return -(ll * ok).sum()
 
 
-# --------------------------------------------------------------------------- module
-
-
 class KalmanFilterModule(LightningModule):
     """LightningModule around a ``tl.KalmanFilter`` or ``tl.IMMFilter`` whose motion models are learned.
 
     Args:
-        kf: the filter: a KalmanFilter (its LTISDE's learned parameters and, if learned, R)
-            or an IMMFilter (every mode's model, R, the switching rates, ...). Anything with
-            ``kf(y, dt, u=...)`` returning ``log_likelihood`` and ``pred_mean``, ``H``, and
-            ``modes()`` (:class:`~torchsde_lti.nn.FilterMode` per motion model).
-        optimizer: ``functools.partial`` of a torch optimizer (Hydra ``_partial_: true``).
-        scheduler: optional partial of an LR scheduler (stepped per epoch).
-        truth: optional {"sde": true LTISDE, "R": true R} for parameter errors.
-        k_step: horizon(s) in reports of the optional k-step-ahead predictive loss: an int
-            (0 = off) or a list of ints (each horizon's NLL is added). A KalmanFilter pushes
-            the exact per-step transitions; an IMMFilter scores its forecast mixture.
-        k_step_weight: weight of that loss.
-        dtype: "float64" or "float32": parameters and batches are kept in this dtype, and the
-            default floors of the filter's positive parametrisations are this dtype's eps
-            (:func:`~torchsde_lti.nn.parametrizations.reset_default_floors`: a filter built
-            in float32, as Hydra builds it from plain numbers, trains in float64 with
-            float64's floors); a loaded checkpoint restores its own.
-        param_names: names of the scalars to track (default: the model's own list).
-        compare: which of "F", "Qc", "R" are compared with the truth in the parameter
-            errors (which parameters are *trained* is the filter's and LTISDE's ``learn``).
-        skip_nonfinite: when the loss or any gradient is NaN/Inf, drop that step's
-            gradients before the Trainer clips them (every ``grad`` set to None, so Adam
-            leaves parameters and moments untouched and L-BFGS stops its iteration), warn,
-            and count it in ``skipped_steps`` (logged as ``train/skipped_steps``, saved in
-            checkpoints).
+        kf: the filter (its models' learned parameters, R, an IMM's switching rates, ...):
+            anything with ``kf(y, dt, u=...)``, ``H`` and ``modes()`` (:class:`~torchsde_lti.nn.FilterMode`).
+        optimizer, scheduler: ``functools.partial`` of a torch optimizer and (optional) of an LR
+            scheduler stepped per epoch (Hydra ``_partial_: true``).
+        truth: optional {"sde": true LTISDE, "R": true R, "H"} for parameter errors.
+        k_step, k_step_weight: horizon(s) in reports of the optional k-step-ahead predictive loss
+            (an int, 0 = off, or a list whose NLLs are added) and its weight.
+        dtype: "float64" or "float32": parameters and batches, and the default floors of the
+            filter's positive parametrisations (this dtype's eps:
+            :func:`~torchsde_lti.nn.parametrizations.reset_default_floors`).
+        param_names: the scalars to track (default: the model's own).
+        compare: which of "F", "Qc", "R" are compared with the truth (``learn`` says what is trained).
+        skip_nonfinite: a NaN/Inf loss or gradient drops that step's gradients before the
+            Trainer clips them (Adam leaves parameters and moments as they are, L-BFGS stops its
+            iteration), warns, and counts it in ``skipped_steps`` (saved in checkpoints).
     """
 
     def __init__(
@@ -161,27 +149,16 @@ class KalmanFilterModule(LightningModule):
         self.trained_at: int | None = None  # the optimizer step after this process's last training batch
         self.validated_at: int | None = None  # ... and at the end of its last validation (not a sanity check)
 
-    # ---------------------------------------------------------------- helpers
-
     def unpack(self, batch: TrackBatch) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor | None]:
         """(y, dt, mask, u, x) of a :class:`~torchsde_lti.data.TrackBatch`, floats in the module's dtype."""
         if not isinstance(batch, TrackBatch):
             raise TypeError(f"batches must be torchsde_lti.data.TrackBatch, got {type(batch).__name__}")
-
-        def cast(t: Tensor | None) -> Tensor | None:
-            return t.to(self.float_dtype) if t is not None else None
-
-        return batch.y.to(self.float_dtype), batch.dt.to(self.float_dtype), batch.mask, cast(batch.u), cast(batch.x)
+        u, x = (None if t is None else t.to(self.float_dtype) for t in (batch.u, batch.x))
+        return batch.y.to(self.float_dtype), batch.dt.to(self.float_dtype), batch.mask, u, x
 
     def forward(self, y: Tensor, dt: Tensor, u: Tensor | None = None) -> Any:
         """Run the filter: y (B, T, m), dt (B, T), u (B, T, p) -> the filter's output."""
         return self.kf(y, dt, u=u)
-
-    def _observed(self, y: Tensor, mask: Tensor | None) -> Tensor:
-        obs = ~torch.isnan(y)
-        if mask is not None:
-            obs = obs & mask.unsqueeze(-1)
-        return obs
 
     def k_step_nll(
         self,
@@ -226,7 +203,7 @@ class KalmanFilterModule(LightningModule):
 
     def _step(self, batch: Any) -> tuple[Tensor, Tensor, Any, dict[str, Any]]:
         y, dt, mask, u, x = self.unpack(batch)
-        observed = self._observed(y, mask)
+        observed = ~torch.isnan(y) if mask is None else ~torch.isnan(y) & mask.unsqueeze(-1)
         if mask is not None:  # padding: no observation, no motion
             y = torch.where(mask.unsqueeze(-1), y, torch.full_like(y, math.nan))
             dt = torch.where(mask, dt, torch.zeros_like(dt))
@@ -238,8 +215,6 @@ class KalmanFilterModule(LightningModule):
             kst = sum(self.k_step_nll(out, y, observed, k, dt, u) for k in self.k_steps)
             loss = loss + self.k_step_weight * kst / count
         return loss, nll, out, {"y": y, "x": x, "observed": observed, "mask": mask, "count": count, "u": u}
-
-    # ---------------------------------------------------------------- Lightning hooks
 
     def training_step(self, batch: Any, batch_idx: int) -> Tensor:
         try:
@@ -338,8 +313,6 @@ class KalmanFilterModule(LightningModule):
         """Whether this process trained after its last validation (``check_val_every_n_epoch > 1``,
         ``max_steps`` mid-epoch): the logged validation scores are older weights'."""
         return self.trained_at is not None and self.trained_at != self.validated_at
-
-    # ---------------------------------------------------------------- robust optimizer steps
 
     def on_before_optimizer_step(self, optimizer: Any) -> None:
         """After the backward of every closure call, before the Trainer clips the gradients: skip

@@ -20,7 +20,7 @@ import threading
 from types import FrameType
 from typing import Any
 
-from lightning.pytorch import Callback
+from lightning.pytorch import Callback, LightningModule, Trainer
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 __all__ = ["RunInterrupted", "SignalGuard"]
@@ -71,13 +71,17 @@ class SignalGuard(Callback):
             signal.signal(signum, handler)
         self._previous = {}
 
-    def stop_if_received(self, *args: Any) -> None:
-        """Raise Lightning's ``SIGTERMException`` if a signal came (between phases; the callback's
-        ``on_train_start`` / ``on_test_start``)."""
+    def stop_if_received(self) -> None:
+        """Raise Lightning's ``SIGTERMException`` if a signal came (between phases, and when
+        training or testing starts)."""
         if self.received is not None:
             raise SIGTERMException()
 
-    on_train_start = on_test_start = stop_if_received
+    def on_train_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        self.stop_if_received()
+
+    def on_test_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        self.stop_if_received()
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         if self.received is not None:

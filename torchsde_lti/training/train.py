@@ -5,22 +5,15 @@
     python -m torchsde_lti.train --multirun model=cv,integrated_ou,singer data.noise=0.1,1.0
     python -m torchsde_lti.train ckpt_path=<run>/checkpoints/last.ckpt    # resume, same overrides
 
-Everything is built with ``hydra.utils.instantiate`` from ``_target_`` nodes; :func:`train` runs
-the phases (setup, fit, test, plots, outputs), and tests call it with a composed config. A run
-writes into its output directory Lightning's ``checkpoints/last.ckpt`` (end of the last
-completed epoch: the weights the run reports and the resume point) and ``checkpoints/best.ckpt``
-(lowest val/nll), the logger files, ``config.yaml`` (the resolved config, which
-:func:`~torchsde_lti.runs.load_run` reads), ``train.log`` (Hydra's job log: the config, the data
-summary, one line per epoch), ``metrics.json`` and ``results.md``
-(:class:`~torchsde_lti.training.report.RunCard`) and the plots (a plot that fails is a warning).
-
-SIGTERM or SIGINT stops the run at the next batch boundary
-(:mod:`~torchsde_lti.training.signals`), marks it ``interrupted`` (with the command that resumes
-it) and exits with ``128 + signal``. Resuming from ``<run>/checkpoints/last.ckpt`` continues in
-``<run>`` itself (``hydra.run.dir`` follows the checkpoint; the CSV log keeps the epochs the
-checkpoint holds) and ends bit for bit where a run that never stopped ends; any other checkpoint
-starts a new run directory. ``num_threads`` applies during the run only: torch's thread count
-and the global RNG states are put back when :func:`train` returns.
+:func:`train` builds everything with ``hydra.utils.instantiate`` and runs the phases setup, fit,
+test, plots, outputs. A run writes Lightning's ``checkpoints/last.ckpt`` (the last completed
+epoch: the weights it reports, the resume point) and ``checkpoints/best.ckpt`` (lowest val/nll),
+the logger files, ``config.yaml`` (resolved: :func:`~torchsde_lti.runs.load_run` reads it),
+``train.log``, ``metrics.json`` and ``results.md`` (:class:`~torchsde_lti.training.report.RunCard`)
+and the figures. SIGTERM / SIGINT stop it at the next batch boundary (:mod:`.signals`): it says
+so and exits ``128 + signal``. Resuming from ``<run>/checkpoints/last.ckpt`` continues in
+``<run>`` (``hydra.run.dir`` follows it) and ends bit for bit where a run that never stopped
+ends; another checkpoint starts a new run directory. ``num_threads`` applies during the run only.
 """
 
 from __future__ import annotations
@@ -52,7 +45,7 @@ from torchsde_lti.nn.kalman import KalmanFilter
 from torchsde_lti.training.callbacks import FollowMovedRun
 from torchsde_lti.training.checkpoints import RESUME_KEYS, load_weights, read_checkpoint
 from torchsde_lti.training.config import check_config, instantiate_node
-from torchsde_lti.training.outputs import continue_csv_log, data_summary, write_text
+from torchsde_lti.training.outputs import continue_csv_log, data_summary, to_jsonable, write_text
 from torchsde_lti.training.plots import plot_run
 from torchsde_lti.training.report import RunCard
 from torchsde_lti.training.signals import RunInterrupted, SignalGuard
@@ -114,7 +107,7 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     run = _Run(cfg, resume)
     log.info("run directory: %s", run.out_dir.resolve())
     details.info("config:\n%s", _config_text(cfg))
-    with _process_state(cfg.get("num_threads")), _quiet_lightning(run.same_dir), SignalGuard() as guard:
+    with _process_state(cfg.get("num_threads"), run.same_dir), SignalGuard() as guard:
         try:
             for phase in ("setup", "fit", "test", "plots", "outputs"):
                 guard.stop_if_received()
@@ -140,17 +133,15 @@ class _Run:
     """One run's objects, phase by phase; rank zero writes its :class:`RunCard`."""
 
     def __init__(self, cfg: DictConfig, resume: dict[str, Any] | None) -> None:
-        self.cfg, self.resume = cfg, resume
-        self.out_dir = Path(cfg.output_dir)
+        self.cfg, self.resume, self.out_dir = cfg, resume, Path(cfg.output_dir)
         self.same_dir = resume is not None and Path(cfg.ckpt_path).resolve().parent.parent == self.out_dir.resolve()
         self.objects: dict[str, Any] = {}
         self.card: RunCard | None = None
-        self.previous: dict[str, float] = {}  # epoch-level metrics an earlier process of this run reported
-        self.metrics: dict[str, Any] = {}
+        self.metrics: dict[str, Any] = {}  # (an earlier process's epoch-level metrics, for a resume with none left)
         self.wall = 0.0
 
     def setup(self, guard: SignalGuard) -> None:
-        """Data, filter, Lightning module, callbacks, loggers and trainer (and the "truth")."""
+        """Data, filter (with the data's prior where it has the learner's state), module, callbacks, loggers, trainer."""
         cfg = self.cfg
         pl.seed_everything(int(cfg.seed), workers=True, verbose=False)
         datamodule = instantiate_node(cfg, "data")
@@ -160,7 +151,7 @@ class _Run:
         kf = instantiate_node(cfg, "filter")
         m0, P0 = getattr(datamodule, "m0", None), getattr(datamodule, "P0", None)
         if m0 is not None and P0 is not None and int(kf.state_dim) == int(m0.shape[-1]):
-            kf = instantiate_node(cfg, "filter", m0=m0, P0=P0)  # the data's prior, where the learner has its state
+            kf = instantiate_node(cfg, "filter", m0=m0, P0=P0)
         restart_learner(kf, float(cfg.get("init_jitter") or 0.0), int(cfg.get("restart") or 0))
         module = instantiate_node(cfg, "module", kf=kf, truth=truth)
         callbacks = [*_instantiate_dict(cfg, "callbacks"), guard, *([FollowMovedRun()] if self.same_dir else [])]
@@ -168,31 +159,30 @@ class _Run:
         callbacks.sort(key=lambda c: isinstance(c, ModelCheckpoint) and c.monitor is None)
         loggers = _instantiate_dict(cfg, "logger")
         trainer: pl.Trainer = instantiate_node(cfg, "trainer", callbacks=callbacks, logger=loggers or False)
-        self.objects = {"cfg": cfg, "datamodule": datamodule, "module": module, "trainer": trainer}
-        self.objects.update(callbacks=callbacks, loggers=loggers, truth=truth)
+        self.objects = dict(cfg=cfg, datamodule=datamodule, module=module, trainer=trainer, callbacks=callbacks)
+        self.objects.update(loggers=loggers, truth=truth)
         if cfg.get("test") and not _fast_dev_run(trainer):
             _check_test_split(datamodule)
         if self.resume is not None:
             load_weights(module, self.resume["state_dict"], cfg.ckpt_path)  # another model fails here, not in fit
             _warn_if_schedule_ends_early(cfg.ckpt_path, cfg.trainer.get("max_epochs"), self.resume)
-            where = "in the same run directory" if self.same_dir else f"into the new run directory {self.out_dir}"
-            log.info("resuming from %s (epoch %d) %s", cfg.ckpt_path, self.resume["epoch"], where)
+            log.info("resuming from %s (epoch %d) into %s", cfg.ckpt_path, self.resume["epoch"], self.out_dir)
         if trainer.is_global_zero:
-            self.card = self._new_card()
+            self._new_card()
             write_text(self.out_dir / "config.yaml", _config_text(cfg))
             for lg in loggers:
-                if self.resume is not None and self.same_dir:
-                    continue_csv_log(lg, int(self.resume["epoch"]))
+                if self.same_dir:
+                    continue_csv_log(lg, int(self.resume["epoch"]))  # type: ignore[index]
                 lg.log_hyperparams(OmegaConf.to_container(cfg, resolve=True))
 
     def fit(self, guard: SignalGuard) -> None:
-        """``Trainer.fit`` (resuming from ``ckpt_path``); validates the final weights again where
-        the last validation saw older ones (``check_val_every_n_epoch > 1``, ``max_steps``)."""
+        """``Trainer.fit``; validates the final weights again where the last validation saw older
+        ones (``check_val_every_n_epoch > 1``, ``max_steps``)."""
         trainer, module, datamodule = (self.objects[k] for k in ("trainer", "module", "datamodule"))
         start = time.perf_counter()
         trainer.fit(module, datamodule=datamodule, ckpt_path=self.cfg.get("ckpt_path"), weights_only=True)
         self.wall = time.perf_counter() - start
-        self.metrics = {**self.previous, **_scores(trainer.callback_metrics)}  # (the test replaces callback_metrics)
+        self.metrics.update(_scores(trainer.callback_metrics))
         if module.validation_stale and not _fast_dev_run(trainer) and trainer.limit_val_batches:
             for r in trainer.validate(module, datamodule=datamodule, verbose=False):
                 self.metrics.update(_scores(r))
@@ -211,84 +201,76 @@ class _Run:
 
     def plots(self, guard: SignalGuard) -> None:
         """The run's figures (rank zero); a plot that fails is a warning, never a failed run."""
-        trainer = self.objects["trainer"]
+        trainer, module, datamodule, truth = (self.objects[k] for k in ("trainer", "module", "datamodule", "truth"))
         if not (trainer.is_global_zero and self.cfg.get("plots") and not _fast_dev_run(trainer)):
             return
         csv_log = [Path(lg.log_dir) / "metrics.csv" for lg in self.objects["loggers"] if isinstance(lg, CSVLogger)]
         try:
-            plot_run(
-                self.out_dir, self.objects["module"], self.objects["datamodule"], self.objects["truth"], *csv_log[:1]
-            )
+            plot_run(self.out_dir, module, datamodule, truth, *csv_log[:1])
         except Exception as err:  # noqa: BLE001 - a picture must not fail a finished run
             log.warning("the plots failed (the run's results are complete): %s: %s", type(err).__name__, err)
 
     def outputs(self, guard: SignalGuard) -> None:
-        """The metrics and tables of the final weights (``last.ckpt``) and of the best epoch
-        (``best.ckpt``); rank zero writes and prints them (``results.md``)."""
-        module, truth, trainer = self.objects["module"], self.objects["truth"], self.objects["trainer"]
-        last, best = _checkpoint_files(self.objects["callbacks"])
+        """The tables of the final weights (``last.ckpt``) and of the best epoch (``best.ckpt``);
+        rank zero writes and prints the card."""
+        module, truth, callbacks = self.objects["module"], self.objects["truth"], self.objects["callbacks"]
+        last, best = _checkpoint_files(callbacks)
         table = parameter_table(module.kf, truth, module.param_names, module.compare)
         self.metrics.update(param_errors=module.parameter_errors(), table=table, best_model_path=best or "")
         self.metrics.update(checkpoints={"last": last, "best": best}, status="completed")
         if (card := self.card) is None:
             return
         if best:
-            ckpt = read_checkpoint(best)
-            score = next(
-                c for c in self.objects["callbacks"] if isinstance(c, ModelCheckpoint) and c.monitor
-            ).best_model_score
-            card.best = {
-                "checkpoint": card.relative(best),
-                "epoch": int(ckpt["epoch"]),
-                "val/nll": None if score is None else float(score),
-            }
+            ckpt, monitored = (
+                read_checkpoint(best),
+                next(c for c in callbacks if isinstance(c, ModelCheckpoint) and c.monitor),
+            )
+            score = None if monitored.best_model_score is None else float(monitored.best_model_score)
+            card.best = {"checkpoint": card.relative(best), "epoch": int(ckpt["epoch"]), "val/nll": score}
             card.best.update(zip(("table", "param_errors"), _table_at(module, ckpt["state_dict"], truth)))
-        card.status, card.wall_time, card.epochs = "completed", self.wall, int(trainer.current_epoch)
-        card.reported = {
-            "checkpoint": card.relative(last),
-            "epoch": _epoch_of(last),
-            "description": "the final weights, at the end of the last epoch",
-        }
+        card.status, card.wall_time, card.epochs = "completed", self.wall, int(self.objects["trainer"].current_epoch)
+        description = "the final weights, at the end of the last epoch"
+        card.reported = {"checkpoint": card.relative(last), "epoch": _epoch_of(last), "description": description}
         card.metrics = {k: v for k, v in self.metrics.items() if isinstance(v, float)}
         card.param_errors, card.table, card.skipped_steps = self.metrics["param_errors"], table, module.skipped_steps
         card.identifiability = identifiability_note(module.kf) if truth else ""
-        datamodule = self.objects["datamodule"]
-        card.data_summary = data_summary(datamodule)
-        summary = getattr(datamodule, "summary", None)
+        summary = getattr(self.objects["datamodule"], "summary", None)
         summary = summary() if callable(summary) else summary
+        card.data_summary = None if summary is None else to_jsonable(summary)
         card.write(None if summary is None else str(summary))
         print("\n" + (self.out_dir / "results.md").read_text())
 
     def interrupted(self, signum: int, phase: str) -> RunInterrupted:
         """Write the interrupted card (rank zero) and return the exception to raise."""
-        last, _ = _checkpoint_files(self.objects.get("callbacks", []))
-        epochs = (_epoch_of(last) or 0) + 1 if last else 0
+        last, epochs = self._resume_point()
         if self.card is None and "trainer" not in self.objects and int(os.environ.get("LOCAL_RANK", "0")) == 0:
-            self.card = self._new_card()  # stopped while building: still say so
+            self._new_card()  # stopped while building: still say so
+        resume_from = str(Path(last).resolve()) if last else None
         if (card := self.card) is not None:
             trainer = self.objects.get("trainer")
-            metrics = self.metrics or {**self.previous, **(_scores(trainer.callback_metrics) if trainer else {})}
-            card.status, card.epochs = "interrupted", epochs
-            card.metrics = {k: v for k, v in metrics.items() if isinstance(v, float)}
+            metrics = {**self.metrics, **(_scores(trainer.callback_metrics) if trainer and not self.wall else {})}
+            card.status, card.epochs, card.metrics = (
+                "interrupted",
+                epochs,
+                {k: v for k, v in metrics.items() if isinstance(v, float)},
+            )
             card.interruption = {
                 "signal": signal.Signals(signum).name, "phase": phase, "epochs_completed": epochs,
-                "resume_checkpoint": str(Path(last).resolve()) if last else None,
-                "resume_command": card.resume_command(last) if last else None,
+                "resume_checkpoint": resume_from, "resume_command": card.resume_command(last) if last else None,
             }  # fmt: skip
             card.data_summary = data_summary(self.objects.get("datamodule"))
             card.write()
-        stop = RunInterrupted(signum, phase, str(self.out_dir.resolve()), str(Path(last).resolve()) if last else None)
+        stop = RunInterrupted(signum, phase, str(self.out_dir.resolve()), resume_from)
         log.error("%s", stop)
         return stop
 
     def failed(self, error: BaseException) -> None:
-        """The failed card (rank zero, once built) with the epochs ``last.ckpt`` holds, if any."""
+        """The failed card (rank zero, once built), naming its resume point where it has one."""
         if (card := self.card) is None:
             return
         card.status, card.error = "failed", f"{type(error).__name__}: {error}"
         try:
-            last, _ = _checkpoint_files(self.objects.get("callbacks", []))
-            card.epochs = (_epoch_of(last) or 0) + 1 if last else 0
+            last, card.epochs = self._resume_point()
             if last:
                 card.reported = {
                     "checkpoint": card.relative(last),
@@ -299,8 +281,13 @@ class _Run:
             pass
         card.write()
 
-    def _new_card(self) -> RunCard:
-        """A running card, written; a resumed run keeps its directory's earlier resumes and metrics."""
+    def _resume_point(self) -> tuple[str | None, int]:
+        """(``last.ckpt``'s path or None, the epochs it holds)."""
+        last, _ = _checkpoint_files(self.objects.get("callbacks", []))
+        return last, (_epoch_of(last) or 0) + 1 if last else 0
+
+    def _new_card(self) -> None:
+        """A running card, written; a resumed run keeps its directory's earlier resumes and epoch-level metrics."""
         cfg = self.cfg
         card = RunCard(
             str(self.out_dir.resolve()), cfg.model.get("name"), cfg.data.get("noise"), cfg.trainer.get("max_epochs")
@@ -308,15 +295,16 @@ class _Run:
         card.overrides = _overrides()
         if self.resume is not None:
             old = card.previous()
-            number = (int, float)
-            self.previous = {
-                k: float(v) for k, v in (old.get("metrics") or {}).items()
-                if isinstance(v, number) and not isinstance(v, bool) and not k.startswith("test/")
-            }  # fmt: skip
-            ckpt = {"checkpoint": str(Path(self.cfg.ckpt_path).resolve()), "epoch": int(self.resume["epoch"])}
-            card.resumed_from, card.epochs = [*(old.get("resumed_from") or []), ckpt], ckpt["epoch"] + 1
+            scores = (old.get("metrics") or {}).items()
+            self.metrics = {k: float(v) for k, v in scores if isinstance(v, (int, float)) and not k.startswith("test/")}
+            epoch = int(self.resume["epoch"])
+            card.resumed_from = [
+                *(old.get("resumed_from") or []),
+                {"checkpoint": str(Path(cfg.ckpt_path).resolve()), "epoch": epoch},
+            ]
+            card.epochs = epoch + 1
+        self.card = card
         card.write()
-        return card
 
 
 def _instantiate_dict(cfg: DictConfig, key: str) -> list[Any]:
@@ -405,22 +393,33 @@ def _overrides() -> list[str] | None:
     return [str(o) for o in HydraConfig.get().overrides.task] if HydraConfig.initialized() else None
 
 
+def _no_advert(record: logging.LogRecord) -> bool:
+    return "💡 Tip" not in record.getMessage()
+
+
 @contextmanager
-def _process_state(num_threads: int | None) -> Iterator[None]:
+def _process_state(num_threads: int | None, resuming_in_place: bool) -> Iterator[None]:
     """Around a run: torch's intra-op thread count set to ``num_threads`` (null or 0: unchanged),
-    the one place the package sets it; on return that count, the global RNG states
-    ``seed_everything`` seeds (Python, NumPy, torch's CPU and, where CUDA was in use when the run
-    began, CUDA's) and Lightning's seed variables put back."""
+    the one place the package sets it; Lightning's cloud-logger advert, its FutureWarning about
+    torch's ``LeafSpec`` and, resuming in place, its warning about the non-empty checkpoint
+    directory silenced. On return the thread count, the global RNG states ``seed_everything``
+    seeds (Python, NumPy, torch's CPU and, where CUDA was in use already, CUDA's: forking them
+    would initialise it) and Lightning's seed variables are put back."""
     threads, py_rng, np_rng = torch.get_num_threads(), random.getstate(), np.random.get_state()
     env = {k: os.environ.get(k) for k in ("PL_GLOBAL_SEED", "PL_SEED_WORKERS")}
-    # CUDA's RNGs only where CUDA is in use already: forking them would initialise it (ddp_fork needs it not)
+    rank_zero = logging.getLogger("lightning.pytorch.utilities.rank_zero")
+    rank_zero.addFilter(_no_advert)
     devices = list(range(torch.cuda.device_count())) if torch.cuda.is_initialized() else []
     try:
-        with torch.random.fork_rng(devices=devices):
+        with torch.random.fork_rng(devices=devices), warnings.catch_warnings():
+            warnings.filterwarnings("ignore", r"`isinstance\(treespec, LeafSpec\)` is deprecated", FutureWarning)
+            if resuming_in_place:
+                warnings.filterwarnings("ignore", r"Checkpoint directory .* exists and is not empty")
             if num_threads:
                 torch.set_num_threads(int(num_threads))
             yield
     finally:
+        rank_zero.removeFilter(_no_advert)
         torch.set_num_threads(threads)
         random.setstate(py_rng)
         np.random.set_state(np_rng)
@@ -429,27 +428,6 @@ def _process_state(num_threads: int | None) -> Iterator[None]:
                 os.environ.pop(key, None)
             else:
                 os.environ[key] = value
-
-
-def _no_advert(record: logging.LogRecord) -> bool:
-    return "💡 Tip" not in record.getMessage()
-
-
-@contextmanager
-def _quiet_lightning(resuming_in_place: bool) -> Iterator[None]:
-    """Around a run only (the library sets no global filter): no advert for Lightning's cloud
-    logger, no FutureWarning from Lightning's own use of torch's deprecated ``LeafSpec``, and for a
-    run resumed in its own directory no warning that the checkpoint directory is not empty."""
-    rank_zero = logging.getLogger("lightning.pytorch.utilities.rank_zero")
-    rank_zero.addFilter(_no_advert)
-    try:
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", r"`isinstance\(treespec, LeafSpec\)` is deprecated", FutureWarning)
-            if resuming_in_place:
-                warnings.filterwarnings("ignore", r"Checkpoint directory .* exists and is not empty")
-            yield
-    finally:
-        rank_zero.removeFilter(_no_advert)
 
 
 def config_path() -> str:
