@@ -210,8 +210,7 @@ class RunCard:
             elif best.get("table"):
                 text += (
                     f"\n## {heading}: `{best['checkpoint']}` (epoch {best['epoch']}{score}), the lowest val/nll\n\n"
-                    f"Not the run's answer: among converged epochs the lowest val/nll follows the noise of the "
-                    f"validation tracks.\n\n{format_table(best['table'])}\n"
+                    f"For comparison, not the run's answer (the final weights above).\n\n{format_table(best['table'])}\n"
                 )
         text += f"\nskipped optimizer steps (non-finite loss or gradient): {self.skipped_steps}\n"
         if self.identifiability:
