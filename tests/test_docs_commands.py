@@ -153,6 +153,8 @@ def _source_slice(overrides: list[str], ws: dict[str, Path]) -> list[str]:
     """``data.source=<slice>`` where the composed config's source is a large shipped file."""
     from hydra import compose, initialize_config_dir
 
+    import torchsde_lti.training  # noqa: F401 - registers the config schema (train_schema) with Hydra
+
     plain = [
         o for o in overrides if not o.startswith(("hydra", "-", "+trainer")) and not re.search(r",|range\(|choice\(", o)
     ]
