@@ -48,10 +48,7 @@ NOT_RUN: dict[str, str] = {
     "test_export_gives_a_program_with_the_filters_values runs it (marked slow) and the wiring test runs always",
 }
 #: Documented commands that fail today (regular expression -> reason); they run, strict xfail.
-EXPECTED_FAILURES: dict[str, str] = {
-    r"model=singer data\.noise=1\.0 dtype=float32 filter\.method=matrix_exp": "issue 40: core's matrix_exp route "
-    "gives Q not PSD in float32 (smallest eigenvalue -8e-8); helper core fixes it",
-}
+EXPECTED_FAILURES: dict[str, str] = {}
 #: Shipped files larger than this are sliced for the tiny runs.
 SLICE_ABOVE = 2_000_000
 TIMEOUT = 1800  # the whole plan, in one process
