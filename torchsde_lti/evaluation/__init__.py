@@ -15,7 +15,8 @@ No Lightning, no Hydra: torch, numpy and the package's data layer only.
     recovery.py     learned values of a filter and their errors against a known true model
                     (``parameter_errors``, ``parameter_table``; imports no other module here)
 
-The modules import downwards only (predictive ← calibration ← scores ← baseline, selection).
+The modules import downwards only (predictive ← calibration ← scores ← baseline, selection;
+recovery and figures import no other module here).
 
     recs = evaluate_filter(kf, tracks, cov_scale=calibrate_filter(kf, val_tracks))
     summary(recs)["nll_moving"]; paired_bootstrap(recs, evaluate_filter(cv_filter(q, r), tracks))
