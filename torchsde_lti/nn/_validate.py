@@ -172,9 +172,11 @@ def check_outcome(
     covariance of the observed components is below R (``R − R S⁻¹ R``), so an observed
     component whose filtered variance ``(H P Hᵀ)_jj`` exceeds ``2 R_jj`` is that loss.
 
-    The sequence filters check every step's covariance, the online steps the new state's, so
-    a series of online steps raises exactly where the sequence filter of the reports seen so
-    far raises."""
+    The Kalman sequence filter checks the state it ends in (and the log-likelihood of every
+    step), the online step its new state, so a series of online steps raises exactly where the
+    sequence filter of the reports seen so far raises; the IMM's sequence filter checks every
+    step's mode covariances. The filtered covariances are symmetric by construction: their
+    asymmetry is not tested."""
     if tracing():
         return
     with torch.no_grad():
