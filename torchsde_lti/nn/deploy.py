@@ -24,20 +24,16 @@ from torch.utils import _pytree as pytree
 
 from torchsde_lti.core.validation import shape_str
 from torchsde_lti.filters.online import KalmanState
-from torchsde_lti.filters.runtime import traced_for_eager_runtime
 from torchsde_lti.nn._kalman_online import OnlineModel
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
 
 __all__ = ["DeployedFilter", "OnlineStep", "PackagedProgram", "compile_package", "load_package"]
 
-#: What an exported program of :class:`DeployedFilter` or :class:`OnlineStep` is traced for:
-#: ``"inductor"`` (AOTInductor, :func:`compile_package`; torch.compile): small matrix products
-#: and factorisations unrolled into elementwise ops, which Inductor fuses, and a sequence filter's
-#: loop as one structured scan step; ``"eager"`` (the ``ExportedProgram`` run as it is, op by op):
-#: batched BLAS / LAPACK calls, and a sequence filter's algorithm chosen inside the program by its
-#: batch size as eager calls choose it (the associative scan for a few tracks, its levels one
-#: ``while_loop`` over any T; the loop beyond).
+#: The ``runtime`` values the deployment modules accept: ``"inductor"`` (an exported program to
+#: package with :func:`compile_package`) or ``"eager"`` (an ``ExportedProgram`` run as it is).
+#: The program traced is the same for both: the filters have one path, eager or traced (issue
+#: 37), so the value only records what the program is meant for.
 RUNTIMES = ("inductor", "eager")
 
 
@@ -54,7 +50,7 @@ class _TracedFor(nn.Module):
 
     @property
     def runtime(self) -> str:
-        """What ``torch.export`` traces the program for (:data:`RUNTIMES`)."""
+        """What the exported program is meant for (:data:`RUNTIMES`; the same program for both)."""
         return self._runtime
 
     @runtime.setter
@@ -72,9 +68,9 @@ class DeployedFilter(_TracedFor):
     without them the inputs count as 0; an IMM takes none) -> ``(log_likelihood (...), mean
     (..., T, n))``, the filter's log-likelihood and filtered (for an IMM: combined) means.
 
-    ``runtime``: what ``torch.export`` traces the program for (:data:`RUNTIMES`):
-    ``"inductor"`` (default) to package it with :func:`compile_package`, ``"eager"`` to run the
-    ``ExportedProgram`` as it is. Eager calls of the module do not depend on it.
+    ``runtime``: what the exported program is meant for (:data:`RUNTIMES`): ``"inductor"``
+    (default) to package it with :func:`compile_package`, ``"eager"`` to run the
+    ``ExportedProgram`` as it is. The program traced, and every call, is the same for both.
     """
 
     def __init__(self, kf: KalmanFilter | IMMFilter, runtime: str = "inductor") -> None:
@@ -85,8 +81,7 @@ class DeployedFilter(_TracedFor):
         self.runtime = runtime
 
     def forward(self, y: Tensor, dt: Tensor, u: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        with traced_for_eager_runtime(self.runtime == "eager"):
-            out = self.kf(y, dt, u)  # (an IMMFilter refuses a u)
+        out = self.kf(y, dt, u)  # (an IMMFilter refuses a u)
         return out.log_likelihood, out.mean
 
 
@@ -134,8 +129,7 @@ class OnlineStep(_TracedFor):
         return pytree.tree_unflatten(leaves, self._model_spec)
 
     def forward(self, mean: Tensor, cov: Tensor, y: Tensor, dt: Tensor, u: Tensor | None = None) -> tuple[Tensor, ...]:
-        with traced_for_eager_runtime(self.runtime == "eager"):
-            state, out = self.kf.step(KalmanState(mean, cov), y, dt, u, model=self._model())
+        state, out = self.kf.step(KalmanState(mean, cov), y, dt, u, model=self._model())
         return state.mean, state.cov, out.innovation, out.innovation_cov, out.log_likelihood
 
 
