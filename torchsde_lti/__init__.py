@@ -22,8 +22,9 @@ LAYERS: tuple[tuple[str, str], ...] = (
     ("pretrained", "shipped trained filters with their cards, loaded by name (tl.pretrained.load)"),
     ("training", "the Lightning module, metrics, callbacks, plots and the Hydra entry point"),
     ("train", "the `python -m torchsde_lti.train` shim"),
+    ("prepare", "the `python -m torchsde_lti.prepare` entry point (out-of-core preparation, Hydra)"),
     ("runs", "a trained run rebuilt from its directory (tl.load_run), its filter over tracks from a file"),
-    ("cli", "the `torchsde-lti` command: train, filter / smooth a file of tracks, evaluate, export"),
+    ("cli", "the `torchsde-lti` command: train, prepare, filter / smooth a file of tracks, evaluate, export"),
     ("__main__", "`python -m torchsde_lti`: the `torchsde-lti` command"),
 )
 if __doc__ is not None:  # (python -OO strips docstrings)
@@ -43,11 +44,13 @@ from torchsde_lti.core import (  # noqa: E402
 from torchsde_lti.filters import (  # noqa: E402
     ALGORITHMS,
     FilterResult,
+    IMMSmootherResult,
     IMMState,
     IMMStep,
     KalmanState,
     KalmanStep,
     SmootherResult,
+    imm_smoother,
     kalman_filter,
     rts_smoother,
 )
@@ -80,6 +83,7 @@ __all__ = [
     "FilterResult",
     "Forecast",
     "IMMFilter",
+    "IMMSmootherResult",
     "IMMState",
     "IMMStep",
     "KalmanFilter",
@@ -98,6 +102,7 @@ __all__ = [
     "compile_package",
     "data",
     "discretize",
+    "imm_smoother",
     "kalman_filter",
     "load_package",
     "load_run",

@@ -1,10 +1,11 @@
-"""The doubling method's algorithm and its one specialisation agree with each other and with
+"""The doubling method's recurrence and its one specialisation agree with each other and with
 independent references.
 
-``doubling`` runs the general per-element algorithm (``per_element_doubling``: Horner series on
-the sub-step, sorted doubling when eager, masked doubling when traced) or, for ONE parameter
-set, ``shared_doubling`` (series terms once, one product per quantity for the batch). Both must
-give the same (A, Q, G) to rounding, on benign and stiff elements, with gradients.
+``doubling`` runs the general per-element recurrence (``per_element_doubling``: Horner series on
+the sub-step, masked doubling: a Python loop eagerly, torch's while_loop traced) or, for ONE
+parameter set, ``shared_series`` (series terms once, one product for the batch, the same
+doubling). Both must give the same (A, Q, G) to rounding, on benign and stiff elements, with
+gradients, eagerly, compiled and exported.
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ import scipy.linalg
 import torch
 
 import torchsde_lti as tl
-from torchsde_lti.core._doubling import per_element_doubling, shared_doubling
+from torchsde_lti.core._doubling import per_element_doubling
+from torchsde_lti.core.series import shared_series
 from torchsde_lti.core.validation import sde_inputs
 
 F64 = torch.float64
@@ -52,19 +54,17 @@ def _vs_scipy(F, W, B, dt):
 
 @pytest.mark.parametrize("kind", ["random", "stiff", "nilpotent", "big_noise"])
 @pytest.mark.parametrize("p", [0, 2])
-def test_sorted_and_masked_doubling_agree_and_equal_one_element_calls(kind: str, p: int) -> None:
-    """The eager (sorted prefixes) and the traced (masked, every element every step) schedules
-    of the same algorithm agree, and a batch equals its elements called one at a time."""
+def test_a_batch_equals_its_elements_called_one_at_a_time(kind: str, p: int) -> None:
+    """The masked doubling (every element through the most halvings, the done ones held) gives
+    each element what a call of that element alone gives."""
     for n in (1, 2, 3, 5):
         F, L, Qc, dt, B = _problem(n, p, 9, kind, seed=n)
         x = sde_inputs(F, L, Qc, dt, B)
         A1, Q1, G1 = per_element_doubling(x)
-        A2, Q2, G2 = per_element_doubling(x, masked=True)
         for i in range(9):  # per element: decayed A of a stiff element is small but exact
             xi = sde_inputs(F[i], L[i], Qc[i], dt[i], None if B is None else B[i])
             Ai, Qi, Gi = per_element_doubling(xi)
-            for a, b, c in ((A1, A2, Ai), (Q1, Q2, Qi)) + (((G1, G2, Gi),) if p else ()):
-                assert _rel(a[i], b[i]) < 1e-12
+            for a, c in ((A1, Ai), (Q1, Qi)) + (((G1, Gi),) if p else ()):
                 assert _rel(a[i], c) < 1e-12
         assert torch.equal(Q1, Q1.mT)
 
@@ -88,9 +88,10 @@ def test_shared_path_equals_per_element_path_for_one_parameter_set(kind: str) ->
     F, L, Qc, _, B = _problem(4, 1, 1, kind, seed=5)
     dt = torch.tensor([0.0, 1e-4, 0.3, 2.0, 40.0] * 8, dtype=F64)
     x = sde_inputs(F[0], L[0], Qc[0], dt, B[0])
-    shared = shared_doubling(x.F, x.W, x.B, dt)
+    series = shared_series(x.F, x.W, x.B)
+    shared = series(dt)
     for batch_last in (False, True):
-        for a, b in zip(per_element_doubling(x, batch_last), shared_doubling(x.F, x.W, x.B, dt, batch_last)):
+        for a, b in zip(per_element_doubling(x, batch_last), series(dt, batch_last)):
             assert _rel(a, b) < 1e-12
     assert all(a.shape == b.shape for a, b in zip(shared, per_element_doubling(x)))
 
@@ -130,11 +131,10 @@ def test_empty_batches() -> None:
     assert d.A.shape == (0, 3, 2, 2) and d.G is not None and d.G.shape == (0, 3, 2, 1)
 
 
-# batch-first bmm layout; batch-last fused multiply-adds
-@pytest.mark.parametrize("N", [5, 300, 1500])
-def test_per_element_gradients_through_sort_and_layouts(N: int) -> None:
-    """First and second derivatives through the per-element algorithm: the sort by halvings,
-    both layouts' products and the unsort to the elements' order."""
+@pytest.mark.parametrize("N", [5, 300])
+def test_per_element_first_and_second_derivatives(N: int) -> None:
+    """First and second derivatives through the per-element recurrence: the series, the masked
+    doubling (held elements, the E → A switch) of stiff elements."""
     F0, L0, Qc, dt0, B = _problem(2, 1, N, "stiff", seed=5)
     shift = torch.linalg.eigvals(F0).real.amax(-1).clamp_min(0.0) + 0.1  # stable: bounded values
     F0 = F0 - shift[:, None, None] * torch.eye(2, dtype=F64)
@@ -153,11 +153,11 @@ def test_per_element_gradients_through_sort_and_layouts(N: int) -> None:
 
 
 @pytest.mark.filterwarnings("ignore:.*torch.jit.script.*:DeprecationWarning")  # inside torch.func
-@pytest.mark.parametrize("n, N", [(2, 300), (2, 1500), (5, 1500)])  # bmm; fused multiply-adds
+@pytest.mark.parametrize("n, N", [(2, 300), (5, 40)])
 def test_per_element_paths_under_torch_func_and_forward_mode(n: int, N: int) -> None:
-    """torch.func.grad / jvp and forward-mode AD through the per-element algorithm (its fused
-    multiply-adds' custom autograd Function steps aside there) equal reverse-mode autograd. (vmap does not apply: the number of
-    halvings is data-dependent control flow; the batch dimensions are the vectorisation.)"""
+    """torch.func.grad / jvp and forward-mode AD through the per-element recurrence equal
+    reverse-mode autograd. (vmap does not apply: the number of halvings is data-dependent
+    control flow; the batch dimensions are the vectorisation.)"""
     import torch.autograd.forward_ad as fwAD
 
     import torchsde_lti as tl
@@ -182,7 +182,7 @@ def test_per_element_paths_under_torch_func_and_forward_mode(n: int, N: int) -> 
     assert torch.allclose(tangent, directional, rtol=1e-10)
 
 
-@pytest.mark.parametrize("N", [1, 100, 1500])  # one element; bmm; fused multiply-adds
+@pytest.mark.parametrize("N", [1, 100])
 @pytest.mark.parametrize("dtype, scale", [(torch.float32, 1e20), (torch.float64, 1e160)])
 def test_huge_entries_and_huge_steps(N: int, dtype: torch.dtype, scale: float) -> None:
     """Finite parameters at the edge of the float range: F and Qc ~ 1e20 (float32) / 1e160
@@ -242,7 +242,7 @@ def test_shared_nilpotent_series_gradients(order: int) -> None:
 
     def shared(F):
         x = sde_inputs(F, L, Qc, dt)
-        return shared_doubling(x.F, x.W, x.B, dt)[:2]
+        return shared_series(x.F, x.W, x.B)(dt)[:2]
 
     F = F0.clone().requires_grad_()
     assert torch.autograd.gradcheck(shared, (F,), eps=1e-7, atol=1e-5, rtol=1e-6)
@@ -254,7 +254,7 @@ def test_shared_nilpotent_series_gradients(order: int) -> None:
 
     F32 = F0.float().requires_grad_()
     x = sde_inputs(F32, L.float(), Qc.float(), torch.full((40,), 3e7))
-    A, Q, _ = shared_doubling(x.F, x.W, x.B, x.dt)
+    A, Q, _ = shared_series(x.F, x.W, x.B)(x.dt)
     assert torch.isfinite(A).all() and torch.isfinite(Q).all()  # CA: Q_00 ≈ 8.5e35 fits
     (g,) = torch.autograd.grad(A.sum(), F32)
     assert torch.isfinite(g).all()
@@ -262,40 +262,26 @@ def test_shared_nilpotent_series_gradients(order: int) -> None:
 
 @pytest.mark.parametrize("kind", ["random", "stiff", "big_noise"])
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
-@pytest.mark.parametrize("N", [24, 300])  # the few-element schedule (N n² ≤ FEW_ENTRIES); the sorted one
-def test_shared_series_schedules_equal_the_per_element_algorithm(
-    kind: str, dtype: torch.dtype, N: int, monkeypatch
-) -> None:
+def test_shared_series_equals_the_per_element_recurrence(kind: str, dtype: torch.dtype) -> None:
     """One parameter set's SharedSeries (formed once, called on many steps: what the online
-    step keeps per parameter version) gives the same (A, Q, G) with its eager schedule (one
-    number of halvings for few elements, sorted halvings for more) and with the traced masked
-    doubling (while_loop over the most halvings, every element every step) as the general
-    per-element algorithm; Q exactly symmetric and PSD in both dtypes (a stable F: A and Q
+    step keeps per parameter version) gives the (A, Q, G) of the general per-element recurrence,
+    in both output layouts; Q exactly symmetric and PSD in both dtypes (a stable F: A and Q
     finite over steps up to 1e3)."""
-    import torchsde_lti.core._doubling as doubling_mod
-    from torchsde_lti.core.discretization import SharedSeries, discretization_series
-
     F, L, Qc, _, B = _problem(4, 2, 1, kind, seed=21)
     F = F[0] - (torch.linalg.eigvals(F[0]).real.max().clamp_min(0) + 0.2) * torch.eye(4, dtype=F64)
-    g = torch.Generator().manual_seed(N)
-    dt = torch.cat([torch.zeros(1, dtype=F64), 10.0 ** (torch.rand(N - 1, generator=g, dtype=F64) * 9 - 6)])
+    g = torch.Generator().manual_seed(1)
+    dt = torch.cat([torch.zeros(1, dtype=F64), 10.0 ** (torch.rand(299, generator=g, dtype=F64) * 9 - 6)])
     x = sde_inputs(F, L[0], Qc[0], dt, B[0])
-    series = discretization_series(x.F.to(dtype), x.W.to(dtype), x.B.to(dtype))
-    assert isinstance(series, SharedSeries)
-    dtd = dt.to(dtype)
-    eager = series(dtd)
-    monkeypatch.setattr(doubling_mod, "tracing", lambda: True)
-    masked = series(dtd)
-    masked_bl = series(dtd, batch_last=True)
-    monkeypatch.undo()
+    series = shared_series(x.F.to(dtype), x.W.to(dtype), x.B.to(dtype))
+    eager, eager_bl = series(dt.to(dtype)), series(dt.to(dtype), batch_last=True)
     reference = per_element_doubling(x)
     tol = 1e-12 if dtype == F64 else 1e-5
-    for a, b, c, d in zip(eager, masked, masked_bl, reference):
+    for a, c, d in zip(eager, eager_bl, reference):
         assert a.dtype == dtype and a.shape == d.shape and c.shape == (*d.shape[1:], d.shape[0])
-        assert _rel(a.double(), d) < tol and _rel(b.double(), d) < tol and _rel(c.movedim(-1, 0).double(), d) < tol
-    for Q in (eager[1], masked[1]):
-        assert torch.equal(Q, Q.mT)
-        assert torch.linalg.eigvalsh(Q.double()).min() >= -1e-6 * torch.linalg.matrix_norm(Q.double(), 2).amax()
+        assert _rel(a.double(), d) < tol and _rel(c.movedim(-1, 0).double(), d) < tol
+    assert torch.equal(eager[1], eager[1].mT)
+    eig = torch.linalg.eigvalsh(eager[1].double())
+    assert eig.min() >= -1e-6 * torch.linalg.matrix_norm(eager[1].double(), 2).amax()
 
 
 def test_discretization_series_of_a_nilpotent_f_differentiates_with_respect_to_f() -> None:
@@ -344,69 +330,6 @@ def test_discretization_series_rejects_bad_shapes() -> None:
         discretization_series(torch.eye(3, dtype=torch.int64), None)
 
 
-@pytest.mark.parametrize("shared", [False, True])
-@pytest.mark.parametrize("p", [0, 2])
-@pytest.mark.parametrize("dtype", [F64, torch.float32])
-def test_large_calls_in_chunks_equal_one_pass(monkeypatch, shared: bool, p: int, dtype: torch.dtype) -> None:
-    """Chunked eager calls (forced here by tiny chunk sizes, with a short last chunk) give the
-    one-pass results and gradients, in both output layouts, for a 2-D batch."""
-    from torchsde_lti.core import _doubling
-
-    n, batch = 3, (9, 31)  # 279 elements (past the few-element schedule): chunks of 2 and of 50
-    kind = "stiff" if dtype == F64 else "random"  # (stiff float32 gradients overflow)
-    F, L, Qc, dt, B = _problem(n, p, batch[0] * batch[1], kind, seed=4, dtype=dtype)
-    if dtype != F64:  # stable: finite values and gradients over the long steps
-        F = F - 5.0 * torch.eye(n, dtype=dtype)
-    dt = dt.reshape(batch)
-    if shared:
-        F, L, Qc, B = (None if t is None else t[0] for t in (F, L, Qc, B))
-    else:
-        F, L, Qc, B = (None if t is None else t.reshape(*batch, *t.shape[1:]) for t in (F, L, Qc, B))
-        F = F[:, :1]  # one F per row, broadcast over the columns (an expanded flat copy)
-
-    def run(chunk_bytes: int, batch_last: bool):
-        monkeypatch.setattr(_doubling, "CHUNK_BYTES", chunk_bytes)
-        monkeypatch.setattr(_doubling, "CHUNKED_MIN_BYTES", 0)
-        # the series rows of one parameter set: one cumulative product in one pass, one product
-        # a row in chunks
-        monkeypatch.setattr(_doubling, "ROWS_BY_PRODUCTS_MIN", 1 << 40 if chunk_bytes > 1 << 30 else 0)
-        xs = [None if t is None else t.detach().requires_grad_() for t in (F, Qc, dt, B)]
-        x = sde_inputs(xs[0], L, xs[1], xs[2], xs[3])
-        A, Q, G = _doubling.doubling(x, batch_last)
-        loss = sum(
-            ((t.double() ** 2) * (1 + torch.arange(t.numel()).reshape(t.shape) % 5)).sum()
-            for t in (A, Q, G)
-            if t is not None
-        )
-        grads = torch.autograd.grad(loss, [t for t in xs if t is not None])
-        return [t.detach() for t in (A, Q, G) if t is not None], grads
-
-    tol = 1e-12 if dtype == F64 else 2e-5
-    for batch_last in (False, True):
-        whole, g_whole = run(1 << 40, batch_last)
-        for chunk_bytes in (2 * n * max(n, p) * dtype.itemsize, 50 * n * n * dtype.itemsize):
-            parts, g_parts = run(chunk_bytes, batch_last)
-            for a, b in zip(parts, whole):
-                assert a.shape == b.shape and a.is_contiguous() == b.is_contiguous()
-                assert _rel(a, b) <= tol
-            for a, b in zip(g_parts, g_whole):
-                assert _rel(a, b) <= 10 * tol
-
-
-def test_chunks_only_for_large_cpu_calls() -> None:
-    """One pass up to the chunk bound and off the CPU (no page faults to save there, and a chunk
-    costs synchronisations); chunks of CHUNK_BYTES of matrices above it."""
-    from torchsde_lti.core import _doubling
-
-    n, size = 4, 4 * 4 * 8
-    big = 2 * _doubling.CHUNKED_MIN_BYTES // size
-    cpu, meta = torch.empty((), dtype=F64), torch.empty((), dtype=F64, device="meta")
-    assert _doubling.chunk_elements(big // 4, n, 0, cpu) == big // 4
-    assert _doubling.chunk_elements(big, n, 0, cpu) == _doubling.CHUNK_BYTES // size
-    assert _doubling.chunk_elements(big, n, 0, meta) == big
-    assert _doubling.chunk_elements(big, n, 8, cpu) == _doubling.CHUNK_BYTES // (4 * 8 * 8)  # (n, p) inputs
-
-
 def _exported(series, L: torch.Tensor, Qc: torch.Tensor, F_example: torch.Tensor, dt_example: torch.Tensor):
     """A shared series and the per-element doubling exported with a dynamic batch: the
     programs (dt) -> (A, Q) and (F, dt) -> (A, Q)."""
@@ -428,47 +351,55 @@ def _exported(series, L: torch.Tensor, Qc: torch.Tensor, F_example: torch.Tensor
     return shared, per_element.module()
 
 
-def test_export_with_a_dynamic_batch_sets_no_bound_from_the_chunk_rule() -> None:
-    """Traced calls are never chunked, and the chunk rule reads no symbolic batch size: a program
-    exported with a dynamic batch has no upper bound on it and runs past the chunk bound."""
-    from torchsde_lti.core import _doubling
-
-    F, L, Qc, _, _ = _problem(3, 0, 1, "random", seed=7)
-    F = F[0] - 4.0 * torch.eye(3, dtype=F64)
-    W = L[0] @ Qc[0] @ L[0].mT
-    series = _doubling.shared_series(F, W, None)
-    big = 2 * _doubling.CHUNKED_MIN_BYTES // (3 * 3 * 8)  # chunked when eager
-    dt = torch.rand(big, generator=torch.Generator().manual_seed(0), dtype=F64) * 3
+def test_export_with_a_dynamic_batch_equals_eager() -> None:
+    """The shared series and the per-element recurrence exported with a dynamic batch (the
+    doubling as torch's while_loop) give the eager values on a batch larger than the example,
+    steps over 18 decades (every halving runs: no cap on the number of doublings)."""
+    _, L, Qc, _, _ = _problem(3, 0, 1, "random", seed=7)
+    F = torch.tensor([[-1000.0, 0.0, 0.0], [1.0, -1.0, 0.0], [0.5, 2.0, -0.01]], dtype=F64)  # fast and slow
+    series = shared_series(F, L[0] @ Qc[0] @ L[0].mT, None)
+    dt = 10.0 ** (torch.rand(3000, generator=torch.Generator().manual_seed(0), dtype=F64) * 18 - 6)
     shared, per_element = _exported(series, L[0], Qc[0], F.expand(5, 3, 3).contiguous(), dt[:5])
     for got, want in zip(shared(dt), series(dt)):
         assert _rel(got, want) <= 1e-12
-    for got, want in zip(per_element(F.expand(big, 3, 3), dt), per_element_doubling(sde_inputs(F, L[0], Qc[0], dt))):
-        assert _rel(got, want) <= 1e-12
+    want = per_element_doubling(sde_inputs(F.expand(3000, 3, 3), L[0], Qc[0], dt))
+    for got, w in zip(per_element(F.expand(3000, 3, 3).contiguous(), dt), want):
+        assert _rel(got, w) <= 1e-12
 
 
-def test_traced_schedule_runs_every_halving_and_caps_only_the_differentiable_one() -> None:
-    """‖F‖ dt up to 1e15: the traced schedule without a graph (export: a while_loop) runs every
-    halving and equals eager; recording a graph (static doublings, at most
-    TRACED_MAX_HALVINGS) it takes the capped step, converged for this stable F."""
-    from torchsde_lti.core import _doubling
+@pytest.mark.slow  # torch.compile: ≈ 30 s
+def test_compiled_values_and_gradients_equal_eager() -> None:
+    """torch.compile (fullgraph: the doubling as a differentiable while_loop) of the per-element
+    recurrence and of the shared series: the eager values and gradients with respect to F, Qc
+    and dt, for steps whose halvings differ by 40."""
+    g = torch.Generator().manual_seed(3)
+    F0 = torch.tensor([[-1000.0, 0.0], [1.0, -1.0]], dtype=F64)
+    L = torch.eye(2, dtype=F64)
+    dt0 = torch.tensor([1e-3, 1.0, 1e6, 1e9], dtype=F64)
+    weights = torch.randn(2, 4, 2, 2, generator=g, dtype=F64)
 
-    F = torch.tensor([[-1000.0, 0.0], [1.0, -1.0]], dtype=F64)
-    L = Qc = torch.eye(2, dtype=F64)
-    dt = torch.tensor([1.0, 1e6, 1e9, 1e12], dtype=F64)
-    want = per_element_doubling(sde_inputs(F.expand(4, 2, 2), L, Qc, dt))
-    series = _doubling.shared_series(F, L @ Qc @ L.mT, None)
-    shared, per_element = _exported(series, L, Qc, F.expand(2, 2, 2).contiguous(), dt[:2])
-    Fg = F.expand(4, 2, 2).clone().requires_grad_(True)
-    static = per_element_doubling(sde_inputs(Fg, L, Qc, dt), masked=True)
-    for got in (shared(dt), per_element(F.expand(4, 2, 2).contiguous(), dt), static):
-        assert _rel(got[0], want[0]) <= 1e-12 and _rel(got[1], want[1]) <= 1e-12
-    assert torch.isfinite(torch.autograd.grad(static[1].sum(), Fg)[0]).all()
+    def per_element(F, Qc, dt):  # type: ignore[no-untyped-def]
+        A, Q, _ = per_element_doubling(sde_inputs(F, L, Qc, dt, validate_args=False))
+        return (weights[0] * A).sum() + (weights[1] * Q).sum()
+
+    def shared(F, Qc, dt):  # type: ignore[no-untyped-def]
+        A, Q, _ = shared_series(F, Qc, None)(dt)
+        return (weights[0] * A).sum() + (weights[1] * Q).sum()
+
+    for fn, F in ((per_element, F0.expand(4, 2, 2).contiguous()), (shared, F0)):
+        results = []
+        for run in (fn, torch.compile(fn, fullgraph=True)):
+            args = [t.clone().requires_grad_() for t in (F, torch.eye(2, dtype=F64), dt0)]
+            value = run(*args)
+            results.append((value, *torch.autograd.grad(value, args)))
+        for a, b in zip(*results):
+            assert _rel(a, b) <= 1e-12
 
 
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
 def test_q_is_exactly_symmetric_on_every_path(dtype: torch.dtype) -> None:
-    """Q == Qᵀ bit for bit (the average X + Xᵀ; torch.lerp(X, Xᵀ, 1/2) is not): few elements,
-    one shared F (series), many per-element F (sorted, batch-last and batch-first), matrix_exp."""
+    """Q == Qᵀ bit for bit (the average X + Xᵀ; torch.lerp(X, Xᵀ, 1/2) is not): one element, one
+    shared F (series), many per-element F, matrix_exp."""
     g = torch.Generator().manual_seed(3)
     for n in (2, 3, 6):
         M = torch.randn(3000, n, n, generator=g, dtype=F64)
@@ -478,7 +409,7 @@ def test_q_is_exactly_symmetric_on_every_path(dtype: torch.dtype) -> None:
         L = torch.eye(n, dtype=dtype)
         dt = torch.logspace(-3, 3, 3000, dtype=F64).to(dtype)
         calls = {
-            "few": (F[:3], L, Qc[:3], dt[:3], "doubling"),
+            "one element": (F[0], L, Qc[0], dt[:1], "doubling"),
             "shared": (F[0], L, Qc[0], dt, "doubling"),
             "per element": (F, L, Qc, dt, "doubling"),
             "matrix_exp": (F[:50], L, Qc[:50], dt[:50] * 1e-3, "matrix_exp"),

@@ -16,31 +16,31 @@ import torch
 from torch.autograd.functional import hessian
 
 import torchsde_lti as tl
-from torchsde_lti.core import _doubling, _power_series
+from torchsde_lti.core import _doubling, discretization, series
 
 F64 = torch.float64
 
-# (path, number of steps, F shared by the steps or expanded to one per step):
-# few_elements_series: N n² ≤ FEW_ENTRIES; _per_element_flat: more entries, one F per step;
-# terminating_series: ONE nilpotent F for ≥ SHARED_MIN_ELEMENTS steps.
+# (path, number of steps, F shared by the steps or expanded to one per step): the per-element
+# recurrence (F per step) and the one-parameter-set series (one F; a nilpotent F's series
+# terminates: no halving, the full step).
 PATHS = {
-    "single": ("few_elements_series", 1, False),
-    "few": ("few_elements_series", 3, True),
-    "per_element": ("_per_element_flat", 700, True),
-    "terminating": ("terminating_series", 40, False),
+    "single": ("shared_series", 1, False),
+    "few": ("per_element_doubling", 3, True),
+    "per_element": ("per_element_doubling", 700, True),
+    "shared": ("shared_series", 40, False),
 }
 
 
 def _spy(monkeypatch: pytest.MonkeyPatch, name: str) -> list[int]:
-    """Count the calls of the path ``name`` (a module global of ``_doubling``)."""
+    """Count the calls of the path ``name`` (a module global of ``discretization``)."""
     calls: list[int] = []
-    inner = getattr(_doubling, name)
+    inner = getattr(discretization, name)
 
     def wrapped(*args, **kwargs):
         calls.append(1)
         return inner(*args, **kwargs)
 
-    monkeypatch.setattr(_doubling, name, wrapped)
+    monkeypatch.setattr(discretization, name, wrapped)
     return calls
 
 
@@ -73,8 +73,6 @@ def test_gradgradcheck_at_nilpotent_F(path: str, n: int, kind: str, monkeypatch:
     """gradgradcheck (float64, finite differences of the gradient) at F = 0 and at an integrator
     chain, on each path; the path taken is checked."""
     name, N, expand = PATHS[path]
-    if path == "per_element" and n == 1:
-        N = 2100  # N n² > FEW_ENTRIES
     calls = _spy(monkeypatch, name)
     F = (torch.zeros(n, n, dtype=F64) if kind == "zero" else _chain(n)).requires_grad_()
     fn = _problem(n, N, expand)
@@ -141,17 +139,18 @@ def test_values_with_and_without_a_graph(path: str) -> None:
 
 
 def test_term_counts() -> None:
-    """The counts of the rule: (order+1) n powers (few elements), (order+2) n − 1 Taylor terms
-    (per element), (order+1) m and (order+2) m − 1 terms of a terminating series."""
-    for n in (1, 2, 4):
-        assert _power_series.power_terms(F64, 0.0, n, 2) == 3 * n
-        assert _doubling.series_terms(F64, 0.0, n, 2) == 4 * n - 1
-    L = torch.tensor([[0.0], [1.0]], dtype=F64)
-    F = _chain(2).requires_grad_()
-    s = _doubling.discretization_series(F, L @ L.mT, None, index=2)
-    assert s.rest.shape[0] == 4 * 2 - 1  # r_1 … r_{4m−1}
-    with torch.no_grad():
-        assert _doubling.discretization_series(F, L @ L.mT, None, index=2).rest.shape[0] == 2 * 2 - 1
+    """The degree rule: the least K of the truncation bound, at least 2n − 1 (each entry of a
+    graded Q keeps its leading term) per element; at least 4n for one parameter set, whose rows
+    of a nilpotent F (index m) stop at k < 4m (values, first and second derivatives)."""
+    assert _doubling.series_degree(F64, 1) == 14 and _doubling.series_degree(torch.float32, 1) == 8
+    assert _doubling.series_degree(F64, 9) == 17
+    for F, m in ((torch.zeros(3, 3, dtype=F64), 1), (_chain(3), 3), (_chain(2), 2)):
+        n = F.shape[0]
+        s = series.shared_series(F, torch.eye(n, dtype=F64), None)
+        assert s.coeff.shape[0] == max(23, 4 * n) and bool(s.nilpotent)  # (θ_shared = 1: 23 terms)
+        assert int(s.rows.sum()) == 4 * m - 1
+    s = series.shared_series(-torch.eye(2, dtype=F64), torch.eye(2, dtype=F64), None)
+    assert not bool(s.nilpotent) and bool(s.rows.all())
 
 
 @pytest.mark.filterwarnings("ignore:.*torch.jit.script.*:DeprecationWarning")  # inside torch.func

@@ -90,7 +90,8 @@ def test_traced_doubling_equals_eager(dtype, rtol):
     """The traced discretisation (static graph: all series terms, masked doublings) equals
     the eager one, for per-element F, a shared F and an input matrix, dt over 6 decades
     (relative to each matrix: float32 A decayed to 1e-16 after ~10 doublings differs by 1e-4)."""
-    from torchsde_lti.core._doubling import doubling, per_element_doubling
+    from torchsde_lti.core._doubling import per_element_doubling
+    from torchsde_lti.core.discretization import doubling
     from torchsde_lti.core.validation import sde_inputs
 
     g = torch.Generator().manual_seed(0)
@@ -107,7 +108,7 @@ def test_traced_doubling_equals_eager(dtype, rtol):
             B=torch.ones(n, 1, dtype=dtype),
         )
         eager = doubling(inp)
-        traced = per_element_doubling(inp, masked=True)
+        traced = per_element_doubling(inp)  # (core's traced schedule: tests/core/test_doubling_paths.py)
         for a, b in zip(eager, traced):
             floor = torch.finfo(dtype).tiny ** 0.5  # entries that underflow in one path: absolute
             scale = a.flatten(-2).norm(dim=-1).clamp_min(floor)[..., None, None]

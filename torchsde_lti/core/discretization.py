@@ -5,10 +5,12 @@ Over a step dt with u held constant (zero-order hold), ``x' = A x + G u + q``, `
     A = expm(F dt),   G = ∫_0^dt expm(F s) ds B,   Q = ∫_0^dt expm(F s) W expm(F s)ᵀ ds,   W = L Qc Lᵀ.
 
 Methods: ``"doubling"`` (default; scaling and doubling, PSD and accurate for stiff F and
-large dt in float32 too, module ``_doubling``) and ``"matrix_exp"`` (:func:`torch.matrix_exp`
-of Van Loan's block, module ``_matrix_exp``; its ``−Fᵀ`` block grows like ``e^{|λ| dt}``; where
-a gradient is asked for, it is the doubling's: torch.matrix_exp's own backward of the block
-goes wrong long before its values do).
+large dt in float32 too: the recurrence of module ``_doubling``, its one-parameter-set
+specialisation in :mod:`~torchsde_lti.core.series`) and ``"matrix_exp"`` (the design card's
+layer: :func:`torch.matrix_exp` of Van Loan's block; its ``−Fᵀ`` block grows like
+``e^{|λ| dt}``; where a gradient is asked for, it is the doubling's: torch.matrix_exp's own
+backward of the block goes wrong long before its values do). The route is chosen from the
+shapes and ``method`` alone.
 """
 
 from __future__ import annotations
@@ -18,20 +20,19 @@ from typing import NamedTuple
 
 import torch
 from torch import Tensor
+from torch.fx.experimental.symbolic_shapes import statically_known_true
 
-from torchsde_lti.core._doubling import SharedSeries, doubling
-from torchsde_lti.core._doubling import discretization_series as _discretization_series
-from torchsde_lti.core._matrix_exp import matrix_exp
-from torchsde_lti.core.series import TerminatingSeries
-from torchsde_lti.core.threads import intra_op_threads
+from torchsde_lti.core._doubling import Results, per_element_doubling
+from torchsde_lti.core.linalg import sym
+from torchsde_lti.core.series import SharedSeries, shared_series
 from torchsde_lti.core.validation import (
     SDEInputs,
     _psd_test,
+    _value_check,
     check_matrix,
     checks_values,
     sde_inputs,
     shape_str,
-    tracing,
 )
 
 __all__ = [
@@ -42,6 +43,7 @@ __all__ = [
     "discretization_series",
     "discretize",
     "discretize_series",
+    "doubling",
     "process_noise",
     "resolve_method",
     "transition_matrix",
@@ -72,30 +74,60 @@ def resolve_method(method: str) -> str:
     return method
 
 
-def _overflow_impossible(x: SDEInputs) -> bool:
-    """Whether the host values (:attr:`SDEInputs.host`) bound the results and every intermediate
-    of either method below the dtype's maximum: ‖A‖ ≤ e^{‖F‖ dt}, ‖Q‖ ≤ ‖W‖ dt e^{2‖F‖ dt},
-    ‖G‖ ≤ ‖B‖ dt e^{‖F‖ dt} (Frobenius norms bounded by the largest entries), with a margin."""
-    host = x.host
-    if host is None or not host.get("dt"):
-        return False
-    top = {name: max(max(v), -min(v)) if v else 0.0 for name, v in host.items()}
-    n = x.F.shape[-1]
-    # ‖L Qc Lᵀ‖_F ≤ ‖L‖_F² ‖Qc‖_F ≤ n s² max|L|² max|Qc| (s² ≤ the number of Qc values)
-    w = n * len(host.get("Qc", ())) * top.get("L", 0.0) ** 2 * top.get("Qc", 0.0)
-    b = n * len(host.get("B", ())) * top.get("B", 0.0)
-    with_margin = 2.0 * n * top["F"] * top["dt"] + math.log(max(1.0, (w + b) * top["dt"], float(n))) + 4.0
-    return with_margin < math.log(torch.finfo(x.F.dtype).max)
+def _one_set(x: SDEInputs) -> bool:
+    """Whether F, W and B hold ONE parameter set (no batch elements, or one): from the shapes, and
+    while traced only where that is known without a guard (a dynamic batch of F is many sets)."""
+    return all(t is None or statically_known_true(math.prod(t.shape[:-2]) == 1) for t in (x.F, x.W, x.B))
 
 
-def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | None, method: str) -> None:
+def doubling(x: SDEInputs, batch_last: bool = False) -> Results:
+    """The doubling method: (A, Q, G) of shapes (*batch, n, n), (*batch, n, n) or None,
+    (*batch, n, p) or None (with ``batch_last`` contiguous (n, n, *batch), …). ONE parameter set
+    (F, W, B without batch elements) takes :class:`SharedSeries`; everything else
+    :func:`~torchsde_lti.core._doubling.per_element_doubling`."""
+    assert x.dt is not None
+    if _one_set(x):
+        F, W, B = (None if t is None else t.reshape(t.shape[-2:]) for t in (x.F, x.W, x.B))
+        assert F is not None
+        return shared_series(F, W, B)(x.dt.expand(x.batch), batch_last)
+    return per_element_doubling(x, batch_last)
+
+
+def _matrix_exp(x: SDEInputs) -> Results:
+    """The ``"matrix_exp"`` method: one :func:`torch.matrix_exp` of the smallest block that holds
+    what is asked for: ``expm(F dt)`` for A alone, ``expm([[F, B], [0, 0]] dt) = [[A, G], [0, I]]``
+    with B, and with noise Van Loan's ``expm([[F, W, B], [0, −Fᵀ, 0], [0, 0, 0]] dt) =
+    [[A, X, G], [0, A⁻ᵀ, 0], [0, 0, I]]``, ``Q = X Aᵀ`` (symmetrised)."""
+    F, W, B, dt, batch = x.F, x.W, x.B, x.dt, x.batch
+    assert dt is not None
+    n, p = F.shape[-1], 0 if B is None else B.shape[-1]
+    d = dt[..., None, None]
+    zero = F.new_zeros(())
+    top = [
+        t.expand(*batch, n, t.shape[-1])
+        for t in (F * d, None if W is None else W * d, None if B is None else B * d)
+        if t is not None
+    ]
+    rows = [torch.cat(top, -1)]
+    if W is not None:  # [0, −Fᵀ dt, 0]
+        rows.append(torch.cat([zero.expand(*batch, n, n), -top[0].mT, zero.expand(*batch, n, p)], -1))
+    if B is not None:  # [0, 0, 0]
+        rows.append(zero.expand(*batch, p, rows[0].shape[-1]))
+    E = torch.matrix_exp(torch.cat(rows, -2))
+    A = E[..., :n, :n]
+    Q = None if W is None else sym(E[..., :n, n : 2 * n] @ A.mT)
+    return A, Q, None if B is None else E[..., :n, E.shape[-1] - p :]
+
+
+def _check_result(inputs: SDEInputs, results: Results, method: str) -> None:
     """ValueError when a result is not finite although the (checked) arguments are: the exact
-    values exceed the dtype's range (an unstable F over a long step, a huge noise or input)."""
+    values exceed the dtype's range (an unstable F over a long step, a huge noise or input), or
+    ``"matrix_exp"``'s −Fᵀ block overflows. One synchronisation."""
+    parts = [t for t in results if t is not None and t.numel()]
     with torch.no_grad():
-        parts = [t for t in (A, Q, G) if t is not None and t.numel()]
         if not parts or bool(torch.stack([t.sum() for t in parts]).isfinite().all()):
             return
-        bad = [name for name, t in zip("AQG", (A, Q, G)) if t is not None and not bool(torch.isfinite(t).all())]
+        bad = [name for name, t in zip("AQG", results) if t is not None and not bool(torch.isfinite(t).all())]
         if not bad:  # a finite result whose sum overflowed
             return
         real = torch.linalg.eigvals(inputs.F.double()).real
@@ -118,12 +150,13 @@ def _check_result(inputs: SDEInputs, A: Tensor, Q: Tensor | None, G: Tensor | No
     )
 
 
+@_value_check
 def check_matrix_exp_noise(Q: Tensor) -> None:
     """ValueError where ``method="matrix_exp"``'s Q (..., n, n) is not finite, or not PSD beyond
     √eps of its largest entry: the cancellation ``Q = X Aᵀ`` of Van Loan's block (growing like
-    ``‖e^{F dt}‖ ‖e^{−F dt}‖``) has lost it. The PSD test of the argument checks
-    (``_psd_test``) at tolerance √eps and one synchronisation; nothing while tracing."""
-    if tracing() or Q.numel() == 0:
+    ``‖e^{F dt}‖ ‖e^{−F dt}‖``) has lost it. A zero Q (dt = 0) passes. One synchronisation;
+    nothing while tracing."""
+    if Q.numel() == 0:
         return
     with torch.no_grad():
         passes, _, scale = _psd_test(Q, math.sqrt(torch.finfo(Q.dtype).eps))
@@ -135,7 +168,7 @@ def check_matrix_exp_noise(Q: Tensor) -> None:
                 "block exponential overflows for a large ‖F‖ dt (its −Fᵀ block grows like e^(|Re λ| dt)); the "
                 "default method='doubling' does not"
             )
-        lowest = float((torch.linalg.eigvalsh(Q).amin(dim=-1) / scale).min())
+        lowest = float((torch.linalg.eigvalsh(Q).amin(dim=-1) / scale.clamp_min(torch.finfo(Q.dtype).tiny)).min())
     raise ValueError(
         f"method='matrix_exp' gave a process noise Q that is not positive semi-definite (smallest eigenvalue "
         f"{lowest:.3g} relative to its largest entry, shape {shape_str(Q)}): Van Loan's Q = X Aᵀ cancels for a "
@@ -153,31 +186,26 @@ def _required(dt: Tensor | float | None, B: Tensor | None = None, needs_B: bool 
         )
 
 
-def _with_doubling_gradient(values: tuple[Tensor | None, ...], exact: tuple[Tensor | None, ...]) -> tuple:
-    """``values`` forward, ``exact``'s gradient backward: ``e + (v − e).detach()``. torch.matrix_exp's
-    backward differentiates the whole Van Loan block, whose ``−Fᵀ`` part grows like
-    ``e^{|λ| dt}``: its gradient goes wrong long before its values do (a Matérn-5/2 filter over
-    gaps of 20 lengthscales: 1e21 against the exact −31)."""
-    return tuple(None if v is None or e is None else e + (v - e).detach() for v, e in zip(values, exact))
-
-
-def _run(inputs: SDEInputs, method: str, validate_args: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
+def _run(inputs: SDEInputs, method: str, validate_args: bool, batch_last: bool = False) -> Results:
     """(A, Q, G) of checked arguments by ``method`` and, with ``validate_args``, the result
-    check, run with :func:`intra_op_threads` (the backward too: ``inputs.finish``)."""
-    with intra_op_threads(inputs.work):
-        if resolve_method(method) == "matrix_exp":
-            A, Q, G = matrix_exp(inputs)
-            if torch.is_grad_enabled() and any(
-                t is not None and t.requires_grad for t in (inputs.F, inputs.W, inputs.B, inputs.dt)
-            ):
-                A, Q, G = _with_doubling_gradient((A, Q, G), doubling(inputs))
-        else:
-            A, Q, G = doubling(inputs)
-        if checks_values(validate_args) and not _overflow_impossible(inputs):
-            _check_result(inputs, A, Q, G, method)
-        if checks_values(validate_args) and method == "matrix_exp" and Q is not None:
-            check_matrix_exp_noise(Q)
-    return inputs.finish(A, Q, G)  # type: ignore[return-value]
+    checks. ``"matrix_exp"`` recording a graph: its values forward, the doubling's gradient
+    backward (``e + (v − e).detach()``): torch.matrix_exp's backward differentiates the whole
+    Van Loan block, whose ``−Fᵀ`` part grows like ``e^{|λ| dt}`` (a Matérn-5/2 filter over gaps
+    of 20 lengthscales: 1e21 against the exact −31)."""
+    if resolve_method(method) == "matrix_exp":
+        results = _matrix_exp(inputs)
+        if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in inputs[:4]):
+            exact = doubling(inputs)
+            results = tuple(None if v is None or e is None else e + (v - e).detach() for v, e in zip(results, exact))  # type: ignore[assignment]
+        if batch_last:
+            results = tuple(None if t is None else t.movedim((-2, -1), (0, 1)).contiguous() for t in results)  # type: ignore[assignment]
+    else:
+        results = doubling(inputs, batch_last)
+    if checks_values(validate_args):
+        _check_result(inputs, results, method)
+        if method == "matrix_exp" and results[1] is not None:
+            check_matrix_exp_noise(results[1])
+    return results
 
 
 def discretize(
@@ -204,12 +232,15 @@ def discretize(
         method: ``"doubling"`` (default; accurate and PSD for stiff F and large dt) or
             ``"matrix_exp"`` (torch.matrix_exp of Van Loan's block; gradients, where asked for, the
             doubling's).
-        validate_args: check the values (finite, dt ≥ 0, Qc symmetric PSD); shapes are
-            always checked. Inner calls on already-checked arguments pass False.
+        validate_args: check the values (finite, dt ≥ 0, Qc symmetric PSD) and that the result is
+            finite; shapes are always checked. False reads nothing to the host.
 
     Returns:
         :class:`Discrete` with A (..., n, n), Q (..., n, n) symmetric PSD and
         G (..., n, p) or None. Differentiable with respect to F, L, Qc, B and dt.
+
+    Raises:
+        ValueError: a bad shape or value (naming the argument), or a result that overflows the dtype.
     """
     _required(dt)
     A, Q, G = _run(sde_inputs(F, L, Qc, dt, B, validate_args=validate_args), method, validate_args)
@@ -247,26 +278,15 @@ def discretize_series(
     """
     _required(dt)
     inputs = sde_inputs(F, L, Qc, dt, B, validate_args=validate_args)
-    params = [inputs.F.shape[:-2]] + [x.shape[:-2] for x in (inputs.W, inputs.B) if x is not None]
-    single = all(torch.Size(s).numel() == 1 for s in params)
-    if resolve_method(method) != "doubling" or len(inputs.batch) == 0 or not single:
+    if resolve_method(method) != "doubling" or len(inputs.batch) == 0 or not _one_set(inputs):
         return Discrete(*_run(inputs, method, validate_args))  # type: ignore[arg-type]
     assert inputs.dt is not None
     lead = inputs.batch[:-1]
-    dt_tm = inputs.dt.expand(inputs.batch).movedim(-1, 0)  # (T, *lead)
+    steps = inputs.dt.expand(inputs.batch).movedim(-1, 0)  # (T, *lead)
     inverse = None
-    if unique and not dt_tm.requires_grad:
-        dt_tm, inverse = torch.unique(dt_tm, return_inverse=True)
-    with intra_op_threads(inputs.work):
-        # (the one parameter set without its size-1 batch dims, which dt_tm's layout does not have)
-        W, B_in = (None if x is None else x.reshape(x.shape[-2:]) for x in (inputs.W, inputs.B))
-        one = inputs._replace(
-            F=inputs.F.reshape(inputs.F.shape[-2:]), W=W, B=B_in, dt=dt_tm, batch=dt_tm.shape, host=None
-        )
-        A, Q, G = inputs.finish(*doubling(one, batch_last=True))
-        assert A is not None
-        if checks_values(validate_args):
-            _check_result(inputs, A, Q, G, method)
+    if unique and not steps.requires_grad:
+        steps, inverse = torch.unique(steps, return_inverse=True)
+    results = _run(inputs._replace(dt=steps, batch=steps.shape), method, validate_args, batch_last=True)
     perm = [*range(3, 3 + len(lead)), 2, 0, 1]  # (r, c, T, *lead) -> (*lead, T, r, c)
 
     def layout(x: Tensor) -> Tensor:
@@ -274,7 +294,7 @@ def discretize_series(
             x = x.index_select(-1, inverse.reshape(-1)).reshape(*x.shape[:2], *inverse.shape)
         return x.permute(perm)
 
-    A, Q, G = (None if x is None else layout(x) for x in (A, Q, G))
+    A, Q, G = (None if x is None else layout(x) for x in results)
     return Discrete(A, Q, G)  # type: ignore[arg-type]
 
 
@@ -336,19 +356,17 @@ def process_noise(
 
 def discretization_series(
     F: Tensor, W: Tensor | None, B: Tensor | None = None, index: int | None = None, read_values: bool = True
-) -> TerminatingSeries | SharedSeries:
+) -> SharedSeries:
     """The dt-independent part of the doubling discretisation of ONE parameter set, to form
     once and call on many steps: ``series(dt)`` -> (A, Q, G) over dt (...) (with
     ``batch_last=True`` contiguous (n, n, ...), …), the values of :func:`discretize`'s default
     method to rounding.
 
     F: (n, n), n ≥ 1; W = L Qc Lᵀ: (n, n) or None (symmetric PSD); B: (n, p) or None; all of
-    F's dtype and device. A nilpotent F (F^index = 0) gives its
-    :class:`~torchsde_lti.core.series.TerminatingSeries` (exact polynomial in dt), any other F
-    a :class:`SharedSeries` (series terms of a sub-step, then the doubling). ``index``: F's
-    nilpotency index when the model's structure fixes it; with ``read_values`` and ``index``
-    None it is found from F's values (one synchronisation), without ``read_values`` None means
-    not nilpotent (no value read: traceable).
+    F's dtype and device. A nilpotent F (an integrator chain) is found on the device: its series
+    terminates and takes no halving (:mod:`~torchsde_lti.core.series`). No value is read to the
+    host (traceable): ``index`` (F's nilpotency index where the model's structure fixes it, in
+    [1, n]) and ``read_values`` are checked and otherwise not needed.
 
     Shapes (and ``index``) are checked, ValueError naming the argument; values are not (form
     the series from checked matrices, e.g. an SDE's ``matrices()``).
@@ -373,4 +391,4 @@ def discretization_series(
             )
     if index is not None and (isinstance(index, bool) or not isinstance(index, int) or not 1 <= index <= n):
         raise ValueError(f"index must be None or an int in [1, n={n}], got {index!r}")
-    return _discretization_series(F, W, B, index, read_values)
+    return shared_series(F, W, B)

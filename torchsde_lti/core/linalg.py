@@ -3,7 +3,7 @@ r"""Small dense linear-algebra kernels for every layer (torch only).
 Batch-first kernels on ``(..., k, k)`` (:func:`sym`, :func:`noise_covariance`,
 :func:`cholesky`, :func:`solve_lower`, :func:`solve_upper_t`, :func:`cho_solve`,
 :func:`matvec`; unrolled over k ≤
-:data:`~torchsde_lti.core.thresholds.UNROLLED_MAX_DIM`, LAPACK beyond) and batch-last kernels
+:data:`UNROLLED_MAX_DIM`, LAPACK beyond) and batch-last kernels
 on ``(r, c, *batch)`` with the batch as the contiguous inner dimension, the layout of the
 filter loop and of the doubling (:func:`to_batch_last`, :func:`from_batch_last`,
 :func:`bl_matmul`, :func:`bl_matvec`, :func:`bl_sym_into`).
@@ -14,8 +14,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 from torch.autograd import forward_ad
-
-from torchsde_lti.core.thresholds import FMA_MAX_INNER, FMA_MIN_BATCH, UNROLLED_MAX_DIM
 
 __all__ = [
     "bl_matmul",
@@ -33,6 +31,9 @@ __all__ = [
     "sym",
     "to_batch_last",
 ]
+
+#: Matrices up to this size take the unrolled Cholesky factor and triangular solves.
+UNROLLED_MAX_DIM = 4
 
 
 def sym(P: Tensor) -> Tensor:
@@ -182,7 +183,7 @@ class _FmaMatmul(torch.autograd.Function):
     @staticmethod
     def forward(ctx, a: Tensor, b: Tensor, c: Tensor | None, alpha: float) -> Tensor:
         ctx.save_for_backward(a, b)
-        ctx.has_c = c is not None
+        ctx.c_shape = None if c is None else c.shape
         ctx.alpha = alpha
         return _fma_matmul(a, b, c, alpha)
 
@@ -191,7 +192,8 @@ class _FmaMatmul(torch.autograd.Function):
         a, b = ctx.saved_tensors
         ga = bl_matmul(g, b.transpose(0, 1), alpha=ctx.alpha) if ctx.needs_input_grad[0] else None
         gb = bl_matmul(a.transpose(0, 1), g, alpha=ctx.alpha) if ctx.needs_input_grad[1] else None
-        return ga, gb, (g if ctx.has_c and ctx.needs_input_grad[2] else None), None
+        gc = g.sum_to_size(ctx.c_shape) if ctx.c_shape is not None and ctx.needs_input_grad[2] else None
+        return ga, gb, gc, None
 
 
 def _plain_ops_required() -> bool:
@@ -211,20 +213,18 @@ def _records_graph(*tensors: Tensor | None) -> bool:
 
 
 def bl_matmul(a: Tensor, b: Tensor, c: Tensor | None = None, alpha: float = 1.0) -> Tensor:
-    """``c + α a b`` on batch-last matrices: a (r, k, *B), b (k, s, *B), c (r, s, *B) -> (r, s, *B).
+    """``c + α a b`` on batch-last matrices: a (r, k, *B), b (k, s, *B), c (r, s, *B) (or
+    broadcastable to it) -> (r, s, *B).
 
-    With one flat, equal batch dimension: k fused multiply-adds over the contiguous batch
-    (small k, large batch) or one ``matmul`` on permuted views; otherwise (``*B`` broadcast)
-    a ``vecdot`` that keeps the batch innermost.
+    Eagerly with one flat, equal batch dimension: k fused multiply-adds over the contiguous batch
+    (a custom autograd Function whose backward is two such products, where one is allowed);
+    otherwise (``*B`` broadcast, or traced: one op for the compiler to fuse, and no ``prims.fma``
+    in an exported program) a ``vecdot`` that keeps the batch innermost.
     """
-    if a.dim() == 3 and b.dim() == 3 and a.shape[-1] == b.shape[-1]:
-        if a.shape[1] > FMA_MAX_INNER:
-            out = (a.permute(2, 0, 1) @ b.permute(2, 0, 1)).permute(1, 2, 0)
-            return _scaled_add(out, c, alpha)
-        if not torch.compiler.is_compiling() and a.shape[-1] > FMA_MIN_BATCH:  # (traced: no guard on the batch)
-            if _records_graph(a, b, c) and not _plain_ops_required():
-                return _FmaMatmul.apply(a, b, c, alpha)
-            return _fma_matmul(a, b, c, alpha)  # no graph to record (skip the Function's dispatch)
+    if a.dim() == 3 and b.dim() == 3 and a.shape[-1] == b.shape[-1] and not torch.compiler.is_compiling():
+        if _records_graph(a, b, c) and not _plain_ops_required():
+            return _FmaMatmul.apply(a, b, c, alpha)
+        return _fma_matmul(a, b, c, alpha)
     return _scaled_add(torch.linalg.vecdot(a.unsqueeze(2), b.unsqueeze(0), dim=1), c, alpha)
 
 

@@ -43,4 +43,4 @@ def stationary_covariance(F: Tensor, L: Tensor, Qc: Tensor, *, validate_args: bo
     system = system.reshape(*batch, n * n, n * n)
     rhs = -W.expand(*batch, n, n).reshape(*batch, n * n, 1)
     P = torch.linalg.solve(system, rhs).reshape(*batch, n, n)
-    return inputs.finish(sym(P))[0]  # type: ignore[return-value]
+    return sym(P)

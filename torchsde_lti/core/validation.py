@@ -1,21 +1,25 @@
 """Argument checks: ``ValueError`` (``TypeError`` for non-numeric input) naming the argument
-and the shapes. Value checks (finite, signs, PSD) run once, at the public boundary
-(``validate_args``); while torch.compile / torch.export trace, only shape checks run.
+and the shapes.
+
+Shapes are always checked. Values (finite, signs, PSD) are checked once, at the public
+boundary, against the constraints each function declares (torch.distributions' pattern:
+:data:`SDE_CONSTRAINTS` for the SDE's arguments), with one read to the host when they hold;
+``validate_args=False`` reads nothing, and no check changes a value. While torch.compile /
+torch.export trace, values are symbolic and only the shapes are checked.
 """
 
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Callable, Iterable, Sequence
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
 
 import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import noise_covariance, sym
-from torchsde_lti.core.threads import intra_op_threads, one_thread_backward
-from torchsde_lti.core.thresholds import PYTHON_CHECK_MAX_VALUES
+
+_C = TypeVar("_C", bound=Callable[..., None])
 
 
 def tracing() -> bool:
@@ -30,6 +34,17 @@ def checks_values(validate_args: bool) -> bool:
     return validate_args and not tracing()
 
 
+def _value_check(check: _C) -> _C:
+    """A value check that reads its tensors to the host: skipped while :func:`tracing`."""
+
+    @functools.wraps(check)
+    def gated(*args: object, **kwargs: object) -> None:
+        if not tracing():
+            check(*args, **kwargs)
+
+    return gated  # type: ignore[return-value]
+
+
 def shape_str(x: Tensor) -> str:
     return "(" + ", ".join(str(d) for d in x.shape) + ")"
 
@@ -41,25 +56,17 @@ def as_float_tensor(
     if isinstance(x, Tensor):
         if x.is_complex() or not (x.is_floating_point() or dtype is not None):
             raise TypeError(f"{name} must be a real floating tensor, got dtype {x.dtype}")
-        if dtype is not None and x.dtype != dtype:
-            x = x.to(dtype)
-        if device is not None and x.device != device:
-            x = x.to(device)
-        return x
+        return x.to(dtype=dtype or x.dtype, device=device or x.device)
     try:
         t = torch.as_tensor(x, dtype=dtype, device=device)
     except (TypeError, ValueError, RuntimeError) as err:
         raise TypeError(f"{name} must be a tensor or array-like of numbers, got {type(x).__name__}") from err
-    if not t.is_floating_point():
-        t = t.to(torch.get_default_dtype())
-    return t
+    return t if t.is_floating_point() else t.to(torch.get_default_dtype())
 
 
 def common_float_dtype(*tensors: Tensor | None) -> torch.dtype:
     """The promoted floating dtype of the given tensors (the default dtype if none is floating)."""
     dtypes = {t.dtype for t in tensors if t is not None and t.is_floating_point()}
-    if len(dtypes) == 1:
-        return dtypes.pop()
     return functools.reduce(torch.promote_types, dtypes) if dtypes else torch.get_default_dtype()
 
 
@@ -92,31 +99,34 @@ def check_vector(x: Tensor, name: str, size: int) -> None:
         raise ValueError(f"{name} must have shape (..., {size}), got shape {shape_str(x)}")
 
 
+@_value_check
 def check_finite(x: Tensor, name: str) -> None:
     """ValueError if ``x`` holds NaN or ±Inf. Tested on the sum first (non-finite if any entry
     is; one reduction), elementwise only where the sum is not finite (or overflowed)."""
-    if not tracing() and not bool(x.sum().isfinite()) and not bool(torch.isfinite(x).all()):
+    if not bool(x.sum().isfinite()) and not bool(torch.isfinite(x).all()):
         raise ValueError(f"{name} contains NaN or Inf (shape {shape_str(x)})")
 
 
+@_value_check
 def check_no_inf(x: Tensor, name: str) -> None:
     """ValueError if ``x`` holds ±Inf (NaN allowed: a missing observation)."""
-    if not tracing() and bool(torch.isinf(x).any()):
+    if bool(torch.isinf(x).any()):
         raise ValueError(f"{name} contains Inf (shape {shape_str(x)}); mark missing values with NaN or mask")
 
 
+@_value_check
 def check_nonnegative(x: Tensor, name: str) -> None:
     """ValueError if ``x`` holds NaN, ±Inf or a negative value."""
     check_finite(x, name)
-    if not tracing() and bool((x < 0).any()):
+    if x.numel() and bool((x < 0).any()):
         raise ValueError(f"{name} must be non-negative, got min {float(x.min()):.3g} (shape {shape_str(x)})")
 
 
+@_value_check
 def check_hurwitz(F: Tensor, name: str = "F") -> None:
     """ValueError unless every eigenvalue of ``F`` (..., n, n) has a negative real part
-    (naming the rightmost one; NaN/Inf in F named as such). One synchronisation; no-op
-    while tracing."""
-    if tracing() or F.numel() == 0:
+    (naming the rightmost one; NaN/Inf in F named as such). One synchronisation."""
+    if F.numel() == 0:
         return
     with torch.no_grad():
         rightmost = torch.linalg.eigvals(torch.nan_to_num(F)).real.amax(dim=-1)  # LAPACK crashes on NaN
@@ -134,73 +144,24 @@ def psd_tolerance(x: Tensor) -> float:
     return 100.0 * x.shape[-1] * torch.finfo(x.dtype).eps
 
 
-def _lapack_dtype(x: Tensor) -> Tensor:
-    """x in float32 if it is a half-precision float (LAPACK has no float16/bfloat16 kernels)."""
-    return x if x.dtype in (torch.float32, torch.float64) else x.to(torch.float32)
-
-
 def _psd_test(x: Tensor, tol: float | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """(passes, asym, scale) without synchronising: ``passes`` (0-dim bool): x is symmetric
-    within tol and x + tol·scale·I has a Cholesky factor; asym (...): relative asymmetry;
-    scale (...): max |x|. ``tol``: relative tolerance, :func:`psd_tolerance` by default."""
-    scale = x.abs().amax(dim=(-2, -1)).clamp_min(torch.finfo(x.dtype).tiny)
+    """(passes, asym, scale) without synchronising, for x (..., k, k) scaled by its largest
+    entry, ``y = x / max|x|`` (a zero x: y = 0): ``passes`` (0-dim bool) — y symmetric within
+    tol and ``y + tol I`` has a Cholesky factor; asym (...): max |y − yᵀ|; scale (...): max |x|.
+    ``tol``: relative tolerance, :func:`psd_tolerance` by default."""
     tol = psd_tolerance(x) if tol is None else tol
-    k = x.shape[-1]
-    if k <= 2:  # the same test in closed form: the pivots of the shifted Cholesky factor
-        shift = tol * scale
-        a = x[..., 0, 0] + shift
-        if k == 1:
-            return (a > 0).all(), torch.zeros_like(scale), scale
-        b, c = x[..., 1, 0], x[..., 1, 1] + shift
-        asym = (x[..., 0, 1] - b).abs() / scale
-        pivot = c - b * (b / a)  # second pivot squared (PSD x: b²/a ≤ c, no overflow)
-        return ~((asym > tol) | ~(a > 0) | ~(pivot > 0)).any(), asym, scale
-    asym = (x - x.mT).abs().amax(dim=(-2, -1)) / scale
-    shifted = x + (tol * scale)[..., None, None] * torch.eye(k, dtype=x.dtype, device=x.device)
-    passes = ~((asym > tol) | (torch.linalg.cholesky_ex(_lapack_dtype(shifted)).info != 0)).any()
-    return passes, asym, scale
+    scale = x.abs().amax(dim=(-2, -1))
+    y = x / torch.where(scale > 0, scale, 1.0)[..., None, None]
+    asym = (y - y.mT).abs().amax(dim=(-2, -1))
+    shifted = y + tol * torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
+    lapack = shifted if x.dtype in (torch.float32, torch.float64) else shifted.float()  # (no half-precision LAPACK)
+    return ~((asym > tol) | (torch.linalg.cholesky_ex(lapack).info != 0)).any(), asym, scale
 
 
-def cholesky_succeeds(m: Sequence[float], k: int, shift: float) -> bool:
-    """Whether the row-major k × k matrix ``m`` (its lower triangle) plus ``shift`` I has a
-    Cholesky factor: every pivot positive (Python floats; for a few small matrices)."""
-    low = [0.0] * (k * k)
-    for j in range(k):
-        jk = j * k
-        for t in range(j):
-            tk, v = t * k, m[jk + t]
-            for u in range(t):
-                v -= low[jk + u] * low[tk + u]
-            low[jk + t] = v / low[tk + t]
-        d = m[jk + j] + shift
-        for u in range(j):
-            d -= low[jk + u] * low[jk + u]
-        if not d > 0:
-            return False
-        low[jk + j] = math.sqrt(d)
-    return True
-
-
-def _psd_values(values: Sequence[float], k: int, tol: float) -> bool:
-    """:func:`_psd_test`'s decision on row-major k × k matrices given as Python floats."""
-    size = k * k
-    for start in range(0, len(values), size):
-        m = values[start : start + size]
-        limit = tol * max(max(m), -min(m), 1e-300)
-        for i in range(1, k):
-            for j in range(i):
-                if abs(m[i * k + j] - m[j * k + i]) > limit:
-                    return False
-        if not cholesky_succeeds(m, k, limit):
-            return False
-    return True
-
-
-def check_symmetric_psd(x: Tensor, name: str) -> None:
-    """Check ``x`` (..., k, k) is symmetric positive semi-definite up to rounding."""
-    check_matrix(x, name, square=True)
+@_value_check
+def _check_psd_values(x: Tensor, name: str) -> None:
     check_finite(x, name)
-    if tracing() or x.numel() == 0:
+    if x.numel() == 0:
         return
     with torch.no_grad():
         passes, asym, scale = _psd_test(x)
@@ -210,12 +171,56 @@ def check_symmetric_psd(x: Tensor, name: str) -> None:
             raise ValueError(
                 f"{name} must be symmetric, got relative asymmetry {float(asym.max()):.3g} (shape {shape_str(x)})"
             )
-        eig_min = torch.linalg.eigvalsh(_lapack_dtype(sym(x))).amin(dim=-1) / scale
-        if bool((eig_min < -psd_tolerance(x)).any()):
-            raise ValueError(
-                f"{name} must be positive semi-definite, got smallest eigenvalue "
-                f"{float(eig_min.min()):.3g} relative to its largest entry (shape {shape_str(x)})"
-            )
+        lapack = x if x.dtype in (torch.float32, torch.float64) else x.float()
+        eig_min = torch.linalg.eigvalsh(sym(lapack)).amin(dim=-1) / scale.clamp_min(torch.finfo(x.dtype).tiny)
+        raise ValueError(
+            f"{name} must be positive semi-definite, got smallest eigenvalue "
+            f"{float(eig_min.min()):.3g} relative to its largest entry (shape {shape_str(x)})"
+        )
+
+
+def check_symmetric_psd(x: Tensor, name: str) -> None:
+    """Check ``x`` (..., k, k) is square (always) and symmetric positive semi-definite up to
+    :func:`psd_tolerance` of its largest entry (values)."""
+    check_matrix(x, name, square=True)
+    _check_psd_values(x, name)
+
+
+class Constraint(NamedTuple):
+    """A declared value constraint: ``holds(x)`` a 0-dim bool tensor (no synchronisation),
+    ``check(x, name)`` the detailed check that raises the ValueError naming ``name``."""
+
+    holds: Callable[[Tensor], Tensor]
+    check: Callable[[Tensor, str], None]
+
+
+finite = Constraint(lambda x: x.sum().isfinite(), check_finite)
+nonnegative = Constraint(lambda x: x.sum().isfinite() & (x.amin() >= 0 if x.numel() else True), check_nonnegative)
+symmetric_psd = Constraint(lambda x: x.sum().isfinite() & _psd_test(x)[0], _check_psd_values)
+
+#: The value constraints of an SDE's arguments (every core function that takes them).
+SDE_CONSTRAINTS: dict[str, Constraint] = {
+    "F": finite,
+    "L": finite,
+    "Qc": symmetric_psd,
+    "B": finite,
+    "dt": nonnegative,
+}
+
+
+@_value_check
+def check_constraints(named: Sequence[tuple[str, Tensor | None]], constraints: dict[str, Constraint]) -> None:
+    """ValueError naming the first argument that breaks its declared constraint
+    (``constraints[name]``); one synchronisation when all hold. None arguments are skipped."""
+    present = [(name, x) for name, x in named if x is not None]
+    if not present:
+        return
+    with torch.no_grad():
+        holds = torch.stack([torch.as_tensor(constraints[name].holds(x), device=x.device) for name, x in present])
+        if bool(holds.all()):
+            return
+    for name, x in present:  # (a finite sum that overflowed passes these)
+        constraints[name].check(x, name)
 
 
 def broadcast_shapes(*shapes: Sequence[int]) -> torch.Size:
@@ -254,76 +259,15 @@ def parse_learn(learn: Iterable[str] | str, allowed: Sequence[str]) -> tuple[str
     return names
 
 
-def host_values(tensors: Sequence[Tensor]) -> list[list[float]]:
-    """The values of ``tensors`` (row-major Python floats, one list per tensor), read to the host
-    in one transfer (for the value checks of small calls)."""
-    with torch.no_grad():
-        parts = [t.reshape(-1) for t in tensors]
-        flat: list[float] = (torch.cat(parts) if len(parts) > 1 else parts[0]).tolist() if parts else []
-    out, offset = [], 0
-    for part in parts:
-        out.append(flat[offset : offset + part.numel()])
-        offset += part.numel()
-    return out
-
-
-def _values_valid(host: dict[str, list[float]], Qc: Tensor | None) -> bool:
-    """The value checks of :func:`sde_inputs` on Python floats: all finite, dt ≥ 0, Qc
-    symmetric PSD (the test of :func:`_psd_test`)."""
-    if not all(math.isfinite(sum(part)) for part in host.values()):  # (an overflowing sum: the detailed checks)
-        return False
-    if host.get("dt") and min(host["dt"]) < 0:
-        return False
-    return Qc is None or not host["Qc"] or _psd_values(host["Qc"], Qc.shape[-1], psd_tolerance(Qc))
-
-
-def _reductions_valid(checked: Sequence[Tensor], dt: Tensor | None, Qc: Tensor | None) -> bool:
-    """A sufficient test for the value checks of :func:`sde_inputs` from a few reductions read in
-    one transfer: every sum of ``checked`` finite (a sum is non-finite if any entry is), min dt ≥ 0,
-    max |Qc − Qcᵀ| ≤ tol · min_i max |Qc_i| and a Cholesky factor of every Qc (positive definite,
-    so :func:`_psd_test` passes). False (NaN/Inf, a negative dt, an asymmetric or semi-definite
-    Qc, an overflowing sum) leaves the decision to the detailed checks."""
-    parts = [t.sum() for t in checked]
-    if dt is not None and dt.numel():
-        parts.append(dt.amin())
-    if Qc is not None and Qc.numel():
-        asym, scale = (Qc - Qc.mT).abs().amax(), Qc.abs().amax((-2, -1)).amin()
-        info = torch.linalg.cholesky_ex(_lapack_dtype(Qc)).info.amax().to(Qc.dtype)
-        *v, asym_v, scale_v, info_v = torch.stack([*parts, asym, scale, info]).tolist()
-        if not (asym_v <= psd_tolerance(Qc) * scale_v and info_v == 0):
-            return False
-    else:
-        v = torch.stack(parts).tolist()
-    return all(math.isfinite(x) for x in v) and (dt is None or not dt.numel() or v[-1] >= 0)
-
-
 class SDEInputs(NamedTuple):
-    """Validated SDE arguments: F (..., n, n), W = L Qc Lᵀ (..., n, n) or None, B (..., n, p)
-    or None, dt (...) or None, and the broadcast batch shape of all of them.
-
-    ``host``: for a small call (at most :data:`PYTHON_CHECK_MAX_VALUES` values, not traced)
-    the values of F, L, Qc, B and dt (row-major Python floats, read in the call's one
-    transfer) by name; None otherwise. Replace it (``_replace``) when a field changes.
-    ``finish``: to be applied to the call's results (its backward then runs with the
-    threads of :func:`~torchsde_lti.core.threads.one_thread_backward`)."""
+    """Checked SDE arguments: F (..., n, n), W = L Qc Lᵀ (..., n, n) or None, B (..., n, p)
+    or None, dt (...) or None, and the broadcast batch shape of all of them."""
 
     F: Tensor
     W: Tensor | None
     B: Tensor | None
     dt: Tensor | None
     batch: torch.Size
-    host: dict[str, list[float]] | None = None
-    finish: Callable[..., tuple[Tensor | None, ...]] = lambda *results: results
-
-    @property
-    def work(self) -> int:
-        """Matrix entries the call produces, N n (n + p): the size that sets its threads."""
-        return _entries(self.batch, self.F.shape[-1], self.B)
-
-
-def _entries(batch: Sequence[int], n: int, B: Tensor | None) -> int:
-    """N n (n + p) for a batch of N = prod(batch) elements (symbolic-safe)."""
-    return math.prod(batch) * n * (n + (0 if B is None else B.shape[-1]))
 
 
 def sde_inputs(
@@ -335,75 +279,36 @@ def sde_inputs(
     *,
     validate_args: bool = True,
 ) -> SDEInputs:
-    """Validate and convert SDE arguments (common float dtype, F's device); W = L Qc Lᵀ.
+    """Convert SDE arguments (their common float dtype, F's device) and check them: shapes
+    always, values against :data:`SDE_CONSTRAINTS` with ``validate_args``; W = L Qc Lᵀ.
 
     Raises ValueError naming the argument and the shapes for non-square F, mismatched L,
     Qc, B, and (with ``validate_args``) for non-PSD Qc, NaN/Inf values and negative dt.
     """
     F = as_float_tensor(F, "F")
-    dtype = common_float_dtype(
-        F,
-        L if isinstance(L, Tensor) else None,
-        Qc if isinstance(Qc, Tensor) else None,
-        B if isinstance(B, Tensor) else None,
-    )
-    device = F.device
-    if F.dtype != dtype:
-        F = F.to(dtype)
+    dtype = common_float_dtype(*(x if isinstance(x, Tensor) else None for x in (F, L, Qc, B)))
+    F, device = F.to(dtype), F.device
     check_matrix(F, "F", square=True)
     n = F.shape[-1]
     if n == 0:
         raise ValueError(f"F must have a state dimension n >= 1, got shape {shape_str(F)}")
-    named: list[tuple[str, torch.Size]] = [("F", F.shape[:-2])]
-    checked: list[tuple[str, Tensor]] = [("F", F)]  # finiteness, checked together below
-    if L is not None or Qc is not None:
-        if L is None or Qc is None:
-            raise ValueError("L and Qc must be given together")
-        L = as_float_tensor(L, "L", dtype, device)
-        Qc = as_float_tensor(Qc, "Qc", dtype, device)
+    if (L is None) != (Qc is None):
+        raise ValueError("L and Qc must be given together")
+    if L is not None and Qc is not None:
+        L, Qc = as_float_tensor(L, "L", dtype, device), as_float_tensor(Qc, "Qc", dtype, device)
         check_matrix(L, "L", rows=n)
         s = L.shape[-1]
         if Qc.dim() < 2 or Qc.shape[-2:] != (s, s):
             raise ValueError(f"Qc must have shape (..., {s}, {s}) to match L {shape_str(L)}, got shape {shape_str(Qc)}")
-        checked += [("L", L), ("Qc", Qc)]
-        named += [("L", L.shape[:-2]), ("Qc", Qc.shape[:-2])]
     if B is not None:
         B = as_float_tensor(B, "B", dtype, device)
         check_matrix(B, "B", rows=n)
         if B.shape[-1] == 0:
             raise ValueError(f"B must have at least one column (no inputs: pass B=None), got shape {shape_str(B)}")
-        checked.append(("B", B))
-        named.append(("B", B.shape[:-2]))
-    dt_t = None
-    if dt is not None:
-        dt_t = as_float_tensor(dt, "dt", dtype, device)
-        checked.append(("dt", dt_t))
-        named.append(("dt", dt_t.shape))
-    batch = broadcast_batch(named)
-    work = _entries(batch, n, B)
-    (F_out, L, Qc, B, dt_t), finish = one_thread_backward(work, (F, L, Qc, B, dt_t))  # (the checks: same values)
-    assert F_out is not None
-    F = F_out
-    W = None
-    if L is not None and Qc is not None:
-        with intra_op_threads(work):
-            W = noise_covariance(L, Qc)
-    values = checks_values(validate_args)
-    total = sum(t.numel() for _, t in checked)
-    host: dict[str, list[float]] | None = None
-    if not tracing() and total <= PYTHON_CHECK_MAX_VALUES:  # one transfer: checks and decisions on Python floats
-        host = dict(zip((name for name, _ in checked), host_values([t for _, t in checked])))
-        valid = not values or _values_valid(host, Qc)
-    elif values:
-        with torch.no_grad(), intra_op_threads(total):
-            valid = _reductions_valid([t for _, t in checked], dt_t, Qc)
-    else:
-        valid = True
-    if not valid:  # the detailed checks name the culprit: finiteness, then dt ≥ 0, then Qc PSD
-        for name, t in checked:
-            check_finite(t, name)
-        if dt_t is not None:
-            check_nonnegative(dt_t, "dt")
-        if Qc is not None:
-            check_symmetric_psd(Qc, "Qc")
-    return SDEInputs(F, W, B, dt_t, batch, host, finish)
+    dt_t = None if dt is None else as_float_tensor(dt, "dt", dtype, device)
+    named = [("F", F), ("L", L), ("Qc", Qc), ("B", B), ("dt", dt_t)]
+    batch = broadcast_batch([(k, x.shape if k == "dt" else x.shape[:-2]) for k, x in named if x is not None])
+    if checks_values(validate_args):
+        check_constraints(named, SDE_CONSTRAINTS)
+    W = None if L is None or Qc is None else noise_covariance(L, Qc)
+    return SDEInputs(F, W, B, dt_t, batch)

@@ -10,6 +10,8 @@ No Lightning, no Hydra: torch, numpy and the package's data layer only.
                     per-vessel sums and the paired vessel bootstrap (``evaluate_filter``)
     baseline.py     the constant-velocity baseline (``cv_filter``) and its grid oracle (``tune_cv``)
     selection.py    model selection on validation summaries (``select_model``, ``validation_selection``)
+    recovery.py     learned values of a filter and their errors against a known true model
+                    (``parameter_errors``, ``parameter_table``; imports no other module here)
 
 The modules import downwards only (predictive ← calibration ← scores ← baseline, selection).
 
@@ -30,9 +32,22 @@ from torchsde_lti.evaluation.predictive import (
     Model,
     PredictiveBatch,
     frozen_copy,
+    masked_gaussian_nll,
     mixture_log_prob,
     one_step_predictive,
     predictive_batches,
+)
+from torchsde_lti.evaluation.recovery import (
+    filter_errors,
+    filter_values,
+    flat_values,
+    identifiability_note,
+    learned_values,
+    observed_autocovariance,
+    parameter_errors,
+    parameter_table,
+    raw_f_identifiable,
+    same_model,
 )
 from torchsde_lti.evaluation.scores import (
     HORIZONS,
@@ -49,27 +64,38 @@ from torchsde_lti.evaluation.scores import (
 from torchsde_lti.evaluation.selection import ModelSelection, select_model, validation_selection
 
 __all__ = [
-    "HORIZONS",
-    "NOMINAL_2SIGMA",
     "EvalRecords",
+    "HORIZONS",
     "Model",
     "ModelSelection",
+    "NOMINAL_2SIGMA",
     "PredictiveBatch",
     "calibrate_filter",
     "cv_filter",
     "evaluate_filter",
     "evaluate_models",
+    "filter_errors",
+    "filter_values",
     "fit_cov_scale",
     "fit_mode_scales",
+    "flat_values",
     "forecast_pairs",
     "frozen_copy",
     "hpd_inside",
     "hpd_level",
+    "identifiability_note",
+    "learned_values",
+    "masked_gaussian_nll",
     "mixture_log_prob",
     "moving_reports",
+    "observed_autocovariance",
     "one_step_predictive",
     "paired_bootstrap",
+    "parameter_errors",
+    "parameter_table",
     "predictive_batches",
+    "raw_f_identifiable",
+    "same_model",
     "scale_vector",
     "select_model",
     "summary",

@@ -20,11 +20,13 @@ Shapes and missing-data rules: :mod:`torchsde_lti.filters.inputs`.
   (:func:`choose_algorithm`); all on one batch-last layout (``layout``);
 - :func:`rts_smoother` (``smoothers``), ``algorithm="sequential"`` or ``"scan"`` (or ``"auto"``);
 - :func:`imm_filter` (``imm``): interacting multiple models over a bank of per-mode matrices;
+- :func:`imm_smoother` (``imm_smoother``): Kim's (1994) fixed-interval smoother over an IMM result;
 - :func:`kalman_step`, :func:`imm_step` (``online``): one report per live track, the loops' own steps.
 """
 
 from torchsde_lti.filters.imm import IMMResult, imm_filter
 from torchsde_lti.filters.imm_online import IMMState, IMMStep, imm_predict_state, imm_step
+from torchsde_lti.filters.imm_smoother import IMMSmootherResult, imm_smoother
 from torchsde_lti.filters.kalman import ALGORITHMS, choose_algorithm, kalman_filter
 from torchsde_lti.filters.online import KalmanState, KalmanStep, kalman_predict, kalman_step
 from torchsde_lti.filters.results import FilterResult, SmootherResult
@@ -35,6 +37,7 @@ __all__ = [
     "ALGORITHMS",
     "FilterResult",
     "IMMResult",
+    "IMMSmootherResult",
     "IMMState",
     "IMMStep",
     "KalmanState",
@@ -45,6 +48,7 @@ __all__ = [
     "choose_algorithm",
     "imm_filter",
     "imm_predict_state",
+    "imm_smoother",
     "imm_step",
     "kalman_predict",
     "kalman_step",

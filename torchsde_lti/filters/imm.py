@@ -79,6 +79,15 @@ class IMMResult(NamedTuple):
     mode_innovation: (..., T, M, m) y_k − ŷ_j (0 in unobserved components).
     mode_innovation_cov: (..., T, M, m, m) S_j = H_j P⁻_j H_jᵀ + R_j (all components).
     observed: (..., T, m) bool, the components that entered the update.
+    transition: (..., T, M, n, n) the A_j of each step (a broadcast view), kept for smoothing
+        (:func:`~torchsde_lti.filters.imm_smoother.imm_smoother`).
+    process_noise: (..., T, M, n, n) the Q_j of each step (a broadcast view), kept for smoothing.
+    mode_transition: (..., T, M, M) the chain's Pi of each step (a broadcast view), kept for
+        smoothing.
+    observation_matrix: (..., T, M, m, n) the H_j of each step; observation_noise:
+        (..., T, M, m, m) the R_j (broadcast views), kept for smoothing. (These five default to
+        None, so that a result built from the first fields alone, e.g. by code or a saved
+        program of an earlier version, still constructs.)
     """
 
     log_likelihood: Tensor
@@ -96,6 +105,11 @@ class IMMResult(NamedTuple):
     mode_innovation: Tensor
     mode_innovation_cov: Tensor
     observed: Tensor
+    transition: Tensor | None = None
+    process_noise: Tensor | None = None
+    mode_transition: Tensor | None = None
+    observation_matrix: Tensor | None = None
+    observation_noise: Tensor | None = None
 
 
 class IMMPrediction(NamedTuple):
@@ -339,7 +353,7 @@ def imm_filter(
             k: torch.stack(torch.broadcast_tensors(*v), dim=-1 - _EVENT_NDIM[k])
             for k, v in zip(IMMCycle._fields, zip(*steps))
         }
-    return _imm_result(stk, T, M, n, m)
+    return _imm_result(stk, T, M, n, m, (A4, Q4, Pi3, H4, R4))
 
 
 #: The event dims of each field of :class:`IMMCycle` (the T axis goes before them).
@@ -389,9 +403,13 @@ def _imm_scan(
     return {**stk, "observed": ~torch.isnan(y)}
 
 
-def _imm_result(stk: dict[str, Tensor], T: int, M: int, n: int, m: int) -> IMMResult:
+def _imm_result(
+    stk: dict[str, Tensor], T: int, M: int, n: int, m: int, model: tuple[Tensor, Tensor, Tensor, Tensor, Tensor]
+) -> IMMResult:
     """The :class:`IMMResult` of the per-step fields of :class:`IMMCycle` ``stk`` (the T axis
-    before each one's event dims)."""
+    before each one's event dims) and of the model it filtered with, ``model`` = (A, Q
+    (..., T or 1, M or 1, n, n), Pi (..., T or 1, M, M), H (..., T or 1, M or 1, m, n),
+    R (..., T or 1, M or 1, m, m))."""
     batch = torch.broadcast_shapes(*(v.shape[: v.dim() - 1 - _EVENT_NDIM[k]] for k, v in stk.items()))
     mu = stk["mode_prob"].expand(*batch, T, M)
     cc = stk["pred_mode_prob"].expand(*batch, T, M)
@@ -402,6 +420,7 @@ def _imm_result(stk: dict[str, Tensor], T: int, M: int, n: int, m: int) -> IMMRe
     x, P = combine(mu, mm, mc)
     xp, Pp = combine(cc, pm, pc)
     step_ll = stk["log_likelihood"].expand(*batch, T)
+    A, Q, Pi, H, R = model
     return IMMResult(
         log_likelihood=step_ll.sum(-1),
         step_log_likelihood=step_ll,
@@ -418,6 +437,11 @@ def _imm_result(stk: dict[str, Tensor], T: int, M: int, n: int, m: int) -> IMMRe
         mode_innovation=stk["mode_innovation"].expand(*batch, T, M, m),
         mode_innovation_cov=stk["mode_innovation_cov"].expand(*batch, T, M, m, m),
         observed=stk["observed"].expand(*batch, T, m),
+        transition=A.expand(*batch, T, M, n, n),
+        process_noise=Q.expand(*batch, T, M, n, n),
+        mode_transition=Pi.expand(*batch, T, M, M),
+        observation_matrix=H.expand(*batch, T, M, m, n),
+        observation_noise=R.expand(*batch, T, M, m, m),
     )
 
 

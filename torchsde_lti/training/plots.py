@@ -1,7 +1,8 @@
 """The figures of a run, drawn by :func:`plot_run` after training (matplotlib, Agg):
 
 - ``loss.png``: train/val NLL per epoch; ``params.png``: each learned value per epoch (and the
-  true one, when the learner and the truth are the same kind of model);
+  true one, when the learner and the truth are the same kind of model), both read from the CSV
+  logger's ``metrics.csv`` (``train/nll``, ``val/nll``, ``param/<name>``: no CSV logger, no figure);
 - ``map.png`` (2-D or 3-D observations): a few validation tracks in their own east/north frame
   (metres for real tracks), the reports, the filtered and smoothed paths and the filtered 2σ
   ellipses of the position (the true path, for simulated data); the tracks shown are those that
@@ -17,6 +18,7 @@ All figures come from the first validation batch: the filter's own validation da
 
 from __future__ import annotations
 
+import csv
 import math
 from pathlib import Path
 from typing import Any
@@ -24,12 +26,12 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchsde_lti.evaluation import flat_values, learned_values, same_model
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
-from torchsde_lti.training.metrics import flat_values, learned_values, same_model
 from torchsde_lti.training.module import KalmanFilterModule
 
-__all__ = ["plot_run"]
+__all__ = ["epoch_rows", "plot_run"]
 
 #: Tracks drawn on the map (and in the mode plot).
 MAP_TRACKS = 4
@@ -64,10 +66,22 @@ def _save(fig: Any, path: Path) -> Path:
     return path
 
 
+def epoch_rows(metrics_csv: Path) -> list[dict[str, float]]:
+    """The epoch-level values of a CSV logger's ``metrics.csv``, one dict per epoch (Lightning
+    writes an epoch's training and validation values in rows of their own), in epoch order."""
+    epochs: dict[int, dict[str, float]] = {}
+    with Path(metrics_csv).open(newline="") as f:
+        for row in csv.DictReader(f):
+            if row.get("epoch"):
+                values = {k: float(v) for k, v in row.items() if v and k not in ("epoch", "step")}
+                epochs.setdefault(int(float(row["epoch"])), {}).update(values)
+    return [{"epoch": float(e), **epochs[e]} for e in sorted(epochs)]
+
+
 def _history_plots(
     out_dir: Path, module: KalmanFilterModule, history: list[dict[str, float]], truth: Any
 ) -> list[Path]:
-    """loss.png and params.png from the per-epoch history."""
+    """loss.png and params.png from the per-epoch values (:func:`epoch_rows`)."""
     plt = _pyplot()
     epochs = [r["epoch"] for r in history]
     fig, ax = plt.subplots(figsize=(6, 4))
@@ -77,7 +91,7 @@ def _history_plots(
     ax.set_ylabel("NLL per observed scalar")
     ax.legend()
     paths = [_save(fig, out_dir / "loss.png")]
-    names = [k for k in history[-1] if k not in {"epoch", "train/nll", "val/nll", "val/param_error"}]
+    names = sorted({k.removeprefix("param/") for r in history for k in r if k.startswith("param/")})
     if not names:
         return paths
     true: dict[str, float] = {}
@@ -89,7 +103,7 @@ def _history_plots(
     rows = math.ceil(len(names) / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False)
     for ax, name in zip(axes.flat, names):
-        ax.plot(epochs, [r.get(name, math.nan) for r in history], label="learned")
+        ax.plot(epochs, [r.get(f"param/{name}", math.nan) for r in history], label="learned")
         if name in true:
             ax.axhline(true[name], color="k", ls="--", label="true")
         ax.set_title(name)
@@ -304,7 +318,7 @@ def _forecast_plot(out_dir: Path, kf: Any, batch: dict[str, Any], metres: bool) 
 
 
 def plot_run(
-    out_dir: Path, module: KalmanFilterModule, datamodule: Any, history: list[dict[str, float]], truth: Any
+    out_dir: Path, module: KalmanFilterModule, datamodule: Any, truth: Any, metrics_csv: Path | None = None
 ) -> list[Path]:
     """Draw the run's figures (module docstring) into ``out_dir``; returns their paths.
 
@@ -312,9 +326,10 @@ def plot_run(
         out_dir: the run directory.
         module: the trained module (its filter ``module.kf``).
         datamodule: the run's data (its first validation batch is drawn).
-        history: ParameterHistory's rows, one per epoch ([] draws no loss / parameter figure).
         truth: the simulated truth ({"sde", "R", "H"}) or None.
+        metrics_csv: the CSV logger's ``metrics.csv`` (None or missing: no loss / parameter figure).
     """
+    history = epoch_rows(metrics_csv) if metrics_csv is not None and Path(metrics_csv).is_file() else []
     paths = _history_plots(out_dir, module, history, truth) if history else []
     batch = _validation_batch(module, datamodule)
     metres = not truth  # real tracks (no simulated truth) are in metres and seconds
