@@ -248,7 +248,7 @@ def _export(args: argparse.Namespace) -> int:
         return 0
     B, T = Dim("B", max=1_000_000), Dim("T", max=1_000_000)
     program = torch.export.export(
-        tl.DeployedFilter(kf, runtime="eager"), example, dynamic_shapes={"y": {0: B, 1: T}, "dt": {0: B, 1: T}}
+        tl.DeployedFilter(kf), example, dynamic_shapes={"y": {0: B, 1: T}, "dt": {0: B, 1: T}}
     )
     torch.export.save(program, args.output)
     print(f"torch.export program (dynamic batch and length) -> {args.output}", file=sys.stderr)
