@@ -11,8 +11,8 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from torchsde_lti.evaluation.figures import _ellipse, _moving_tracks
 from torchsde_lti.training import train
-from torchsde_lti.training.plots import _ellipse, _moving_tracks
 from torchsde_lti.training.report import format_table, markdown_table, score_rows
 
 CONF = Path(__file__).resolve().parents[2] / "conf"

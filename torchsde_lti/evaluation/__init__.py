@@ -10,6 +10,8 @@ No Lightning, no Hydra: torch, numpy and the package's data layer only.
                     per-vessel sums and the paired vessel bootstrap (``evaluate_filter``)
     baseline.py     the constant-velocity baseline (``cv_filter``) and its grid oracle (``tune_cv``)
     selection.py    model selection on validation summaries (``select_model``, ``validation_selection``)
+    figures.py      figures of a filter on a batch of tracks: a map with 2σ ellipses, mode
+                    probabilities, forecast error against lead time (``track_figures``; matplotlib)
     recovery.py     learned values of a filter and their errors against a known true model
                     (``parameter_errors``, ``parameter_table``; imports no other module here)
 
@@ -28,6 +30,7 @@ from torchsde_lti.evaluation.calibration import (
     hpd_level,
     scale_vector,
 )
+from torchsde_lti.evaluation.figures import track_figures
 from torchsde_lti.evaluation.predictive import (
     Model,
     PredictiveBatch,
@@ -99,6 +102,7 @@ __all__ = [
     "scale_vector",
     "select_model",
     "summary",
+    "track_figures",
     "tune_cv",
     "validation_selection",
     "vessel_sums",
