@@ -117,10 +117,11 @@ def measure(row: str) -> dict[str, float]:
         from torch.export import Dim
 
         kf = kf_of("cv").eval()
-        state = kf.initial_state(1)
-        args = (state.mean.contiguous(), state.cov.contiguous(), torch.zeros(1, 2, dtype=F64), torch.ones(1, dtype=F64))
+        state = kf.initial_state(2)  # (an example batch of 2: export specialises a batch of 1)
+        args = (state.mean.contiguous(), state.cov.contiguous(), torch.zeros(2, 2, dtype=F64), torch.ones(2, dtype=F64))
         with torch.no_grad():
-            program = torch.export.export(tl.OnlineStep(kf), args, dynamic_shapes=({0: Dim("B")},) * 4)
+            program = torch.export.export(tl.OnlineStep(kf), args, dynamic_shapes=({0: Dim("B", max=1_000_000)},) * 4)
+        args = tuple(x[:1].contiguous() for x in args)
         with tempfile.TemporaryDirectory() as tmp:
             run = tl.load_package(tl.compile_package(program, Path(tmp) / "step.pt2"))
             y, dt = torch.randn(1, 2, generator=g, dtype=F64), torch.rand(1, generator=g, dtype=F64) + 0.1

@@ -537,7 +537,7 @@ def test_deploy_modules_warn_that_runtime_has_no_effect():
     kf = _cv_filter()
     args = _step_args(3, 0)
     with pytest.warns(DeprecationWarning, match="runtime has no effect"):
-        deployed = tl.DeployedFilter(kf)
+        deployed = tl.DeployedFilter(kf, runtime="eager")
     with pytest.warns(DeprecationWarning, match="runtime has no effect"):
         step = tl.OnlineStep(kf, runtime="inductor")
     assert not hasattr(deployed, "runtime") and not hasattr(step, "runtime")
@@ -550,8 +550,8 @@ def test_deploy_modules_warn_that_runtime_has_no_effect():
 
 
 def test_exported_program_forced_scan_and_a_report_batch_smaller_than_dt():
-    """algorithm="scan" forced (one scan over any T while exporting, no
-    chunks: the chunking specialised B and T) and, in the auto program, reports y (1, T, m) shared
+    """algorithm="scan" forced (one scan over any T while exporting, no chunks: the chunking
+    specialised B and T) and, in the auto program, reports y (1, T, m) shared
     by dt (B, T): the branches read the batch from the prior mean, which has the whole batch."""
     from torch.export import Dim
 
