@@ -40,7 +40,7 @@ exponential of an unbounded parameter); the initial mode probabilities by
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -139,6 +139,15 @@ class IMMFilter(ValidateArgs, nn.Module):
             used by :meth:`modes` and in reports (``"moored/k"``, ``"rate[moored->underway]"``).
     """
 
+    if TYPE_CHECKING:  # the modes' ModuleList, registered tensors and parametrised attributes
+        models: Sequence[LTISDE]
+        H: Tensor
+        R: Tensor
+        rates: Tensor
+        m0: Tensor
+        P0: Tensor
+        mode_prob0: Tensor
+
     def __init__(
         self,
         models: Sequence[LTISDE],
@@ -173,7 +182,7 @@ class IMMFilter(ValidateArgs, nn.Module):
             if not isinstance(sde, LTISDE):
                 raise TypeError(f"models[{i}] must be an LTISDE, got {type(sde).__name__}")
         names = parse_learn(learn, _LEARNABLE)
-        self.models = nn.ModuleList(models)
+        self.add_module("models", nn.ModuleList(models))
         self.unique_dt = bool(unique_dt)
         self.method = method
         M = len(models)
