@@ -4,6 +4,8 @@ No Lightning, no Hydra: torch, numpy and the package's data layer only.
 
     predictive.py   the one-step predictive (a Gaussian mixture over modes) of whole tracks,
                     batched; mixture densities; ``frozen_copy`` (float64, eval)
+    student_t.py    the Student-t predictive of a filter with noise=tl.StudentT: densities,
+                    HPD levels (F distribution), draws
     calibration.py  HPD levels of a predictive mixture, a covariance inflation fitted on
                     validation tracks (``calibrate_filter``)
     scores.py       NLL (all / moving / moored windows), 2σ coverage, forecast RMSE at horizons,
@@ -11,7 +13,7 @@ No Lightning, no Hydra: torch, numpy and the package's data layer only.
     baseline.py     the constant-velocity baseline (``cv_filter``) and its grid oracle (``tune_cv``)
     selection.py    model selection on validation summaries (``select_model``, ``validation_selection``)
 
-The modules import downwards only (predictive ← calibration ← scores ← baseline, selection).
+The modules import downwards only (student_t ← predictive ← calibration ← scores ← baseline, selection).
 
     recs = evaluate_filter(kf, tracks, cov_scale=calibrate_filter(kf, val_tracks))
     summary(recs)["nll_moving"]; paired_bootstrap(recs, evaluate_filter(cv_filter(q, r), tracks))
@@ -33,6 +35,7 @@ from torchsde_lti.evaluation.predictive import (
     mixture_log_prob,
     one_step_predictive,
     predictive_batches,
+    predictive_dof,
 )
 from torchsde_lti.evaluation.scores import (
     HORIZONS,
@@ -70,6 +73,7 @@ __all__ = [
     "one_step_predictive",
     "paired_bootstrap",
     "predictive_batches",
+    "predictive_dof",
     "scale_vector",
     "select_model",
     "summary",

@@ -34,6 +34,7 @@ from torch import Tensor
 from torchsde_lti.core.linalg import matvec, sym, to_batch_last
 from torchsde_lti.core.validation import broadcast_shapes
 from torchsde_lti.filters.inputs import LOG_2PI, mask_observation_model, whiten
+from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel
 from torchsde_lti.filters.results import serializable
 from torchsde_lti.filters.sequential import _joseph_step
 
@@ -108,6 +109,7 @@ def kalman_step(
     R: Tensor,
     c: Tensor | None = None,
     mask: Tensor | None = None,
+    noise: NoiseModel = GAUSSIAN,
 ) -> tuple[KalmanState, KalmanStep]:
     r"""One predict + update of every track: the step of the sequence filter's loop.
 
@@ -127,6 +129,9 @@ def kalman_step(
         c: optional (..., n) input term ``G u`` of the prediction (the feedthrough ``D u``,
             if any, is subtracted from y by the caller).
         mask: optional bool (...) (whole report) or (..., m); False = not observed.
+        noise: the observation-noise model (:mod:`~torchsde_lti.filters.noise`), as in the
+            sequence filter: a Student-t's update rescales the filtered scale matrix and its
+            log-likelihood is the Student-t predictive density.
 
     Returns:
         (:class:`KalmanState` after the update, :class:`KalmanStep`); batch dims broadcast.
@@ -149,9 +154,11 @@ def kalman_step(
     h_rows = to_batch_last(Hw.expand(*mb, m, n), 2).unbind(0)
     y_vals = to_batch_last(yw.expand(*mb, m), 1).unbind(0)
     pm, pc, mean, P, es, ss = _joseph_step(Ab, Qb, mean_b, Pb, c_b, h_rows, y_vals, None, None)
+    d = obs.to(y.dtype).sum(-1)
+    P = noise.update(P, es, ss, d)  # (the Gaussian's: P itself)
     e_t, s_t = torch.stack(es), torch.stack(ss)  # (m, *mb)
-    core = -0.5 * (torch.log(s_t) + e_t * e_t / s_t).sum(0)
-    ll = core - 0.5 * LOG_2PI * obs.to(y.dtype).sum(-1) - log_det
+    core = noise.log_likelihood_core(torch.log(s_t).sum(0), (e_t * e_t / s_t).sum(0), d)
+    ll = core - 0.5 * LOG_2PI * d - log_det
     pred_mean, filt_mean = pm.movedim(0, -1), mean.movedim(0, -1)
     pred_cov, filt_cov = pc.movedim((0, 1), (-2, -1)), P.movedim((0, 1), (-2, -1))
     innovation = (y0 - matvec(H, pred_mean)) * obs

@@ -30,6 +30,7 @@ from torch.nn.utils import parametrize
 from torchsde_lti.core.discretization import check_matrix_exp_noise
 from torchsde_lti.core.linalg import matvec
 from torchsde_lti.core.validation import as_float_tensor, broadcast_batch, check_matrix
+from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel
 from torchsde_lti.filters.online import KalmanState, KalmanStep, kalman_predict, kalman_step
 from torchsde_lti.nn._online import (
     Series,
@@ -45,6 +46,9 @@ from torchsde_lti.nn._validate import ValidateArgs, check_outcome, online_report
 from torchsde_lti.nn.parametrizations import PositiveDefinite
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
 
+if TYPE_CHECKING:
+    from torchsde_lti.nn.noise import NoiseOption
+
 __all__ = ["KalmanOnline", "OnlineModel", "model_batches", "state_batches"]
 
 
@@ -54,7 +58,8 @@ class OnlineModel(NamedTuple):
 
     mats: the SDE's matrices (F, L, Qc, B); H: (..., m, n); R: (..., m, m); D: (..., m, p) or
     None; series: the dt-independent part of the exact discretisation of one parameter set
-    (:func:`~torchsde_lti.core.discretization.discretization_series`), None for a parameter batch.
+    (:func:`~torchsde_lti.core.discretization.discretization_series`), None for a parameter batch;
+    noise: the observation-noise model (:mod:`~torchsde_lti.filters.noise`).
     """
 
     mats: SDEMatrices
@@ -62,6 +67,7 @@ class OnlineModel(NamedTuple):
     R: Tensor
     D: Tensor | None
     series: Series | None
+    noise: NoiseModel = GAUSSIAN
 
 
 class KalmanOnline(ValidateArgs, nn.Module):
@@ -85,6 +91,7 @@ class KalmanOnline(ValidateArgs, nn.Module):
         P0: Tensor | None
         prior_mode: str
         diffuse_variance: float
+        noise: NoiseOption
 
         def _check_u(
             self, u: Tensor, p: int, T: int, axis: str, dtype: torch.dtype, device: torch.device
@@ -202,7 +209,7 @@ class KalmanOnline(ValidateArgs, nn.Module):
             pred_mean, pred_cov, innovation (..., m), innovation_cov (..., m, m),
             log_likelihood (...), observed).
         """
-        mats, H, R, D, series = evaluated(self, self.online_model) if model is None else model
+        mats, H, R, D, series, noise = evaluated(self, self.online_model) if model is None else model
         state, dt, u = self._check_state(state, dt, u, mats)
         y, mask = online_report(y, mask, H, mats.F.dtype, mats.F.device)
         D = D if u is not None else None
@@ -221,15 +228,16 @@ class KalmanOnline(ValidateArgs, nn.Module):
         A, Q, c = self._step_model(mats, dt, u, series)
         if D is not None and u is not None:  # (D is None without u)
             y = y - matvec(D, u)
-        new, out = kalman_step(state, y, A, Q, H, R, c, mask)
+        new, out = kalman_step(state, y, A, Q, H, R, c, mask, noise)
         if validate:
-            update = (H, out.observed, new.cov)
+            update = noise.update_bound((H, out.observed, new.cov))
             check_outcome((out.log_likelihood, new.mean), (new.cov,), (A, Q, c), y, dt, mats.F, R, update)
         return new, out
 
     def predict(self, state: KalmanState, dt: Tensor | float, u: Tensor | None = None) -> KalmanState:
         """Prediction only, each track over its own dt (...): ``m⁻ = A m + G u``, ``P⁻ = A P Aᵀ + Q``."""
-        mats, _, _, _, series = evaluated(self, self.online_model)
+        model = evaluated(self, self.online_model)
+        mats, series = model.mats, model.series
         state, dt, u = self._check_state(state, dt, u, mats)
         check_batches(
             [
@@ -250,7 +258,8 @@ class KalmanOnline(ValidateArgs, nn.Module):
         structure: no value read). What :meth:`step` reads; pass it as ``model=`` to step with
         a snapshot (:class:`~torchsde_lti.OnlineStep`)."""
         mats = self.sde.matrices()
-        return OnlineModel(mats, self.H, self.R, self.D, model_series(*mats, index=self.sde.structural_nilpotency()))
+        series = model_series(*mats, index=self.sde.structural_nilpotency())
+        return OnlineModel(mats, self.H, self.R, self.D, series, self.noise.model())
 
     def _step_model(
         self, mats: SDEMatrices, dt: Tensor, u: Tensor | None, series: Series | None
