@@ -136,7 +136,7 @@ def ship(train_set: str, name: str, run: Path, slice_vessels: int = 12) -> Path:
     seeded slice of validation vessels (shipped with it)."""
     from omegaconf import OmegaConf
 
-    from torchsde_lti.training.metrics import filter_values, flat_values
+    from torchsde_lti.evaluation import filter_values, flat_values
 
     raw = OmegaConf.load(run / ".hydra" / "config.yaml")
     cfg = {k: OmegaConf.to_container(raw[k], resolve=True) for k in ("filter", "data")}  # not hydra's own nodes

@@ -89,6 +89,28 @@ def test_load_run_rebuilds_the_best_checkpoint_in_eval_mode(cv_run: Path) -> Non
     assert run.card["learned"]["R[0,0]"] == pytest.approx(float(R[0, 0]), rel=1e-12)
 
 
+def test_load_run_rebuilds_a_run_trained_in_process(tmp_path: Path) -> None:
+    """train(cfg) called from Python (no Hydra run, no .hydra/) writes the resolved config.yaml:
+    load_run rebuilds the run's filter, which gives the trained module's outputs exactly."""
+    from hydra import compose, initialize_config_dir
+
+    from torchsde_lti.training import train
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("train", overrides=[f"output_dir={tmp_path}", "experiment=tiny", "model=cv", "truth=cv"])
+    _, objects = train(cfg)
+    assert not (tmp_path / ".hydra").exists() and (tmp_path / "config.yaml").is_file()
+    run = load_run(tmp_path, checkpoint="last")  # the final weights: the trained module's
+    trained = objects["module"].kf.eval()
+    y = torch.randn(3, 9, 2, dtype=torch.float64).cumsum(1)
+    dt = torch.rand(3, 9, dtype=torch.float64) + 0.1
+    with torch.no_grad():
+        got, expected = run.filter(y, dt), trained(y, dt)
+    torch.testing.assert_close(got.mean, expected.mean, rtol=0, atol=0)
+    torch.testing.assert_close(got.cov, expected.cov, rtol=0, atol=0)
+    assert run.config.model.name == "cv" and run.card["status"] == "completed"
+
+
 def test_load_run_last_and_float32(tmp_path: Path) -> None:
     _train(tmp_path, "model=cv", "truth=cv", "dtype=float32", "test=false")
     run = load_run(tmp_path, checkpoint="last")
@@ -192,8 +214,12 @@ def test_imm_filter_writes_mode_probabilities(imm_run: Path, csv_file: Path, tmp
     table = pyarrow.csv.read_csv(out).to_pydict()
     probs = np.stack([np.asarray(table["prob_moored"]), np.asarray(table["prob_underway"])], -1)
     np.testing.assert_allclose(probs.sum(-1), 1.0, atol=1e-12)
-    # an IMM has no smoother (yet): a clear error, status 2
-    assert main(["smooth", str(imm_run), str(csv_file), "-o", str(out)]) == 2
+    # the IMM smoother (IMMFilter.smooth): smoothed mode probabilities
+    smoothed = tmp_path / "imm_smoothed.csv"
+    assert main(["smooth", str(imm_run), str(csv_file), "-o", str(smoothed)]) == 0
+    table = pyarrow.csv.read_csv(smoothed).to_pydict()
+    probs = np.stack([np.asarray(table["prob_moored"]), np.asarray(table["prob_underway"])], -1)
+    np.testing.assert_allclose(probs.sum(-1), 1.0, atol=1e-12)
 
 
 def test_columns_option_reads_other_headers(cv_run: Path, csv_file: Path, tmp_path: Path) -> None:

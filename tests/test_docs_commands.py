@@ -12,7 +12,9 @@ subprocess, as a user would type it, with its placeholders filled and made tiny:
   few after the data's first split instant);
 - outputs (``-o FILE``) go to tmp; placeholders: ``/path/to/...csv``, ``/tmp/my_tracks.csv`` -> small files written here;
   ``outputs/<date>/<time>`` -> a tiny run made here (the resume command resumes it);
-  ``multirun/<date>/<time>`` -> a tiny sweep; ``<same overrides>`` -> nothing;
+  ``multirun/<date>/<time>`` -> a tiny sweep; ``<same overrides>`` -> nothing; the scale page's
+  ``source=data/...`` -> two small zipped MarineCadastre days written here and its ``prepared/...``
+  folders -> tmp (the prepare commands run first, the stream training reads what they wrote);
 - the commands that cannot run here are in :data:`NOT_RUN`, each with the reason, and
   :data:`EXPECTED_FAILURES` holds documented commands that fail today (with the issue).
 
@@ -44,14 +46,13 @@ NOT_RUN: dict[str, str] = {
     r"trainer=ddp": "two DDP processes: tests/training/test_train.py::test_ddp_two_cpu_processes_gloo runs trainer=ddp",
     r"^python experiments/ais_(study|calibration)\.py": "the AIS study: hours of training and evaluation on the full "
     "data (tests/evaluation run its evaluation code on small tracks)",
+    r"data=stream .*ckpt_path=": "resumes the stream run from a mid-epoch checkpoint, which fast_dev_run does not write: "
+    "tests/data/test_stream.py::test_resume_mid_epoch_through_a_checkpoint_sees_every_window_once resumes one",
     r"^torchsde-lti export\b": "tens of seconds of torch.export tracing: tests/test_cli.py::"
     "test_export_gives_a_program_with_the_filters_values runs it (marked slow) and the wiring test runs always",
 }
 #: Documented commands that fail today (regular expression -> reason); they run, strict xfail.
-EXPECTED_FAILURES: dict[str, str] = {
-    r"model=singer data\.noise=1\.0 dtype=float32 filter\.method=matrix_exp": "issue 40: core's matrix_exp route "
-    "gives Q not PSD in float32 (smallest eigenvalue -8e-8); helper core fixes it",
-}
+EXPECTED_FAILURES: dict[str, str] = {}
 #: Shipped files larger than this are sliced for the tiny runs.
 SLICE_ABOVE = 2_000_000
 TIMEOUT = 1800  # the whole plan, in one process
@@ -110,6 +111,20 @@ def _write_flights(path: Path, flights: int = 12, reports: int = 15) -> Path:
     return path
 
 
+def _write_marine_cadastre_days(folder: Path, days: tuple[str, ...] = ("2022-06-01", "2022-06-02")) -> Path:
+    """``folder`` with one zipped MarineCadastre day file per day (``AIS_2022_06_01.zip``, ...)."""
+    import zipfile
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for day in days:
+        name = f"AIS_{day.replace('-', '_')}"
+        csv = _write_ais(folder / f"{name}.csv", vessels=8, reports=40)
+        with zipfile.ZipFile(folder / f"{name}.zip", "w") as archive:
+            archive.write(csv, csv.name)
+        csv.unlink()
+    return folder
+
+
 def _slice(name: str, tmp: Path, after: str | None, first: int = 40, extra: int = 15) -> Path:
     """The first ``first`` trajectory lines of a shipped .traj file (and ``extra`` lines with ``after``)."""
     from torchsde_lti.data import locate_file
@@ -129,6 +144,7 @@ def workspace(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         "tmp": tmp,
         "ais": _write_ais(tmp / "my_tracks.csv"),
         "flights": _write_flights(tmp / "flights.csv"),
+        "data": _write_marine_cadastre_days(tmp / "data"),
     }
 
 
@@ -145,6 +161,10 @@ def _fill(token: str, ws: dict[str, Path]) -> str:
     """A placeholder of the docs made real (the run and the sweep are made first by the driver)."""
     token = token.replace("/path/to/my_tracks.csv", str(ws["ais"])).replace("/tmp/my_tracks.csv", str(ws["ais"]))
     token = token.replace("/path/to/flights.csv", str(ws["flights"]))
+    for key in ("source=", "out=", "data.root="):  # the scale page's raw files and prepared folders
+        for folder, there in (("data/", ws["data"]), ("prepared/", ws["tmp"] / "prepared")):
+            if token.startswith(key + folder):
+                token = f"{key}{there}/{token[len(key + folder) :]}"
     token = token.replace("outputs/<date>/<time>", str(ws["run"]))
     return token.replace("multirun/<date>/<time>", str(ws["sweep"]))
 
@@ -152,6 +172,8 @@ def _fill(token: str, ws: dict[str, Path]) -> str:
 def _source_slice(overrides: list[str], ws: dict[str, Path]) -> list[str]:
     """``data.source=<slice>`` where the composed config's source is a large shipped file."""
     from hydra import compose, initialize_config_dir
+
+    import torchsde_lti.training  # noqa: F401 - registers the config schema (train_schema) with Hydra
 
     plain = [
         o for o in overrides if not o.startswith(("hydra", "-", "+trainer")) and not re.search(r",|range\(|choice\(", o)

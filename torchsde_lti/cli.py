@@ -49,7 +49,8 @@ track's frame), lat, lon; an IMM adds prob_<mode>. The file is read and cleaned 
 data rules (data.columns, max_gap, ...), or load_tracks' defaults for a run on simulated data.""",
     "smooth": """examples:
   torchsde-lti smooth outputs/2026-01-01/12-00-00 tracks.csv -o smoothed.parquet
-The columns of `filter`, from the RTS smoother (every report seen) instead of the filter.""",
+The columns of `filter`, from the smoother (every report seen) instead of the filter: the RTS
+smoother of a Kalman filter run, the IMM smoother (imm.smooth) of an IMM run.""",
     "evaluate": """examples:
   torchsde-lti evaluate outputs/2026-01-01/12-00-00 held_out.csv
   torchsde-lti evaluate RUN held_out.traj -o evaluation.json
@@ -94,7 +95,7 @@ def _parser() -> argparse.ArgumentParser:
 
     for name, summary in (
         ("filter", "run a trained filter over the tracks of a CSV / Parquet / .traj file"),
-        ("smooth", "run a trained filter's RTS smoother over the tracks of a file"),
+        ("smooth", "run a trained filter's smoother (RTS, or the IMM smoother) over the tracks of a file"),
     ):
         sub = command(name, summary)
         sub.add_argument("run", help=_RUN_HELP)

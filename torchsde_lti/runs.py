@@ -3,7 +3,8 @@ tracks read from a file (:func:`track_states`: what ``torchsde-lti filter`` / ``
 
 A run of ``python -m torchsde_lti.train`` (or ``torchsde-lti train``) leaves in its directory
 
-    .hydra/config.yaml          the composed config (Hydra; or config.yaml at the top of the run)
+    .hydra/config.yaml          the composed config (Hydra's; a run Hydra did not start has only:)
+    config.yaml                 the resolved config (train writes it in every run)
     checkpoints/best.ckpt       the epoch with the lowest val/nll (Lightning)
     checkpoints/last.ckpt       the end of the last completed epoch
     metrics.json                the run's card: status, metrics, learned values (strict JSON)
@@ -194,24 +195,31 @@ def read_tracks(run: Run, source: str | os.PathLike[str], **overrides: Any) -> T
     """Tracks of ``source`` read and cleaned as the run's data were.
 
     A run trained on real tracks (``data._target_`` a TrackDataModule) names how its files are
-    read and cleaned (``data.columns``, ``course_encoding``, ``max_gap``, ``v_max``,
-    ``min_reports``, ``max_extent``, ...): the same rules apply here. A run on simulated data
-    names none: :func:`~torchsde_lti.data.load_tracks`'s defaults apply. ``overrides``: any
-    argument of ``load_tracks``, over both.
+    read and cleaned: ``data.rules`` (None: the module's default, ``min_reports=5``) and the
+    :class:`~torchsde_lti.data.CleaningRules` fields beside it (``data.columns``,
+    ``course_encoding``, ``max_gap``, ``v_max``, ``min_reports``, ``max_extent``, ...); the same
+    rules apply here, except the cut times of a split in time. A run on simulated data names
+    none: :func:`~torchsde_lti.data.load_tracks`'s defaults apply. ``overrides``: any
+    CleaningRules field, over both.
 
     Returns:
         :class:`~torchsde_lti.data.Tracks` (with ``.summary`` counting what every rule removed).
+
+    Raises:
+        TypeError: an override that is no CleaningRules field.
     """
-    # load_tracks takes the cleaning rules as keywords (the fields of CleaningRules); cut_times are
-    # the training data's own instants, not a rule for a new file
     accepted = {f.name for f in dataclasses.fields(CleaningRules)} - {"cut_times"}
-    data = run.config.get("data") or {}
-    rules: dict[str, Any] = {}
-    if str(data.get("_target_", "")).endswith("TrackDataModule"):
-        rules = {k: v for k, v in OmegaConf.to_container(data, resolve=True).items() if k in accepted}  # type: ignore[union-attr]
     unknown = sorted(set(overrides) - accepted)
     if unknown:
         raise TypeError(f"read_tracks: unknown load_tracks arguments {unknown} (accepted: {sorted(accepted)})")
+    data = run.config.get("data") or {}
+    rules: dict[str, Any] = {}
+    if str(data.get("_target_", "")).endswith("TrackDataModule"):
+        node = OmegaConf.to_container(data, resolve=True)
+        assert isinstance(node, dict)
+        base = node.get("rules")
+        base = {"min_reports": 5} if base is None else dict(base)  # TrackDataModule's default without rules
+        rules = {k: v for k, v in {**base, **node}.items() if k in accepted}
     return load_tracks(source, **{**rules, **overrides})
 
 

@@ -23,7 +23,7 @@ import torch  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "experiments" / "results"
-EXAMPLES = ("recovery", "gp-equivalence", "ais-tracks")  # pages whose figures are generated
+EXAMPLES = ("recovery", "gp-equivalence", "ais-tracks", "ais-imm-smoother")  # pages whose figures are generated
 FENCE = re.compile(r"^```python\n(.*?)^```", re.S | re.M)
 
 

@@ -353,7 +353,7 @@ def test_evaluation_modules_import_downwards_only_and_training_re_exports_them()
     import torchsde_lti.evaluation as ev
     import torchsde_lti.training as training
 
-    order = ["student_t", "predictive", "calibration", "scores", "baseline", "selection"]
+    order = ["recovery", "figures", "student_t", "predictive", "calibration", "scores", "baseline", "selection"]
     folder = Path(ev.__file__).parent
     assert sorted(p.stem for p in folder.glob("*.py") if p.stem != "__init__") == sorted(order)
     for rank, name in enumerate(order):

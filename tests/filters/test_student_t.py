@@ -220,7 +220,7 @@ def test_module_option_learns_dof_and_round_trips():
     assert raw.grad is not None and math.isfinite(float(raw.grad))
     fresh = _kf(tl.StudentT(4.0))
     fresh.load_state_dict(kf.state_dict())
-    assert float(fresh.noise.dof) == pytest.approx(7.5, rel=1e-14)
+    assert float(fresh.noise.dof.detach()) == pytest.approx(7.5, rel=1e-14)
     torch.testing.assert_close(fresh(y, dt).log_likelihood, out.log_likelihood.detach())
     with torch.no_grad():  # finite and > 2 for any finite raw value
         for v in (-1e4, -30.0, 0.0, 30.0, 1e30):
@@ -369,3 +369,35 @@ def test_t_predictive_is_calibrated_on_t_data():
     assert abs(float(inside) - (1 - math.exp(-2))) < 0.01
     gauss = (hpd_level(y, w, mu, S) <= 1 - math.exp(-2)).double().mean()
     assert float(gauss) < 0.8
+
+
+def test_imm_smoother_refuses_the_t():
+    imm = _imm(tl.StudentT(4.0))
+    y, *_ = _problem(seed=10)
+    with torch.no_grad():
+        out = imm(y, torch.ones(3, 7, dtype=F64))
+    with pytest.raises(ValueError, match="not for noise=StudentT"):
+        imm.smooth(out)
+
+
+def test_training_through_the_config_learns_dof_and_reloads(tmp_path):
+    """``filter/noise=student_t`` through the one training path (experiment=tiny): ν is a
+    parameter that moves, the run reloads with it (``tl.runs.load_run``), val/cover2s is the t's."""
+    from hydra import compose, initialize_config_dir
+
+    from tests.training.test_imm_training import CONF
+    from torchsde_lti.runs import load_run
+    from torchsde_lti.training import train
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("train", overrides=[f"output_dir={tmp_path}", "experiment=tiny", "filter/noise=student_t"])
+    metrics, objects = train(cfg)
+    kf = objects["module"].kf
+    assert isinstance(kf.noise, tl.StudentT) and float(kf.noise.dof.detach()) != pytest.approx(4.0, rel=1e-6)
+    assert math.isfinite(metrics["val/nll"]) and 0.0 <= metrics["val/cover2s"] <= 1.0
+    run = load_run(tmp_path)
+    assert isinstance(run.filter.noise, tl.StudentT)
+    ckpt = torch.load(run.checkpoint, weights_only=True)["state_dict"]
+    torch.testing.assert_close(
+        run.filter.noise.parametrizations.dof.original, ckpt["kf.noise.parametrizations.dof.original"]
+    )

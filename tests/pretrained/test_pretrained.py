@@ -43,7 +43,7 @@ def test_every_shipped_filter_loads_and_reproduces_its_card(name: str) -> None:
 
 
 def _learned(kf: tl.KalmanFilter | tl.IMMFilter) -> dict[str, float]:
-    from torchsde_lti.training.metrics import filter_values, flat_values
+    from torchsde_lti.evaluation import filter_values, flat_values
 
     return flat_values(filter_values(kf))
 

@@ -1,4 +1,4 @@
-"""Callbacks (torchsde_lti.training.callbacks): ParameterHistory state, BestRun's pick over a sweep."""
+"""Callbacks (torchsde_lti.training.callbacks): BestRun's pick over a sweep."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from torchsde_lti.training.callbacks import BestRun, ParameterHistory
+from torchsde_lti.training.callbacks import BestRun
 
 
 def _fake_sweep(root: Path, values: list[float | None]) -> None:
@@ -35,11 +35,3 @@ def test_best_run_rejects_bad_mode_and_empty_sweeps(tmp_path: Path) -> None:
         BestRun(mode="median")
     with pytest.raises(ValueError, match="finite val/nll"):
         BestRun().best(tmp_path)
-
-
-def test_parameter_history_state_round_trips() -> None:
-    h = ParameterHistory()
-    h.history = [{"epoch": 0.0, "train/nll": 1.5}]
-    g = ParameterHistory()
-    g.load_state_dict(h.state_dict())
-    assert g.history == h.history and g.history is not h.history

@@ -3,7 +3,7 @@ full-size msd recovery as a ``slow`` study).
 
 ``model=cv truth=singer`` once trained all its epochs and then crashed in the plots (the learner's
 4-state H applied to the 6-state truth): the run was marked FAILED with an empty table. ``model=singer
-data.noise=1.0 dtype=float32 filter.method=matrix_exp`` stops at once in core (xfail below).
+data.noise=1.0 dtype=float32 filter.method=matrix_exp`` stopped at once in core (fixed there).
 """
 
 from __future__ import annotations
@@ -33,14 +33,9 @@ def test_cv_learner_on_singer_truth_completes_with_its_plots(tmp_path: Path) -> 
     assert summary["table"] and math.isfinite(summary["metrics"]["val/nll"])
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=ValueError,
-    reason="core (helper 'core'): check_matrix_exp_noise refuses the Q = 0 of the dt = 0 padding steps in "
-    "float32 — core.validation._psd_test shifts by tol * finfo.tiny, a subnormal, and the Cholesky of "
-    "0 + 4e-42 I fails; torchsde_lti.core.discretization.check_matrix_exp_noise(torch.zeros(3, 3)) raises",
-)
 def test_float32_matrix_exp_singer_trains(tmp_path: Path) -> None:
+    """main-job.md's float32 matrix_exp command: it stopped at once (the PSD check refused the Q = 0 of
+    the dt = 0 padding steps, its shift underflowing in float32)."""
     overrides = ["model=singer", "data.noise=1.0", "dtype=float32", "filter.method=matrix_exp"]
     metrics, _ = train(_cfg(tmp_path, *overrides, *TINY))
     assert math.isfinite(metrics["val/nll"])

@@ -1,6 +1,6 @@
 """Training an IMMFilter through the Lightning module and the Hydra configs (filter=imm, model=imm).
 
-What is learned is read through ``kf.modes()`` for both filters (training.metrics.filter_values):
+What is learned is read through ``kf.modes()`` for both filters (evaluation.filter_values):
 checked against the modules' own attributes; the Hydra run uses simulated tracks (no download);
 resume from a checkpoint continues exactly like an uninterrupted run.
 """
@@ -17,14 +17,10 @@ from hydra import compose, initialize_config_dir
 
 import torchsde_lti as tl
 from torchsde_lti import models
+from torchsde_lti.evaluation import filter_values, flat_values, identifiability_note, learned_values, parameter_table
 from torchsde_lti.training import KalmanFilterModule, train
-from torchsde_lti.training.metrics import (
-    filter_values,
-    flat_values,
-    learned_values,
-    parameter_table,
-)
 from torchsde_lti.training.module import imm_k_step_nll
+from torchsde_lti.training.plots import epoch_rows
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 # an IMM learner (moored + underway) on the tiny simulated data of experiment=tiny (truth: cv)
@@ -83,11 +79,11 @@ def test_filter_values_of_an_imm_are_every_mode_and_the_chain() -> None:
 
 def test_parameter_table_of_an_imm_module_without_truth() -> None:
     module = KalmanFilterModule(_imm())
-    rows = {r["name"]: r for r in parameter_table(module, None)}
+    rows = {r["name"]: r for r in parameter_table(module.kf, None)}
     assert rows["moored/k"]["learned"] == pytest.approx(0.5) and math.isnan(rows["moored/k"]["true"])
     assert rows["underway/R[1,1]"]["learned"] == pytest.approx(2.0)
     assert rows["rate[underway->moored]"]["learned"] == pytest.approx(0.03, rel=1e-12)
-    assert module.parameter_errors() == {} and module.identifiability_note() == ""
+    assert module.parameter_errors() == {} and identifiability_note(module.kf) == ""
 
 
 def _imm_batch(B: int = 3, T: int = 25) -> tuple[torch.Tensor, torch.Tensor]:
@@ -166,8 +162,8 @@ def test_imm_hydra_run_learns_and_reports(tmp_path: Path) -> None:
     names = {r["name"] for r in json.loads((tmp_path / "metrics.json").read_text())["table"]}
     assert {"moored/k", "underway/q", "moored/R[0,0]", "rate[moored->underway]", "mode_prob0[underway]"} <= names
     assert "rate[moored->underway]" in (tmp_path / "results.md").read_text()
-    hist = next(c for c in objects["callbacks"] if type(c).__name__ == "ParameterHistory").history
-    assert len(hist) == 2 and "underway/k" in hist[-1] and "rate[underway->moored]" in hist[-1]
+    hist = epoch_rows(tmp_path / "csv" / "metrics.csv")
+    assert len(hist) == 2 and "param/underway/k" in hist[-1] and "param/rate[underway->moored]" in hist[-1]
 
 
 def test_imm_checkpoint_resume_continues_identically(tmp_path: Path) -> None:
@@ -209,4 +205,4 @@ def test_eval_rmse_of_an_imm_with_per_mode_H_scores_the_mixture_prediction(batch
     out = imm(y, dt)
     per_mode = torch.stack([out.mode_pred_mean[..., j, :] @ H[j].mT for j in range(2)], -2)  # (B, T, M, m)
     pred = (out.pred_mode_probabilities.unsqueeze(-1) * per_mode).sum(-2)
-    assert module._squared_errors["val"][0].item() == pytest.approx(((pred - y) ** 2).sum().item(), rel=1e-12)
+    assert module._sums["val"]["rmse"][0].item() == pytest.approx(((pred - y) ** 2).sum().item(), rel=1e-12)

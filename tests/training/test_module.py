@@ -104,9 +104,51 @@ def test_k_step_loss_and_rmse_include_the_feedthrough() -> None:
         with pytest.raises(ValueError, match=r"u must have shape \(\.\.\., K, 1\) to match D \(1, 1\)"):
             kf.feedthrough(torch.ones(B, T, 2, dtype=torch.float64))
         batch = TrackBatch(y=y, dt=dt, mask=torch.ones(B, T, dtype=torch.bool), lengths=torch.full((B,), T), u=u)
-        module._squared_errors.clear()
+        module._sums.clear()
         module._eval_step(batch, "val")
-        sums = module._squared_errors["val"]
+        sums = module._sums["val"]["rmse"]
     observed = ~torch.isnan(y)
     reference = math.sqrt(float((out.innovation[observed] ** 2).sum()) / int(observed.sum()))
     assert math.sqrt(float(sums[0] / sums[1])) == pytest.approx(reference, rel=1e-12)
+
+
+def test_coverage_counts_reports_inside_the_chi_square_region_of_their_observed_coordinates() -> None:
+    """val/cover2s: the share of reports after each window's first whose observed coordinates
+    lie in the predictive's 86.5 % region, νᵀS⁻¹ν <= the chi-square quantile of the observed
+    dimension (d² <= 4 for two coordinates; scipy's quantile for one), reports with one
+    coordinate missing included, padding and wholly missing reports left out."""
+    import math
+
+    stats = pytest.importorskip("scipy.stats")
+    import torchsde_lti as tl
+
+    torch.manual_seed(1)
+    sde = tl.models.constant_velocity(dim=2, q=0.5, dtype=torch.float64)
+    kf = tl.KalmanFilter(sde, tl.models.position_observation(sde), 0.3 * torch.eye(2, dtype=torch.float64))
+    module = KalmanFilterModule(kf)
+    B, T = 4, 30
+    dt = torch.rand(B, T, dtype=torch.float64) + 0.1
+    y = 1.5 * torch.randn(B, T, 2, dtype=torch.float64).cumsum(1)
+    y[0, 3, 1] = y[2, 7, 0] = y[3, 9, 0] = math.nan  # one coordinate missing
+    y[1, 5] = math.nan  # a whole report missing
+    mask = torch.ones(B, T, dtype=torch.bool)
+    mask[3, 25:] = False  # padding
+    batch = TrackBatch(y=y, dt=dt, mask=mask, lengths=mask.sum(-1))
+    with torch.no_grad():
+        module._sums.clear()
+        module._eval_step(batch, "val")
+        inside, scored = module._sums["val"]["cover2s"].tolist()
+        out = kf(torch.where(mask.unsqueeze(-1), y, math.nan), torch.where(mask, dt, 0.0))
+    expected_inside = expected_scored = 0
+    for b in range(B):
+        for t in range(1, T):
+            seen = [i for i in range(2) if mask[b, t] and not math.isnan(float(y[b, t, i]))]
+            if not seen:
+                continue
+            nu = out.innovation[b, t, seen]
+            S = out.innovation_cov[b, t][seen][:, seen]
+            d2 = float(nu @ torch.linalg.solve(S, nu))
+            expected_scored += 1
+            expected_inside += d2 <= stats.chi2.ppf(1 - math.exp(-2), len(seen))
+    assert scored == expected_scored == B * (T - 1) - 1 - 5
+    assert inside == expected_inside and 0 < inside < scored

@@ -11,9 +11,9 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from torchsde_lti.evaluation.figures import _ellipse, _moving_tracks
 from torchsde_lti.training import train
-from torchsde_lti.training.plots import _ellipse, _moving_tracks
-from torchsde_lti.training.report import markdown_table, parameter_rows, score_rows
+from torchsde_lti.training.report import format_table, markdown_table, score_rows
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
 
@@ -90,7 +90,7 @@ def test_results_md_scores_have_units_and_only_the_columns_that_apply() -> None:
 
 def test_results_md_table_of_real_data_has_no_true_column() -> None:
     learned = [{"name": "q", "true": math.nan, "learned": 0.5, "rel_error": math.nan}]
-    assert parameter_rows(learned).splitlines()[0] == "| parameter | learned |"
+    assert format_table(learned).splitlines()[0] == "| parameter | learned |"
     recovered = [{"name": "q", "true": 1.0, "learned": 1.1, "rel_error": 0.1}]
-    assert parameter_rows(recovered).splitlines()[2] == "| q | 1 | 1.1 | 10.00 % |"
+    assert format_table(recovered).splitlines()[2] == "| q | 1 | 1.1 | 10.00 % |"
     assert markdown_table(["a", "b"], [["x", ""]]) == "| a |\n|---|\n| x |"

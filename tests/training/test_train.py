@@ -4,7 +4,7 @@ Covers: every config group composes and instantiates; fast_dev_run end to end; r
 a checkpoint continues exactly like an uninterrupted run; checkpoints load with
 ``weights_only=True``; a --multirun over two values launches two runs; a 2-process DDP
 (gloo) run; bad config values fail fast; learner/truth pairing; random restarts through a
-Hydra multirun. Loss pieces and metrics: test_training_module.py, test_training_metrics.py.
+Hydra multirun. Loss pieces: test_module.py; parameter recovery: tests/evaluation/test_recovery.py.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
 
 from torchsde_lti.training import KalmanFilterModule, train
+from torchsde_lti.training.plots import epoch_rows
 
 ROOT = Path(__file__).resolve().parents[2]
 CONF = ROOT / "conf"
@@ -96,7 +97,7 @@ def test_logger_configs_instantiate(tmp_path: Path, logger: str) -> None:
 def test_callback_configs_instantiate(tmp_path: Path) -> None:
     cfg = _cfg(tmp_path)
     names = {type(instantiate(c)).__name__ for c in cfg.callbacks.values()}
-    assert names == {"ModelCheckpoint", "ParameterHistory", "RunLog"}
+    assert names == {"ModelCheckpoint", "RunLog"}
     # each checkpoint named for what it holds: the last epoch (no monitor), the best val/nll
     assert cfg.callbacks.best.monitor == "val/nll" and cfg.callbacks.best.filename == "best"
     assert cfg.callbacks.last.monitor is None and cfg.callbacks.last.filename == "last"
@@ -222,12 +223,14 @@ def test_plots_and_table_written(tmp_path: Path) -> None:
 
 def test_table_against_a_zero_noise_truth_gives_no_relative_error(tmp_path: Path) -> None:
     # R = 0 has no relative error: the R row used to show ‖R‖ (an absolute value) as a percentage
-    from torchsde_lti.training.metrics import parameter_table
+    from torchsde_lti.evaluation import parameter_table
 
     cfg = _cfg(tmp_path, *TINY, "data.noise=0")
     dm = instantiate(cfg.data)
     module = instantiate(cfg.module, kf=instantiate(cfg.filter, m0=dm.m0, P0=dm.P0), truth=dm.truth)
-    rows = {r["name"]: r for r in parameter_table(module, {**dm.truth, "H": dm.H})}
+    rows = {
+        r["name"]: r for r in parameter_table(module.kf, {**dm.truth, "H": dm.H}, module.param_names, module.compare)
+    }
     assert "R (matrix)" not in rows
     row = rows["R (matrix, ‖·‖_F)"]
     assert row["true"] == 0.0 and math.isnan(row["rel_error"])
@@ -259,7 +262,7 @@ def test_checkpoints_are_named_for_what_they_hold_and_reports_say_which(tmp_path
     import csv
 
     from tests.training.helpers import load_strict_json
-    from torchsde_lti.training.metrics import parameter_table
+    from torchsde_lti.evaluation import parameter_table
     from torchsde_lti.training.outputs import to_jsonable
 
     # lr 2.0 overshoots: val/nll is lowest after epoch 0 and worse later, so best and last differ
@@ -280,7 +283,7 @@ def test_checkpoints_are_named_for_what_they_hold_and_reports_say_which(tmp_path
         (last, summary["table"]),
     ):  # last loaded last: the final weights
         module.load_state_dict(ckpt["state_dict"])
-        assert to_jsonable(parameter_table(module, truth)) == table
+        assert to_jsonable(parameter_table(module.kf, truth, module.param_names, module.compare)) == table
     tested = trainer.test(module, datamodule=objects["datamodule"], verbose=False)[0]
     assert tested["test/nll"] == summary["metrics"]["test/nll"]  # the test metrics are last.ckpt's
     text = (tmp_path / "results.md").read_text()
@@ -306,7 +309,7 @@ def test_resume_from_checkpoint_continues_identically(tmp_path: Path) -> None:
     _, part = train(_cfg(tmp_path / "part", *common, "trainer.max_epochs=2"))
     ckpt = tmp_path / "part" / "checkpoints" / "last.ckpt"
     raw = torch.load(ckpt, weights_only=True)  # plain content only
-    assert raw["epoch"] == 1 and "ParameterHistory" in raw["callbacks"]
+    assert raw["epoch"] == 1
     _, resumed = train(_cfg(tmp_path / "resumed", *common, "trainer.max_epochs=4", f"ckpt_path={ckpt}"))
     a, b = full["module"].state_dict(), resumed["module"].state_dict()
     assert a.keys() == b.keys()
@@ -316,8 +319,9 @@ def test_resume_from_checkpoint_continues_identically(tmp_path: Path) -> None:
     assert not torch.equal(
         a["kf.sde.parametrizations.k.original"], part["module"].state_dict()["kf.sde.parametrizations.k.original"]
     )
-    hist = [c for c in resumed["callbacks"] if type(c).__name__ == "ParameterHistory"][0].history
-    assert [r["epoch"] for r in hist] == [0.0, 1.0, 2.0, 3.0]
+    # a new run directory: its CSV log starts at the resume point, with each epoch's learned values (the plots read them)
+    rows = epoch_rows(tmp_path / "resumed" / "csv" / "metrics.csv")
+    assert [r["epoch"] for r in rows] == [2.0, 3.0] and "param/k" in rows[-1]
 
 
 def test_checkpoint_without_the_floors_loads_and_resumes(tmp_path: Path) -> None:

@@ -162,7 +162,7 @@ def run_steps(step: Step, count: Tensor, elems: list[Tensor], shared: list[Tenso
             kept = [b.clone() if a is b else torch.where(active, a, b).contiguous() for a, b in zip(new, carry[:k])]
             return (j + 1, *kept, *sh)
 
-        start = torch.zeros((), dtype=torch.int64, device=count.device)
+        start = torch.zeros((), dtype=count.dtype, device=count.device)
         most = torch.cat([count, start[None]]).max().clamp_min(1)
         out = while_loop(lambda j, *carry: j < most, body, (start, *(t.contiguous() for t in (*elems, *shared))))
         return list(out[1 : 1 + k])

@@ -83,7 +83,7 @@ class SharedSeries(NamedTuple):
         h0 = THETA_SHARED / self.nu  # the base step (a power of two): dt = m h0 + r, 0 ≤ r < h0, exactly
         m = torch.floor(torch.nan_to_num(dtw / h0, nan=0.0, posinf=torch.finfo(work).max))
         m = torch.where(self.nilpotent, 0.0, m)
-        count = torch.frexp(m).exponent.to(torch.int64)  # the binary digits of m
+        count = torch.frexp(m).exponent  # the binary digits of m (int32)
         order = grouping(count)
         if order is not None:
             dtw, m, count = dtw.index_select(0, order), m.index_select(0, order), count.index_select(0, order)

@@ -12,8 +12,13 @@ No Lightning, no Hydra: torch, numpy and the package's data layer only.
                     per-vessel sums and the paired vessel bootstrap (``evaluate_filter``)
     baseline.py     the constant-velocity baseline (``cv_filter``) and its grid oracle (``tune_cv``)
     selection.py    model selection on validation summaries (``select_model``, ``validation_selection``)
+    figures.py      figures of a filter on a batch of tracks: a map with 2σ ellipses, mode
+                    probabilities, forecast error against lead time (``track_figures``; matplotlib)
+    recovery.py     learned values of a filter and their errors against a known true model
+                    (``parameter_errors``, ``parameter_table``; imports no other module here)
 
-The modules import downwards only (student_t ← predictive ← calibration ← scores ← baseline, selection).
+The modules import downwards only (student_t ← predictive ← calibration ← scores ← baseline, selection;
+recovery and figures import no other module here).
 
     recs = evaluate_filter(kf, tracks, cov_scale=calibrate_filter(kf, val_tracks))
     summary(recs)["nll_moving"]; paired_bootstrap(recs, evaluate_filter(cv_filter(q, r), tracks))
@@ -28,14 +33,28 @@ from torchsde_lti.evaluation.calibration import (
     hpd_level,
     scale_vector,
 )
+from torchsde_lti.evaluation.figures import track_figures
 from torchsde_lti.evaluation.predictive import (
     Model,
     PredictiveBatch,
     frozen_copy,
+    masked_gaussian_nll,
     mixture_log_prob,
     one_step_predictive,
     predictive_batches,
     predictive_dof,
+)
+from torchsde_lti.evaluation.recovery import (
+    filter_errors,
+    filter_values,
+    flat_values,
+    identifiability_note,
+    learned_values,
+    observed_autocovariance,
+    parameter_errors,
+    parameter_table,
+    raw_f_identifiable,
+    same_model,
 )
 from torchsde_lti.evaluation.scores import (
     HORIZONS,
@@ -52,31 +71,43 @@ from torchsde_lti.evaluation.scores import (
 from torchsde_lti.evaluation.selection import ModelSelection, select_model, validation_selection
 
 __all__ = [
-    "HORIZONS",
-    "NOMINAL_2SIGMA",
     "EvalRecords",
+    "HORIZONS",
     "Model",
     "ModelSelection",
+    "NOMINAL_2SIGMA",
     "PredictiveBatch",
     "calibrate_filter",
     "cv_filter",
     "evaluate_filter",
     "evaluate_models",
+    "filter_errors",
+    "filter_values",
     "fit_cov_scale",
     "fit_mode_scales",
+    "flat_values",
     "forecast_pairs",
     "frozen_copy",
     "hpd_inside",
     "hpd_level",
+    "identifiability_note",
+    "learned_values",
+    "masked_gaussian_nll",
     "mixture_log_prob",
     "moving_reports",
+    "observed_autocovariance",
     "one_step_predictive",
     "paired_bootstrap",
+    "parameter_errors",
+    "parameter_table",
     "predictive_batches",
     "predictive_dof",
+    "raw_f_identifiable",
+    "same_model",
     "scale_vector",
     "select_model",
     "summary",
+    "track_figures",
     "tune_cv",
     "validation_selection",
     "vessel_sums",

@@ -3,6 +3,7 @@ r"""The predictive distributions every score is computed from, and the batching 
     model = frozen_copy(kf)                        # float64, eval mode: the caller's module unchanged
     pred = one_step_predictive(model, tracks)      # {"y", "w", "mu", "S", "index"}: reports k >= 2
     mixture_log_prob(y, w, mu, S)                  # log Σ_j w_j N(y; mu_j, S_j)
+    masked_gaussian_nll(r, S, observed)            # -log N(r; 0, S) of the observed coordinates
     predictive_dof(model)                          # ν of a Student-t filter (None: Gaussian)
 
 The one-step predictive of a report y_k given y_<k is a Gaussian mixture
@@ -28,6 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchsde_lti.core.linalg import sym
 from torchsde_lti.data.loaded_tracks import Tracks
 from torchsde_lti.data.splits import track_windows
 from torchsde_lti.data.tracks import TrackBatch, pad_tracks
@@ -40,6 +42,7 @@ __all__ = [
     "Model",
     "PredictiveBatch",
     "frozen_copy",
+    "masked_gaussian_nll",
     "mixture_log_prob",
     "one_step_predictive",
     "predictive_batches",
@@ -102,6 +105,30 @@ def mixture_log_prob(x: Tensor, w: Tensor, mu: Tensor, S: Tensor, dof: Tensor | 
     comp = -0.5 * (quad + logdet + m * math.log(2 * math.pi))
     out = torch.logsumexp(comp + torch.log(w.clamp_min(1e-300)).unsqueeze(1), -1)
     return out.squeeze(1) if squeeze else out
+
+
+def masked_gaussian_nll(r: Tensor, S: Tensor, observed: Tensor) -> Tensor:
+    """Σ over observed coordinates of the Gaussian NLL of residual r under N(0, S).
+
+    Missing coordinates are marginalised out exactly: their rows/columns of S are replaced by
+    the identity and their residuals by 0, which leaves logdet and the quadratic form of the
+    observed block unchanged.
+
+    Args:
+        r: (..., m) residuals (NaN allowed where not observed); S: (..., m, m) covariances;
+            observed: (..., m) bool.
+
+    Returns:
+        (...) the NLL, zero where nothing is observed.
+    """
+    obs = observed.to(r.dtype)
+    r = torch.where(observed, r, torch.zeros_like(r))
+    both = obs.unsqueeze(-1) * obs.unsqueeze(-2)
+    eye = torch.eye(r.shape[-1], dtype=r.dtype, device=r.device)
+    C = torch.linalg.cholesky(sym(S * both + eye * (1.0 - obs).unsqueeze(-1)))
+    z = torch.linalg.solve_triangular(C, r.unsqueeze(-1), upper=False).squeeze(-1)
+    logdet = 2.0 * torch.log(torch.diagonal(C, dim1=-2, dim2=-1)).sum(-1)
+    return 0.5 * ((z * z).sum(-1) + logdet + obs.sum(-1) * math.log(2.0 * math.pi))
 
 
 def frozen_copy(model: Model) -> Model:

@@ -20,6 +20,7 @@ Shapes and missing-data rules: :mod:`torchsde_lti.filters.inputs`.
   (:func:`choose_algorithm`); all on one batch-last layout (``layout``);
 - :func:`rts_smoother` (``smoothers``), ``algorithm="sequential"`` or ``"scan"`` (or ``"auto"``);
 - :func:`imm_filter` (``imm``): interacting multiple models over a bank of per-mode matrices;
+- :func:`imm_smoother` (``imm_smoother``): Kim's (1994) fixed-interval smoother over an IMM result;
 - :func:`kalman_step`, :func:`imm_step` (``online``): one report per live track, the loops' own steps;
 - :class:`GaussianNoise`, :class:`StudentTNoise` (``noise``): the observation-noise model every
   filter above takes as ``noise=`` (a Student-t: Roth et al.'s heavy-tailed filter).
@@ -27,6 +28,7 @@ Shapes and missing-data rules: :mod:`torchsde_lti.filters.inputs`.
 
 from torchsde_lti.filters.imm import IMMResult, imm_filter
 from torchsde_lti.filters.imm_online import IMMState, IMMStep, imm_predict_state, imm_step
+from torchsde_lti.filters.imm_smoother import IMMSmootherResult, imm_smoother
 from torchsde_lti.filters.kalman import ALGORITHMS, choose_algorithm, kalman_filter
 from torchsde_lti.filters.noise import GaussianNoise, NoiseModel, StudentTNoise
 from torchsde_lti.filters.online import KalmanState, KalmanStep, kalman_predict, kalman_step
@@ -39,6 +41,7 @@ __all__ = [
     "FilterResult",
     "GaussianNoise",
     "IMMResult",
+    "IMMSmootherResult",
     "IMMState",
     "IMMStep",
     "KalmanState",
@@ -51,6 +54,7 @@ __all__ = [
     "choose_algorithm",
     "imm_filter",
     "imm_predict_state",
+    "imm_smoother",
     "imm_step",
     "kalman_predict",
     "kalman_step",

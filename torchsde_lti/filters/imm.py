@@ -56,7 +56,7 @@ from torchsde_lti.core.validation import (
     shape_str,
 )
 from torchsde_lti.filters.inputs import check_mask
-from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel
+from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel, weighted_outer
 from torchsde_lti.filters.online import KalmanState, kalman_step
 from torchsde_lti.filters.results import serializable
 
@@ -80,6 +80,15 @@ class IMMResult(NamedTuple):
     mode_innovation: (..., T, M, m) y_k − ŷ_j (0 in unobserved components).
     mode_innovation_cov: (..., T, M, m, m) S_j = H_j P⁻_j H_jᵀ + R_j (all components).
     observed: (..., T, m) bool, the components that entered the update.
+    transition: (..., T, M, n, n) the A_j of each step (a broadcast view), kept for smoothing
+        (:func:`~torchsde_lti.filters.imm_smoother.imm_smoother`).
+    process_noise: (..., T, M, n, n) the Q_j of each step (a broadcast view), kept for smoothing.
+    mode_transition: (..., T, M, M) the chain's Pi of each step (a broadcast view), kept for
+        smoothing.
+    observation_matrix: (..., T, M, m, n) the H_j of each step; observation_noise:
+        (..., T, M, m, m) the R_j (broadcast views), kept for smoothing. (These five default to
+        None, so that a result built from the first fields alone, e.g. by code or a saved
+        program of an earlier version, still constructs.)
     """
 
     log_likelihood: Tensor
@@ -97,6 +106,11 @@ class IMMResult(NamedTuple):
     mode_innovation: Tensor
     mode_innovation_cov: Tensor
     observed: Tensor
+    transition: Tensor | None = None
+    process_noise: Tensor | None = None
+    mode_transition: Tensor | None = None
+    observation_matrix: Tensor | None = None
+    observation_noise: Tensor | None = None
 
 
 class IMMPrediction(NamedTuple):
@@ -118,23 +132,15 @@ def combine(prob: Tensor, mean: Tensor, cov: Tensor, spread: Tensor | None = Non
     """Moment-matched Gaussian of a mixture: prob (..., M), mean (..., M, n), cov (..., M, n, n).
 
     Returns ``x = Σ_j p_j m_j`` (..., n) and ``P = Σ_j p_j (P_j + w (m_j − x)(m_j − x)ᵀ)`` (..., n, n),
-    w = ``spread`` (...) (None: 1; a Student-t's scale matrices: ``(ν − 2) / ν``,
-    :meth:`~torchsde_lti.filters.StudentTNoise.spread`).
+    w = ``spread`` (...) (None: 1; :meth:`~torchsde_lti.filters.StudentTNoise.spread`).
     """
     x = torch.einsum("...j,...jn->...n", prob, mean)
-    d = mean - x.unsqueeze(-2)
-    outer = d.unsqueeze(-1) * d.unsqueeze(-2)
-    if spread is not None:
-        outer = outer * spread[..., None, None, None]
-    P = torch.einsum("...j,...jab->...ab", prob, cov + outer)
+    P = torch.einsum("...j,...jab->...ab", prob, cov + weighted_outer(mean - x.unsqueeze(-2), spread, 3))
     return x, sym(P)
 
 
-def _mix(
-    prob: Tensor, Pi: Tensor, mean: Tensor, cov: Tensor, spread: Tensor | None = None
-) -> tuple[Tensor, Tensor, Tensor]:
-    """IMM mixing step. prob (..., M), Pi (..., M, M), mean (..., M, n), cov (..., M, n, n);
-    spread: the weight (...) of the mean spread in the mixed covariances (:func:`combine`).
+def _mix(prob: Tensor, Pi: Tensor, mean: Tensor, cov: Tensor, spread: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """IMM mixing step. prob (..., M), Pi (..., M, M), mean (..., M, n), cov (..., M, n, n); spread (...).
 
     Returns c (..., M) = prob Pi, mixed means (..., M, n) and covariances (..., M, n, n).
     A mode with c_j ≤ sqrt(tiny) of the dtype (≈ 1e-154 in float64) gets c_j = 0 and mixed
@@ -152,11 +158,8 @@ def _mix(
     # torch.export's scan of the cycle in grad mode; mean may broadcast over the modes)
     m_mix = (w.unsqueeze(-1) * mean.unsqueeze(-2)).sum(-3)
     d = mean.unsqueeze(-2) - m_mix.unsqueeze(-3)  # (..., M_i, M_j, n)
-    outer = d.unsqueeze(-1) * d.unsqueeze(-2)
-    if spread is not None:
-        outer = outer * spread[..., None, None, None, None]
-    spread = cov.unsqueeze(-3) + outer  # (..., M_i, M_j, n, n)
-    P_mix = (w[..., None, None] * spread).sum(-4)  # Σ_i w_ij (P_i + d_ij d_ijᵀ)
+    mixed = cov.unsqueeze(-3) + weighted_outer(d, spread, 4)  # (..., M_i, M_j, n, n)
+    P_mix = (w[..., None, None] * mixed).sum(-4)  # Σ_i w_ij (P_i + w d_ij d_ijᵀ)
     return c, m_mix, sym(P_mix)
 
 
@@ -204,8 +207,7 @@ def imm_cycle(
 
     prob (..., M), mean (..., M, n), cov (..., M, n, n) before the step; Pi (..., M, M);
     A, Q (..., M, n, n); H (..., M or 1, m, n), R (..., M or 1, m, m); y (..., m) the report
-    (NaN = missing component); noise: the observation-noise model, one for every mode (a
-    Student-t's ν shared by the modes: its scale matrices are mixed as covariances).
+    (NaN = missing component); noise: the modes' noise model (a t's scale matrices mix as covariances).
     """
     c, m_mix, P_mix = _mix(prob, Pi, mean, cov, noise.spread())
     state, step = kalman_step(KalmanState(m_mix, P_mix), y.unsqueeze(-2), A, Q, H, R, noise=noise.over_modes())
@@ -319,10 +321,8 @@ def imm_filter(
         mask: optional bool (..., T) or (..., T, m); False = not observed.
         validate_args: check the values (y without Inf; finite, PSD covariances, stochastic Pi
             and mode_prob0); shapes are always checked.
-        noise: the observation-noise model of every mode (:mod:`~torchsde_lti.filters.noise`);
-            a :class:`~torchsde_lti.filters.StudentTNoise` (one ν for every mode) makes each
-            mode Roth et al.'s Student-t filter, its covariances scale matrices, the step
-            log-likelihood ``log Σ_j c_j St(y_k; ŷ_j, S_j, ν)``.
+        noise: the modes' noise model (:mod:`~torchsde_lti.filters.noise`; a Student-t's ν is
+            shared: the step log-likelihood is ``log Σ_j c_j St(y_k; ŷ_j, S_j, ν)``).
 
     Returns:
         :class:`IMMResult`; every output broadcasts to the full batch ``...``.
@@ -368,7 +368,7 @@ def imm_filter(
             k: torch.stack(torch.broadcast_tensors(*v), dim=-1 - _EVENT_NDIM[k])
             for k, v in zip(IMMCycle._fields, zip(*steps))
         }
-    return _imm_result(stk, T, M, n, m, noise.spread())
+    return _imm_result(stk, T, M, n, m, (A4, Q4, Pi3, H4, R4), noise.spread())
 
 
 #: The event dims of each field of :class:`IMMCycle` (the T axis goes before them).
@@ -427,9 +427,13 @@ def _imm_scan(
     return {**stk, "observed": ~torch.isnan(y)}
 
 
-def _imm_result(stk: dict[str, Tensor], T: int, M: int, n: int, m: int, spread: Tensor | None = None) -> IMMResult:
+def _imm_result(
+    stk: dict[str, Tensor], T: int, M: int, n: int, m: int, model: tuple[Tensor, ...], spread: Tensor | None
+) -> IMMResult:
     """The :class:`IMMResult` of the per-step fields of :class:`IMMCycle` ``stk`` (the T axis
-    before each one's event dims); ``spread``: :func:`combine`'s weight (...)."""
+    before each one's event dims) and of the model it filtered with, ``model`` = (A, Q
+    (..., T or 1, M or 1, n, n), Pi (..., T or 1, M, M), H (..., T or 1, M or 1, m, n),
+    R (..., T or 1, M or 1, m, m)); ``spread``: :func:`combine`'s weight (...)."""
     batch = torch.broadcast_shapes(*(v.shape[: v.dim() - 1 - _EVENT_NDIM[k]] for k, v in stk.items()))
     mu = stk["mode_prob"].expand(*batch, T, M)
     cc = stk["pred_mode_prob"].expand(*batch, T, M)
@@ -442,6 +446,7 @@ def _imm_result(stk: dict[str, Tensor], T: int, M: int, n: int, m: int, spread: 
     x, P = combine(mu, mm, mc, spread)
     xp, Pp = combine(cc, pm, pc, spread)
     step_ll = stk["log_likelihood"].expand(*batch, T)
+    A, Q, Pi, H, R = model
     return IMMResult(
         log_likelihood=step_ll.sum(-1),
         step_log_likelihood=step_ll,
@@ -458,6 +463,11 @@ def _imm_result(stk: dict[str, Tensor], T: int, M: int, n: int, m: int, spread: 
         mode_innovation=stk["mode_innovation"].expand(*batch, T, M, m),
         mode_innovation_cov=stk["mode_innovation_cov"].expand(*batch, T, M, m, m),
         observed=stk["observed"].expand(*batch, T, m),
+        transition=A.expand(*batch, T, M, n, n),
+        process_noise=Q.expand(*batch, T, M, n, n),
+        mode_transition=Pi.expand(*batch, T, M, M),
+        observation_matrix=H.expand(*batch, T, M, m, n),
+        observation_noise=R.expand(*batch, T, M, m, m),
     )
 
 
@@ -473,8 +483,7 @@ def imm_predict(
     Args:
         mode_prob: (..., M) mode probabilities; mean: (..., M, n); cov: (..., M, n, n).
         A, Q: (..., K, M, n, n) mode matrices over each horizon; Pi: (..., K, M, M).
-        spread: the weight (...) of the mean spread in mixed covariances (:func:`combine`; a
-            Student-t's scale matrices: :meth:`~torchsde_lti.filters.StudentTNoise.spread`).
+        spread: the weight (...) of the mean spread in mixed covariances (:func:`combine`).
 
     Returns:
         :class:`IMMPrediction` with a K axis after the batch.

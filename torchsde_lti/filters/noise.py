@@ -44,7 +44,7 @@ from torchsde_lti.core.validation import shape_str
 
 T = TypeVar("T")
 
-__all__ = ["GAUSSIAN", "GaussianNoise", "NoiseModel", "StudentTNoise", "log_gamma_ratio"]
+__all__ = ["GAUSSIAN", "GaussianNoise", "NoiseModel", "StudentTNoise", "log_gamma_ratio", "weighted_outer"]
 
 #: Below this x, ``log_gamma_ratio`` takes torch's lgamma; above, Stirling's series (whose 7
 #: terms are below 1e-15 there).
@@ -77,6 +77,13 @@ def log_gamma_ratio(x: Tensor, a: Tensor) -> Tensor:
     xd = torch.where(big, torch.ones_like(x), x)
     direct = torch.lgamma(xd + a) - torch.lgamma(xd) - a * torch.log(xd)
     return torch.where(big, stirling, direct)
+
+
+def weighted_outer(d: Tensor, spread: Tensor | None, event: int) -> Tensor:
+    """``w d dᵀ`` of deviations d (..., n): the outer products (..., n, n) weighted by ``spread`` w,
+    (b) over the batch before d's last ``event − 1`` dims (None: 1; :meth:`StudentTNoise.spread`)."""
+    outer = d.unsqueeze(-1) * d.unsqueeze(-2)
+    return outer if spread is None else outer * spread.reshape(*spread.shape, *[1] * event)
 
 
 class GaussianNoise(NamedTuple):

@@ -5,6 +5,7 @@ r"""``IMMFilter``: an interacting multiple model filter over learned continuous-
     out.log_likelihood                                   # (...)  -> loss = -out.log_likelihood.mean()
     out.mode_probabilities, out.mean, out.cov            # (..., T, M), (..., T, n), (..., T, n, n)
     fc = imm.forecast(out, horizons)                     # the mixture at t_last + horizons (..., K)
+    sm = imm.smooth(out)                                 # IMM smoother (Kim 1994): sm.mean, sm.mode_probabilities
 
 Modes switch by a continuous-time Markov chain with generator Λ (``imm.rates``, (M, M):
 off-diagonal rates Λ_ij ≥ 0 of jumping from mode i to j, rows summing to 0), so over a gap
@@ -63,6 +64,7 @@ from torchsde_lti.filters.imm import (
     imm_predict,
 )
 from torchsde_lti.filters.imm_online import IMMState, IMMStep, imm_predict_state, imm_step
+from torchsde_lti.filters.imm_smoother import IMMSmootherResult, imm_smoother
 from torchsde_lti.filters.kalman import check_algorithm
 from torchsde_lti.filters.results import serializable
 from torchsde_lti.nn._imm_model import IMMModel, bank_of, check_model_values, imm_state, state_batches
@@ -70,7 +72,7 @@ from torchsde_lti.nn._online import check_batches, discretize_steps, evaluated, 
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_outcome, check_values, online_report
 from torchsde_lti.nn.kalman import FilterMode
-from torchsde_lti.nn.noise import NoiseOption, noise_option
+from torchsde_lti.nn.noise import NoiseOption, StudentT, noise_option
 from torchsde_lti.nn.parametrizations import (
     Generator,
     ModeProbabilities,
@@ -362,6 +364,15 @@ class IMMFilter(ValidateArgs, nn.Module):
             update = model.noise.update_bound((model.H, out.observed.unsqueeze(-2), out.mode_cov))
             check_outcome(final, (out.mode_cov,), d, y, dt, bank_of(model.modes)[0], model.R, update)
         return out
+
+    def smooth(self, out: IMMResult) -> IMMSmootherResult:
+        """Fixed-interval IMM smoother over the filter output (Kim 1994, with the A_j, Q_j and
+        Pi of each step stored in ``out``): :func:`~torchsde_lti.filters.imm_smoother.imm_smoother`.
+        Returns mean (..., T, n), cov, mode_probabilities (..., T, M), mode_mean, mode_cov.
+        ValueError for ``noise=StudentT`` (Kim's smoother mixes Gaussian modes)."""
+        if isinstance(self.noise, StudentT):
+            raise ValueError("IMMFilter.smooth: Kim's IMM smoother is Gaussian; not for noise=StudentT")
+        return imm_smoother(out)
 
     # ------------------------------------------------------------------ online
     def initial_state(self, batch_shape: torch.Size | tuple[int, ...] | int = ()) -> IMMState:

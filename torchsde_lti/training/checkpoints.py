@@ -1,17 +1,12 @@
-"""Reading training checkpoints with errors that say what is wrong with the file.
+"""Training checkpoints read with errors that say what is wrong with the file.
 
-A run writes two Lightning checkpoints (``conf/callbacks/default.yaml``):
-
-* ``<run>/checkpoints/last.ckpt``: the state at the end of the last completed epoch —
-  the weights the run reports (``results.md``, ``metrics.json``) and the point a resumed
-  run continues from;
-* ``<run>/checkpoints/best.ckpt``: the epoch with the lowest ``val/nll``.
-
-Both hold plain containers and tensors only, so they load with
-``torch.load(weights_only=True)``. :func:`read_checkpoint` does that and turns every way a
-file can be unusable (missing, empty, truncated, random bytes, another kind of file, Python
-objects) into a :class:`CheckpointError` naming the file — never a bare ``EOFError`` /
-``OSError`` or advice to disable ``weights_only``.
+A run writes ``<run>/checkpoints/last.ckpt`` (the end of the last completed epoch: the weights
+the run reports and the point a resumed run continues from) and ``best.ckpt`` (the lowest
+``val/nll``): plain containers and tensors, loaded with ``torch.load(weights_only=True)``.
+torch reports a damaged file as ``EOFError``, ``OSError``, miniz's ``RuntimeError`` or an
+``UnpicklingError`` that advises turning ``weights_only`` off; :func:`read_checkpoint` names the
+file and the damage instead (:class:`CheckpointError`), and a checkpoint of another model fails
+with torch's own list of missing, unexpected and mis-shaped entries.
 """
 
 from __future__ import annotations
@@ -26,12 +21,9 @@ from typing import Any
 import torch
 from torch import nn
 
-from torchsde_lti.nn.parametrizations import floor_state_keys
+__all__ = ["RESUME_KEYS", "CheckpointError", "load_filter_weights", "load_weights", "read_checkpoint"]
 
-__all__ = ["CheckpointError", "check_state_dict", "load_filter_weights", "read_checkpoint"]
-
-_ZIP_MAGIC = b"PK\x03\x04"
-#: what Lightning writes into every training checkpoint that :meth:`Trainer.fit` resumes from
+#: What Lightning writes into every training checkpoint that :meth:`Trainer.fit` resumes from.
 RESUME_KEYS = ("state_dict", "epoch", "global_step", "loops", "optimizer_states")
 
 
@@ -39,17 +31,19 @@ class CheckpointError(ValueError):
     """A checkpoint file that cannot be used: unreadable, damaged, or not what was asked for."""
 
 
-def _damage(path: Path) -> str:
-    """Why ``torch.load`` could not read ``path``: a short description from the file's bytes."""
+def _damage(path: Path, err: Exception) -> str:
+    """Why ``torch.load`` could not read ``path``, from the file's bytes."""
     size = path.stat().st_size
     if size == 0:
         return "empty file (0 bytes)"
     with path.open("rb") as f:
-        head = f.read(len(_ZIP_MAGIC))
-    if head != _ZIP_MAGIC:
+        head = f.read(4)
+    if head != b"PK\x03\x04":
         return f"not a checkpoint (not a torch.save archive: {size} bytes that do not start like one)"
     if not zipfile.is_zipfile(path):
         return f"truncated ({size} bytes: the archive ends before its index)"
+    if isinstance(err, pickle.UnpicklingError) and "global" in str(err).lower():
+        return "it holds Python objects other than tensors and plain containers, which training checkpoints never do"
     return f"corrupted ({size} bytes: an archive whose records do not read back)"
 
 
@@ -60,16 +54,17 @@ def read_checkpoint(
 
     Args:
         path: the file.
-        require: top-level keys the checkpoint must hold (``RESUME_KEYS`` to resume training).
+        require: top-level keys the checkpoint must hold (:data:`RESUME_KEYS` to resume training).
         name: the argument or config key the path came from, named in the errors.
 
     Returns:
         The checkpoint dict.
 
     Raises:
+        TypeError: ``path`` is not a path.
         FileNotFoundError: no such file (or a directory).
-        CheckpointError: "cannot read checkpoint <path>: empty file / truncated / not a
-            checkpoint / holds Python objects ...", or a dict without the required keys.
+        CheckpointError: "cannot read checkpoint <path>: empty file / truncated / not a checkpoint /
+            it holds Python objects ...", or a dict without the required keys.
     """
     if not isinstance(path, (str, Path)) or not str(path):
         raise TypeError(f"{name} must be a path to a checkpoint file, got {path!r}")
@@ -82,72 +77,39 @@ def read_checkpoint(
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # e.g. "Detected pickle protocol 4": the error below says more
             ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as err:
-        if zipfile.is_zipfile(path) and "global" in str(err).lower():
-            raise CheckpointError(
-                f"cannot read checkpoint {path}: it holds Python objects other than tensors and plain "
-                "containers, which training checkpoints never do (not a checkpoint of this package)"
-            ) from None
-        raise CheckpointError(f"cannot read checkpoint {path}: {_damage(path)}") from None
-    except (EOFError, OSError, RuntimeError, KeyError, ValueError, TypeError, AttributeError, IndexError, MemoryError):
-        # torch.load reports damage in many ways: EOFError (empty), OSError EINVAL (truncated
-        # archive), RuntimeError (miniz), KeyError / ValueError (bytes read as a legacy pickle)
-        raise CheckpointError(f"cannot read checkpoint {path}: {_damage(path)}") from None
-    if not isinstance(ckpt, Mapping):
-        raise CheckpointError(
-            f"cannot read checkpoint {path}: not a checkpoint (it holds a {type(ckpt).__name__}, "
-            "not the dict Lightning writes)"
-        )
-    missing = [k for k in require if k not in ckpt]
-    if missing:
-        raise CheckpointError(
-            f"cannot read checkpoint {path}: not a training checkpoint (missing {', '.join(map(repr, missing))}; "
-            f"it holds {', '.join(map(repr, list(ckpt)[:8])) or 'nothing'})"
-        )
-    if "state_dict" in ckpt and not isinstance(ckpt["state_dict"], Mapping):
-        raise CheckpointError(
-            f"cannot read checkpoint {path}: its 'state_dict' is a {type(ckpt['state_dict']).__name__}, not a dict"
-        )
-    return dict(ckpt)
+    except Exception as err:  # noqa: BLE001 - every way torch.load reports a damaged file
+        raise CheckpointError(f"cannot read checkpoint {path}: {_damage(path, err)}") from None
+    what = f"it holds a {type(ckpt).__name__}, not the dict Lightning writes"
+    if isinstance(ckpt, Mapping):
+        missing = [k for k in require if k not in ckpt]
+        what = f"missing {', '.join(map(repr, missing))}; it holds {', '.join(map(repr, list(ckpt)[:8])) or 'nothing'}"
+        if not missing:
+            return dict(ckpt)
+        raise CheckpointError(f"cannot read checkpoint {path}: not a training checkpoint ({what})")
+    raise CheckpointError(f"cannot read checkpoint {path}: not a checkpoint ({what})")
 
 
-def check_state_dict(path: str | Path, saved: Mapping[str, Any], module: nn.Module, *, prefix: str = "") -> None:
-    """Raise :class:`CheckpointError` unless ``saved`` has exactly the keys and shapes of
-    ``module.state_dict()`` (keys of ``saved`` read without ``prefix``).
-
-    Names the missing, unexpected and mis-shaped entries: a checkpoint of another model
-    (``model=cv`` resumed with ``model=singer``) fails here, before any training. The floors of
-    the positive parametrisations (:func:`~torchsde_lti.nn.parametrizations.floor_state_keys`)
-    may be missing: checkpoints saved before they were saved load without them.
-    """
-    own = module.state_dict()
-    theirs = {k.removeprefix(prefix): v for k, v in saved.items() if k.startswith(prefix)}
-    missing = sorted(set(own) - set(theirs) - floor_state_keys(module))
-    unexpected = sorted(set(theirs) - set(own))
-    shapes = sorted(
-        f"{k} {tuple(theirs[k].shape)} vs {tuple(own[k].shape)}"
-        for k in set(own) & set(theirs)
-        if isinstance(theirs[k], torch.Tensor) and theirs[k].shape != own[k].shape
-    )
-    if missing or unexpected or shapes:
-        parts = [
-            f"missing {missing[:5]}" if missing else "",
-            f"unexpected {unexpected[:5]}" if unexpected else "",
-            f"shapes (checkpoint vs model) {shapes[:5]}" if shapes else "",
-        ]
+def load_weights(module: nn.Module, state_dict: Mapping[str, Any], path: str | Path, prefix: str = "") -> None:
+    """``module.load_state_dict`` (strict) of the entries of ``state_dict`` under ``prefix``; a
+    checkpoint of another model raises :class:`CheckpointError` naming the file, with torch's
+    list of the missing, unexpected and mis-shaped entries (the floors of the positive
+    parametrisations may be missing: older checkpoints load without them)."""
+    own = {k.removeprefix(prefix): v for k, v in state_dict.items() if k.startswith(prefix)}
+    try:
+        module.load_state_dict(own)
+    except RuntimeError as err:
         raise CheckpointError(
-            f"checkpoint {path} holds a different model from the one configured: " + "; ".join(p for p in parts if p)
-        )
+            f"checkpoint {path} holds a different model from the one configured: {' '.join(str(err).split())}"
+        ) from None
 
 
 def load_filter_weights(kf: nn.Module, path: str | Path) -> nn.Module:
-    """Load the filter weights of a training checkpoint into ``kf`` (in place; returns it).
+    """Load the filter weights (the ``kf.`` entries) of a training checkpoint into ``kf``, the
+    filter the run trained rebuilt with the same model and shapes; in place, returns it.
 
-    ``kf`` is the filter the run trained, rebuilt with the same model and shapes (its
-    parameters live under ``kf.`` in the checkpoint's ``state_dict``). Raises
-    :class:`CheckpointError` for a damaged file or one that holds another model.
+    Raises:
+        FileNotFoundError, CheckpointError: as :func:`read_checkpoint`, or a checkpoint of
+            another model (:func:`load_weights`).
     """
-    ckpt = read_checkpoint(path, name="path")
-    check_state_dict(path, ckpt["state_dict"], kf, prefix="kf.")
-    kf.load_state_dict({k.removeprefix("kf."): v for k, v in ckpt["state_dict"].items() if k.startswith("kf.")})
+    load_weights(kf, read_checkpoint(path, name="path")["state_dict"], path, prefix="kf.")
     return kf

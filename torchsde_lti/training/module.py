@@ -1,29 +1,23 @@
 """Lightning glue: train a Kalman filter's learned motion model by maximum likelihood.
 
-Loss (per batch) = negative log-likelihood per observed scalar,
+Loss (per batch) = -Σ_tracks log p(y_1:T) / #(observed scalars in y), from the filter's
+prediction-error decomposition, optionally plus ``k_step_weight`` × the k-step-ahead predictive
+NLL per observed scalar (summed over the horizons of a list ``k_step``): a KalmanFilter pushes
+each filtered (m_t, P_t) k steps through the exact discrete model (A, Q, G u of each step) and
+scores y_{t+k}; an IMMFilter scores y_{t+k} under its forecast MIXTURE over the lead
+τ = t_{t+k} − t_t (:func:`imm_k_step_nll`). Batches are :class:`~torchsde_lti.data.TrackBatch`.
 
-    loss = -Σ_tracks log p(y_1:T) / #(observed scalars in y),
-
-from the filter's prediction-error decomposition (``out.log_likelihood``), optionally
-plus ``k_step_weight`` × the k-step-ahead predictive NLL per observed scalar (summed over
-the horizons when ``k_step`` is a list): for a KalmanFilter, from each filtered state
-(m_t, P_t) the moments are pushed k steps through the exact discrete model (A, Q, G u of
-each step) and scored against y_{t+k}; for an IMMFilter, the predictive MIXTURE of y_{t+k}
-from the filtered mode probabilities, means and covariances at t over the lead
-τ = t_{t+k} − t_t (the switching chain expm(Λ τ) and each mode's exact A_j(τ), Q_j(τ):
-``IMMFilter.forecast``), scored by ``log Σ_j c_j N(y; ŷ_j, S_j)`` on fully observed targets.
-
-Batches are dicts or NamedTuples with ``y`` (B, T, m; NaN = missing), ``dt`` (B, T),
-optional ``mask`` (B, T), ``u`` (B, T, p), ``x`` (B, T, n) — see :mod:`torchsde_lti.data`.
-
-Logged metrics, each over a whole epoch (every batch, every process): ``train/nll``,
-``val/nll`` (per observed scalar: Σ NLL / Σ observed scalars), ``val/rmse`` (one-step-ahead
-prediction error of y: √(Σ squared errors / Σ observed scalars)), ``val/state_rmse``
-(filtered mean vs true state, when batches carry ``x``), and when
-the truth is known ``val/param_error`` (largest relative error of the quantities the data
-determine: see :func:`parameter_errors`) plus ``val/param_error/<name>`` for each of them.
-Robustness: a non-finite loss or gradient skips the step (warned, counted in ``skipped_steps`` /
-``train/skipped_steps``); gradient-norm clipping is the Trainer's (``trainer.gradient_clip_val``).
+Logged, each over a whole epoch (every batch, every process): ``train/nll``, ``{val,test}/nll``
+(Σ NLL / Σ observed scalars), ``{val,test}/rmse`` (one-step prediction error of y,
+√(Σ squared errors / Σ observed scalars)), ``{val,test}/state_rmse`` (filtered mean vs true
+state, when batches carry ``x``), ``{val,test}/cover2s`` (the share of reports after each
+window's first whose observed coordinates lie in the one-step predictive's 86.5 % region:
+:func:`~torchsde_lti.evaluation.hpd_inside`, d² = νᵀS⁻¹ν <= 4 for m = 2), with a truth
+``val/param_error`` (the largest of :func:`~torchsde_lti.evaluation.filter_errors`) and
+``val/param_error/<name>``, and ``param/<name>`` (every learned value,
+:func:`~torchsde_lti.evaluation.flat_values`) after each training epoch. A non-finite loss or
+gradient skips the step (warned, counted in ``skipped_steps`` / ``train/skipped_steps``);
+gradient-norm clipping is the Trainer's (``trainer.gradient_clip_val``).
 """
 
 from __future__ import annotations
@@ -38,15 +32,18 @@ from lightning.pytorch import LightningModule
 from torch import Tensor
 
 from torchsde_lti.data.tracks import TrackBatch
+from torchsde_lti.evaluation import (
+    filter_errors,
+    filter_values,
+    flat_values,
+    hpd_inside,
+    masked_gaussian_nll,
+    predictive_dof,
+)
 from torchsde_lti.nn import NonFiniteLikelihoodError
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
 from torchsde_lti.nn.parametrizations import reset_default_floors
-from torchsde_lti.training.metrics import (
-    masked_gaussian_nll,
-    parameter_errors,
-    raw_f_identifiable,
-)
 
 __all__ = ["KalmanFilterModule", "imm_k_step_nll"]
 
@@ -88,37 +85,25 @@ def imm_k_step_nll(imm: IMMFilter, out: Any, y: Tensor, dt: Tensor, observed: Te
     return -(ll * ok).sum()
 
 
-# --------------------------------------------------------------------------- module
-
-
 class KalmanFilterModule(LightningModule):
     """LightningModule around a ``tl.KalmanFilter`` or ``tl.IMMFilter`` whose motion models are learned.
 
     Args:
-        kf: the filter: a KalmanFilter (its LTISDE's learned parameters and, if learned, R)
-            or an IMMFilter (every mode's model, R, the switching rates, ...). Anything with
-            ``kf(y, dt, u=...)`` returning ``log_likelihood`` and ``pred_mean``, ``H``, and
-            ``modes()`` (:class:`~torchsde_lti.nn.FilterMode` per motion model).
-        optimizer: ``functools.partial`` of a torch optimizer (Hydra ``_partial_: true``).
-        scheduler: optional partial of an LR scheduler (stepped per epoch).
-        truth: optional {"sde": true LTISDE, "R": true R} for parameter errors.
-        k_step: horizon(s) in reports of the optional k-step-ahead predictive loss: an int
-            (0 = off) or a list of ints (each horizon's NLL is added). A KalmanFilter pushes
-            the exact per-step transitions; an IMMFilter scores its forecast mixture.
-        k_step_weight: weight of that loss.
-        dtype: "float64" or "float32": parameters and batches are kept in this dtype, and the
-            default floors of the filter's positive parametrisations are this dtype's eps
-            (:func:`~torchsde_lti.nn.parametrizations.reset_default_floors`: a filter built
-            in float32, as Hydra builds it from plain numbers, trains in float64 with
-            float64's floors); a loaded checkpoint restores its own.
-        param_names: names of the scalars to track (default: the model's own list).
-        compare: which of "F", "Qc", "R" are compared with the truth in the parameter
-            errors (which parameters are *trained* is the filter's and LTISDE's ``learn``).
-        skip_nonfinite: when the loss or any gradient is NaN/Inf, drop that step's
-            gradients before the Trainer clips them (every ``grad`` set to None, so Adam
-            leaves parameters and moments untouched and L-BFGS stops its iteration), warn,
-            and count it in ``skipped_steps`` (logged as ``train/skipped_steps``, saved in
-            checkpoints).
+        kf: the filter (its models' learned parameters, R, an IMM's switching rates, ...):
+            anything with ``kf(y, dt, u=...)``, ``H`` and ``modes()`` (:class:`~torchsde_lti.nn.FilterMode`).
+        optimizer, scheduler: ``functools.partial`` of a torch optimizer and (optional) of an LR
+            scheduler stepped per epoch (Hydra ``_partial_: true``).
+        truth: optional {"sde": true LTISDE, "R": true R, "H"} for parameter errors.
+        k_step, k_step_weight: horizon(s) in reports of the optional k-step-ahead predictive loss
+            (an int, 0 = off, or a list whose NLLs are added) and its weight.
+        dtype: "float64" or "float32": parameters and batches, and the default floors of the
+            filter's positive parametrisations (this dtype's eps:
+            :func:`~torchsde_lti.nn.parametrizations.reset_default_floors`).
+        param_names: the scalars to track (default: the model's own).
+        compare: which of "F", "Qc", "R" are compared with the truth (``learn`` says what is trained).
+        skip_nonfinite: a NaN/Inf loss or gradient drops that step's gradients before the
+            Trainer clips them (Adam leaves parameters and moments as they are, L-BFGS stops its
+            iteration), warns, and counts it in ``skipped_steps`` (saved in checkpoints).
     """
 
     def __init__(
@@ -167,29 +152,20 @@ class KalmanFilterModule(LightningModule):
         self.skip_nonfinite = bool(skip_nonfinite)
         self.skipped_steps = 0
         self._finite_loss = True  # of the last training step (a closure call), read before the optimizer step
-        self._squared_errors: dict[str, Tensor] = {}  # stage -> running sums of one epoch (_eval_step)
-
-    # ---------------------------------------------------------------- helpers
+        self._sums: dict[str, dict[str, Tensor]] = {}  # stage -> score -> (numerator, denominator) of one epoch
+        self.trained_at: int | None = None  # the optimizer step after this process's last training batch
+        self.validated_at: int | None = None  # ... and at the end of its last validation (not a sanity check)
 
     def unpack(self, batch: TrackBatch) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor | None]:
         """(y, dt, mask, u, x) of a :class:`~torchsde_lti.data.TrackBatch`, floats in the module's dtype."""
         if not isinstance(batch, TrackBatch):
             raise TypeError(f"batches must be torchsde_lti.data.TrackBatch, got {type(batch).__name__}")
-
-        def cast(t: Tensor | None) -> Tensor | None:
-            return t.to(self.float_dtype) if t is not None else None
-
-        return batch.y.to(self.float_dtype), batch.dt.to(self.float_dtype), batch.mask, cast(batch.u), cast(batch.x)
+        u, x = (None if t is None else t.to(self.float_dtype) for t in (batch.u, batch.x))
+        return batch.y.to(self.float_dtype), batch.dt.to(self.float_dtype), batch.mask, u, x
 
     def forward(self, y: Tensor, dt: Tensor, u: Tensor | None = None) -> Any:
         """Run the filter: y (B, T, m), dt (B, T), u (B, T, p) -> the filter's output."""
         return self.kf(y, dt, u=u)
-
-    def _observed(self, y: Tensor, mask: Tensor | None) -> Tensor:
-        obs = ~torch.isnan(y)
-        if mask is not None:
-            obs = obs & mask.unsqueeze(-1)
-        return obs
 
     def k_step_nll(
         self,
@@ -234,7 +210,7 @@ class KalmanFilterModule(LightningModule):
 
     def _step(self, batch: Any) -> tuple[Tensor, Tensor, Any, dict[str, Any]]:
         y, dt, mask, u, x = self.unpack(batch)
-        observed = self._observed(y, mask)
+        observed = ~torch.isnan(y) if mask is None else ~torch.isnan(y) & mask.unsqueeze(-1)
         if mask is not None:  # padding: no observation, no motion
             y = torch.where(mask.unsqueeze(-1), y, torch.full_like(y, math.nan))
             dt = torch.where(mask, dt, torch.zeros_like(dt))
@@ -246,8 +222,6 @@ class KalmanFilterModule(LightningModule):
             kst = sum(self.k_step_nll(out, y, observed, k, dt, u) for k in self.k_steps)
             loss = loss + self.k_step_weight * kst / count
         return loss, nll, out, {"y": y, "x": x, "observed": observed, "mask": mask, "count": count, "u": u}
-
-    # ---------------------------------------------------------------- Lightning hooks
 
     def training_step(self, batch: Any, batch_idx: int) -> Tensor:
         try:
@@ -270,51 +244,53 @@ class KalmanFilterModule(LightningModule):
 
     def _eval_step(self, batch: Any, stage: str) -> Tensor:
         loss, nll, out, info = self._step(batch)
-        y, observed = info["y"], info["observed"]
-        count = int(info["count"])
-        self.log(f"{stage}/nll", nll, on_epoch=True, prog_bar=stage == "val", batch_size=count, sync_dist=True)
-        pred = self._predicted_observation(out)
-        Du = self.kf.feedthrough(info["u"]) if isinstance(self.kf, KalmanFilter) else None
-        pred = pred if Du is None else pred + Du
-        err = torch.where(observed, pred - y, torch.zeros_like(y))
-        sums = [(err**2).sum(), observed.sum()]
-        x, mask = info["x"], info["mask"]
-        if x is not None and x.shape[-1] == out.mean.shape[-1]:  # the truth's state (same kind of model)
-            valid = torch.ones_like(x[..., 0], dtype=torch.bool) if mask is None else mask
-            se = ((out.mean - x) ** 2).sum(-1)
-            sums += [(se * valid).sum(), valid.sum() * x.shape[-1]]
-        total = torch.stack([v.detach().to(torch.float64) for v in sums])
-        previous = self._squared_errors.get(stage)
-        self._squared_errors[stage] = total if previous is None else previous + total
+        y, observed, x, mask = info["y"], info["observed"], info["x"], info["mask"]
+        self.log(
+            f"{stage}/nll", nll, on_epoch=True, prog_bar=stage == "val", batch_size=int(info["count"]), sync_dist=True
+        )
+        with torch.no_grad():
+            w, mu, S = self._predictive(out, info["u"])
+            err = torch.where(observed, (w.unsqueeze(-1) * mu).sum(-2) - y, torch.zeros_like(y))
+            sums = {"rmse": ((err**2).sum(), observed.sum()), "cover2s": _coverage(y, w, mu, S, observed, self._dof())}
+            if x is not None and x.shape[-1] == out.mean.shape[-1]:  # the truth's state (same kind of model)
+                valid = torch.ones_like(x[..., 0], dtype=torch.bool) if mask is None else mask
+                sums["state_rmse"] = ((((out.mean - x) ** 2).sum(-1) * valid).sum(), valid.sum() * x.shape[-1])
+        epoch = self._sums.setdefault(stage, {})
+        for name, (num, den) in sums.items():
+            pair = torch.stack([num.to(torch.float64), den.to(torch.float64)])
+            epoch[name] = pair if name not in epoch else epoch[name] + pair
         return loss
 
-    def _predicted_observation(self, out: Any) -> Tensor:
-        """The one-step-ahead predicted observation (..., T, m) (before the feedthrough D u):
-        ``H m⁻``; for an IMMFilter the mixture's ``Σ_j c_j H_j m⁻_j`` (H shared (m, n) or per
-        mode (M, m, n); c: the predicted mode probabilities)."""
+    def _predictive(self, out: Any, u: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+        """The one-step predictive of y, a mixture over modes: weights (..., T, M), means
+        (..., T, M, m) (``H_j m⁻_j``, plus the feedthrough D u of a KalmanFilter) and
+        covariances (..., T, M, m, m) (``S_j``); M = 1 for a KalmanFilter."""
         if isinstance(self.kf, IMMFilter):
-            per_mode = (self.kf.H @ out.mode_pred_mean.unsqueeze(-1)).squeeze(-1)  # (..., T, M, m)
-            return (out.pred_mode_probabilities.unsqueeze(-1) * per_mode).sum(-2)
-        return out.pred_mean @ self.kf.H.mT
+            mu = (self.kf.H @ out.mode_pred_mean.unsqueeze(-1)).squeeze(-1)  # H shared (m, n) or per mode (M, m, n)
+            return out.pred_mode_probabilities, mu, out.mode_innovation_cov
+        pred = out.pred_mean @ self.kf.H.mT
+        Du = self.kf.feedthrough(u) if isinstance(self.kf, KalmanFilter) else None
+        pred = pred if Du is None else pred + Du
+        return torch.ones_like(pred[..., :1]), pred.unsqueeze(-2), out.innovation_cov.unsqueeze(-3)
 
-    def _log_rmse(self, stage: str) -> None:
-        """``{stage}/rmse`` (and ``state_rmse``) over the whole epoch: √(Σ squared errors / Σ
-        counts) of all its batches (and of all processes)."""
-        sums = self._squared_errors.pop(stage, None)
-        if sums is None:
+    def _log_scores(self, stage: str) -> None:
+        """``{stage}/rmse``, ``state_rmse`` and ``cover2s`` of the whole epoch (all batches, all processes)."""
+        sums = self._sums.pop(stage, {})
+        if not sums:
             return
-        sums = self.trainer.strategy.reduce(sums, reduce_op="sum")
-        for i, name in enumerate(("rmse", "state_rmse")[: len(sums) // 2]):
-            self.log(f"{stage}/{name}", (sums[2 * i] / sums[2 * i + 1].clamp_min(1)).sqrt(), sync_dist=False)
+        total = self.trainer.strategy.reduce(torch.stack(list(sums.values())), reduce_op="sum")
+        for name, (num, den) in zip(sums, total):
+            value = num / den.clamp_min(1)
+            self.log(f"{stage}/{name}", value if name == "cover2s" else value.sqrt(), sync_dist=False)
 
     def on_validation_epoch_start(self) -> None:
-        self._squared_errors.pop("val", None)
+        self._sums.pop("val", None)
 
     def on_test_epoch_start(self) -> None:
-        self._squared_errors.pop("test", None)
+        self._sums.pop("test", None)
 
     def on_test_epoch_end(self) -> None:
-        self._log_rmse("test")
+        self._log_scores("test")
 
     def validation_step(self, batch: Any, batch_idx: int) -> Tensor:
         return self._eval_step(batch, "val")
@@ -323,40 +299,27 @@ class KalmanFilterModule(LightningModule):
         return self._eval_step(batch, "test")
 
     def parameter_errors(self) -> dict[str, float]:
-        """Relative errors of the learned parameters against the truth ({} without truth, and for
-        a filter of several modes: the truth is one model)."""
-        modes = self.kf.modes()
-        if self._truth is None or self._truth.get("sde") is None or len(modes) != 1:
-            return {}
-        mode = modes[0]
-        R_true = self._truth.get("R") if "R" in self.compare else None
-        return parameter_errors(
-            mode.sde, self._truth["sde"], R=mode.R if R_true is not None else None, R_true=R_true,
-            names=self.param_names, compare=self.compare, H=mode.H, H_true=self._truth.get("H"),
-        )  # fmt: skip
+        """:func:`~torchsde_lti.evaluation.filter_errors` of the filter against the truth ({} without one)."""
+        return filter_errors(self.kf, self._truth, self.param_names, self.compare)
 
-    def identifiability_note(self) -> str:
-        """'' when the raw parameters are identifiable, else a sentence saying why not."""
-        hidden = [mode for mode in self.kf.modes() if not raw_f_identifiable(mode.sde, mode.H)]
-        if not hidden:
-            return ""
-        m, n = hidden[0].H.shape[-2:]
-        return (
-            f"F is free and observed through H ({m}x{n}, rank < {n}): F and Qc are determined only up to a "
-            "change of state basis, so they are compared through the observed autocovariance "
-            "H e^{F tau} P_inf H^T (`autocov`), not entrywise."
-        )
+    def on_train_batch_end(self, *args: Any) -> None:
+        self.trained_at = int(self.global_step)
 
     def on_validation_epoch_end(self) -> None:
-        self._log_rmse("val")
+        self._log_scores("val")
+        if not self.trainer.sanity_checking:
+            self.validated_at = int(self.global_step)
         errors = self.parameter_errors()
-        if not errors:
-            return
         for name, value in errors.items():
             self.log(f"val/param_error/{name}", value, sync_dist=False)
-        self.log("val/param_error", max(errors.values()), prog_bar=True, sync_dist=False)
+        if errors:
+            self.log("val/param_error", max(errors.values()), prog_bar=True, sync_dist=False)
 
-    # ---------------------------------------------------------------- robust optimizer steps
+    @property
+    def validation_stale(self) -> bool:
+        """Whether this process trained after its last validation (``check_val_every_n_epoch > 1``,
+        ``max_steps`` mid-epoch): the logged validation scores are older weights'."""
+        return self.trained_at is not None and self.trained_at != self.validated_at
 
     def on_before_optimizer_step(self, optimizer: Any) -> None:
         """After the backward of every closure call, before the Trainer clips the gradients: skip
@@ -377,12 +340,18 @@ class KalmanFilterModule(LightningModule):
 
     def on_train_epoch_end(self) -> None:
         self.log("train/skipped_steps", float(self.skipped_steps), sync_dist=False)
+        values = flat_values(filter_values(self.kf, self.param_names))
+        self.log_dict({f"param/{k}": v for k, v in values.items()}, sync_dist=False)
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         checkpoint["skipped_steps"] = int(self.skipped_steps)
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         self.skipped_steps = int(checkpoint.get("skipped_steps", 0))
+
+    def _dof(self) -> Tensor | None:
+        """ν of the filter's Student-t predictive (``noise=tl.StudentT``); None for a Gaussian."""
+        return predictive_dof(self.kf) if isinstance(self.kf, (KalmanFilter, IMMFilter)) else None
 
     def configure_optimizers(self) -> Any:
         if self.optimizer_factory is None:
@@ -392,3 +361,23 @@ class KalmanFilterModule(LightningModule):
             return opt
         sched = self.scheduler_factory(optimizer=opt)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
+
+
+def _coverage(
+    y: Tensor, w: Tensor, mu: Tensor, S: Tensor, observed: Tensor, dof: Tensor | None
+) -> tuple[Tensor, Tensor]:
+    """(reports inside, reports scored) of the 2σ coverage: every report after its window's first
+    (which holds the prior) with a coordinate observed, tested in its observed coordinates
+    against the predictive mixture (w, mu, S) by :func:`~torchsde_lti.evaluation.hpd_inside`
+    (one pattern of observed coordinates at a time; ``dof``: ν of a Student-t filter's predictive)."""
+    scored = observed.any(-1)
+    scored[..., 0] = False
+    m = y.shape[-1]
+    pattern = (observed.long() << torch.arange(m, device=y.device)).sum(-1)
+    inside = torch.zeros((), dtype=torch.float64, device=y.device)
+    for code in torch.unique(pattern[scored]).tolist():
+        rows = scored & (pattern == code)
+        idx = torch.tensor([i for i in range(m) if code >> i & 1], device=y.device)
+        sel = hpd_inside(y[rows][:, idx], w[rows], mu[rows][..., idx], S[rows][..., idx, :][..., idx], dof=dof)
+        inside = inside + sel.sum()
+    return inside, scored.sum()

@@ -1,13 +1,9 @@
-"""What a run writes: strict JSON, atomic files, the metrics CSV of a resumed run, the data summary.
+"""What a run writes: strict JSON, files replaced atomically, the CSV log of a resumed run.
 
-Every JSON file the package writes goes through :func:`write_json`: non-finite floats become
-``null`` (``json.dumps(..., allow_nan=False)`` then holds: no bare ``NaN`` / ``Infinity``),
-tensors, NumPy values, NamedTuples, dataclasses and paths become plain JSON, and the file is
-replaced atomically (written next to the target, then renamed), so a reader never sees half a
-file — not even when the run is killed while writing.
-
-``metrics.json`` of a run (``schema_version`` :data:`SCHEMA_VERSION`) is built by
-:mod:`torchsde_lti.training.train`; its keys are listed in that module's docstring.
+Every JSON file of a run goes through :func:`write_json`: non-finite floats become ``null`` (no
+bare ``NaN`` / ``Infinity``), tensors, NumPy values, NamedTuples, dataclasses and paths plain
+JSON; the file is written next to the target and renamed over it, so a reader never sees half a
+file, not even when the run is killed while writing.
 """
 
 from __future__ import annotations
@@ -25,33 +21,25 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["SCHEMA_VERSION", "continue_csv_log", "data_summary", "to_jsonable", "write_json", "write_text"]
-
-#: version of the layout of ``metrics.json`` (bumped when a key changes meaning or moves)
-SCHEMA_VERSION = 1
+__all__ = ["continue_csv_log", "data_summary", "to_jsonable", "write_json", "write_text"]
 
 
 def to_jsonable(obj: Any) -> Any:
-    """``obj`` as plain JSON values; NaN and ±inf (floats, tensors, arrays) become None.
-
-    Mappings (keys as strings), sequences, NamedTuples, dataclasses, tensors and arrays
-    (as nested lists), NumPy / torch scalars, paths; anything else by its ``str``.
-    """
-    if obj is None or isinstance(obj, (bool, str)):
-        return obj
-    if isinstance(obj, int):
-        return obj
+    """``obj`` as plain JSON values, NaN and ±inf (floats, tensors, arrays) as None: mappings
+    (keys as strings), sequences and sets, NamedTuples, dataclasses, tensors and arrays (nested
+    lists), NumPy / torch scalars; anything else by its ``str``."""
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
-    if isinstance(obj, (torch.Tensor, np.ndarray, np.generic)):
-        value = obj.detach().cpu().tolist() if isinstance(obj, torch.Tensor) else obj.tolist()
-        return to_jsonable(value)
-    if isinstance(obj, Path):
-        return str(obj)
+    if obj is None or isinstance(obj, (bool, int, str)):
+        return obj
+    if isinstance(obj, torch.Tensor):
+        return to_jsonable(obj.detach().cpu().tolist())
+    if isinstance(obj, (np.ndarray, np.generic)):
+        return to_jsonable(obj.tolist())
     if hasattr(obj, "_asdict"):  # NamedTuple
-        return to_jsonable(obj._asdict())
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return to_jsonable(dataclasses.asdict(obj))
+        obj = obj._asdict()
+    elif dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        obj = dataclasses.asdict(obj)
     if isinstance(obj, Mapping):
         return {str(k): to_jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple, set, frozenset)):
@@ -59,9 +47,11 @@ def to_jsonable(obj: Any) -> Any:
     return str(obj)
 
 
-def _replace_atomically(path: Path, text: str) -> None:
+def write_text(path: str | Path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (a temporary file in the same directory, renamed)."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")  # same directory: os.replace is atomic
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         tmp.write_text(text, encoding="utf-8")
         os.replace(tmp, path)
@@ -71,58 +61,37 @@ def _replace_atomically(path: Path, text: str) -> None:
 
 
 def write_json(path: str | Path, obj: Any) -> None:
-    """Write ``obj`` as strict JSON (:func:`to_jsonable`; NaN/inf as null), atomically."""
-    _replace_atomically(Path(path), json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n")
-
-
-def write_text(path: str | Path, text: str) -> None:
-    """Write ``text`` to ``path`` atomically."""
-    _replace_atomically(Path(path), text)
+    """Write ``obj`` as strict JSON (:func:`to_jsonable`), atomically."""
+    write_text(path, json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n")
 
 
 def data_summary(datamodule: Any) -> Any:
-    """The datamodule's own summary, as JSON values, or None when it offers none.
-
-    Reads ``datamodule.summary`` (an attribute, or a method called without arguments);
-    whatever it holds (a dict, a string, a NamedTuple, ...) goes through :func:`to_jsonable`.
-    """
+    """The datamodule's ``summary`` (an attribute, or a method called without arguments) as JSON
+    values, or None when it offers none."""
     summary = getattr(datamodule, "summary", None)
-    if callable(summary):
-        summary = summary()
+    summary = summary() if callable(summary) else summary
     return None if summary is None else to_jsonable(summary)
-
-
-def _epoch(row: Mapping[str, str]) -> int | None:
-    try:
-        return int(float(row.get("epoch") or ""))
-    except ValueError:
-        return None
 
 
 def continue_csv_log(logger: Any, last_epoch: int) -> int:
     """Keep the rows of epochs ``<= last_epoch`` in a CSVLogger's ``metrics.csv``, for a run
-    resumed into its own directory from a checkpoint of epoch ``last_epoch``.
+    resumed into its own directory from a checkpoint of epoch ``last_epoch``; returns how many.
 
-    Lightning's CSV writer deletes an existing ``metrics.csv`` when it starts; this reads the
-    file first, lets the writer start, writes the kept rows back and tells the writer their
-    header, so the resumed run appends after them. Dropped: the rows of epochs the checkpoint
-    does not hold (an interrupted epoch, which the resumed run logs again) and the test rows
-    of an earlier run (it tests again). Call before anything is logged. Returns the number
-    of rows kept.
+    Lightning's CSV writer (2.x) deletes an existing ``metrics.csv`` when it starts: this reads
+    the file first, lets the writer start, writes the kept rows back and gives the writer their
+    header, so the resumed run appends after them. Dropped: the rows of an interrupted epoch
+    (logged again) and an earlier process's test rows (it tests again). Call before any logging.
     """
     from lightning.pytorch.loggers import CSVLogger
 
-    if not isinstance(logger, CSVLogger):
-        return 0
-    path = Path(logger.log_dir) / "metrics.csv"
-    if not path.is_file():
+    path = Path(logger.log_dir) / "metrics.csv" if isinstance(logger, CSVLogger) else None
+    if path is None or not path.is_file():
         return 0
     with path.open(newline="") as f:
         reader = csv.DictReader(f)
-        header = list(reader.fieldnames or [])
-        rows = list(reader)
+        header, rows = list(reader.fieldnames or []), list(reader)
     tests = [k for k in header if k.startswith("test/")]
-    kept = [r for r in rows if (e := _epoch(r)) is not None and e <= last_epoch and not any(r.get(k) for k in tests)]
+    kept = [r for r in rows if r.get("epoch") and int(float(r["epoch"])) <= last_epoch and not any(r[k] for k in tests)]
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=r".*Experiment logs directory .* exists and is not empty")
         writer = logger.experiment  # starts the writer, which removes the old file

@@ -1,57 +1,29 @@
-"""``metrics.json`` and ``results.md`` of a run, for every way a run can end.
-
-:class:`RunReport` writes them at the start (``status: "running"``: a run killed by SIGKILL
-or a power cut is left saying so), and rewrites them when the run completes, is interrupted
-by a signal, or fails. ``metrics.json`` is strict JSON (:func:`~torchsde_lti.training.outputs.write_json`),
-schema :data:`~torchsde_lti.training.outputs.SCHEMA_VERSION`:
-
-========================  ================================================================
-key                       value
-========================  ================================================================
-``schema_version``        1
-``status``                ``"running"`` | ``"completed"`` | ``"interrupted"`` | ``"failed"``
-``model``, ``noise``      ``model.name``, ``data.noise`` (null when absent)
-``run_dir``               the run's directory
-``epochs``                epochs completed (held by ``last.ckpt``)
-``max_epochs``            ``trainer.max_epochs``
-``wall_time``             seconds of ``Trainer.fit`` in this process (null until known)
-``reported``              where ``table``, ``param_errors`` and ``metrics`` come from:
-                          {``checkpoint`` (path relative to ``run_dir``, null without one),
-                          ``epoch``, ``description``}: the final weights = ``last.ckpt``
-``metrics``               final epoch-level metrics and ``test/*`` (null for NaN / inf)
-``param_errors``          relative errors against the truth ({} without one)
-``skipped_steps``         optimizer steps skipped for a non-finite loss or gradient
-``identifiability``       '' or why F is compared through its autocovariance
-``table``                 rows {name, true, learned, rel_error} of the reported checkpoint
-``best``                  {``checkpoint``, ``epoch``, ``val/nll``, ``table``, ``param_errors``}
-                          of ``best.ckpt`` (lowest val/nll), or null
-``data_summary``          the datamodule's ``summary`` (null when it has none)
-``resumed_from``          [{``checkpoint``, ``epoch``}] for every resume of this run, oldest first
-``interruption``          null, or {``signal`` ("SIGTERM" / "SIGINT"), ``phase`` ("setup",
-                          "fit", "test" or "plots"), ``epochs_completed``,
-                          ``resume_checkpoint`` (null when no epoch completed),
-                          ``resume_command``}
-``error``                 null, or ``"<ExceptionType>: <message>"`` of a failed run
-========================  ================================================================
+"""``metrics.json`` and ``results.md`` of a run: one :class:`RunCard`, written at the start
+(``status: "running"``: a run killed by SIGKILL or a power cut is left saying so) and again when
+the run completes, is interrupted by a signal, or fails. ``metrics.json`` is strict JSON
+(:func:`~torchsde_lti.training.outputs.write_json`): ``schema_version`` (:data:`SCHEMA_VERSION`)
+and the card's fields.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shlex
-import signal
 import sys
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from torchsde_lti.training.outputs import SCHEMA_VERSION, write_json, write_text
+from torchsde_lti.training.outputs import write_json, write_text
 
-__all__ = ["RunReport", "markdown_table", "parameter_rows", "score_rows"]
+__all__ = ["SCHEMA_VERSION", "RunCard", "format_table", "markdown_table", "score_rows"]
 
-#: The scores results.md shows per split, in order: metric name, column title, unit kind
-#: ("nll": per observed scalar; "y": the observations' unit; "share").
+#: Version of the layout of ``metrics.json`` (bumped when a key changes meaning or moves).
+SCHEMA_VERSION = 1
+#: The scores results.md shows per split: metric name, column title, unit ("y": the observations').
 SCORES = (
     ("nll", "NLL", "nats per observed scalar"),
     ("rmse", "one-step RMSE", "y"),
@@ -71,39 +43,34 @@ FIGURES = (
 
 def _number(x: Any, spec: str = ".4g") -> str:
     """A table cell: '' for a missing / non-finite value."""
-    if not isinstance(x, (int, float)) or isinstance(x, bool) or not math.isfinite(x):
-        return ""
-    return format(x, spec)
+    ok = isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+    return format(x, spec) if ok else ""
 
 
-def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]], align: str = "") -> str:
-    """A Markdown table of the columns that hold a value in some row (the first always kept).
-
-    ``align``: one character per column, ``l`` or ``r`` (default: the first left, the rest right).
-    """
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    """A Markdown table of the columns that hold a value in some row (the first, left-aligned, always)."""
     keep = [j for j in range(len(header)) if j == 0 or any(r[j] for r in rows)]
-    align = align or "l" + "r" * (len(header) - 1)
     lines = [
         "| " + " | ".join(header[j] for j in keep) + " |",
-        "|" + "|".join("---" if align[j] == "l" else "---:" for j in keep) + "|",
+        "|" + "|".join("---:" if j else "---" for j in keep) + "|",
     ]
-    lines += ["| " + " | ".join(r[j] for j in keep) + " |" for r in rows]
-    return "\n".join(lines)
+    return "\n".join(lines + ["| " + " | ".join(r[j] for j in keep) + " |" for r in rows])
 
 
-def parameter_rows(table: Sequence[dict[str, Any]]) -> str:
-    """The learned values (and, where a truth is known, the true values and relative errors)."""
+def format_table(table: Sequence[dict[str, Any]]) -> str:
+    """Markdown of :func:`~torchsde_lti.evaluation.parameter_table` rows: learned values and,
+    where a truth is known, the true values and relative errors (only the columns that apply)."""
     rows = [
-        [r["name"], _number(r.get("true")), _number(r.get("learned")), _number(100 * r["rel_error"], ".2f") + " %"
-         if _number(r.get("rel_error")) else ""]
+        [r["name"], _number(r.get("true")), _number(r.get("learned")),
+         f"{100 * r['rel_error']:.2f} %" if _number(r.get("rel_error")) else ""]
         for r in table
     ]  # fmt: skip
     return markdown_table(["parameter", "true", "learned", "rel. error"], rows)
 
 
 def score_rows(metrics: dict[str, Any], unit: str) -> str:
-    """Validation and test scores of ``metrics`` (``val/<name>``, ``test/<name>`` for each of
-    :data:`SCORES`), with their units (``unit``: the observations'); '' when none was logged."""
+    """Validation and test scores (``val/<name>``, ``test/<name>`` of :data:`SCORES`) with their
+    units (``unit``: the observations'); '' when none was logged."""
     header = ["split"] + [f"{title} ({unit if kind == 'y' else kind})" for _, title, kind in SCORES]
     rows = [
         [split] + [_number(metrics.get(f"{prefix}/{name}")) for name, _, _ in SCORES]
@@ -113,171 +80,127 @@ def score_rows(metrics: dict[str, Any], unit: str) -> str:
     return markdown_table(header, rows) if rows else ""
 
 
-def _relative(path: str | None, root: Path) -> str | None:
-    if not path:
-        return None
-    p = Path(path).resolve()
-    try:
-        return str(p.relative_to(root.resolve()))
-    except ValueError:
-        return str(p)
+def _checkpoint(info: dict[str, Any]) -> str:
+    return (
+        f"`{info['checkpoint']}` (epoch {info['epoch']})"
+        if info.get("checkpoint")
+        else "the final weights (no checkpoint written)"
+    )
 
 
-class RunReport:
-    """The two report files of one run directory.
+@dataclass
+class RunCard:
+    """What a run reports, in ``metrics.json`` and ``results.md`` (:meth:`write`).
 
-    Args:
-        run_dir: the run's directory (``cfg.output_dir``).
-        model, noise, max_epochs: what the run is (``model.name``, ``data.noise``,
-            ``trainer.max_epochs``).
-        resumed_from: ``(checkpoint path, epoch)`` when the run resumes, else None; earlier
-            resumes of the same directory (from its previous ``metrics.json``) are kept.
-        overrides: the command-line overrides of the run (for the resume command), if known.
+    ``status``: "running" | "completed" | "interrupted" | "failed"; ``epochs``: epochs completed
+    (held by ``last.ckpt``); ``wall_time``: seconds of ``Trainer.fit`` in this process;
+    ``reported``: {``checkpoint`` (relative to ``run_dir``), ``epoch``, ``description``}, where
+    ``metrics``, ``param_errors`` and ``table`` come from (``last.ckpt``, the final weights);
+    ``metrics``: epoch-level metrics and ``test/*``; ``table``: rows {name, true, learned,
+    rel_error}; ``best``: {``checkpoint``, ``epoch``, ``val/nll``, ``table``, ``param_errors``}
+    of ``best.ckpt`` (lowest val/nll) or None; ``resumed_from``: [{``checkpoint``, ``epoch``}]
+    of every resume, oldest first; ``interruption``: {``signal``, ``phase``, ``epochs_completed``,
+    ``resume_checkpoint``, ``resume_command``} or None; ``error``: "<Type>: <message>" or None;
+    ``overrides``: the run's command-line overrides (None outside a Hydra run).
     """
 
-    def __init__(
-        self,
-        run_dir: Path,
-        *,
-        model: str | None,
-        noise: Any,
-        max_epochs: int | None,
-        resumed_from: tuple[str, int] | None = None,
-        overrides: Sequence[str] | None = None,
-    ) -> None:
-        self.run_dir = Path(run_dir)
-        self.overrides = list(overrides) if overrides is not None else None
-        previous = self._previous() if resumed_from is not None else {}
-        history = list(previous.get("resumed_from") or [])
-        #: epoch-level metrics the run reported before this resume (test/* excluded: it tests again)
-        self.previous_metrics: dict[str, float] = {
-            k: float(v)
-            for k, v in (previous.get("metrics") or {}).items()
-            if isinstance(v, (int, float)) and not isinstance(v, bool) and not k.startswith("test/")
-        }
-        if resumed_from is not None:
-            history.append({"checkpoint": str(Path(resumed_from[0]).resolve()), "epoch": int(resumed_from[1])})
-        self.base: dict[str, Any] = {
-            "schema_version": SCHEMA_VERSION,
-            "status": "running",
-            "model": model,
-            "noise": noise,
-            "run_dir": str(self.run_dir.resolve()),
-            "epochs": int(resumed_from[1]) + 1 if resumed_from is not None else 0,
-            "max_epochs": max_epochs,
-            "wall_time": None,
-            "reported": None,
-            "metrics": {},
-            "param_errors": {},
-            "skipped_steps": 0,
-            "identifiability": "",
-            "table": [],
-            "best": None,
-            "data_summary": None,
-            "resumed_from": history,
-            "interruption": None,
-            "error": None,
-        }
+    run_dir: str
+    model: str | None = None
+    noise: Any = None
+    max_epochs: int | None = None
+    status: str = "running"
+    epochs: int = 0
+    wall_time: float | None = None
+    reported: dict[str, Any] | None = None
+    metrics: dict[str, float] = field(default_factory=dict)
+    param_errors: dict[str, float] = field(default_factory=dict)
+    skipped_steps: int = 0
+    identifiability: str = ""
+    table: list[dict[str, Any]] = field(default_factory=list)
+    best: dict[str, Any] | None = None
+    data_summary: Any = None
+    resumed_from: list[dict[str, Any]] = field(default_factory=list)
+    interruption: dict[str, Any] | None = None
+    error: str | None = None
+    overrides: list[str] | None = None
 
-    @property
-    def path(self) -> Path:
-        return self.run_dir / "metrics.json"
-
-    def _previous(self) -> dict[str, Any]:
+    def previous(self) -> dict[str, Any]:
+        """The ``metrics.json`` an earlier process of this run directory wrote ({} if none)."""
         try:
-            old = json.loads(self.path.read_text())
+            old = json.loads((Path(self.run_dir) / "metrics.json").read_text())
         except (OSError, ValueError):
             return {}
         return old if isinstance(old, dict) else {}
 
-    def _write(self, **fields: Any) -> dict[str, Any]:
-        summary = {**self.base, **fields}
-        write_json(self.path, summary)
-        return summary
-
-    def running(self) -> None:
-        """``status: "running"`` and a results.md that says the run has not finished."""
-        self._write()
-        write_text(
-            self.run_dir / "results.md",
-            f"# {self.base['model']}: running\n\nThis run has not finished "
-            "(no final results yet). If nothing is running any more, it was killed without a chance to "
-            "say so; resume it from `checkpoints/last.ckpt` if that exists (see metrics.json).\n",
+    def relative(self, path: str | None) -> str | None:
+        """``path`` relative to the run directory (absolute where it lies elsewhere)."""
+        if not path:
+            return None
+        p = Path(path).resolve()
+        return (
+            str(p.relative_to(Path(self.run_dir).resolve()))
+            if p.is_relative_to(Path(self.run_dir).resolve())
+            else str(p)
         )
 
     def resume_command(self, checkpoint: str) -> str:
-        """The command that resumes this run from ``checkpoint`` (the original overrides, if known)."""
+        """The command that resumes this run from ``checkpoint`` (with the run's overrides, if known)."""
         overrides = [o for o in (self.overrides or []) if not o.lstrip("+~").startswith("ckpt_path=")]
         args = [*overrides, f"ckpt_path={Path(checkpoint).resolve()}"]
         return " ".join([Path(sys.executable).name, "-m", "torchsde_lti.train", *map(shlex.quote, args)])
 
-    def completed(
-        self,
-        *,
-        title: str,
-        wall_time: float,
-        epochs: int,
-        reported: dict[str, Any],
-        metrics: dict[str, Any],
-        param_errors: dict[str, float],
-        skipped_steps: int,
-        identifiability: str,
-        table: list[dict[str, Any]],
-        best: dict[str, Any] | None,
-        data_summary: Any,
-        data_text: str | None = None,
-    ) -> dict[str, Any]:
-        """Write the final report; returns the metrics.json content. ``data_text``: the data
-        summary as the datamodule prints it, for results.md."""
-        reported = {**reported, "checkpoint": _relative(reported.get("checkpoint"), self.run_dir)}
-        if best is not None:
-            best = {**best, "checkpoint": _relative(best.get("checkpoint"), self.run_dir)}
-        summary = self._write(
-            status="completed",
-            wall_time=wall_time,
-            epochs=epochs,
-            reported=reported,
-            metrics=metrics,
-            param_errors=param_errors,
-            skipped_steps=skipped_steps,
-            identifiability=identifiability,
-            table=table,
-            best=best,
-            data_summary=data_summary,
-        )
-        text = self._results_md(title, summary)
-        if data_text:
-            text += f"\n## Data\n\n```\n{data_text}\n```\n"
-        write_text(self.run_dir / "results.md", text)
-        return summary
+    def write(self, data_text: str | None = None) -> None:
+        """Write ``metrics.json`` and ``results.md`` (``data_text``: the data summary as printed)."""
+        write_json(Path(self.run_dir) / "metrics.json", {"schema_version": SCHEMA_VERSION, **dataclasses.asdict(self)})
+        write_text(Path(self.run_dir) / "results.md", self.markdown(data_text))
 
-    def _results_md(self, title: str, s: dict[str, Any]) -> str:
-        rep = s["reported"]
-        where = (
-            f"`{rep['checkpoint']}` (epoch {rep['epoch']})"
-            if rep.get("checkpoint")
-            else "the final weights (no checkpoint written)"
-        )
-        text = f"# {title} ({s['wall_time']:.1f} s)\n\n"
-        text += (
-            f"Completed {s['epochs']} epochs. The scores and the table are those of {where}: {rep['description']}.\n"
-        )
-        if s["resumed_from"]:
-            text += (
-                f"Resumed {len(s['resumed_from'])}× (from "
-                + ", ".join(f"epoch {r['epoch']}" for r in s["resumed_from"])
-                + ").\n"
+    def markdown(self, data_text: str | None = None) -> str:
+        """``results.md``: the run's state; when completed its scores and tables, each naming its checkpoint."""
+        if self.status == "running":
+            return (
+                f"# {self.model}: running\n\nThis run has not finished (no final results yet). If nothing is "
+                "running any more, it was killed without a chance to say so; resume it from "
+                "`checkpoints/last.ckpt` if that exists (see metrics.json).\n"
             )
+        if self.status == "failed":
+            text = f"# {self.model}: FAILED\n\n    {self.error}\n\nSee train.log.\n"
+            if self.reported and self.reported.get("checkpoint"):
+                text += (
+                    f"\n`checkpoints/last.ckpt` holds epoch {self.epochs - 1}; once the cause is fixed, resume "
+                    f"from it:\n\n    {self.resume_command(str(Path(self.run_dir) / self.reported['checkpoint']))}\n"
+                )
+            return text
+        if self.status == "interrupted":
+            stop = self.interruption or {}
+            text = f"# {self.model}: INTERRUPTED by {stop.get('signal')} during {stop.get('phase')}\n\n"
+            text += f"{self.epochs} of {self.max_epochs} epochs completed; no final results.\n"
+            if stop.get("resume_command"):
+                return text + (
+                    f"\n`checkpoints/last.ckpt` holds epoch {self.epochs - 1}. Resume (continues in this directory, "
+                    f"same result as a run that never stopped):\n\n    {stop['resume_command']}\n"
+                )
+            return text + "\nNo epoch completed, so there is no checkpoint to resume from: run again.\n"
+        return self._completed(data_text)
+
+    def _completed(self, data_text: str | None) -> str:
+        rep = self.reported or {}
+        truth = any(_number(r.get("true")) for r in self.table)
+        text = f"# {self.model}: {'true vs learned' if truth else 'learned values'} ({self.wall_time or 0:.1f} s)\n\n"
+        text += f"Completed {self.epochs} epochs. The run's answer is {_checkpoint(rep)}: {rep.get('description')}.\n"
+        if self.resumed_from:
+            epochs = ", ".join(f"epoch {r['epoch']}" for r in self.resumed_from)
+            text += f"Resumed {len(self.resumed_from)}× (from {epochs}).\n"
         # real tracks are positions in metres; simulated ones are in the model's own units
-        unit = "m" if isinstance(s.get("data_summary"), dict) and "load" in s["data_summary"] else "units of y"
-        scores = score_rows(s["metrics"], unit)
-        if scores:
-            text += f"\n## Scores\n\n{scores}\n"
-        if s["table"]:
-            heading = "True vs learned" if any(_number(r.get("true")) for r in s["table"]) else "Learned values"
-            text += f"\n## {heading}\n\n{parameter_rows(s['table'])}\n"
-        best = s["best"]
-        if best is not None and best.get("checkpoint"):
+        unit = "m" if isinstance(self.data_summary, dict) and "load" in self.data_summary else "units of y"
+        if scores := score_rows(self.metrics, unit):
+            text += f"\n## Scores: {_checkpoint(rep)}\n\n{scores}\n"
+            if "val/cover2s" in self.metrics or "test/cover2s" in self.metrics:
+                text += "\n2σ coverage: the share of reports inside the one-step predictive's 86.5 % region (0.865 when calibrated).\n"
+        heading = "True vs learned" if truth else "Learned values"
+        if self.table:
+            text += f"\n## {heading}: {_checkpoint(rep)}, the final weights\n\n{format_table(self.table)}\n"
+        best = self.best or {}
+        if best.get("checkpoint"):
             val = best.get("val/nll")
             score = f", val/nll {val:.6g}" if isinstance(val, float) else ""
             if best.get("epoch") == rep.get("epoch"):
@@ -285,64 +208,14 @@ class RunReport:
                     f"\nThe lowest val/nll is this epoch's too: `{best['checkpoint']}` holds the same weights{score}.\n"
                 )
             elif best.get("table"):
-                text += f"\nLowest val/nll: `{best['checkpoint']}` (epoch {best['epoch']}{score}):\n\n{parameter_rows(best['table'])}\n"
-        text += f"\nskipped optimizer steps (non-finite loss or gradient): {s['skipped_steps']}\n"
-        if s["identifiability"]:
-            text += f"\nNot identifiable: {s['identifiability']}\n"
-        figures = [(name, caption) for name, caption in FIGURES if (self.run_dir / name).is_file()]
+                text += (
+                    f"\n## {heading}: `{best['checkpoint']}` (epoch {best['epoch']}{score}), the lowest val/nll\n\n"
+                    f"For comparison, not the run's answer (the final weights above).\n\n{format_table(best['table'])}\n"
+                )
+        text += f"\nskipped optimizer steps (non-finite loss or gradient): {self.skipped_steps}\n"
+        if self.identifiability:
+            text += f"\nNot identifiable: {self.identifiability}\n"
+        figures = [(name, caption) for name, caption in FIGURES if (Path(self.run_dir) / name).is_file()]
         if figures:
-            text += (
-                "\n## Figures\n\n"
-                + "\n\n".join(f"{caption}:\n\n![{caption}]({name})" for name, caption in figures)
-                + "\n"
-            )
-        return text
-
-    def interrupted(
-        self,
-        signum: int,
-        phase: str,
-        *,
-        epochs: int,
-        checkpoint: str | None,
-        metrics: dict[str, Any],
-        data_summary: Any,
-    ) -> dict[str, Any]:
-        """Write the report of a run stopped by ``signum`` during ``phase``; returns metrics.json's content."""
-        name = signal.Signals(signum).name
-        command = self.resume_command(checkpoint) if checkpoint else None
-        interruption = {
-            "signal": name,
-            "phase": phase,
-            "epochs_completed": epochs,
-            "resume_checkpoint": str(Path(checkpoint).resolve()) if checkpoint else None,
-            "resume_command": command,
-        }
-        summary = self._write(
-            status="interrupted", epochs=epochs, metrics=metrics, interruption=interruption, data_summary=data_summary
-        )
-        text = f"# {self.base['model']}: INTERRUPTED by {name} during {phase}\n\n"
-        text += f"{epochs} of {self.base['max_epochs']} epochs completed; no final results.\n"
-        if command:
-            text += (
-                f"\n`checkpoints/last.ckpt` holds epoch {epochs - 1}. Resume (continues in this directory, "
-                f"same result as a run that never stopped):\n\n    {command}\n"
-            )
-        else:
-            text += "\nNo epoch completed, so there is no checkpoint to resume from: run again.\n"
-        write_text(self.run_dir / "results.md", text)
-        return summary
-
-    def failed(self, error: BaseException, *, epochs: int | None = None, checkpoint: str | None = None) -> None:
-        """Write the report of a run that raised ``error``; ``epochs``: epochs completed, held by
-        ``checkpoint`` (``last.ckpt``, from which it can be resumed), when known."""
-        message = f"{type(error).__name__}: {error}"
-        extra: dict[str, Any] = {} if epochs is None else {"epochs": epochs}
-        self._write(status="failed", error=message, **extra)
-        text = f"# {self.base['model']}: FAILED\n\n    {message}\n\nSee train.log.\n"
-        if checkpoint:
-            text += (
-                f"\n`checkpoints/last.ckpt` holds epoch {epochs - 1 if epochs else '?'}; once the cause is "
-                f"fixed, resume from it:\n\n    {self.resume_command(checkpoint)}\n"
-            )
-        write_text(self.run_dir / "results.md", text)
+            text += "\n## Figures\n\n" + "\n\n".join(f"{c}:\n\n![{c}]({n})" for n, c in figures) + "\n"
+        return text + (f"\n## Data\n\n```\n{data_text}\n```\n" if data_text else "")

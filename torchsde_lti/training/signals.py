@@ -1,17 +1,14 @@
 """SIGTERM / SIGINT during a run: stop at a safe point, say so, exit ``128 + signal``.
 
 Inside ``Trainer.fit`` / ``Trainer.test`` Lightning's own signal connector handles SIGTERM: it
-stops the loops at the next batch boundary by raising its ``SIGTERMException`` (after the
-epoch-end checkpoint when the signal comes in the last batch). :class:`SignalGuard`, installed
-by :func:`~torchsde_lti.training.train` around the whole run, only records the signal (Lightning
-composes its handler with it), re-sends a first SIGINT (Ctrl-C) as SIGTERM so that it takes the
-same path (a second one interrupts at once), and lets ``train`` stop between its phases
-(``stop_if_received``); while the data and the model are built (phase "setup": nothing to
-keep) it stops the run at once. :class:`StopOnSignal` raises Lightning's exception when training or
-testing starts after a signal that came before Lightning's handler was installed.
-
-The resume point is ``last.ckpt``, the end of the last completed epoch (Lightning's loaders are
-not resumable mid-epoch): the interrupted epoch is trained again on resume.
+stops the loops at the next batch boundary with its ``SIGTERMException`` (after the epoch-end
+checkpoint when the signal comes in the last batch). :class:`SignalGuard`, around the whole
+run, records the signal (Lightning composes its handler with it), re-sends a first SIGINT
+(Ctrl-C) as SIGTERM so that it takes the same path (a second one interrupts at once), raises
+Lightning's exception itself between phases (:meth:`SignalGuard.stop_if_received`), while the
+data and the model are built (phase "setup": nothing to keep), and, as a Lightning callback,
+when training or testing starts after a signal that came before Lightning's handler was there.
+The resume point is ``last.ckpt``: the interrupted epoch is trained again on resume.
 """
 
 from __future__ import annotations
@@ -23,21 +20,12 @@ import threading
 from types import FrameType
 from typing import Any
 
-from lightning.pytorch import Callback
+from lightning.pytorch import Callback, LightningModule, Trainer
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
-__all__ = ["RunInterrupted", "SignalGuard", "StopOnSignal", "StopRun"]
+__all__ = ["RunInterrupted", "SignalGuard"]
 
 log = logging.getLogger(__name__)
-
-
-class StopRun(BaseException):
-    """Raised between the phases of a run after a signal (a BaseException, like
-    KeyboardInterrupt, so that no ``except Exception`` on the way swallows it)."""
-
-    def __init__(self, signum: int) -> None:
-        self.signum = signal.Signals(signum)
-        super().__init__(f"received {self.signum.name}")
 
 
 class RunInterrupted(RuntimeError):
@@ -45,12 +33,10 @@ class RunInterrupted(RuntimeError):
 
     Attributes:
         signum: the signal (``signal.SIGTERM`` / ``signal.SIGINT``).
-        exit_code: ``128 + signum`` (143 for SIGTERM, 130 for SIGINT), what
-            ``python -m torchsde_lti.train`` exits with.
+        exit_code: ``128 + signum`` (143 / 130), what ``python -m torchsde_lti.train`` exits with.
         phase: "setup", "fit", "test", "plots" or "outputs": where the signal came.
         run_dir: the run's directory.
-        resume_from: the checkpoint to resume from (``ckpt_path=...``), or None when no
-            epoch completed.
+        resume_from: the checkpoint to resume from (``ckpt_path=...``); None when no epoch completed.
     """
 
     def __init__(self, signum: int, phase: str, run_dir: str, resume_from: str | None) -> None:
@@ -61,13 +47,12 @@ class RunInterrupted(RuntimeError):
         super().__init__(f"run interrupted by {self.signum.name} during {phase} ({run_dir}); {how}")
 
 
-class SignalGuard:
-    """Context manager: record SIGTERM / SIGINT for the duration of a run (see the module doc).
+class SignalGuard(Callback):
+    """Context manager and Lightning callback: record SIGTERM / SIGINT for the duration of a run.
 
-    ``received`` is the first signal (None until one comes); ``phase`` names the phase running
-    now (set by the caller) and ``received_during`` the one the signal came in. Previous
-    handlers are restored on exit. Outside the main thread (where Python cannot set
-    handlers) it installs nothing.
+    ``received`` is the first signal (None until one comes), ``phase`` the phase running now (set
+    by the caller) and ``received_during`` the one the signal came in. The previous handlers are
+    restored on exit; outside the main thread (where Python cannot set handlers) it installs none.
     """
 
     def __init__(self) -> None:
@@ -78,8 +63,7 @@ class SignalGuard:
 
     def __enter__(self) -> SignalGuard:
         if threading.current_thread() is threading.main_thread():
-            for signum in (signal.SIGTERM, signal.SIGINT):
-                self._previous[signum] = signal.signal(signum, self._handle)
+            self._previous = {s: signal.signal(s, self._handle) for s in (signal.SIGTERM, signal.SIGINT)}
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -88,9 +72,16 @@ class SignalGuard:
         self._previous = {}
 
     def stop_if_received(self) -> None:
-        """Raise :class:`StopRun` if a signal came (call between phases)."""
+        """Raise Lightning's ``SIGTERMException`` if a signal came (between phases, and when
+        training or testing starts)."""
         if self.received is not None:
-            raise StopRun(self.received)
+            raise SIGTERMException()
+
+    def on_train_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        self.stop_if_received()
+
+    def on_test_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        self.stop_if_received()
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         if self.received is not None:
@@ -100,24 +91,6 @@ class SignalGuard:
         self.received, self.received_during = signal.Signals(signum), self.phase
         log.warning("received %s during %s: stopping at the next safe point", self.received.name, self.phase)
         if self.phase == "setup":
-            raise StopRun(signum)  # building the data and the model: nothing to keep, stop now
+            raise SIGTERMException()  # building the data and the model: nothing to keep, stop now
         if signum == signal.SIGINT:
             os.kill(os.getpid(), signal.SIGTERM)  # the graceful path Lightning takes for SIGTERM
-
-
-class StopOnSignal(Callback):
-    """Raise Lightning's ``SIGTERMException`` when training or testing starts after a signal that
-    came before Lightning's own handler was installed (data and model setup inside ``fit``)."""
-
-    def __init__(self, guard: SignalGuard) -> None:
-        self.guard = guard
-
-    def _check(self) -> None:
-        if self.guard.received is not None:
-            raise SIGTERMException()
-
-    def on_train_start(self, trainer: Any, pl_module: Any) -> None:
-        self._check()
-
-    def on_test_start(self, trainer: Any, pl_module: Any) -> None:
-        self._check()

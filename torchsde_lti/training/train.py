@@ -5,27 +5,15 @@
     python -m torchsde_lti.train --multirun model=cv,integrated_ou,singer data.noise=0.1,1.0
     python -m torchsde_lti.train ckpt_path=<run>/checkpoints/last.ckpt    # resume, same overrides
 
-Everything is built with ``hydra.utils.instantiate`` from ``_target_`` nodes; :func:`train`
-runs the phases (setup, fit, test, plots, outputs), which tests call with a composed config.
-A run writes into its Hydra output directory: Lightning's ``checkpoints/last.ckpt`` (end of the
-last completed epoch: the reported weights and the resume point) and ``checkpoints/best.ckpt``
-(lowest val/nll), the logger files, ``.hydra/config.yaml``, ``train.log`` (the resolved config,
-the data summary, one line per epoch, Lightning's records; the console shows the progress bar,
-Lightning's messages and the results), ``metrics.json`` (strict JSON, :mod:`torchsde_lti.training.report`),
-``results.md`` and the plots (a plot that fails is a warning, never a failed run).
-
-Interrupting: SIGTERM or SIGINT (Ctrl-C) stops the run at the next batch boundary
-(Lightning's signal handling, :mod:`torchsde_lti.training.signals`), marks it ``interrupted`` in
-``metrics.json`` and ``results.md`` (with the command that resumes it) and exits with
-``128 + signal`` (143 / 130). Resuming from ``<run>/checkpoints/last.ckpt`` (Lightning's
-``ckpt_path``) continues in ``<run>`` itself (``hydra.run.dir`` follows the checkpoint), the
-CSV log keeps the epochs the checkpoint holds, and the result equals a run that never
-stopped, bit for bit. Any other checkpoint starts a new run directory that continues from it.
-Resuming restores the LR scheduler's ``T_max`` too: :func:`train` warns where
-``trainer.max_epochs`` goes past it (the cosine LR would climb back).
-
-Process state: ``num_threads`` from the config is applied here, once, and torch's thread
-count and the global RNG states (Python, NumPy, torch) are put back when :func:`train` returns.
+:func:`train` builds everything with ``hydra.utils.instantiate`` and runs the phases setup, fit,
+test, plots, outputs. A run writes Lightning's ``checkpoints/last.ckpt`` (the last completed
+epoch: the weights it reports, the resume point) and ``checkpoints/best.ckpt`` (lowest val/nll),
+the logger files, ``config.yaml`` (resolved: :func:`~torchsde_lti.runs.load_run` reads it),
+``train.log``, ``metrics.json`` and ``results.md`` (:class:`~torchsde_lti.training.report.RunCard`)
+and the figures. SIGTERM / SIGINT stop it at the next batch boundary (:mod:`.signals`): it says
+so and exits ``128 + signal``. Resuming from ``<run>/checkpoints/last.ckpt`` continues in
+``<run>`` (``hydra.run.dir`` follows it) and ends bit for bit where a run that never stopped
+ends; another checkpoint starts a new run directory. ``num_threads`` applies during the run only.
 """
 
 from __future__ import annotations
@@ -47,19 +35,20 @@ import lightning.pytorch as pl
 import numpy as np
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.loggers import CSVLogger
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
+from torchsde_lti.evaluation import identifiability_note, parameter_table
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
-from torchsde_lti.training.callbacks import FollowMovedRun, ParameterHistory, ValidatedAt
-from torchsde_lti.training.checkpoints import RESUME_KEYS, check_state_dict, read_checkpoint
+from torchsde_lti.training.callbacks import FollowMovedRun
+from torchsde_lti.training.checkpoints import RESUME_KEYS, load_weights, read_checkpoint
 from torchsde_lti.training.config import check_config, instantiate_node
-from torchsde_lti.training.metrics import parameter_table
-from torchsde_lti.training.outputs import continue_csv_log, data_summary
+from torchsde_lti.training.outputs import continue_csv_log, data_summary, to_jsonable, write_text
 from torchsde_lti.training.plots import plot_run
-from torchsde_lti.training.report import RunReport
-from torchsde_lti.training.signals import RunInterrupted, SignalGuard, StopOnSignal, StopRun
+from torchsde_lti.training.report import RunCard
+from torchsde_lti.training.signals import RunInterrupted, SignalGuard
 
 __all__ = ["config_path", "main", "restart_learner", "resume_run_dir", "train"]
 
@@ -69,13 +58,10 @@ details = logging.getLogger("torchsde_lti.training.details")
 
 
 def resume_run_dir(ckpt_path: Any, default: str) -> str:
-    """The run directory a resumed run writes into: ``<run>`` for ``<run>/checkpoints/last.ckpt``
-    (an existing file), else ``default`` (a new directory). The OmegaConf resolver
-    ``tl_resume_dir``, which ``hydra.run.dir`` uses."""
-    if not isinstance(ckpt_path, str) or not ckpt_path:
-        return default
-    path = Path(ckpt_path)
-    if path.name == "last.ckpt" and path.parent.name == "checkpoints" and path.is_file():
+    """The run directory a resumed run writes into (the OmegaConf resolver ``tl_resume_dir`` of
+    ``hydra.run.dir``): ``<run>`` for an existing ``<run>/checkpoints/last.ckpt``, else ``default``."""
+    path = Path(ckpt_path) if isinstance(ckpt_path, str) and ckpt_path else None
+    if path is not None and path.name == "last.ckpt" and path.parent.name == "checkpoints" and path.is_file():
         return str(path.resolve().parent.parent)
     return default
 
@@ -84,12 +70,11 @@ OmegaConf.register_new_resolver("tl_resume_dir", resume_run_dir, replace=True)
 
 
 def restart_learner(kf: KalmanFilter | IMMFilter, jitter: float, seed: int) -> None:
-    """Random restart: add N(0, jitter²) (generator seeded with ``seed``) to every raw parameter
+    """Random restart: add N(0, jitter²) (a generator seeded with ``seed``) to every raw parameter
     of the learner's motion models (``kf.modes()``), in place (``jitter = 0``: keep the start).
 
-    Raw parameters are unconstrained by construction (softplus / Cholesky / Hurwitz
-    factors), so every perturbed start is valid: a Hurwitz F stays Hurwitz. A Hydra seed sweep
-    (``experiment=restarts``) then runs K restarts and keeps the best validation NLL.
+    Raw parameters are unconstrained by construction, so every perturbed start is valid (a
+    Hurwitz F stays Hurwitz); a Hydra sweep over the seed (``experiment=restarts``) keeps the best.
     """
     if not jitter > 0:
         return
@@ -103,38 +88,39 @@ def restart_learner(kf: KalmanFilter | IMMFilter, jitter: float, seed: int) -> N
 def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Train per ``cfg``; returns (metrics, objects).
 
-    metrics: final ``trainer.callback_metrics`` as floats plus ``param_errors`` (dict),
-    ``table`` (true vs learned rows of the final weights = ``last.ckpt``), ``wall_time`` (s),
-    ``checkpoints`` ({"last", "best"} paths), ``best_model_path`` and ``status``.
-    objects: "cfg", "datamodule", "module", "trainer", "callbacks", "loggers", "truth".
+    Args:
+        cfg: the composed config (``conf/train.yaml`` and its overrides).
+
+    Returns:
+        metrics: the final epoch-level metrics as floats (``val/nll``, ``test/*``, ...) plus
+        ``param_errors`` (dict), ``table`` (true vs learned rows of ``last.ckpt``), ``wall_time``
+        (s), ``checkpoints`` ({"last", "best"} paths), ``best_model_path`` and ``status``;
+        objects: "cfg", "datamodule", "module", "trainer", "callbacks", "loggers", "truth".
 
     Raises:
-        ValueError / TypeError: a config value that cannot make a sensible run (naming the
-            key), before any work; FileNotFoundError / CheckpointError: a ``ckpt_path`` that
-            cannot be resumed from.
-        RunInterrupted: SIGTERM / SIGINT stopped the run (after it wrote its report).
+        ValueError / TypeError: a config value that cannot make a sensible run (naming the key),
+            before any work; FileNotFoundError / CheckpointError: a ``ckpt_path`` that cannot be
+            resumed from. RunInterrupted: SIGTERM / SIGINT stopped the run (after its report).
     """
     check_config(cfg)
     resume = read_checkpoint(cfg.ckpt_path, require=RESUME_KEYS) if cfg.get("ckpt_path") else None
     run = _Run(cfg, resume)
     log.info("run directory: %s", run.out_dir.resolve())
     details.info("config:\n%s", _config_text(cfg))
-    with _process_state(cfg.get("num_threads")), _quiet_lightning(run.same_dir), SignalGuard() as guard:
+    with _process_state(cfg.get("num_threads"), run.same_dir), SignalGuard() as guard:
         try:
-            run.build(guard)
-            for phase in (run.fit, run.test, run.plot):
+            for phase in ("setup", "fit", "test", "plots", "outputs"):
                 guard.stop_if_received()
-                phase(guard)
-            guard.stop_if_received()
-            run.report_completed(guard)  # complete: a signal now no longer stops anything
-        except (StopRun, SystemExit) as stop:
-            signum = guard.received or _signal_of(stop)
-            if signum is None:  # e.g. Lightning's exit after a KeyboardInterrupt raised by code
-                run.report_failed(RuntimeError(f"the run stopped ({type(stop).__name__} {stop}) without a signal"))
+                guard.phase = phase
+                getattr(run, phase)(guard)
+        except SystemExit as stop:  # Lightning's SIGTERMException, or its exit after a KeyboardInterrupt
+            signum = guard.received or (signal.SIGTERM if isinstance(stop, SIGTERMException) else None)
+            if signum is None:
+                run.failed(RuntimeError(f"the run stopped ({type(stop).__name__} {stop}) without a signal"))
                 raise
             raise run.interrupted(signum, guard.received_during or guard.phase) from None
         except Exception as err:
-            run.report_failed(err)
+            run.failed(err)
             log.error("run failed: %s: %s", type(err).__name__, err)
             raise
     if guard.received is not None:
@@ -144,20 +130,18 @@ def train(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
 
 
 class _Run:
-    """One run's objects, phase by phase; rank zero writes its report (``metrics.json``, ``results.md``)."""
+    """One run's objects, phase by phase; rank zero writes its :class:`RunCard`."""
 
     def __init__(self, cfg: DictConfig, resume: dict[str, Any] | None) -> None:
-        self.cfg, self.resume = cfg, resume
-        self.out_dir = Path(cfg.output_dir)
+        self.cfg, self.resume, self.out_dir = cfg, resume, Path(cfg.output_dir)
         self.same_dir = resume is not None and Path(cfg.ckpt_path).resolve().parent.parent == self.out_dir.resolve()
         self.objects: dict[str, Any] = {}
-        self.report: RunReport | None = None
-        self.metrics: dict[str, Any] = {}
-        self.fit_metrics: dict[str, float] = {}
+        self.card: RunCard | None = None
+        self.metrics: dict[str, Any] = {}  # (an earlier process's epoch-level metrics, for a resume with none left)
         self.wall = 0.0
 
-    def build(self, guard: SignalGuard) -> None:
-        """Data, filter, Lightning module, callbacks, loggers and trainer (and the "truth")."""
+    def setup(self, guard: SignalGuard) -> None:
+        """Data, filter (with the data's prior where it has the learner's state), module, callbacks, loggers, trainer."""
         cfg = self.cfg
         pl.seed_everything(int(cfg.seed), workers=True, verbose=False)
         datamodule = instantiate_node(cfg, "data")
@@ -167,168 +151,160 @@ class _Run:
         kf = instantiate_node(cfg, "filter")
         m0, P0 = getattr(datamodule, "m0", None), getattr(datamodule, "P0", None)
         if m0 is not None and P0 is not None and int(kf.state_dim) == int(m0.shape[-1]):
-            kf = instantiate_node(cfg, "filter", m0=m0, P0=P0)  # the data's prior, where the learner has its state
+            kf = instantiate_node(cfg, "filter", m0=m0, P0=P0)
         restart_learner(kf, float(cfg.get("init_jitter") or 0.0), int(cfg.get("restart") or 0))
         module = instantiate_node(cfg, "module", kf=kf, truth=truth)
-        callbacks = [*_instantiate_dict(cfg, "callbacks"), StopOnSignal(guard), ValidatedAt()]
-        callbacks += [FollowMovedRun()] if self.same_dir else []
-        # the best checkpoint saves before the last one at each epoch end, so that last.ckpt (the
-        # resume point) holds the best's state after this epoch, not before it
+        callbacks = [*_instantiate_dict(cfg, "callbacks"), guard, *([FollowMovedRun()] if self.same_dir else [])]
+        # best saves before last at each epoch end, so last.ckpt (the resume point) holds best's updated state
         callbacks.sort(key=lambda c: isinstance(c, ModelCheckpoint) and c.monitor is None)
         loggers = _instantiate_dict(cfg, "logger")
         trainer: pl.Trainer = instantiate_node(cfg, "trainer", callbacks=callbacks, logger=loggers or False)
-        self.objects = {"cfg": cfg, "datamodule": datamodule, "module": module, "trainer": trainer}
-        self.objects.update(callbacks=callbacks, loggers=loggers, truth=truth)
-        if cfg.get("test") and not getattr(trainer, "fast_dev_run", False):
+        self.objects = dict(cfg=cfg, datamodule=datamodule, module=module, trainer=trainer, callbacks=callbacks)
+        self.objects.update(loggers=loggers, truth=truth)
+        if cfg.get("test") and not _fast_dev_run(trainer):
             _check_test_split(datamodule)
         if self.resume is not None:
-            check_state_dict(cfg.ckpt_path, self.resume["state_dict"], module)
+            load_weights(module, self.resume["state_dict"], cfg.ckpt_path)  # another model fails here, not in fit
             _warn_if_schedule_ends_early(cfg.ckpt_path, cfg.trainer.get("max_epochs"), self.resume)
-            where = "in the same run directory" if self.same_dir else f"into the new run directory {self.out_dir}"
-            log.info("resuming from %s (epoch %d) %s", cfg.ckpt_path, self.resume["epoch"], where)
+            log.info("resuming from %s (epoch %d) into %s", cfg.ckpt_path, self.resume["epoch"], self.out_dir)
         if trainer.is_global_zero:
-            self.report = self._new_report()
-            self.report.running()
+            self._new_card()
+            write_text(self.out_dir / "config.yaml", _config_text(cfg))
             for lg in loggers:
-                if self.resume is not None and self.same_dir:
-                    continue_csv_log(lg, int(self.resume["epoch"]))
+                if self.same_dir:
+                    continue_csv_log(lg, int(self.resume["epoch"]))  # type: ignore[index]
                 lg.log_hyperparams(OmegaConf.to_container(cfg, resolve=True))
 
     def fit(self, guard: SignalGuard) -> None:
-        """``Trainer.fit`` (resuming from ``ckpt_path``); validates the final weights again where
-        the last validation saw older ones (``check_val_every_n_epoch > 1``, ``max_steps``)."""
-        guard.phase = "fit"
+        """``Trainer.fit``; validates the final weights again where the last validation saw older
+        ones (``check_val_every_n_epoch > 1``, ``max_steps``)."""
         trainer, module, datamodule = (self.objects[k] for k in ("trainer", "module", "datamodule"))
         start = time.perf_counter()
         trainer.fit(module, datamodule=datamodule, ckpt_path=self.cfg.get("ckpt_path"), weights_only=True)
         self.wall = time.perf_counter() - start
-        self.fit_metrics = _floats(trainer.callback_metrics)  # the test replaces callback_metrics
-        validated = next(c for c in self.objects["callbacks"] if isinstance(c, ValidatedAt))
-        if validated.stale and not getattr(trainer, "fast_dev_run", False) and trainer.limit_val_batches:
+        self.metrics.update(_scores(trainer.callback_metrics))
+        if module.validation_stale and not _fast_dev_run(trainer) and trainer.limit_val_batches:
             for r in trainer.validate(module, datamodule=datamodule, verbose=False):
-                self.fit_metrics.update(_floats(r))
+                self.metrics.update(_scores(r))
 
     def test(self, guard: SignalGuard) -> None:
-        """Test (``cfg.test``) and collect the metrics and the table of the final weights. The
-        epoch-level metrics an earlier process of this run reported are kept (a run resumed after
-        its last epoch trains nothing here)."""
-        guard.phase = "test"
+        """Test the final weights (``cfg.test``)."""
         trainer, module = self.objects["trainer"], self.objects["module"]
-        previous = self.report.previous_metrics if self.report is not None else {}
-        metrics: dict[str, Any] = {**previous, **self.fit_metrics}
-        if self.cfg.get("test") and not getattr(trainer, "fast_dev_run", False):
+        if self.cfg.get("test") and not _fast_dev_run(trainer):
             for r in trainer.test(module, datamodule=self.objects["datamodule"], verbose=False):
-                metrics.update(_floats(r))
-        last, best = _checkpoint_files(self.objects["callbacks"])
+                self.metrics.update(_scores(r))
         if module.skipped_steps:
             warnings.warn(
                 f"{module.skipped_steps} optimizer steps were skipped (non-finite loss or gradient)", stacklevel=2
             )
-        metrics.update(
-            wall_time=self.wall, param_errors=module.parameter_errors(), skipped_steps=float(module.skipped_steps)
-        )
-        metrics.update(table=parameter_table(module, self.objects["truth"]), best_model_path=best or "")
-        metrics.update(checkpoints={"last": last, "best": best}, status="completed")
-        self.metrics = metrics
+        self.metrics.update(wall_time=self.wall, skipped_steps=float(module.skipped_steps))
 
-    def plot(self, guard: SignalGuard) -> None:
-        """The run's plots (rank zero). A plot that fails is logged as a warning: it never fails a
-        run whose results are complete."""
-        guard.phase = "plots"
-        trainer = self.objects["trainer"]
-        if not (trainer.is_global_zero and self.cfg.get("plots") and not getattr(trainer, "fast_dev_run", False)):
+    def plots(self, guard: SignalGuard) -> None:
+        """The run's figures (rank zero); a plot that fails is a warning, never a failed run."""
+        trainer, module, datamodule, truth = (self.objects[k] for k in ("trainer", "module", "datamodule", "truth"))
+        if not (trainer.is_global_zero and self.cfg.get("plots") and not _fast_dev_run(trainer)):
             return
-        history = next((c.history for c in self.objects["callbacks"] if isinstance(c, ParameterHistory)), [])
+        csv_log = [Path(lg.log_dir) / "metrics.csv" for lg in self.objects["loggers"] if isinstance(lg, CSVLogger)]
         try:
-            plot_run(self.out_dir, self.objects["module"], self.objects["datamodule"], history, self.objects["truth"])
+            plot_run(self.out_dir, module, datamodule, truth, *csv_log[:1])
         except Exception as err:  # noqa: BLE001 - a picture must not fail a finished run
             log.warning("the plots failed (the run's results are complete): %s: %s", type(err).__name__, err)
 
-    def report_completed(self, guard: SignalGuard) -> None:
-        """metrics.json / results.md of the final weights (``last.ckpt``) and the best epoch
-        (``best.ckpt``, its own table); results.md is printed."""
-        guard.phase = "outputs"
-        if self.report is None:
+    def outputs(self, guard: SignalGuard) -> None:
+        """The tables of the final weights (``last.ckpt``) and of the best epoch (``best.ckpt``);
+        rank zero writes and prints the card."""
+        module, truth, callbacks = self.objects["module"], self.objects["truth"], self.objects["callbacks"]
+        last, best = _checkpoint_files(callbacks)
+        table = parameter_table(module.kf, truth, module.param_names, module.compare)
+        self.metrics.update(param_errors=module.parameter_errors(), table=table, best_model_path=best or "")
+        self.metrics.update(checkpoints={"last": last, "best": best}, status="completed")
+        if (card := self.card) is None:
             return
-        module, truth, metrics = self.objects["module"], self.objects["truth"], self.metrics
-        last, best = metrics["checkpoints"]["last"], metrics["checkpoints"]["best"]
-        best_info = None
         if best:
-            ckpt = read_checkpoint(best)
-            monitored = next(c for c in self.objects["callbacks"] if isinstance(c, ModelCheckpoint) and c.monitor)
-            score = monitored.best_model_score
-            best_info = {
-                "checkpoint": best,
-                "epoch": int(ckpt["epoch"]),
-                "val/nll": None if score is None else float(score),
-            }
-            best_info.update(zip(("table", "param_errors"), _table_at(module, ckpt["state_dict"], truth)))
-        reported = {
-            "checkpoint": last,
-            "epoch": _epoch_of(last),
-            "description": "the final weights, at the end of the last epoch",
-        }
-        datamodule = self.objects["datamodule"]
-        summary = getattr(datamodule, "summary", None)
+            ckpt, monitored = (
+                read_checkpoint(best),
+                next(c for c in callbacks if isinstance(c, ModelCheckpoint) and c.monitor),
+            )
+            score = None if monitored.best_model_score is None else float(monitored.best_model_score)
+            card.best = {"checkpoint": card.relative(best), "epoch": int(ckpt["epoch"]), "val/nll": score}
+            card.best.update(zip(("table", "param_errors"), _table_at(module, ckpt["state_dict"], truth)))
+        card.status, card.wall_time, card.epochs = "completed", self.wall, int(self.objects["trainer"].current_epoch)
+        description = "the final weights, at the end of the last epoch"
+        card.reported = {"checkpoint": card.relative(last), "epoch": _epoch_of(last), "description": description}
+        card.metrics = {k: v for k, v in self.metrics.items() if isinstance(v, float)}
+        card.param_errors, card.table, card.skipped_steps = self.metrics["param_errors"], table, module.skipped_steps
+        card.identifiability = identifiability_note(module.kf) if truth else ""
+        summary = getattr(self.objects["datamodule"], "summary", None)
         summary = summary() if callable(summary) else summary
-        self.report.completed(
-            title=f"{self.cfg.model.get('name')}: {'true vs learned' if truth else 'learned values'}",
-            wall_time=metrics["wall_time"],
-            epochs=int(self.objects["trainer"].current_epoch),
-            reported=reported,
-            metrics={k: v for k, v in metrics.items() if isinstance(v, float)},
-            param_errors=metrics["param_errors"],
-            skipped_steps=module.skipped_steps,
-            identifiability=module.identifiability_note() if truth else "",
-            table=metrics["table"],
-            best=best_info,
-            data_summary=data_summary(datamodule),
-            data_text=None if summary is None else str(summary),
-        )
+        card.data_summary = None if summary is None else to_jsonable(summary)
+        card.write(None if summary is None else str(summary))
         print("\n" + (self.out_dir / "results.md").read_text())
 
     def interrupted(self, signum: int, phase: str) -> RunInterrupted:
-        """Write the interrupted report (rank zero) and return the exception to raise."""
-        last, _ = _checkpoint_files(self.objects.get("callbacks", []))
-        epochs = (_epoch_of(last) or 0) + 1 if last else 0
-        if self.report is None and "trainer" not in self.objects and int(os.environ.get("LOCAL_RANK", "0")) == 0:
-            self.report = self._new_report()  # stopped while building: still say so
-        if self.report is not None:
+        """Write the interrupted card (rank zero) and return the exception to raise."""
+        last, epochs = self._resume_point()
+        if self.card is None and "trainer" not in self.objects and int(os.environ.get("LOCAL_RANK", "0")) == 0:
+            self._new_card()  # stopped while building: still say so
+        resume_from = str(Path(last).resolve()) if last else None
+        if (card := self.card) is not None:
             trainer = self.objects.get("trainer")
-            metrics = self.fit_metrics or (_floats(trainer.callback_metrics) if trainer is not None else {})
-            self.report.interrupted(
-                signum,
-                phase,
-                epochs=epochs,
-                checkpoint=last,
-                metrics={**self.report.previous_metrics, **metrics},
-                data_summary=data_summary(self.objects.get("datamodule")),
+            metrics = {**self.metrics, **(_scores(trainer.callback_metrics) if trainer and not self.wall else {})}
+            card.status, card.epochs, card.metrics = (
+                "interrupted",
+                epochs,
+                {k: v for k, v in metrics.items() if isinstance(v, float)},
             )
-        stop = RunInterrupted(signum, phase, str(self.out_dir.resolve()), str(Path(last).resolve()) if last else None)
+            card.interruption = {
+                "signal": signal.Signals(signum).name, "phase": phase, "epochs_completed": epochs,
+                "resume_checkpoint": resume_from, "resume_command": card.resume_command(last) if last else None,
+            }  # fmt: skip
+            card.data_summary = data_summary(self.objects.get("datamodule"))
+            card.write()
+        stop = RunInterrupted(signum, phase, str(self.out_dir.resolve()), resume_from)
         log.error("%s", stop)
         return stop
 
-    def report_failed(self, error: BaseException) -> None:
-        """The failed report (rank zero, once built) with the epochs ``last.ckpt`` holds, if any."""
-        if self.report is None:
+    def failed(self, error: BaseException) -> None:
+        """The failed card (rank zero, once built), naming its resume point where it has one."""
+        if (card := self.card) is None:
             return
+        card.status, card.error = "failed", f"{type(error).__name__}: {error}"
         try:
-            last, _ = _checkpoint_files(self.objects.get("callbacks", []))
-            epochs: int | None = (_epoch_of(last) or 0) + 1 if last else 0
-        except Exception:  # noqa: BLE001 - the report of a failure must not fail itself
-            last, epochs = None, None
-        self.report.failed(error, epochs=epochs, checkpoint=last)
+            last, card.epochs = self._resume_point()
+            if last:
+                card.reported = {
+                    "checkpoint": card.relative(last),
+                    "epoch": card.epochs - 1,
+                    "description": "the resume point",
+                }
+        except Exception:  # noqa: BLE001, S110 - the report of a failure must not fail itself
+            pass
+        card.write()
 
-    def _new_report(self) -> RunReport:
-        cfg, resume = self.cfg, self.resume
-        return RunReport(
-            self.out_dir,
-            model=cfg.model.get("name"),
-            noise=cfg.data.get("noise"),
-            max_epochs=cfg.trainer.get("max_epochs"),
-            overrides=_overrides(),
-            resumed_from=(cfg.ckpt_path, int(resume["epoch"])) if resume is not None else None,
+    def _resume_point(self) -> tuple[str | None, int]:
+        """(``last.ckpt``'s path or None, the epochs it holds)."""
+        last, _ = _checkpoint_files(self.objects.get("callbacks", []))
+        return last, (_epoch_of(last) or 0) + 1 if last else 0
+
+    def _new_card(self) -> None:
+        """A running card, written; a resumed run keeps its directory's earlier resumes and epoch-level metrics."""
+        cfg = self.cfg
+        card = RunCard(
+            str(self.out_dir.resolve()), cfg.model.get("name"), cfg.data.get("noise"), cfg.trainer.get("max_epochs")
         )
+        card.overrides = _overrides()
+        if self.resume is not None:
+            old = card.previous()
+            scores = (old.get("metrics") or {}).items()
+            self.metrics = {k: float(v) for k, v in scores if isinstance(v, (int, float)) and not k.startswith("test/")}
+            epoch = int(self.resume["epoch"])
+            card.resumed_from = [
+                *(old.get("resumed_from") or []),
+                {"checkpoint": str(Path(cfg.ckpt_path).resolve()), "epoch": epoch},
+            ]
+            card.epochs = epoch + 1
+        self.card = card
+        card.write()
 
 
 def _instantiate_dict(cfg: DictConfig, key: str) -> list[Any]:
@@ -339,9 +315,17 @@ def _instantiate_dict(cfg: DictConfig, key: str) -> list[Any]:
     ]
 
 
+def _fast_dev_run(trainer: pl.Trainer) -> bool:
+    return bool(getattr(trainer, "fast_dev_run", False))
+
+
+def _scores(values: dict[str, Any]) -> dict[str, float]:
+    """Logged values as floats, without the learned values (``param/*``, the tables hold them)."""
+    return {k: float(v) for k, v in values.items() if not k.startswith("param/")}
+
+
 def _check_test_split(datamodule: pl.LightningDataModule) -> None:
-    """ValueError before training where ``test=true`` finds no test batch, instead of failing (or
-    testing nothing) after the fit. Sets the data up (once: the fit reuses it)."""
+    """ValueError before training where ``test=true`` finds no test batch (sets the data up: the fit reuses them)."""
     datamodule.setup("fit")
     try:
         batches = len(datamodule.test_dataloader())
@@ -354,32 +338,31 @@ def _check_test_split(datamodule: pl.LightningDataModule) -> None:
 def _warn_if_schedule_ends_early(
     ckpt_path: str | None, max_epochs: int | None, ckpt: dict[str, Any] | None = None
 ) -> None:
-    """Warn when a resumed run trains past the restored scheduler's ``T_max`` (from the
-    checkpoint, not the config): past it a cosine LR rises again."""
+    """Warn when a resumed run trains past the restored scheduler's ``T_max`` (the checkpoint's,
+    not the config's): past it a cosine LR rises again."""
     if not ckpt_path or max_epochs is None or int(max_epochs) < 0:
         return
     for state in (ckpt or read_checkpoint(ckpt_path, require=())).get("lr_schedulers", []):
         t_max = state.get("T_max") if isinstance(state, dict) else None
         if isinstance(t_max, int) and int(max_epochs) > t_max:
             warnings.warn(
-                f"resuming from {ckpt_path}: its LR scheduler has T_max={t_max} (restored from the "
-                f"checkpoint) but trainer.max_epochs={max_epochs}; past T_max the cosine LR rises "
-                "again. Resume with the original max_epochs, or start a new run from the weights.",
+                f"resuming from {ckpt_path}: its LR scheduler has T_max={t_max} (restored from the checkpoint) but "
+                f"trainer.max_epochs={max_epochs}; past T_max the cosine LR rises again. Resume with the original "
+                "max_epochs, or start a new run from the weights.",
                 stacklevel=2,
             )
 
 
 def _checkpoint_files(callbacks: list[Any]) -> tuple[str | None, str | None]:
-    """(last, best) files written by the run's ModelCheckpoints (None: none written): ``last`` by
-    the one without a monitor (the newest epoch), ``best`` by the one monitoring a metric."""
-    last = best = None
-    for cb in callbacks:
-        if isinstance(cb, ModelCheckpoint) and cb.best_model_path and Path(cb.best_model_path).is_file():
-            if cb.monitor is None:
-                last = last or cb.best_model_path
-            else:
-                best = best or cb.best_model_path
-    return last, best
+    """(last, best) files the run's ModelCheckpoints wrote (None: none): ``last`` by the one
+    without a monitor, ``best`` by the one monitoring a metric."""
+    written = [
+        c
+        for c in callbacks
+        if isinstance(c, ModelCheckpoint) and c.best_model_path and Path(c.best_model_path).is_file()
+    ]
+    last = next((c.best_model_path for c in written if c.monitor is None), None)
+    return last, next((c.best_model_path for c in written if c.monitor is not None), None)
 
 
 def _epoch_of(path: str | None) -> int | None:
@@ -387,24 +370,19 @@ def _epoch_of(path: str | None) -> int | None:
 
 
 def _table_at(module: Any, state_dict: dict[str, Any], truth: Any) -> tuple[list[dict[str, Any]], dict[str, float]]:
-    """The true-vs-learned table and parameter errors of ``module`` with the weights ``state_dict``
-    (loaded for the call, then the module's own weights are put back)."""
+    """The table and parameter errors of ``module`` with the weights ``state_dict`` (its own put back after)."""
     own = {k: v.detach().clone() for k, v in module.state_dict().items()}
     try:
         module.load_state_dict(state_dict)
-        return parameter_table(module, truth), module.parameter_errors()
+        return parameter_table(module.kf, truth, module.param_names, module.compare), module.parameter_errors()
     finally:
         module.load_state_dict(own)
-
-
-def _floats(values: dict[str, Any]) -> dict[str, float]:
-    return {k: float(v) for k, v in values.items()}
 
 
 def _config_text(cfg: DictConfig) -> str:
     try:
         return OmegaConf.to_yaml(cfg, resolve=True)
-    except Exception:  # noqa: BLE001 - an interpolation only Hydra's runtime can resolve: log it unresolved
+    except Exception:  # noqa: BLE001 - an interpolation only Hydra's runtime can resolve: unresolved
         return OmegaConf.to_yaml(cfg)
 
 
@@ -415,30 +393,33 @@ def _overrides() -> list[str] | None:
     return [str(o) for o in HydraConfig.get().overrides.task] if HydraConfig.initialized() else None
 
 
-def _signal_of(stop: BaseException) -> int | None:
-    """The signal behind a stop: StopRun's own, SIGTERM for Lightning's SIGTERMException
-    (e.g. broadcast to this rank by another one), None for any other SystemExit."""
-    if isinstance(stop, StopRun):
-        return stop.signum
-    return signal.SIGTERM if isinstance(stop, SIGTERMException) else None
+def _no_advert(record: logging.LogRecord) -> bool:
+    return "💡 Tip" not in record.getMessage()
 
 
 @contextmanager
-def _process_state(num_threads: int | None) -> Iterator[None]:
-    """Around a run: torch's intra-op thread count set to ``num_threads`` (the config's; null or 0:
-    unchanged) — the one place the package sets it — and, on return, that count and the global
-    RNG states ``seed_everything`` seeds (Python, NumPy, torch's CPU and, where CUDA was in use
-    when the run began, CUDA's; Lightning's seed variables) put back."""
+def _process_state(num_threads: int | None, resuming_in_place: bool) -> Iterator[None]:
+    """Around a run: torch's intra-op thread count set to ``num_threads`` (null or 0: unchanged),
+    the one place the package sets it; Lightning's cloud-logger advert, its FutureWarning about
+    torch's ``LeafSpec`` and, resuming in place, its warning about the non-empty checkpoint
+    directory silenced. On return the thread count, the global RNG states ``seed_everything``
+    seeds (Python, NumPy, torch's CPU and, where CUDA was in use already, CUDA's: forking them
+    would initialise it) and Lightning's seed variables are put back."""
     threads, py_rng, np_rng = torch.get_num_threads(), random.getstate(), np.random.get_state()
     env = {k: os.environ.get(k) for k in ("PL_GLOBAL_SEED", "PL_SEED_WORKERS")}
-    # CUDA's RNGs where CUDA is in use already: forking them would initialise it (ddp_fork needs it not)
+    rank_zero = logging.getLogger("lightning.pytorch.utilities.rank_zero")
+    rank_zero.addFilter(_no_advert)
     devices = list(range(torch.cuda.device_count())) if torch.cuda.is_initialized() else []
     try:
-        with torch.random.fork_rng(devices=devices):
+        with torch.random.fork_rng(devices=devices), warnings.catch_warnings():
+            warnings.filterwarnings("ignore", r"`isinstance\(treespec, LeafSpec\)` is deprecated", FutureWarning)
+            if resuming_in_place:
+                warnings.filterwarnings("ignore", r"Checkpoint directory .* exists and is not empty")
             if num_threads:
                 torch.set_num_threads(int(num_threads))
             yield
     finally:
+        rank_zero.removeFilter(_no_advert)
         torch.set_num_threads(threads)
         random.setstate(py_rng)
         np.random.set_state(np_rng)
@@ -449,34 +430,10 @@ def _process_state(num_threads: int | None) -> Iterator[None]:
                 os.environ[key] = value
 
 
-def _no_advert(record: logging.LogRecord) -> bool:
-    return "💡 Tip" not in record.getMessage()
-
-
-@contextmanager
-def _quiet_lightning(resuming_in_place: bool) -> Iterator[None]:
-    """Around a run only (the library sets no global filter): no advert for Lightning's cloud
-    logger, no FutureWarning from Lightning's own use of torch's deprecated ``LeafSpec`` (nothing a
-    user can act on), and when a run resumes in its own directory no warning that it is not empty."""
-    rank_zero = logging.getLogger("lightning.pytorch.utilities.rank_zero")
-    rank_zero.addFilter(_no_advert)
-    try:
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", r"`isinstance\(treespec, LeafSpec\)` is deprecated", FutureWarning)
-            if resuming_in_place:
-                warnings.filterwarnings("ignore", r"Checkpoint directory .* exists and is not empty")
-            yield
-    finally:
-        rank_zero.removeFilter(_no_advert)
-
-
 def config_path() -> str:
-    """Where the Hydra configs are: a checkout's top-level conf/, else the installed package's.
-
-    A source checkout has ``conf/`` next to the package directory; a wheel ships the same files
-    inside the package as ``torchsde_lti/conf/`` (setup.py). Both as absolute paths, so the job
-    runs from any working directory.
-    """
+    """Where the Hydra configs are: a checkout's top-level ``conf/``, else the installed
+    package's ``torchsde_lti/conf/`` (a wheel ships them there); absolute, so the job runs from
+    any working directory."""
     import torchsde_lti
 
     package = Path(torchsde_lti.__file__).resolve().parent

@@ -1,4 +1,4 @@
-"""What a run reports: learned values, errors against the truth, the masked Gaussian NLL.
+"""Parameter recovery: what a filter learned and how far it is from a known true model.
 
 Torch only (no Lightning): usable on any pair of models.
 
@@ -6,11 +6,11 @@ Torch only (no Lightning): usable on any pair of models.
   structured models, ``expm(F dt)`` where F itself is identifiable, and for a free F seen
   through fewer observations than states the observed autocovariance
   ``H e^{Fτ} P∞ Hᵀ`` (:func:`observed_autocovariance`), which every state basis shares.
-* :func:`filter_values`: what a filter learned, for a :class:`~torchsde_lti.KalmanFilter`
-  and an :class:`~torchsde_lti.IMMFilter` alike: it iterates over ``kf.modes()`` (one
-  :class:`~torchsde_lti.nn.FilterMode` per motion model) and, for several modes, adds the
-  switching chain (``kf.rates``, ``kf.mode_prob0``).
-* :func:`parameter_table` / :func:`format_table`: the true-vs-learned table of a run.
+* :func:`filter_values`: what a :class:`~torchsde_lti.KalmanFilter` or an
+  :class:`~torchsde_lti.IMMFilter` learned, mode by mode (``kf.modes()``), with an IMM's
+  switching chain; :func:`flat_values` as named floats.
+* :func:`filter_errors` / :func:`parameter_table`: a filter against a simulated truth
+  ``{"sde", "R", "H"}``, as errors and as the rows of a true-vs-learned table.
 """
 
 from __future__ import annotations
@@ -22,7 +22,6 @@ from typing import Any, cast
 import torch
 from torch import Tensor, nn
 
-from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.stationary import stationary_covariance
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
@@ -30,11 +29,11 @@ from torchsde_lti.nn.parametrizations import IntegratorChain
 from torchsde_lti.nn.sde import LTISDE
 
 __all__ = [
+    "filter_errors",
     "filter_values",
     "flat_values",
-    "format_table",
+    "identifiability_note",
     "learned_values",
-    "masked_gaussian_nll",
     "observed_autocovariance",
     "parameter_errors",
     "parameter_table",
@@ -51,11 +50,8 @@ def _resolve(module: nn.Module, path: str) -> Any:
 
 
 def _scalar_names(sde: nn.Module) -> list[str]:
-    """Names of the learned scalar parameters of a motion model (``q``, ``k``, ``alpha``, ...).
-
-    Read from ``named_parameters``: ``parametrizations.q.original`` -> ``q`` (and
-    ``parts.0.parametrizations.q.original`` -> ``parts.0.q``); only 0-dim values count.
-    """
+    """Names of the learned 0-dim parameters of a motion model (``q``, ``k``, ``parts.0.q``, ...),
+    read from ``named_parameters`` (``parametrizations.q.original`` -> ``q``)."""
     names: list[str] = []
     for raw_name, _ in sde.named_parameters():
         name = raw_name.replace("parametrizations.", "").replace(".original", "")
@@ -69,17 +65,14 @@ def _scalar_names(sde: nn.Module) -> list[str]:
 
 
 def learned_values(sde: LTISDE, R: Tensor | None = None, names: Sequence[str] | None = None) -> dict[str, Tensor]:
-    """Current values of a model's interpretable parameters, detached.
-
-    Named scalars (``names`` or the model's own list) come from ``getattr(sde, name)``;
-    then the matrices ``F`` and ``Qc`` and, if given, ``R``.
-    """
-    out: dict[str, Tensor] = {}
-    for name in names if names is not None else _scalar_names(sde):
-        out[name] = torch.as_tensor(_resolve(sde, name)).detach()
+    """A model's interpretable values, detached: the named scalars (``names`` or the model's
+    own), then the matrices ``F`` (n, n), ``Qc`` (s, s) and, if given, ``R`` (m, m)."""
+    out = {
+        name: torch.as_tensor(_resolve(sde, name)).detach()
+        for name in (names if names is not None else _scalar_names(sde))
+    }
     mats = sde.matrices()
-    out["F"] = mats.F.detach()
-    out["Qc"] = mats.Qc.detach()
+    out.update(F=mats.F.detach(), Qc=mats.Qc.detach())
     if R is not None:
         out["R"] = R.detach()
     return out
@@ -88,8 +81,7 @@ def learned_values(sde: LTISDE, R: Tensor | None = None, names: Sequence[str] | 
 def _rel(a: Tensor, b: Tensor) -> float:
     """Relative Frobenius error ‖a − b‖ / ‖b‖ (absolute when b = 0)."""
     a, b = a.detach().to(torch.float64), b.detach().to(torch.float64)
-    den = torch.linalg.vector_norm(b)
-    num = torch.linalg.vector_norm(a - b)
+    den, num = torch.linalg.vector_norm(b), torch.linalg.vector_norm(a - b)
     return float(num / den) if float(den) > 0 else float(num)
 
 
@@ -105,34 +97,48 @@ def same_model(learned: LTISDE, truth: LTISDE) -> bool:
 def raw_f_identifiable(sde: LTISDE, H: Tensor | None) -> bool:
     """Whether the data determine F itself (not only up to a change of state basis).
 
-    True for structured models (named scalars fix the basis), for a fixed structure such as
-    :class:`~torchsde_lti.nn.parametrizations.IntegratorChain`, and for a free F observed
-    through an H of full column rank. A free F seen through fewer observations than states
-    is determined only up to similarity transforms ``T F T⁻¹`` (with ``H T⁻¹``, ``T L``):
-    every such F gives the same likelihood, so raw-F errors are meaningless there.
+    True for structured models (named scalars fix the basis), a fixed structure such as
+    :class:`~torchsde_lti.nn.parametrizations.IntegratorChain`, and a free F observed through
+    an H of full column rank. A free F seen through fewer observations than states is
+    determined only up to ``T F T⁻¹`` (with ``H T⁻¹``, ``T L``): raw-F errors mean nothing there.
     """
     if _scalar_names(sde):
         return True
     param = getattr(getattr(sde, "parametrizations", None), "F", None)
     if param is not None and any(isinstance(p, IntegratorChain) for p in param):
         return True
-    if H is None:
-        return True
-    H = H.detach().to(torch.float64)
-    return int(torch.linalg.matrix_rank(H)) >= sde.state_dim
+    return H is None or int(torch.linalg.matrix_rank(H.detach().to(torch.float64))) >= sde.state_dim
 
 
 def observed_autocovariance(sde: LTISDE, H: Tensor, lags: Sequence[float]) -> Tensor:
     """Stationary autocovariance of the observed signal, ``H e^{F τ} P∞ Hᵀ`` at each lag.
 
-    P∞ solves ``F P∞ + P∞ Fᵀ + L Qc Lᵀ = 0``; invariant under a change of state basis, so
-    the data determine it whenever they determine anything. Returns (len(lags), m, m) in
-    float64; ValueError (from ``stationary_covariance``) when F is not Hurwitz.
+    P∞ solves ``F P∞ + P∞ Fᵀ + L Qc Lᵀ = 0``; invariant under a change of state basis.
+
+    Returns:
+        (len(lags), m, m) in float64.
+
+    Raises:
+        ValueError: F is not Hurwitz (from ``stationary_covariance``).
     """
     F, L, Qc = (x.detach().to(torch.float64) for x in sde.matrices()[:3])
     P = stationary_covariance(F, L, Qc)
     H = H.detach().to(torch.float64)
     return torch.stack([H @ torch.linalg.matrix_exp(F * float(t)) @ P @ H.mT for t in lags])
+
+
+def _autocov_error(learned: LTISDE, truth: LTISDE, H: Tensor, H_true: Tensor, lags: Sequence[float]) -> float | None:
+    """``max_τ ‖C(τ) − C*(τ)‖ / ‖C*(0)‖`` (None: the truth has no stationary autocovariance;
+    inf: the learned F is not Hurwitz yet)."""
+    try:
+        C_true = observed_autocovariance(truth, H_true, lags)
+    except ValueError:
+        return None
+    try:
+        C = observed_autocovariance(learned, H, lags)
+    except ValueError:
+        return math.inf
+    return float((torch.linalg.matrix_norm(C - C_true) / torch.linalg.matrix_norm(C_true[0])).max())
 
 
 def parameter_errors(
@@ -152,14 +158,20 @@ def parameter_errors(
 
     * each named scalar (``q``, ``k``, ``alpha``, ...): |learned − true| / |true|;
     * ``Qc`` (if compared, identifiable and no scalar names cover it): relative Frobenius error;
-    * ``F`` (if compared and identifiable, see :func:`raw_f_identifiable`):
-      ``max_dt ‖expm(F dt) − expm(F* dt)‖ / ‖expm(F* dt)‖`` over ``dts``, as ``expmF``;
-    * ``F`` not identifiable (free F, H of lower rank than the state): the observed
-      autocovariance ``C(τ) = H e^{Fτ} P∞ Hᵀ`` instead,
-      ``max_τ ‖C(τ) − C*(τ)‖ / ‖C*(0)‖`` over ``lags``, as ``autocov`` (it covers Qc's
-      effect as well; inf while the learned F is not Hurwitz). Raw F and Qc errors are
-      left out: the likelihood cannot see them;
-    * ``R`` (if given): relative Frobenius error.
+    * ``F`` identifiable (:func:`raw_f_identifiable`): ``expmF`` =
+      ``max_dt ‖expm(F dt) − expm(F* dt)‖ / ‖expm(F* dt)‖`` over ``dts``;
+    * ``F`` not identifiable (free F, H of lower rank than the state, or another state size
+      than the truth's): ``autocov`` = ``max_τ ‖C(τ) − C*(τ)‖ / ‖C*(0)‖`` over ``lags`` of the
+      observed autocovariance (inf while the learned F is not Hurwitz); no raw F or Qc error;
+    * ``R`` (if given with ``R_true``): relative Frobenius error.
+
+    Args:
+        learned, truth: the models; R, R_true: (m, m) observation noises; names: the scalars
+            to pair (default: the learner's own); compare: which of "F", "Qc" to compare;
+            dts, lags: the steps and lags of the matrix errors; H, H_true: (m, n) observations.
+
+    Returns:
+        {name: relative error}.
     """
     errors: dict[str, float] = {}
     names = list(names) if names is not None else _scalar_names(learned)
@@ -167,24 +179,12 @@ def parameter_errors(
     same_shape = mine.F.shape[-2:] == theirs.F.shape[-2:] and mine.Qc.shape[-2:] == theirs.Qc.shape[-2:]
     for name in names if same_model(learned, truth) else ():  # a learner of another kind: nothing to pair
         errors[name] = _rel(torch.as_tensor(_resolve(learned, name)), torch.as_tensor(_resolve(truth, name)))
-    identifiable = raw_f_identifiable(learned, H)
-    if not same_shape:  # e.g. model=cv truth=singer: only observation-level quantities compare
-        identifiable = False
+    identifiable = same_shape and raw_f_identifiable(learned, H)
     if "F" in compare and not identifiable and H is not None:
-        H_true = H if H_true is None else H_true
-        try:
-            C_true = observed_autocovariance(truth, H_true, lags)
-        except ValueError:  # the truth has no stationary autocovariance (integrators): nothing to compare
-            C_true = None
-        if C_true is not None:
-            try:
-                C = observed_autocovariance(learned, H, lags)
-            except ValueError:  # the learned F is not Hurwitz (yet): no stationary autocovariance
-                errors["autocov"] = math.inf
-            else:
-                scale = torch.linalg.matrix_norm(C_true[0])
-                errors["autocov"] = float((torch.linalg.matrix_norm(C - C_true) / scale).max())
-    elif not names and "Qc" in compare and identifiable:  # (identifiable implies same_shape)
+        autocov = _autocov_error(learned, truth, H, H if H_true is None else H_true, lags)
+        if autocov is not None:
+            errors["autocov"] = autocov
+    elif not names and "Qc" in compare and identifiable:
         errors["Qc"] = _rel(mine.Qc, theirs.Qc)
     if "F" in compare and identifiable:
         F, F_true = mine.F.detach().to(torch.float64), theirs.F.detach().to(torch.float64)
@@ -194,49 +194,23 @@ def parameter_errors(
     return errors
 
 
-def masked_gaussian_nll(r: Tensor, S: Tensor, observed: Tensor) -> Tensor:
-    """Σ over observed coordinates of the Gaussian NLL of residual r under N(0, S).
-
-    r: (..., m) residuals, S: (..., m, m), observed: (..., m) bool. Missing coordinates
-    are marginalised out exactly: their rows/columns of S are replaced by the identity
-    and their residuals by 0, which leaves logdet and the quadratic form of the observed
-    block unchanged. Returns (...), zero where nothing is observed.
-    """
-    obs = observed.to(r.dtype)
-    r = torch.where(observed, r, torch.zeros_like(r))
-    both = obs.unsqueeze(-1) * obs.unsqueeze(-2)
-    eye = torch.eye(r.shape[-1], dtype=r.dtype, device=r.device)
-    S = S * both + eye * (1.0 - obs).unsqueeze(-1)
-    S = sym(S)
-    C = torch.linalg.cholesky(S)
-    z = torch.linalg.solve_triangular(C, r.unsqueeze(-1), upper=False).squeeze(-1)
-    logdet = 2.0 * torch.log(torch.diagonal(C, dim1=-2, dim2=-1)).sum(-1)
-    return 0.5 * ((z * z).sum(-1) + logdet + obs.sum(-1) * math.log(2.0 * math.pi))
-
-
 def filter_values(kf: KalmanFilter | IMMFilter, names: Sequence[str] | None = None) -> dict[str, Tensor]:
     """What a filter learned, detached: :func:`learned_values` of each of ``kf.modes()``.
 
-    A single-model filter (``KalmanFilter``) gives exactly ``learned_values(sde, R, names)``.
-    With several modes (``IMMFilter``) every key is prefixed by the mode's name
-    (``"moored/k"``, ``"underway/R"``) and the switching chain is added as scalars:
-    ``"rate[a->b]"`` = Λ_ab (1/time) for every ordered pair of modes and ``"mode_prob0[a]"``.
-    ``names`` applies to each mode's model (None: each model's own list).
+    One mode (a ``KalmanFilter``): ``learned_values(sde, R, names)``. Several (an ``IMMFilter``):
+    every key prefixed by the mode's name (``"moored/k"``), plus the switching chain as scalars,
+    ``"rate[a->b]"`` = Λ_ab (1/time) for each ordered pair and ``"mode_prob0[a]"``.
     """
     modes = kf.modes()
     if len(modes) == 1:
-        mode = modes[0]
-        return learned_values(mode.sde, mode.R, names)
+        return learned_values(modes[0].sde, modes[0].R, names)
     out: dict[str, Tensor] = {}
     for mode in modes:
         out.update({f"{mode.name}/{k}": v for k, v in learned_values(mode.sde, mode.R, names).items()})
     assert isinstance(kf, IMMFilter)  # only it has several modes
     rates, p0 = cast(Tensor, kf.rates).detach(), cast(Tensor, kf.mode_prob0).detach()
     labels = [mode.name for mode in modes]
-    for i, a in enumerate(labels):
-        for j, b in enumerate(labels):
-            if i != j:
-                out[f"rate[{a}->{b}]"] = rates[i, j]
+    out.update({f"rate[{a}->{b}]": rates[i, j] for i, a in enumerate(labels) for j, b in enumerate(labels) if i != j})
     out.update({f"mode_prob0[{a}]": p0[i] for i, a in enumerate(labels)})
     return out
 
@@ -248,9 +222,8 @@ def _split(name: str) -> tuple[str, str]:
 
 
 def flat_values(values: Mapping[str, Tensor]) -> dict[str, float]:
-    """Scalars as they are; R and (without named scalars) Qc by their diagonals (``R[0]``, ...).
-
-    Mode-prefixed keys of :func:`filter_values` (``"moored/R"``) are handled per mode."""
+    """Scalars as they are; R and (without named scalars) Qc by their diagonals (``R[0]``, ...),
+    per mode for the prefixed keys of :func:`filter_values`; F is left out."""
     out: dict[str, float] = {}
     with_scalars = {_split(k)[0] for k, v in values.items() if v.dim() == 0}
     for name, v in values.items():
@@ -265,26 +238,59 @@ def flat_values(values: Mapping[str, Tensor]) -> dict[str, float]:
     return out
 
 
-def parameter_table(module: Any, truth: dict[str, Any] | None) -> list[dict[str, Any]]:
-    """Rows {"name", "true", "learned", "rel_error"} for every learned quantity.
+def filter_errors(
+    kf: KalmanFilter | IMMFilter,
+    truth: Mapping[str, Any] | None,
+    names: Sequence[str] | None = None,
+    compare: Sequence[str] = ("F", "Qc", "R"),
+) -> dict[str, float]:
+    """:func:`parameter_errors` of a single-model filter against ``truth`` ({"sde", "R", "H"});
+    {} without a truth, and for several modes (the truth is one model)."""
+    modes = kf.modes()
+    if truth is None or truth.get("sde") is None or len(modes) != 1:
+        return {}
+    mode = modes[0]
+    R_true = truth.get("R") if "R" in compare else None
+    return parameter_errors(
+        mode.sde, truth["sde"], R=mode.R if R_true is not None else None, R_true=R_true,
+        names=names, compare=compare, H=mode.H, H_true=truth.get("H"),
+    )  # fmt: skip
 
-    Named scalars (for an IMM also the switching rates and initial mode probabilities) and
-    the diagonal of every R are listed by value (``true`` and ``rel_error`` NaN without a
-    truth); the matrix errors (``expmF``: max over dt of ‖expm(F dt) − expm(F* dt)‖/‖expm(F* dt)‖;
-    ``autocov``: the observed autocovariance, for a free F the data do not determine entrywise;
-    ``Qc``, ``R``) by error only, except against a zero truth (``data.noise=0``: R = 0), which
-    has no relative error: that row gives the learned matrix's Frobenius norm. Only a
-    single-model filter is paired with a truth.
+
+def identifiability_note(kf: KalmanFilter | IMMFilter) -> str:
+    """'' when every mode's F is identifiable, else a sentence saying why not."""
+    hidden = [mode for mode in kf.modes() if not raw_f_identifiable(mode.sde, mode.H)]
+    if not hidden:
+        return ""
+    m, n = hidden[0].H.shape[-2:]
+    return (
+        f"F is free and observed through H ({m}x{n}, rank < {n}): F and Qc are determined only up to a "
+        "change of state basis, so they are compared through the observed autocovariance "
+        "H e^{F tau} P_inf H^T (`autocov`), not entrywise."
+    )
+
+
+def parameter_table(
+    kf: KalmanFilter | IMMFilter,
+    truth: Mapping[str, Any] | None,
+    names: Sequence[str] | None = None,
+    compare: Sequence[str] = ("F", "Qc", "R"),
+) -> list[dict[str, Any]]:
+    """Rows {"name", "true", "learned", "rel_error"} of every learned quantity.
+
+    Named scalars (an IMM's switching rates and initial mode probabilities too) and the diagonal
+    of every R by value (``true`` and ``rel_error`` NaN without a truth); the matrix errors of
+    :func:`filter_errors` (``expmF``, ``autocov``, ``Qc``, ``R``) by error only, except against
+    a zero truth (``data.noise=0``: R = 0), which has no relative error: that row gives the
+    learned matrix's Frobenius norm. Only a single-model filter is paired with a truth.
     """
-    errors = module.parameter_errors()
-    kf = module.kf
-    learned = filter_values(kf, module.param_names)
+    errors = filter_errors(kf, truth, names, compare)
+    learned = filter_values(kf, names)
     true: dict[str, Any] = {}
     if truth and len(kf.modes()) == 1:
         paired = same_model(kf.modes()[0].sde, truth["sde"])
-        true = learned_values(truth["sde"], truth.get("R"), module.param_names if paired else [])
-        if not paired:
-            true = {k: v for k, v in true.items() if k == "R"}
+        true = learned_values(truth["sde"], truth.get("R"), names if paired else [])
+        true = true if paired else {k: v for k, v in true.items() if k == "R"}
     rows: list[dict[str, Any]] = []
     for name, value in learned.items():
         if value.dim() == 0:
@@ -299,21 +305,9 @@ def parameter_table(module: Any, truth: dict[str, Any] | None) -> list[dict[str,
     for name in ("expmF", "autocov", "Qc", "R"):
         if name not in errors:
             continue
-        zero = name in true and not bool(torch.as_tensor(true[name]).any())
-        if zero:  # no relative error to a zero truth: the learned matrix's Frobenius norm instead
-            norm = float(torch.linalg.vector_norm(learned[name].detach().double())) if name in learned else math.nan
+        if name in true and not bool(torch.as_tensor(true[name]).any()):  # a zero truth: no relative error
+            norm = float(torch.linalg.vector_norm(learned[name].double())) if name in learned else math.nan
             rows.append({"name": f"{name} (matrix, ‖·‖_F)", "true": 0.0, "learned": norm, "rel_error": math.nan})
         else:
             rows.append({"name": f"{name} (matrix)", "true": math.nan, "learned": math.nan, "rel_error": errors[name]})
     return rows
-
-
-def format_table(rows: list[dict[str, Any]]) -> str:
-    """Markdown table of :func:`parameter_table` rows."""
-    lines = ["| parameter | true | learned | rel. error |", "|---|---:|---:|---:|"]
-    for r in rows:
-        t = "" if math.isnan(r["true"]) else f"{r['true']:.4g}"
-        v = "" if math.isnan(r["learned"]) else f"{r['learned']:.4g}"
-        e = "" if math.isnan(r["rel_error"]) else f"{100 * r['rel_error']:.2f} %"
-        lines.append(f"| {r['name']} | {t} | {v} | {e} |")
-    return "\n".join(lines)

@@ -1,4 +1,4 @@
-"""Training metrics (torchsde_lti.training.metrics): masked Gaussian NLL, parameter errors, identifiability.
+"""Parameter recovery (torchsde_lti.evaluation.recovery) and the masked Gaussian NLL: parameter errors, identifiability.
 
 References: scipy's multivariate normal, hand values, and a similarity-transformed twin model
 (same likelihood, different F) for the identifiable autocovariance metric.
@@ -13,7 +13,7 @@ import torch
 
 import torchsde_lti as tl
 from torchsde_lti import models
-from torchsde_lti.training.metrics import (
+from torchsde_lti.evaluation import (
     masked_gaussian_nll,
     observed_autocovariance,
     parameter_errors,
