@@ -60,7 +60,7 @@ at 5, 10 and 15 min.""",
     "export": """examples:
   torchsde-lti export outputs/2026-01-01/12-00-00 -o filter.pt2
   torchsde-lti export RUN -o filter_aoti.pt2 --package --batch 64 --length 100
-Default: a torch.export program (tl.DeployedFilter, traced for the eager runtime) with a dynamic
+Default: a torch.export program (tl.DeployedFilter, to run as it is) with a dynamic
 batch and length: torch.export.load(path).module()(y, dt) -> (log_likelihood, mean). --package:
 an AOTInductor package (tl.compile_package; needs a C++ compiler) for one (batch, length);
 tl.load_package(path) runs it.""",
@@ -248,7 +248,7 @@ def _export(args: argparse.Namespace) -> int:
         return 0
     B, T = Dim("B", max=1_000_000), Dim("T", max=1_000_000)
     program = torch.export.export(
-        tl.DeployedFilter(kf, runtime="eager"), example, dynamic_shapes={"y": {0: B, 1: T}, "dt": {0: B, 1: T}}
+        tl.DeployedFilter(kf), example, dynamic_shapes={"y": {0: B, 1: T}, "dt": {0: B, 1: T}}
     )
     torch.export.save(program, args.output)
     print(f"torch.export program (dynamic batch and length) -> {args.output}", file=sys.stderr)

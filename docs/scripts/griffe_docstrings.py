@@ -7,7 +7,7 @@ every loaded docstring, leaving the sources alone:
 
 - ``:class:`~a.b.C``` -> `` `C` `` (the ``~`` form shows the last name), ``:class:`a.b.C``` ->
   `` `a.b.C` ``; ``:func:`` and ``:meth:`` add ``()``; ``:math:`x``` -> ``$x$`` (arithmatex);
-- a class whose base is private (``_TracedFor``, ``KalmanOnline`` of ``nn._kalman_online``,
+- a class whose base is private (``KalmanOnline`` of ``nn._kalman_online``,
   ``ValidateArgs`` of ``nn._validate``) shows that base's public bases instead, and keeps the
   public members it inherits from it (as inherited members: the pages' ``inherited_members``
   option still picks which are shown).

@@ -436,8 +436,8 @@ def test_deployed_filter_and_online_step_take_the_inputs_u():
 @pytest.mark.parametrize(
     "dtype, model", [(torch.float64, "cv"), (torch.float32, "cv"), (torch.float64, "integrated_ou")]
 )
-def test_exported_for_the_eager_runtime_any_batch_and_time(dtype, model):
-    """DeployedFilter(kf, runtime="eager") exported ONCE with a dynamic batch and T: the program
+def test_exported_program_any_batch_and_time(dtype, model):
+    """DeployedFilter(kf) exported ONCE with a dynamic batch and T: the program
     runs the default loop (torch's structured scan, any T); at every shape it equals the eager
     filter (missing components included), T = 1 and a long T included. Integrated OU: an F that
     is not nilpotent (the traced doubling in the program)."""
@@ -458,7 +458,7 @@ def test_exported_for_the_eager_runtime_any_batch_and_time(dtype, model):
     y0, dt0 = _data(2, 6, 2, seed=0)
     with torch.no_grad():
         ep = torch.export.export(
-            tl.DeployedFilter(kf, runtime="eager").eval(),
+            tl.DeployedFilter(kf).eval(),
             (y0.to(dtype), dt0.to(dtype)),
             dynamic_shapes={"y": {0: B, 1: T}, "dt": {0: B, 1: T}},
         )
@@ -478,17 +478,15 @@ def _short(b: int, t: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tens
     return torch.randn(b, t, 2, generator=g, dtype=dtype), torch.rand(b, t, generator=g, dtype=dtype) + 0.1
 
 
-def test_exported_online_step_for_the_eager_runtime():
-    """OnlineStep(kf, runtime="eager"): the online step is one implementation (the sequence
-    loop's step), so both runtimes trace the same step; the eager-runtime program equals the
-    eager step at 1, 7 and 300 tracks."""
+def test_exported_online_step_run_as_it_is():
+    """OnlineStep(kf) exported with a dynamic batch and run as it is (``ep.module()``): the
+    online step is one implementation (the sequence loop's step); the program equals the eager
+    step at 1, 7 and 300 tracks."""
     from torch.export import Dim
 
     kf = _cv_filter()
     with torch.no_grad():
-        ep = torch.export.export(
-            tl.OnlineStep(kf, runtime="eager").eval(), _step_args(3, 0), dynamic_shapes=({0: Dim("B")},) * 4
-        )
+        ep = torch.export.export(tl.OnlineStep(kf).eval(), _step_args(3, 0), dynamic_shapes=({0: Dim("B")},) * 4)
     prog = ep.module()
     for b in (1, 7, 300):
         args = _step_args(b, seed=b)
@@ -533,17 +531,27 @@ def test_compile_package_of_the_deploy_pages_static_program(tmp_path):
     torch.testing.assert_close(ll, kf(y, dt).log_likelihood.detach(), rtol=0, atol=1e-9)
 
 
-def test_deploy_modules_refuse_an_unknown_runtime():
+def test_deploy_modules_warn_that_runtime_has_no_effect():
+    """runtime= is accepted for compatibility only: a DeprecationWarning that says it has no
+    effect, and the module is the one built without it (same outputs)."""
     kf = _cv_filter()
-    with pytest.raises(ValueError, match="runtime must be one of"):
-        tl.DeployedFilter(kf, runtime="aoti")
-    with pytest.raises(ValueError, match="runtime must be one of"):
-        tl.OnlineStep(kf, runtime="jit")
+    args = _step_args(3, 0)
+    with pytest.warns(DeprecationWarning, match="runtime has no effect"):
+        deployed = tl.DeployedFilter(kf, runtime="eager")
+    with pytest.warns(DeprecationWarning, match="runtime has no effect"):
+        step = tl.OnlineStep(kf, runtime="inductor")
+    assert not hasattr(deployed, "runtime") and not hasattr(step, "runtime")
+    y, dt = _data(2, 6, 2, seed=0)
+    with torch.no_grad():
+        for got, want in zip(deployed(y, dt), tl.DeployedFilter(kf)(y, dt)):
+            torch.testing.assert_close(got, want, rtol=0, atol=0)
+        for got, want in zip(step(*args), tl.OnlineStep(kf)(*args)):
+            torch.testing.assert_close(got, want, rtol=0, atol=0)
 
 
-def test_exported_for_the_eager_runtime_forced_scan_and_a_report_batch_smaller_than_dt():
-    """runtime="eager" with algorithm="scan" forced (one scan over any T while exporting, no
-    chunks: the chunking specialised B and T) and, in the auto program, reports y (1, T, m) shared
+def test_exported_program_forced_scan_and_a_report_batch_smaller_than_dt():
+    """algorithm="scan" forced (one scan over any T while exporting, no chunks: the chunking
+    specialised B and T) and, in the auto program, reports y (1, T, m) shared
     by dt (B, T): the branches read the batch from the prior mean, which has the whole batch."""
     from torch.export import Dim
 
@@ -555,12 +563,12 @@ def test_exported_for_the_eager_runtime_forced_scan_and_a_report_batch_smaller_t
         forced = tl.KalmanFilter(kf.sde, kf.H, kf.R, P0=kf.P0, algorithm="scan")
         programs = {
             "scan": torch.export.export(
-                tl.DeployedFilter(forced, runtime="eager"),
+                tl.DeployedFilter(forced),
                 (y0, dt0),
                 dynamic_shapes={"y": {0: B, 1: T}, "dt": {0: B, 1: T}},
             ).module(),
             "shared y": torch.export.export(
-                tl.DeployedFilter(kf, runtime="eager"), (y0[:1], dt0), dynamic_shapes={"y": {1: T}, "dt": {0: B, 1: T}}
+                tl.DeployedFilter(kf), (y0[:1], dt0), dynamic_shapes={"y": {1: T}, "dt": {0: B, 1: T}}
             ).module(),
         }
         for b, t in ((1, 9), (5, 33), (30, 4)):

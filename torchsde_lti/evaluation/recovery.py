@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any, cast
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -208,7 +208,7 @@ def filter_values(kf: KalmanFilter | IMMFilter, names: Sequence[str] | None = No
     for mode in modes:
         out.update({f"{mode.name}/{k}": v for k, v in learned_values(mode.sde, mode.R, names).items()})
     assert isinstance(kf, IMMFilter)  # only it has several modes
-    rates, p0 = cast(Tensor, kf.rates).detach(), cast(Tensor, kf.mode_prob0).detach()
+    rates, p0 = kf.rates.detach(), kf.mode_prob0.detach()
     labels = [mode.name for mode in modes]
     out.update({f"rate[{a}->{b}]": rates[i, j] for i, a in enumerate(labels) for j, b in enumerate(labels) if i != j})
     out.update({f"mode_prob0[{a}]": p0[i] for i, a in enumerate(labels)})

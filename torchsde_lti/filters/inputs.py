@@ -41,7 +41,7 @@ from torchsde_lti.core.validation import (
     checks_values,
     shape_str,
 )
-from torchsde_lti.filters.layout import batch_first, batch_last, lower_solve, mm, mv, psd_cholesky, sym, tr
+from torchsde_lti.filters.layout import _factor, batch_first, batch_last, lower_solve, mm, mv, psd_cholesky, sym, tr
 from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel
 from torchsde_lti.filters.results import FilterResult
 
@@ -274,27 +274,35 @@ def observed_components(y: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]
     return obs, torch.where(obs, y, torch.zeros((), dtype=y.dtype, device=y.device))
 
 
-def mask_observation_model(H: Tensor, R: Tensor, obs: Tensor | None, at: int | None = None) -> tuple[Tensor, Tensor]:
+def mask_observation_model(H: Tensor, R: Tensor, obs: Tensor, at: int = 0) -> tuple[Tensor, Tensor]:
     """(Hm, Rm): unobserved components get a zero row in H and a decoupled unit variance in R,
-    so every step keeps static shapes. H (…, m, n, *b), R (…, m, m, *b), obs (…, m, *b) bool or
-    None; ``at``: the position of H's (m, n) dims (default: last, batch-first, b empty)."""
-    if obs is None:
-        return H, R
-    tail = 0 if at is None else H.dim() - at - 2
-    m, o = R.shape[R.dim() - tail - 1], obs.to(H.dtype)
-    row, col = o.unsqueeze(o.dim() - tail), o.unsqueeze(o.dim() - tail - 1)  # (…, m, 1, *b), (…, 1, m, *b)
-    eye = torch.eye(m, dtype=H.dtype, device=H.device).reshape(m, m, *[1] * tail)
-    return H * row, R * (row * col) + (1.0 - row) * eye
+    so every step keeps static shapes. Batch-last: H (…, m, n, *b), R (…, m, m, *b), obs
+    (…, m, *b) bool; ``at``: the position of the (m, ·) dims (0 for one step, 1 for a sequence,
+    whose leading dim is the steps'). An observed component's entries are kept as they are."""
+    row, col = obs.unsqueeze(at + 1), obs.unsqueeze(at)  # (…, m, 1, *b), (…, 1, m, *b)
+    m = R.shape[at]
+    eye = torch.eye(m, dtype=R.dtype, device=R.device).reshape(m, m, *[1] * (R.dim() - at - 2))
+    return torch.where(row, H, 0.0), torch.where(row & col, R, eye)
 
 
-def whiten(H: Tensor, R: Tensor, y: Tensor, at: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """(H', y', Σ log diag L) with L Lᵀ = R, H' = L⁻¹ H, y' = L⁻¹ y: the whitened model has
-    R' = I. H (…, m, n, *b), R (…, m, m, *b) symmetric PD, y (…, m, *b); ``at``: the position of
-    H's (m, n) dims (default: last, batch-first, b empty). Elementwise over the batch."""
-    tail = 0 if at is None else H.dim() - at - 2
-    L, d = psd_cholesky(R, R.dim() - tail - 2)
-    yw = lower_solve(L, d, y.unsqueeze(y.dim() - tail), tail).squeeze(y.dim() - tail)
-    return lower_solve(L, d, H, tail), yw, -torch.log(d).sum(d.dim() - tail - 1)
+def whiten(H: Tensor, R: Tensor, y: Tensor, at: int = 0) -> tuple[list[Tensor], list[Tensor], Tensor]:
+    """(rows of H', values of y', Σ log L_jj) with L Lᵀ = R (the factor of
+    :func:`~torchsde_lti.filters.layout.psd_cholesky`), H' = L⁻¹ H, y' = L⁻¹ y by forward
+    substitution: the whitened model has R' = I. Batch-last: H (…, m, n, *b), R (…, m, m, *b)
+    symmetric PD, y (…, m, *b) -> m rows (…, n, *b), m values (…, *b) and (…, *b); ``at``: the
+    position of the (m, ·) dims (0 for one step, 1 for a sequence). Elementwise over the batch,
+    on the factor's entries (no factor is assembled)."""
+    low, inv = _factor(R, at, diagonal=False)  # L_jt (t < j) and 1 / L_jj, each (…, *b)
+    against_h = (lambda x: x.unsqueeze(at)) if at else (lambda x: x)  # noqa: E731  ((…, 1, *b) against a row)
+    hw: list[Tensor] = []
+    yw: list[Tensor] = []
+    for j, (h, v) in enumerate(zip(H.unbind(at), y.unbind(at))):
+        for t in range(j):
+            h = h - against_h(low[j][t]) * hw[t]
+            v = v - low[j][t] * yw[t]
+        hw.append(h * against_h(inv[j]))
+        yw.append(v * inv[j])
+    return hw, yw, -torch.log(torch.stack(inv)).sum(0)
 
 
 def prepare_inputs(args: FilterInputs, validate_args: bool = True) -> PreparedInputs:
@@ -314,7 +322,8 @@ def prepare_inputs(args: FilterInputs, validate_args: bool = True) -> PreparedIn
     nd = len(batch_t) - 1
     H, R = batch_last(H, 2, nd), sym(batch_last(R, 2, nd), 1)  # (T or 1, m, ·, *b)
     obs, y0 = batch_last(obs, 1, nd), batch_last(y0, 1, nd)  # (T, m, *b)
-    Hw, yw, log_det = whiten(*mask_observation_model(H, R, obs, 1), y0, 1)
+    h_rows, y_rows, log_det = whiten(*mask_observation_model(H, R, obs, 1), y0, 1)
+    Hw, yw = torch.stack(h_rows, 1), torch.stack(y_rows, 1)
     steps = lambda x: x.expand(T, *x.shape[1:])  # noqa: E731  (a shared matrix: a view over the steps)
     return PreparedInputs(
         steps(batch_last(A, 2, nd)),

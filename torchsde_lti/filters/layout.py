@@ -11,6 +11,8 @@ Results are returned batch-first, as views (:func:`batch_first`).
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -90,23 +92,24 @@ def _augmented(X: Tensor, B: Tensor, at: int) -> Tensor:
     return torch.cat([X.expand(*X.shape[: at + 2], *batch), B.expand(*B.shape[: at + 2], *batch)], at + 1)
 
 
-def _factor(P: Tensor, at: int) -> tuple[list[list[Tensor]], list[Tensor]]:
-    """The entries ``L_ij`` (j ≤ i) of :func:`psd_cholesky`'s factor and its inverted pivots,
-    each (*L, *b)."""
+def _factor(P: Tensor, at: int, diagonal: bool = True) -> tuple[list[list[Tensor]], list[Tensor]]:
+    """The entries ``L_ij`` (j ≤ i; j < i without ``diagonal``) of :func:`psd_cholesky`'s factor
+    and its inverted pivots, each (*L, *b)."""
     k = P.shape[at]
     rel = k * torch.finfo(P.dtype).eps
-    one = torch.ones((), dtype=P.dtype, device=P.device)
+    entries = [row.unbind(at) for row in P.unbind(at)]  # P_ij (*L, *b): views
     low: list[list[Tensor]] = [[] for _ in range(k)]
     inv: list[Tensor] = []
     for j in range(k):
-        d = P.select(at, j).select(at, j)
+        d = entries[j][j]
         for t in range(j):
             d = d - low[j][t] * low[j][t]
-        keep = d > rel * P.select(at, j).select(at, j).detach()
-        inv.append(torch.where(keep, torch.rsqrt(torch.where(keep, d, one)), 0.0))
-        low[j].append(d * inv[j])
+        keep = d > rel * entries[j][j]  # (a comparison: no gradient flows through it)
+        inv.append(torch.where(keep, d, math.inf).rsqrt())  # (1 / ∞ = 0: a dropped pivot, gradient 0)
+        if diagonal:
+            low[j].append(d * inv[j])
         for i in range(j + 1, k):
-            v = P.select(at, i).select(at, j)
+            v = entries[i][j]
             for t in range(j):
                 v = v - low[i][t] * low[j][t]
             low[i].append(v * inv[j])

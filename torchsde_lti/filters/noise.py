@@ -34,6 +34,7 @@ enters a scale matrix with the weight ``(ν − 2) / ν`` (:meth:`StudentTNoise.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import NamedTuple, TypeVar
 
@@ -43,6 +44,7 @@ from torch import Tensor
 from torchsde_lti.core.validation import shape_str
 
 T = TypeVar("T")
+_LOG_2PI = math.log(2.0 * math.pi)
 
 __all__ = ["GAUSSIAN", "GaussianNoise", "NoiseModel", "StudentTNoise", "log_gamma_ratio", "weighted_outer"]
 
@@ -101,6 +103,11 @@ class GaussianNoise(NamedTuple):
         """The filtered covariance P (n, n, *b) unchanged."""
         return P
 
+    def step_update(self, P: Tensor, e: Tensor, s: Tensor, obs: Tensor) -> tuple[Tensor, Tensor]:
+        """The online step's (P, ``Σ_j (log s_j + e_j² / s_j + log 2π [j observed])``): P (n, n, *b)
+        unchanged; e, s (m, *b) the whitened innovations and their variances, obs (m, *b) bool."""
+        return P, torch.add(torch.addcdiv(torch.log(s), e * e, s), obs.to(s.dtype), alpha=_LOG_2PI).sum(0)
+
     def spread(self) -> Tensor | None:
         """The weight of the spread of mode means in a mixed covariance: None (1)."""
         return None
@@ -150,6 +157,14 @@ class StudentTNoise(NamedTuple):
         maha = sum(ej * ej / sj for ej, sj in zip(e, s))
         assert isinstance(maha, Tensor)
         return P * self.scale(maha, d)
+
+    def step_update(self, P: Tensor, e: Tensor, s: Tensor, obs: Tensor) -> tuple[Tensor, Tensor]:
+        """The online step's (``f P``, ``−2 log St + log|S_R|`` terms): as :meth:`GaussianNoise.step_update`,
+        −2 × :meth:`log_likelihood_core` + d log 2π (the caller subtracts the whitening's log-determinant)."""
+        d = obs.to(s.dtype).sum(0)
+        maha = (e * e / s).sum(0)
+        core = self.log_likelihood_core(torch.log(s).sum(0), maha, d)
+        return P * self.scale(maha, d), -2.0 * core + _LOG_2PI * d
 
     def spread(self) -> Tensor | None:
         """``(ν − 2) / ν``: the weight of the spread of mode means in a mixed scale matrix (the

@@ -25,15 +25,17 @@ leading)::
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import matvec, sym, to_batch_last
+from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.validation import broadcast_shapes
-from torchsde_lti.filters.inputs import LOG_2PI, mask_observation_model, whiten
+from torchsde_lti.filters.inputs import mask_observation_model, whiten
+from torchsde_lti.filters.layout import mv
 from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel
 from torchsde_lti.filters.results import serializable
 from torchsde_lti.filters.sequential import _joseph_step
@@ -117,7 +119,7 @@ def kalman_step(
     of H and a decoupled unit variance in R), whiten with the Cholesky factor L of the masked
     R (``H' = L⁻¹ H``, ``y' = L⁻¹ y``) and take one scalar Joseph update per component
     (:func:`~torchsde_lti.filters.sequential._joseph_step`, batch-last: the loop's own step);
-    ``log N(y^obs; H^obs m⁻, S^obs) = −½ Σ_j (log s_j + e_j² / s_j) − ½ n_obs log 2π − log|L|``.
+    ``log N(y^obs; H^obs m⁻, S^obs) = −½ Σ_j (log s_j + e_j² / s_j + log 2π [j observed]) − log|L|``.
     One path for every batch size, dtype and device, eager or traced; arguments are taken as
     checked (the modules check them once at their boundary).
 
@@ -135,39 +137,55 @@ def kalman_step(
 
     Returns:
         (:class:`KalmanState` after the update, :class:`KalmanStep`); batch dims broadcast.
-        The covariances are batch-first views of batch-last storage (the layout the next
-        step reads without a copy).
+        The moments are batch-first views of batch-last storage (the layout the next step
+        reads without a copy).
     """
     if mask is not None:
         y = torch.where(mask.unsqueeze(-1) if mask.dim() < y.dim() else mask, y, torch.nan)
-    obs = ~torch.isnan(y)
-    y0 = torch.where(obs, y, torch.zeros((), dtype=y.dtype, device=y.device))
-    Hm, Rm = mask_observation_model(H, R, obs)
-    Hw, yw, log_det = whiten(Hm, Rm, y0)
-    n, m = A.shape[-1], y.shape[-1]
-    shapes = [state.mean.shape[:-1], state.cov.shape[:-2], A.shape[:-2], Q.shape[:-2], Hw.shape[:-2], y.shape[:-1]]
-    mb = broadcast_shapes(*shapes, *(() if c is None else (c.shape[:-1],)))
-    # the sequence loop's batch-last layout (event dims first, the batch contiguous)
-    Ab, Qb, Pb = (to_batch_last(x.expand(*mb, n, n), 2) for x in (A, Q, state.cov))
-    mean_b = to_batch_last(state.mean.expand(*mb, n), 1)
-    c_b = None if c is None else to_batch_last(c.expand(*mb, n), 1)
-    h_rows = to_batch_last(Hw.expand(*mb, m, n), 2).unbind(0)
-    y_vals = to_batch_last(yw.expand(*mb, m), 1).unbind(0)
-    pm, pc, mean, P, es, ss = _joseph_step(Ab, Qb, mean_b, Pb, c_b, h_rows, y_vals, None, None)
-    d = obs.to(y.dtype).sum(-1)
-    P = noise.update(P, es, ss, d)  # (the Gaussian's: P itself)
-    e_t, s_t = torch.stack(es), torch.stack(ss)  # (m, *mb)
-    core = noise.log_likelihood_core(torch.log(s_t).sum(0), (e_t * e_t / s_t).sum(0), d)
-    ll = core - 0.5 * LOG_2PI * d - log_det
-    pred_mean, filt_mean = pm.movedim(0, -1), mean.movedim(0, -1)
-    pred_cov, filt_cov = pc.movedim((0, 1), (-2, -1)), P.movedim((0, 1), (-2, -1))
-    innovation = (y0 - matvec(H, pred_mean)) * obs
-    innovation_cov = sym(H @ pred_cov @ H.mT + R)
-    return KalmanState(filt_mean, filt_cov), KalmanStep(
-        pred_mean,
-        pred_cov,
-        innovation.expand(*mb, m),
-        innovation_cov.expand(*mb, m, m),
-        ll.expand(mb),
-        obs.expand(*mb, m),
+    # the loop's batch-last layout (event dims first, each batch padded to nd dims): views, of
+    # the batch-last storage that the discretisation and the previous step return
+    nd = max(state.mean.dim() - 1, state.cov.dim() - 2, A.dim() - 2, Q.dim() - 2, H.dim() - 2, R.dim() - 2, y.dim() - 1)
+    if c is not None:
+        nd = max(nd, c.dim() - 1)
+    mean, yb, cb = _batch_last(state.mean, 1, nd), _batch_last(y, 1, nd), None if c is None else _batch_last(c, 1, nd)
+    P, Ab, Qb, Hb, Rb = (_batch_last(x, 2, nd) for x in (state.cov, A, Q, H, R))
+    obs = yb == yb  # (m, *b): not NaN
+    y0 = yb.nan_to_num(0.0, math.inf, -math.inf)
+    h_rows, y_rows, log_det = whiten(*mask_observation_model(Hb, Rb, obs), y0)
+    pm, pc, mean, P, es, ss = _joseph_step(Ab, Qb, mean, P, cb, h_rows, y_rows)
+    P, core = noise.step_update(P, torch.stack(es), torch.stack(ss), obs)  # (m, *b) each; the Gaussian's P stands
+    ll = -0.5 * core - log_det
+    innovation = (y0 - mv(Hb, pm)) * obs
+    if not nd:  # (no batch: the results are in their shapes)
+        S = H @ pc @ H.mT
+        return KalmanState(mean, P), KalmanStep(pm, pc, innovation, torch.add(R, S + S.mT, alpha=0.5), ll, obs)
+    # batch-first views of the batch-last results, each expanded to the whole batch
+    pm, mean, innovation, obs = (x.movedim(0, -1) for x in (pm, mean, innovation, obs))
+    pc, P = pc.movedim((0, 1), (-2, -1)), P.movedim((0, 1), (-2, -1))
+    S = H @ pc @ H.mT
+    S = torch.add(R, S + S.mT, alpha=0.5)
+    batch = torch.Size(max(a, b) for a, b in zip(mean.shape[:-1], P.shape[:-2]))  # (every input's batch)
+    n, m = mean.shape[-1], obs.shape[-1]
+    return KalmanState(_full(mean, batch, n), _full(P, batch, n, n)), KalmanStep(
+        _full(pm, batch, n),
+        _full(pc, batch, n, n),
+        _full(innovation, batch, m),
+        _full(S, batch, m, m),
+        _full(ll, batch),
+        _full(obs, batch, m),
     )
+
+
+def _batch_last(x: Tensor, event_ndim: int, batch_ndim: int) -> Tensor:
+    """``(*b, *event) -> (*event, *b)`` as a view, b left-padded with size-1 dims to
+    ``batch_ndim`` dims (the loop's layout; batch-last storage gives a contiguous view)."""
+    if not batch_ndim:
+        return x
+    if x.dim() < event_ndim + batch_ndim:
+        x = x.reshape((1,) * (event_ndim + batch_ndim - x.dim()) + tuple(x.shape))
+    return x.movedim(tuple(range(batch_ndim, batch_ndim + event_ndim)), tuple(range(event_ndim)))
+
+
+def _full(x: Tensor, batch: torch.Size, *event: int) -> Tensor:
+    """x expanded to the step's whole batch (a view; x itself where it has it)."""
+    return x if x.shape[: x.dim() - len(event)] == batch else x.expand(*batch, *event)

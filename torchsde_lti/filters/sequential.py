@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.filters.inputs import PreparedInputs, assemble_result, complete_from_filtered, observed_count
-from torchsde_lti.filters.layout import mm, mv, tr
+from torchsde_lti.filters.layout import mv, tr
 from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel, StudentTNoise
 from torchsde_lti.filters.results import FilterResult
 
@@ -103,7 +103,7 @@ def _joseph_step(
     mean = mv(Ak, mean)
     if ck is not None:
         mean = mean + ck
-    P = _sym(mm(mm(Ak, P), tr(Ak)) + Qk, pc_out)
+    P = _sym(_mm_t(_mm(Ak, P), Ak) + Qk, pc_out)
     pmean, pcov = mean, P
     es: list[Tensor] = []
     ss: list[Tensor] = []
@@ -119,6 +119,16 @@ def _joseph_step(
         es.append(e)
         ss.append(s)
     return pmean, pcov, mean, _sym(P, fc_out), es, ss
+
+
+def _mm(a: Tensor, b: Tensor) -> Tensor:
+    """``a b`` of a (r, k, *b), b (k, s, *b) -> (r, s, *b): one broadcast dot product over k."""
+    return torch.linalg.vecdot(a.unsqueeze(2), b.unsqueeze(0), dim=1)
+
+
+def _mm_t(a: Tensor, b: Tensor) -> Tensor:
+    """``a bᵀ`` of a (r, k, *b), b (s, k, *b) -> (r, s, *b): one broadcast dot product over k."""
+    return torch.linalg.vecdot(a.unsqueeze(1), b.unsqueeze(0), dim=2)
 
 
 def _sym(P: Tensor, out: Tensor | None) -> Tensor:

@@ -29,7 +29,7 @@ from torch.nn.utils import parametrize
 
 from torchsde_lti.core.discretization import check_matrix_exp_noise
 from torchsde_lti.core.linalg import matvec
-from torchsde_lti.core.validation import as_float_tensor, broadcast_batch, check_matrix
+from torchsde_lti.core.validation import as_float_tensor, broadcast_batch, check_matrix, tracing
 from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel
 from torchsde_lti.filters.online import KalmanState, KalmanStep, kalman_predict, kalman_step
 from torchsde_lti.nn._online import (
@@ -42,7 +42,15 @@ from torchsde_lti.nn._online import (
     tracks_shape,
 )
 from torchsde_lti.nn._register import register_tensor
-from torchsde_lti.nn._validate import ValidateArgs, check_outcome, online_report
+from torchsde_lti.nn._validate import (
+    ValidateArgs,
+    _finite,
+    _psd_flags,
+    all_pass,
+    check_outcome,
+    online_report,
+    outcome_flags,
+)
 from torchsde_lti.nn.parametrizations import PositiveDefinite
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
 
@@ -209,7 +217,7 @@ class KalmanOnline(ValidateArgs, nn.Module):
             pred_mean, pred_cov, innovation (..., m), innovation_cov (..., m, m),
             log_likelihood (...), observed).
         """
-        mats, H, R, D, series, noise = evaluated(self, self.online_model) if model is None else model
+        (mats, H, R, D, series, noise), model_ok = self._model_and_flag(model)
         state, dt, u = self._check_state(state, dt, u, mats)
         y, mask = online_report(y, mask, H, mats.F.dtype, mats.F.device)
         D = D if u is not None else None
@@ -222,22 +230,73 @@ class KalmanOnline(ValidateArgs, nn.Module):
                 *model_batches(mats, H=H, R=R, D=D),
             ]
         )
-        validate = self.validate_args
-        if validate:
-            self._check_values(mats, dt, psd=(("state.cov", state.cov),), y=y, u=u, H=H, R=R, D=D, mean=state.mean)
+        validate = self.validate_args and not tracing()
+        if validate and self.discretization_method == "matrix_exp":  # (its Q is checked after the arguments)
+            self._check_step_arguments(mats, dt, state, y, u, H, R, D)
         A, Q, c = self._step_model(mats, dt, u, series)
-        if D is not None and u is not None:  # (D is None without u)
-            y = y - matvec(D, u)
-        new, out = kalman_step(state, y, A, Q, H, R, c, mask, noise)
+        observed = y if D is None or u is None else y - matvec(D, u)
+        new, out = kalman_step(state, observed, A, Q, H, R, c, mask, noise)
         if validate:
-            update = noise.update_bound((H, out.observed, new.cov))
-            check_outcome((out.log_likelihood, new.mean), (new.cov,), (A, Q, c), y, dt, mats.F, R, update)
+            # the arguments' tests and the outcome's in ONE synchronisation; a NaN or Inf in the
+            # state's mean, in dt or in the model reaches the new mean (or the log-likelihood)
+            n = new.cov.shape[-1]
+            covariances = torch.cat([state.cov.reshape(-1, n, n), new.cov.reshape(-1, n, n)])
+            flags = [
+                *([] if model_ok is None else [model_ok]),
+                (dt >= 0).all(),
+                *([] if mask is None else [~torch.isinf(y).any()]),  # (else an Inf reaches the log-likelihood)
+                *([] if u is None else [_finite([u] if D is None else [u, D])]),
+                *_psd_flags(covariances),  # (the state's and the new one: one factorisation)
+                *outcome_flags((out.log_likelihood, new.mean), (), R, noise.update_bound((H, out.observed, new.cov))),
+            ]
+            if not all_pass(flags):
+                self._check_step_arguments(mats, dt, state, y, u, H, R, D)  # (raises, naming the argument)
+                update = noise.update_bound((H, out.observed, new.cov))
+                check_outcome((out.log_likelihood, new.mean), (new.cov,), (A, Q, c), y, dt, mats.F, R, update)
         return new, out
+
+    def _model_and_flag(self, model: OnlineModel | None) -> tuple[OnlineModel, Tensor | None]:
+        """The evaluated model of an online call (``model``, else the filter's current one,
+        :func:`~torchsde_lti.nn._online.evaluated`) and, with value checks on, the 0-dim bool
+        test that its matrices are finite (formed with the model, once per parameter version:
+        no synchronisation); None without value checks."""
+        flag = None
+        if model is None:
+            validate = self.validate_args
+
+            def build() -> tuple[OnlineModel, Tensor | None]:
+                built = self.online_model()
+                return built, self._model_finite(built) if validate else None
+
+            model, flag = evaluated(self, build)
+        if flag is None and self.validate_args:  # (value checks turned on since the model was cached)
+            flag = self._model_finite(model)
+        return model, flag
+
+    @staticmethod
+    def _model_finite(model: OnlineModel) -> Tensor:
+        """0-dim bool: the SDE's matrices, H and R of ``model`` finite (the feedthrough D is
+        tested with the inputs it multiplies)."""
+        with torch.no_grad():
+            return torch.cat([x.reshape(-1) for x in (*model.mats, model.H, model.R) if x is not None]).isfinite().all()
+
+    def _check_step_arguments(
+        self,
+        mats: SDEMatrices,
+        dt: Tensor,
+        state: KalmanState,
+        y: Tensor,
+        u: Tensor | None,
+        H: Tensor,
+        R: Tensor,
+        D: Tensor | None,
+    ) -> None:
+        """The argument checks of :meth:`step` (the sequence filter's, and the state's): ValueError naming the first bad one."""
+        self._check_values(mats, dt, psd=(("state.cov", state.cov),), y=y, u=u, H=H, R=R, D=D, mean=state.mean)
 
     def predict(self, state: KalmanState, dt: Tensor | float, u: Tensor | None = None) -> KalmanState:
         """Prediction only, each track over its own dt (...): ``m⁻ = A m + G u``, ``P⁻ = A P Aᵀ + Q``."""
-        model = evaluated(self, self.online_model)
-        mats, series = model.mats, model.series
+        mats, _, _, _, series, _ = self._model_and_flag(None)[0]
         state, dt, u = self._check_state(state, dt, u, mats)
         check_batches(
             [
@@ -265,12 +324,10 @@ class KalmanOnline(ValidateArgs, nn.Module):
         self, mats: SDEMatrices, dt: Tensor, u: Tensor | None, series: Series | None
     ) -> tuple[Tensor, Tensor, Tensor | None]:
         """(A, Q, G u or None) of each track's gap dt (...): the sequence filter's
-        discretisation (:func:`~torchsde_lti.nn._online.discretize_steps`) of a one-step series."""
-        d = discretize_steps(mats, dt.unsqueeze(-1), self.discretization_method, series)
+        discretisation (:func:`~torchsde_lti.nn._online.discretize_steps`), one step per track."""
+        d = discretize_steps(mats, dt, self.discretization_method, series, time_axis=False)
         self._check_van_loan_noise(d.Q)
-        A, Q = d.A.select(-3, 0), d.Q.select(-3, 0)
-        c = None if (u is None or d.G is None) else matvec(d.G.select(-3, 0), u)
-        return A, Q, c
+        return d.A, d.Q, None if (u is None or d.G is None) else matvec(d.G, u)
 
     def _check_van_loan_noise(self, Q: Tensor) -> None:
         """With ``method="matrix_exp"`` and value checks on, ValueError where its Q (..., n, n)

@@ -118,7 +118,13 @@ def model_series(F: Tensor, L: Tensor, Qc: Tensor, B: Tensor | None, index: int 
 
 
 def discretize_steps(
-    mats: SDEMatrices, dt: Tensor, method: str, series: Series | None, batch_last: bool = True, unique: bool = False
+    mats: SDEMatrices,
+    dt: Tensor,
+    method: str,
+    series: Series | None,
+    batch_last: bool = True,
+    unique: bool = False,
+    time_axis: bool = True,
 ) -> Discrete:
     """(A, Q, G) of every step dt (..., T) of a model: THE discretisation of the modules'
     calls (sequence, online step, prediction, forecast, each mode of an IMM), so they agree.
@@ -130,8 +136,16 @@ def discretize_steps(
     :func:`~torchsde_lti.core.discretize` of the matrices with a length-1 time axis (a
     parameter batch (..., 1, n, n) lines up with dt (..., T)), no value checks (the caller
     checked). ``unique``: discretise the distinct values of dt only and gather them (one
-    parameter set and a dt that does not require grad; same values)."""
+    parameter set and a dt that does not require grad; same values). Without ``time_axis``,
+    dt (...) is one step of each track and the results are (..., r, c) (views of (r, c, ...)
+    storage with ``batch_last``; an online step)."""
     if method == "doubling" and series is not None:
+        if not time_axis:
+            one = series(dt, batch_last=batch_last)
+            if batch_last and dt.dim():  # (r, c, ...) -> (..., r, c)
+                one = tuple(None if x is None else x.movedim((0, 1), (-2, -1)) for x in one)  # type: ignore[assignment]
+            assert one[1] is not None
+            return Discrete(one[0], one[1], one[2])
         # storage (r, c, T, ...): each step's matrices of all tracks contiguous (the loop's moves
         # to (r, c, tracks) are then row copies)
         dt_tm = dt.movedim(-1, 0) if dt.dim() else dt
@@ -152,6 +166,6 @@ def discretize_steps(
         A, Q, G = picked
         assert A is not None and Q is not None
         return Discrete(A, Q, G)
-    F, L, Qc, B = (None if x is None else x.unsqueeze(-3) for x in mats)
+    F, L, Qc, B = (None if x is None else x.unsqueeze(-3) for x in mats) if time_axis else mats
     assert F is not None and L is not None and Qc is not None
     return discretize(F, L, Qc, dt, B=B, method=method, validate_args=False)

@@ -3,6 +3,7 @@ default, as in torch.distributions, and one fused check of a call's arguments.""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import ClassVar
 
@@ -77,7 +78,7 @@ def check_values(
         flags = [v.isfinite().all() for _, v in (*fin, *nonneg, *cov, *prob)]
         flags += [v.amin() >= 0 for _, v in nonneg]
         flags += [~torch.isinf(v).any() for _, v in noinf]
-        flags += [_psd_passes(v) for _, v in cov]
+        flags += [f for _, v in cov for f in _psd_flags(v)]
         flags += [_probabilities_pass(v) for _, v in prob]
         if bool(torch.stack(flags).all()):
             return
@@ -104,23 +105,31 @@ def check_values(
     raise ValueError(f"invalid values among {named} (a covariance not PSD within rounding?)")
 
 
-def _psd_passes(x: Tensor) -> Tensor:
-    """0-dim bool: x (..., k, k) is symmetric and PSD up to rounding, as
+def _psd_flags(x: Tensor, symmetric: bool = False) -> list[Tensor]:
+    """0-dim bool tests that x (..., k, k) is finite, symmetric and PSD up to rounding, as
     :func:`~torchsde_lti.core.validation.check_symmetric_psd` tests it (100 k eps relative to
-    its largest entry): a Cholesky factor exists of x shifted by that tolerance. No
+    its largest entry): a Cholesky factor exists of x shifted by that tolerance. ``symmetric``:
+    x is symmetric by construction (a filter's output), the asymmetry is not tested. No
     synchronisation."""
-    scale = x.abs().amax(dim=(-2, -1), keepdim=True).clamp_min(torch.finfo(x.dtype).tiny)
-    tol = 100.0 * x.shape[-1] * torch.finfo(x.dtype).eps
-    asym = ((x - x.mT).abs() <= tol * scale).all()
+    scale = x.abs().amax(dim=(-2, -1), keepdim=True)  # (NaN or Inf wherever an entry is)
+    info = torch.finfo(x.dtype)
+    shift = (100.0 * x.shape[-1] * info.eps) * scale.clamp_min(info.tiny)
     eye = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
-    return asym & (torch.linalg.cholesky_ex(x + tol * scale * eye).info == 0).all()
+    flags = [(torch.linalg.cholesky_ex(torch.addcmul(x, shift, eye)).info == 0).all(), (scale < math.inf).all()]
+    return flags if symmetric else [*flags, ((x - x.mT).abs() <= shift).all()]
 
 
 def _measurement_kept(H: Tensor, observed: Tensor, P: Tensor, R: Tensor) -> Tensor:
     """0-dim bool: every observed component's filtered variance ``(H P Hᵀ)_jj`` is at most
     ``2 R_jj`` (exactly it is below R_jj; :func:`check_outcome`). No synchronisation."""
-    variance = (H @ P @ H.mT).diagonal(0, -2, -1)
-    return ((variance <= 2 * R.diagonal(0, -2, -1)) | ~observed).all()
+    variance = torch.where(observed, ((H @ P) * H).sum(-1), 0.0)  # (H P Hᵀ)_jj
+    return (variance <= 2.0 * R.diagonal(0, -2, -1)).all()
+
+
+def _finite(tensors: Sequence[Tensor]) -> Tensor:
+    """0-dim bool: every entry of ``tensors`` finite (``x · 0 = 0``). No synchronisation."""
+    flat = torch.cat([t.reshape(-1) for t in tensors]) if len(tensors) > 1 else tensors[0]
+    return (flat * 0 == 0).all()
 
 
 def _probabilities_pass(p: Tensor) -> Tensor:
@@ -163,17 +172,15 @@ def check_outcome(
     covariance of the observed components is below R (``R − R S⁻¹ R``), so an observed
     component whose filtered variance ``(H P Hᵀ)_jj`` exceeds ``2 R_jj`` is that loss.
 
-    The sequence filters check every step's covariance, the online steps the new state's, so
-    a series of online steps raises exactly where the sequence filter of the reports seen so
-    far raises."""
+    The Kalman sequence filter checks the state it ends in (and the log-likelihood of every
+    step), the online step its new state, so a series of online steps raises exactly where the
+    sequence filter of the reports seen so far raises; the IMM's sequence filter checks every
+    step's mode covariances. The filtered covariances are symmetric by construction: their
+    asymmetry is not tested."""
     if tracing():
         return
     with torch.no_grad():
-        flags = [t.isfinite().all() for t in (*outputs, *covariances)]
-        flags += [_psd_passes(c) for c in covariances if c.numel()]
-        if update is not None and R is not None:
-            flags.append(_measurement_kept(*update, R))
-        if bool(torch.stack(flags).all()):
+        if all_pass(outcome_flags(outputs, covariances, R, update)):
             return
         bad = [t for t in steps if t is not None and not bool(torch.isfinite(t).all())]
         dtype = y.dtype
@@ -217,6 +224,27 @@ def check_outcome(
             + (", or algorithm='square_root' (PSD by construction)" if dtype != torch.float64 else "")
         )
     raise NonFiniteLikelihoodError(f"the log-likelihood or the filtered state is not finite in {dtype}: {why}")
+
+
+def outcome_flags(
+    outputs: Sequence[Tensor],
+    covariances: Sequence[Tensor],
+    R: Tensor | None = None,
+    update: tuple[Tensor, Tensor, Tensor] | None = None,
+) -> list[Tensor]:
+    """The tests of :func:`check_outcome` as 0-dim bool tensors (no synchronisation): the
+    ``outputs`` finite, the filtered ``covariances`` finite and PSD up to rounding (symmetric by
+    construction), and with ``update`` and R the measurements kept."""
+    flags = [_finite(outputs)] if outputs else []
+    flags += [f for c in covariances if c.numel() for f in _psd_flags(c, symmetric=True)]
+    if update is not None and R is not None:
+        flags.append(_measurement_kept(*update, R))
+    return flags
+
+
+def all_pass(flags: Sequence[Tensor]) -> bool:
+    """Whether every 0-dim bool test in ``flags`` passed: ONE synchronisation (True for none)."""
+    return not flags or bool(torch.stack(list(flags)).all())
 
 
 def online_report(

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from typing import Any
 
 import sympy
@@ -24,45 +25,25 @@ from torch.utils import _pytree as pytree
 
 from torchsde_lti.core.validation import shape_str
 from torchsde_lti.filters.online import KalmanState
-from torchsde_lti.filters.runtime import traced_for_eager_runtime
 from torchsde_lti.nn._kalman_online import OnlineModel
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
 
 __all__ = ["DeployedFilter", "OnlineStep", "PackagedProgram", "compile_package", "load_package"]
 
-#: What an exported program of :class:`DeployedFilter` or :class:`OnlineStep` is traced for:
-#: ``"inductor"`` (AOTInductor, :func:`compile_package`; torch.compile): small matrix products
-#: and factorisations unrolled into elementwise ops, which Inductor fuses, and a sequence filter's
-#: loop as one structured scan step; ``"eager"`` (the ``ExportedProgram`` run as it is, op by op):
-#: batched BLAS / LAPACK calls, and a sequence filter's algorithm chosen inside the program by its
-#: batch size as eager calls choose it (the associative scan for a few tracks, its levels one
-#: ``while_loop`` over any T; the loop beyond).
-RUNTIMES = ("inductor", "eager")
+
+def _no_runtime(runtime: str | None, module: str) -> None:
+    """Warn that ``runtime=`` is accepted for compatibility only: it changes nothing."""
+    if runtime is not None:
+        warnings.warn(
+            f"{module}(runtime={runtime!r}): runtime has no effect and is deprecated; the filters have "
+            "one path, eager or traced, so one program serves torch.export and AOTInductor alike",
+            DeprecationWarning,
+            stacklevel=3,
+        )
 
 
-def _check_runtime(runtime: str) -> str:
-    if runtime not in RUNTIMES:
-        raise ValueError(f"runtime must be one of {RUNTIMES}, got {runtime!r}")
-    return runtime
-
-
-class _TracedFor(nn.Module):
-    """The ``runtime`` attribute of the deployment modules, checked whenever it is set."""
-
-    _runtime: str
-
-    @property
-    def runtime(self) -> str:
-        """What ``torch.export`` traces the program for (:data:`RUNTIMES`)."""
-        return self._runtime
-
-    @runtime.setter
-    def runtime(self, value: str) -> None:
-        self._runtime = _check_runtime(value)
-
-
-class DeployedFilter(_TracedFor):
+class DeployedFilter(nn.Module):
     """The entry point to ship a trained :class:`KalmanFilter` or :class:`IMMFilter` with
     ``torch.export`` (or ``torch.jit``-free serving): plain tensor outputs instead of a
     :class:`FilterResult` / :class:`IMMResult`.
@@ -72,25 +53,24 @@ class DeployedFilter(_TracedFor):
     without them the inputs count as 0; an IMM takes none) -> ``(log_likelihood (...), mean
     (..., T, n))``, the filter's log-likelihood and filtered (for an IMM: combined) means.
 
-    ``runtime``: what ``torch.export`` traces the program for (:data:`RUNTIMES`):
-    ``"inductor"`` (default) to package it with :func:`compile_package`, ``"eager"`` to run the
-    ``ExportedProgram`` as it is. Eager calls of the module do not depend on it.
+    The exported program runs as it is (``ExportedProgram.module()``) or packaged by
+    :func:`compile_package`: it is the same program. ``runtime``: deprecated, no effect (a
+    :class:`DeprecationWarning` when given).
     """
 
-    def __init__(self, kf: KalmanFilter | IMMFilter, runtime: str = "inductor") -> None:
+    def __init__(self, kf: KalmanFilter | IMMFilter, runtime: str | None = None) -> None:
         super().__init__()
         if not isinstance(kf, (KalmanFilter, IMMFilter)):
             raise TypeError(f"kf must be a KalmanFilter or an IMMFilter, got {type(kf).__name__}")
+        _no_runtime(runtime, "DeployedFilter")
         self.kf = kf
-        self.runtime = runtime
 
     def forward(self, y: Tensor, dt: Tensor, u: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        with traced_for_eager_runtime(self.runtime == "eager"):
-            out = self.kf(y, dt, u)  # (an IMMFilter refuses a u)
+        out = self.kf(y, dt, u)  # (an IMMFilter refuses a u)
         return out.log_likelihood, out.mean
 
 
-class OnlineStep(_TracedFor):
+class OnlineStep(nn.Module):
     """:meth:`KalmanFilter.step` as a module's ``forward``, to export and package (torch.export,
     AOTInductor) for a live tracker: plain tensors in and out.
 
@@ -104,15 +84,15 @@ class OnlineStep(_TracedFor):
     R, D and the dt-independent part of its discretisation) are evaluated
     then, without gradients, and held as buffers, so an exported program runs the step alone
     and not the parametrisations. Build it after training (again after any change of ``kf``;
-    ``load_state_dict`` on the step re-evaluates it). ``runtime``: as in :class:`DeployedFilter`.
+    ``load_state_dict`` on the step re-evaluates it). ``runtime``: deprecated, no effect.
     """
 
-    def __init__(self, kf: KalmanFilter, runtime: str = "inductor") -> None:
+    def __init__(self, kf: KalmanFilter, runtime: str | None = None) -> None:
         super().__init__()
         if not isinstance(kf, KalmanFilter):
             raise TypeError(f"kf must be a KalmanFilter, got {type(kf).__name__}")
+        _no_runtime(runtime, "OnlineStep")
         self.kf = kf
-        self.runtime = runtime
         self._snapshot()
         self.register_load_state_dict_post_hook(lambda module, _incompatible: module._snapshot())
 
@@ -134,8 +114,7 @@ class OnlineStep(_TracedFor):
         return pytree.tree_unflatten(leaves, self._model_spec)
 
     def forward(self, mean: Tensor, cov: Tensor, y: Tensor, dt: Tensor, u: Tensor | None = None) -> tuple[Tensor, ...]:
-        with traced_for_eager_runtime(self.runtime == "eager"):
-            state, out = self.kf.step(KalmanState(mean, cov), y, dt, u, model=self._model())
+        state, out = self.kf.step(KalmanState(mean, cov), y, dt, u, model=self._model())
         return state.mean, state.cov, out.innovation, out.innovation_cov, out.log_likelihood
 
 

@@ -40,7 +40,7 @@ exponential of an unbounded parameter); the initial mode probabilities by
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -138,10 +138,18 @@ class IMMFilter(ValidateArgs, nn.Module):
             :attr:`default_validate_args` (True).
         mode_names: optional M distinct names of the modes (default ``"mode0"``, ``"mode1"``, …),
             used by :meth:`modes` and in reports (``"moored/k"``, ``"rate[moored->underway]"``).
-        noise: :class:`~torchsde_lti.Gaussian` (None, the default) or
-            :class:`~torchsde_lti.StudentT`: every mode Roth et al.'s Student-t filter with one
-            shared ν (covariances are then scale matrices; the mixing matches covariances).
+        noise: :class:`~torchsde_lti.Gaussian` (None, default) or :class:`~torchsde_lti.StudentT`: every
+            mode Roth et al.'s Student-t filter, one shared ν (covariances are then scale matrices).
     """
+
+    if TYPE_CHECKING:  # the modes' ModuleList, registered tensors and parametrised attributes
+        models: Sequence[LTISDE]
+        H: Tensor
+        R: Tensor
+        rates: Tensor
+        m0: Tensor
+        P0: Tensor
+        mode_prob0: Tensor
 
     def __init__(
         self,
@@ -178,7 +186,7 @@ class IMMFilter(ValidateArgs, nn.Module):
             if not isinstance(sde, LTISDE):
                 raise TypeError(f"models[{i}] must be an LTISDE, got {type(sde).__name__}")
         names = parse_learn(learn, _LEARNABLE)
-        self.models = nn.ModuleList(models)
+        self.add_module("models", nn.ModuleList(models))
         self.unique_dt = bool(unique_dt)
         self.method = method
         M = len(models)
@@ -368,8 +376,7 @@ class IMMFilter(ValidateArgs, nn.Module):
     def smooth(self, out: IMMResult) -> IMMSmootherResult:
         """Fixed-interval IMM smoother over the filter output (Kim 1994, with the A_j, Q_j and
         Pi of each step stored in ``out``): :func:`~torchsde_lti.filters.imm_smoother.imm_smoother`.
-        Returns mean (..., T, n), cov, mode_probabilities (..., T, M), mode_mean, mode_cov.
-        ValueError for ``noise=StudentT`` (Kim's smoother mixes Gaussian modes)."""
+        Returns mean (..., T, n), cov, mode_probabilities (..., T, M), mode_mean, mode_cov (not for a t)."""
         if isinstance(self.noise, StudentT):
             raise ValueError("IMMFilter.smooth: Kim's IMM smoother is Gaussian; not for noise=StudentT")
         return imm_smoother(out)

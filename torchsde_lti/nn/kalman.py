@@ -353,6 +353,7 @@ class KalmanFilter(KalmanOnline):
         mats = self.sde.matrices()  # (each parametrisation read once a call)
         y, dt, u = self._check_inputs(y, dt, u, mats)
         H, R, m0 = self.H, self.R, self.m0
+        H_model, R_model = H, R
         P0_given = self.P0 if self.prior_mode == "given" else None
         D = self.D if u is not None else None  # no known input: D u = 0
         validate = self.validate_args
@@ -373,9 +374,13 @@ class KalmanFilter(KalmanOnline):
         G = d.G if u is not None else None
         args = FilterInputs(y, d.A, d.Q, H, R, m0, P0, G, u, mask, D)
         out = run_filter(args, algorithm, validate_args=False, compiled_loop=compiled_loop, noise=self.noise.model())
-        if validate:  # (the state it ends in: a NaN or Inf there persists into every later step)
-            update = self.noise.model().update_bound((H, out.observed, out.cov))
-            check_outcome((out.log_likelihood, out.mean[..., -1, :]), (out.cov,), d, y, dt, mats.F, R, update)
+        if validate:
+            # the state it ends in, as the online step checks its new state: a NaN or Inf persists
+            # into every later step and the log-likelihood sums every step's, so a series of
+            # online steps raises where the sequence filter of the reports seen so far raises
+            last = out.cov[..., -1, :, :]
+            update = self.noise.model().update_bound((H_model, out.observed[..., -1, :], last))
+            check_outcome((out.log_likelihood, out.mean[..., -1, :]), (last,), d, y, dt, mats.F, R_model, update)
         return out
 
     def algorithm_for(self, batch_size: int, T: int, device: torch.device, dtype: torch.dtype | None = None) -> str:

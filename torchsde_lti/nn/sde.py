@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -107,6 +107,12 @@ class LTISDE(ValidateArgs, nn.Module):
 
     #: Indices of position components in the state (for observation matrices), if known.
     position_indices: tuple[int, ...] | None = None
+
+    if TYPE_CHECKING:  # registered tensors or parametrised attributes (read through nn.Module)
+        F: Tensor
+        L: Tensor
+        Qc: Tensor
+        B: Tensor | None
 
     def __init__(
         self,
@@ -314,7 +320,9 @@ class LTISDE(ValidateArgs, nn.Module):
         m = self.matrices()
         if not series:
             return m
-        return SDEMatrices(*(None if x is None else x.unsqueeze(-3) for x in m))
+        return SDEMatrices(
+            m.F.unsqueeze(-3), m.L.unsqueeze(-3), m.Qc.unsqueeze(-3), None if m.B is None else m.B.unsqueeze(-3)
+        )
 
     def to_free(self, learn: Iterable[str] | str = ("F", "Qc"), F_constraint: str | nn.Module | None = None) -> LTISDE:
         """A plain :class:`LTISDE` initialised at the current matrices (detached).
