@@ -35,7 +35,6 @@ import argparse
 import gc
 import json
 import math
-import os
 import platform
 import statistics
 import time
@@ -49,6 +48,7 @@ import numpy as np
 import scipy
 import scipy.linalg
 import torch
+from _timing import machine_line
 from filterpy.common import van_loan_discretization
 
 import torchsde_lti as tl
@@ -560,8 +560,7 @@ def main() -> None:
     header = [
         f"# discretize benchmark{' (--quick)' if args.quick else ''}\n",
         f"- torch {torch.__version__}, numpy {np.__version__}, scipy {scipy.__version__}, mpmath {mpmath.__version__}",
-        f"- torch.get_num_threads() = {torch.get_num_threads()}, os.cpu_count() = {os.cpu_count()}, {platform.processor() or platform.machine()}",
-        f"- load average at start: {', '.join(f'{x:.2f}' for x in os.getloadavg())}",
+        f"- at the start: {machine_line()}, {platform.processor() or platform.machine()}",
         "- workload: F random Hurwitz (seed 0, ‖F‖ = 1), shared L, Qc; dt log-uniform with ‖F‖·dt ∈ [1e-2, 1e2]",
     ]
     print("\n".join(header), flush=True)
@@ -570,7 +569,7 @@ def main() -> None:
     print("accuracy:", flush=True)
     acc = run_accuracy()
     elapsed = time.perf_counter() - start
-    footer = f"- load average at end: {', '.join(f'{x:.2f}' for x in os.getloadavg())}; wall time {elapsed:.0f} s\n"
+    footer = f"- at the end: {machine_line()}; wall time {elapsed:.0f} s\n"
     report = "\n".join(header) + "\n" + footer + "\n" + throughput_tables(cells) + "\n" + accuracy_table(acc)
     print(report)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -9,22 +9,22 @@ log-uniform in [1e-3, 10]. Contestants, side by side in one process, timed round
   (the five lines a user writes).
 
 Forward = (A, Q); forward+backward = also ``(A.sum() + Q.sum()).backward()`` w.r.t. F, Qc, dt.
-Matrices/s = B / median wall time (warm-up call first); each repeat calls both contestants,
-in alternating order (paired). The machine is shared by other
-sessions: medians of repeats, still noisy.
+Matrices/s = B / median time (``_timing.paired_s``: the two timed in alternation after warm-up
+calls; process CPU time with ``--clock cpu``). The machine is shared by other sessions: the load
+is printed at the head and the foot. The table is also written to
+``experiments/results/bench_per_element[_quick].txt``.
 
-    python experiments/bench_per_element.py [--quick] [--threads 1 2]
+    python experiments/bench_per_element.py [--quick] [--threads 1 2] [--clock cpu]
 """
 
 from __future__ import annotations
 
 import argparse
 import math
-import os
-import statistics
 import time
 
 import torch
+from _timing import machine_line, paired_s, saved
 
 import torchsde_lti as tl
 
@@ -45,9 +45,6 @@ def default(F, L, Qc, dt):
     return d.A, d.Q
 
 
-CONTESTANTS = {"default": default, "naive": naive_van_loan}
-
-
 def make_problem(n: int, B: int, dtype: torch.dtype, seed: int = 0):
     g = torch.Generator().manual_seed(seed)
     f64 = torch.float64
@@ -64,29 +61,20 @@ def make_problem(n: int, B: int, dtype: torch.dtype, seed: int = 0):
 CLOCKS = {"wall": time.perf_counter, "cpu": time.process_time}
 
 
-def time_pair(fns, args, backward: bool, repeats: int, budget: float, clock=time.perf_counter) -> dict[str, float]:
-    """Median wall time per contestant; each repeat calls every contestant once, alternating
-    the order, so that background load hits them alike (paired)."""
+def time_pair(args, backward: bool, repeats: int, clock=time.perf_counter) -> dict[str, float]:
+    """Median time per contestant, the two timed in alternation (``_timing.paired_s``)."""
 
-    def once(fn) -> float:
-        xs = [a.detach().requires_grad_(backward and a.dim() > 0 and i != 1) for i, a in enumerate(args)]
-        t0 = clock()
-        A, Q = fn(*xs)
-        if backward:
-            (A.sum() + Q.sum()).backward()
-        return clock() - t0
+    def call(fn):
+        def once() -> None:
+            xs = [a.detach().requires_grad_(backward and a.dim() > 0 and i != 1) for i, a in enumerate(args)]
+            A, Q = fn(*xs)
+            if backward:
+                (A.sum() + Q.sum()).backward()
 
-    names = list(fns)
-    for name in names:
-        once(fns[name])
-    times: dict[str, list[float]] = {name: [] for name in names}
-    start = time.perf_counter()
-    r = 0
-    while r < repeats or (time.perf_counter() - start < budget and r < 20 * repeats):
-        for name in names if r % 2 == 0 else names[::-1]:
-            times[name].append(once(fns[name]))
-        r += 1
-    return {name: statistics.median(t) for name, t in times.items()}
+        return once
+
+    t_default, t_naive = paired_s(call(default), call(naive_van_loan), repeat=repeats, warmup=2, clock=clock)
+    return {"default": t_default, "naive": t_naive}
 
 
 def main() -> None:
@@ -103,12 +91,14 @@ def main() -> None:
         help="wall time, or the process's CPU time (robust to other processes at 1 thread)",
     )
     args = ap.parse_args()
-    repeats = 5 if args.quick else 25
-    budget = 0.5 if args.quick else 2.0
-    print(
-        f"# per-element discretisation benchmark (torch {torch.__version__}, cpu_count {os.cpu_count()}, "
-        f"load {os.getloadavg()[0]:.2f}; {args.clock} clock; shared machine: medians of repeats, noisy)\n"
-    )
+    repeats = 7 if args.quick else 25
+    with saved("bench_per_element_quick.txt" if args.quick else "bench_per_element.txt"):
+        table(args, repeats)
+
+
+def table(args: argparse.Namespace, repeats: int) -> None:
+    """Print the table (default vs naive per threads, dtype, n, B and pass) between two load lines."""
+    print(f"# per-element discretisation, {args.clock} clock; {machine_line()}\n")
     print("| threads | n | dtype | B | pass | default (mat/s) | naive (mat/s) | default/naive |")
     print("|---|---|---|---|---|---|---|---|")
     for threads in args.threads:
@@ -119,14 +109,14 @@ def main() -> None:
                 for B in args.batches:
                     prob = make_problem(n, B, dtype)
                     for backward in (False, True):
-                        res = time_pair(CONTESTANTS, prob, backward, repeats, budget, CLOCKS[args.clock])
+                        res = time_pair(prob, backward, repeats, CLOCKS[args.clock])
                         r = res["naive"] / res["default"]
                         print(
                             f"| {threads} | {n} | {dtype_name} | {B} | {'fwd+bwd' if backward else 'fwd'} | "
                             f"{B / res['default']:.3g} | {B / res['naive']:.3g} | {r:.2f}× |",
                             flush=True,
                         )
-    print(f"\nload at end {os.getloadavg()[0]:.2f}")
+    print(f"\nat the end: {machine_line()}")
 
 
 if __name__ == "__main__":

@@ -147,10 +147,10 @@ def test_term_counts() -> None:
     for F, m in ((torch.zeros(3, 3, dtype=F64), 1), (_chain(3), 3), (_chain(2), 2)):
         n = F.shape[0]
         s = series.shared_series(F, torch.eye(n, dtype=F64), None)
-        assert s.coeff.shape[0] == max(23, 4 * n) and bool(s.nilpotent)  # (θ_shared = 1: 23 terms)
-        assert int(s.rows.sum()) == 4 * m - 1
+        assert s.coeff.shape[1] == max(23, 4 * n) + 1 and bool(s.nilpotent)  # (θ_shared = 1: 23 terms)
+        assert int(s.terms.sum()) == 4 * m  # (k = 0 … 4m − 1)
     s = series.shared_series(-torch.eye(2, dtype=F64), torch.eye(2, dtype=F64), None)
-    assert not bool(s.nilpotent) and bool(s.rows.all())
+    assert not bool(s.nilpotent) and bool(s.terms.all())
 
 
 @pytest.mark.filterwarnings("ignore:.*torch.jit.script.*:DeprecationWarning")  # inside torch.func

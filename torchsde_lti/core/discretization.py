@@ -354,9 +354,7 @@ def process_noise(
     return discretize(F, L, Qc, dt, method=method, validate_args=validate_args).Q
 
 
-def discretization_series(
-    F: Tensor, W: Tensor | None, B: Tensor | None = None, index: int | None = None, read_values: bool = True
-) -> SharedSeries:
+def discretization_series(F: Tensor, W: Tensor | None, B: Tensor | None = None) -> SharedSeries:
     """The dt-independent part of the doubling discretisation of ONE parameter set, to form
     once and call on many steps: ``series(dt)`` -> (A, Q, G) over dt (...) (with
     ``batch_last=True`` contiguous (n, n, ...), …), the values of :func:`discretize`'s default
@@ -365,10 +363,9 @@ def discretization_series(
     F: (n, n), n ≥ 1; W = L Qc Lᵀ: (n, n) or None (symmetric PSD); B: (n, p) or None; all of
     F's dtype and device. A nilpotent F (an integrator chain) is found on the device: its series
     terminates and takes no halving (:mod:`~torchsde_lti.core.series`). No value is read to the
-    host (traceable): ``index`` (F's nilpotency index where the model's structure fixes it, in
-    [1, n]) and ``read_values`` are checked and otherwise not needed.
+    host (traceable).
 
-    Shapes (and ``index``) are checked, ValueError naming the argument; values are not (form
+    Shapes are checked, ValueError naming the argument; values are not (form
     the series from checked matrices, e.g. an SDE's ``matrices()``).
     """
     if not isinstance(F, Tensor) or not F.is_floating_point():
@@ -389,6 +386,4 @@ def discretization_series(
             raise ValueError(
                 f"{name} must have F's dtype and device ({F.dtype}, {F.device}), got {x.dtype}, {x.device}"
             )
-    if index is not None and (isinstance(index, bool) or not isinstance(index, int) or not 1 <= index <= n):
-        raise ValueError(f"index must be None or an int in [1, n={n}], got {index!r}")
     return shared_series(F, W, B)

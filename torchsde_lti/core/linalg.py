@@ -1,13 +1,8 @@
-r"""Small dense linear-algebra kernels for every layer (torch only).
-
-Batch-first kernels on ``(..., k, k)`` (:func:`sym`, :func:`noise_covariance`,
-:func:`cholesky`, :func:`solve_lower`, :func:`solve_upper_t`, :func:`cho_solve`,
-:func:`matvec`; unrolled over k ≤
-:data:`UNROLLED_MAX_DIM`, LAPACK beyond) and batch-last kernels
-on ``(r, c, *batch)`` with the batch as the contiguous inner dimension, the layout of the
-filter loop and of the doubling (:func:`to_batch_last`, :func:`from_batch_last`,
-:func:`bl_matmul`, :func:`bl_matvec`, :func:`bl_sym_into`).
-"""
+r"""Small dense kernels: batch-first (``(..., k, k)``: :func:`sym`, :func:`noise_covariance`,
+:func:`matvec`, and for the filters' information forms :func:`cholesky`, :func:`solve_lower`,
+:func:`solve_upper_t`, :func:`cho_solve`, unrolled over k ≤ :data:`UNROLLED_MAX_DIM`, LAPACK
+beyond) and batch-last (``(r, c, *batch)``, the batch the contiguous inner dimension:
+:func:`to_batch_last`, :func:`bl_matmul`)."""
 
 from __future__ import annotations
 
@@ -17,14 +12,9 @@ from torch.autograd import forward_ad
 
 __all__ = [
     "bl_matmul",
-    "bl_matvec",
-    "bl_sym_into",
     "cho_solve",
     "cholesky",
-    "from_batch_last",
-    "fused_matmul",
     "matvec",
-    "nilpotency_index",
     "noise_covariance",
     "solve_lower",
     "solve_upper_t",
@@ -42,15 +32,8 @@ def sym(P: Tensor) -> Tensor:
 
 
 def noise_covariance(L: Tensor, Qc: Tensor) -> Tensor:
-    """W = L Qc Lᵀ, exactly symmetric (the average of W and Wᵀ): L (..., n, s),
-    Qc (..., s, s) -> (..., n, n). One batch dimension takes ``bmm`` directly (fewer calls)."""
-    if max(L.dim(), Qc.dim()) == 3 and (min(L.dim(), Qc.dim()) == 2 or L.shape[0] == Qc.shape[0]):
-        N = (L if L.dim() == 3 else Qc).shape[0]
-        Lb = L.expand(N, *L.shape[-2:])
-        W = torch.bmm(torch.bmm(Lb, Qc.expand(N, *Qc.shape[-2:])), Lb.mT)
-    else:
-        W = L @ Qc @ L.mT
-    return sym(W)
+    """W = L Qc Lᵀ, exactly symmetric: L (..., n, s), Qc (..., s, s) -> (..., n, n)."""
+    return sym(L @ Qc @ L.mT)
 
 
 def cholesky(S: Tensor, semidefinite: bool = False) -> Tensor:
@@ -133,42 +116,22 @@ def cho_solve(L: Tensor, B: Tensor, semidefinite: bool = False) -> Tensor:
     return solve_upper_t(L, solve_lower(L, B) * kept[..., None]) * kept[..., None]
 
 
-def fused_matmul(a: Tensor, b: Tensor) -> Tensor:
-    """``a b`` as one broadcast product summed over k: a (..., r, k), b (..., k, s) -> (..., r, s).
-
-    For small matrices inside a traced program (torch.compile, AOTInductor): the compiler
-    fuses it with the elementwise ops around it instead of calling a GEMM library kernel per
-    product. It materialises (..., r, k, s): keep to small r, k, s.
-    """
-    return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
-
-
 def matvec(M: Tensor, v: Tensor) -> Tensor:
     """``M v``: M (..., r, c), v (..., c) -> (..., r) (batch dims broadcast)."""
     return (M @ v.unsqueeze(-1)).squeeze(-1)
 
 
-def to_batch_last(x: Tensor, event_ndim: int, time: bool = False) -> Tensor:
-    """``(*batch, [T,] *event) -> ([T,] *event, *batch)``, contiguous."""
-    nd = x.dim()
-    nb = nd - event_ndim - (1 if time else 0)
-    perm = ([nb] if time else []) + list(range(nd - event_ndim, nd)) + list(range(nb))
-    return x.permute(perm).contiguous()
+def to_batch_last(x: Tensor, event_ndim: int) -> Tensor:
+    """``(*batch, *event) -> (*event, *batch)``, contiguous."""
+    nb = x.dim() - event_ndim
+    return x.permute(*range(nb, x.dim()), *range(nb)).contiguous()
 
 
-def from_batch_last(x: Tensor, event_ndim: int, batch_ndim: int) -> Tensor:
-    """``(T, *event, *batch) -> (*batch, T, *event)`` (a view)."""
-    perm = list(range(1 + event_ndim, 1 + event_ndim + batch_ndim)) + list(range(1 + event_ndim))
-    return x.permute(perm)
-
-
-def _fma_matmul(a: Tensor, b: Tensor, c: Tensor | None, alpha: float = 1.0) -> Tensor:
-    """c + α a b for a: (r, k, N), b: (k, s, N), c: (r, s, N), as k fused multiply-adds."""
-    cols, rows = a.split(1, 1), b.split(1, 0)  # a[:, j:j+1] (r, 1, N), b[j:j+1] (1, s, N)
+def _fma(a: Tensor, b: Tensor, c: Tensor | None, alpha: float) -> Tensor:
+    """c + α a b for a (r, k, N), b (k, s, N), c (r, s, N) or None: k fused multiply-adds."""
+    cols, rows = a.split(1, 1), b.split(1, 0)
     if c is None:
-        out = cols[0] * rows[0]
-        if alpha != 1.0:
-            out.mul_(alpha)
+        out = cols[0] * rows[0] if alpha == 1.0 else torch.mul(cols[0], rows[0]).mul_(alpha)
     else:
         out = torch.addcmul(c, cols[0], rows[0], value=alpha)
     for col, row in zip(cols[1:], rows[1:]):
@@ -176,19 +139,17 @@ def _fma_matmul(a: Tensor, b: Tensor, c: Tensor | None, alpha: float = 1.0) -> T
     return out
 
 
-class _FmaMatmul(torch.autograd.Function):
-    """c + α a b on batch-last matrices with one flat batch dimension; the backward calls
-    :func:`bl_matmul` again (double backward works). Reverse mode only (:func:`_plain_ops_required`)."""
+class _Fma(torch.autograd.Function):
+    """:func:`_fma` whose backward is two such products (not k graph nodes of addcmul)."""
 
     @staticmethod
     def forward(ctx, a: Tensor, b: Tensor, c: Tensor | None, alpha: float) -> Tensor:
         ctx.save_for_backward(a, b)
-        ctx.c_shape = None if c is None else c.shape
-        ctx.alpha = alpha
-        return _fma_matmul(a, b, c, alpha)
+        ctx.c_shape, ctx.alpha = None if c is None else c.shape, alpha
+        return _fma(a, b, c, alpha)
 
     @staticmethod
-    def backward(ctx, g: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None, None]:
+    def backward(ctx, g: Tensor) -> tuple[Tensor | None, ...]:
         a, b = ctx.saved_tensors
         ga = bl_matmul(g, b.transpose(0, 1), alpha=ctx.alpha) if ctx.needs_input_grad[0] else None
         gb = bl_matmul(a.transpose(0, 1), g, alpha=ctx.alpha) if ctx.needs_input_grad[1] else None
@@ -197,68 +158,27 @@ class _FmaMatmul(torch.autograd.Function):
 
 
 def _plain_ops_required() -> bool:
-    """Whether custom autograd Functions must step aside for plain ops: while tracing, under
-    forward-mode AD or inside a ``torch.func`` transform (True if torch's internals move)."""
-    if torch.compiler.is_compiling() or torch.compiler.is_exporting():
-        return True
+    """Whether a custom autograd Function must step aside for plain ops: under forward-mode AD or
+    a ``torch.func`` transform (True if torch's internals move)."""
     try:
         return forward_ad._current_level >= 0 or torch._C._functorch.peek_interpreter_stack() is not None
     except AttributeError:  # pragma: no cover - a torch release without these internals
         return True
 
 
-def _records_graph(*tensors: Tensor | None) -> bool:
-    """Whether autograd records an op on these tensors (grad mode on and one requires grad)."""
-    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
-
-
 def bl_matmul(a: Tensor, b: Tensor, c: Tensor | None = None, alpha: float = 1.0) -> Tensor:
-    """``c + α a b`` on batch-last matrices: a (r, k, *B), b (k, s, *B), c (r, s, *B) (or
-    broadcastable to it) -> (r, s, *B).
+    """``c + α a b`` on batch-last matrices: a (r, k, *B), b (k, s, *B), c broadcastable to
+    (r, s, *B) -> (r, s, *B).
 
     Eagerly with one flat, equal batch dimension: k fused multiply-adds over the contiguous batch
-    (a custom autograd Function whose backward is two such products, where one is allowed);
-    otherwise (``*B`` broadcast, or traced: one op for the compiler to fuse, and no ``prims.fma``
-    in an exported program) a ``vecdot`` that keeps the batch innermost.
-    """
+    (their backward two such products where autograd records); otherwise (a broadcast batch, or
+    traced: one op for the compiler to fuse, and no ``prims.fma`` in an exported program) a
+    ``vecdot`` that keeps the batch innermost."""
     if a.dim() == 3 and b.dim() == 3 and a.shape[-1] == b.shape[-1] and not torch.compiler.is_compiling():
-        if _records_graph(a, b, c) and not _plain_ops_required():
-            return _FmaMatmul.apply(a, b, c, alpha)
-        return _fma_matmul(a, b, c, alpha)
-    return _scaled_add(torch.linalg.vecdot(a.unsqueeze(2), b.unsqueeze(0), dim=1), c, alpha)
-
-
-def _scaled_add(out: Tensor, c: Tensor | None, alpha: float) -> Tensor:
-    """c + α out (``out`` alone for c None, α = 1)."""
-    if c is None:
-        return out if alpha == 1.0 else out * alpha
-    return torch.add(c, out, alpha=alpha)
-
-
-def bl_matvec(X: Tensor, v: Tensor) -> Tensor:
-    """``X v`` batch-last: X (r, k, *B), v (k, *B) -> (r, *B)."""
-    return torch.linalg.vecdot(X, v.unsqueeze(0), dim=1)
-
-
-def bl_sym_into(P: Tensor, out: Tensor | None) -> Tensor:
-    """``(P + Pᵀ) / 2`` for batch-last P (k, k, *B), written into ``out`` when given (no autograd there)."""
-    if out is None:
-        return 0.5 * (P + P.transpose(0, 1))
-    torch.add(P, P.transpose(0, 1), out=out)
-    return out.mul_(0.5)
-
-
-def nilpotency_index(F: Tensor) -> int | None:
-    """Smallest k ≤ n with F^k = 0 exactly (every batch element), else None. A non-zero trace
-    settles most cases without matrix powers."""
-    n = F.shape[-1]
-    with torch.no_grad():
-        if bool(torch.diagonal(F, dim1=-2, dim2=-1).sum(-1).ne(0).any()):
-            return None
-        power = F
-        for k in range(1, n + 1):
-            if not bool(power.any()):
-                return k
-            if k < n:
-                power = F @ power
-    return None
+        recording = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (a, b, c))
+        if recording and not _plain_ops_required():
+            return _Fma.apply(a, b, c, alpha)
+        return _fma(a, b, c, alpha)
+    out = torch.linalg.vecdot(a.unsqueeze(2), b.unsqueeze(0), dim=1)
+    out = out if alpha == 1.0 else out * alpha
+    return out if c is None else c + out

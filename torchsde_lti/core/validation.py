@@ -3,9 +3,9 @@ and the shapes.
 
 Shapes are always checked. Values (finite, signs, PSD) are checked once, at the public
 boundary, against the constraints each function declares (torch.distributions' pattern:
-:data:`SDE_CONSTRAINTS` for the SDE's arguments), with one read to the host when they hold;
-``validate_args=False`` reads nothing, and no check changes a value. While torch.compile /
-torch.export trace, values are symbolic and only the shapes are checked.
+:data:`SDE_CONSTRAINTS`), with one read to the host when they hold; ``validate_args=False``
+reads nothing, and no check changes a value. While torch.compile / torch.export trace, values
+are symbolic and only the shapes are checked.
 """
 
 from __future__ import annotations
@@ -23,19 +23,17 @@ _C = TypeVar("_C", bound=Callable[..., None])
 
 
 def tracing() -> bool:
-    """Whether torch.compile / torch.export is tracing the call (values are symbolic then:
-    no data-dependent branch may run)."""
-    return torch.compiler.is_compiling() or torch.compiler.is_exporting()
+    """Whether torch.compile or torch.export is tracing the call (values are symbolic)."""
+    return torch.compiler.is_compiling()
 
 
 def checks_values(validate_args: bool) -> bool:
-    """Whether value checks (finite, non-negative, PSD) run: ``validate_args`` and not
-    :func:`tracing`. Shape checks always run."""
+    """Whether value checks run: ``validate_args`` and not :func:`tracing`."""
     return validate_args and not tracing()
 
 
 def _value_check(check: _C) -> _C:
-    """A value check that reads its tensors to the host: skipped while :func:`tracing`."""
+    """A value check (it reads its tensors to the host): skipped while :func:`tracing`."""
 
     @functools.wraps(check)
     def gated(*args: object, **kwargs: object) -> None:
@@ -52,7 +50,7 @@ def shape_str(x: Tensor) -> str:
 def as_float_tensor(
     x: object, name: str, dtype: torch.dtype | None = None, device: torch.device | None = None
 ) -> Tensor:
-    """Convert ``x`` to a floating tensor (keeping autograd history when it already is one)."""
+    """``x`` as a floating tensor (a tensor keeps its autograd history); TypeError naming it."""
     if isinstance(x, Tensor):
         if x.is_complex() or not (x.is_floating_point() or dtype is not None):
             raise TypeError(f"{name} must be a real floating tensor, got dtype {x.dtype}")
@@ -70,18 +68,8 @@ def common_float_dtype(*tensors: Tensor | None) -> torch.dtype:
     return functools.reduce(torch.promote_types, dtypes) if dtypes else torch.get_default_dtype()
 
 
-def as_float_tensors(**named: object) -> dict[str, Tensor | None]:
-    """Every non-None argument as a floating tensor of their common dtype
-    (:func:`common_float_dtype`), on the device of the first tensor given; None stays None.
-    The keyword names are the argument names used in error messages."""
-    tensors = [v for v in named.values() if isinstance(v, Tensor)]
-    dtype = common_float_dtype(*tensors)
-    device = tensors[0].device if tensors else None
-    return {k: None if v is None else as_float_tensor(v, k, dtype, device) for k, v in named.items()}
-
-
 def check_matrix(x: Tensor, name: str, rows: int | None = None, cols: int | None = None, square: bool = False) -> None:
-    """Check ``x`` is (..., rows, cols); ``square`` requires rows == cols."""
+    """ValueError unless ``x`` is (..., rows, cols) (``square``: rows == cols)."""
     if x.dim() < 2:
         raise ValueError(f"{name} must be a matrix of shape (..., r, c), got shape {shape_str(x)}")
     r, c = x.shape[-2], x.shape[-1]
@@ -94,15 +82,14 @@ def check_matrix(x: Tensor, name: str, rows: int | None = None, cols: int | None
 
 
 def check_vector(x: Tensor, name: str, size: int) -> None:
-    """Check ``x`` is (..., size)."""
+    """ValueError unless ``x`` is (..., size)."""
     if x.dim() < 1 or x.shape[-1] != size:
         raise ValueError(f"{name} must have shape (..., {size}), got shape {shape_str(x)}")
 
 
 @_value_check
 def check_finite(x: Tensor, name: str) -> None:
-    """ValueError if ``x`` holds NaN or ±Inf. Tested on the sum first (non-finite if any entry
-    is; one reduction), elementwise only where the sum is not finite (or overflowed)."""
+    """ValueError if ``x`` holds NaN or ±Inf (the sum first: one reduction)."""
     if not bool(x.sum().isfinite()) and not bool(torch.isfinite(x).all()):
         raise ValueError(f"{name} contains NaN or Inf (shape {shape_str(x)})")
 
@@ -115,8 +102,7 @@ def check_no_inf(x: Tensor, name: str) -> None:
 
 
 @_value_check
-def check_nonnegative(x: Tensor, name: str) -> None:
-    """ValueError if ``x`` holds NaN, ±Inf or a negative value."""
+def _check_nonnegative(x: Tensor, name: str) -> None:
     check_finite(x, name)
     if x.numel() and bool((x < 0).any()):
         raise ValueError(f"{name} must be non-negative, got min {float(x.min()):.3g} (shape {shape_str(x)})")
@@ -124,8 +110,8 @@ def check_nonnegative(x: Tensor, name: str) -> None:
 
 @_value_check
 def check_hurwitz(F: Tensor, name: str = "F") -> None:
-    """ValueError unless every eigenvalue of ``F`` (..., n, n) has a negative real part
-    (naming the rightmost one; NaN/Inf in F named as such). One synchronisation."""
+    """ValueError unless every eigenvalue of ``F`` (..., n, n) has a negative real part (naming
+    the rightmost one; NaN/Inf in F named as such). One synchronisation."""
     if F.numel() == 0:
         return
     with torch.no_grad():
@@ -145,17 +131,17 @@ def psd_tolerance(x: Tensor) -> float:
 
 
 def _psd_test(x: Tensor, tol: float | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """(passes, asym, scale) without synchronising, for x (..., k, k) scaled by its largest
-    entry, ``y = x / max|x|`` (a zero x: y = 0): ``passes`` (0-dim bool) — y symmetric within
-    tol and ``y + tol I`` has a Cholesky factor; asym (...): max |y − yᵀ|; scale (...): max |x|.
-    ``tol``: relative tolerance, :func:`psd_tolerance` by default."""
+    """(passes, asym, scale) of x (..., k, k), without synchronising, on ``y = x / max|x|``
+    (0 for a zero x): ``passes`` (0-dim bool) — y symmetric within ``tol``
+    (:func:`psd_tolerance` by default) and ``y + tol I`` has a Cholesky factor; asym (...)
+    max |y − yᵀ|; scale (...) max |x|."""
     tol = psd_tolerance(x) if tol is None else tol
     scale = x.abs().amax(dim=(-2, -1))
     y = x / torch.where(scale > 0, scale, 1.0)[..., None, None]
     asym = (y - y.mT).abs().amax(dim=(-2, -1))
     shifted = y + tol * torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
-    lapack = shifted if x.dtype in (torch.float32, torch.float64) else shifted.float()  # (no half-precision LAPACK)
-    return ~((asym > tol) | (torch.linalg.cholesky_ex(lapack).info != 0)).any(), asym, scale
+    lapack = shifted if x.dtype in (torch.float32, torch.float64) else shifted.float()  # (no half LAPACK)
+    return ((asym <= tol) & (torch.linalg.cholesky_ex(lapack).info == 0)).all(), asym, scale
 
 
 @_value_check
@@ -173,14 +159,14 @@ def _check_psd_values(x: Tensor, name: str) -> None:
             )
         lapack = x if x.dtype in (torch.float32, torch.float64) else x.float()
         eig_min = torch.linalg.eigvalsh(sym(lapack)).amin(dim=-1) / scale.clamp_min(torch.finfo(x.dtype).tiny)
-        raise ValueError(
-            f"{name} must be positive semi-definite, got smallest eigenvalue "
-            f"{float(eig_min.min()):.3g} relative to its largest entry (shape {shape_str(x)})"
-        )
+    raise ValueError(
+        f"{name} must be positive semi-definite, got smallest eigenvalue "
+        f"{float(eig_min.min()):.3g} relative to its largest entry (shape {shape_str(x)})"
+    )
 
 
 def check_symmetric_psd(x: Tensor, name: str) -> None:
-    """Check ``x`` (..., k, k) is square (always) and symmetric positive semi-definite up to
+    """Check ``x`` (..., k, k) is square (always) and symmetric positive semi-definite to
     :func:`psd_tolerance` of its largest entry (values)."""
     check_matrix(x, name, square=True)
     _check_psd_values(x, name)
@@ -195,29 +181,20 @@ class Constraint(NamedTuple):
 
 
 finite = Constraint(lambda x: x.sum().isfinite(), check_finite)
-nonnegative = Constraint(lambda x: x.sum().isfinite() & (x.amin() >= 0 if x.numel() else True), check_nonnegative)
+nonnegative = Constraint(lambda x: x.sum().isfinite() & (x.amin() >= 0 if x.numel() else True), _check_nonnegative)
 symmetric_psd = Constraint(lambda x: x.sum().isfinite() & _psd_test(x)[0], _check_psd_values)
 
 #: The value constraints of an SDE's arguments (every core function that takes them).
-SDE_CONSTRAINTS: dict[str, Constraint] = {
-    "F": finite,
-    "L": finite,
-    "Qc": symmetric_psd,
-    "B": finite,
-    "dt": nonnegative,
-}
+SDE_CONSTRAINTS: dict[str, Constraint] = {"F": finite, "L": finite, "Qc": symmetric_psd, "B": finite, "dt": nonnegative}
 
 
 @_value_check
 def check_constraints(named: Sequence[tuple[str, Tensor | None]], constraints: dict[str, Constraint]) -> None:
-    """ValueError naming the first argument that breaks its declared constraint
-    (``constraints[name]``); one synchronisation when all hold. None arguments are skipped."""
+    """ValueError naming the first argument (None skipped) that breaks ``constraints[name]``;
+    one synchronisation when all hold."""
     present = [(name, x) for name, x in named if x is not None]
-    if not present:
-        return
     with torch.no_grad():
-        holds = torch.stack([torch.as_tensor(constraints[name].holds(x), device=x.device) for name, x in present])
-        if bool(holds.all()):
+        if not present or bool(torch.stack([constraints[name].holds(x) for name, x in present]).all()):
             return
     for name, x in present:  # (a finite sum that overflowed passes these)
         constraints[name].check(x, name)
@@ -225,14 +202,13 @@ def check_constraints(named: Sequence[tuple[str, Tensor | None]], constraints: d
 
 def broadcast_shapes(*shapes: Sequence[int]) -> torch.Size:
     """Broadcast shapes (numpy rules); ValueError when they do not broadcast. Plain Python on
-    ints (``torch.broadcast_shapes`` costs tens of µs a call eagerly); torch's own while tracing
-    (symbolic sizes)."""
-    if tracing():
+    ints (``torch.broadcast_shapes`` costs tens of µs a call eagerly), torch's on symbolic sizes."""
+    if not all(isinstance(d, int) for shape in shapes for d in shape):
         try:
             return torch.broadcast_shapes(*shapes)
         except RuntimeError:
             raise ValueError(f"shapes {[tuple(s) for s in shapes]} do not broadcast") from None
-    out = [1] * max(map(len, shapes), default=0)
+    out = [1] * max([0, *map(len, shapes)])
     for shape in shapes:
         for i, d in enumerate(shape, len(out) - len(shape)):
             if d != 1 and out[i] != d:
@@ -279,12 +255,9 @@ def sde_inputs(
     *,
     validate_args: bool = True,
 ) -> SDEInputs:
-    """Convert SDE arguments (their common float dtype, F's device) and check them: shapes
-    always, values against :data:`SDE_CONSTRAINTS` with ``validate_args``; W = L Qc Lᵀ.
-
-    Raises ValueError naming the argument and the shapes for non-square F, mismatched L,
-    Qc, B, and (with ``validate_args``) for non-PSD Qc, NaN/Inf values and negative dt.
-    """
+    """The SDE's arguments in their common float dtype on F's device, checked: shapes always
+    (ValueError naming the argument and the shapes), values against :data:`SDE_CONSTRAINTS`
+    with ``validate_args``; W = L Qc Lᵀ."""
     F = as_float_tensor(F, "F")
     dtype = common_float_dtype(*(x if isinstance(x, Tensor) else None for x in (F, L, Qc, B)))
     F, device = F.to(dtype), F.device

@@ -46,7 +46,6 @@ from torch import Tensor
 
 from torchsde_lti.core.linalg import matvec, sym
 from torchsde_lti.core.validation import (
-    as_float_tensors,
     broadcast_batch,
     check_finite,
     check_matrix,
@@ -55,7 +54,7 @@ from torchsde_lti.core.validation import (
     checks_values,
     shape_str,
 )
-from torchsde_lti.filters.inputs import check_mask
+from torchsde_lti.filters.inputs import as_float_tensors, check_mask
 from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel, weighted_outer
 from torchsde_lti.filters.online import KalmanState, kalman_step
 from torchsde_lti.filters.results import serializable

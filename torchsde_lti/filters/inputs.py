@@ -32,13 +32,14 @@ from torch import Tensor
 
 from torchsde_lti.core.linalg import matvec
 from torchsde_lti.core.validation import (
-    as_float_tensors,
+    as_float_tensor,
     broadcast_batch,
     check_finite,
     check_matrix,
     check_no_inf,
     check_symmetric_psd,
     checks_values,
+    common_float_dtype,
     shape_str,
 )
 from torchsde_lti.filters.layout import _factor, batch_first, batch_last, lower_solve, mm, mv, psd_cholesky, sym, tr
@@ -49,6 +50,7 @@ __all__ = [
     "LOG_2PI",
     "FilterInputs",
     "PreparedInputs",
+    "as_float_tensors",
     "assemble_result",
     "check_mask",
     "check_time_axis",
@@ -63,6 +65,15 @@ __all__ = [
 ]
 
 LOG_2PI = math.log(2.0 * math.pi)
+
+
+def as_float_tensors(**named: object) -> dict[str, Tensor | None]:
+    """Every non-None argument as a floating tensor of their common dtype, on the device of the
+    first tensor given (the keyword names are the names in error messages); None stays None."""
+    tensors = [v for v in named.values() if isinstance(v, Tensor)]
+    dtype = common_float_dtype(*tensors)
+    device = tensors[0].device if tensors else None
+    return {k: None if v is None else as_float_tensor(v, k, dtype, device) for k, v in named.items()}
 
 
 class FilterInputs(NamedTuple):

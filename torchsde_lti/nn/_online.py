@@ -13,7 +13,6 @@ from torch import Tensor, nn
 
 from torchsde_lti.core.discretization import Discrete, SharedSeries, discretization_series, discretize
 from torchsde_lti.core.linalg import noise_covariance
-from torchsde_lti.core.series import TerminatingSeries
 from torchsde_lti.core.validation import as_float_tensor, broadcast_batch, shape_str, tracing
 from torchsde_lti.filters.online import KalmanState
 
@@ -23,7 +22,7 @@ if TYPE_CHECKING:  # (nn.sde imports the parametrisations, which import this mod
 T = TypeVar("T")
 
 #: The dt-independent part of one parameter set's discretisation (:func:`model_series`).
-Series = TerminatingSeries | SharedSeries
+Series = SharedSeries
 
 _CACHE = "_online_model_cache"
 
@@ -114,7 +113,7 @@ def model_series(F: Tensor, L: Tensor, Qc: Tensor, B: Tensor | None, index: int 
     No value is read (no synchronisation; the same series eager, compiled and exported)."""
     if any(t is not None and t.dim() != 2 for t in (F, L, Qc, B)):
         return None
-    return discretization_series(F, noise_covariance(L, Qc), B, index, read_values=False)
+    return discretization_series(F, noise_covariance(L, Qc), B)
 
 
 def discretize_steps(

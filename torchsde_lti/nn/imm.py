@@ -296,7 +296,7 @@ class IMMFilter(ValidateArgs, nn.Module):
         series = tuple(model_series(*mats, index=sde.structural_nilpotency()) for mats, sde in zip(modes, self.models))
         H, R = self._obs_model()
         rates = self.rates
-        chain = discretization_series(rates.double(), None, None, read_values=False)
+        chain = discretization_series(rates.double(), None, None)
         return IMMModel(modes, series, H, R, rates, chain, self.noise.model())
 
     def discretize(self, dt: Tensor, validate_args: bool | None = None) -> tuple[Discrete, Tensor]:
