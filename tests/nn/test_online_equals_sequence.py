@@ -7,7 +7,7 @@ float32 rounding), and a step raises exactly when the sequence filter of the pre
 the same exception class. Inputs: random series with missing components and reports, huge
 gaps (1e30, 1e300: the discretisation overflows), huge reports (1e200: the squared
 residuals overflow; Inf in float32), float32 and float64, a nilpotent F (the terminating
-series) and one that is not (the doubling), Kalman and IMM.
+series) and one that is not (the doubling), Kalman and IMM, Gaussian and Student-t noise.
 """
 
 from __future__ import annotations
@@ -136,8 +136,9 @@ _HOSTILE = ("gap 1e30", "gap 1e300", "report 1e200")
     T=st.integers(1, 5),
     seed=st.integers(0, 2**31 - 1),
     hostile=st.lists(st.tuples(st.sampled_from(_HOSTILE), st.integers(0, 2), st.integers(0, 4)), max_size=2),
+    dof=st.sampled_from([None, 2.5, 6.0]),
 )
-def test_online_step_equals_sequence_filter_on_any_input(kind, dtype, B, T, seed, hostile):
+def test_online_step_equals_sequence_filter_on_any_input(kind, dtype, B, T, seed, hostile, dof):
     g = torch.Generator().manual_seed(seed)
     y = 3 * torch.randn(B, T, 2, generator=g, dtype=F64).cumsum(1)
     dt = 2 * torch.rand(B, T, generator=g, dtype=F64)
@@ -150,6 +151,8 @@ def test_online_step_equals_sequence_filter_on_any_input(kind, dtype, B, T, seed
         else:
             dt[b, k] = float(what.split()[1])  # (1e300: Inf in float32)
     filt = _imm(dtype) if kind == "imm" else _kalman(dtype, kind)
+    if dof is not None:  # Student-t noise (the t's update after each step's, in both)
+        filt.noise = tl.StudentT(dof).to(dtype)
     check_online_equals_sequence(filt, y.to(dtype), dt.to(dtype), mask)
 
 

@@ -4,6 +4,8 @@ No Lightning, no Hydra: torch, numpy and the package's data layer only.
 
     predictive.py   the one-step predictive (a Gaussian mixture over modes) of whole tracks,
                     batched; mixture densities; ``frozen_copy`` (float64, eval)
+    student_t.py    the Student-t predictive of a filter with noise=tl.StudentT: densities,
+                    HPD levels (F distribution), draws
     calibration.py  HPD levels of a predictive mixture, a covariance inflation fitted on
                     validation tracks (``calibrate_filter``)
     scores.py       NLL (all / moving / moored windows), 2σ coverage, forecast RMSE at horizons,
@@ -15,7 +17,7 @@ No Lightning, no Hydra: torch, numpy and the package's data layer only.
     recovery.py     learned values of a filter and their errors against a known true model
                     (``parameter_errors``, ``parameter_table``; imports no other module here)
 
-The modules import downwards only (predictive ← calibration ← scores ← baseline, selection;
+The modules import downwards only (student_t ← predictive ← calibration ← scores ← baseline, selection;
 recovery and figures import no other module here).
 
     recs = evaluate_filter(kf, tracks, cov_scale=calibrate_filter(kf, val_tracks))
@@ -40,6 +42,7 @@ from torchsde_lti.evaluation.predictive import (
     mixture_log_prob,
     one_step_predictive,
     predictive_batches,
+    predictive_dof,
 )
 from torchsde_lti.evaluation.recovery import (
     filter_errors,
@@ -98,6 +101,7 @@ __all__ = [
     "parameter_errors",
     "parameter_table",
     "predictive_batches",
+    "predictive_dof",
     "raw_f_identifiable",
     "same_model",
     "scale_vector",

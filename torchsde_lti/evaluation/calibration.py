@@ -6,7 +6,8 @@ r"""Calibration of a frozen filter's predictive: HPD levels and a scalar covaria
     cs = fit_mode_scales(y, w, mu, S)                   # one scale per mode, by the mode the filter predicts
 
 The one-step predictive of a report is a Gaussian mixture ``Σ_j w_j N(mu_j, S_j)`` (one
-component for a Kalman filter). Its *HPD level* at y is the probability mass of the
+component for a Kalman filter), or a mixture of Student-t's with one ν (``dof``) for a filter
+with ``noise=tl.StudentT`` (:mod:`~torchsde_lti.evaluation.student_t`). Its *HPD level* at y is the probability mass of the
 predictive where the density exceeds the density at y; y lies in the level-α highest-density
 region iff its level is <= α, and for a calibrated predictive the levels are uniform on
 (0, 1). For one Gaussian in m dimensions the level is the chi-square CDF of the Mahalanobis
@@ -31,7 +32,8 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.data.loaded_tracks import Tracks
-from torchsde_lti.evaluation.predictive import Model, mixture_log_prob, one_step_predictive
+from torchsde_lti.evaluation.predictive import Model, mixture_log_prob, one_step_predictive, predictive_dof
+from torchsde_lti.evaluation.student_t import t_draws, t_hpd_level
 
 __all__ = [
     "NOMINAL_2SIGMA",
@@ -81,6 +83,7 @@ def hpd_level(
     samples: int = 500,
     seed: int = 0,
     chunk: int = 2000,
+    dof: Tensor | float | None = None,
 ) -> Tensor:
     """HPD level of each y under its predictive mixture with covariances ``c_j S_j``: (N,).
 
@@ -90,6 +93,9 @@ def hpd_level(
         scale: the covariance inflation c > 0: one number, or one per component (M,).
         samples, seed, chunk: Monte Carlo of a mixture (M > 1): draws per row, the seed,
             rows per chunk. One component: closed form (no draws).
+        dof: None (Gaussian components) or ν (Student-t components, S their scale matrices:
+            one component's level is the F(m, ν) CDF of Mahalanobis² / m,
+            :func:`~torchsde_lti.evaluation.student_t.t_hpd_level`; a mixture's draws are t draws).
 
     Returns:
         (N,) in [0, 1]: the mass of the predictive with a higher density than at y
@@ -104,6 +110,8 @@ def hpd_level(
     if w.shape[-1] == 1:
         d = (y - mu[:, 0]).unsqueeze(-1)
         maha = (d.mT @ torch.linalg.solve(S[:, 0], d)).reshape(-1) / c[0]
+        if dof is not None:
+            return t_hpd_level(maha, m, dof)
         return torch.special.gammainc(torch.full_like(maha, m / 2.0), 0.5 * maha)
     g = torch.Generator().manual_seed(seed)
     out = []
@@ -114,9 +122,11 @@ def hpd_level(
         z = torch.randn(*comp.shape, m, generator=g, dtype=y.dtype)
         Lg = torch.gather(L.flatten(-2), 1, comp[..., None].expand(-1, -1, m * m)).unflatten(-1, (m, m))
         xs = torch.gather(mm, 1, comp[..., None].expand(-1, -1, m))
-        xs = xs + sum(Lg[..., :, j] * z[..., j : j + 1] for j in range(m))
-        ly = mixture_log_prob(y[lo : lo + chunk], ww, mm, SS)  # (n,)
-        lx = mixture_log_prob(xs, ww, mm, SS)  # (n, D)
+        Lz = sum(Lg[..., :, j] * z[..., j : j + 1] for j in range(m))
+        assert isinstance(Lz, Tensor)
+        xs = xs + Lz if dof is None else t_draws(xs, Lz, dof, g)
+        ly = mixture_log_prob(y[lo : lo + chunk], ww, mm, SS, dof)  # (n,)
+        lx = mixture_log_prob(xs, ww, mm, SS, dof)  # (n, D)
         out.append((lx > ly[:, None]).to(y.dtype).mean(-1))
     return torch.cat(out) if out else torch.zeros(0, dtype=y.dtype)
 
@@ -131,6 +141,7 @@ def fit_cov_scale(
     seed: int = 0,
     bounds: tuple[float, float] = (1.0 / 64.0, 64.0),
     tol: float = 0.005,
+    dof: Tensor | float | None = None,
 ) -> float:
     """The scalar c with share(hpd_level(y, w, mu, S, c) <= target) = target (a quantile match).
 
@@ -142,7 +153,7 @@ def fit_cov_scale(
         y, w, mu, S: the predictive of N reports, as in :func:`hpd_level`.
         target: the HPD probability whose coverage is matched (default 86.5 %: 2σ in 2-D).
         samples, seed: Monte Carlo of a mixture; bounds: the search interval of c; tol: the
-            width of the final bracket in log c.
+            width of the final bracket in log c; dof: ν of Student-t components (None: Gaussian).
 
     Returns:
         c (the upper end of the final bracket: coverage >= target), clipped to ``bounds``.
@@ -158,7 +169,7 @@ def fit_cov_scale(
         raise ValueError("fit_cov_scale needs at least one report, got y of shape (0, m)")
 
     def coverage(c: float) -> float:
-        return float((hpd_level(y, w, mu, S, c, samples=samples, seed=seed) <= target).to(y.dtype).mean())
+        return float((hpd_level(y, w, mu, S, c, samples=samples, seed=seed, dof=dof) <= target).to(y.dtype).mean())
 
     return _bisect(coverage, target, 1.0, bounds, tol)
 
@@ -200,6 +211,7 @@ def fit_mode_scales(
     sweeps: int = 2,
     bounds: tuple[float, float] = (1.0 / 64.0, 64.0),
     tol: float = 0.01,
+    dof: Tensor | float | None = None,
 ) -> list[float]:
     """One covariance scale per mixture component (mode), ``S_j -> c_j S_j``: coverage by the model's own modes.
 
@@ -215,11 +227,12 @@ def fit_mode_scales(
         y, w, mu, S: the predictive of N reports, as in :func:`hpd_level`.
         target, samples, seed, bounds: as in :func:`fit_cov_scale`; tol: the final bracket in log c_j.
         min_reports: the smallest group with its own scale; sweeps: rounds over the components.
+        dof: ν of Student-t components (None: Gaussian).
 
     Returns:
         [c_1, ..., c_M].
     """
-    c0 = fit_cov_scale(y, w, mu, S, target, samples=samples, seed=seed, bounds=bounds, tol=tol)
+    c0 = fit_cov_scale(y, w, mu, S, target, samples=samples, seed=seed, bounds=bounds, tol=tol, dof=dof)
     M = w.shape[-1]
     c = [c0] * M
     group = w.argmax(-1)
@@ -232,7 +245,7 @@ def fit_mode_scales(
 
             def coverage(x: float, j: int = j) -> float:
                 cj = c[:j] + [x] + c[j + 1 :]
-                lev = hpd_level(yj, wj, mj, Sj, cj, samples=samples, seed=seed)
+                lev = hpd_level(yj, wj, mj, Sj, cj, samples=samples, seed=seed, dof=dof)
                 return float((lev <= target).to(y.dtype).mean())
 
             c[j] = _bisect(coverage, target, c[j], bounds, tol)
@@ -270,6 +283,7 @@ def calibrate_filter(
         keep = torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:max_reports]
         pred = {k: v[keep] for k, v in pred.items()}
     args = (pred["y"], pred["w"], pred["mu"], pred["S"], target)
+    dof = predictive_dof(model)
     if per_mode:
-        return fit_mode_scales(*args, samples=samples, seed=seed)
-    return [fit_cov_scale(*args, samples=samples, seed=seed)] * pred["w"].shape[-1]
+        return fit_mode_scales(*args, samples=samples, seed=seed, dof=dof)
+    return [fit_cov_scale(*args, samples=samples, seed=seed, dof=dof)] * pred["w"].shape[-1]

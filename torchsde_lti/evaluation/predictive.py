@@ -4,11 +4,15 @@ r"""The predictive distributions every score is computed from, and the batching 
     pred = one_step_predictive(model, tracks)      # {"y", "w", "mu", "S", "index"}: reports k >= 2
     mixture_log_prob(y, w, mu, S)                  # log Σ_j w_j N(y; mu_j, S_j)
     masked_gaussian_nll(r, S, observed)            # -log N(r; 0, S) of the observed coordinates
+    predictive_dof(model)                          # ν of a Student-t filter (None: Gaussian)
 
 The one-step predictive of a report y_k given y_<k is a Gaussian mixture
 ``Σ_j w_j N(mu_j, S_j)`` over the M modes of an IMM (M = 1 for a Kalman filter): weights the
 predicted mode probabilities, means ``H m_j^-``, covariances the innovation covariances. The
-first report of a track holds the prior and is not scored.
+first report of a track holds the prior and is not scored. A filter with
+``noise=tl.StudentT(ν)`` has the mixture ``Σ_j w_j St(mu_j, S_j, ν)`` instead (S_j the t's
+scale matrices; :mod:`~torchsde_lti.evaluation.student_t`): every function that takes a
+predictive takes its ``dof`` (None: Gaussian).
 
 The bottom module of :mod:`torchsde_lti.evaluation`: calibration, scores, the baseline and the
 selection all build on it (so none of them imports another in a cycle).
@@ -29,6 +33,8 @@ from torchsde_lti.core.linalg import sym
 from torchsde_lti.data.loaded_tracks import Tracks
 from torchsde_lti.data.splits import track_windows
 from torchsde_lti.data.tracks import TrackBatch, pad_tracks
+from torchsde_lti.evaluation.student_t import mixture_t_log_prob
+from torchsde_lti.filters.noise import StudentTNoise
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
 
@@ -40,6 +46,7 @@ __all__ = [
     "mixture_log_prob",
     "one_step_predictive",
     "predictive_batches",
+    "predictive_dof",
 ]
 
 #: A position-observing filter the evaluation scores.
@@ -64,17 +71,28 @@ class PredictiveBatch(NamedTuple):
     scored: Tensor
 
 
-def mixture_log_prob(x: Tensor, w: Tensor, mu: Tensor, S: Tensor) -> Tensor:
+def predictive_dof(model: Model) -> Tensor | None:
+    """ν (a 0-dim float64 tensor, no gradient) of a filter with ``noise=tl.StudentT``; None
+    for a Gaussian filter."""
+    noise = model.noise.model()
+    return noise.dof.detach().to(torch.float64) if isinstance(noise, StudentTNoise) else None
+
+
+def mixture_log_prob(x: Tensor, w: Tensor, mu: Tensor, S: Tensor, dof: Tensor | float | None = None) -> Tensor:
     """log Σ_j w_j N(x; mu_j, S_j) of points x (N, S, m) or (N, m).
 
     Args:
         x: (N, m) or (N, S, m) points (S draws per row).
         w: (N, M) weights; mu: (N, M, m) means; S: (N, M, m, m) covariances (SPD).
+        dof: None (Gaussian) or ν: the mixture of Student-t's ``Σ_j w_j St(x; mu_j, S_j, ν)``
+            (S_j scale matrices, :func:`~torchsde_lti.evaluation.student_t.mixture_t_log_prob`).
 
     Returns:
         (N,) or (N, S) log densities. Elementwise over the m × m entries of the inverse
         (no batched small solves: those dominate otherwise).
     """
+    if dof is not None:
+        return mixture_t_log_prob(x, w, mu, S, dof)
     squeeze = x.dim() == 2
     if squeeze:
         x = x.unsqueeze(1)

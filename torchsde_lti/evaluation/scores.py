@@ -6,8 +6,8 @@ r"""Evaluation of frozen filters on held-out tracks: the same reports and foreca
 
 Per report k >= 2 of every track (the first report holds the prior): the one-step predictive
 NLL ``-log p(y_k | y_<k)`` (nats per 2-D report), whether y_k lies in the 86.5 % highest-density
-region of the one-step predictive (the 2σ ellipse of a Gaussian: exactly; for a mixture
-by seeded Monte Carlo), and whether the report's 1-hour window is *moving*: each track is
+region of the one-step predictive (the 2σ ellipse of a Gaussian: exactly; of a Student-t
+filter's t: exactly, the F distribution's ellipse; for a mixture by seeded Monte Carlo), and whether the report's 1-hour window is *moving*: each track is
 cut into windows of ``window`` seconds from its first report, and a window is moving when
 the median position-derived speed ``|y_k - y_{k-1}| / dt_k`` of its reports is at least
 ``moving_speed`` (m/s); else moored.
@@ -40,7 +40,14 @@ from torch import Tensor
 from torchsde_lti.data.loaded_tracks import Tracks
 from torchsde_lti.data.tracks import TrackBatch
 from torchsde_lti.evaluation.calibration import NOMINAL_2SIGMA, hpd_level, scale_vector
-from torchsde_lti.evaluation.predictive import Model, _forecast, frozen_copy, mixture_log_prob, predictive_batches
+from torchsde_lti.evaluation.predictive import (
+    Model,
+    _forecast,
+    frozen_copy,
+    mixture_log_prob,
+    predictive_batches,
+    predictive_dof,
+)
 from torchsde_lti.nn.imm import IMMFilter
 
 __all__ = [
@@ -93,6 +100,7 @@ def hpd_inside(
     samples: int = 500,
     seed: int = 0,
     chunk: int = 2000,
+    dof: Tensor | float | None = None,
 ) -> Tensor:
     """Is y inside the ``level`` highest-density region of the predictive mixture? (N,) bool.
 
@@ -104,10 +112,12 @@ def hpd_inside(
     Args:
         y: (N, m) observations; w: (N, M) weights; mu: (N, M, m); S: (N, M, m, m).
         level: the probability of the region (default 1 - e^-2 = 86.5 %, 2σ in 2-D).
+        dof: None (Gaussian components) or ν of Student-t components (a filter with
+            ``noise=tl.StudentT``): one component's region is then ``D² ≤ m F⁻¹(level; m, ν)``.
     """
     if not 0.0 < level < 1.0:
         raise ValueError(f"level must be in (0, 1), got {level}")
-    return hpd_level(y, w, mu, S, samples=samples, seed=seed, chunk=chunk) <= level
+    return hpd_level(y, w, mu, S, samples=samples, seed=seed, chunk=chunk, dof=dof) <= level
 
 
 def moving_reports(
@@ -210,6 +220,7 @@ def evaluate_filter(
     except ValueError as e:
         raise ValueError(f"cov_scale: {e}") from None
     model = frozen_copy(model)
+    dof = predictive_dof(model)
     _, vessel_of_track = np.unique(tracks.object_id, return_inverse=True)
     lengths = np.diff(tracks.offsets)
     vessel_flat = np.repeat(vessel_of_track, lengths)
@@ -226,9 +237,11 @@ def evaluate_filter(
                 parts["nll"].append((-out.step_log_likelihood[m]).numpy())
             else:
                 S = scale[:, None, None] * S
-                parts["nll"].append((-mixture_log_prob(batch.y[m], w[m], ym[m], S[m])).numpy())
+                parts["nll"].append((-mixture_log_prob(batch.y[m], w[m], ym[m], S[m], dof)).numpy())
             parts["sq_err"].append((batch.y - point)[m].pow(2).sum(-1).numpy())
-            parts["inside"].append(hpd_inside(batch.y[m], w[m], ym[m], S[m], samples=samples, seed=seed).numpy())
+            parts["inside"].append(
+                hpd_inside(batch.y[m], w[m], ym[m], S[m], samples=samples, seed=seed, dof=dof).numpy()
+            )
             for h in horizons:
                 b, k, j = forecast_pairs(batch, h)
                 if len(b) == 0:
@@ -240,7 +253,7 @@ def evaluate_filter(
                 yj = batch.y[b, j]
                 err = ((fw.unsqueeze(-1) * fm).sum(-2) - yj).pow(2).sum(-1)
                 ins = (
-                    hpd_inside(yj, fw, fm, fS, samples=samples, seed=seed)
+                    hpd_inside(yj, fw, fm, fS, samples=samples, seed=seed, dof=dof)
                     if forecast_coverage
                     else torch.full((len(b),), math.nan, dtype=torch.float64)
                 )

@@ -21,13 +21,16 @@ Shapes and missing-data rules: :mod:`torchsde_lti.filters.inputs`.
 - :func:`rts_smoother` (``smoothers``), ``algorithm="sequential"`` or ``"scan"`` (or ``"auto"``);
 - :func:`imm_filter` (``imm``): interacting multiple models over a bank of per-mode matrices;
 - :func:`imm_smoother` (``imm_smoother``): Kim's (1994) fixed-interval smoother over an IMM result;
-- :func:`kalman_step`, :func:`imm_step` (``online``): one report per live track, the loops' own steps.
+- :func:`kalman_step`, :func:`imm_step` (``online``): one report per live track, the loops' own steps;
+- :class:`GaussianNoise`, :class:`StudentTNoise` (``noise``): the observation-noise model every
+  filter above takes as ``noise=`` (a Student-t: Roth et al.'s heavy-tailed filter).
 """
 
 from torchsde_lti.filters.imm import IMMResult, imm_filter
 from torchsde_lti.filters.imm_online import IMMState, IMMStep, imm_predict_state, imm_step
 from torchsde_lti.filters.imm_smoother import IMMSmootherResult, imm_smoother
 from torchsde_lti.filters.kalman import ALGORITHMS, choose_algorithm, kalman_filter
+from torchsde_lti.filters.noise import GaussianNoise, NoiseModel, StudentTNoise
 from torchsde_lti.filters.online import KalmanState, KalmanStep, kalman_predict, kalman_step
 from torchsde_lti.filters.results import FilterResult, SmootherResult
 from torchsde_lti.filters.scan import associative_scan
@@ -36,14 +39,17 @@ from torchsde_lti.filters.smoothers import SMOOTHER_ALGORITHMS, rts_smoother
 __all__ = [
     "ALGORITHMS",
     "FilterResult",
+    "GaussianNoise",
     "IMMResult",
     "IMMSmootherResult",
     "IMMState",
     "IMMStep",
     "KalmanState",
     "KalmanStep",
+    "NoiseModel",
     "SMOOTHER_ALGORITHMS",
     "SmootherResult",
+    "StudentTNoise",
     "associative_scan",
     "choose_algorithm",
     "imm_filter",

@@ -55,6 +55,7 @@ from torchsde_lti.core.validation import (
     shape_str,
 )
 from torchsde_lti.filters.inputs import as_float_tensors, check_mask
+from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel, weighted_outer
 from torchsde_lti.filters.online import KalmanState, kalman_step
 from torchsde_lti.filters.results import serializable
 
@@ -126,19 +127,19 @@ class IMMPrediction(NamedTuple):
     cov: Tensor
 
 
-def combine(prob: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
+def combine(prob: Tensor, mean: Tensor, cov: Tensor, spread: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Moment-matched Gaussian of a mixture: prob (..., M), mean (..., M, n), cov (..., M, n, n).
 
-    Returns ``x = Σ_j p_j m_j`` (..., n) and ``P = Σ_j p_j (P_j + (m_j − x)(m_j − x)ᵀ)`` (..., n, n).
+    Returns ``x = Σ_j p_j m_j`` (..., n) and ``P = Σ_j p_j (P_j + w (m_j − x)(m_j − x)ᵀ)`` (..., n, n),
+    w = ``spread`` (...) (None: 1; :meth:`~torchsde_lti.filters.StudentTNoise.spread`).
     """
     x = torch.einsum("...j,...jn->...n", prob, mean)
-    d = mean - x.unsqueeze(-2)
-    P = torch.einsum("...j,...jab->...ab", prob, cov + d.unsqueeze(-1) * d.unsqueeze(-2))
+    P = torch.einsum("...j,...jab->...ab", prob, cov + weighted_outer(mean - x.unsqueeze(-2), spread, 3))
     return x, sym(P)
 
 
-def _mix(prob: Tensor, Pi: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """IMM mixing step. prob (..., M), Pi (..., M, M), mean (..., M, n), cov (..., M, n, n).
+def _mix(prob: Tensor, Pi: Tensor, mean: Tensor, cov: Tensor, spread: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """IMM mixing step. prob (..., M), Pi (..., M, M), mean (..., M, n), cov (..., M, n, n); spread (...).
 
     Returns c (..., M) = prob Pi, mixed means (..., M, n) and covariances (..., M, n, n).
     A mode with c_j ≤ sqrt(tiny) of the dtype (≈ 1e-154 in float64) gets c_j = 0 and mixed
@@ -156,8 +157,8 @@ def _mix(prob: Tensor, Pi: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor, T
     # torch.export's scan of the cycle in grad mode; mean may broadcast over the modes)
     m_mix = (w.unsqueeze(-1) * mean.unsqueeze(-2)).sum(-3)
     d = mean.unsqueeze(-2) - m_mix.unsqueeze(-3)  # (..., M_i, M_j, n)
-    spread = cov.unsqueeze(-3) + d.unsqueeze(-1) * d.unsqueeze(-2)  # (..., M_i, M_j, n, n)
-    P_mix = (w[..., None, None] * spread).sum(-4)  # Σ_i w_ij (P_i + d_ij d_ijᵀ)
+    mixed = cov.unsqueeze(-3) + weighted_outer(d, spread, 4)  # (..., M_i, M_j, n, n)
+    P_mix = (w[..., None, None] * mixed).sum(-4)  # Σ_i w_ij (P_i + w d_ij d_ijᵀ)
     return c, m_mix, sym(P_mix)
 
 
@@ -185,7 +186,16 @@ class IMMCycle(NamedTuple):
 
 
 def imm_cycle(
-    prob: Tensor, mean: Tensor, cov: Tensor, Pi: Tensor, A: Tensor, Q: Tensor, H: Tensor, R: Tensor, y: Tensor
+    prob: Tensor,
+    mean: Tensor,
+    cov: Tensor,
+    Pi: Tensor,
+    A: Tensor,
+    Q: Tensor,
+    H: Tensor,
+    R: Tensor,
+    y: Tensor,
+    noise: NoiseModel = GAUSSIAN,
 ) -> IMMCycle:
     r"""One IMM cycle: mixing, each mode's Kalman step, the mode probabilities. The step of
     :func:`imm_filter`'s loop and of the online :func:`~torchsde_lti.filters.imm_online.imm_step`.
@@ -196,10 +206,10 @@ def imm_cycle(
 
     prob (..., M), mean (..., M, n), cov (..., M, n, n) before the step; Pi (..., M, M);
     A, Q (..., M, n, n); H (..., M or 1, m, n), R (..., M or 1, m, m); y (..., m) the report
-    (NaN = missing component).
+    (NaN = missing component); noise: the modes' noise model (a t's scale matrices mix as covariances).
     """
-    c, m_mix, P_mix = _mix(prob, Pi, mean, cov)
-    state, step = kalman_step(KalmanState(m_mix, P_mix), y.unsqueeze(-2), A, Q, H, R)
+    c, m_mix, P_mix = _mix(prob, Pi, mean, cov, noise.spread())
+    state, step = kalman_step(KalmanState(m_mix, P_mix), y.unsqueeze(-2), A, Q, H, R, noise=noise.over_modes())
     log_c = torch.where(c > 0, torch.log(torch.where(c > 0, c, torch.ones_like(c))), torch.full_like(c, -math.inf))
     joint = log_c + step.log_likelihood  # (..., M)
     total = torch.logsumexp(joint, dim=-1)
@@ -295,6 +305,7 @@ def imm_filter(
     mode_prob0: Tensor,
     mask: Tensor | None = None,
     validate_args: bool = True,
+    noise: NoiseModel = GAUSSIAN,
 ) -> IMMResult:
     r"""IMM filter over T steps (see the module docstring for the cycle and the shapes).
 
@@ -309,11 +320,14 @@ def imm_filter(
         mask: optional bool (..., T) or (..., T, m); False = not observed.
         validate_args: check the values (y without Inf; finite, PSD covariances, stochastic Pi
             and mode_prob0); shapes are always checked.
+        noise: the modes' noise model (:mod:`~torchsde_lti.filters.noise`; a Student-t's ν is
+            shared: the step log-likelihood is ``log Σ_j c_j St(y_k; ŷ_j, S_j, ν)``).
 
     Returns:
         :class:`IMMResult`; every output broadcasts to the full batch ``...``.
     """
     y, A, Q, H, R, Pi, m0, P0, prob, mask = _check_inputs(y, A, Q, H, R, Pi, m0, P0, mode_prob0, mask, validate_args)
+    noise = noise.check(y.shape[:-2], "sequential", validate_args)
     if mask is not None:  # (a report not observed is a missing one: NaN)
         y = torch.where(mask, y, torch.nan)
     T, m = y.shape[-2], y.shape[-1]
@@ -326,7 +340,7 @@ def imm_filter(
     mean = m0 if m0.dim() >= 2 else m0.unsqueeze(-2)
     # the T axis goes before each output's event dims (vector over modes: -2, (M, n): -3, ...)
     if torch.compiler.is_exporting():  # one step traced, any T: torch's structured scan
-        stk = _imm_scan(H4, R4, A4, Q4, Pi3, y, prob, mean, P0)
+        stk = _imm_scan(H4, R4, A4, Q4, Pi3, y, prob, mean, P0, noise)
     else:
 
         def at(x: Tensor, k: int, axis: int) -> Tensor:
@@ -345,6 +359,7 @@ def imm_filter(
                 at(H4, k, -4),
                 at(R4, k, -4),
                 y[..., k, :],
+                noise,
             )
             prob, mean, cov = cyc.mode_prob, cyc.mode_mean, cyc.mode_cov
             steps.append(cyc)
@@ -352,7 +367,7 @@ def imm_filter(
             k: torch.stack(torch.broadcast_tensors(*v), dim=-1 - _EVENT_NDIM[k])
             for k, v in zip(IMMCycle._fields, zip(*steps))
         }
-    return _imm_result(stk, T, M, n, m, (A4, Q4, Pi3, H4, R4))
+    return _imm_result(stk, T, M, n, m, (A4, Q4, Pi3, H4, R4), noise.spread())
 
 
 #: The event dims of each field of :class:`IMMCycle` (the T axis goes before them).
@@ -360,7 +375,16 @@ _EVENT_NDIM = dict(zip(IMMCycle._fields, (1, 2, 3, 1, 2, 3, 2, 3, 0, 1)))
 
 
 def _imm_scan(
-    H4: Tensor, R4: Tensor, A4: Tensor, Q4: Tensor, Pi3: Tensor, y: Tensor, prob: Tensor, mean: Tensor, cov: Tensor
+    H4: Tensor,
+    R4: Tensor,
+    A4: Tensor,
+    Q4: Tensor,
+    Pi3: Tensor,
+    y: Tensor,
+    prob: Tensor,
+    mean: Tensor,
+    cov: Tensor,
+    noise: NoiseModel = GAUSSIAN,
 ) -> dict[str, Tensor]:
     """:func:`imm_filter`'s loop as torch's structured scan (``torch._higher_order_ops.scan``):
     one cycle traced, T not unrolled (an exported program takes any T). Per-step arrays
@@ -392,7 +416,7 @@ def _imm_scan(
         state: tuple[Tensor, Tensor, Tensor], x: tuple[Tensor, ...]
     ) -> tuple[tuple[Tensor, ...], tuple[Tensor, ...]]:
         Hk, Rk, Ak, Qk, Pik, yk = x
-        cyc = imm_cycle(*state, Pik, Ak, Qk, Hk, Rk, yk)
+        cyc = imm_cycle(*state, Pik, Ak, Qk, Hk, Rk, yk, noise)
         # (outputs must not alias the carry, and have one layout)
         carry = tuple(t.contiguous() for t in (cyc.mode_prob, cyc.mode_mean, cyc.mode_cov))
         return carry, tuple(t.contiguous().clone() for t in cyc[:-1])  # (observed: no tangent, taken from y)
@@ -403,12 +427,12 @@ def _imm_scan(
 
 
 def _imm_result(
-    stk: dict[str, Tensor], T: int, M: int, n: int, m: int, model: tuple[Tensor, Tensor, Tensor, Tensor, Tensor]
+    stk: dict[str, Tensor], T: int, M: int, n: int, m: int, model: tuple[Tensor, ...], spread: Tensor | None
 ) -> IMMResult:
     """The :class:`IMMResult` of the per-step fields of :class:`IMMCycle` ``stk`` (the T axis
     before each one's event dims) and of the model it filtered with, ``model`` = (A, Q
     (..., T or 1, M or 1, n, n), Pi (..., T or 1, M, M), H (..., T or 1, M or 1, m, n),
-    R (..., T or 1, M or 1, m, m))."""
+    R (..., T or 1, M or 1, m, m)); ``spread``: :func:`combine`'s weight (...)."""
     batch = torch.broadcast_shapes(*(v.shape[: v.dim() - 1 - _EVENT_NDIM[k]] for k, v in stk.items()))
     mu = stk["mode_prob"].expand(*batch, T, M)
     cc = stk["pred_mode_prob"].expand(*batch, T, M)
@@ -416,8 +440,10 @@ def _imm_result(
     mc = stk["mode_cov"].expand(*batch, T, M, n, n)
     pm = stk["mode_pred_mean"].expand(*batch, T, M, n)
     pc = stk["mode_pred_cov"].expand(*batch, T, M, n, n)
-    x, P = combine(mu, mm, mc)
-    xp, Pp = combine(cc, pm, pc)
+    if spread is not None:  # (..., T)
+        spread = spread.unsqueeze(-1)
+    x, P = combine(mu, mm, mc, spread)
+    xp, Pp = combine(cc, pm, pc, spread)
     step_ll = stk["log_likelihood"].expand(*batch, T)
     A, Q, Pi, H, R = model
     return IMMResult(
@@ -444,7 +470,9 @@ def _imm_result(
     )
 
 
-def imm_predict(mode_prob: Tensor, mean: Tensor, cov: Tensor, A: Tensor, Q: Tensor, Pi: Tensor) -> IMMPrediction:
+def imm_predict(
+    mode_prob: Tensor, mean: Tensor, cov: Tensor, A: Tensor, Q: Tensor, Pi: Tensor, spread: Tensor | None = None
+) -> IMMPrediction:
     r"""One IMM prediction (mixing + mode-matched prediction) over each of K horizons.
 
     Each horizon h is measured from the state's time: ``c = μ Pi(h)``, then the mixed
@@ -454,12 +482,14 @@ def imm_predict(mode_prob: Tensor, mean: Tensor, cov: Tensor, A: Tensor, Q: Tens
     Args:
         mode_prob: (..., M) mode probabilities; mean: (..., M, n); cov: (..., M, n, n).
         A, Q: (..., K, M, n, n) mode matrices over each horizon; Pi: (..., K, M, M).
+        spread: the weight (...) of the mean spread in mixed covariances (:func:`combine`).
 
     Returns:
         :class:`IMMPrediction` with a K axis after the batch.
     """
-    c, m_mix, P_mix = _mix(mode_prob.unsqueeze(-2), Pi, mean.unsqueeze(-3), cov.unsqueeze(-4))
+    k_spread = None if spread is None else spread.unsqueeze(-1)  # (..., 1) over the K horizons
+    c, m_mix, P_mix = _mix(mode_prob.unsqueeze(-2), Pi, mean.unsqueeze(-3), cov.unsqueeze(-4), k_spread)
     m_pred = matvec(A, m_mix)
     P_pred = sym(A @ P_mix @ A.mT + Q)
-    x, P = combine(c, m_pred, P_pred)
+    x, P = combine(c, m_pred, P_pred, k_spread)
     return IMMPrediction(c, m_pred, P_pred, x, P)

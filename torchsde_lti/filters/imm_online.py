@@ -13,6 +13,7 @@ from torch import Tensor
 
 from torchsde_lti.core.validation import broadcast_shapes
 from torchsde_lti.filters.imm import combine, imm_cycle, imm_predict
+from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel
 from torchsde_lti.filters.results import serializable
 
 __all__ = ["IMMState", "IMMStep", "imm_predict_state", "imm_step"]
@@ -62,7 +63,15 @@ class IMMStep(NamedTuple):
 
 
 def imm_step(
-    state: IMMState, y: Tensor, A: Tensor, Q: Tensor, Pi: Tensor, H: Tensor, R: Tensor, mask: Tensor | None = None
+    state: IMMState,
+    y: Tensor,
+    A: Tensor,
+    Q: Tensor,
+    Pi: Tensor,
+    H: Tensor,
+    R: Tensor,
+    mask: Tensor | None = None,
+    noise: NoiseModel = GAUSSIAN,
 ) -> tuple[IMMState, IMMStep]:
     """One IMM cycle of every track: the cycle of :func:`~torchsde_lti.filters.imm.imm_filter`'s
     loop (:func:`~torchsde_lti.filters.imm.imm_cycle`), then the moment-matched state.
@@ -73,14 +82,15 @@ def imm_step(
         A, Q: (..., M, n, n) each mode over each track's gap. Pi: (..., M, M) mode transitions.
         H: (..., M or 1, m, n), R: (..., M or 1, m, m) observation model.
         mask: optional bool (...) or (..., m); False = not observed.
+        noise: the observation-noise model of every mode (:func:`~torchsde_lti.filters.imm.imm_filter`).
 
     Returns:
         (:class:`IMMState`, :class:`IMMStep`).
     """
     if mask is not None:  # (a report not observed is a missing one: NaN)
         y = torch.where(mask.unsqueeze(-1) if mask.dim() < y.dim() else mask, y, torch.nan)
-    cyc = imm_cycle(*state, Pi, A, Q, H, R, y)
-    x, P = combine(cyc.mode_prob, cyc.mode_mean, cyc.mode_cov)
+    cyc = imm_cycle(*state, Pi, A, Q, H, R, y, noise)
+    x, P = combine(cyc.mode_prob, cyc.mode_mean, cyc.mode_cov, noise.spread())
     new = IMMState(cyc.mode_prob, cyc.mode_mean, cyc.mode_cov)
     batch = broadcast_shapes(cyc.log_likelihood.shape, cyc.observed.shape[:-1])
     return new, IMMStep(
@@ -94,11 +104,11 @@ def imm_step(
     )
 
 
-def imm_predict_state(state: IMMState, A: Tensor, Q: Tensor, Pi: Tensor) -> IMMState:
+def imm_predict_state(state: IMMState, A: Tensor, Q: Tensor, Pi: Tensor, noise: NoiseModel = GAUSSIAN) -> IMMState:
     """Prediction only (mixing, then each mode's A_j, Q_j): the IMM's state at the report time.
 
-    A, Q: (..., M, n, n); Pi: (..., M, M). Returns the predicted :class:`IMMState`
-    (mode_prob = c = μ Pi).
+    A, Q: (..., M, n, n); Pi: (..., M, M); noise: the modes' noise model (a Student-t's scale
+    matrices mix as covariances). Returns the predicted :class:`IMMState` (mode_prob = c = μ Pi).
     """
-    p = imm_predict(*state, A.unsqueeze(-4), Q.unsqueeze(-4), Pi.unsqueeze(-3))
+    p = imm_predict(*state, A.unsqueeze(-4), Q.unsqueeze(-4), Pi.unsqueeze(-3), noise.spread())
     return IMMState(p.mode_probabilities.squeeze(-2), p.mode_mean.squeeze(-3), p.mode_cov.squeeze(-4))

@@ -43,6 +43,7 @@ from torchsde_lti.core.validation import (
     shape_str,
 )
 from torchsde_lti.filters.layout import _factor, batch_first, batch_last, lower_solve, mm, mv, psd_cholesky, sym, tr
+from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel
 from torchsde_lti.filters.results import FilterResult
 
 __all__ = [
@@ -56,6 +57,7 @@ __all__ = [
     "complete_from_filtered",
     "mask_observation_model",
     "observed_components",
+    "observed_count",
     "own_extent",
     "pad_dims",
     "prepare_inputs",
@@ -402,17 +404,25 @@ def predictions(prep: PreparedInputs, mean: Tensor, cov: Tensor) -> tuple[Tensor
     return pred_mean, sym(mm(mm(prep.A, prev_P, 1), tr(prep.A, 1), 1), 1) + prep.Q
 
 
-def complete_from_filtered(prep: PreparedInputs, mean: Tensor, cov: Tensor) -> FilterResult:
+def observed_count(prep: PreparedInputs) -> Tensor:
+    """The number of observed components of each step, (T, *b) in the filter's dtype."""
+    return prep.obs.sum(1).to(prep.yw.dtype)
+
+
+def complete_from_filtered(
+    prep: PreparedInputs, mean: Tensor, cov: Tensor, noise: NoiseModel = GAUSSIAN
+) -> FilterResult:
     """The :class:`FilterResult` of an algorithm that yields the filtered moments alone, mean
     (T, n, *b) and cov (T, n, n, *b): the predictions (:func:`predictions`) and the
     log-likelihood from the whitened innovations ``z_k = L_k⁻¹ (y'_k − H'_k m⁻_k)``,
     ``L_k L_kᵀ = H'_k P⁻_k H'_kᵀ + I``, all batched over the steps (an unobserved component has
-    a zero row of H' and y': it adds 0)."""
+    a zero row of H' and y': it adds 0), its core the ``noise`` model's."""
     pred_mean, pred_cov = predictions(prep, mean, cov)
     Hw, m = prep.Hw, prep.Hw.shape[1]
     eye = torch.eye(m, dtype=Hw.dtype, device=Hw.device).reshape(1, m, m, *[1] * len(prep.mean_batch))
     L, d = psd_cholesky(sym(mm(mm(Hw, pred_cov, 1), tr(Hw, 1), 1), 1) + eye, 1)  # (T, m, m, *b)
     v = (prep.yw - mv(Hw, pred_mean, 1)).unsqueeze(2)
     z = lower_solve(L, d, v, len(prep.mean_batch)).squeeze(2)  # (T, m, *b)
-    core = torch.log(d).sum(1) - 0.5 * (z * z).sum(1)  # −½ (log det S + zᵀ z), det S = Π 1 / d_j²
+    # log det S = −2 Σ log d_j (det S = Π 1 / d_j²), Δ² = zᵀ z
+    core = noise.log_likelihood_core(-2.0 * torch.log(d).sum(1), (z * z).sum(1), observed_count(prep))
     return assemble_result(prep, (mean, cov), (pred_mean, pred_cov), core)

@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.filters.inputs import FilterInputs, prepare_inputs
+from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel
 from torchsde_lti.filters.results import FilterResult
 from torchsde_lti.filters.scan import scan_filter
 from torchsde_lti.filters.sequential import sequential_filter
@@ -76,6 +77,7 @@ def kalman_filter(
     *,
     algorithm: str = "sequential",
     validate_args: bool = True,
+    noise: NoiseModel = GAUSSIAN,
 ) -> FilterResult:
     r"""Kalman filter over T steps of the discrete model of :mod:`torchsde_lti.filters`.
 
@@ -106,29 +108,42 @@ def kalman_filter(
             symmetric parts ``(X + Xᵀ) / 2`` with either flag, so the function, and its
             gradient (symmetric: a gradient step keeps a learned Q symmetric), is the same;
             shapes are always checked. False reads nothing to the host.
+        noise: the observation-noise model (:mod:`~torchsde_lti.filters.noise`):
+            :class:`~torchsde_lti.filters.GaussianNoise` (default) or
+            :class:`~torchsde_lti.filters.StudentTNoise` (Roth et al.'s Student-t filter: Q, R,
+            P0 and every covariance of the result are the t's scale matrices; the
+            log-likelihood is the exact sum of the one-step Student-t predictive densities;
+            ``"sequential"`` and ``"square_root"`` only).
 
     Returns:
         :class:`FilterResult`; every output broadcasts to the full batch ``...``.
     """
     args = FilterInputs(y, A, Q, H, R, m0, P0, G, u, mask, D)
-    return run_filter(args, choose_algorithm(algorithm), validate_args=validate_args)
+    return run_filter(args, choose_algorithm(algorithm), validate_args=validate_args, noise=noise)
 
 
 def run_filter(
-    args: FilterInputs, algorithm: str, *, validate_args: bool = True, compiled_loop: bool = False
+    args: FilterInputs,
+    algorithm: str,
+    *,
+    validate_args: bool = True,
+    compiled_loop: bool = False,
+    noise: NoiseModel = GAUSSIAN,
 ) -> FilterResult:
     """:func:`kalman_filter` on an argument bundle with a chosen algorithm (not ``"auto"``).
 
     ``compiled_loop``: run the sequential loop as torch's structured scan compiled on its own
     also outside a ``torch.compile`` trace (what :class:`~torchsde_lti.KalmanFilter` runs under
     ``torch.compile``, with its discretisation eager); inside a trace it always does.
+    ``noise``: the observation-noise model (:func:`kalman_filter`).
     """
     check_algorithm(algorithm, ALGORITHMS[1:])
     prep = prepare_inputs(args, validate_args)
+    noise = noise.check(prep.mean_batch, algorithm, validate_args)
     if algorithm == "scan":
         return scan_filter(prep)
     if algorithm == "square_root":
-        return square_root_filter(prep)
+        return square_root_filter(prep, noise)
     # traced (torch.compile, torch.export): the loop as torch's structured scan, one step's
     # graph for any T (an exported program then takes any T: a dynamic time axis)
-    return sequential_filter(prep, compiled_loop or torch.compiler.is_compiling())
+    return sequential_filter(prep, compiled_loop or torch.compiler.is_compiling(), noise)

@@ -34,8 +34,9 @@ from torch import Tensor
 
 from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.validation import broadcast_shapes
-from torchsde_lti.filters.inputs import LOG_2PI, mask_observation_model, whiten
+from torchsde_lti.filters.inputs import mask_observation_model, whiten
 from torchsde_lti.filters.layout import mv
+from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel
 from torchsde_lti.filters.results import serializable
 from torchsde_lti.filters.sequential import _joseph_step
 
@@ -110,6 +111,7 @@ def kalman_step(
     R: Tensor,
     c: Tensor | None = None,
     mask: Tensor | None = None,
+    noise: NoiseModel = GAUSSIAN,
 ) -> tuple[KalmanState, KalmanStep]:
     r"""One predict + update of every track: the step of the sequence filter's loop.
 
@@ -129,6 +131,9 @@ def kalman_step(
         c: optional (..., n) input term ``G u`` of the prediction (the feedthrough ``D u``,
             if any, is subtracted from y by the caller).
         mask: optional bool (...) (whole report) or (..., m); False = not observed.
+        noise: the observation-noise model (:mod:`~torchsde_lti.filters.noise`), as in the
+            sequence filter: a Student-t's update rescales the filtered scale matrix and its
+            log-likelihood is the Student-t predictive density.
 
     Returns:
         (:class:`KalmanState` after the update, :class:`KalmanStep`); batch dims broadcast.
@@ -148,8 +153,7 @@ def kalman_step(
     y0 = yb.nan_to_num(0.0, math.inf, -math.inf)
     h_rows, y_rows, log_det = whiten(*mask_observation_model(Hb, Rb, obs), y0)
     pm, pc, mean, P, es, ss = _joseph_step(Ab, Qb, mean, P, cb, h_rows, y_rows)
-    e, s = torch.stack(es), torch.stack(ss)  # (m, *b)
-    core = torch.add(torch.addcdiv(torch.log(s), e * e, s), obs.to(s.dtype), alpha=LOG_2PI).sum(0)
+    P, core = noise.step_update(P, torch.stack(es), torch.stack(ss), obs)  # (m, *b) each; the Gaussian's P stands
     ll = -0.5 * core - log_det
     innovation = (y0 - mv(Hb, pm)) * obs
     if not nd:  # (no batch: the results are in their shapes)

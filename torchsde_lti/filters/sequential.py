@@ -21,14 +21,15 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
-from torchsde_lti.filters.inputs import PreparedInputs, assemble_result, complete_from_filtered
+from torchsde_lti.filters.inputs import PreparedInputs, assemble_result, complete_from_filtered, observed_count
 from torchsde_lti.filters.layout import mv, tr
+from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel, StudentTNoise
 from torchsde_lti.filters.results import FilterResult
 
 __all__ = ["sequential_filter", "structured_filtered"]
 
 
-def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterResult:
+def sequential_filter(prep: PreparedInputs, structured: bool = False, noise: NoiseModel = GAUSSIAN) -> FilterResult:
     r"""The sequential loop on prepared inputs: step k predicts ``m⁻ = A_k m + G_k u_k``,
     ``P⁻ = A_k P A_kᵀ + Q_k``, then updates with the observed components of y_k (whitened
     scalar updates in Joseph form); the log-likelihood core is ``−½ Σ_j (log s_j + e_j² / s_j)``
@@ -40,10 +41,15 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
     cannot yet lower the scan inside a larger graph). The loop then yields the filtered moments
     alone, the rest is formed batched over the steps
     (:func:`~torchsde_lti.filters.inputs.complete_from_filtered`).
+
+    ``noise``: the observation-noise model (:mod:`~torchsde_lti.filters.noise`): after each
+    step's update its ``update`` rescales the filtered covariance (a Student-t's scale; the
+    Gaussian's is the identity), and its ``log_likelihood_core`` gives the step's core.
     """
     if structured:
-        return complete_from_filtered(prep, *structured_filtered(prep))
+        return complete_from_filtered(prep, *structured_filtered(prep, noise), noise)
     mean, P = _initial_state(prep)
+    P = noise.full_batch(P, mean)
     h_rows = prep.Hw.flatten(0, 1).unbind(0)  # T·m rows, each (n, *b)
     y_vals = prep.yw.flatten(0, 1).unbind(0)  # T·m values, each (*b)
     m = prep.yw.shape[1]
@@ -51,16 +57,19 @@ def sequential_filter(prep: PreparedInputs, structured: bool = False) -> FilterR
     # would materialise T full-size zero gradients; unbind's backward is one stack)
     A, Q = prep.A.unbind(0), prep.Q.unbind(0)
     c = None if prep.c is None else prep.c.unbind(0)
+    d = observed_count(prep)  # (T, *b)
     steps = []
     for k in range(prep.T):
         ck = None if c is None else c[k]
         rows = slice(k * m, (k + 1) * m)
-        steps.append(_joseph_step(A[k], Q[k], mean, P, ck, h_rows[rows], y_vals[rows], None, None))
-        mean, P = steps[-1][2], steps[-1][3]
+        pm_k, pc_k, mean, P, e_k, s_k = _joseph_step(A[k], Q[k], mean, P, ck, h_rows[rows], y_vals[rows], None, None)
+        P = noise.update(P, e_k, s_k, d[k])  # (the Gaussian's: P itself)
+        steps.append((pm_k, pc_k, mean, P, e_k, s_k))
     pm, pc, fm, fc = (torch.stack([step[i] for step in steps]) for i in range(4))  # type: ignore[misc]
     e = torch.stack([torch.stack(step[4]) for step in steps])  # (T, m, *b)
     s = torch.stack([torch.stack(step[5]) for step in steps])
-    return assemble_result(prep, (fm, fc), (pm, pc), -0.5 * (torch.log(s) + e * e / s).sum(1))
+    core = noise.log_likelihood_core(torch.log(s).sum(1), (e * e / s).sum(1), d)
+    return assemble_result(prep, (fm, fc), (pm, pc), core)
 
 
 def _initial_state(prep: PreparedInputs) -> tuple[Tensor, Tensor]:
@@ -128,16 +137,19 @@ def _sym(P: Tensor, out: Tensor | None) -> Tensor:
     return P if out is None else out.copy_(P)
 
 
-def structured_filtered(prep: PreparedInputs) -> tuple[Tensor, Tensor]:
+def structured_filtered(prep: PreparedInputs, noise: NoiseModel = GAUSSIAN) -> tuple[Tensor, Tensor]:
     """The filtered means (T, n, *b) and covariances (T, n, n, *b) of the loop run as torch's
     structured scan (:func:`sequential_filter` with ``structured``): one step's graph, no
     unrolling, no Python per step; the loop carries and returns the filtered moments alone
-    (each output of a step costs a compiled program buffers every iteration)."""
+    (each output of a step costs a compiled program buffers every iteration). A Student-t
+    ``noise`` scans its ν and each step's observed count along."""
     mean, P = _initial_state(prep)
+    P = noise.full_batch(P, mean)
     T = prep.T
     c = prep.c if prep.c is not None else torch.zeros_like(mean).unsqueeze(0)
     loop = _scan_loop if torch.compiler.is_exporting() else _run_compiled_loop
-    fm, fc = loop(prep.A, prep.Q, prep.Hw, prep.yw, c.expand(T, *c.shape[1:]), _row_major(mean), _row_major(P))
+    args = (prep.A, prep.Q, prep.Hw, prep.yw, c.expand(T, *c.shape[1:]), _row_major(mean), _row_major(P))
+    fm, fc = loop(*args, *noise.scanned(observed_count(prep)))
     return fm, fc
 
 
@@ -148,24 +160,29 @@ def _row_major(x: Tensor) -> Tensor:
 
 
 def _scan_body(
-    carry: tuple[Tensor, Tensor], step: tuple[Tensor, Tensor, Tensor, Tensor, Tensor]
+    carry: tuple[Tensor, Tensor], step: tuple[Tensor, ...]
 ) -> tuple[tuple[Tensor, Tensor], tuple[Tensor, Tensor]]:
     """:func:`_joseph_step` as the body of ``torch._higher_order_ops.scan``: carry (mean, P),
-    step slices (A_k, Q_k, H'_k (m, n, *), y'_k (m, *), c_k (n, *)); outputs the filtered
-    (mean, P)."""
+    step slices (A_k, Q_k, H'_k (m, n, *), y'_k (m, *), c_k (n, *)[, (d_k, ν) (2, *) of a
+    Student-t noise]); outputs the filtered (mean, P)."""
     mean, P = carry
-    Ak, Qk, hk, yk, ck = step
-    _, _, mean, P, _, _ = _joseph_step(Ak, Qk, mean, P, ck, hk.unbind(0), yk.unbind(0))
+    Ak, Qk, hk, yk, ck = step[:5]
+    _, _, mean, P, e, s = _joseph_step(Ak, Qk, mean, P, ck, hk.unbind(0), yk.unbind(0))
+    if len(step) > 5:
+        P = StudentTNoise(step[5][1]).update(P, e, s, step[5][0])
     # outputs must not alias the carry (a requirement of the scan operator)
     return (mean, P), (mean.clone(), P.clone())
 
 
-def _scan_loop(A: Tensor, Q: Tensor, H: Tensor, y: Tensor, c: Tensor, mean: Tensor, P: Tensor) -> tuple[Tensor, ...]:
+def _scan_loop(
+    A: Tensor, Q: Tensor, H: Tensor, y: Tensor, c: Tensor, mean: Tensor, P: Tensor, *t_noise: Tensor
+) -> tuple[Tensor, ...]:
     """The sequential loop over the leading T axis of A, Q (T, n, n, *), H' (T, m, n, *),
-    y' (T, m, *), c (T, n, *): the filtered means (T, n, *) and covariances (T, n, n, *)."""
+    y' (T, m, *), c (T, n, *) (and a Student-t noise's (d_k, ν) (T, 2, *)): the filtered means
+    (T, n, *) and covariances (T, n, n, *)."""
     from torch._higher_order_ops import scan
 
-    _, outs = scan(_scan_body, (mean, P), (A, Q, H, y, c))
+    _, outs = scan(_scan_body, (mean, P), (A, Q, H, y, c, *t_noise))
     return tuple(outs)
 
 

@@ -12,14 +12,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchsde_lti.filters.inputs import PreparedInputs, assemble_result
+from torchsde_lti.filters.inputs import PreparedInputs, assemble_result, observed_count
 from torchsde_lti.filters.layout import mm, mv, psd_cholesky, sym, tr
+from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel
 from torchsde_lti.filters.results import FilterResult
 
 __all__ = ["square_root_filter"]
 
 
-def square_root_filter(prep: PreparedInputs) -> FilterResult:
+def square_root_filter(prep: PreparedInputs, noise: NoiseModel = GAUSSIAN) -> FilterResult:
     r"""Square-root Kalman filter: propagates ``S_k`` with ``P_k = S_k S_kᵀ`` (no P is formed).
 
     Predict: the n × 2n array ``[A_k S | L_Q]`` (``L_Q L_Qᵀ = Q_k``, a semidefinite Cholesky
@@ -42,19 +43,24 @@ def square_root_filter(prep: PreparedInputs) -> FilterResult:
     one exception: where Q_k or P0 is singular (a step with dt = 0 has Q_k = 0) the factor's
     zero pivots carry no gradient, so the gradient with respect to that Q_k (to dt at a zero
     step) is not the log-likelihood's; the ``"sequential"`` and ``"scan"`` algorithms give it.
+
+    ``noise``: the observation-noise model (:mod:`~torchsde_lti.filters.noise`); a Student-t
+    scale ``f P⁺`` is the factor ``√f S⁺``.
     """
     T, n = prep.T, prep.A.shape[1]
     LQ = psd_cholesky(prep.Q, 1)[0].unbind(0)  # (n, n, *b) each
     A, Hw, yw = prep.A.unbind(0), prep.Hw.unbind(0), prep.yw.unbind(0)
     c = None if prep.c is None else prep.c.unbind(0)
     mean, S = prep.m0, psd_cholesky(prep.P0, 0)[0]
+    S = noise.full_batch(S, mean)
+    d = observed_count(prep)
     means, facs, pmeans, pfacs, cores = [], [], [], [], []
     for k in range(T):
         mean = mv(A[k], mean) if c is None else mv(A[k], mean) + c[k]
         cols = _compress(list(mm(A[k], S).unbind(1)), list(LQ[k].unbind(1)))
         pmeans.append(mean)
         pfacs.append(torch.stack(torch.broadcast_tensors(*cols), 1))
-        core = torch.zeros_like(yw[k][0])
+        xs, es = [], []
         for h, yi in zip(Hw[k].unbind(0), yw[k].unbind(0)):  # rows h (n, *b), values (*b)
             x = torch.ones_like(yi)
             kbar = torch.zeros_like(cols[0])
@@ -66,9 +72,15 @@ def square_root_filter(prep: PreparedInputs) -> FilterResult:
                 x = r
             e = (yi - torch.linalg.vecdot(h, mean, dim=0)) / x
             mean = mean + kbar * e
-            core = core - (torch.log(x) + 0.5 * e * e)
+            xs.append(x)
+            es.append(e)
+        # the noise model's update of P = S Sᵀ as √f S (the whitened e_j have variance 1)
         S = torch.stack(torch.broadcast_tensors(*cols), 1)
-        cores.append(core)
+        maha = (torch.stack(torch.broadcast_tensors(*es)) ** 2).sum(0)
+        f = noise.scale(maha, d[k])
+        S = S if f is None else S * torch.sqrt(f)
+        log_s = 2.0 * torch.log(torch.stack(torch.broadcast_tensors(*xs))).sum(0)
+        cores.append(noise.log_likelihood_core(log_s, maha, d[k]))
         means.append(mean)
         facs.append(S)
 

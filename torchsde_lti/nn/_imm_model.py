@@ -14,6 +14,7 @@ from torch import Tensor
 from torchsde_lti.core.linalg import noise_covariance
 from torchsde_lti.core.validation import as_float_tensor, shape_str
 from torchsde_lti.filters.imm_online import IMMState
+from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel
 from torchsde_lti.nn._online import Series
 from torchsde_lti.nn._validate import check_values
 from torchsde_lti.nn.sde import SDEMatrices
@@ -26,7 +27,7 @@ class IMMModel(NamedTuple):
     parametrisation read once: modes: each mode's SDE matrices; series: each mode's
     discretisation series (:func:`~torchsde_lti.nn._online.model_series`); H (M or 1, m, n),
     R (M or 1, m, m); rates (M, M) the generator Λ; chain: the mode chain's series
-    (``expm(Λ dt)``, float64)."""
+    (``expm(Λ dt)``, float64); noise: the modes' observation-noise model."""
 
     modes: tuple[SDEMatrices, ...]
     series: tuple[Series | None, ...]
@@ -34,6 +35,7 @@ class IMMModel(NamedTuple):
     R: Tensor
     rates: Tensor
     chain: Series
+    noise: NoiseModel = GAUSSIAN
 
 
 #: The names of an IMM state's fields in error messages.

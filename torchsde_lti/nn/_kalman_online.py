@@ -30,6 +30,7 @@ from torch.nn.utils import parametrize
 from torchsde_lti.core.discretization import check_matrix_exp_noise
 from torchsde_lti.core.linalg import matvec
 from torchsde_lti.core.validation import as_float_tensor, broadcast_batch, check_matrix, tracing
+from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel
 from torchsde_lti.filters.online import KalmanState, KalmanStep, kalman_predict, kalman_step
 from torchsde_lti.nn._online import (
     Series,
@@ -53,6 +54,9 @@ from torchsde_lti.nn._validate import (
 from torchsde_lti.nn.parametrizations import PositiveDefinite
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
 
+if TYPE_CHECKING:
+    from torchsde_lti.nn.noise import NoiseOption
+
 __all__ = ["KalmanOnline", "OnlineModel", "model_batches", "state_batches"]
 
 
@@ -62,7 +66,8 @@ class OnlineModel(NamedTuple):
 
     mats: the SDE's matrices (F, L, Qc, B); H: (..., m, n); R: (..., m, m); D: (..., m, p) or
     None; series: the dt-independent part of the exact discretisation of one parameter set
-    (:func:`~torchsde_lti.core.discretization.discretization_series`), None for a parameter batch.
+    (:func:`~torchsde_lti.core.discretization.discretization_series`), None for a parameter batch;
+    noise: the observation-noise model (:mod:`~torchsde_lti.filters.noise`).
     """
 
     mats: SDEMatrices
@@ -70,6 +75,7 @@ class OnlineModel(NamedTuple):
     R: Tensor
     D: Tensor | None
     series: Series | None
+    noise: NoiseModel = GAUSSIAN
 
 
 class KalmanOnline(ValidateArgs, nn.Module):
@@ -93,6 +99,7 @@ class KalmanOnline(ValidateArgs, nn.Module):
         P0: Tensor | None
         prior_mode: str
         diffuse_variance: float
+        noise: NoiseOption
 
         def _check_u(
             self, u: Tensor, p: int, T: int, axis: str, dtype: torch.dtype, device: torch.device
@@ -210,7 +217,7 @@ class KalmanOnline(ValidateArgs, nn.Module):
             pred_mean, pred_cov, innovation (..., m), innovation_cov (..., m, m),
             log_likelihood (...), observed).
         """
-        (mats, H, R, D, series), model_ok = self._model_and_flag(model)
+        (mats, H, R, D, series, noise), model_ok = self._model_and_flag(model)
         state, dt, u = self._check_state(state, dt, u, mats)
         y, mask = online_report(y, mask, H, mats.F.dtype, mats.F.device)
         D = D if u is not None else None
@@ -228,7 +235,7 @@ class KalmanOnline(ValidateArgs, nn.Module):
             self._check_step_arguments(mats, dt, state, y, u, H, R, D)
         A, Q, c = self._step_model(mats, dt, u, series)
         observed = y if D is None or u is None else y - matvec(D, u)
-        new, out = kalman_step(state, observed, A, Q, H, R, c, mask)
+        new, out = kalman_step(state, observed, A, Q, H, R, c, mask, noise)
         if validate:
             # the arguments' tests and the outcome's in ONE synchronisation; a NaN or Inf in the
             # state's mean, in dt or in the model reaches the new mean (or the log-likelihood)
@@ -240,11 +247,11 @@ class KalmanOnline(ValidateArgs, nn.Module):
                 *([] if mask is None else [~torch.isinf(y).any()]),  # (else an Inf reaches the log-likelihood)
                 *([] if u is None else [_finite([u] if D is None else [u, D])]),
                 *_psd_flags(covariances),  # (the state's and the new one: one factorisation)
-                *outcome_flags((out.log_likelihood, new.mean), (), R, (H, out.observed, new.cov)),
+                *outcome_flags((out.log_likelihood, new.mean), (), R, noise.update_bound((H, out.observed, new.cov))),
             ]
             if not all_pass(flags):
                 self._check_step_arguments(mats, dt, state, y, u, H, R, D)  # (raises, naming the argument)
-                update = (H, out.observed, new.cov)
+                update = noise.update_bound((H, out.observed, new.cov))
                 check_outcome((out.log_likelihood, new.mean), (new.cov,), (A, Q, c), y, dt, mats.F, R, update)
         return new, out
 
@@ -289,7 +296,7 @@ class KalmanOnline(ValidateArgs, nn.Module):
 
     def predict(self, state: KalmanState, dt: Tensor | float, u: Tensor | None = None) -> KalmanState:
         """Prediction only, each track over its own dt (...): ``m⁻ = A m + G u``, ``P⁻ = A P Aᵀ + Q``."""
-        mats, _, _, _, series = self._model_and_flag(None)[0]
+        mats, _, _, _, series, _ = self._model_and_flag(None)[0]
         state, dt, u = self._check_state(state, dt, u, mats)
         check_batches(
             [
@@ -310,7 +317,8 @@ class KalmanOnline(ValidateArgs, nn.Module):
         structure: no value read). What :meth:`step` reads; pass it as ``model=`` to step with
         a snapshot (:class:`~torchsde_lti.OnlineStep`)."""
         mats = self.sde.matrices()
-        return OnlineModel(mats, self.H, self.R, self.D, model_series(*mats, index=self.sde.structural_nilpotency()))
+        series = model_series(*mats, index=self.sde.structural_nilpotency())
+        return OnlineModel(mats, self.H, self.R, self.D, series, self.noise.model())
 
     def _step_model(
         self, mats: SDEMatrices, dt: Tensor, u: Tensor | None, series: Series | None

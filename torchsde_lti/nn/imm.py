@@ -72,6 +72,7 @@ from torchsde_lti.nn._online import check_batches, discretize_steps, evaluated, 
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import ValidateArgs, check_outcome, check_values, online_report
 from torchsde_lti.nn.kalman import FilterMode
+from torchsde_lti.nn.noise import NoiseOption, StudentT, noise_option
 from torchsde_lti.nn.parametrizations import (
     Generator,
     ModeProbabilities,
@@ -137,6 +138,8 @@ class IMMFilter(ValidateArgs, nn.Module):
             :attr:`default_validate_args` (True).
         mode_names: optional M distinct names of the modes (default ``"mode0"``, ``"mode1"``, …),
             used by :meth:`modes` and in reports (``"moored/k"``, ``"rate[moored->underway]"``).
+        noise: :class:`~torchsde_lti.Gaussian` (None, default) or :class:`~torchsde_lti.StudentT`: every
+            mode Roth et al.'s Student-t filter, one shared ν (covariances are then scale matrices).
     """
 
     if TYPE_CHECKING:  # the modes' ModuleList, registered tensors and parametrised attributes
@@ -165,6 +168,7 @@ class IMMFilter(ValidateArgs, nn.Module):
         mode_names: Sequence[str] | None = None,
         algorithm: str = "auto",
         validate_args: bool | None = None,
+        noise: NoiseOption | None = None,
     ) -> None:
         super().__init__()
         self.algorithm = check_algorithm(algorithm, IMM_ALGORITHMS, "IMMFilter")
@@ -188,6 +192,7 @@ class IMMFilter(ValidateArgs, nn.Module):
         M = len(models)
         dtype, device = models[0].dtype, models[0].device
         n = models[0].state_dim
+        self.noise = noise_option(noise, dtype, device)
         for i, sde in enumerate(models):
             with torch.no_grad():
                 F = sde.matrices().F
@@ -292,7 +297,7 @@ class IMMFilter(ValidateArgs, nn.Module):
         H, R = self._obs_model()
         rates = self.rates
         chain = discretization_series(rates.double(), None, None)
-        return IMMModel(modes, series, H, R, rates, chain)
+        return IMMModel(modes, series, H, R, rates, chain, self.noise.model())
 
     def discretize(self, dt: Tensor, validate_args: bool | None = None) -> tuple[Discrete, Tensor]:
         """Every mode over every gap and the chain's transitions.
@@ -361,19 +366,19 @@ class IMMFilter(ValidateArgs, nn.Module):
         if validate:
             check_model_values(model, dt, y=y, finite=[("m0", m0), ("P0", P0), ("mode_prob0", p0)])
         d, Pi = self._discretizebank_of(model, dt)
-        out = imm_filter(
-            y, d.A, d.Q, model.H, model.R, Pi, m0, P0, p0.expand(self.num_modes), mask=mask, validate_args=False
-        )
+        out = imm_filter(y, d.A, d.Q, model.H, model.R, Pi, m0, P0, p0.expand(self.num_modes), mask, False, model.noise)
         if validate:  # (the state it ends in: a NaN or Inf there persists into every later step)
             final = (out.log_likelihood, out.mode_probabilities[..., -1, :], out.mode_mean[..., -1, :, :])
-            update = (model.H, out.observed.unsqueeze(-2), out.mode_cov)
+            update = model.noise.update_bound((model.H, out.observed.unsqueeze(-2), out.mode_cov))
             check_outcome(final, (out.mode_cov,), d, y, dt, bank_of(model.modes)[0], model.R, update)
         return out
 
     def smooth(self, out: IMMResult) -> IMMSmootherResult:
         """Fixed-interval IMM smoother over the filter output (Kim 1994, with the A_j, Q_j and
         Pi of each step stored in ``out``): :func:`~torchsde_lti.filters.imm_smoother.imm_smoother`.
-        Returns mean (..., T, n), cov, mode_probabilities (..., T, M), mode_mean, mode_cov."""
+        Returns mean (..., T, n), cov, mode_probabilities (..., T, M), mode_mean, mode_cov (not for a t)."""
+        if isinstance(self.noise, StudentT):
+            raise ValueError("IMMFilter.smooth: Kim's IMM smoother is Gaussian; not for noise=StudentT")
         return imm_smoother(out)
 
     # ------------------------------------------------------------------ online
@@ -423,11 +428,11 @@ class IMMFilter(ValidateArgs, nn.Module):
             check_model_values(model, dt, state, y=y)
         d, Pi = self._discretizebank_of(model, dt.unsqueeze(-1))
         A, Q, Pi = d.A.select(-4, 0), d.Q.select(-4, 0), Pi.select(-3, 0)
-        new, out = imm_step(state, y, A, Q, Pi, H, R, mask)
+        new, out = imm_step(state, y, A, Q, Pi, H, R, mask, model.noise)
         if validate:
             final, update = (
                 (out.log_likelihood, new.mode_prob, new.mode_mean),
-                (H, out.observed.unsqueeze(-2), new.mode_cov),
+                model.noise.update_bound((H, out.observed.unsqueeze(-2), new.mode_cov)),
             )
             check_outcome(final, (new.mode_cov,), (A, Q), y, dt, bank_of(model.modes)[0], R, update)
         return new, out
@@ -440,7 +445,7 @@ class IMMFilter(ValidateArgs, nn.Module):
         if self.validate_args:
             check_model_values(model, dt, state)
         d, Pi = self._discretizebank_of(model, dt.unsqueeze(-1))
-        return imm_predict_state(state, d.A.select(-4, 0), d.Q.select(-4, 0), Pi.select(-3, 0))
+        return imm_predict_state(state, d.A.select(-4, 0), d.Q.select(-4, 0), Pi.select(-3, 0), model.noise)
 
     def _online_args(self, state: IMMState, dt: Tensor | float) -> tuple[IMMModel, IMMState, Tensor]:
         """The evaluated model (:meth:`imm_model`; without gradients once per parameter
@@ -483,11 +488,12 @@ class IMMFilter(ValidateArgs, nn.Module):
         if self.validate_args:
             check_model_values(model, dt, IMMState(prob, mean, cov))
         d, Pi = self._discretizebank_of(model, dt)  # (..., K, M, n, n), (..., K, M, M)
-        p: IMMPrediction = imm_predict(prob, mean, cov, d.A, d.Q, Pi)
+        spread = model.noise.spread()  # (a Student-t's scale matrices mix as covariances)
+        p: IMMPrediction = imm_predict(prob, mean, cov, d.A, d.Q, Pi, spread)
         ym = (H @ p.mode_mean.unsqueeze(-1)).squeeze(-1)  # (..., K, M, m)
         S = H @ p.mode_cov @ H.mT + R
         S = sym(S)
-        obs_mean, obs_cov = combine(p.mode_probabilities, ym, S)
+        obs_mean, obs_cov = combine(p.mode_probabilities, ym, S, None if spread is None else spread.unsqueeze(-1))
         return IMMForecast(p.mode_probabilities, p.mode_mean, p.mode_cov, p.mean, p.cov, obs_mean, obs_cov, ym, S)
 
     def extra_repr(self) -> str:

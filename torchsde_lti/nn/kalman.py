@@ -77,6 +77,7 @@ from torchsde_lti.nn._kalman_online import KalmanOnline, model_batches, state_ba
 from torchsde_lti.nn._online import Series, check_batches, discretize_steps, model_series, online_state
 from torchsde_lti.nn._register import register_tensor
 from torchsde_lti.nn._validate import check_outcome, check_values
+from torchsde_lti.nn.noise import NoiseOption, noise_option
 from torchsde_lti.nn.parametrizations import PositiveDefinite
 from torchsde_lti.nn.sde import LTISDE, SDEMatrices
 
@@ -159,6 +160,11 @@ class KalmanFilter(KalmanOnline):
         validate_args: check the values of every call's arguments and the current
             parameters (one fused test; shapes are always checked); None: the class default
             :attr:`default_validate_args` (True).
+        noise: :class:`~torchsde_lti.Gaussian` (None, the default) or
+            :class:`~torchsde_lti.StudentT` (Roth et al.'s Student-t filter, ν learned with
+            ``learn=True``: R, P0 and every covariance of the results and forecasts are then
+            the t's scale matrices, the log-likelihood the exact Student-t predictive; the
+            smoother is the RTS smoother of the scale matrices; not with ``algorithm="scan"``).
     """
 
     def __init__(
@@ -176,6 +182,7 @@ class KalmanFilter(KalmanOnline):
         unique_dt: bool = False,
         method: str | None = None,
         validate_args: bool | None = None,
+        noise: NoiseOption | None = None,
     ) -> None:
         super().__init__()
         self.method = None if method is None else resolve_method(method)
@@ -191,6 +198,7 @@ class KalmanFilter(KalmanOnline):
             raise ValueError(f"diffuse_variance must be a finite positive variance, got {diffuse_variance!r}")
         dtype, device = sde.dtype, sde.device
         n = sde.state_dim
+        self.noise = noise_option(noise, dtype, device)
 
         H = as_float_tensor(H, "H", dtype, device).detach().clone()
         check_matrix(H, "H", cols=n)
@@ -365,13 +373,13 @@ class KalmanFilter(KalmanOnline):
         d = self._discretize(dt, mats, series_layout=algorithm != "scan")
         G = d.G if u is not None else None
         args = FilterInputs(y, d.A, d.Q, H, R, m0, P0, G, u, mask, D)
-        out = run_filter(args, algorithm, validate_args=False, compiled_loop=compiled_loop)
+        out = run_filter(args, algorithm, validate_args=False, compiled_loop=compiled_loop, noise=self.noise.model())
         if validate:
             # the state it ends in, as the online step checks its new state: a NaN or Inf persists
             # into every later step and the log-likelihood sums every step's, so a series of
             # online steps raises where the sequence filter of the reports seen so far raises
             last = out.cov[..., -1, :, :]
-            update = (H_model, out.observed[..., -1, :], last)
+            update = self.noise.model().update_bound((H_model, out.observed[..., -1, :], last))
             check_outcome((out.log_likelihood, out.mean[..., -1, :]), (last,), d, y, dt, mats.F, R_model, update)
         return out
 

@@ -32,7 +32,14 @@ from lightning.pytorch import LightningModule
 from torch import Tensor
 
 from torchsde_lti.data.tracks import TrackBatch
-from torchsde_lti.evaluation import filter_errors, filter_values, flat_values, hpd_inside, masked_gaussian_nll
+from torchsde_lti.evaluation import (
+    filter_errors,
+    filter_values,
+    flat_values,
+    hpd_inside,
+    masked_gaussian_nll,
+    predictive_dof,
+)
 from torchsde_lti.nn import NonFiniteLikelihoodError
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
@@ -244,7 +251,7 @@ class KalmanFilterModule(LightningModule):
         with torch.no_grad():
             w, mu, S = self._predictive(out, info["u"])
             err = torch.where(observed, (w.unsqueeze(-1) * mu).sum(-2) - y, torch.zeros_like(y))
-            sums = {"rmse": ((err**2).sum(), observed.sum()), "cover2s": _coverage(y, w, mu, S, observed)}
+            sums = {"rmse": ((err**2).sum(), observed.sum()), "cover2s": _coverage(y, w, mu, S, observed, self._dof())}
             if x is not None and x.shape[-1] == out.mean.shape[-1]:  # the truth's state (same kind of model)
                 valid = torch.ones_like(x[..., 0], dtype=torch.bool) if mask is None else mask
                 sums["state_rmse"] = ((((out.mean - x) ** 2).sum(-1) * valid).sum(), valid.sum() * x.shape[-1])
@@ -342,6 +349,10 @@ class KalmanFilterModule(LightningModule):
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         self.skipped_steps = int(checkpoint.get("skipped_steps", 0))
 
+    def _dof(self) -> Tensor | None:
+        """ν of the filter's Student-t predictive (``noise=tl.StudentT``); None for a Gaussian."""
+        return predictive_dof(self.kf) if isinstance(self.kf, (KalmanFilter, IMMFilter)) else None
+
     def configure_optimizers(self) -> Any:
         if self.optimizer_factory is None:
             raise ValueError("KalmanFilterModule needs an optimizer (a partial, e.g. Hydra `_partial_: true`)")
@@ -352,11 +363,13 @@ class KalmanFilterModule(LightningModule):
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
 
 
-def _coverage(y: Tensor, w: Tensor, mu: Tensor, S: Tensor, observed: Tensor) -> tuple[Tensor, Tensor]:
+def _coverage(
+    y: Tensor, w: Tensor, mu: Tensor, S: Tensor, observed: Tensor, dof: Tensor | None
+) -> tuple[Tensor, Tensor]:
     """(reports inside, reports scored) of the 2σ coverage: every report after its window's first
     (which holds the prior) with a coordinate observed, tested in its observed coordinates
     against the predictive mixture (w, mu, S) by :func:`~torchsde_lti.evaluation.hpd_inside`
-    (one pattern of observed coordinates at a time)."""
+    (one pattern of observed coordinates at a time; ``dof``: ν of a Student-t filter's predictive)."""
     scored = observed.any(-1)
     scored[..., 0] = False
     m = y.shape[-1]
@@ -365,6 +378,6 @@ def _coverage(y: Tensor, w: Tensor, mu: Tensor, S: Tensor, observed: Tensor) -> 
     for code in torch.unique(pattern[scored]).tolist():
         rows = scored & (pattern == code)
         idx = torch.tensor([i for i in range(m) if code >> i & 1], device=y.device)
-        sel = hpd_inside(y[rows][:, idx], w[rows], mu[rows][..., idx], S[rows][..., idx, :][..., idx])
+        sel = hpd_inside(y[rows][:, idx], w[rows], mu[rows][..., idx], S[rows][..., idx, :][..., idx], dof=dof)
         inside = inside + sel.sum()
     return inside, scored.sum()
