@@ -401,3 +401,14 @@ def test_training_through_the_config_learns_dof_and_reloads(tmp_path):
     torch.testing.assert_close(
         run.filter.noise.parametrizations.dof.original, ckpt["kf.noise.parametrizations.dof.original"]
     )
+
+
+def test_the_gaussian_k_step_loss_refuses_a_t_filter():
+    """The k-step term is a Gaussian density: with noise=StudentT it would score the wrong
+    predictive without a word, so the module says which setting to change."""
+    from torchsde_lti.training import KalmanFilterModule
+
+    kf = _imm(tl.StudentT(4.0))
+    with pytest.raises(ValueError, match="k_step_weight=0"):
+        KalmanFilterModule(kf, k_step=2, k_step_weight=0.3)
+    assert KalmanFilterModule(kf, k_step=2, k_step_weight=0.0).k_step_weight == 0.0

@@ -43,6 +43,7 @@ from torchsde_lti.evaluation import (
 from torchsde_lti.nn import NonFiniteLikelihoodError
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
+from torchsde_lti.nn.noise import StudentT
 from torchsde_lti.nn.parametrizations import reset_default_floors
 
 __all__ = ["KalmanFilterModule", "imm_k_step_nll"]
@@ -132,6 +133,11 @@ class KalmanFilterModule(LightningModule):
             raise ValueError(
                 f"the k-step loss (k_step={k_step}, k_step_weight={k_step_weight}) needs a KalmanFilter "
                 f"or an IMMFilter, got {type(kf).__name__}; set k_step=0"
+            )
+        if max(ks) > 0 and k_step_weight > 0 and isinstance(getattr(kf, "noise", None), StudentT):
+            raise ValueError(
+                f"the k-step loss (k_step={k_step}, k_step_weight={k_step_weight}) is a Gaussian density and the "
+                "filter's observation noise is a Student t: set module.k_step_weight=0"
             )
         k_step = ks if isinstance(k_step, Sequence) else ks[0]
         # plain containers only, so checkpoints load with torch.load(weights_only=True)
