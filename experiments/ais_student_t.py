@@ -50,7 +50,7 @@ def train(sets: list[str], runs: Path) -> None:
     for s in sets:
         name = best_single(s)
         run = runs / f"{name}-t"
-        if (run / "metrics.json").is_file():
+        if ais_study.completed(run):
             continue
         cmd = [sys.executable, "-m", "torchsde_lti.train", *ais_study.RUNS[s][name], *T_OVERRIDES]
         cmd += ["plots=false", f"hydra.run.dir={run}"]

@@ -116,6 +116,13 @@ def set_tracks(train_set: str, split: str) -> Tracks:
 # --------------------------------------------------------------------------- training + cards
 
 
+def completed(run: Path) -> bool:
+    """Whether ``run`` finished: its card says "completed" (a run writes metrics.json when it
+    starts, so an interrupted one has the file too)."""
+    card = run / "metrics.json"
+    return card.is_file() and json.loads(card.read_text()).get("status") == "completed"
+
+
 def train(sets: list[str], runs_dir: Path) -> None:
     """Launch the runs whose card is missing (one process each, the command a user types), ship them."""
     for train_set in sets:
@@ -123,7 +130,7 @@ def train(sets: list[str], runs_dir: Path) -> None:
             if (registry.FILES / f"{name}.json").is_file():
                 continue
             run = runs_dir / name
-            if not (run / "metrics.json").is_file():
+            if not completed(run):
                 cmd = [sys.executable, "-m", "torchsde_lti.train", *overrides, "plots=false", f"hydra.run.dir={run}"]
                 print("$", " ".join(cmd[1:]), flush=True)
                 subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
