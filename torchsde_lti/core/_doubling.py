@@ -79,13 +79,14 @@ def halvings(reach: Tensor) -> Tensor:
 
 def schedule(count: Tensor) -> tuple[Tensor | None, list[int] | None]:
     """(order, ends) of the step counts (N,) for :func:`run_steps`: eagerly the order that sorts
-    them descending (None for one element) and, for step j, the number of elements with count > j
+    them descending (None where every element has the same count) and, for step j, the number of elements with count > j
     (one read of values); while traced (None, None): every element masked through the most."""
     if tracing():
         return None, None
     with torch.no_grad():
-        order = torch.argsort(count, descending=True, stable=True) if count.numel() > 1 else None
         tally: list[int] = torch.bincount(count).tolist() if count.numel() else [0]
+        equal = tally[-1] == count.numel()  # one count for all (a nilpotent F's 0): no order to sort into
+        order = None if equal else torch.argsort(count, descending=True, stable=True)
     ends, left = [], count.numel()
     for k in tally[:-1]:
         left -= k
