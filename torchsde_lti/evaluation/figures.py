@@ -63,19 +63,14 @@ def _moving_tracks(y: Tensor, mask: Tensor, k: int) -> list[int]:
     return torch.argsort(reach, descending=True, stable=True)[:k].tolist()
 
 
-def _true_observation(batch: dict[str, Any], truth: Any) -> Tensor | None:
-    """H_true x of the true states, when the data carry them: the truth's own observation
-    matrix, whose state may differ from the learner's (``model=cv truth=singer``)."""
-    x = batch["x"]
+def _true_observation(x: Tensor | None, H_true: Tensor) -> Tensor | None:
+    """H_true x of the true states x (B, T, n_true), when the data carry them and H_true's
+    state is theirs (the truth's own observation matrix may differ from the learner's:
+    ``model=cv truth=singer``)."""
     if x is None:
         return None
-    H_true = truth.get("H") if truth else None
-    if H_true is None:
-        H_true = batch["H"]
     H_true = H_true.detach().to(x.dtype)
-    if H_true.shape[-1] != x.shape[-1]:
-        return None
-    return x @ H_true.mT
+    return x @ H_true.mT if H_true.shape[-1] == x.shape[-1] else None
 
 
 def _ellipse(ax: Any, center: Tensor, cov: Tensor, color: str) -> None:
@@ -100,11 +95,11 @@ def _frame(ax: Any, paths: list[Tensor]) -> None:
     ax.set_aspect("equal", adjustable="box")
 
 
-def _map_plot(out_dir: Path, batch: dict[str, Any], tracks: list[int], truth: Any, metres: bool) -> Path:
+def _map_plot(out_dir: Path, batch: dict[str, Any], tracks: list[int], metres: bool) -> Path:
     """map.png: one panel per track, east/north (the first two observed components)."""
     plt = pyplot()
     H, out, sm = batch["H"], batch["out"], batch["smoothed"]
-    true = _true_observation(batch, truth)
+    true = batch["true"]
     cols = min(len(tracks), 2)
     rows = math.ceil(len(tracks) / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.6 * rows), squeeze=False)
@@ -137,13 +132,13 @@ def _map_plot(out_dir: Path, batch: dict[str, Any], tracks: list[int], truth: An
     return save_figure(fig, out_dir / "map.png")
 
 
-def _time_plot(out_dir: Path, batch: dict[str, Any], b: int, truth: Any) -> Path:
+def _time_plot(out_dir: Path, batch: dict[str, Any], b: int) -> Path:
     """track.png: one track's observation against time, filtered and smoothed means ±2σ."""
     plt = pyplot()
     H, out, sm = batch["H"], batch["out"], batch["smoothed"]
     T = int(batch["mask"][b].sum())
     t = torch.cumsum(batch["dt"][b, :T], 0)
-    true = _true_observation(batch, truth)
+    true = batch["true"]
     m = batch["y"].shape[-1]
     fig, axes = plt.subplots(m, 1, figsize=(8, 2.4 * m), sharex=True, squeeze=False)
     for i, ax in enumerate(axes[:, 0]):
@@ -282,13 +277,13 @@ def track_figures(
         smooth = getattr(kf, "smooth", None)
         sm = smooth(out) if smooth is not None else None
     H = kf.modes()[0].H.detach().to(y.dtype)  # the combined mean through the first mode's H
-    batch = {"y": y, "dt": dt, "mask": mask, "u": u, "x": x, "out": out, "smoothed": sm, "H": H}
-    truth = {"H": H_true} if H_true is not None else None
+    true = _true_observation(x, H if H_true is None else H_true)
+    batch = {"y": y, "dt": dt, "mask": mask, "out": out, "smoothed": sm, "H": H, "true": true}
     tracks = _moving_tracks(y, mask, MAP_TRACKS)
     if y.shape[-1] >= 2:
-        paths = [_map_plot(out_dir, batch, tracks, truth, metres)]
+        paths = [_map_plot(out_dir, batch, tracks, metres)]
     else:
-        paths = [_time_plot(out_dir, batch, tracks[0], truth)]
+        paths = [_time_plot(out_dir, batch, tracks[0])]
     if isinstance(kf, IMMFilter):
         paths.append(_modes_plot(out_dir, batch, tracks, list(kf.mode_names), metres))
     if u is None:
