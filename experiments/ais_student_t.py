@@ -99,6 +99,11 @@ def score(sets: list[str], runs: Path, samples: int) -> dict[str, Any]:
     return out
 
 
+def _interval(x: dict[str, float], digits: int) -> str:
+    """A paired difference and its interval: ``+d [lo, hi]``."""
+    return f"{x['delta']:+.{digits}f} [{x['lo']:+.{digits}f}, {x['hi']:+.{digits}f}]"
+
+
 def markdown(res: dict[str, Any], cmd: str, seconds: float, load: str) -> str:
     lines = [
         "# Gaussian vs Student-t observation noise: best single per train set, validation splits",
@@ -117,7 +122,7 @@ def markdown(res: dict[str, Any], cmd: str, seconds: float, load: str) -> str:
     for cell, r in res["cells"].items():
         g, gc, t, d = r["gaussian"], r["gaussian_calibrated"], r["student_t"], r["t_minus_gaussian"]["nll"]
         lines.append(
-            f"| {cell} | {r['model']} | {g['nll']:.3f} | {t['nll']:.3f} | {d['delta']:+.3f} [{d['lo']:+.3f}, {d['hi']:+.3f}] "
+            f"| {cell} | {r['model']} | {g['nll']:.3f} | {t['nll']:.3f} | {_interval(d, 3)} "
             f"| {g['nll_moving']:.3f} | {t['nll_moving']:.3f} "
             f"| {100 * g['cover2s']:.1f} % | {100 * gc['cover2s']:.1f} % | {100 * t['cover2s']:.1f} % "
             f"| {100 * gc['cover2s_moving']:.1f} % | {100 * t['cover2s_moving']:.1f} % "
@@ -136,15 +141,10 @@ def markdown(res: dict[str, Any], cmd: str, seconds: float, load: str) -> str:
         ]
         for cell, r in g0_cells.items():
             g1, d = r["gaussian_one_step"], r["t_minus_gaussian_one_step"]
-
-            def iv(key: str, digits: int, d: dict[str, Any] = d) -> str:
-                x = d[key]
-                return f"{x['delta']:+.{digits}f} [{x['lo']:+.{digits}f}, {x['hi']:+.{digits}f}]"
-
             lines.append(
-                f"| {cell} | {g1['nll']:.3f} | {iv('nll', 3)} | {100 * g1['cover2s']:.1f} % "
+                f"| {cell} | {g1['nll']:.3f} | {_interval(d['nll'], 3)} | {100 * g1['cover2s']:.1f} % "
                 f"| {100 * g1['cover2s_moving']:.1f} % | {g1['fc_rmse_5']:.0f} | {g1['fc_rmse_15']:.0f} "
-                f"| {iv('fc_rmse_5', 0)} | {iv('fc_rmse_10', 0)} | {iv('fc_rmse_15', 0)} |"
+                f"| {_interval(d['fc_rmse_5'], 0)} | {_interval(d['fc_rmse_10'], 0)} | {_interval(d['fc_rmse_15'], 0)} |"
             )
     return "\n".join(lines) + "\n"
 
