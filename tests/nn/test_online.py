@@ -317,7 +317,7 @@ def test_terminating_series_equals_closed_form_and_van_loan():
     from torchsde_lti.nn._online import model_series
 
     cv = tl.models.constant_velocity(dim=1, q=0.7, dtype=F64).matrices()
-    series = model_series(*cv, index=2)
+    series = model_series(*cv)
     assert series is not None
     for h in (0.0, 0.3, 1.7, 250.0):
         A, Q, G = series(torch.tensor(h, dtype=F64))
@@ -342,8 +342,8 @@ def test_terminating_series_equals_closed_form_and_van_loan():
     few = torch.rand(3, 5, generator=g, dtype=F64) * 4.0  # batch-first results
     few[0, 0] = 0.0
     many = torch.rand(2, 100, generator=g, dtype=F64) * 4.0
-    for mats, index in models:
-        series = model_series(*mats, index=index)
+    for mats, _ in models:  # (the structural index: the series finds it itself)
+        series = model_series(*mats)
         assert series is not None
         for dt in (few, many):
             A, Q, G = series(dt)
@@ -386,7 +386,7 @@ def test_model_series_of_one_parameter_set():
             np.testing.assert_allclose(Q[k].numpy(), E[:n, n:] @ E[:n, :n].T, rtol=1e-8, atol=1e-12)
     cv = tl.models.constant_velocity(dim=1, dtype=F64).matrices()
     with torch.no_grad():
-        series = model_series(*cv, index=2)
+        series = model_series(*cv)
         assert isinstance(series, SharedSeries) and bool(series.nilpotent)
     assert model_series(cv.F.expand(3, 2, 2), cv.L, cv.Qc, None) is None
 
@@ -408,7 +408,7 @@ def test_structural_series_for_integrator_chains():
         mats = sde.matrices()
         with torch.no_grad():
             by_values = discretization_series(mats.F, noise_covariance(mats.L, mats.Qc), None)
-        by_structure = model_series(*mats, index=order)
+        by_structure = model_series(*mats)
         assert by_values is not None and by_structure is not None
         dt = torch.tensor([0.0, 0.4, 3.0], dtype=F64)
         for got, want in zip(by_structure(dt), by_values(dt)):
@@ -431,7 +431,7 @@ def test_series_keeps_a_finite_transition_over_gaps_beyond_the_float_range_of_it
     for b in (1, 300):
         dt = torch.logspace(6, 12, b, dtype=dtype) if b > 1 else torch.tensor([1e9], dtype=dtype)
         with torch.no_grad():
-            series = model_series(*m, index=3)
+            series = model_series(*m)
             assert series is not None
             A, _, _ = series(dt)
             ref = tl.discretize(m.F, m.L, m.Qc, dt, validate_args=False)

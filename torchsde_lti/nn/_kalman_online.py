@@ -317,7 +317,7 @@ class KalmanOnline(ValidateArgs, nn.Module):
         structure: no value read). What :meth:`step` reads; pass it as ``model=`` to step with
         a snapshot (:class:`~torchsde_lti.OnlineStep`)."""
         mats = self.sde.matrices()
-        series = model_series(*mats, index=self.sde.structural_nilpotency())
+        series = model_series(*mats)
         return OnlineModel(mats, self.H, self.R, self.D, series, self.noise.model())
 
     def _step_model(

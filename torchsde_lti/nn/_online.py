@@ -101,16 +101,13 @@ def online_state(state: object, dt: Tensor | float, F: Tensor) -> tuple[KalmanSt
     return KalmanState(mean, cov), as_float_tensor(dt, "dt", dtype, device)
 
 
-def model_series(F: Tensor, L: Tensor, Qc: Tensor, B: Tensor | None, index: int | None = None) -> Series | None:
+def model_series(F: Tensor, L: Tensor, Qc: Tensor, B: Tensor | None) -> Series | None:
     """Core's :func:`~torchsde_lti.core.discretization.discretization_series` of a model's
     matrices (F (n, n), L (n, s), Qc (s, s), B (n, p) or None, no batch dims): the
     dt-independent part of its exact discretisation (a nilpotent F's terminating series, else
     the series terms of the doubling); None for a batch of parameters (those take core's
-    :func:`~torchsde_lti.core.discretize`).
-
-    ``index``: F's nilpotency index when the model's structure fixes it (F^index = 0 whatever
-    the parameter values: an integrator chain, :meth:`~torchsde_lti.LTISDE.structural_nilpotency`).
-    No value is read (no synchronisation; the same series eager, compiled and exported)."""
+    :func:`~torchsde_lti.core.discretize`). A nilpotent F is found on the device: no value is
+    read (no synchronisation; the same series eager, compiled and exported)."""
     if any(t is not None and t.dim() != 2 for t in (F, L, Qc, B)):
         return None
     return discretization_series(F, noise_covariance(L, Qc), B)

@@ -291,9 +291,9 @@ class IMMFilter(ValidateArgs, nn.Module):
     def imm_model(self) -> IMMModel:
         """:class:`IMMModel`: what a call reads of the filter, each parametrisation evaluated
         once; each mode's discretisation series as a :class:`~torchsde_lti.KalmanFilter` of
-        that mode forms it (F's nilpotency from the model's structure: no value read)."""
+        that mode forms it (a nilpotent F is found on the device: no value read)."""
         modes = tuple(sde.matrices() for sde in self.models)
-        series = tuple(model_series(*mats, index=sde.structural_nilpotency()) for mats, sde in zip(modes, self.models))
+        series = tuple(model_series(*mats) for mats in modes)
         H, R = self._obs_model()
         rates = self.rates
         chain = discretization_series(rates.double(), None, None)

@@ -407,7 +407,7 @@ class KalmanFilter(KalmanOnline):
         if mats is None:
             mats = self.sde.matrices()
         if series is None:
-            series = model_series(*mats, index=self.sde.structural_nilpotency())
+            series = model_series(*mats)
         d = discretize_steps(mats, dt, self.discretization_method, series, series_layout, self.unique_dt)
         self._check_van_loan_noise(d.Q)
         return d

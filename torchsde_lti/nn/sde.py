@@ -270,8 +270,8 @@ class LTISDE(ValidateArgs, nn.Module):
     def structural_nilpotency(self) -> int | None:
         """F's nilpotency index k (F^k = 0) when the model's structure fixes it whatever the
         parameter values (an integrator chain), else None (the default: a free F may be
-        trained away from nilpotent). With it, traced programs (torch.export) discretise by
-        F's terminating series without reading F's values."""
+        trained away from nilpotent). A statement about the model: the discretisation finds a
+        nilpotent F itself, on the device, from F's values."""
         return None
 
     def prior_covariance(
