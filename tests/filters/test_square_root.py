@@ -13,9 +13,9 @@ import torch
 import torchsde_lti as tl
 from tests.reference import cv_matrices, random_problem, reference_batch, to_torch
 from torchsde_lti import models as M
-from torchsde_lti.core.linalg import cholesky
 from torchsde_lti.data import simulate
 from torchsde_lti.filters import kalman_filter, rts_smoother
+from torchsde_lti.filters.layout import psd_cholesky
 
 F64 = torch.float64
 FIELDS = ("mean", "cov", "pred_mean", "pred_cov")
@@ -108,13 +108,14 @@ def test_semidefinite_cholesky_reproduces_singular_and_badly_scaled_matrices():
     _, Q, _ = cv_matrices(np.array([5000.0, 0.0, 1e-3]), q=10.0)
     v = np.array([1.0, -2.0, 0.5, 3.0])
     X = torch.as_tensor(np.concatenate([Q, np.outer(v, v)[None]]))
-    L = cholesky(X, semidefinite=True)
+    L, d = psd_cholesky(X, 1)
     assert torch.isfinite(L).all()
     assert torch.equal(L, torch.tril(L))
     err = (L @ L.mT - X).abs().amax((-2, -1))
     scale = X.abs().amax((-2, -1)).clamp_min(1.0)
     assert (err / scale).max() < 1e-12
     assert torch.equal(L[1], torch.zeros(4, 4, dtype=F64))
+    assert torch.equal(d[1], torch.zeros(4, dtype=F64))  # (every pivot of Q = 0 dropped)
 
 
 def test_gradcheck_float64():

@@ -1,8 +1,7 @@
 r"""Small dense kernels: batch-first (``(..., k, k)``: :func:`sym`, :func:`noise_covariance`,
-:func:`matvec`, and for the filters' information forms :func:`cholesky`, :func:`solve_lower`,
-:func:`solve_upper_t`, :func:`cho_solve`, unrolled over k ≤ :data:`UNROLLED_MAX_DIM`, LAPACK
-beyond) and batch-last (``(r, c, *batch)``, the batch the contiguous inner dimension:
-:func:`to_batch_last`, :func:`bl_matmul`)."""
+:func:`matvec`) and batch-last (``(r, c, *batch)``, the batch the contiguous inner dimension:
+:func:`bl_matmul`; the filters' factorisations and solves are in
+:mod:`torchsde_lti.filters.layout`)."""
 
 from __future__ import annotations
 
@@ -12,18 +11,10 @@ from torch.autograd import forward_ad
 
 __all__ = [
     "bl_matmul",
-    "cho_solve",
-    "cholesky",
     "matvec",
     "noise_covariance",
-    "solve_lower",
-    "solve_upper_t",
     "sym",
-    "to_batch_last",
 ]
-
-#: Matrices up to this size take the unrolled Cholesky factor and triangular solves.
-UNROLLED_MAX_DIM = 4
 
 
 def sym(P: Tensor) -> Tensor:
@@ -36,95 +27,9 @@ def noise_covariance(L: Tensor, Qc: Tensor) -> Tensor:
     return sym(L @ Qc @ L.mT)
 
 
-def cholesky(S: Tensor, semidefinite: bool = False) -> Tensor:
-    r"""Lower Cholesky factor L (L Lᵀ = S) of symmetric S (..., k, k): positive-definite S, or
-    with ``semidefinite`` any PSD S, singular allowed.
-
-    Cholesky–Banachiewicz unrolled over k, vectorised over the batch (torch.linalg.cholesky
-    for k > :data:`UNROLLED_MAX_DIM` when not ``semidefinite``). Semi-definite: a pivot
-    ``d_j ≤ k · eps · S_jj`` (zero to the rounding of its own diagonal entry, so badly scaled
-    matrices keep their small pivots) gives a zero column, with gradient 0; no jitter.
-    """
-    k = S.shape[-1]
-    if k > UNROLLED_MAX_DIM and not semidefinite:
-        return torch.linalg.cholesky(S)
-    zero = torch.zeros_like(S[..., 0, 0])
-    if semidefinite:
-        rel = k * torch.finfo(S.dtype).eps
-        one = torch.ones((), dtype=S.dtype, device=S.device)
-    rows: list[list[Tensor]] = [[] for _ in range(k)]  # rows[i][j] = L[i, j] for j <= i
-    for j in range(k):
-        d = S[..., j, j]
-        for t in range(j):
-            d = d - rows[j][t] * rows[j][t]
-        if semidefinite:
-            pos = d > rel * S[..., j, j].detach()
-            ljj = torch.where(pos, torch.sqrt(torch.where(pos, d, one)), zero)
-            div = torch.where(pos, ljj, one)
-        else:
-            ljj = div = torch.sqrt(d)
-        rows[j].append(ljj)
-        for i in range(j + 1, k):
-            v = S[..., i, j]
-            for t in range(j):
-                v = v - rows[i][t] * rows[j][t]
-            rows[i].append(torch.where(pos, v / div, zero) if semidefinite else v / div)
-    full = [[rows[i][j] if j <= i else zero for j in range(k)] for i in range(k)]
-    return torch.stack([torch.stack(r, dim=-1) for r in full], dim=-2)
-
-
-def solve_lower(L: Tensor, B: Tensor) -> Tensor:
-    """X with ``L X = B``; L (..., k, k) lower triangular, B (..., k, r) -> X (..., k, r)."""
-    k = L.shape[-1]
-    if k > UNROLLED_MAX_DIM:
-        return torch.linalg.solve_triangular(L, B, upper=False)
-    xs: list[Tensor] = []
-    for i in range(k):
-        v = B[..., i, :]
-        for j in range(i):
-            v = v - L[..., i, j, None] * xs[j]
-        xs.append(v / L[..., i, i, None])
-    return torch.stack(xs, dim=-2)
-
-
-def solve_upper_t(L: Tensor, B: Tensor) -> Tensor:
-    """X with ``Lᵀ X = B``; L (..., k, k) lower triangular, B (..., k, r) -> X (..., k, r)."""
-    k = L.shape[-1]
-    if k > UNROLLED_MAX_DIM:
-        return torch.linalg.solve_triangular(L.mT, B, upper=True)
-    xs: list[Tensor | None] = [None] * k
-    for i in reversed(range(k)):
-        v = B[..., i, :]
-        for j in range(i + 1, k):
-            x = xs[j]
-            assert x is not None
-            v = v - L[..., j, i, None] * x
-        xs[i] = v / L[..., i, i, None]
-    return torch.stack([x for x in xs if x is not None], dim=-2)
-
-
-def cho_solve(L: Tensor, B: Tensor, semidefinite: bool = False) -> Tensor:
-    """X with ``(L Lᵀ) X = B`` from the Cholesky factor L (..., k, k); B (..., k, r).
-
-    ``semidefinite``: L from :func:`cholesky` ``(S, semidefinite=True)`` of a singular S: a
-    zero pivot's component of X is 0 (X = S⁻ B for a generalised inverse S⁻, S S⁻ S = S;
-    the solution where B lies in the range of S)."""
-    if not semidefinite:
-        return solve_upper_t(L, solve_lower(L, B))
-    kept = (torch.diagonal(L, dim1=-2, dim2=-1) > 0).to(L.dtype)
-    L = L + torch.diag_embed(1.0 - kept)  # a zero column of L: unit pivot, then its component zeroed
-    return solve_upper_t(L, solve_lower(L, B) * kept[..., None]) * kept[..., None]
-
-
 def matvec(M: Tensor, v: Tensor) -> Tensor:
     """``M v``: M (..., r, c), v (..., c) -> (..., r) (batch dims broadcast)."""
     return (M @ v.unsqueeze(-1)).squeeze(-1)
-
-
-def to_batch_last(x: Tensor, event_ndim: int) -> Tensor:
-    """``(*batch, *event) -> (*event, *batch)``, contiguous."""
-    nb = x.dim() - event_ndim
-    return x.permute(*range(nb, x.dim()), *range(nb)).contiguous()
 
 
 def _fma(a: Tensor, b: Tensor, c: Tensor | None, alpha: float) -> Tensor:

@@ -57,8 +57,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchsde_lti.core.linalg import cho_solve, cholesky, matvec, solve_lower, sym
+from torchsde_lti.core.linalg import matvec, sym
 from torchsde_lti.filters.imm import IMMResult, combine
+from torchsde_lti.filters.layout import lower_solve, psd_cholesky, psd_solve
 from torchsde_lti.filters.results import serializable
 
 __all__ = ["IMMSmootherResult", "imm_smoother"]
@@ -112,7 +113,7 @@ def _report_information(result: IMMResult, H: Tensor, R: Tensor) -> tuple[Tensor
     eye = torch.eye(R.shape[-1], dtype=R.dtype, device=R.device)
     R = torch.where(both, R, eye)
     y = result.mode_innovation + matvec(H, result.mode_pred_mean)  # (..., T, M, m): 0 where unobserved
-    X = cho_solve(cholesky(R), H)  # R⁻¹ H
+    X = psd_solve(R, H, R.dim() - 2)  # R⁻¹ H
     return sym(H.mT @ X), matvec(X.mT, y)
 
 
@@ -125,14 +126,13 @@ def _message_factor(Lam: Tensor, eta: Tensor, A: Tensor, Q: Tensor) -> tuple[Ten
     the reports fix every component), z₀ = C⁻¹ η (0 in a zero pivot's component), S = I + Cᵀ Q C
     = L_S L_Sᵀ (≥ I): G = Aᵀ C L_S⁻ᵀ and z = L_S⁻¹ z₀. No inverse of Λ, Q or A; Λ' is PSD by
     construction, and ``exp(−½ xᵀ Λ' x + η'ᵀ x) = exp(−½ |Gᵀ x − z|²)`` up to a constant."""
-    n = Lam.shape[-1]
+    n, at = Lam.shape[-1], Lam.dim() - 2
     eye = torch.eye(n, dtype=Lam.dtype, device=Lam.device)
-    C = cholesky(Lam, semidefinite=True)
-    kept = (torch.diagonal(C, dim1=-2, dim2=-1) > 0).to(C.dtype)
-    z0 = solve_lower(C + torch.diag_embed(1.0 - kept), eta.unsqueeze(-1)).squeeze(-1) * kept
-    L_S = cholesky(sym(eye + C.mT @ Q @ C))
-    G = A.mT @ solve_lower(L_S, C.mT).mT  # Aᵀ C L_S⁻ᵀ
-    return G, solve_lower(L_S, z0.unsqueeze(-1)).squeeze(-1)
+    C, d = psd_cholesky(Lam, at)  # (d = 0 at a zero pivot: that component of z₀ is 0)
+    z0 = lower_solve(C, d, eta.unsqueeze(-1), 0)
+    L_S, d_S = psd_cholesky(sym(eye + C.mT @ Q @ C), at)
+    G = A.mT @ lower_solve(L_S, d_S, C.mT, 0).mT  # Aᵀ C L_S⁻ᵀ
+    return G, lower_solve(L_S, d_S, z0, 0).squeeze(-1)
 
 
 def _pair_update(mean: Tensor, cov: Tensor, G: Tensor, z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -142,16 +142,17 @@ def _pair_update(mean: Tensor, cov: Tensor, G: Tensor, z: Tensor) -> tuple[Tenso
     S = I + Gᵀ P G (≥ I), K = P G S⁻¹, m⁺ = m + K (z − Gᵀ m), P⁺ = (I − K Gᵀ) P (I − K Gᵀ)ᵀ + K Kᵀ
     (Joseph form: PSD and ≤ P). Returns (m⁺, P⁺, log Z) with ``log Z = −½ log det S − ½ rᵀ S⁻¹ r``
     (r = z − Gᵀ m): the log of ∫ N(x; m, P) exp(−½ |Gᵀ x − z|²) dx up to a constant of (G, z)."""
-    n = cov.shape[-1]
+    n, at = cov.shape[-1], cov.dim() - 2
     eye = torch.eye(n, dtype=cov.dtype, device=cov.device)
     PG = cov @ G
-    L = cholesky(sym(eye + G.mT @ PG))
-    K = cho_solve(L, PG.mT).mT
+    S = sym(eye + G.mT @ PG)
+    L, d = psd_cholesky(S, at)  # (d_j = 1 / L_jj)
+    K = psd_solve(S, PG.mT, at).mT
     r = z - matvec(G.mT, mean)
     IKG = eye - K @ G.mT
     P = sym(IKG @ cov @ IKG.mT + K @ K.mT)
-    white = solve_lower(L, r.unsqueeze(-1)).squeeze(-1)
-    log_z = -torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1) - 0.5 * (white * white).sum(-1)
+    white = lower_solve(L, d, r.unsqueeze(-1), 0).squeeze(-1)
+    log_z = torch.log(d).sum(-1) - 0.5 * (white * white).sum(-1)
     return mean + matvec(K, r), P, log_z
 
 
