@@ -16,18 +16,9 @@ from typing import Any
 
 from torchsde_lti.evaluation.figures import track_figures
 from torchsde_lti.evaluation.history_figures import history_figures
-from torchsde_lti.nn.imm import IMMFilter
-from torchsde_lti.nn.kalman import KalmanFilter
 from torchsde_lti.training.module import KalmanFilterModule
 
 __all__ = ["epoch_rows", "plot_run"]
-
-
-def _filter(module: KalmanFilterModule) -> KalmanFilter | IMMFilter:
-    kf = module.kf
-    if not isinstance(kf, (KalmanFilter, IMMFilter)):
-        raise TypeError(f"plot_run draws a KalmanFilter's or an IMMFilter's run, got a {type(kf).__name__}")
-    return kf
 
 
 def epoch_rows(metrics_csv: Path) -> list[dict[str, float]]:
@@ -53,9 +44,13 @@ def plot_run(
         datamodule: the run's data (its first validation batch is drawn).
         truth: the simulated truth ({"sde", "R", "H"}) or None.
         metrics_csv: the CSV logger's ``metrics.csv`` (None or missing: no loss / parameter figure).
+
+    Raises:
+        TypeError: the module's filter is neither a KalmanFilter nor an IMMFilter (from
+            :func:`~torchsde_lti.evaluation.track_figures`).
     """
     history = epoch_rows(metrics_csv) if metrics_csv is not None and Path(metrics_csv).is_file() else []
-    kf = _filter(module)
+    kf = module.kf
     paths = history_figures(out_dir, kf, history, truth, module.param_names) if history else []
     y, dt, mask, u, x = module.unpack(next(iter(datamodule.val_dataloader())))
     H_true = truth.get("H") if truth else None
