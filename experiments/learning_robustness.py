@@ -11,7 +11,7 @@ M standard normal) and Qc0 = 1, plus R; Adam (lr 0.05), ``grad_clip_norm`` and t
 non-finite-step skip of the Lightning module reproduced here (a plain loop: 64 tracks fit one
 batch). F is not identifiable from positions (any T with H T⁻¹ = H and T L = L... gives the same
 likelihood), so the reported errors are the raw ``expmF`` error and the identifiable
-``autocov`` error of :func:`torchsde_lti.training.parameter_errors`.
+``autocov`` error of :func:`torchsde_lti.evaluation.parameter_errors`.
 
 Restarts: K runs per seed (restart j perturbs the seed's start with
 :func:`torchsde_lti.training.restart_learner`, jitter 0.5), keeping the best final NLL — what
@@ -31,7 +31,8 @@ import torch
 
 import torchsde_lti as tl
 from torchsde_lti.data import ExponentialDt, simulate_tracks
-from torchsde_lti.training import parameter_errors, restart_learner
+from torchsde_lti.evaluation import parameter_errors
+from torchsde_lti.training import restart_learner
 
 RESULTS = Path(__file__).resolve().parents[1] / "experiments" / "results"
 F64 = torch.float64

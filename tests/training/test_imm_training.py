@@ -17,9 +17,15 @@ from hydra import compose, initialize_config_dir
 
 import torchsde_lti as tl
 from torchsde_lti import models
-from torchsde_lti.evaluation import filter_values, flat_values, identifiability_note, learned_values, parameter_table
+from torchsde_lti.evaluation import (
+    filter_values,
+    flat_values,
+    identifiability_note,
+    imm_k_step_nll,
+    learned_values,
+    parameter_table,
+)
 from torchsde_lti.training import KalmanFilterModule, train
-from torchsde_lti.training.module import imm_k_step_nll
 from torchsde_lti.training.plots import epoch_rows
 
 CONF = Path(__file__).resolve().parents[2] / "conf"

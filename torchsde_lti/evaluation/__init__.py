@@ -14,17 +14,21 @@ No Lightning, no Hydra: torch, numpy and the package's data layer only.
     selection.py    model selection on validation summaries (``select_model``, ``validation_selection``)
     figures.py      figures of a filter on a batch of tracks: a map with 2σ ellipses, mode
                     probabilities, forecast error against lead time (``track_figures``; matplotlib)
+    history_figures.py  loss and learned values per epoch of a training history (``history_figures``)
+    batch_scores.py the k-step-ahead predictive NLLs (Kalman, IMM), the one-step predictive and
+                    the 2σ coverage counts of one padded batch (the training module's loss and scores)
     recovery.py     learned values of a filter and their errors against a known true model
                     (``parameter_errors``, ``parameter_table``; imports no other module here)
 
-The modules import downwards only (student_t ← predictive ← calibration ← scores ← baseline, selection;
-recovery and figures import no other module here).
+The modules import downwards only (student_t ← predictive ← calibration ← scores ← baseline, selection,
+batch_scores; recovery and figures import no other module here, history_figures only those two).
 
     recs = evaluate_filter(kf, tracks, cov_scale=calibrate_filter(kf, val_tracks))
     summary(recs)["nll_moving"]; paired_bootstrap(recs, evaluate_filter(cv_filter(q, r), tracks))
 """
 
 from torchsde_lti.evaluation.baseline import cv_filter, tune_cv
+from torchsde_lti.evaluation.batch_scores import batch_predictive, coverage_counts, imm_k_step_nll, kalman_k_step_nll
 from torchsde_lti.evaluation.calibration import (
     NOMINAL_2SIGMA,
     calibrate_filter,
@@ -34,6 +38,7 @@ from torchsde_lti.evaluation.calibration import (
     scale_vector,
 )
 from torchsde_lti.evaluation.figures import track_figures
+from torchsde_lti.evaluation.history_figures import history_figures
 from torchsde_lti.evaluation.predictive import (
     Model,
     PredictiveBatch,
@@ -77,7 +82,9 @@ __all__ = [
     "ModelSelection",
     "NOMINAL_2SIGMA",
     "PredictiveBatch",
+    "batch_predictive",
     "calibrate_filter",
+    "coverage_counts",
     "cv_filter",
     "evaluate_filter",
     "evaluate_models",
@@ -88,9 +95,12 @@ __all__ = [
     "flat_values",
     "forecast_pairs",
     "frozen_copy",
+    "history_figures",
     "hpd_inside",
     "hpd_level",
     "identifiability_note",
+    "imm_k_step_nll",
+    "kalman_k_step_nll",
     "learned_values",
     "masked_gaussian_nll",
     "mixture_log_prob",

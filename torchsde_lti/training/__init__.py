@@ -12,18 +12,9 @@ the package that imports Lightning, Hydra or matplotlib.
     train.py        train(cfg) behind @hydra.main (``python -m torchsde_lti.train``)
 
 The research evaluation (scores, calibration, baselines, selection, parameter recovery) is
-:mod:`torchsde_lti.evaluation`; a few of its names are re-exported here for old imports.
+:mod:`torchsde_lti.evaluation` (Lightning-free; it imports nothing from here).
 """
 
-from torchsde_lti.evaluation import (  # re-exported for old imports
-    EvalRecords,
-    calibrate_filter,
-    evaluate_filter,
-    paired_bootstrap,
-    parameter_errors,
-    select_model,
-    tune_cv,
-)
 from torchsde_lti.training.callbacks import BestRun, FollowMovedRun, RunLog
 from torchsde_lti.training.checkpoints import CheckpointError, load_filter_weights, read_checkpoint
 from torchsde_lti.training.module import KalmanFilterModule
@@ -35,24 +26,17 @@ from torchsde_lti.training.train import config_path, main, restart_learner, trai
 __all__ = [
     "BestRun",
     "CheckpointError",
-    "EvalRecords",
     "FollowMovedRun",
     "KalmanFilterModule",
     "RunCard",
     "RunInterrupted",
     "RunLog",
-    "calibrate_filter",
     "config_path",
-    "evaluate_filter",
     "format_table",
     "load_filter_weights",
     "main",
-    "paired_bootstrap",
-    "parameter_errors",
     "plot_run",
     "read_checkpoint",
     "restart_learner",
-    "select_model",
     "train",
-    "tune_cv",
 ]

@@ -5,7 +5,7 @@ prediction-error decomposition, optionally plus ``k_step_weight`` × the k-step-
 NLL per observed scalar (summed over the horizons of a list ``k_step``): a KalmanFilter pushes
 each filtered (m_t, P_t) k steps through the exact discrete model (A, Q, G u of each step) and
 scores y_{t+k}; an IMMFilter scores y_{t+k} under its forecast MIXTURE over the lead
-τ = t_{t+k} − t_t (:func:`imm_k_step_nll`). Batches are :class:`~torchsde_lti.data.TrackBatch`.
+τ = t_{t+k} − t_t (:mod:`torchsde_lti.evaluation.batch_scores`). Batches are :class:`~torchsde_lti.data.TrackBatch`.
 
 Logged, each over a whole epoch (every batch, every process): ``train/nll``, ``{val,test}/nll``
 (Σ NLL / Σ observed scalars), ``{val,test}/rmse`` (one-step prediction error of y,
@@ -33,11 +33,13 @@ from torch import Tensor
 
 from torchsde_lti.data.tracks import TrackBatch
 from torchsde_lti.evaluation import (
+    batch_predictive,
+    coverage_counts,
     filter_errors,
     filter_values,
     flat_values,
-    hpd_inside,
-    masked_gaussian_nll,
+    imm_k_step_nll,  # also torchsde_lti.training.module.imm_k_step_nll, for old imports
+    kalman_k_step_nll,
     predictive_dof,
 )
 from torchsde_lti.nn import NonFiniteLikelihoodError
@@ -46,44 +48,7 @@ from torchsde_lti.nn.kalman import KalmanFilter
 from torchsde_lti.nn.noise import StudentT
 from torchsde_lti.nn.parametrizations import reset_default_floors
 
-__all__ = ["KalmanFilterModule", "imm_k_step_nll"]
-
-
-def imm_k_step_nll(imm: IMMFilter, out: Any, y: Tensor, dt: Tensor, observed: Tensor, k: int) -> Tensor:
-    """Σ over origins t of -log p(y_{t+k} | y_0:t) under the IMM's forecast mixture.
-
-    From the filtered (mode probabilities, mode means, mode covariances) at t, the mixture
-    at lead τ = Σ dt_{t+1..t+k} (``imm.forecast``: ``expm(Λ τ)`` and each mode's exact
-    discretisation over τ) is ``Σ_j c_j N(ŷ_j, H_j P_j H_jᵀ + R_j)``; only targets with every
-    component observed count (padding has dt = 0 and is unobserved).
-
-    Args:
-        imm: the filter; out: its IMMResult on (y, dt); y: (B, T, m); dt: (B, T);
-        observed: (B, T, m) bool; k: horizon in reports (>= 1).
-
-    Returns:
-        A scalar (0 when T <= k).
-    """
-    T = y.shape[-2]
-    if k < 1 or T <= k:
-        return y.new_zeros(())
-    cs = torch.cumsum(dt, dim=-1)
-    lead = (cs[..., k:] - cs[..., : T - k]).detach()  # (B, T - k)
-    state = (
-        out.mode_probabilities[..., : T - k, :],
-        out.mode_mean[..., : T - k, :, :],
-        out.mode_cov[..., : T - k, :, :, :],
-    )
-    fc = imm.forecast(state, lead.unsqueeze(-1))
-    w, mu, S = fc.mode_probabilities[..., 0, :], fc.mode_obs_mean[..., 0, :, :], fc.mode_obs_cov[..., 0, :, :, :]
-    ok = observed[..., k:, :].all(-1)  # (B, T - k)
-    target = torch.where(ok.unsqueeze(-1), y[..., k:, :], mu[..., 0, :].detach())
-    L = torch.linalg.cholesky(S)
-    z = torch.linalg.solve_triangular(L, (target.unsqueeze(-2) - mu).unsqueeze(-1), upper=False).squeeze(-1)
-    logdet = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
-    comp = -0.5 * (z * z).sum(-1) - logdet - 0.5 * y.shape[-1] * math.log(2.0 * math.pi)
-    ll = torch.logsumexp(comp + torch.log(w.clamp_min(1e-300)), dim=-1)
-    return -(ll * ok).sum()
+__all__ = ["KalmanFilterModule"]
 
 
 class KalmanFilterModule(LightningModule):
@@ -182,37 +147,17 @@ class KalmanFilterModule(LightningModule):
         dt: Tensor | None = None,
         u: Tensor | None = None,
     ) -> Tensor:
-        """Σ of the k-step-ahead predictive NLL of y_{t+k} given the filtered state at t
-        (the prediction H m + D u where the filter has a feedthrough D and ``u`` is given).
-
-        KalmanFilter: each step's exact (A_j, Q_j) and input term G_j u_j, as the filter used
-        them (``out.transition``, ``out.process_noise``, ``out.control``): m ← A m + G u,
-        P ← A P Aᵀ + Q for j = t+1 .. t+k (zero-dt padding steps are identities).
-        IMMFilter: :func:`imm_k_step_nll` (needs ``dt``). ``k`` defaults to ``self.k_step``.
-        Returns a scalar.
+        """Σ of the k-step-ahead predictive NLL of y_{t+k} given the filtered state at t:
+        :func:`~torchsde_lti.evaluation.kalman_k_step_nll` (with the inputs ``u``) or, for an
+        IMMFilter, :func:`~torchsde_lti.evaluation.imm_k_step_nll` (needs ``dt``). ``k``
+        defaults to ``self.k_step``. Returns a scalar.
         """
         k = self.k_step if k is None else int(k)
-        if isinstance(self.kf, IMMFilter):
-            if dt is None:
-                raise ValueError("the k-step loss of an IMMFilter needs dt (the leads t_{t+k} - t_t)")
-            return imm_k_step_nll(self.kf, out, y, dt, observed, k)
-        T = y.shape[-2]
-        if k < 1 or T <= k:
-            return y.new_zeros(())
-        A, Q, c = out.transition, out.process_noise, out.control  # (B, T, n, n), (B, T, n)
-        m, P = out.mean[..., : T - k, :], out.cov[..., : T - k, :, :]
-        for j in range(1, k + 1):
-            Aj, Qj = A[..., j : T - k + j, :, :], Q[..., j : T - k + j, :, :]
-            m = (Aj @ m.unsqueeze(-1)).squeeze(-1) + c[..., j : T - k + j, :]
-            P = Aj @ P @ Aj.mT + Qj
-        H, R = self.kf.H, self.kf.R
-        obs_k = observed[..., k:, :]
-        Du = self.kf.feedthrough(u)
-        target = y[..., k:, :] if Du is None else y[..., k:, :] - Du[..., k:, :]
-        target = torch.where(obs_k, target, torch.zeros_like(target))
-        r = target - m @ H.mT
-        S = H @ P @ H.mT + R
-        return masked_gaussian_nll(r, S, obs_k).sum()
+        if not isinstance(self.kf, IMMFilter):
+            return kalman_k_step_nll(self.kf, out, y, observed, k, u)
+        if dt is None:
+            raise ValueError("the k-step loss of an IMMFilter needs dt (the leads t_{t+k} - t_t)")
+        return imm_k_step_nll(self.kf, out, y, dt, observed, k)
 
     def _step(self, batch: Any) -> tuple[Tensor, Tensor, Any, dict[str, Any]]:
         y, dt, mask, u, x = self.unpack(batch)
@@ -255,9 +200,12 @@ class KalmanFilterModule(LightningModule):
             f"{stage}/nll", nll, on_epoch=True, prog_bar=stage == "val", batch_size=int(info["count"]), sync_dist=True
         )
         with torch.no_grad():
-            w, mu, S = self._predictive(out, info["u"])
+            w, mu, S = batch_predictive(self.kf, out, info["u"])
             err = torch.where(observed, (w.unsqueeze(-1) * mu).sum(-2) - y, torch.zeros_like(y))
-            sums = {"rmse": ((err**2).sum(), observed.sum()), "cover2s": _coverage(y, w, mu, S, observed, self._dof())}
+            sums = {
+                "rmse": ((err**2).sum(), observed.sum()),
+                "cover2s": coverage_counts(y, w, mu, S, observed, self._dof()),
+            }
             if x is not None and x.shape[-1] == out.mean.shape[-1]:  # the truth's state (same kind of model)
                 valid = torch.ones_like(x[..., 0], dtype=torch.bool) if mask is None else mask
                 sums["state_rmse"] = ((((out.mean - x) ** 2).sum(-1) * valid).sum(), valid.sum() * x.shape[-1])
@@ -266,18 +214,6 @@ class KalmanFilterModule(LightningModule):
             pair = torch.stack([num.to(torch.float64), den.to(torch.float64)])
             epoch[name] = pair if name not in epoch else epoch[name] + pair
         return loss
-
-    def _predictive(self, out: Any, u: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
-        """The one-step predictive of y, a mixture over modes: weights (..., T, M), means
-        (..., T, M, m) (``H_j m⁻_j``, plus the feedthrough D u of a KalmanFilter) and
-        covariances (..., T, M, m, m) (``S_j``); M = 1 for a KalmanFilter."""
-        if isinstance(self.kf, IMMFilter):
-            mu = (self.kf.H @ out.mode_pred_mean.unsqueeze(-1)).squeeze(-1)  # H shared (m, n) or per mode (M, m, n)
-            return out.pred_mode_probabilities, mu, out.mode_innovation_cov
-        pred = out.pred_mean @ self.kf.H.mT
-        Du = self.kf.feedthrough(u) if isinstance(self.kf, KalmanFilter) else None
-        pred = pred if Du is None else pred + Du
-        return torch.ones_like(pred[..., :1]), pred.unsqueeze(-2), out.innovation_cov.unsqueeze(-3)
 
     def _log_scores(self, stage: str) -> None:
         """``{stage}/rmse``, ``state_rmse`` and ``cover2s`` of the whole epoch (all batches, all processes)."""
@@ -367,23 +303,3 @@ class KalmanFilterModule(LightningModule):
             return opt
         sched = self.scheduler_factory(optimizer=opt)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
-
-
-def _coverage(
-    y: Tensor, w: Tensor, mu: Tensor, S: Tensor, observed: Tensor, dof: Tensor | None
-) -> tuple[Tensor, Tensor]:
-    """(reports inside, reports scored) of the 2σ coverage: every report after its window's first
-    (which holds the prior) with a coordinate observed, tested in its observed coordinates
-    against the predictive mixture (w, mu, S) by :func:`~torchsde_lti.evaluation.hpd_inside`
-    (one pattern of observed coordinates at a time; ``dof``: ν of a Student-t filter's predictive)."""
-    scored = observed.any(-1)
-    scored[..., 0] = False
-    m = y.shape[-1]
-    pattern = (observed.long() << torch.arange(m, device=y.device)).sum(-1)
-    inside = torch.zeros((), dtype=torch.float64, device=y.device)
-    for code in torch.unique(pattern[scored]).tolist():
-        rows = scored & (pattern == code)
-        idx = torch.tensor([i for i in range(m) if code >> i & 1], device=y.device)
-        sel = hpd_inside(y[rows][:, idx], w[rows], mu[rows][..., idx], S[rows][..., idx, :][..., idx], dof=dof)
-        inside = inside + sel.sum()
-    return inside, scored.sum()

@@ -136,12 +136,8 @@ class RunCard:
         """``path`` relative to the run directory (absolute where it lies elsewhere)."""
         if not path:
             return None
-        p = Path(path).resolve()
-        return (
-            str(p.relative_to(Path(self.run_dir).resolve()))
-            if p.is_relative_to(Path(self.run_dir).resolve())
-            else str(p)
-        )
+        p, run_dir = Path(path).resolve(), Path(self.run_dir).resolve()
+        return str(p.relative_to(run_dir)) if p.is_relative_to(run_dir) else str(p)
 
     def resume_command(self, checkpoint: str) -> str:
         """The command that resumes this run from ``checkpoint`` (with the run's overrides, if known)."""
