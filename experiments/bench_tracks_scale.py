@@ -175,7 +175,6 @@ def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--out", default=str(HERE / "results" / "bench_tracks_scale.md"))
-    parser.add_argument("--skip-training", action="store_true")
     parser.add_argument("--only-training", action="store_true", help="skip the load and memory measurements")
     args = parser.parse_args(argv)
     from torchsde_lti.data import locate_file
@@ -203,24 +202,20 @@ def main(argv: list[str] | None = None) -> str:
             slope, icpt = np.polyfit(x, y, 1)
             r2 = 1 - ((y - (slope * x + icpt)) ** 2).sum() / ((y - y.mean()) ** 2).sum()
             results["memory"] = {"rows": memory, "mb_per_100k_reports": slope * 1e5, "intercept_mb": icpt, "r2": r2}
-        if not args.skip_training:
-            # one process and DDP alternate (ABAB...), so that both see the same load on a shared
-            # machine; the speed-up is the median of the paired ratios
-            for dt in ("float64", "float32"):
-                one_runs, ddp_runs = [], []
-                for k in range(args.repeat):
-                    one_runs.append(train_run(tmp, f"one {dt} {k}", [f"dtype={dt}"]))
-                    ddp_runs.append(train_run(tmp, f"ddp {dt} {k}", [f"dtype={dt}", "trainer=ddp"]))
-                    print(dt, k, one_runs[-1], ddp_runs[-1], flush=True)
-                train[f"1 process, {dt}"] = median_of(one_runs)
-                train[f"DDP 2 processes, {dt}"] = median_of(ddp_runs)
-                ratios[dt] = statistics.median(
-                    d["tracks_per_s"] / o["tracks_per_s"] for o, d in zip(one_runs, ddp_runs)
-                )
-                ratios[f"{dt} cpu"] = statistics.median(
-                    o["cpu_seconds"] / d["cpu_seconds"] * d["windows"] / o["windows"]
-                    for o, d in zip(one_runs, ddp_runs)
-                )
+        # one process and DDP alternate (ABAB...), so that both see the same load on a shared
+        # machine; the speed-up is the median of the paired ratios
+        for dt in ("float64", "float32"):
+            one_runs, ddp_runs = [], []
+            for k in range(args.repeat):
+                one_runs.append(train_run(tmp, f"one {dt} {k}", [f"dtype={dt}"]))
+                ddp_runs.append(train_run(tmp, f"ddp {dt} {k}", [f"dtype={dt}", "trainer=ddp"]))
+                print(dt, k, one_runs[-1], ddp_runs[-1], flush=True)
+            train[f"1 process, {dt}"] = median_of(one_runs)
+            train[f"DDP 2 processes, {dt}"] = median_of(ddp_runs)
+            ratios[dt] = statistics.median(d["tracks_per_s"] / o["tracks_per_s"] for o, d in zip(one_runs, ddp_runs))
+            ratios[f"{dt} cpu"] = statistics.median(
+                o["cpu_seconds"] / d["cpu_seconds"] * d["windows"] / o["windows"] for o, d in zip(one_runs, ddp_runs)
+            )
         results["train"], results["ddp_speedup"] = train, ratios
     load_after = os.getloadavg()
     results["loadavg"] = [load_before, load_after]
