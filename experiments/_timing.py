@@ -1,14 +1,16 @@
 """The one timing helper of experiments/: medians of repeats, paired A/B in alternation, 1 and 2
 threads, the load printed beside every table.
 
-    from _timing import median_s, paired_s, at_threads, machine_line, Tee
+    from _timing import median_s, interleaved_s, paired_s, across_checkouts, ab_table, machine_line, saved
 
 - :func:`median_s`: median CPU seconds (``time.process_time``: a shared machine's other jobs
   add no time slices of theirs, only cache and core sharing) of one call over ``repeat`` timings
   of ``inner`` calls, after ``warmup`` calls; ``clock=time.perf_counter`` for wall time (compiles,
   file I/O);
-- :func:`paired_s`: two callables timed in alternation (a, b, a, b, ...), so that both see the
-  same load: their ratio is what a benchmark reports;
+- :func:`interleaved_s`: several callables timed in turn (a, b, c, a, b, c, ...), so that all see
+  the same load: their ratios are what a benchmark reports; :func:`paired_s` for two;
+- :func:`across_checkouts`: paired A/B between checkouts, each measurement in a fresh process,
+  the checkouts alternating; :func:`ab_table` prints its medians, one column per checkout;
 - :func:`at_threads`: a measurement at 1 and 2 intra-op threads (the thread count restored);
 - :func:`machine_line`: torch version, threads, the load average (``os.getloadavg``) and a note
   that the machine is shared, for the head and the foot of a table;
@@ -22,17 +24,31 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
+import math
 import os
 import statistics
+import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TypeVar
 
 import torch
 
-__all__ = ["RESULTS", "Tee", "at_threads", "machine_line", "median_s", "paired_s", "saved"]
+__all__ = [
+    "RESULTS",
+    "Tee",
+    "ab_table",
+    "across_checkouts",
+    "at_threads",
+    "interleaved_s",
+    "machine_line",
+    "median_s",
+    "paired_s",
+    "saved",
+]
 
 #: Where the measured tables live (the docs' benchmark pages include them).
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -59,6 +75,35 @@ def median_s(
     return statistics.median(times)
 
 
+def interleaved_s(
+    fns: Mapping[str, Callable[[], object]],
+    repeat: int,
+    warmup: int = 1,
+    inner: int = 1,
+    clock: Callable[[], float] = time.process_time,
+    agg: Callable[[list[float]], float] = statistics.median,
+    budget_s: float = math.inf,
+) -> dict[str, float]:
+    """Seconds per call of each function, timed in turn (a, b, c, a, b, c, ...) so that all see
+    the same load, after ``warmup`` calls each: ``agg`` (the median; ``min`` for the best CPU
+    time) over ``repeat`` rounds of ``inner`` calls, fewer once two rounds ran and ``budget_s``
+    wall seconds passed."""
+    for _ in range(warmup):
+        for fn in fns.values():
+            fn()
+    times: dict[str, list[float]] = {name: [] for name in fns}
+    start = time.perf_counter()
+    for r in range(repeat):
+        for name, fn in fns.items():
+            t0 = clock()
+            for _ in range(inner):
+                fn()
+            times[name].append((clock() - t0) / inner)
+        if r >= 1 and time.perf_counter() - start > budget_s:
+            break
+    return {name: agg(ts) for name, ts in times.items()}
+
+
 def paired_s(
     fa: Callable[[], object],
     fb: Callable[[], object],
@@ -67,19 +112,49 @@ def paired_s(
     inner: int = 1,
     clock: Callable[[], float] = time.process_time,
 ) -> tuple[float, float]:
-    """Median seconds of ``fa`` and of ``fb``, timed in alternation."""
-    for _ in range(warmup):
-        fa()
-        fb()
-    ta: list[float] = []
-    tb: list[float] = []
-    for _ in range(repeat):
-        for fn, out in ((fa, ta), (fb, tb)):
-            t0 = clock()
-            for _ in range(inner):
-                fn()
-            out.append((clock() - t0) / inner)
-    return statistics.median(ta), statistics.median(tb)
+    """Median seconds of ``fa`` and of ``fb``, timed in alternation (:func:`interleaved_s`)."""
+    out = interleaved_s({"a": fa, "b": fb}, repeat, warmup, inner, clock)
+    return out["a"], out["b"]
+
+
+def across_checkouts(
+    script: str, rows: Iterable[str], trees: Sequence[str], rounds: int, once: Collection[str] = ()
+) -> tuple[dict[tuple[str, str], list[float]], list[float]]:
+    """Paired A/B between checkouts in fresh processes: each row ``rounds`` times (once for a row
+    in ``once``), every checkout in turn (A, B, A, B, ...) running ``python <script> --measure
+    <row>`` at one thread with that checkout first on ``PYTHONPATH``; that process prints a JSON
+    object {name: seconds} as its last line. Returns the seconds of each (name, checkout), one per
+    round, and the load average at the start and after each row."""
+    here = str(Path(script).resolve().parent)
+    seconds: dict[tuple[str, str], list[float]] = {}
+    loads = [os.getloadavg()[0]]
+    for row in rows:
+        for _ in range(1 if row in once else rounds):
+            for tree in trees:
+                path = os.pathsep.join([os.path.abspath(tree), here])
+                env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": path}
+                cmd = [sys.executable, script, "--measure", row]
+                out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
+                for name, s in json.loads(out.stdout.strip().splitlines()[-1]).items():
+                    seconds.setdefault((name, tree), []).append(s)
+        loads.append(os.getloadavg()[0])
+    return seconds, loads
+
+
+def ab_table(
+    seconds: Mapping[tuple[str, str], list[float]],
+    names: Iterable[str],
+    trees: Sequence[str],
+    cell: Callable[[float], str],
+) -> dict[tuple[str, str], float]:
+    """Print the medians of :func:`across_checkouts` as a table, one row per name and one column
+    per checkout (``cell`` formats seconds); returns the medians."""
+    medians = {key: statistics.median(ts) for key, ts in seconds.items()}
+    print("| row | " + " | ".join(trees) + " |")
+    print("|---|" + "---|" * len(trees))
+    for name in names:
+        print(f"| {name} | " + " | ".join(cell(medians[(name, tree)]) for tree in trees) + " |")
+    return medians
 
 
 def at_threads(measure: Callable[[], R], threads: Iterable[int] = (1, 2)) -> dict[int, R]:

@@ -17,7 +17,7 @@ and loaded, as after training), irregular dt, float64, no grad.
    on new tracks: build / load / run times vs eager and vs filterpy on the same track.
 
 Shared machine (other sessions run): medians of repeats, noisy. Prints the tables and saves
-them to experiments/results/bench_deploy.txt (``--out``).
+them to experiments/results/bench_deploy.txt.
 
     python experiments/bench_deploy.py [--threads 1] [--no-aoti]
 """
@@ -25,16 +25,13 @@ them to experiments/results/bench_deploy.txt (``--out``).
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
-import sys
 import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import torch
-from _timing import Tee, machine_line, median_s
+from _timing import machine_line, median_s, saved
 from bench_online import filterpy_cv  # the same filterpy contestant
 
 import torchsde_lti as tl
@@ -173,14 +170,10 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--no-aoti", action="store_true", help="skip the AOTInductor package (needs a C++ compiler)")
-    ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results" / "bench_deploy.txt")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    copy = io.StringIO()
-    with contextlib.redirect_stdout(Tee(sys.stdout, copy)):
+    with saved("bench_deploy.txt"):
         run(args)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(copy.getvalue())
 
 
 def run(args: argparse.Namespace) -> None:

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import math
 import platform
 import statistics
@@ -497,45 +496,6 @@ def accuracy_table(rows: list[dict[str, object]]) -> str:
     return "\n".join(out)
 
 
-def plot(cells: list[Cell], path: Path, threads: int | None = None) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    ns = sorted({c.n for c in cells})
-    dtypes = ["float32", "float64"]
-    fig, axes = plt.subplots(len(dtypes), len(ns), figsize=(4.2 * len(ns), 7), squeeze=False, sharey=True)
-    colors = {"default": "C0", "naive": "C3", "scipy": "C2", "filterpy": "C1"}
-    for i, dt in enumerate(dtypes):
-        for j, n in enumerate(ns):
-            ax = axes[i][j]
-            for mode, style in (("fwd", "-"), ("fwd+bwd", "--")):
-                for name in CONTESTANTS:
-                    pts = [
-                        (c.batch, c.rate(name))
-                        for c in cells
-                        if c.n == n and c.dtype == dt and c.mode == mode and c.rate(name)
-                    ]
-                    if pts:
-                        x, y = zip(*pts)
-                        ax.loglog(x, y, style, marker="o", color=colors[name], label=f"{name} {mode}")
-            ax.set_title(f"n = {n}, {dt}")
-            ax.set_xlabel("batch B")
-            if j == 0:
-                ax.set_ylabel("matrices / s")
-            ax.grid(True, which="both", alpha=0.3)
-    handles: dict[str, object] = {}
-    for ax in axes.flat:
-        for hnd, lab in zip(*ax.get_legend_handles_labels()):
-            handles.setdefault(lab, hnd)
-    fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=6, fontsize=8)
-    threads = threads or torch.get_num_threads()
-    fig.suptitle(f"discretize throughput, {threads} thread(s): solid forward, dashed forward+backward")
-    fig.tight_layout(rect=(0, 0.05, 1, 1))
-    fig.savefig(path, dpi=120)
-
-
 def main() -> None:
     warnings.filterwarnings("ignore", category=RuntimeWarning)  # overflow inside the Van Loan contestants
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -543,14 +503,8 @@ def main() -> None:
     parser.add_argument(
         "--threads", type=int, default=None, help="torch.set_num_threads (default: leave torch's default)"
     )
-    parser.add_argument("--replot", type=Path, default=None, help="only redraw the .png of an earlier run's .json")
-    parser.add_argument("--out", type=Path, default=RESULTS, help="directory for .md/.png/.json")
+    parser.add_argument("--out", type=Path, default=RESULTS, help="directory for the .md and .json")
     args = parser.parse_args()
-    if args.replot:
-        saved = json.loads(args.replot.read_text())
-        cells = [Cell(**{k: math.nan if v is None else v for k, v in c.items()}) for c in saved["cells"]]
-        plot(cells, args.replot.with_suffix(".png"), saved.get("threads", 2))
-        return
     if args.threads:
         torch.set_num_threads(args.threads)
     stem = ("bench_discretize_quick" if args.quick else "bench_discretize") + (
@@ -578,8 +532,7 @@ def main() -> None:
         args.out / f"{stem}.json",  # strict JSON: NaN / inf as null
         {"threads": torch.get_num_threads(), "cells": [c.__dict__ for c in cells], "accuracy": acc},
     )
-    plot(cells, args.out / f"{stem}.png")
-    print(f"wrote {args.out / (stem + '.md')}, .json, .png")
+    print(f"wrote {args.out / (stem + '.md')} and .json")
 
 
 if __name__ == "__main__":

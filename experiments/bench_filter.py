@@ -18,7 +18,7 @@ repeats so machine load hits all of them alike; wall-clock medians):
 Training step: -log-likelihood forward + backward w.r.t. the process-noise intensity q and
 (ours) R, irregular dt: ours vs torch-kf + naive Van Loan (and + closed form).
 
-Writes experiments/results/bench_filter.md (the table) and bench_filter.png.
+Writes experiments/results/bench_filter[_quick].md (the table).
 Usage: python experiments/bench_filter.py [--quick] [--threads N] [--clock wall|cpu]
 """
 
@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _timing import interleaved_s
 
 import torchsde_lti as tl
 
@@ -261,29 +262,23 @@ def torchkf_train(y: torch.Tensor, dt: torch.Tensor, matrices: str) -> Callable[
 # ----------------------------------------------------------------------------------------
 
 
-def time_round_robin(
-    fns: dict[str, Callable[[], object]], repeats: int, budget_s: float, clock: str, warmup: bool = True
-) -> dict[str, float]:
-    """Time per run for each contestant; contestants interleaved within each repeat.
+#: --clock: "wall" the median wall time, "cpu" the minimum process CPU time (one thread), which
+#: other processes competing for the cores hardly move.
+CLOCKS: dict[str, tuple[Callable[[], float], Callable[[list[float]], float]]] = {
+    "wall": (time.perf_counter, statistics.median),
+    "cpu": (time.process_time, min),
+}
 
-    clock "wall": median wall time. clock "cpu": minimum process CPU time (single thread),
-    which is robust to other processes competing for the cores.
-    """
-    now = time.perf_counter if clock == "wall" else time.process_time
-    if warmup:
-        for fn in fns.values():
-            fn()
-    times: dict[str, list[float]] = {k: [] for k in fns}
-    start = time.perf_counter()
-    for r in range(repeats):
-        for name, fn in fns.items():
-            t0 = now()
-            fn()
-            times[name].append(now() - t0)
-        if r >= 1 and time.perf_counter() - start > budget_s:
-            break
-    agg = statistics.median if clock == "wall" else min
-    return {k: agg(v) for k, v in times.items()}
+
+def add_rows(rows: list[dict], task: str, setting: str, dname: str, B: int, res_tp: dict[str, float]) -> None:
+    """One table row per contestant of a cell (throughputs ``res_tp`` in track·steps/s), printed."""
+    for name, tp in res_tp.items():
+        rows.append(
+            dict(task=task, setting=setting, dtype=dname, B=B, contestant=name, ms=B * T / tp * 1e3, tp=tp,
+                 ratio=res_tp["ours"] / tp)
+        )  # fmt: skip
+    line = "  ".join(f"{k}={v / 1e6:.3g}M/s" for k, v in res_tp.items())
+    print(f"{task} {setting:9s} {dname} B={B:6d} {line}", flush=True)
 
 
 def main() -> None:
@@ -301,6 +296,7 @@ def main() -> None:
     if args.clock == "cpu":
         args.threads = 1
     torch.set_num_threads(args.threads)
+    clock, agg = CLOCKS[args.clock]
     batches = [1, 100, 1000] if args.quick else [1, 100, 1000, 10_000]
     dtypes = [torch.float64] if args.quick else [torch.float64, torch.float32]
     repeats = 3 if args.quick else 5
@@ -310,8 +306,8 @@ def main() -> None:
     fp = {}
     for regular in (False, True):
         y1, dt1 = make_data(1, regular)
-        t = time_round_robin({"filterpy": filterpy_one_track(y1, dt1)}, repeats, 5.0, args.clock)["filterpy"]
-        fp[regular] = T / t
+        one_track = {"filterpy": filterpy_one_track(y1, dt1)}
+        fp[regular] = T / interleaved_s(one_track, repeats, budget_s=5.0, clock=clock, agg=agg)["filterpy"]
 
     for dtype in dtypes:
         dname = str(dtype).replace("torch.", "")
@@ -333,27 +329,11 @@ def main() -> None:
                     if not big:  # 2·10⁶ 8×8 matrix exponentials: tens of seconds per run
                         fns["torch-kf+VL"] = torchkf_per_step(y, dt, "VL")
                     fns["torch-kf+CF"] = torchkf_per_step(y, dt, "CF")
-                res = time_round_robin(fns, repeats if not big else 2, 20.0, args.clock, warmup=not big)
+                res = interleaved_s(fns, 2 if big else repeats, int(not big), budget_s=20.0, clock=clock, agg=agg)
                 res_tp = {k: B * T / v for k, v in res.items()}
                 if dtype == torch.float64:
                     res_tp["filterpy (1 track)"] = fp[regular]
-                for name, tp in res_tp.items():
-                    rows.append(
-                        dict(
-                            task="filter",
-                            setting=setting,
-                            dtype=dname,
-                            B=B,
-                            contestant=name,
-                            ms=B * T / tp * 1e3,
-                            tp=tp,
-                            ratio=res_tp["ours"] / tp,
-                        )
-                    )
-                print(
-                    f"{setting:9s} {dname} B={B:6d} " + "  ".join(f"{k}={v / 1e6:.3g}M/s" for k, v in res_tp.items()),
-                    flush=True,
-                )
+                add_rows(rows, "filter", setting, dname, B, res_tp)
 
     # training step (forward + backward), irregular dt
     train_batches = [100, 1000]
@@ -368,25 +348,9 @@ def main() -> None:
                 "torch-kf+VL": torchkf_train(y, dt, "VL"),
                 "torch-kf+CF": torchkf_train(y, dt, "CF"),
             }
-            res = time_round_robin(fns, 3, 30.0, args.clock)
+            res = interleaved_s(fns, 3, budget_s=30.0, clock=clock, agg=agg)
             res_tp = {k: B * T / v for k, v in res.items()}
-            for name, tp in res_tp.items():
-                rows.append(
-                    dict(
-                        task="train step",
-                        setting="irregular",
-                        dtype=dname,
-                        B=B,
-                        contestant=name,
-                        ms=B * T / tp * 1e3,
-                        tp=tp,
-                        ratio=res_tp["ours"] / tp,
-                    )
-                )
-            print(
-                f"train     {dname} B={B:6d} " + "  ".join(f"{k}={v / 1e6:.3g}M/s" for k, v in res_tp.items()),
-                flush=True,
-            )
+            add_rows(rows, "train step", "irregular", dname, B, res_tp)
 
     write_outputs(rows, args)
 
@@ -421,32 +385,6 @@ def write_outputs(rows: list[dict], args: argparse.Namespace) -> None:
         + table
         + "\n"
     )
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        panels = [("filter", "irregular"), ("filter", "regular"), ("train step", "irregular")]
-        names = list(dict.fromkeys(r["contestant"] for r in rows))
-        colours = {name: f"C{i}" for i, name in enumerate(names)}
-        fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
-        for ax, (task, setting) in zip(axes, panels):
-            sel = [r for r in rows if r["task"] == task and r["setting"] == setting and r["dtype"] == "float64"]
-            for name in dict.fromkeys(r["contestant"] for r in sel):
-                pts = sorted((r["B"], r["tp"]) for r in sel if r["contestant"] == name)
-                ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", label=name, color=colours[name])
-            ax.set_xscale("log")
-            ax.set_yscale("log")
-            ax.set_xlabel("B (tracks)")
-            ax.set_ylabel("track·steps / s")
-            ax.set_title(f"{task}, {setting} dt, float64, T={T}")
-            ax.grid(True, which="both", alpha=0.3)
-            ax.legend(fontsize=8)
-        fig.tight_layout()
-        fig.savefig(args.out / f"bench_filter{suffix}.png", dpi=120)
-    except Exception as err:  # plotting is a convenience; the table is the result
-        print(f"plot skipped: {err}")
 
 
 if __name__ == "__main__":

@@ -8,9 +8,16 @@ Tables (ms per call, medians of interleaved repeats, ``torch.no_grad``, one proc
 - ``matern``: one Matérn-3/2 series (B = 1, T = 10⁴), float64 and float32, loop and scan
   (the float32 / float64 ratio of the default);
 - ``smoother``: ``rts_smoother`` (loop and scan) at 10⁴ tracks × 100 steps against a plain
-  batched RTS loop of ``torch.linalg.solve`` and ``@`` on the same filter result.
+  batched RTS loop of ``torch.linalg.solve`` and ``@`` on the same filter result;
+- ``options``: the cost of two ``KalmanFilter`` options against the default, B = 1000, T = 200,
+  the forward pass and forward + backward of the summed log-likelihood (default and option
+  interleaved): ``algorithm="square_root"`` on a 2-D constant-velocity model with irregular dt,
+  and ``unique_dt=True`` on a 2-D Singer model (its F is not nilpotent, so every step needs
+  scaling and doubling) with gaps quantised to multiples of 0.5 s, as real logs (AIS: whole
+  seconds) often are. Not in the default ``--tables``: its table is
+  experiments/results/bench_filter_options.md (``--tables options --out`` that file).
 
-Usage: python experiments/bench_filter_choice.py [--tables choice,matern,smoother] [--threads 1]
+Usage: python experiments/bench_filter_choice.py [--tables choice,matern,smoother,options] [--threads 1]
 [--repeats 5] [--out FILE] — prints the tables (and writes FILE, default
 experiments/results/bench_filter_choice.md). Runs against any checkout that has
 ``kalman_filter(..., algorithm=, validate_args=)`` and ``rts_smoother(..., algorithm=)``.
@@ -21,12 +28,12 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import torch
+from _timing import interleaved_s
 
 import torchsde_lti as tl
 from torchsde_lti.filters import kalman_filter, rts_smoother
@@ -34,17 +41,9 @@ from torchsde_lti.filters import kalman_filter, rts_smoother
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def medians(fns: dict[str, Callable[[], object]], repeats: int) -> dict[str, float]:
+def medians(fns: Mapping[str, Callable[[], object]], repeats: int) -> dict[str, float]:
     """ms per call of each function, run in turn (A B C A B C …) after one warm-up each."""
-    times: dict[str, list[float]] = {k: [] for k in fns}
-    for fn in fns.values():
-        fn()
-    for _ in range(repeats):
-        for name, fn in fns.items():
-            t0 = time.perf_counter()
-            fn()
-            times[name].append(1e3 * (time.perf_counter() - t0))
-    return {k: statistics.median(v) for k, v in times.items()}
+    return {k: 1e3 * s for k, s in interleaved_s(fns, repeats, clock=time.perf_counter).items()}
 
 
 def cv_problem(B: int, T: int, dtype: torch.dtype, seed: int = 0) -> dict[str, torch.Tensor]:
@@ -158,6 +157,45 @@ def table_smoother(repeats: int) -> list[str]:
     return lines
 
 
+def table_options(repeats: int) -> list[str]:
+    B, T = 1000, 200
+    gen = torch.Generator().manual_seed(0)
+    lines = [
+        "| option | dtype | forward: default → option | forward + backward: default → option |",
+        "|---|---|---|---|",
+    ]
+    for dtype in (torch.float64, torch.float32):
+        y = torch.randn(B, T, 2, generator=gen, dtype=dtype).cumsum(1)
+        dt_irregular = torch.rand(B, T, generator=gen, dtype=dtype) * 2
+        dt_quantised = 0.5 * torch.randint(1, 41, (B, T), generator=gen).to(dtype)
+        R = 0.25 * torch.eye(2, dtype=dtype)
+        cv = tl.models.constant_velocity(dim=2, q=1.0).to(dtype)
+        singer = tl.models.singer(alpha=0.5, q=1.0, dim=2).to(dtype)
+        distinct = int(torch.unique(dt_quantised).numel())
+        cases = (
+            ('`algorithm="square_root"` (constant velocity, irregular dt)', cv, dt_irregular, {"algorithm": "square_root"}),
+            (f"`unique_dt=True` (Singer, {distinct} distinct gaps)", singer, dt_quantised, {"unique_dt": True}),
+        )  # fmt: skip
+        for name, sde, dt, option in cases:
+            H = tl.models.position_observation(sde)
+            kfs = {"default": tl.KalmanFilter(sde, H, R), "option": tl.KalmanFilter(sde, H, R, **option)}
+            cells = []
+            for backward in (False, True):
+                fns = {k: (lambda kf=kf: train_step(kf, y, dt) if backward else kf(y, dt)) for k, kf in kfs.items()}
+                with torch.set_grad_enabled(backward):
+                    ms = medians(fns, repeats)
+                s0, s1 = ms["default"] / 1e3, ms["option"] / 1e3
+                cells.append(f"{s0:.3f} → {s1:.3f} s ({s1 / s0:.2g}×)")
+            lines.append(f"| {name} | {str(dtype)[6:]} | {cells[0]} | {cells[1]} |")
+            print(lines[-1], flush=True)
+    return lines
+
+
+def train_step(kf: tl.KalmanFilter, y: torch.Tensor, dt: torch.Tensor) -> None:
+    kf.zero_grad()
+    kf(y, dt).log_likelihood.sum().backward()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tables", default="choice,matern,smoother")
@@ -171,7 +209,7 @@ def main() -> None:
         f"# filter algorithms (torch {torch.__version__}, {platform.machine()}, {args.threads} thread(s), "
         f"load {load:.1f} at start; a shared machine: medians of {args.repeats} interleaved repeats)",
     ]
-    tables = {"choice": table_choice, "matern": table_matern, "smoother": table_smoother}
+    tables = {"choice": table_choice, "matern": table_matern, "smoother": table_smoother, "options": table_options}
     for name in args.tables.split(","):
         lines += ["", f"## {name}", ""] + tables[name](args.repeats)
     lines.append(f"\nload {os.getloadavg()[0]:.1f} at the end")

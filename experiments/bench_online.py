@@ -27,15 +27,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import statistics
-import subprocess
-import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from _timing import ab_table, across_checkouts, machine_line, saved
 
 ROWS = ("step_cv_b1", "step_cv_b1_nocheck", "step_iou_b1", "step_iou_b1_nocheck", "step_cv_b1000", "filterpy_b1000",
         "aoti_step_b1", "seq_iou_2000x50", "seq_iou_2000x50_nocheck", "imm_2000x50", "kf3_2000x50")  # fmt: skip
@@ -166,45 +163,21 @@ def main() -> None:
     if args.measure:
         print(json.dumps(measure(args.measure)))
         return
-    here = str(Path(__file__).resolve().parent)
-    results: dict[tuple[str, str], list[float]] = {}
-    loads = [os.getloadavg()[0]]
-    for row in args.rows:
-        for _ in range(args.rounds if row != "aoti_step_b1" else 1):  # (a package build: minutes)
-            for tree in args.trees:
-                env = {
-                    **os.environ,
-                    "OMP_NUM_THREADS": "1",
-                    "PYTHONPATH": os.pathsep.join([os.path.abspath(tree), here]),
-                }
-                out = subprocess.run(
-                    [sys.executable, __file__, "--measure", row], env=env, capture_output=True, text=True, check=True
-                )
-                for name, t in json.loads(out.stdout.strip().splitlines()[-1]).items():
-                    results.setdefault((name, tree), []).append(t)
-        loads.append(os.getloadavg()[0])
+    results, loads = across_checkouts(__file__, args.rows, args.trees, args.rounds, once={"aoti_step_b1"})
     names = [r for row in args.rows for r in (row, *[p for p, of in PAIRED.items() if of == row])]
 
     def report() -> None:
-        from _timing import machine_line
-
         print(
             f"1 thread, CPU-time medians over {args.rounds} alternating rounds; load {min(loads):.1f}–{max(loads):.1f}"
         )
         print(f"({machine_line()})\n")
-        print("| row | " + " | ".join(args.trees) + " |")
-        print("|---|" + "---|" * len(args.trees))
-        medians = {key: statistics.median(ts) for key, ts in results.items()}
-        for name in names:
-            print(f"| {name} | " + " | ".join(_cell(medians[(name, tree)]) for tree in args.trees) + " |")
+        medians = ab_table(results, names, args.trees, _cell)
         for label, num, den in RATIOS:
             if all((k, t) in medians for k in (num, den) for t in args.trees):
                 cells = " | ".join(f"{medians[(num, t)] / medians[(den, t)]:.2f}" for t in args.trees)
                 print(f"| {label} | {cells} |")
 
     if args.save:
-        from _timing import saved
-
         with saved("bench_online.md"):
             report()
     else:

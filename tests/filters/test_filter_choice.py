@@ -123,7 +123,7 @@ def test_float32_default_over_a_long_gap_matches_float64() -> None:
     """One track, 10 reports, 2900 missing steps (a 1450 s gap: predicted/measured variance
     ~1e11), 2 reports: the float32 default (the loop) and the square-root filter match float64.
     (The float32 scan returns NaN at the first report after the gap: its combine solves with
-    I + C J, entries ~1e11 of rank one, whose elimination cancels; experiments/scan_float32.py.)"""
+    I + C J, entries ~1e11 of rank one, whose elimination cancels; experiments/results/scan_float32.md.)"""
     rng = np.random.default_rng(0)
     T = 10 + 2900 + 2
     y = rng.normal(size=(1, T, 1)).cumsum(1)

@@ -1,7 +1,7 @@
 """The real-data experiments (ships and aircraft) through the one training path, on small slices
 of the shipped files, and the optional launchers: submitit (local executor) and Optuna.
 
-Full runs are experiments (README, experiments/bench_tracks_scale.py); these check that every
+Full runs are experiments (README, experiments/results/bench_tracks_scale.md); these check that every
 experiment composes, loads, trains a step and saves what its data summary says.
 """
 

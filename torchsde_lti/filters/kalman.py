@@ -55,7 +55,7 @@ def choose_algorithm(
     to its arithmetic speed: a constant tuned to one machine. A choice by batch size would also
     need both algorithms inside one exported program with a dynamic batch. The loop scales to any
     batch and is the default; pass ``algorithm="scan"`` for a few long series (float32 included:
-    ``experiments/scan_float32.py``); figures in the documentation's benchmarks.
+    ``experiments/results/scan_float32.md``); figures in the documentation's benchmarks.
     ``batch_size``, ``T``, ``device``, ``dtype``: the call's (the choice does not depend on them).
     """
     check_algorithm(algorithm)
