@@ -23,12 +23,14 @@ from __future__ import annotations
 
 import datetime
 import functools
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import torch
 
-from torchsde_lti.core.discretization import discretize
+from torchsde_lti.core.discretization import discretization_series, discretize, resolve_method
+from torchsde_lti.core.linalg import noise_covariance
 from torchsde_lti.nn import model_version
 from torchsde_lti.nn.sde import LTISDE
 
@@ -49,6 +51,41 @@ def _seconds(time_interval: object, name: str) -> float:
     return seconds
 
 
+def _discretizer(sde: LTISDE, method: str) -> Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
+    """The exact discretisation of ``sde``'s current parameters as a function of one gap (seconds)
+    -> float64 numpy ``(A, Q, G)``. The matrices are read now, once; with ``"doubling"`` the
+    dt-independent part (:func:`~torchsde_lti.core.discretization.discretization_series`, what
+    :func:`~torchsde_lti.core.discretize` forms for one parameter set on every call) too, so a
+    call costs the series at that gap alone."""
+    with torch.no_grad():
+        m = sde.matrices()  # each parametrisation evaluated once
+        batch = [x.shape[:-2] for x in m if x is not None]
+        if any(len(b) for b in batch):
+            raise ValueError(
+                f"sde must be a single model (batch_shape ()), got batch_shape {tuple(torch.broadcast_shapes(*batch))}"
+            )
+        resolve_method(method)
+        series = discretization_series(m.F, noise_covariance(m.L, m.Qc), m.B) if method == "doubling" else None
+
+    def step(seconds: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        with torch.no_grad():
+            h = torch.tensor(seconds, dtype=m.F.dtype, device=m.F.device)
+            # the gap is checked by the caller; the parameters' values on the result (numpy, no torch check)
+            A, Q, G = (
+                series(h) if series is not None else discretize(m.F, m.L, m.Qc, h, m.B, method, validate_args=False)
+            )
+        to_np = lambda x: x.detach().cpu().to(torch.float64).numpy()  # noqa: E731
+        A, Q, G = to_np(A), to_np(Q), None if G is None else to_np(G)
+        if not (np.isfinite(A).all() and np.isfinite(Q).all() and (G is None or np.isfinite(G).all())):
+            raise ValueError(
+                f"the discretisation of the SDE over dt = {seconds!r} s is not finite: its parameters are not "
+                "finite or the step overflows float64 (an unstable F over a long gap)"
+            )
+        return A, 0.5 * (Q + Q.T), G
+
+    return step
+
+
 def discrete_step(
     sde: LTISDE, dt: object, method: str = "doubling"
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -65,24 +102,7 @@ def discrete_step(
     if not isinstance(sde, LTISDE):
         raise TypeError(f"sde must be an LTISDE, got {type(sde).__name__}")
     seconds = _seconds(dt, "dt")
-    with torch.no_grad():
-        m = sde.matrices()  # each parametrisation evaluated once
-        batch = [x.shape[:-2] for x in m if x is not None]
-        if any(len(b) for b in batch):
-            raise ValueError(
-                f"sde must be a single model (batch_shape ()), got batch_shape {tuple(torch.broadcast_shapes(*batch))}"
-            )
-        h = torch.tensor(seconds, dtype=m.F.dtype, device=m.F.device)
-        # the gap is checked above; the parameters' values are checked on the result (numpy, no torch check)
-        d = discretize(m.F, m.L, m.Qc, h, B=m.B, method=method, validate_args=False)
-    to_np = lambda x: x.detach().cpu().to(torch.float64).numpy()  # noqa: E731
-    A, Q, G = to_np(d.A), to_np(d.Q), None if d.G is None else to_np(d.G)
-    if not (np.isfinite(A).all() and np.isfinite(Q).all() and (G is None or np.isfinite(G).all())):
-        raise ValueError(
-            f"the discretisation of the SDE over dt = {seconds!r} s is not finite: its parameters are not finite "
-            "or the step overflows float64 (an unstable F over a long gap)"
-        )
-    return A, 0.5 * (Q + Q.T), G
+    return _discretizer(sde, method)(seconds)
 
 
 # ---------------------------------------------------------------------------- Stone Soup
@@ -109,9 +129,9 @@ def _stonesoup_class() -> type:
         process noise over Δ (seconds of the ``timedelta``), computed by
         :func:`torchsde_lti.discretize` at the SDE's current parameters. Δ must be
         non-negative. The state layout is the SDE's (e.g. ``[x, vx, y, vy]``). The (A, Q)
-        of the last 16 gaps are reused while every parameter/buffer version counter is
-        unchanged (in-place optimiser steps and ``sde.q = …`` bump them; writes through
-        ``tensor.data`` do not).
+        of the last 16 gaps, and the dt-independent part of the discretisation, are reused
+        while every parameter/buffer version counter and ``method`` are unchanged (in-place
+        optimiser steps and ``sde.q = …`` bump them; writes through ``tensor.data`` do not).
         """
 
         sde: Any = Property(doc="The torchsde_lti.LTISDE (unbatched) that defines the dynamics.")
@@ -127,7 +147,8 @@ def _stonesoup_class() -> type:
                 )
 
             self._version: tuple = ()
-            self._gaps: dict[tuple[float, str], tuple[np.ndarray, np.ndarray]] = {}
+            self._gaps: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+            self._discretize: Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray | None]] | None = None
 
         @property
         def ndim_state(self) -> int:
@@ -135,20 +156,21 @@ def _stonesoup_class() -> type:
 
         def _step(self, time_interval: datetime.timedelta) -> tuple[np.ndarray, np.ndarray]:
             # A scan asks for matrix() and covar() of the same few gaps for every track and
-            # hypothesis: keep the (A, Q) of the last gaps seen, valid while the version
+            # hypothesis: keep the (A, Q) of the last gaps seen, and the discretisation of the
+            # current parameters (their dt-independent part formed once), valid while the version
             # counters of every parameter and buffer are unchanged (an optimiser step or an
             # assignment ``sde.q = …`` changes them).
             seconds = _seconds(time_interval, "time_interval")
-            version = model_version(self.sde)
-            if version != self._version:
+            version = (model_version(self.sde), self.method)
+            if version != self._version or self._discretize is None:
                 self._version, self._gaps = version, {}
-            key = (seconds, self.method)
-            hit = self._gaps.get(key)
+                self._discretize = _discretizer(self.sde, self.method)
+            hit = self._gaps.get(seconds)
             if hit is None:
-                A, Q, _ = discrete_step(self.sde, seconds, self.method)
+                A, Q, _ = self._discretize(seconds)
                 if len(self._gaps) >= _GAPS_KEPT:
                     self._gaps.pop(next(iter(self._gaps)))  # the oldest gap
-                hit = self._gaps[key] = (A, Q)
+                hit = self._gaps[seconds] = (A, Q)
             return hit[0].copy(), hit[1].copy()
 
         def matrix(self, time_interval: datetime.timedelta, **kwargs: Any) -> np.ndarray:
