@@ -28,7 +28,7 @@ batch_scores; recovery and figures import no other module here, history_figures 
 """
 
 from torchsde_lti.evaluation.baseline import cv_filter, tune_cv
-from torchsde_lti.evaluation.batch_scores import batch_predictive, coverage_counts, imm_k_step_nll, kalman_k_step_nll
+from torchsde_lti.evaluation.batch_scores import coverage_counts, imm_k_step_nll, kalman_k_step_nll
 from torchsde_lti.evaluation.calibration import (
     NOMINAL_2SIGMA,
     calibrate_filter,
@@ -42,6 +42,7 @@ from torchsde_lti.evaluation.history_figures import history_figures
 from torchsde_lti.evaluation.predictive import (
     Model,
     PredictiveBatch,
+    batch_predictive,
     frozen_copy,
     masked_gaussian_nll,
     mixture_log_prob,

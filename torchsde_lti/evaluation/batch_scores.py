@@ -2,7 +2,6 @@ r"""Scores of a filter's output on one padded batch, differentiable where they a
 
     kalman_k_step_nll(kf, out, y, observed, k, u)   # Σ_t -log p(y_{t+k} | y_0:t), exact steps
     imm_k_step_nll(imm, out, y, dt, observed, k)    # ... under the IMM's forecast mixture
-    batch_predictive(kf, out, u)                    # the one-step predictive mixture (w, mu, S)
     coverage_counts(y, w, mu, S, observed, dof)     # (inside, scored) of the 2σ coverage
 
 The k-step-ahead predictive NLL scores y_{t+k} from the filtered state at t, pushed k reports
@@ -25,7 +24,7 @@ from torchsde_lti.evaluation.scores import hpd_inside
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
 
-__all__ = ["batch_predictive", "coverage_counts", "imm_k_step_nll", "kalman_k_step_nll"]
+__all__ = ["coverage_counts", "imm_k_step_nll", "kalman_k_step_nll"]
 
 
 def kalman_k_step_nll(
@@ -99,25 +98,6 @@ def imm_k_step_nll(imm: IMMFilter, out: Any, y: Tensor, dt: Tensor, observed: Te
     comp = -0.5 * (z * z).sum(-1) - logdet - 0.5 * y.shape[-1] * math.log(2.0 * math.pi)
     ll = torch.logsumexp(comp + torch.log(w.clamp_min(1e-300)), dim=-1)
     return -(ll * ok).sum()
-
-
-def batch_predictive(kf: KalmanFilter | IMMFilter, out: Any, u: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """The one-step predictive of y from a filter's output, a mixture over modes.
-
-    Args:
-        kf: the filter; out: its output on a batch; u: (..., T, p) inputs or None.
-
-    Returns:
-        Weights (..., T, M), means (..., T, M, m) (``H_j m⁻_j``, plus the feedthrough D u of a
-        KalmanFilter) and covariances (..., T, M, m, m) (``S_j``); M = 1 for a KalmanFilter.
-    """
-    if isinstance(kf, IMMFilter):
-        mu = (kf.H @ out.mode_pred_mean.unsqueeze(-1)).squeeze(-1)  # H shared (m, n) or per mode (M, m, n)
-        return out.pred_mode_probabilities, mu, out.mode_innovation_cov
-    pred = out.pred_mean @ kf.H.mT
-    Du = kf.feedthrough(u) if isinstance(kf, KalmanFilter) else None
-    pred = pred if Du is None else pred + Du
-    return torch.ones_like(pred[..., :1]), pred.unsqueeze(-2), out.innovation_cov.unsqueeze(-3)
 
 
 def coverage_counts(

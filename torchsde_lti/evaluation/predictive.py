@@ -2,6 +2,7 @@ r"""The predictive distributions every score is computed from, and the batching 
 
     model = frozen_copy(kf)                        # float64, eval mode: the caller's module unchanged
     pred = one_step_predictive(model, tracks)      # {"y", "w", "mu", "S", "index"}: reports k >= 2
+    batch_predictive(kf, out, u)                   # the same mixture from a filter's output on one batch
     mixture_log_prob(y, w, mu, S)                  # log Σ_j w_j N(y; mu_j, S_j)
     masked_gaussian_nll(r, S, observed)            # -log N(r; 0, S) of the observed coordinates
     predictive_dof(model)                          # ν of a Student-t filter (None: Gaussian)
@@ -41,6 +42,7 @@ from torchsde_lti.nn.kalman import KalmanFilter
 __all__ = [
     "Model",
     "PredictiveBatch",
+    "batch_predictive",
     "frozen_copy",
     "masked_gaussian_nll",
     "mixture_log_prob",
@@ -137,19 +139,29 @@ def frozen_copy(model: Model) -> Model:
     return copy.deepcopy(model).to(torch.float64).eval()
 
 
+def batch_predictive(kf: KalmanFilter | IMMFilter, out: Any, u: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """The one-step predictive of y from a filter's output, a mixture over modes.
+
+    Args:
+        kf: the filter; out: its output on a batch; u: (..., T, p) inputs or None.
+
+    Returns:
+        Weights (..., T, M), means (..., T, M, m) (``H_j m⁻_j``, plus the feedthrough D u of a
+        KalmanFilter) and covariances (..., T, M, m, m) (``S_j``); M = 1 for a KalmanFilter.
+    """
+    if isinstance(kf, IMMFilter):
+        mu = (kf.H @ out.mode_pred_mean.unsqueeze(-1)).squeeze(-1)  # H shared (m, n) or per mode (M, m, n)
+        return out.pred_mode_probabilities, mu, out.mode_innovation_cov
+    pred = out.pred_mean @ kf.H.mT
+    Du = kf.feedthrough(u) if isinstance(kf, KalmanFilter) else None
+    pred = pred if Du is None else pred + Du
+    return torch.ones_like(pred[..., :1]), pred.unsqueeze(-2), out.innovation_cov.unsqueeze(-3)
+
+
 def _one_step(model: Model, batch: TrackBatch) -> tuple[Any, Tensor, Tensor, Tensor]:
-    """Filter output and the one-step predictive of y: weights (B, T, M), means (B, T, M, m), covs."""
+    """Filter output and the one-step predictive of y (:func:`batch_predictive`)."""
     out = model(batch.y, batch.dt, mask=batch.mask)
-    if isinstance(model, IMMFilter):
-        H = model.H  # (m, n) shared or (M, m, n) per mode: broadcasts over (..., M, n, 1) either way
-        return (
-            out,
-            out.pred_mode_probabilities,
-            (H @ out.mode_pred_mean.unsqueeze(-1)).squeeze(-1),
-            out.mode_innovation_cov,
-        )
-    w = torch.ones(*out.pred_mean.shape[:-1], 1, dtype=out.pred_mean.dtype)
-    return out, w, (out.pred_mean @ model.H.mT).unsqueeze(-2), out.innovation_cov.unsqueeze(-3)
+    return (out, *batch_predictive(model, out))
 
 
 def _forecast(model: Model, out: Any, b: Tensor, k: Tensor, lead: Tensor) -> tuple[Tensor, Tensor, Tensor]:
