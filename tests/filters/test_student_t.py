@@ -235,7 +235,8 @@ def test_module_option_refuses_bad_values():
         tl.StudentT(2.0)
     with pytest.raises(ValueError, match="one number or one per IMM mode"):
         tl.StudentT(torch.tensor([[3.0, 4.0]]))
-    with pytest.raises(ValueError, match="a KalmanFilter takes one"):  # (a ν per mode: tests/filters/test_student_t_modes.py)
+    # a ν per mode is an IMM's (tests/filters/test_student_t_modes.py)
+    with pytest.raises(ValueError, match="a KalmanFilter takes one"):
         _kf(tl.StudentT(torch.tensor([3.0, 4.0])))
     with pytest.raises(TypeError, match="noise must be"):
         _kf("student_t")
