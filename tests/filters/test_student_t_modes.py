@@ -278,3 +278,17 @@ def test_training_through_the_config_learns_a_dof_per_mode_and_reloads(tmp_path)
     assert math.isfinite(metrics["val/nll"]) and 0.0 <= metrics["val/cover2s"] <= 1.0
     run = load_run(tmp_path)
     torch.testing.assert_close(run.filter.noise.dof.detach(), dof)
+
+
+@pytest.mark.slow  # torch.export of the IMM's structured scan: ≈ 20–25 s
+def test_exported_program_equals_the_eager_filter():
+    """The exported program (one traced cycle in torch's structured scan) takes the same route."""
+    imm = _imm(tl.StudentT(NU))
+    y, dt = _data(B=3, T=8, seed=7)
+    y, dt = torch.nan_to_num(y[:2]), dt[:2]  # (B = 2: a batch equal to M = 3 does not export, with any noise)
+    program = torch.export.export(tl.DeployedFilter(imm).eval(), (y, dt)).module()
+    ll, mean = program(y, dt)
+    with torch.no_grad():
+        ref = imm(y, dt)
+    torch.testing.assert_close(ll, ref.log_likelihood, rtol=0, atol=1e-10)
+    torch.testing.assert_close(mean, ref.mean, rtol=0, atol=1e-10)
