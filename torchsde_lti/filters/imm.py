@@ -256,7 +256,9 @@ def imm_filter(
         validate_args: check the values (y without Inf; finite, PSD covariances, stochastic Pi
             and mode_prob0); shapes are always checked.
         noise: the modes' noise model (:mod:`~torchsde_lti.filters.noise`; a Student-t's ν is
-            shared: the step log-likelihood is ``log Σ_j c_j St(y_k; ŷ_j, S_j, ν)``).
+            shared, or one per mode with ``per_mode``: the step log-likelihood is
+            ``log Σ_j c_j St(y_k; ŷ_j, S_j, ν_j)``, and with a ν per mode the combined ``cov`` and
+            ``pred_cov`` are the mixture's covariances, the mode-matched ones each mode's scale).
 
     Returns:
         :class:`IMMResult`; every output broadcasts to the full batch ``...``.
