@@ -233,8 +233,11 @@ def test_module_option_learns_dof_and_round_trips():
 def test_module_option_refuses_bad_values():
     with pytest.raises(ValueError, match="dof must be > 2"):
         tl.StudentT(2.0)
-    with pytest.raises(ValueError, match="one number"):
-        tl.StudentT(torch.tensor([3.0, 4.0]))
+    with pytest.raises(ValueError, match="one number or one per IMM mode"):
+        tl.StudentT(torch.tensor([[3.0, 4.0]]))
+    # a ν per mode is an IMM's (tests/filters/test_student_t_modes.py)
+    with pytest.raises(ValueError, match="a KalmanFilter takes one"):
+        _kf(tl.StudentT(torch.tensor([3.0, 4.0])))
     with pytest.raises(TypeError, match="noise must be"):
         _kf("student_t")
     with pytest.raises(ValueError, match="must be > 2"):
@@ -311,7 +314,7 @@ def test_mixing_matches_the_mixture_covariance():
     X = torch.randn(2, 3, 3, generator=g, dtype=F64)
     P = X @ X.mT + torch.eye(3, dtype=F64)
     nu = torch.tensor(3.4, dtype=F64)
-    x, Pm = combine(p, m, P, StudentTNoise(nu).spread())
+    x, Pm = combine(p, m, P, StudentTNoise(nu))
     k = nu / (nu - 2)
     want = sum(p[j] * (k * P[j] + torch.outer(m[j] - x, m[j] - x)) for j in range(2))
     torch.testing.assert_close(k * Pm, want, rtol=1e-13, atol=1e-13)

@@ -124,7 +124,7 @@ def hpd_level(
         xs = torch.gather(mm, 1, comp[..., None].expand(-1, -1, m))
         Lz = sum(Lg[..., :, j] * z[..., j : j + 1] for j in range(m))
         assert isinstance(Lz, Tensor)
-        xs = xs + Lz if dof is None else t_draws(xs, Lz, dof, g)
+        xs = xs + Lz if dof is None else t_draws(xs, Lz, dof, g, comp)
         ly = mixture_log_prob(y[lo : lo + chunk], ww, mm, SS, dof)  # (n,)
         lx = mixture_log_prob(xs, ww, mm, SS, dof)  # (n, D)
         out.append((lx > ly[:, None]).to(y.dtype).mean(-1))

@@ -2,10 +2,11 @@ r"""The Student-t predictive of a filter with ``noise=tl.StudentT(ν)``: density
 
     mixture_t_log_prob(x, w, mu, S, dof)   # log Σ_j w_j St(x; mu_j, S_j, ν)
     t_hpd_level(maha, m, dof)              # P(D² <= maha) for D² the Mahalanobis² of a t draw
-    t_draws(mu, L, z, dof, generator)      # mu + L z sqrt(ν / g), g ~ χ²_ν
+    t_draws(mu, Lz, dof, generator, comp)  # mu + L z sqrt(ν / g), g ~ χ²_ν
 
 Such a filter's one-step predictive is ``St(y; H m⁻, S, ν)`` (one mode) or a mixture of them
-with one ν (an IMM): :mod:`torchsde_lti.filters.noise`, where S is the t's scale matrix.
+with one ν or a ν per mode (an IMM; ``dof`` (M,)): :mod:`torchsde_lti.filters.noise`, where S
+is the t's scale matrix.
 
 HPD region: the density of ``St(mu, S, ν)`` in m dimensions falls with ``D² = (y − mu)ᵀ S⁻¹
 (y − mu)``, and ``D² / m`` follows the F distribution F(m, ν), so the level of y (the mass
@@ -88,9 +89,9 @@ def t_hpd_level(maha: Tensor, m: int, dof: Tensor | float) -> Tensor:
 
 
 def mixture_t_log_prob(x: Tensor, w: Tensor, mu: Tensor, S: Tensor, dof: Tensor | float) -> Tensor:
-    """``log Σ_j w_j St(x; mu_j, S_j, ν)`` of points x (N, m) or (N, D, m), shapes as
-    :func:`~torchsde_lti.evaluation.mixture_log_prob`, S_j the t's scale matrices; elementwise
-    over the m × m entries of the inverse."""
+    """``log Σ_j w_j St(x; mu_j, S_j, ν_j)`` of points x (N, m) or (N, D, m), shapes as
+    :func:`~torchsde_lti.evaluation.mixture_log_prob`, S_j the t's scale matrices, ν one number
+    or one per component (M,); elementwise over the m × m entries of the inverse."""
     squeeze = x.dim() == 2
     if squeeze:
         x = x.unsqueeze(1)
@@ -107,11 +108,19 @@ def mixture_t_log_prob(x: Tensor, w: Tensor, mu: Tensor, S: Tensor, dof: Tensor 
     return out.squeeze(1) if squeeze else out
 
 
-def t_draws(mu: Tensor, Lz: Tensor, dof: Tensor | float, generator: torch.Generator) -> Tensor:
+def t_draws(
+    mu: Tensor, Lz: Tensor, dof: Tensor | float, generator: torch.Generator, comp: Tensor | None = None
+) -> Tensor:
     """Draws ``mu + (L z) sqrt(ν / g)`` of a t from Gaussian draws ``L z`` (..., m) about 0:
     g ~ χ²_ν = 2 Gamma(ν/2) from ``generator`` (torch's gamma sampler, the one
-    ``torch.distributions.Gamma`` uses, with a generator: seeded common random numbers)."""
+    ``torch.distributions.Gamma`` uses, with a generator: seeded common random numbers).
+    ν: one number, or one per mixture component (M,) with ``comp`` (...) the component of each
+    draw (ν_comp)."""
     nu = torch.as_tensor(dof, dtype=Lz.dtype)
+    if nu.dim():
+        if comp is None:
+            raise ValueError(f"t_draws: dof of shape {tuple(nu.shape)} is per component: pass comp")
+        nu = nu[comp]
     alpha = (0.5 * nu).expand(Lz.shape[:-1]).contiguous()
     g = 2.0 * torch._standard_gamma(alpha, generator=generator)
     return mu + Lz * torch.sqrt(nu / g).unsqueeze(-1)

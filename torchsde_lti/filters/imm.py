@@ -45,16 +45,7 @@ import torch
 from torch import Tensor
 
 from torchsde_lti.core.linalg import matvec, sym
-from torchsde_lti.core.validation import (
-    broadcast_batch,
-    check_finite,
-    check_matrix,
-    check_no_inf,
-    check_symmetric_psd,
-    checks_values,
-    shape_str,
-)
-from torchsde_lti.filters.inputs import as_float_tensors, check_mask
+from torchsde_lti.filters.imm_inputs import check_imm_inputs
 from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel, weighted_outer
 from torchsde_lti.filters.online import KalmanState, kalman_step
 from torchsde_lti.filters.results import serializable
@@ -127,19 +118,31 @@ class IMMPrediction(NamedTuple):
     cov: Tensor
 
 
-def combine(prob: Tensor, mean: Tensor, cov: Tensor, spread: Tensor | None = None) -> tuple[Tensor, Tensor]:
+def _per_unit(factor: Tensor | None) -> Tensor | None:
+    """A per-mode factor (..., M) of :meth:`~torchsde_lti.filters.StudentTNoise.covariance_factor`
+    as (..., M, 1, 1), to scale matrices (..., M, n, n); None stays None."""
+    return None if factor is None else factor[..., None, None]
+
+
+def combine(prob: Tensor, mean: Tensor, cov: Tensor, noise: NoiseModel = GAUSSIAN) -> tuple[Tensor, Tensor]:
     """Moment-matched Gaussian of a mixture: prob (..., M), mean (..., M, n), cov (..., M, n, n).
 
-    Returns ``x = Σ_j p_j m_j`` (..., n) and ``P = Σ_j p_j (P_j + w (m_j − x)(m_j − x)ᵀ)`` (..., n, n),
-    w = ``spread`` (...) (None: 1; :meth:`~torchsde_lti.filters.StudentTNoise.spread`).
+    Returns ``x = Σ_j p_j m_j`` (..., n) and ``P = Σ_j p_j (r_j P_j + w (m_j − x)(m_j − x)ᵀ)``
+    (..., n, n), w = ``noise.spread()`` (...) (None: 1) and r_j = ``noise.covariance_factor()``
+    (None: 1) (:mod:`~torchsde_lti.filters.noise`: a scale matrix of one ν, or the covariance of
+    modes with a ν each); ``noise`` has the batch of prob (:meth:`~torchsde_lti.filters.StudentTNoise.with_axis`).
     """
+    r = _per_unit(noise.covariance_factor())
+    cov = cov if r is None else cov * r
     x = torch.einsum("...j,...jn->...n", prob, mean)
-    P = torch.einsum("...j,...jab->...ab", prob, cov + weighted_outer(mean - x.unsqueeze(-2), spread, 3))
+    P = torch.einsum("...j,...jab->...ab", prob, cov + weighted_outer(mean - x.unsqueeze(-2), noise.spread(), 3))
     return x, sym(P)
 
 
-def _mix(prob: Tensor, Pi: Tensor, mean: Tensor, cov: Tensor, spread: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
-    """IMM mixing step. prob (..., M), Pi (..., M, M), mean (..., M, n), cov (..., M, n, n); spread (...).
+def _mix(prob: Tensor, Pi: Tensor, mean: Tensor, cov: Tensor, noise: NoiseModel) -> tuple[Tensor, Tensor, Tensor]:
+    """IMM mixing step. prob (..., M), Pi (..., M, M), mean (..., M, n), cov (..., M, n, n); noise
+    with the batch of prob: the spread's weight (...) and, a ν per mode, the modes' scales mixed as
+    covariances ``r_i P_i`` and returned to mode j's scale (÷ r_j; :mod:`~torchsde_lti.filters.noise`).
 
     Returns c (..., M) = prob Pi, mixed means (..., M, n) and covariances (..., M, n, n).
     A mode with c_j ≤ sqrt(tiny) of the dtype (≈ 1e-154 in float64) gets c_j = 0 and mixed
@@ -149,6 +152,7 @@ def _mix(prob: Tensor, Pi: Tensor, mean: Tensor, cov: Tensor, spread: Tensor | N
     """
     joint = prob.unsqueeze(-1) * Pi  # (..., M_i, M_j) P(i at k−1, j at k)
     c = joint.sum(-2)
+    r = _per_unit(noise.covariance_factor())
     pos = c > math.sqrt(torch.finfo(c.dtype).tiny)
     c = torch.where(pos, c, torch.zeros_like(c))
     c_safe = torch.where(pos, c, torch.ones_like(c))
@@ -157,9 +161,10 @@ def _mix(prob: Tensor, Pi: Tensor, mean: Tensor, cov: Tensor, spread: Tensor | N
     # torch.export's scan of the cycle in grad mode; mean may broadcast over the modes)
     m_mix = (w.unsqueeze(-1) * mean.unsqueeze(-2)).sum(-3)
     d = mean.unsqueeze(-2) - m_mix.unsqueeze(-3)  # (..., M_i, M_j, n)
-    mixed = cov.unsqueeze(-3) + weighted_outer(d, spread, 4)  # (..., M_i, M_j, n, n)
-    P_mix = (w[..., None, None] * mixed).sum(-4)  # Σ_i w_ij (P_i + w d_ij d_ijᵀ)
-    return c, m_mix, sym(P_mix)
+    # (..., M_i, M_j, n, n)
+    mixed = (cov if r is None else cov * r).unsqueeze(-3) + weighted_outer(d, noise.spread(), 4)
+    P_mix = (w[..., None, None] * mixed).sum(-4)  # Σ_i w_ij (r_i P_i + w d_ij d_ijᵀ)
+    return c, m_mix, sym(P_mix if r is None else P_mix / r)
 
 
 class IMMCycle(NamedTuple):
@@ -208,7 +213,7 @@ def imm_cycle(
     A, Q (..., M, n, n); H (..., M or 1, m, n), R (..., M or 1, m, m); y (..., m) the report
     (NaN = missing component); noise: the modes' noise model (a t's scale matrices mix as covariances).
     """
-    c, m_mix, P_mix = _mix(prob, Pi, mean, cov, noise.spread())
+    c, m_mix, P_mix = _mix(prob, Pi, mean, cov, noise)
     state, step = kalman_step(KalmanState(m_mix, P_mix), y.unsqueeze(-2), A, Q, H, R, noise=noise.over_modes())
     log_c = torch.where(c > 0, torch.log(torch.where(c > 0, c, torch.ones_like(c))), torch.full_like(c, -math.inf))
     joint = log_c + step.log_likelihood  # (..., M)
@@ -221,76 +226,6 @@ def imm_cycle(
         prob, state.mean, state.cov, c, step.pred_mean, step.pred_cov, step.innovation, step.innovation_cov, total,
         observed,
     )  # fmt: skip
-
-
-def _check_inputs(
-    y: Tensor,
-    A: Tensor,
-    Q: Tensor,
-    H: Tensor,
-    R: Tensor,
-    Pi: Tensor,
-    m0: Tensor,
-    P0: Tensor,
-    mode_prob0: Tensor,
-    mask: Tensor | None,
-    validate_args: bool = True,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor | None]:
-    t = as_float_tensors(y=y, A=A, Q=Q, H=H, R=R, Pi=Pi, m0=m0, P0=P0, mode_prob0=mode_prob0)
-    checked = [t[k] for k in ("y", "A", "Q", "H", "R", "Pi", "m0", "P0", "mode_prob0")]
-    assert all(x is not None for x in checked)
-    y, A, Q, H, R, Pi, m0, P0, mode_prob0 = checked  # type: ignore[assignment]
-    dtype, device = y.dtype, y.device
-    if y.dim() < 2 or y.shape[-2] < 1 or y.shape[-1] < 1:
-        raise ValueError(f"y must have shape (..., T, m) with T, m >= 1, got shape {shape_str(y)}")
-    T, m = y.shape[-2], y.shape[-1]
-    if mode_prob0.dim() < 1:
-        raise ValueError(f"mode_prob0 must have shape (..., M), got shape {shape_str(mode_prob0)}")
-    M = mode_prob0.shape[-1]
-    check_matrix(A, "A", square=True)
-    n = A.shape[-1]
-    for name, x, r, c in (("A", A, n, n), ("Q", Q, n, n), ("H", H, m, n), ("R", R, m, m), ("P0", P0, n, n)):
-        check_matrix(x, name, rows=r, cols=c)
-        if x.dim() >= 3 and x.shape[-3] not in (1, M):
-            raise ValueError(
-                f"{name} must have its mode axis (dim -3) of size 1 or M={M} "
-                f"(mode_prob0 {shape_str(mode_prob0)}), got shape {shape_str(x)}"
-            )
-    for name, x in (("A", A), ("Q", Q), ("H", H), ("R", R)):
-        if x.dim() >= 4 and x.shape[-4] not in (1, T):
-            raise ValueError(
-                f"{name} must have its time axis (dim -4) of size 1 or T={T} "
-                f"(y {shape_str(y)}), got shape {shape_str(x)}"
-            )
-    if Pi.dim() < 2 or Pi.shape[-2:] != (M, M):
-        raise ValueError(
-            f"Pi must have shape (..., T, {M}, {M}) to match mode_prob0 {shape_str(mode_prob0)}, "
-            f"got shape {shape_str(Pi)}"
-        )
-    if Pi.dim() >= 3 and Pi.shape[-3] not in (1, T):
-        raise ValueError(f"Pi must have its time axis (dim -3) of size 1 or T={T}, got shape {shape_str(Pi)}")
-    if m0.dim() < 1 or m0.shape[-1] != n or (m0.dim() >= 2 and m0.shape[-2] not in (1, M)):
-        raise ValueError(f"m0 must have shape (..., {M}, {n}) or (..., 1, {n}) or ({n},), got shape {shape_str(m0)}")
-    mask = check_mask(mask, T, m, device, y.dim())
-    named = [("y", y.shape[:-2]), ("Pi", Pi.shape[:-3]), ("m0", m0.shape[:-2]), ("P0", P0.shape[:-3])]
-    named += [(k, x.shape[:-4]) for k, x in (("A", A), ("Q", Q), ("H", H), ("R", R))]
-    named += [("mode_prob0", mode_prob0.shape[:-1]), *([] if mask is None else [("mask", mask.shape[:-2])])]
-    broadcast_batch(named)
-    if checks_values(validate_args):
-        check_no_inf(y, "y")
-        for name, x in (("A", A), ("H", H), ("Pi", Pi), ("m0", m0), ("mode_prob0", mode_prob0)):
-            check_finite(x, name)
-        for name, x in (("Q", Q), ("R", R), ("P0", P0)):
-            check_symmetric_psd(x, name)
-        if bool((Pi < 0).any()) or bool(((Pi.sum(-1) - 1).abs() > 1e3 * torch.finfo(dtype).eps * M).any()):
-            raise ValueError(f"Pi must be row-stochastic (entries >= 0, rows summing to 1), shape {shape_str(Pi)}")
-        if bool((mode_prob0 < 0).any()) or bool(
-            ((mode_prob0.sum(-1) - 1).abs() > 1e3 * torch.finfo(dtype).eps * M).any()
-        ):
-            raise ValueError(
-                f"mode_prob0 must be a probability vector over the last axis, shape {shape_str(mode_prob0)}"
-            )
-    return y, A, Q, H, R, Pi, m0, P0, mode_prob0, mask
 
 
 def imm_filter(
@@ -321,13 +256,15 @@ def imm_filter(
         validate_args: check the values (y without Inf; finite, PSD covariances, stochastic Pi
             and mode_prob0); shapes are always checked.
         noise: the modes' noise model (:mod:`~torchsde_lti.filters.noise`; a Student-t's ν is
-            shared: the step log-likelihood is ``log Σ_j c_j St(y_k; ŷ_j, S_j, ν)``).
+            shared, or one per mode with ``per_mode``: the step log-likelihood is
+            ``log Σ_j c_j St(y_k; ŷ_j, S_j, ν_j)``, and with a ν per mode the combined ``cov`` and
+            ``pred_cov`` are the mixture's covariances, the mode-matched ones each mode's scale).
 
     Returns:
         :class:`IMMResult`; every output broadcasts to the full batch ``...``.
     """
-    y, A, Q, H, R, Pi, m0, P0, prob, mask = _check_inputs(y, A, Q, H, R, Pi, m0, P0, mode_prob0, mask, validate_args)
-    noise = noise.check(y.shape[:-2], "sequential", validate_args)
+    y, A, Q, H, R, Pi, m0, P0, prob, mask = check_imm_inputs(y, A, Q, H, R, Pi, m0, P0, mode_prob0, mask, validate_args)
+    noise = noise.check(y.shape[:-2], "sequential", validate_args, modes=prob.shape[-1])
     if mask is not None:  # (a report not observed is a missing one: NaN)
         y = torch.where(mask, y, torch.nan)
     T, m = y.shape[-2], y.shape[-1]
@@ -367,7 +304,7 @@ def imm_filter(
             k: torch.stack(torch.broadcast_tensors(*v), dim=-1 - _EVENT_NDIM[k])
             for k, v in zip(IMMCycle._fields, zip(*steps))
         }
-    return _imm_result(stk, T, M, n, m, (A4, Q4, Pi3, H4, R4), noise.spread())
+    return _imm_result(stk, T, M, n, m, (A4, Q4, Pi3, H4, R4), noise.with_axis())
 
 
 #: The event dims of each field of :class:`IMMCycle` (the T axis goes before them).
@@ -427,12 +364,12 @@ def _imm_scan(
 
 
 def _imm_result(
-    stk: dict[str, Tensor], T: int, M: int, n: int, m: int, model: tuple[Tensor, ...], spread: Tensor | None
+    stk: dict[str, Tensor], T: int, M: int, n: int, m: int, model: tuple[Tensor, ...], noise: NoiseModel
 ) -> IMMResult:
     """The :class:`IMMResult` of the per-step fields of :class:`IMMCycle` ``stk`` (the T axis
     before each one's event dims) and of the model it filtered with, ``model`` = (A, Q
     (..., T or 1, M or 1, n, n), Pi (..., T or 1, M, M), H (..., T or 1, M or 1, m, n),
-    R (..., T or 1, M or 1, m, m)); ``spread``: :func:`combine`'s weight (...)."""
+    R (..., T or 1, M or 1, m, m)); ``noise``: :func:`combine`'s, with the T axis."""
     batch = torch.broadcast_shapes(*(v.shape[: v.dim() - 1 - _EVENT_NDIM[k]] for k, v in stk.items()))
     mu = stk["mode_prob"].expand(*batch, T, M)
     cc = stk["pred_mode_prob"].expand(*batch, T, M)
@@ -440,10 +377,8 @@ def _imm_result(
     mc = stk["mode_cov"].expand(*batch, T, M, n, n)
     pm = stk["mode_pred_mean"].expand(*batch, T, M, n)
     pc = stk["mode_pred_cov"].expand(*batch, T, M, n, n)
-    if spread is not None:  # (..., T)
-        spread = spread.unsqueeze(-1)
-    x, P = combine(mu, mm, mc, spread)
-    xp, Pp = combine(cc, pm, pc, spread)
+    x, P = combine(mu, mm, mc, noise)
+    xp, Pp = combine(cc, pm, pc, noise)
     step_ll = stk["log_likelihood"].expand(*batch, T)
     A, Q, Pi, H, R = model
     return IMMResult(
@@ -471,7 +406,7 @@ def _imm_result(
 
 
 def imm_predict(
-    mode_prob: Tensor, mean: Tensor, cov: Tensor, A: Tensor, Q: Tensor, Pi: Tensor, spread: Tensor | None = None
+    mode_prob: Tensor, mean: Tensor, cov: Tensor, A: Tensor, Q: Tensor, Pi: Tensor, noise: NoiseModel = GAUSSIAN
 ) -> IMMPrediction:
     r"""One IMM prediction (mixing + mode-matched prediction) over each of K horizons.
 
@@ -482,14 +417,15 @@ def imm_predict(
     Args:
         mode_prob: (..., M) mode probabilities; mean: (..., M, n); cov: (..., M, n, n).
         A, Q: (..., K, M, n, n) mode matrices over each horizon; Pi: (..., K, M, M).
-        spread: the weight (...) of the mean spread in mixed covariances (:func:`combine`).
+        noise: the modes' noise model (batch (...); :func:`combine`: a t's scale matrices mix as
+            covariances).
 
     Returns:
         :class:`IMMPrediction` with a K axis after the batch.
     """
-    k_spread = None if spread is None else spread.unsqueeze(-1)  # (..., 1) over the K horizons
-    c, m_mix, P_mix = _mix(mode_prob.unsqueeze(-2), Pi, mean.unsqueeze(-3), cov.unsqueeze(-4), k_spread)
+    k_noise = noise.with_axis()  # (over the K horizons)
+    c, m_mix, P_mix = _mix(mode_prob.unsqueeze(-2), Pi, mean.unsqueeze(-3), cov.unsqueeze(-4), k_noise)
     m_pred = matvec(A, m_mix)
     P_pred = sym(A @ P_mix @ A.mT + Q)
-    x, P = combine(c, m_pred, P_pred, k_spread)
+    x, P = combine(c, m_pred, P_pred, k_noise)
     return IMMPrediction(c, m_pred, P_pred, x, P)

@@ -90,7 +90,7 @@ def imm_step(
     if mask is not None:  # (a report not observed is a missing one: NaN)
         y = torch.where(mask.unsqueeze(-1) if mask.dim() < y.dim() else mask, y, torch.nan)
     cyc = imm_cycle(*state, Pi, A, Q, H, R, y, noise)
-    x, P = combine(cyc.mode_prob, cyc.mode_mean, cyc.mode_cov, noise.spread())
+    x, P = combine(cyc.mode_prob, cyc.mode_mean, cyc.mode_cov, noise)
     new = IMMState(cyc.mode_prob, cyc.mode_mean, cyc.mode_cov)
     batch = broadcast_shapes(cyc.log_likelihood.shape, cyc.observed.shape[:-1])
     return new, IMMStep(
@@ -110,5 +110,5 @@ def imm_predict_state(state: IMMState, A: Tensor, Q: Tensor, Pi: Tensor, noise: 
     A, Q: (..., M, n, n); Pi: (..., M, M); noise: the modes' noise model (a Student-t's scale
     matrices mix as covariances). Returns the predicted :class:`IMMState` (mode_prob = c = μ Pi).
     """
-    p = imm_predict(*state, A.unsqueeze(-4), Q.unsqueeze(-4), Pi.unsqueeze(-3), noise.spread())
+    p = imm_predict(*state, A.unsqueeze(-4), Q.unsqueeze(-4), Pi.unsqueeze(-3), noise)
     return IMMState(p.mode_probabilities.squeeze(-2), p.mode_mean.squeeze(-3), p.mode_cov.squeeze(-4))

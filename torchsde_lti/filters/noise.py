@@ -29,8 +29,13 @@ t's *scale matrices* (the covariance is ``ν / (ν − 2)`` times the scale), an
 As ν → ∞, f → 1 and the density → the Gaussian's, the gap shrinking like Δ⁴/ν: on residuals
 of Δ² ~ 100, ν = 1e8 is the Kalman filter to ~4e-4 and ν = 1e12 to ~4e-8 (tests). A
 fully missing step (d = 0) has f = 1 and contributes 0. The IMM mixes t-distributed modes
-with one shared ν: the mixture is matched in its covariance, so the spread of the mode means
-enters a scale matrix with the weight ``(ν − 2) / ν`` (:meth:`StudentTNoise.spread`).
+matched in their covariances. With one shared ν the factor ``ν / (ν − 2)`` of every mode's
+scale cancels and the spread of the mode means enters a scale matrix with the weight
+``(ν − 2) / ν`` (:meth:`StudentTNoise.spread`). With a ν per mode (``per_mode``: dof (..., M))
+the modes' scales P_i are covariances ``r_i P_i`` (``r_i = ν_i / (ν_i − 2)``,
+:meth:`StudentTNoise.covariance_factor`), mixed as Gaussians, and mixed into mode j they are
+its scale again, ``Σ_i w_ij (r_i P_i + d_ij d_ijᵀ) / r_j``; the combined output of such an IMM
+is the mixture's covariance (no single ν).
 """
 
 from __future__ import annotations
@@ -113,6 +118,14 @@ class GaussianNoise(NamedTuple):
         """The weight of the spread of mode means in a mixed covariance: None (1)."""
         return None
 
+    def covariance_factor(self) -> Tensor | None:
+        """The modes' covariance per unit scale matrix: None (1, the covariances mix as they are)."""
+        return None
+
+    def with_axis(self) -> GaussianNoise:
+        """The noise of an IMM's results with one more axis (T or K) before the modes: itself."""
+        return self
+
     def full_batch(self, P: Tensor, mean: Tensor) -> Tensor:
         """The loop's initial covariance P (n, n, *b): P itself (its batch is the model's)."""
         return P
@@ -130,16 +143,21 @@ class GaussianNoise(NamedTuple):
         variance of an observed component is below R, which the modules check."""
         return update
 
-    def check(self, batch: Sequence[int], algorithm: str, validate_args: bool = True) -> GaussianNoise:
-        """Itself (every batch and algorithm)."""
+    def check(
+        self, batch: Sequence[int], algorithm: str, validate_args: bool = True, modes: int | None = None
+    ) -> GaussianNoise:
+        """Itself (every batch, algorithm and number of modes)."""
         return self
 
 
 class StudentTNoise(NamedTuple):
     """Student-t noise with ``dof`` ν > 2 degrees of freedom: the filter of Roth et al. (2013)
-    (module docstring). dof: () or a batch shape that broadcasts to the filter's batch."""
+    (module docstring). dof: () or a batch shape that broadcasts to the filter's batch; with
+    ``per_mode`` (an IMM only), (..., M): each mode's ν on the last axis, the rest broadcasting
+    to the filter's batch."""
 
     dof: Tensor
+    per_mode: bool = False
 
     def log_likelihood_core(self, log_det: Tensor, maha: Tensor, d: Tensor) -> Tensor:
         """``log St(e; 0, S, ν) + (d/2) log 2π``: ``log Γ((ν+d)/2) − log Γ(ν/2) − (d/2) log(ν/2)
@@ -169,8 +187,19 @@ class StudentTNoise(NamedTuple):
 
     def spread(self) -> Tensor | None:
         """``(ν − 2) / ν``: the weight of the spread of mode means in a mixed scale matrix (the
-        mixture matched in its covariance)."""
-        return (self.dof - 2.0) / self.dof
+        mixture matched in its covariance); None (1) with ``per_mode``: the modes mix as
+        covariances (:meth:`covariance_factor`)."""
+        return None if self.per_mode else (self.dof - 2.0) / self.dof
+
+    def covariance_factor(self) -> Tensor | None:
+        """``ν_i / (ν_i − 2)`` (..., M): each mode's covariance per unit scale, with ``per_mode``;
+        None with one ν (the common factor cancels in the mixing: :meth:`spread`)."""
+        return self.dof / (self.dof - 2.0) if self.per_mode else None
+
+    def with_axis(self) -> StudentTNoise:
+        """The noise of an IMM's results with one more axis (T or K) before the modes: ν (...)
+        as (..., 1), or, ``per_mode``, (..., M) as (..., 1, M)."""
+        return StudentTNoise(self.dof.unsqueeze(-2), True) if self.per_mode else StudentTNoise(self.dof.unsqueeze(-1))
 
     def full_batch(self, P: Tensor, mean: Tensor) -> Tensor:
         """The loop's initial scale P (n, n, *b) expanded to the batch of the mean (n, *b'):
@@ -183,23 +212,36 @@ class StudentTNoise(NamedTuple):
 
     def over_modes(self) -> StudentTNoise:
         """The noise of each mode of an IMM (the modes a batch dimension after the batch): ν
-        (...) as (..., 1), shared by the modes."""
+        (...) as (..., 1), shared by the modes; ``per_mode``, ν (..., M) itself, its last axis
+        the modes'."""
+        if self.per_mode:
+            return StudentTNoise(self.dof)
         return StudentTNoise(self.dof.unsqueeze(-1)) if self.dof.dim() else self
 
     def update_bound(self, update: T) -> T | None:
         """None: the filtered scale ``f P⁺`` has no bound by R (f grows with Δ²)."""
         return None
 
-    def check(self, batch: Sequence[int], algorithm: str, validate_args: bool = True) -> StudentTNoise:
+    def check(
+        self, batch: Sequence[int], algorithm: str, validate_args: bool = True, modes: int | None = None
+    ) -> StudentTNoise:
         """Itself, after checking that ν's shape broadcasts to the filter's ``batch`` without
-        growing it, that ``algorithm`` has the t update and (``validate_args``) that ν is finite
-        and > 2; ValueError naming them otherwise."""
+        growing it (``per_mode``: its last axis of size ``modes``, the IMM's M, and a single
+        filter, ``modes`` None, refuses it), that ``algorithm`` has the t update and
+        (``validate_args``) that ν is finite and > 2; ValueError naming them otherwise."""
         if algorithm == "scan":
             raise ValueError(
                 "noise=StudentTNoise has no associative scan (its scale recursion is not linear): use "
                 "algorithm='sequential' (the default) or 'square_root'"
             )
         shape = tuple(self.dof.shape)
+        if self.per_mode:
+            if modes is None or not shape or shape[-1] != modes:
+                raise ValueError(
+                    f"noise.dof of shape {shape_str(self.dof)} is per mode: it needs an IMM's modes on its last "
+                    f"axis (M={modes}; a single filter takes one ν)"
+                )
+            shape = shape[:-1]
         if len(shape) > len(batch) or any(s not in (1, b) for s, b in zip(shape[::-1], tuple(batch)[::-1])):
             raise ValueError(
                 f"noise.dof of shape {shape_str(self.dof)} must broadcast to the filter's batch {tuple(batch)}"

@@ -139,7 +139,8 @@ class IMMFilter(ValidateArgs, nn.Module):
         mode_names: optional M distinct names of the modes (default ``"mode0"``, ``"mode1"``, …),
             used by :meth:`modes` and in reports (``"moored/k"``, ``"rate[moored->underway]"``).
         noise: :class:`~torchsde_lti.Gaussian` (None, default) or :class:`~torchsde_lti.StudentT`: every
-            mode Roth et al.'s Student-t filter, one shared ν (covariances are then scale matrices).
+            mode Roth et al.'s Student-t filter, one shared ν or dof (M,) a ν per mode (covariances
+            are then scale matrices; per mode, the combined ``cov`` is the mixture's covariance).
     """
 
     if TYPE_CHECKING:  # the modes' ModuleList, registered tensors and parametrised attributes
@@ -192,7 +193,7 @@ class IMMFilter(ValidateArgs, nn.Module):
         M = len(models)
         dtype, device = models[0].dtype, models[0].device
         n = models[0].state_dim
-        self.noise = noise_option(noise, dtype, device)
+        self.noise = noise_option(noise, dtype, device, modes=M)
         for i, sde in enumerate(models):
             with torch.no_grad():
                 F = sde.matrices().F
@@ -488,12 +489,11 @@ class IMMFilter(ValidateArgs, nn.Module):
         if self.validate_args:
             check_model_values(model, dt, IMMState(prob, mean, cov))
         d, Pi = self._discretizebank_of(model, dt)  # (..., K, M, n, n), (..., K, M, M)
-        spread = model.noise.spread()  # (a Student-t's scale matrices mix as covariances)
-        p: IMMPrediction = imm_predict(prob, mean, cov, d.A, d.Q, Pi, spread)
+        p: IMMPrediction = imm_predict(prob, mean, cov, d.A, d.Q, Pi, model.noise)  # (a t's scales mix as covariances)
         ym = (H @ p.mode_mean.unsqueeze(-1)).squeeze(-1)  # (..., K, M, m)
         S = H @ p.mode_cov @ H.mT + R
         S = sym(S)
-        obs_mean, obs_cov = combine(p.mode_probabilities, ym, S, None if spread is None else spread.unsqueeze(-1))
+        obs_mean, obs_cov = combine(p.mode_probabilities, ym, S, model.noise.with_axis())
         return IMMForecast(p.mode_probabilities, p.mode_mean, p.mode_cov, p.mean, p.cov, obs_mean, obs_cov, ym, S)
 
     def extra_repr(self) -> str:

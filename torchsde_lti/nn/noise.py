@@ -2,6 +2,7 @@ r"""Observation-noise options of the filter modules: ``noise=Gaussian()`` (defau
 
     kf = tl.KalmanFilter(sde, H, R, noise=tl.StudentT(dof=4.0, learn=True))   # ν learned with the rest
     imm = tl.IMMFilter(models, H, R, rates, noise=tl.StudentT(4.0))            # one ν for every mode
+    imm = tl.IMMFilter(models, H, R, rates, noise=tl.StudentT([4.0] * M))      # a ν per mode (M,)
     kf.noise.dof                                                                # current ν (> 2), assignable
 
 An option is a small module the filter owns (its ν is trained and saved with the filter);
@@ -70,7 +71,8 @@ class StudentT(nn.Module):
     noise (Roth, Özkan & Gustafsson 2013; :mod:`torchsde_lti.filters.noise`).
 
     Args:
-        dof: the initial ν > 2 (one number: the filter's, shared by the modes of an IMM).
+        dof: the initial ν > 2: one number (the filter's, shared by the modes of an IMM) or, for
+            an :class:`~torchsde_lti.IMMFilter` of M modes, M numbers (M,), each mode's own ν.
         learn: ν is an ``nn.Parameter`` (trained through the filter's log-likelihood) or a
             fixed buffer.
     """
@@ -80,32 +82,40 @@ class StudentT(nn.Module):
     def __init__(self, dof: float | Tensor = 4.0, learn: bool = True) -> None:
         super().__init__()
         value = as_float_tensor(dof, "dof", torch.float64).detach().clone()
-        if value.dim() != 0:
-            raise ValueError(f"dof must be one number (the filter's ν), got shape {shape_str(value)}")
+        if value.dim() > 1 or value.numel() == 0:
+            raise ValueError(f"dof must be one number or one per IMM mode (M,), got shape {shape_str(value)}")
         check_finite(value, "dof")
-        if not float(value) > 2.0:
-            raise ValueError(f"dof must be > 2 (the t's covariance exists), got {float(value)}")
+        if not bool((value > 2.0).all()):
+            raise ValueError(f"dof must be > 2 (the t's covariance exists), got {value.tolist()}")
         self.learn = bool(learn)
         register_tensor(self, "dof", value, self.learn)
         parametrize.register_parametrization(self, "dof", DegreesOfFreedom().to(dtype=torch.float64))
 
     def model(self) -> StudentTNoise:
-        """The filters' noise model with the current ν: :class:`~torchsde_lti.filters.StudentTNoise`."""
-        return StudentTNoise(self.dof)
+        """The filters' noise model with the current ν: :class:`~torchsde_lti.filters.StudentTNoise`
+        (``per_mode`` for a ν per mode)."""
+        dof = self.dof
+        return StudentTNoise(dof, per_mode=True) if dof.dim() else StudentTNoise(dof)
 
     def extra_repr(self) -> str:
-        return f"dof={float(self.dof.detach()):.4g}, learn={self.learn}"
+        dof = self.dof.detach()
+        shown = f"{float(dof):.4g}" if dof.dim() == 0 else "[" + ", ".join(f"{v:.4g}" for v in dof.tolist()) + "]"
+        return f"dof={shown}, learn={self.learn}"
 
 
 #: A filter module's noise option.
 NoiseOption = Gaussian | StudentT
 
 
-def noise_option(noise: object, dtype: torch.dtype, device: torch.device) -> NoiseOption:
+def noise_option(noise: object, dtype: torch.dtype, device: torch.device, modes: int | None = None) -> NoiseOption:
     """A filter's ``noise=`` argument as its option module in the filter's dtype and device:
-    None is :class:`Gaussian`; TypeError naming ``noise`` for anything but an option."""
+    None is :class:`Gaussian`; TypeError naming ``noise`` for anything but an option, ValueError
+    for a ν per mode (dof (k,)) unless the filter is an IMM of ``modes`` = k modes."""
     if noise is None:
         return Gaussian()
     if not isinstance(noise, (Gaussian, StudentT)):
         raise TypeError(f"noise must be tl.Gaussian() or tl.StudentT(dof), got {type(noise).__name__}")
+    if isinstance(noise, StudentT) and noise.dof.dim() and noise.dof.shape[0] != modes:
+        where = "a KalmanFilter takes one ν" if modes is None else f"one ν or one per mode, ({modes},)"
+        raise ValueError(f"noise=StudentT(dof) has dof of shape {shape_str(noise.dof)}: {where}")
     return noise.to(dtype=dtype, device=device)
