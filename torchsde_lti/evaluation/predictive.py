@@ -74,8 +74,8 @@ class PredictiveBatch(NamedTuple):
 
 
 def predictive_dof(model: Model) -> Tensor | None:
-    """ν (a 0-dim float64 tensor, no gradient) of a filter with ``noise=tl.StudentT``; None
-    for a Gaussian filter."""
+    """ν (float64, no gradient) of a filter with ``noise=tl.StudentT``: 0-dim for one ν, (M,) for
+    an IMM with a ν per mode (one per mixture component); None for a Gaussian filter."""
     noise = model.noise.model()
     return noise.dof.detach().to(torch.float64) if isinstance(noise, StudentTNoise) else None
 
