@@ -83,6 +83,28 @@ def test_filter_values_of_an_imm_are_every_mode_and_the_chain() -> None:
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
+def test_filter_values_report_a_learned_student_t_nu_shared_or_per_mode() -> None:
+    """A learned ν is what the filter learned too: ``dof`` (one ν), ``<mode>/dof`` (a ν per mode),
+    logged per epoch (param/…) and in the parameter table; a fixed ν is not."""
+    imm = _imm()
+    t_kf = tl.KalmanFilter(imm.models[1], imm.H, imm.R[1].detach(), noise=tl.StudentT(5.0))
+    assert float(filter_values(t_kf)["dof"]) == pytest.approx(5.0, rel=1e-12)
+    fixed = tl.KalmanFilter(imm.models[1], imm.H, imm.R[1].detach(), noise=tl.StudentT(5.0, learn=False))
+    assert "dof" not in filter_values(fixed)
+    modes = tl.IMMFilter(
+        list(imm.models),
+        imm.H,
+        imm.R.detach(),
+        imm.rates.detach(),
+        mode_names=imm.mode_names,
+        noise=tl.StudentT([3.0, 7.0]),
+    )
+    flat = flat_values(filter_values(modes))
+    assert flat["moored/dof"] == pytest.approx(3.0, rel=1e-12) and flat["underway/dof"] == pytest.approx(7.0, rel=1e-12)
+    rows = {r["name"]: r for r in parameter_table(modes, None)}
+    assert rows["underway/dof"]["learned"] == pytest.approx(7.0, rel=1e-12) and math.isnan(rows["underway/dof"]["true"])
+
+
 def test_parameter_table_of_an_imm_module_without_truth() -> None:
     module = KalmanFilterModule(_imm())
     rows = {r["name"]: r for r in parameter_table(module.kf, None)}

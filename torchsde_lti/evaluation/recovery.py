@@ -25,6 +25,7 @@ from torch import Tensor, nn
 from torchsde_lti.core.stationary import stationary_covariance
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
+from torchsde_lti.nn.noise import StudentT
 from torchsde_lti.nn.parametrizations import IntegratorChain
 from torchsde_lti.nn.sde import LTISDE
 
@@ -199,19 +200,28 @@ def filter_values(kf: KalmanFilter | IMMFilter, names: Sequence[str] | None = No
 
     One mode (a ``KalmanFilter``): ``learned_values(sde, R, names)``. Several (an ``IMMFilter``):
     every key prefixed by the mode's name (``"moored/k"``), plus the switching chain as scalars,
-    ``"rate[a->b]"`` = Λ_ab (1/time) for each ordered pair and ``"mode_prob0[a]"``.
+    ``"rate[a->b]"`` = Λ_ab (1/time) for each ordered pair and ``"mode_prob0[a]"``. A learned
+    Student-t ν (``noise=tl.StudentT(dof, learn=True)``) as ``"dof"``, or per mode
+    ``"<mode>/dof"`` for an IMM with a ν per mode.
     """
     modes = kf.modes()
     if len(modes) == 1:
-        return learned_values(modes[0].sde, modes[0].R, names)
-    out: dict[str, Tensor] = {}
-    for mode in modes:
-        out.update({f"{mode.name}/{k}": v for k, v in learned_values(mode.sde, mode.R, names).items()})
-    assert isinstance(kf, IMMFilter)  # only it has several modes
-    rates, p0 = kf.rates.detach(), kf.mode_prob0.detach()
-    labels = [mode.name for mode in modes]
-    out.update({f"rate[{a}->{b}]": rates[i, j] for i, a in enumerate(labels) for j, b in enumerate(labels) if i != j})
-    out.update({f"mode_prob0[{a}]": p0[i] for i, a in enumerate(labels)})
+        out = learned_values(modes[0].sde, modes[0].R, names)
+    else:
+        out = {}
+        for mode in modes:
+            out.update({f"{mode.name}/{k}": v for k, v in learned_values(mode.sde, mode.R, names).items()})
+        assert isinstance(kf, IMMFilter)  # only it has several modes
+        rates, p0 = kf.rates.detach(), kf.mode_prob0.detach()
+        labels = [mode.name for mode in modes]
+        out.update(
+            {f"rate[{a}->{b}]": rates[i, j] for i, a in enumerate(labels) for j, b in enumerate(labels) if i != j}
+        )
+        out.update({f"mode_prob0[{a}]": p0[i] for i, a in enumerate(labels)})
+    noise = kf.noise
+    if isinstance(noise, StudentT) and noise.learn:
+        dof = noise.dof.detach()
+        out.update({"dof": dof} if dof.dim() == 0 else {f"{m.name}/dof": dof[i] for i, m in enumerate(modes)})
     return out
 
 
