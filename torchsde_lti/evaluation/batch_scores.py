@@ -13,13 +13,12 @@ them to its loss (``module.k_step``) and logs the coverage counts per epoch.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from torchsde_lti.evaluation.predictive import masked_gaussian_nll
+from torchsde_lti.evaluation.predictive import masked_gaussian_nll, mixture_log_prob
 from torchsde_lti.evaluation.scores import hpd_inside
 from torchsde_lti.nn.imm import IMMFilter
 from torchsde_lti.nn.kalman import KalmanFilter
@@ -92,11 +91,9 @@ def imm_k_step_nll(imm: IMMFilter, out: Any, y: Tensor, dt: Tensor, observed: Te
     w, mu, S = fc.mode_probabilities[..., 0, :], fc.mode_obs_mean[..., 0, :, :], fc.mode_obs_cov[..., 0, :, :, :]
     ok = observed[..., k:, :].all(-1)  # (B, T - k)
     target = torch.where(ok.unsqueeze(-1), y[..., k:, :], mu[..., 0, :].detach())
-    L = torch.linalg.cholesky(S)
-    z = torch.linalg.solve_triangular(L, (target.unsqueeze(-2) - mu).unsqueeze(-1), upper=False).squeeze(-1)
-    logdet = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
-    comp = -0.5 * (z * z).sum(-1) - logdet - 0.5 * y.shape[-1] * math.log(2.0 * math.pi)
-    ll = torch.logsumexp(comp + torch.log(w.clamp_min(1e-300)), dim=-1)
+    origins = ok.dim()  # (mixture_log_prob takes one batch dim: the origins flattened)
+    flat = [x.expand(*ok.shape, *x.shape[origins:]).flatten(0, origins - 1) for x in (target, w, mu, S)]
+    ll = mixture_log_prob(*flat).reshape(ok.shape)  # log Σ_j w_j N(y; ŷ_j, S_j) per origin
     return -(ll * ok).sum()
 
 

@@ -153,7 +153,7 @@ def batch_predictive(kf: KalmanFilter | IMMFilter, out: Any, u: Tensor | None = 
         mu = (kf.H @ out.mode_pred_mean.unsqueeze(-1)).squeeze(-1)  # H shared (m, n) or per mode (M, m, n)
         return out.pred_mode_probabilities, mu, out.mode_innovation_cov
     pred = out.pred_mean @ kf.H.mT
-    Du = kf.feedthrough(u) if isinstance(kf, KalmanFilter) else None
+    Du = kf.feedthrough(u)
     pred = pred if Du is None else pred + Du
     return torch.ones_like(pred[..., :1]), pred.unsqueeze(-2), out.innovation_cov.unsqueeze(-3)
 
