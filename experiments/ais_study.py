@@ -6,6 +6,8 @@
     python experiments/ais_study.py --final      # + the two reserved files (final evaluation only)
     python experiments/ais_study.py --tails      # heavy tails? residuals on VALIDATION splits -> results/ais_tails.md
     python experiments/ais_study.py --calibration  # why 2σ coverage misses, VALIDATION splits -> results/ais_calibration.md
+    python experiments/ais_study.py --online-rates 0.1 0.2 0.4 0.8  # the OnlineScale rate, chosen on VALIDATION splits
+    python experiments/ais_study.py --online-scale R --out experiments/results/ais_generalisation_online  # the matrix with it
 
 The protocol (docs/examples/ais-generalisation.md, written before the matrix was first read):
 each train set's filters are shipped cards (``torchsde_lti/pretrained/files``: weights, data,
@@ -41,6 +43,7 @@ from torchsde_lti.data.splits import split_objects, split_time
 from torchsde_lti.evaluation import (
     NOMINAL_2SIGMA,
     EvalRecords,
+    OnlineScale,
     calibrate_filter,
     cv_filter,
     evaluate_filter,
@@ -288,14 +291,18 @@ def evaluate_cell(
     oracle: EvalRecords,
     samples: int,
     cache: dict[str, EvalRecords],
+    online: OnlineScale | None = None,
 ) -> dict[str, Any]:
-    """The train set's best model and best single on one evaluation set, against the oracle."""
+    """The train set's best model and best single on one evaluation set, against the oracle
+    (both models with their card's calibration and, where given, the ``online`` scale)."""
     recs = {}
     for role in ("best", "best_single"):
         name = sel[role]
         if name not in cache:
             pre = tl.pretrained.load(name)
-            cache[name] = evaluate_filter(pre.filter, tracks, samples=samples, cov_scale=pre.card.cov_scale)
+            cache[name] = evaluate_filter(
+                pre.filter, tracks, samples=samples, cov_scale=pre.card.cov_scale, online_scale=online
+            )
         recs[role] = cache[name]
     best, single = recs["best"], recs["best_single"]
     res = {
@@ -319,7 +326,9 @@ def eval_set_tracks(eval_set: str) -> tuple[Tracks, str]:
     return load_tracks(eval_set, **loader), f"{eval_set} (reserved, final evaluation, national-day cleaning rules)"
 
 
-def matrix(train_sets: list[str], eval_sets: list[str], samples: int) -> dict[str, Any]:
+def matrix(
+    train_sets: list[str], eval_sets: list[str], samples: int, online: OnlineScale | None = None
+) -> dict[str, Any]:
     if not SELECTION.is_file():
         raise FileNotFoundError(f"{SELECTION}: run `python experiments/ais_study.py --select` first")
     selection = json.loads(SELECTION.read_text())
@@ -339,7 +348,7 @@ def matrix(train_sets: list[str], eval_sets: list[str], samples: int) -> dict[st
         cache: dict[str, EvalRecords] = {}
         for train_set in train_sets:
             cells[f"{train_set}->{eval_set}"] = evaluate_cell(
-                train_set, selection[train_set], tracks, oracle, samples, cache
+                train_set, selection[train_set], tracks, oracle, samples, cache, online
             )
         evals[eval_set]["seconds"] = time.perf_counter() - t0
         print(
@@ -347,7 +356,63 @@ def matrix(train_sets: list[str], eval_sets: list[str], samples: int) -> dict[st
             f"{evals[eval_set]['seconds']:.0f} s",
             flush=True,
         )
-    return {"selection": selection, "eval_sets": evals, "cells": cells}
+    return {
+        "selection": selection,
+        "eval_sets": evals,
+        "cells": cells,
+        "online_scale": None if online is None else online.rate,
+    }
+
+
+# --------------------------------------------------------------------------- the online scale's rate (validation only)
+
+
+def online_rates(train_sets: list[str], rates: list[float], samples: int) -> str:
+    """Each train set's selected best model on every train set's VALIDATION split, with its card's
+    calibration and an :class:`OnlineScale` of each rate (0: none): 2σ coverage overall / moving
+    and NLL overall / moving. The rate is chosen by the rule of docs/examples/ais-generalisation.md."""
+    selection = json.loads(SELECTION.read_text())
+    head = "| model → val set | " + " | ".join(f"rate {r:g}" for r in rates) + " |"
+    lines = [
+        "# The OnlineScale rate, on VALIDATION splits",
+        "",
+        "Cells: 2σ coverage overall / moving (target 84–89 %), then NLL overall / moving. Rate 0: the card's "
+        "calibration alone.",
+        "",
+        head,
+        "|---|" + "---:|" * len(rates),
+    ]
+    worst = dict.fromkeys(rates, 0.0)
+    for val_set in train_sets:
+        val = set_tracks(val_set, "val")
+        for train_set in train_sets:
+            pre = tl.pretrained.load(selection[train_set]["best"])
+            cells = []
+            for r in rates:
+                s = summary(
+                    evaluate_filter(
+                        pre.filter,
+                        val,
+                        horizons=(),
+                        samples=samples,
+                        cov_scale=pre.card.cov_scale,
+                        online_scale=OnlineScale(r) if r > 0 else None,
+                    )
+                )
+                cover = (s["cover2s"], s["cover2s_moving"])
+                worst[r] = max(worst[r], *(max(0.84 - c, c - 0.89, 0.0) for c in cover))
+                cells.append(f"{100 * cover[0]:.1f} / {100 * cover[1]:.1f} %, {s['nll']:.3f} / {s['nll_moving']:.3f}")
+            lines.append(f"| {pre.card.name} → {val_set} | " + " | ".join(cells) + " |")
+            print(lines[-1], flush=True)
+    chosen = min(rates, key=lambda r: (round(worst[r], 4), r))
+    lines += [
+        "",
+        "Largest distance of a coverage outside 84–89 % (pp): "
+        + ", ".join(f"rate {r:g}: {100 * worst[r]:.1f}" for r in rates)
+        + f". Chosen (smallest, then the smaller rate): **{chosen:g}**.",
+        "",
+    ]
+    return "\n".join(lines)
 
 
 # --------------------------------------------------------------------------- calibration (validation only)
@@ -479,7 +544,13 @@ def markdown(payload: dict[str, Any], runtime: float, cmd: str) -> str:
         "",
         f"Command: `{cmd}`; runtime {runtime:.0f} s on {os.cpu_count()} cores (load average at the end "
         f"{load[0]:.1f}, {load[1]:.1f}, {load[2]:.1f}: the machine was shared). Protocol: "
-        "docs/examples/ais-generalisation.md (written before this run). Intervals: 95 % paired vessel bootstrap.",
+        "docs/examples/ais-generalisation.md (written before this run). Intervals: 95 % paired vessel bootstrap."
+        + (
+            ""
+            if payload.get("online_scale") is None
+            else f" Best model and best single with an OnlineScale of rate {payload['online_scale']:g} per track "
+            "(chosen on validation splits: results/ais_online_scale.md) on top of their card's calibration."
+        ),
         "",
         "## Selection (each train set's validation split, `--select`, before the matrix)",
         "",
@@ -542,6 +613,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--eval-sets", nargs="*", default=list(MATRIX), help="evaluation sets")
     parser.add_argument("--samples", type=int, default=500, help="Monte Carlo draws of the mixture HPD test")
     parser.add_argument("--out", default=str(RESULTS / "ais_generalisation"), help="results file stem")
+    parser.add_argument(
+        "--online-rates", nargs="*", type=float, default=None, help="OnlineScale rates on validation (0: none)"
+    )
+    parser.add_argument("--online-scale", type=float, default=None, help="the matrix with OnlineScale(rate)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     if args.train:
@@ -553,6 +628,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         (RESULTS / "ais_tails.md").write_text(tails(args.sets or list(RUNS)))
         return {}
     start = time.perf_counter()
+    if args.online_rates:
+        md = online_rates(args.sets or ["us", "ny", "june"], args.online_rates, args.samples)
+        load = os.getloadavg()
+        md += (
+            f"Command: `python experiments/ais_study.py --online-rates {' '.join(map(str, args.online_rates))}`; "
+            f"{time.perf_counter() - start:.0f} s on {os.cpu_count()} cores (load average {load[0]:.1f}, "
+            f"{load[1]:.1f}, {load[2]:.1f}: shared machine).\n"
+        )
+        (RESULTS / "ais_online_scale.md").write_text(md)
+        print(md)
+        return {}
     if args.calibration:
         lines = CALIBRATION_HEAD + [x for s in args.sets or ["us", "ny"] for x in calibration_lines(s)]
         load = os.getloadavg()
@@ -566,12 +652,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     eval_sets = list(args.eval_sets)
     if args.final:
         eval_sets += list(tl.data.RESERVED_FOR_EVALUATION)
-    payload = matrix(args.sets or list(MATRIX), eval_sets, args.samples)
+    online = None if args.online_scale is None else OnlineScale(args.online_scale)
+    payload = matrix(args.sets or list(MATRIX), eval_sets, args.samples, online)
     runtime = time.perf_counter() - start
     payload["runtime_s"] = runtime
     out = Path(args.out)
     out.with_suffix(".json").write_text(json.dumps(payload, indent=1))
     cmd = "python experiments/ais_study.py" + (" --final" if args.final else "")
+    if online is not None:
+        cmd += f" --online-scale {online.rate:g} --out {args.out}"
     md = markdown(payload, runtime, cmd)
     out.with_suffix(".md").write_text(md)
     print(md)

@@ -15,12 +15,14 @@ from tests.evaluation.test_scores import simulated_cv
 from torchsde_lti.evaluation.baseline import cv_filter
 from torchsde_lti.evaluation.calibration import (
     NOMINAL_2SIGMA,
+    OnlineScale,
     calibrate_filter,
     fit_cov_scale,
     fit_mode_scales,
     hpd_level,
+    online_scales,
 )
-from torchsde_lti.evaluation.predictive import one_step_predictive
+from torchsde_lti.evaluation.predictive import frozen_copy, mixture_log_prob, one_step_predictive, predictive_batches
 from torchsde_lti.evaluation.scores import evaluate_filter, summary
 
 f64 = torch.float64
@@ -168,3 +170,87 @@ def test_calibrate_filter_hits_the_target_on_its_tracks_and_corrects_a_wrong_noi
         assert cover == pytest.approx(NOMINAL_2SIGMA, abs=0.003)
     pred = one_step_predictive(right, tracks)
     assert pred["y"].shape == (tracks.num_reports - len(tracks), 2) and pred["w"].shape[-1] == 1
+
+
+def reference_online_scales(rate: float, level: float, y, w, mu, S, scored):  # type: ignore[no-untyped-def]
+    """A plain loop over tracks and reports (one Gaussian component: the chi-square test)."""
+    B, T = scored.shape
+    before = np.ones((B, T))
+    for b in range(B):
+        ell = 0.0
+        for k in range(T):
+            before[b, k] = math.exp(ell)
+            if scored[b, k]:
+                d = (y[b, k] - mu[b, k, 0]).numpy()
+                maha = float(d @ np.linalg.solve(before[b, k] * S[b, k, 0].numpy(), d))
+                miss = 1.0 - math.exp(-0.5 * maha) > level
+                ell += rate * (miss - (1.0 - level))
+    return before
+
+
+def test_online_scale_equals_a_plain_loop_and_its_miss_share_identity() -> None:
+    B, T = 5, 60
+    w, mu, S = random_mixture(B * T, 1, 7)
+    w, mu, S = w.reshape(B, T, 1), mu.reshape(B, T, 1, 2), S.reshape(B, T, 1, 2, 2)
+    y = draw(w.reshape(-1, 1), mu.reshape(-1, 1, 2), S.reshape(-1, 1, 2, 2), 3.0, 8).reshape(B, T, 2)
+    scored = torch.rand(B, T, generator=torch.Generator().manual_seed(9)) < 0.8
+    scored[:, 0] = False
+    rule = OnlineScale(rate=0.3)
+    before, after = online_scales(rule, y, w, mu, S, scored)
+    np.testing.assert_allclose(
+        before.numpy(), reference_online_scales(0.3, rule.level, y, w, mu, S, scored), rtol=1e-12
+    )
+    assert torch.equal(after[:, :-1], before[:, 1:])  # a forecast from k uses the scale report k+1 gets
+    assert torch.equal(before[:, 0], torch.ones(B, dtype=f64))
+    # the share of misses over a track is exactly 1 - level + log(s_final) / (rate K)
+    level = hpd_level(y[scored], w[scored], mu[scored], before[scored][:, None, None, None] * S[scored])
+    miss = torch.zeros(B, T, dtype=f64)
+    miss[scored] = (level > rule.level).to(f64)
+    K = scored.sum(-1).to(f64)
+    want = 1.0 - rule.level + torch.log(after[:, -1]) / (rule.rate * K)
+    assert torch.allclose(miss.sum(-1) / K, want, atol=1e-12)
+
+
+def test_online_scale_restores_the_nominal_coverage_of_a_filter_with_the_wrong_noise() -> None:
+    """A filter whose R is 5x too small (or 4x too large) for the data: far from 86.5 % on its own,
+    near it with the scale adapted per track from past reports only; a right filter stays there
+    (rate 0.4: NLL 11.19 -> 11.24, the price of a noisy scale; 0.1: 11.20)."""
+    tracks = simulated_cv(0.05, 10.0, 12, 150, seed=4)
+    for r, off in ((10.0, False), (10.0 / math.sqrt(5.0), True), (20.0, True)):
+        kf = cv_filter(0.05, r)
+        fixed = summary(evaluate_filter(kf, tracks, horizons=(300.0,)))
+        online = summary(evaluate_filter(kf, tracks, horizons=(300.0,), online_scale=OnlineScale(rate=0.4)))
+        assert (abs(fixed["cover2s"] - NOMINAL_2SIGMA) > 0.06) == off
+        assert online["cover2s"] == pytest.approx(NOMINAL_2SIGMA, abs=0.02)
+        assert online["fc_rmse_5"] == fixed["fc_rmse_5"]  # the means are unchanged
+        if off:  # a slower adaptation (less noise in the scale) also lowers the NLL
+            slow = summary(evaluate_filter(kf, tracks, horizons=(), online_scale=OnlineScale(rate=0.1)))
+            assert slow["nll"] < fixed["nll"] - 0.03
+
+
+def test_online_scale_nll_is_the_scaled_mixture_density() -> None:
+    """evaluate_filter's NLL with an online scale: -log of the predictive mixture with every
+    component's covariance times the track's scale before the report (IMM, Monte Carlo levels)."""
+    tracks = simulated_cv(0.05, 10.0, 4, 40, seed=2)
+    slow = tl.models.integrated_ou(k=0.01, q=0.01, dim=2, dtype=f64)
+    fast = tl.models.integrated_ou(k=0.05, q=0.5, dim=2, dtype=f64)
+    H = tl.models.position_observation(slow)
+    R = torch.stack([4.0 * torch.eye(2), 16.0 * torch.eye(2)]).to(f64)
+    imm = tl.IMMFilter([slow, fast], H, R, torch.tensor([[0.0, 1e-3], [1e-3, 0.0]], dtype=f64), diffuse_variance=100.0)
+    rule = OnlineScale(rate=0.5)
+    recs = evaluate_filter(imm, tracks, horizons=(), online_scale=rule, samples=200, cov_scale=[1.0, 2.0])
+    want = []
+    with torch.no_grad():
+        for p in predictive_batches(frozen_copy(imm), tracks):
+            S = torch.tensor([1.0, 2.0], dtype=f64)[:, None, None] * p.S
+            before, _ = online_scales(rule, p.batch.y, p.w, p.mu, S, p.scored, samples=200)
+            S = before[..., None, None, None] * S
+            want.append(-mixture_log_prob(p.batch.y[p.scored], p.w[p.scored], p.mu[p.scored], S[p.scored]).numpy())
+    np.testing.assert_allclose(recs.nll, np.concatenate(want), rtol=1e-12)
+    assert not np.allclose(recs.nll, evaluate_filter(imm, tracks, horizons=(), cov_scale=[1.0, 2.0]).nll)
+
+
+@pytest.mark.parametrize("kwargs", [{"rate": 0.0}, {"rate": float("nan")}, {"level": 1.0}, {"level": 0.0}])
+def test_online_scale_refuses_a_bad_rule(kwargs: dict[str, float]) -> None:
+    with pytest.raises(ValueError, match=next(iter(kwargs))):
+        OnlineScale(**kwargs)

@@ -7,7 +7,8 @@ No Lightning, no Hydra: torch, numpy and the package's data layer only.
     student_t.py    the Student-t predictive of a filter with noise=tl.StudentT: densities,
                     HPD levels (F distribution), draws
     calibration.py  HPD levels of a predictive mixture, a covariance inflation fitted on
-                    validation tracks (``calibrate_filter``)
+                    validation tracks (``calibrate_filter``), or adapted per track online
+                    (``OnlineScale``)
     scores.py       NLL (all / moving / moored windows), 2σ coverage, forecast RMSE at horizons,
                     per-vessel sums and the paired vessel bootstrap (``evaluate_filter``)
     baseline.py     the constant-velocity baseline (``cv_filter``) and its grid oracle (``tune_cv``)
@@ -31,10 +32,12 @@ from torchsde_lti.evaluation.baseline import cv_filter, tune_cv
 from torchsde_lti.evaluation.batch_scores import coverage_counts, imm_k_step_nll, kalman_k_step_nll
 from torchsde_lti.evaluation.calibration import (
     NOMINAL_2SIGMA,
+    OnlineScale,
     calibrate_filter,
     fit_cov_scale,
     fit_mode_scales,
     hpd_level,
+    online_scales,
     scale_vector,
 )
 from torchsde_lti.evaluation.figures import track_figures
@@ -82,6 +85,7 @@ __all__ = [
     "Model",
     "ModelSelection",
     "NOMINAL_2SIGMA",
+    "OnlineScale",
     "PredictiveBatch",
     "batch_predictive",
     "calibrate_filter",
@@ -108,6 +112,7 @@ __all__ = [
     "moving_reports",
     "observed_autocovariance",
     "one_step_predictive",
+    "online_scales",
     "paired_bootstrap",
     "parameter_errors",
     "parameter_table",

@@ -4,6 +4,7 @@ r"""Calibration of a frozen filter's predictive: HPD levels and a scalar covaria
     c = fit_cov_scale(y, w, mu, S)                      # S -> c S: share of y in the 86.5 % region = 86.5 %
     c = calibrate_filter(model, val_tracks)             # the same, on a filter's one-step predictive: [c]
     cs = fit_mode_scales(y, w, mu, S)                   # one scale per mode, by the mode the filter predicts
+    before, after = online_scales(OnlineScale(), y, w, mu, S, scored)   # (B, T) per-track scales, online
 
 The one-step predictive of a report is a Gaussian mixture ``Σ_j w_j N(mu_j, S_j)`` (one
 component for a Kalman filter), or a mixture of Student-t's with one ν (``dof``) for a filter
@@ -21,12 +22,17 @@ target. For a linear Kalman filter this is exactly the filter with Q, R and the 
 covariance all scaled by c (the gain and the means are unchanged, every covariance scales by
 c); for an IMM it widens each mode's predictive and keeps the filtered mode probabilities.
 :func:`fit_mode_scales` fits one scale per mode instead (``S_j -> c_j S_j``).
+
+:class:`OnlineScale` fits nothing in advance: each track carries its own scale, adapted after
+every report from that track's past reports alone (adaptive conformal inference on the log
+scale), so that a filter trained on one coast keeps its nominal coverage on another.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -37,10 +43,12 @@ from torchsde_lti.evaluation.student_t import t_draws, t_hpd_level
 
 __all__ = [
     "NOMINAL_2SIGMA",
+    "OnlineScale",
     "calibrate_filter",
     "fit_cov_scale",
     "fit_mode_scales",
     "hpd_level",
+    "online_scales",
     "scale_vector",
 ]
 
@@ -287,3 +295,79 @@ def calibrate_filter(
     if per_mode:
         return fit_mode_scales(*args, samples=samples, seed=seed, dof=dof)
     return [fit_cov_scale(*args, samples=samples, seed=seed, dof=dof)] * pred["w"].shape[-1]
+
+
+@dataclass(frozen=True)
+class OnlineScale:
+    r"""A covariance scale per track, adapted online to the nominal coverage of the predictive.
+
+    Before report k of a track the predictive's covariances are multiplied by ``s_k = e^{ℓ_k}``;
+    after it, with ``miss_k`` = 1 when y_k lies outside the ``level`` HPD region of that scaled
+    predictive (0 otherwise)::
+
+        ℓ_1 = 0,    ℓ_{k+1} = ℓ_k + rate · (miss_k − (1 − level)).
+
+    This is adaptive conformal inference (Gibbs & Candès, "Adaptive conformal inference under
+    distribution shift", NeurIPS 2021) with the scale of the predictive as the adapted
+    quantity: a miss widens by ``e^{rate · level}``, a hit narrows by ``e^{−rate (1 − level)}``,
+    and over the first K reports of a track the share of misses is exactly
+    ``1 − level + ℓ_{K+1} / (rate K)`` whatever the data (nominal as K grows while the scale
+    stays bounded). Causal: s_k depends on the reports before k only, so the
+    scaled predictive is a forecast. The means and mode weights are unchanged; the scale
+    multiplies a fixed calibration (``cov_scale``) where there is one.
+
+    Attributes:
+        rate: γ > 0, the step on ℓ (larger: faster adaptation, noisier scale).
+        level: the HPD probability whose coverage is tracked (default 86.5 %, 2σ in 2-D).
+    """
+
+    rate: float = 0.4
+    level: float = NOMINAL_2SIGMA
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.rate) and self.rate > 0):
+            raise ValueError(f"rate must be a finite number > 0, got {self.rate}")
+        if not 0.0 < self.level < 1.0:
+            raise ValueError(f"level must be in (0, 1), got {self.level}")
+
+
+def online_scales(
+    rule: OnlineScale,
+    y: Tensor,
+    w: Tensor,
+    mu: Tensor,
+    S: Tensor,
+    scored: Tensor,
+    samples: int = 500,
+    seed: int = 0,
+    dof: Tensor | float | None = None,
+) -> tuple[Tensor, Tensor]:
+    """The per-track scales of :class:`OnlineScale` over a padded batch of tracks.
+
+    Args:
+        rule: the adaptation.
+        y: (B, T, m) reports; w: (B, T, M); mu: (B, T, M, m); S: (B, T, M, m, m): the one-step
+            predictive of each report (:func:`~torchsde_lti.evaluation.batch_predictive`).
+        scored: (B, T) bool, the reports that are tested and update the scale (observed, not a
+            track's first); the others keep it.
+        samples, seed, dof: the HPD test, as in :func:`hpd_level`.
+
+    Returns:
+        ``before`` (B, T): the scale s_k of report k's predictive; ``after`` (B, T): the scale
+        once report k is seen (that of a forecast from the filtered state at k).
+    """
+    if y.dim() != 3 or scored.shape != y.shape[:2]:
+        raise ValueError(f"y must be (B, T, m) and scored (B, T), got {tuple(y.shape)} and {tuple(scored.shape)}")
+    B, T = scored.shape
+    log_s = y.new_zeros(B)
+    before, after = y.new_empty(B, T), y.new_empty(B, T)
+    for k in range(T):
+        before[:, k] = log_s.exp()
+        rows = scored[:, k].nonzero().squeeze(-1)
+        if len(rows):
+            Sk = before[rows, k, None, None, None] * S[rows, k]
+            level = hpd_level(y[rows, k], w[rows, k], mu[rows, k], Sk, samples=samples, seed=seed, dof=dof)
+            miss = (level > rule.level).to(y.dtype)
+            log_s = log_s.index_add(0, rows, rule.rate * (miss - (1.0 - rule.level)))
+        after[:, k] = log_s.exp()
+    return before, after

@@ -39,7 +39,7 @@ from torch import Tensor
 
 from torchsde_lti.data.loaded_tracks import Tracks
 from torchsde_lti.data.tracks import TrackBatch
-from torchsde_lti.evaluation.calibration import NOMINAL_2SIGMA, hpd_level, scale_vector
+from torchsde_lti.evaluation.calibration import NOMINAL_2SIGMA, OnlineScale, hpd_level, online_scales, scale_vector
 from torchsde_lti.evaluation.predictive import (
     Model,
     _forecast,
@@ -196,6 +196,7 @@ def evaluate_filter(
     seed: int = 0,
     forecast_coverage: bool = False,
     cov_scale: float | Sequence[float] = 1.0,
+    online_scale: OnlineScale | None = None,
 ) -> EvalRecords:
     """Per-report and per-forecast records of one frozen filter on whole tracks (module docstring).
 
@@ -213,6 +214,10 @@ def evaluate_filter(
             unchanged; the NLL and the HPD tests use it
             (:func:`~torchsde_lti.evaluation.calibration.calibrate_filter` fits it on validation
             tracks). 1.0: the filter's own predictive.
+        online_scale: a scale per track adapted online from the track's past reports
+            (:class:`~torchsde_lti.evaluation.OnlineScale`), on top of ``cov_scale``: report k's
+            predictive times the scale before k, a forecast from k times the scale after k.
+            None: no adaptation.
     """
     M = len(model.modes()) if isinstance(model, IMMFilter) else 1
     try:
@@ -233,10 +238,14 @@ def evaluate_filter(
             point = (w.unsqueeze(-1) * ym).sum(-2)
             parts["vessel"].append(vessel_flat[flat])
             parts["moving"].append(moving_flat[flat])
-            if bool(torch.all(scale == 1.0)):
+            S = scale[:, None, None] * S
+            after = None
+            if online_scale is not None:
+                before, after = online_scales(online_scale, batch.y, w, ym, S, m, samples=samples, seed=seed, dof=dof)
+                S = before[..., None, None, None] * S
+            if bool(torch.all(scale == 1.0)) and online_scale is None:
                 parts["nll"].append((-out.step_log_likelihood[m]).numpy())
             else:
-                S = scale[:, None, None] * S
                 parts["nll"].append((-mixture_log_prob(batch.y[m], w[m], ym[m], S[m], dof)).numpy())
             parts["sq_err"].append((batch.y - point)[m].pow(2).sum(-1).numpy())
             parts["inside"].append(
@@ -250,6 +259,8 @@ def evaluate_filter(
                 lead = t[b, j] - t[b, k]
                 fw, fm, fS = _forecast(model, out, b, k, lead)
                 fS = scale[:, None, None] * fS
+                if after is not None:
+                    fS = after[b, k, None, None, None] * fS
                 yj = batch.y[b, j]
                 err = ((fw.unsqueeze(-1) * fm).sum(-2) - yj).pow(2).sum(-1)
                 ins = (
