@@ -330,6 +330,12 @@ class OnlineScale:
         if not 0.0 < self.level < 1.0:
             raise ValueError(f"level must be in (0, 1), got {self.level}")
 
+    def update(self, log_scale: Tensor, miss: Tensor) -> Tensor:
+        """ℓ after one report: ``log_scale + rate (miss − (1 − level))``; log_scale (...), miss (...)
+        bool or 0/1 (the report outside the ``level`` region of the predictive scaled by
+        ``e^log_scale``). A live tracker keeps ℓ per track and calls this after each report."""
+        return log_scale + self.rate * (miss.to(log_scale.dtype) - (1.0 - self.level))
+
 
 def online_scales(
     rule: OnlineScale,
@@ -367,7 +373,6 @@ def online_scales(
         if len(rows):
             Sk = before[rows, k, None, None, None] * S[rows, k]
             level = hpd_level(y[rows, k], w[rows, k], mu[rows, k], Sk, samples=samples, seed=seed, dof=dof)
-            miss = (level > rule.level).to(y.dtype)
-            log_s = log_s.index_add(0, rows, rule.rate * (miss - (1.0 - rule.level)))
+            log_s = log_s.index_copy(0, rows, rule.update(log_s[rows], level > rule.level))
         after[:, k] = log_s.exp()
     return before, after
