@@ -658,9 +658,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     payload["runtime_s"] = runtime
     out = Path(args.out)
     out.with_suffix(".json").write_text(json.dumps(payload, indent=1))
-    cmd = "python experiments/ais_study.py" + (" --final" if args.final else "")
-    if online is not None:
-        cmd += f" --online-scale {online.rate:g} --out {args.out}"
+    cmd = " ".join(["python experiments/ais_study.py", *(sys.argv[1:] if argv is None else argv)])
     md = markdown(payload, runtime, cmd)
     out.with_suffix(".md").write_text(md)
     print(md)
