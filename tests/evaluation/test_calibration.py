@@ -254,3 +254,19 @@ def test_online_scale_nll_is_the_scaled_mixture_density() -> None:
 def test_online_scale_refuses_a_bad_rule(kwargs: dict[str, float]) -> None:
     with pytest.raises(ValueError, match=next(iter(kwargs))):
         OnlineScale(**kwargs)
+
+
+def test_online_scale_float32_empty_and_unscored_batches() -> None:
+    rule = OnlineScale()
+    w, mu, S = random_mixture(8, 2, 3)
+    y = draw(w, mu, S, 1.0, 4)
+    args = [t.reshape(2, 4, *t.shape[1:]).float() for t in (y, w, mu, S)]
+    before, after = online_scales(rule, *args, torch.zeros(2, 4, dtype=torch.bool))
+    assert before.dtype == torch.float32 and torch.equal(before, torch.ones(2, 4)) and torch.equal(after, before)
+    scored = torch.ones(2, 4, dtype=torch.bool)
+    before, after = online_scales(rule, *args, scored)
+    assert torch.isfinite(after).all() and not torch.equal(after, torch.ones(2, 4))
+    empty = online_scales(rule, *(t[:, :0] for t in args), scored[:, :0])
+    assert empty[0].shape == empty[1].shape == (2, 0)
+    with pytest.raises(ValueError, match="scored"):
+        online_scales(rule, *args, scored[:, :3])
