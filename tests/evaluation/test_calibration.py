@@ -147,13 +147,18 @@ def test_calibrated_kalman_predictive_is_the_filter_with_q_r_and_prior_scaled() 
         np.testing.assert_allclose(a[k], b[k], rtol=1e-9, atol=1e-12, equal_nan=True, err_msg=k)
 
 
-def test_cov_scale_one_equals_the_filter_likelihood_for_an_imm() -> None:
-    tracks = simulated_cv(0.05, 10.0, 4, 40, seed=2)
+def slow_fast_imm(r_slow: float, r_fast: float) -> tl.IMMFilter:
+    """Two integrated-OU modes (slow, fast) observing position with R = r² I each."""
     slow = tl.models.integrated_ou(k=0.01, q=0.01, dim=2, dtype=f64)
     fast = tl.models.integrated_ou(k=0.05, q=0.5, dim=2, dtype=f64)
     H = tl.models.position_observation(slow)
-    R = torch.stack([25.0 * torch.eye(2), 100.0 * torch.eye(2)]).to(f64)
-    imm = tl.IMMFilter([slow, fast], H, R, torch.tensor([[0.0, 1e-3], [1e-3, 0.0]], dtype=f64), diffuse_variance=100.0)
+    R = torch.stack([r_slow**2 * torch.eye(2), r_fast**2 * torch.eye(2)]).to(f64)
+    return tl.IMMFilter([slow, fast], H, R, torch.tensor([[0.0, 1e-3], [1e-3, 0.0]], dtype=f64), diffuse_variance=100.0)
+
+
+def test_cov_scale_one_equals_the_filter_likelihood_for_an_imm() -> None:
+    tracks = simulated_cv(0.05, 10.0, 4, 40, seed=2)
+    imm = slow_fast_imm(5.0, 10.0)
     own = evaluate_filter(imm, tracks, horizons=())
     mixed = evaluate_filter(imm, tracks, horizons=(), cov_scale=1.0 + 1e-12)  # the mixture density path
     assert np.allclose(own.nll, mixed.nll, rtol=1e-9, atol=1e-9)
@@ -232,11 +237,7 @@ def test_online_scale_nll_is_the_scaled_mixture_density() -> None:
     """evaluate_filter's NLL with an online scale: -log of the predictive mixture with every
     component's covariance times the track's scale before the report (IMM, Monte Carlo levels)."""
     tracks = simulated_cv(0.05, 10.0, 4, 40, seed=2)
-    slow = tl.models.integrated_ou(k=0.01, q=0.01, dim=2, dtype=f64)
-    fast = tl.models.integrated_ou(k=0.05, q=0.5, dim=2, dtype=f64)
-    H = tl.models.position_observation(slow)
-    R = torch.stack([4.0 * torch.eye(2), 16.0 * torch.eye(2)]).to(f64)
-    imm = tl.IMMFilter([slow, fast], H, R, torch.tensor([[0.0, 1e-3], [1e-3, 0.0]], dtype=f64), diffuse_variance=100.0)
+    imm = slow_fast_imm(2.0, 4.0)
     rule = OnlineScale(rate=0.5)
     recs = evaluate_filter(imm, tracks, horizons=(), online_scale=rule, samples=200, cov_scale=[1.0, 2.0])
     want = []
