@@ -582,3 +582,31 @@ def test_exported_program_forced_scan_and_a_report_batch_smaller_than_dt():
             assert ll.shape == (b,)
             torch.testing.assert_close(ll, ref.log_likelihood, rtol=0, atol=1e-9)
             torch.testing.assert_close(mean, ref.mean, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("dynamic", [False, pytest.param(True, marks=pytest.mark.slow)])
+def test_imm_with_a_batch_equal_to_its_number_of_modes_exports(dynamic):
+    """DeployedFilter of an IMM with an R per mode, exported (in grad mode: its parameters require
+    grad) at an example batch B equal to its number of modes M (= 2): B and M then share one symbol
+    in the scan's traced cycle, and the online step's ``H @ P⁻ @ Hᵀ`` (a matmul folding the two
+    batch dims into one of size B·M) failed torch's tracing with "s*((s**2)//s) is not tracked with
+    proxy" (experiments/export_scan_matmul.py: torch alone); S is now the sequence filter's own
+    multiply-adds. The program gives the eager values at that batch and, dynamic, at others."""
+    from torch.export import Dim
+
+    torch._dynamo.reset()
+    cv = tl.models.constant_velocity(dim=1, q=0.5, dtype=F64)
+    iou = tl.models.integrated_ou(1.5, 0.05, dim=1, dtype=F64)
+    R = torch.tensor([[[0.4]], [[2.0]]], dtype=F64)  # (M, m, m): one R per mode
+    imm = tl.IMMFilter([cv, iou], torch.tensor([[1.0, 0.0]], dtype=F64), R, torch.tensor([[0.0, 0.2], [0.4, 0.0]],
+                       dtype=F64), P0=30 * torch.eye(2, dtype=F64), mode_prob0=torch.tensor([0.3, 0.7], dtype=F64))  # fmt: skip
+    y, dt = _data(2, 5, 1, seed=3)
+    shapes = {"y": {0: Dim("B"), 1: Dim("T")}, "dt": {0: Dim("B"), 1: Dim("T")}} if dynamic else None
+    program = torch.export.export(tl.DeployedFilter(imm).eval(), (y, dt), dynamic_shapes=shapes).module()
+    for b, t in ((2, 5), (3, 7), (1, 4)) if dynamic else ((2, 5),):
+        y, dt = _data(b, t, 1, seed=b + t)
+        ll, mean = program(y, dt)
+        with torch.no_grad():
+            ref = imm(y, dt)
+        torch.testing.assert_close(ll, ref.log_likelihood, rtol=0, atol=1e-12)
+        torch.testing.assert_close(mean, ref.mean, rtol=0, atol=1e-12)

@@ -35,10 +35,10 @@ from torch import Tensor
 from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.validation import broadcast_shapes
 from torchsde_lti.filters.inputs import mask_observation_model, whiten
-from torchsde_lti.filters.layout import mv
+from torchsde_lti.filters.layout import mv, tr
 from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel
 from torchsde_lti.filters.results import serializable
-from torchsde_lti.filters.sequential import _joseph_step
+from torchsde_lti.filters.sequential import _joseph_step, _mm, _mm_t
 
 __all__ = ["KalmanState", "KalmanStep", "kalman_predict", "kalman_step"]
 
@@ -156,14 +156,15 @@ def kalman_step(
     P, core = noise.step_update(P, torch.stack(es), torch.stack(ss), obs)  # (m, *b) each; the Gaussian's P stands
     ll = -0.5 * core - log_det
     innovation = (y0 - mv(Hb, pm)) * obs
+    # S = H P⁻ Hᵀ + R by multiply-adds over the batch, as the sequence loop forms it (a matmul folds the
+    # batch dims into one: torch's export of the IMM's scan failed on it where batch and modes were equal)
+    HPH = _mm_t(_mm(Hb, pc), Hb)  # (m, m, *b)
+    S = torch.add(Rb, HPH + tr(HPH), alpha=0.5)
     if not nd:  # (no batch: the results are in their shapes)
-        S = H @ pc @ H.mT
-        return KalmanState(mean, P), KalmanStep(pm, pc, innovation, torch.add(R, S + S.mT, alpha=0.5), ll, obs)
+        return KalmanState(mean, P), KalmanStep(pm, pc, innovation, S, ll, obs)
     # batch-first views of the batch-last results, each expanded to the whole batch
     pm, mean, innovation, obs = (x.movedim(0, -1) for x in (pm, mean, innovation, obs))
-    pc, P = pc.movedim((0, 1), (-2, -1)), P.movedim((0, 1), (-2, -1))
-    S = H @ pc @ H.mT
-    S = torch.add(R, S + S.mT, alpha=0.5)
+    pc, P, S = (x.movedim((0, 1), (-2, -1)) for x in (pc, P, S))
     batch = torch.Size(max(a, b) for a, b in zip(mean.shape[:-1], P.shape[:-2]))  # (every input's batch)
     n, m = mean.shape[-1], obs.shape[-1]
     return KalmanState(_full(mean, batch, n), _full(P, batch, n, n)), KalmanStep(
