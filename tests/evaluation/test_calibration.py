@@ -255,6 +255,8 @@ def test_online_scale_nll_is_the_scaled_mixture_density() -> None:
 def test_online_scale_refuses_a_bad_rule(kwargs: dict[str, float]) -> None:
     with pytest.raises(ValueError, match=next(iter(kwargs))):
         OnlineScale(**kwargs)
+    with pytest.raises(TypeError, match="rate must be a number, got str"):
+        OnlineScale(rate="0.4")  # type: ignore[arg-type]
 
 
 def test_online_scale_float32_empty_and_unscored_batches() -> None:

@@ -325,6 +325,10 @@ class OnlineScale:
     level: float = NOMINAL_2SIGMA
 
     def __post_init__(self) -> None:
+        for name in ("rate", "level"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise TypeError(f"{name} must be a number, got {type(value).__name__}")
         if not (math.isfinite(self.rate) and self.rate > 0):
             raise ValueError(f"rate must be a finite number > 0, got {self.rate}")
         if not 0.0 < self.level < 1.0:
