@@ -383,10 +383,10 @@ def online_rates(train_sets: list[str], rates: list[float], samples: int) -> str
         "|---|" + "---:|" * len(rates),
     ]
     worst = dict.fromkeys(rates, 0.0)
+    best = {train_set: tl.pretrained.load(selection[train_set]["best"]) for train_set in train_sets}
     for val_set in train_sets:
         val = set_tracks(val_set, "val")
-        for train_set in train_sets:
-            pre = tl.pretrained.load(selection[train_set]["best"])
+        for pre in best.values():
             cells = []
             for r in rates:
                 s = summary(
