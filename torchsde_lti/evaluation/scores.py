@@ -224,6 +224,7 @@ def evaluate_filter(
         scale = scale_vector(cov_scale, M)
     except ValueError as e:
         raise ValueError(f"cov_scale: {e}") from None
+    unit = bool(torch.all(scale == 1.0))  # the filter's own predictive: its log-likelihood is the NLL
     model = frozen_copy(model)
     dof = predictive_dof(model)
     _, vessel_of_track = np.unique(tracks.object_id, return_inverse=True)
@@ -238,12 +239,13 @@ def evaluate_filter(
             point = (w.unsqueeze(-1) * ym).sum(-2)
             parts["vessel"].append(vessel_flat[flat])
             parts["moving"].append(moving_flat[flat])
-            S = scale[:, None, None] * S
+            if not unit:
+                S = scale[:, None, None] * S
             after = None
             if online_scale is not None:
                 before, after = online_scales(online_scale, batch.y, w, ym, S, m, samples=samples, seed=seed, dof=dof)
                 S = before[..., None, None, None] * S
-            if bool(torch.all(scale == 1.0)) and online_scale is None:
+            if unit and online_scale is None:
                 parts["nll"].append((-out.step_log_likelihood[m]).numpy())
             else:
                 parts["nll"].append((-mixture_log_prob(batch.y[m], w[m], ym[m], S[m], dof)).numpy())
