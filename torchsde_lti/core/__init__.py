@@ -13,6 +13,7 @@ from torchsde_lti.core.discretization import (
     zero_order_hold,
 )
 from torchsde_lti.core.moments import predict_moments, propagate
+from torchsde_lti.core.series import transition_apply
 from torchsde_lti.core.stationary import stationary_covariance
 
 __all__ = [
@@ -26,6 +27,7 @@ __all__ = [
     "process_noise",
     "propagate",
     "stationary_covariance",
+    "transition_apply",
     "transition_matrix",
     "zero_order_hold",
 ]

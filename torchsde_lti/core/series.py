@@ -49,7 +49,7 @@ from torchsde_lti.core._doubling import (
 )
 from torchsde_lti.core.linalg import bl_matmul
 
-__all__ = ["SharedSeries", "shared_series"]
+__all__ = ["SharedSeries", "shared_series", "transition_apply"]
 
 
 class SharedSeries(NamedTuple):
@@ -145,3 +145,47 @@ def shared_series(F: Tensor, W: Tensor | None, B: Tensor | None) -> SharedSeries
     first = torch.cat([torch.zeros_like(eye), eye, T.new_zeros(n, T.shape[-1] - 2 * n)], -1)  # k = 0: A = I
     coeff = torch.cat([first[None], T]).reshape(K + 1, -1).mT
     return SharedSeries(coeff, nu, nilpotent, kept, n, p, F.dtype)
+
+
+def transition_apply(F: Tensor, dt: Tensor, x: Tensor) -> Tensor:
+    r"""``expm(F dt) x`` without forming a matrix per element: F (..., n, n) (one parameter set,
+    or a few broadcast), dt (...) ≥ 0, x (..., n) -> (..., n), all batch dims broadcast.
+
+    The scheme of :class:`SharedSeries` applied to vectors: ν = max(‖F‖₁, ‖F‖∞) over every set,
+    rounded up to a power of two, the base step ``h₀ = θ/ν`` and ``dt = m h₀ + r`` (exact);
+    ``expm(F r) x`` by Horner on the vectors (``y ← x + (r/k) F y``, k = K … 1, with
+    ``‖F r‖ ≤ θ``), then, for each binary digit j of m that is set, ``y ← expm(F 2^j h₀) y``
+    (those matrices formed once for the batch: the series at h₀, then squarings). Memory is
+    that of x, so n may be large (the moment systems of a switching model). Computed in float64
+    and returned in x's dtype; differentiable with respect to F, dt and x. Eager: the number of
+    digits of the largest m is read to the host (one synchronisation).
+    """
+    work = torch.float64
+    Fw, dtw, xw = F.to(work), dt.to(work), x.to(work)
+    n = F.shape[-1]
+    with torch.no_grad():
+        mantissa, exponent = torch.frexp(scale(Fw).amax() if Fw.numel() else Fw.new_zeros(()))
+        nu = torch.where(mantissa > 0, torch.ldexp(torch.ones((), dtype=work, device=F.device), exponent), 1.0)
+        h0 = THETA_SHARED / nu
+        m = torch.floor(torch.nan_to_num(dtw / h0, nan=0.0, posinf=torch.finfo(work).max))
+    r = torch.minimum(dtw - m * h0, h0).unsqueeze(-1)  # (h0 where dt/h0 overflows)
+    K = series_degree(work, 1, THETA_SHARED)
+    shared = Fw.dim() == 2
+
+    def apply(M: Tensor, y: Tensor) -> Tensor:
+        return y @ M.mT if shared else (M @ y.unsqueeze(-1)).squeeze(-1)
+
+    y = xw
+    for k in range(K, 0, -1):  # expm(F r) x by Horner
+        y = xw + (r / k) * apply(Fw, y)
+    eye = torch.eye(n, dtype=work, device=F.device)
+    Fh = Fw * h0
+    P = eye
+    for k in range(K, 0, -1):  # expm(F h0)
+        P = eye + (Fh @ P) / k
+    digits = int(m.max().item()).bit_length() if m.numel() else 0
+    for _ in range(digits):
+        half = torch.floor(m * 0.5)
+        y = torch.where((m > 2.0 * half).unsqueeze(-1), apply(P, y), y)
+        m, P = half, P @ P
+    return y.to(x.dtype)

@@ -66,8 +66,8 @@ def imm_k_step_nll(imm: IMMFilter, out: Any, y: Tensor, dt: Tensor, observed: Te
     """Σ over origins t of -log p(y_{t+k} | y_0:t) under the IMM's forecast mixture.
 
     From the filtered (mode probabilities, mode means, mode covariances) at t, the mixture
-    at lead τ = Σ dt_{t+1..t+k} (``imm.forecast``: ``expm(Λ τ)`` and each mode's exact
-    discretisation over τ) is ``Σ_j c_j N(ŷ_j, H_j P_j H_jᵀ + R_j)``; only targets with every
+    at lead τ = Σ dt_{t+1..t+k} (``imm.forecast``: ``c = μ expm(Λ τ)`` and each mode's exact
+    moments at τ, switches within τ included) is ``Σ_j c_j N(ŷ_j, H_j P_j H_jᵀ + R_j)``; only targets with every
     component observed count (padding has dt = 0 and is unobserved).
 
     Args:

@@ -14,8 +14,8 @@ the median position-derived speed ``|y_k - y_{k-1}| / dt_k`` of its reports is a
 
 Forecasts at each horizon h: from every filtered state with at least 2 reports seen, to the
 later report of the same track whose lead time is nearest h (within ±``tol`` h), with the
-model's exact predictive at that lead (an IMM: the switching chain ``expm(Λ τ)`` and each
-mode's exact propagation, :meth:`~torchsde_lti.IMMFilter.forecast`); the point forecast
+model's exact predictive at that lead (an IMM: the exact moments of its switching SDE given
+the mode at the lead, :meth:`~torchsde_lti.IMMFilter.forecast`); the point forecast
 is the predictive mean, the error its Euclidean distance to the report.
 
 Every metric is a ratio of per-vessel sums, so that the paired bootstrap resamples

@@ -26,7 +26,8 @@ Shapes and missing-data rules: :mod:`torchsde_lti.filters.inputs`.
   filter above takes as ``noise=`` (a Student-t: Roth et al.'s heavy-tailed filter).
 """
 
-from torchsde_lti.filters.imm import IMMResult, imm_filter
+from torchsde_lti.filters.imm import IMMPrediction, IMMResult, imm_filter, imm_predict
+from torchsde_lti.filters.imm_forecast import imm_forecast
 from torchsde_lti.filters.imm_online import IMMState, IMMStep, imm_predict_state, imm_step
 from torchsde_lti.filters.imm_smoother import IMMSmootherResult, imm_smoother
 from torchsde_lti.filters.kalman import ALGORITHMS, choose_algorithm, kalman_filter
@@ -40,6 +41,7 @@ __all__ = [
     "ALGORITHMS",
     "FilterResult",
     "GaussianNoise",
+    "IMMPrediction",
     "IMMResult",
     "IMMSmootherResult",
     "IMMState",
@@ -53,6 +55,8 @@ __all__ = [
     "associative_scan",
     "choose_algorithm",
     "imm_filter",
+    "imm_forecast",
+    "imm_predict",
     "imm_predict_state",
     "imm_smoother",
     "imm_step",

@@ -47,7 +47,7 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from torchsde_lti.core.discretization import Discrete, check_matrix_exp_noise, discretization_series
-from torchsde_lti.core.linalg import sym
+from torchsde_lti.core.linalg import noise_covariance, sym
 from torchsde_lti.core.validation import (
     as_float_tensor,
     broadcast_batch,
@@ -61,8 +61,8 @@ from torchsde_lti.filters.imm import (
     IMMResult,
     combine,
     imm_filter,
-    imm_predict,
 )
+from torchsde_lti.filters.imm_forecast import imm_forecast
 from torchsde_lti.filters.imm_online import IMMState, IMMStep, imm_predict_state, imm_step
 from torchsde_lti.filters.imm_smoother import IMMSmootherResult, imm_smoother
 from torchsde_lti.filters.kalman import check_algorithm
@@ -464,8 +464,10 @@ class IMMFilter(ValidateArgs, nn.Module):
     ) -> IMMForecast:
         """The mixture at horizons dt after the state's time (each measured from it).
 
-        One IMM prediction per horizon: ``c = μ expm(Λ h)``, mixing, then each mode's exact
-        ``A_j(h)``, ``Q_j(h)``; observation moments per mode and moment-matched.
+        The exact moments of the switching SDE over each horizon, given the mode there
+        (:func:`~torchsde_lti.filters.imm_forecast`: mode probabilities ``μ expm(Λ h)``, each
+        mode's mean and covariance including the switches within the horizon); observation
+        moments per mode and moment-matched.
 
         Args:
             state: a filter result (its last step is used) or (mode_prob (..., M),
@@ -488,8 +490,9 @@ class IMMFilter(ValidateArgs, nn.Module):
         H, R = model.H, model.R
         if self.validate_args:
             check_model_values(model, dt, IMMState(prob, mean, cov))
-        d, Pi = self._discretizebank_of(model, dt)  # (..., K, M, n, n), (..., K, M, M)
-        p: IMMPrediction = imm_predict(prob, mean, cov, d.A, d.Q, Pi, model.noise)  # (a t's scales mix as covariances)
+        F = torch.stack(torch.broadcast_tensors(*(mode.F for mode in model.modes)), -3)  # (..., M, n, n)
+        W = torch.stack(torch.broadcast_tensors(*(noise_covariance(mode.L, mode.Qc) for mode in model.modes)), -3)
+        p: IMMPrediction = imm_forecast(prob, mean, cov, F, W, model.rates, dt, model.noise)
         ym = (H @ p.mode_mean.unsqueeze(-1)).squeeze(-1)  # (..., K, M, m)
         S = H @ p.mode_cov @ H.mT + R
         S = sym(S)
