@@ -210,3 +210,21 @@ def test_batch_shapes_and_parameters_per_element() -> None:
         one = imm_forecast(prob[i], mean[i], cov[i], F, W * scales[i], rates, h)
         assert torch.allclose(per.cov[i], one.cov, rtol=1e-10, atol=1e-9)
         assert torch.allclose(per.mean[i], one.mean, rtol=1e-10, atol=1e-9)
+
+
+def test_the_filters_own_states_are_valid_forecast_origins_after_huge_residuals() -> None:
+    """Reports far off every mode (log-likelihoods ~ −1e4) leave mode probabilities that still sum
+    to 1 within the state check's tolerance (they summed to 1 only within |ℓ| eps, 2e-12, before
+    they were normalised by a softmax), so a forecast from every filtered state is accepted."""
+    sdes, H, R = _bank()
+    imm = tl.IMMFilter(sdes, H, R, torch.full((3, 3), 0.1, dtype=F64), P0=10 * torch.eye(4, dtype=F64))
+    g = torch.Generator().manual_seed(0)
+    y = 10.0 * torch.randn(4, 100, 2, generator=g, dtype=F64).cumsum(1).cumsum(1)
+    dt = torch.rand(4, 100, generator=g, dtype=F64) + 0.1
+    with torch.no_grad():
+        out = imm(y, dt)
+        assert float(out.step_log_likelihood.min()) < -1e3  # the premise: huge residuals
+        assert float((out.mode_probabilities.sum(-1) - 1).abs().max()) <= 3 * torch.finfo(F64).eps
+        state = (out.mode_probabilities, out.mode_mean, out.mode_cov)
+        fc = imm.forecast(state, torch.tensor([300.0], dtype=F64))
+    assert fc.mean.shape == (4, 100, 1, 4) and bool(torch.isfinite(fc.cov).all())

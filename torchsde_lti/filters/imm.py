@@ -218,7 +218,7 @@ def imm_cycle(
     log_c = torch.where(c > 0, torch.log(torch.where(c > 0, c, torch.ones_like(c))), torch.full_like(c, -math.inf))
     joint = log_c + step.log_likelihood  # (..., M)
     total = torch.logsumexp(joint, dim=-1)
-    prob = torch.exp(joint - total.unsqueeze(-1))
+    prob = torch.softmax(joint, dim=-1)  # (exp(joint − total) sums to 1 only within |joint| eps: 2e-12 at ℓ ~ −1e4)
     observed = step.observed.select(-2, 0)  # (..., m): the same for every mode
     # Σ_j c_j = 1 exactly in theory: a fully missing step contributes exactly 0
     total = torch.where(observed.any(-1), total, torch.zeros_like(total))
