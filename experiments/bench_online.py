@@ -13,7 +13,11 @@ Rows (float64, 2-D models observing the positions, R with a correlation; CPU-tim
 - ``seq_iou_2000x50`` (and ``_nocheck``): the sequence filter (2,000 tracks × 50 reports, no
   gradients) with value checks on (off): target checked ≤ ~1.2× unchecked;
 - ``imm_2000x50`` against ``kf3_2000x50``, the 3 Kalman filters of its modes on the same data
-  (``algorithm="sequential"``): target ≤ 3×.
+  (``algorithm="sequential"``): target ≤ 3×;
+- ``imm_forecast_2000``: ``IMMFilter.forecast`` of that IMM from 2,000 filtered states, each
+  to its own lead in 300–900 s (no gradients; the evaluation's call), and ``imm_kstep_grad``:
+  forward + backward of the k-step loss (``imm_k_step_nll``, k = 12) on 32 tracks × 100 reports
+  (the training call).
 
 Each row runs in a fresh process per checkout, the checkouts alternating (A, B, A, B, …), so
 both see the same load; the figure is the median over the rounds of each process's median
@@ -35,7 +39,8 @@ import numpy as np
 from _timing import ab_table, across_checkouts, machine_line, saved
 
 ROWS = ("step_cv_b1", "step_cv_b1_nocheck", "step_iou_b1", "step_iou_b1_nocheck", "step_cv_b1000", "filterpy_b1000",
-        "aoti_step_b1", "seq_iou_2000x50", "seq_iou_2000x50_nocheck", "imm_2000x50", "kf3_2000x50")  # fmt: skip
+        "aoti_step_b1", "seq_iou_2000x50", "seq_iou_2000x50_nocheck", "imm_2000x50", "kf3_2000x50",
+        "imm_forecast_2000", "imm_kstep_grad")  # fmt: skip
 #: Rows measured in the process of another (timed in alternation with it).
 PAIRED = {"filterpy_b1": "aoti_step_b1"}
 #: (name, numerator, denominator) of the ratios printed under the table.
@@ -139,10 +144,27 @@ def measure(row: str) -> dict[str, float]:
         tl.models.integrated_ou(1.5, 0.05, dim=2, dtype=F64),
         tl.models.integrated_ou(0.2, 2.0, dim=2, dtype=F64),
     ]
+    imm = tl.IMMFilter(sdes, H, R, torch.full((3, 3), 0.1, dtype=F64), P0=10 * torch.eye(4, dtype=F64))
     if row == "imm_2000x50":
-        imm = tl.IMMFilter(sdes, H, R, torch.full((3, 3), 0.1, dtype=F64), P0=10 * torch.eye(4, dtype=F64))
         with torch.no_grad():
             return {row: median_s(lambda: imm(y, dt), 5)}
+    if row == "imm_forecast_2000":
+        with torch.no_grad():
+            out = imm(y, dt)
+            state = (out.mode_probabilities[:, -1], out.mode_mean[:, -1], out.mode_cov[:, -1])
+            lead = 300.0 + 600.0 * torch.rand(2000, 1, generator=g, dtype=F64)
+            return {row: median_s(lambda: imm.forecast(state, lead), 7)}
+    if row == "imm_kstep_grad":
+        from torchsde_lti.evaluation import imm_k_step_nll
+
+        yk, dtk = 10.0 * y[:32].repeat(1, 2, 1).cumsum(1), dt[:32].repeat(1, 2)
+        observed = torch.ones_like(yk, dtype=torch.bool)
+
+        def kstep() -> None:
+            imm.zero_grad()
+            imm_k_step_nll(imm, imm(yk, dtk), yk, dtk, observed, 12).backward()
+
+        return {row: median_s(kstep, 5)}
     kfs = [tl.KalmanFilter(s, H, R, P0=10 * torch.eye(4, dtype=F64), algorithm="sequential") for s in sdes]
     with torch.no_grad():
         return {row: median_s(lambda: [kf(y, dt) for kf in kfs], 5)}
