@@ -157,7 +157,8 @@ def measure(row: str) -> dict[str, float]:
     if row == "imm_kstep_grad":
         from torchsde_lti.evaluation import imm_k_step_nll
 
-        yk, dtk = 10.0 * y[:32].repeat(1, 2, 1).cumsum(1), dt[:32].repeat(1, 2)
+        yk = torch.randn(32, 100, 2, generator=g, dtype=F64).cumsum(1)
+        dtk = torch.rand(32, 100, generator=g, dtype=F64) + 0.1
         observed = torch.ones_like(yk, dtype=torch.bool)
 
         def kstep() -> None:
