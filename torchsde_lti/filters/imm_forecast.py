@@ -51,10 +51,23 @@ def _per_mode_factor(noise: NoiseModel, M: int, like: Tensor) -> Tensor:
     )
 
 
+def _packing(n: int, device: torch.device) -> tuple[Tensor, Tensor]:
+    """(upper, full) of symmetric n × n matrices: ``upper`` (n(n+1)/2,) the row-major positions of
+    the upper triangle (``vech S = vec(S)[upper]``), ``full`` (n²,) the vech position of every entry
+    (``vec S = vech(S)[full]``)."""
+    rows, cols = torch.triu_indices(n, n, device=device)
+    index = torch.zeros(n, n, dtype=torch.long, device=device)
+    index[rows, cols] = torch.arange(rows.numel(), device=device)
+    return rows * n + cols, torch.maximum(index, index.mT).reshape(-1)
+
+
 def _generator(F: Tensor, W: Tensor, rates: Tensor) -> Tensor:
-    """𝒢 (..., D, D) of the moment vector ``z = [p (M) | q (M n) | vec S (M n²)]`` (row-major
-    vec), D = M (1 + n + n²): F (..., M, n, n), W (..., M, n, n) (covariance units), rates (..., M, M)."""
+    """𝒢 (..., D, D) of the moment vector ``z = [p (M) | q (M n) | vech S (M n(n+1)/2)]``
+    (vech: the upper triangle, row-major), D = M (1 + n + n(n+1)/2): F (..., M, n, n), W (..., M,
+    n, n) (covariance units), rates (..., M, M)."""
     M, n = F.shape[-3], F.shape[-1]
+    upper, full = _packing(n, F.device)
+    t = upper.numel()
     eye_m = torch.eye(M, dtype=F.dtype, device=F.device)
     eye_n = torch.eye(n, dtype=F.dtype, device=F.device)
     batch = torch.broadcast_shapes(F.shape[:-3], W.shape[:-3], rates.shape[:-2])
@@ -65,25 +78,22 @@ def _generator(F: Tensor, W: Tensor, rates: Tensor) -> Tensor:
         )
         return out.reshape(*out.shape[:-4], M * k, M * k)
 
+    # vec(F S + S Fᵀ) = (F ⊗ I + I ⊗ F) vec S (row-major vec), on vech: its upper rows, the
+    # columns of an entry and its mirror summed
     kron_sum = torch.einsum("...ac,bd->...abcd", F, eye_n) + torch.einsum("ac,...bd->...abcd", eye_n, F)
-    Gq = blocks(F, n)
-    Gs = blocks(kron_sum.reshape(*F.shape[:-2], n * n, n * n), n * n)
-    source = torch.einsum("ij,...ia->...iaj", eye_m, W.reshape(*W.shape[:-2], n * n)).reshape(
-        *W.shape[:-3], M * n * n, M
-    )
-    D = M * (1 + n + n * n)
+    kron_sum = kron_sum.reshape(*F.shape[:-2], n * n, n * n)[..., upper, :]
+    duplicate = torch.zeros(n * n, t, dtype=F.dtype, device=F.device)
+    duplicate[torch.arange(n * n, device=F.device), full] = 1.0
+    Gq, Gs = blocks(F, n), blocks(kron_sum @ duplicate, t)
+    source = torch.einsum("ij,...ia->...iaj", eye_m, W.flatten(-2)[..., upper]).reshape(*W.shape[:-3], M * t, M)
+    D = M * (1 + n + t)
     rows = [
         torch.cat([rates.mT.expand(*batch, M, M), rates.new_zeros(*batch, M, D - M)], -1),
         torch.cat(
-            [F.new_zeros(*batch, M * n, M), Gq.expand(*batch, M * n, M * n), F.new_zeros(*batch, M * n, M * n * n)], -1
+            [F.new_zeros(*batch, M * n, M), Gq.expand(*batch, M * n, M * n), F.new_zeros(*batch, M * n, M * t)], -1
         ),
         torch.cat(
-            [
-                source.expand(*batch, M * n * n, M),
-                F.new_zeros(*batch, M * n * n, M * n),
-                Gs.expand(*batch, M * n * n, M * n * n),
-            ],
-            -1,
+            [source.expand(*batch, M * t, M), F.new_zeros(*batch, M * t, M * n), Gs.expand(*batch, M * t, M * t)], -1
         ),
     ]
     return torch.cat(rows, -2)
@@ -121,11 +131,12 @@ def imm_forecast(
     M, n = F.shape[-3], F.shape[-1]
     r = _per_mode_factor(noise, M, cov)  # (..., M)
     second = prob[..., None, None] * (cov * r[..., None, None] + mean.unsqueeze(-1) * mean.unsqueeze(-2))
-    z0 = torch.cat([prob, (prob.unsqueeze(-1) * mean).flatten(-2), second.flatten(-3)], -1)  # (..., D)
-    G = _generator(F, W * r[..., None, None], rates)
+    upper, full = _packing(n, F.device)
+    z0 = torch.cat([prob, (prob.unsqueeze(-1) * mean).flatten(-2), second.flatten(-2)[..., upper].flatten(-2)], -1)
+    G = _generator(F, W * r[..., None, None], rates)  # (..., D, D)
     z = transition_apply(G.unsqueeze(-3) if G.dim() > 2 else G, horizons, z0.unsqueeze(-2))  # (..., K, D)
-    p, q, S = z.split([M, M * n, M * n * n], -1)
-    q, S = q.unflatten(-1, (M, n)), S.unflatten(-1, (M, n, n))
+    p, q, S = z.split([M, M * n, M * upper.numel()], -1)
+    q, S = q.unflatten(-1, (M, n)), S.unflatten(-1, (M, upper.numel()))[..., full].unflatten(-1, (n, n))
     pos = p > math.sqrt(torch.finfo(p.dtype).tiny)
     safe = torch.where(pos, p, torch.ones_like(p))
     m = q / safe.unsqueeze(-1)
