@@ -42,6 +42,23 @@ def test_transition_apply_equals_the_matrix_exponential(n: int) -> None:
     assert ((got32.double() - ref).norm(dim=-1) / x.norm(dim=-1)).max() < 1e-6
 
 
+def test_transition_apply_checks_its_arguments() -> None:
+    F, x = _hurwitz(3, 2), torch.ones(3, dtype=F64)
+    with pytest.raises(ValueError, match="F must be square"):
+        transition_apply(torch.ones(3, 2, dtype=F64), 1.0, x)
+    with pytest.raises(ValueError, match=r"x must have shape \(\.\.\., 3\)"):
+        transition_apply(F, 1.0, torch.ones(2, dtype=F64))
+    with pytest.raises(ValueError, match="batch shapes do not broadcast"):
+        transition_apply(F, torch.ones(4, dtype=F64), torch.ones(5, 3, dtype=F64))
+    with pytest.raises(ValueError, match="dt must be non-negative"):
+        transition_apply(F, -1.0, x)
+    with pytest.raises(ValueError, match="x contains NaN"):
+        transition_apply(F, 1.0, torch.full((3,), float("nan"), dtype=F64))
+    with pytest.raises(ValueError, match="overflows float64"):
+        transition_apply(-F, 1e4, x)  # an unstable F: e^(1e4 Re λ)
+    assert torch.isnan(transition_apply(F, 1.0, torch.full((3,), float("nan"), dtype=F64), validate_args=False)).all()
+
+
 def test_transition_apply_gradients() -> None:
     F = _hurwitz(3, 1).requires_grad_()
     dt = torch.tensor([0.3, 2.5, 40.0], dtype=F64, requires_grad=True)

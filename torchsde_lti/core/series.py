@@ -49,6 +49,16 @@ from torchsde_lti.core._doubling import (
     transition,
 )
 from torchsde_lti.core.linalg import bl_matmul
+from torchsde_lti.core.validation import (
+    SDE_CONSTRAINTS,
+    as_float_tensor,
+    broadcast_batch,
+    check_constraints,
+    check_finite,
+    check_matrix,
+    check_vector,
+    checks_values,
+)
 
 __all__ = ["SharedSeries", "shared_series", "transition_apply"]
 
@@ -148,7 +158,7 @@ def shared_series(F: Tensor, W: Tensor | None, B: Tensor | None) -> SharedSeries
     return SharedSeries(coeff, nu, nilpotent, kept, n, p, F.dtype)
 
 
-def transition_apply(F: Tensor, dt: Tensor, x: Tensor) -> Tensor:
+def transition_apply(F: Tensor, dt: Tensor | float, x: Tensor, *, validate_args: bool = True) -> Tensor:
     r"""``expm(F dt) x`` without forming a matrix per element: F (..., n, n) (one parameter set,
     or a few broadcast), dt (...) ≥ 0, x (..., n) -> (..., n), all batch dims broadcast.
 
@@ -160,7 +170,29 @@ def transition_apply(F: Tensor, dt: Tensor, x: Tensor) -> Tensor:
     that of x, so n may be large (the moment systems of a switching model). Computed in float64
     and returned in x's dtype; differentiable with respect to F, dt and x. Eager: the number of
     digits of the largest m is read to the host (one synchronisation).
+
+    Shapes are always checked (ValueError naming the argument); with ``validate_args`` the values
+    too (F and x finite, dt ≥ 0) and a result that overflows float64 raises ValueError.
     """
+    F = as_float_tensor(F, "F")
+    check_matrix(F, "F", square=True)
+    dt, x = as_float_tensor(dt, "dt", F.dtype, F.device), as_float_tensor(x, "x", device=F.device)
+    check_vector(x, "x", F.shape[-1])
+    broadcast_batch([("F", F.shape[:-2]), ("dt", dt.shape), ("x", x.shape[:-1])])
+    if checks_values(validate_args):
+        check_constraints([("F", F), ("dt", dt)], SDE_CONSTRAINTS)
+        check_finite(x, "x")
+    y = _apply(F, dt, x)
+    if checks_values(validate_args) and not bool(torch.isfinite(y).all()):
+        raise ValueError(
+            f"expm(F dt) x overflows float64 for dt up to {float(dt.max()):.3g} (F's norm {float(scale(F.double()).max()):.3g}): "
+            "shorten dt or rescale the state"
+        )
+    return y
+
+
+def _apply(F: Tensor, dt: Tensor, x: Tensor) -> Tensor:
+    """:func:`transition_apply` of checked arguments."""
     work = torch.float64
     Fw, dtw, xw = F.to(work), dt.to(work), x.to(work)
     n = F.shape[-1]

@@ -121,6 +121,8 @@ def imm_forecast(
         noise: the modes' noise model (:class:`~torchsde_lti.filters.GaussianNoise` or a
             :class:`~torchsde_lti.filters.StudentTNoise` of the model, without the K axis).
 
+    Arguments are taken as checked (:meth:`~torchsde_lti.IMMFilter.forecast` checks them).
+
     Returns:
         :class:`~torchsde_lti.filters.IMMPrediction` with a K axis after the batch: c (..., K, M),
         the modes' means and covariances (scales) and their moment-matched mixture. A mode whose
@@ -134,7 +136,9 @@ def imm_forecast(
     upper, full = _packing(n, F.device)
     z0 = torch.cat([prob, (prob.unsqueeze(-1) * mean).flatten(-2), second.flatten(-2)[..., upper].flatten(-2)], -1)
     G = _generator(F, W * r[..., None, None], rates)  # (..., D, D)
-    z = transition_apply(G.unsqueeze(-3) if G.dim() > 2 else G, horizons, z0.unsqueeze(-2))  # (..., K, D)
+    z = transition_apply(
+        G.unsqueeze(-3) if G.dim() > 2 else G, horizons, z0.unsqueeze(-2), validate_args=False
+    )  # (..., K, D)
     p, q, S = z.split([M, M * n, M * upper.numel()], -1)
     q, S = q.unflatten(-1, (M, n)), S.unflatten(-1, (M, upper.numel()))[..., full].unflatten(-1, (n, n))
     pos = p > math.sqrt(torch.finfo(p.dtype).tiny)
