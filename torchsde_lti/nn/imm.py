@@ -440,7 +440,9 @@ class IMMFilter(ValidateArgs, nn.Module):
 
     def predict(self, state: IMMState, dt: Tensor | float) -> IMMState:
         """Prediction only, each track over its own dt (...): mixing with ``expm(Λ dt)``, then
-        each mode's exact A_j, Q_j (the predicted :class:`~torchsde_lti.IMMState`)."""
+        each mode's exact A_j, Q_j (the predicted :class:`~torchsde_lti.IMMState`): the filter's
+        own prediction, which :meth:`step` continues from. The exact moments at a horizon,
+        switches within it included, are :meth:`forecast`'s."""
         model, state, dt = self._online_args(state, dt)
         check_batches([*state_batches(state), ("dt", dt.shape)])
         if self.validate_args:
