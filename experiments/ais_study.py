@@ -85,6 +85,13 @@ RUNS: dict[str, dict[str, list[str]]] = {
     "flights": {
         "flights-turn-imm": ["experiment=flights_turn", "trainer.max_epochs=8"],
         "flights-cv": ["experiment=flights", "trainer.max_epochs=8"],
+        # added 7 Dec 2026 with the exact IMM forecasts: the k-step loss at 5 / 10 / 15 min (reports every 60 s)
+        "flights-turn-imm-kstep": [
+            "experiment=flights_turn",
+            "module.k_step=[5,10,15]",
+            "module.k_step_weight=0.3",
+            "trainer.max_epochs=8",
+        ],
     },
     "flights3d": {  # 3-D: selected on its validation split, not in the (2-D) matrix
         "flights3d-axes": ["experiment=flights_3d_axes"],
@@ -101,6 +108,8 @@ DESCRIPTIONS = {
     "iou": "integrated Ornstein-Uhlenbeck (velocity with drag)",
     "cv": "constant velocity, one-step loss",
     "turn-imm": "turning IMM (left / straight / right: turn_rate modes with learned omega)",
+    "turn-imm-kstep": "turning IMM (left / straight / right: turn_rate modes with learned omega), one-step + k-step "
+    "forecast loss (5 / 10 / 15 min, the IMM's exact forecast moments)",
     "axes": "aircraft in 3-D: horizontal and vertical constant velocity with their own q",
 }
 HORIZON_KEYS = ("fc_rmse_5", "fc_rmse_10", "fc_rmse_15")
