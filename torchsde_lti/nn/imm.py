@@ -47,7 +47,7 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from torchsde_lti.core.discretization import Discrete, check_matrix_exp_noise, discretization_series
-from torchsde_lti.core.linalg import noise_covariance, sym
+from torchsde_lti.core.linalg import sym
 from torchsde_lti.core.validation import (
     as_float_tensor,
     broadcast_batch,
@@ -440,9 +440,8 @@ class IMMFilter(ValidateArgs, nn.Module):
 
     def predict(self, state: IMMState, dt: Tensor | float) -> IMMState:
         """Prediction only, each track over its own dt (...): mixing with ``expm(Λ dt)``, then
-        each mode's exact A_j, Q_j (the predicted :class:`~torchsde_lti.IMMState`): the filter's
-        own prediction, which :meth:`step` continues from. The exact moments at a horizon,
-        switches within it included, are :meth:`forecast`'s."""
+        each mode's exact A_j, Q_j (the predicted :class:`~torchsde_lti.IMMState`; the filter's own
+        step, not :meth:`forecast`'s exact moments)."""
         model, state, dt = self._online_args(state, dt)
         check_batches([*state_batches(state), ("dt", dt.shape)])
         if self.validate_args:
@@ -466,10 +465,9 @@ class IMMFilter(ValidateArgs, nn.Module):
     ) -> IMMForecast:
         """The mixture at horizons dt after the state's time (each measured from it).
 
-        The exact moments of the switching SDE over each horizon, given the mode there
-        (:func:`~torchsde_lti.filters.imm_forecast`: mode probabilities ``μ expm(Λ h)``, each
-        mode's mean and covariance including the switches within the horizon); observation
-        moments per mode and moment-matched.
+        The switching SDE's exact moments at each horizon given the mode there, switches within
+        it included (:func:`~torchsde_lti.filters.imm_forecast`); observation moments per mode
+        and moment-matched.
 
         Args:
             state: a filter result (its last step is used) or (mode_prob (..., M),
@@ -492,12 +490,9 @@ class IMMFilter(ValidateArgs, nn.Module):
         H, R = model.H, model.R
         if self.validate_args:
             check_model_values(model, dt, IMMState(prob, mean, cov))
-        F = torch.stack(torch.broadcast_tensors(*(mode.F for mode in model.modes)), -3)  # (..., M, n, n)
-        W = torch.stack(torch.broadcast_tensors(*(noise_covariance(mode.L, mode.Qc) for mode in model.modes)), -3)
-        p: IMMPrediction = imm_forecast(prob, mean, cov, F, W, model.rates, dt, model.noise)
+        p: IMMPrediction = imm_forecast(prob, mean, cov, *bank_of(model.modes), model.rates, dt, model.noise)
         ym = (H @ p.mode_mean.unsqueeze(-1)).squeeze(-1)  # (..., K, M, m)
-        S = H @ p.mode_cov @ H.mT + R
-        S = sym(S)
+        S = sym(H @ p.mode_cov @ H.mT + R)
         obs_mean, obs_cov = combine(p.mode_probabilities, ym, S, model.noise.with_axis())
         return IMMForecast(p.mode_probabilities, p.mode_mean, p.mode_cov, p.mean, p.cov, obs_mean, obs_cov, ym, S)
 
