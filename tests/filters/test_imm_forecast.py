@@ -130,8 +130,18 @@ def test_one_mode_is_the_kalman_forecast() -> None:
     assert torch.allclose(a.cov, b.cov, rtol=1e-9, atol=1e-9)
 
 
-def test_it_is_the_limit_of_the_imm_prediction_over_vanishing_steps() -> None:
-    """N one-shot IMM predictions of h/N each converge to the exact moments, the error ~ 1/N."""
+@pytest.mark.parametrize(
+    "noise",
+    [
+        GaussianNoise(),
+        StudentTNoise(torch.tensor(4.0, dtype=F64)),
+        StudentTNoise(torch.tensor([3.0, 5.0, 9.0], dtype=F64), True),
+    ],
+    ids=["gaussian", "t-shared", "t-per-mode"],
+)
+def test_it_is_the_limit_of_the_imm_prediction_over_vanishing_steps(noise) -> None:  # type: ignore[no-untyped-def]
+    """N one-shot IMM predictions of h/N each converge to the exact moments, the error ~ 1/N; for
+    t modes too (scales mixed as covariances r_i P_i, the process noise added to the scale)."""
     sdes, _, _ = _bank()
     F, W = _matrices(sdes)
     prob, mean, cov = _state(3, 4, seed=1)
@@ -139,12 +149,12 @@ def test_it_is_the_limit_of_the_imm_prediction_over_vanishing_steps() -> None:
         torch.tensor([[0, 0.05, 0.02], [0.1, 0, 0.05], [0.01, 0.2, 0]], dtype=F64)
     )
     h = 60.0
-    exact = imm_forecast(prob, mean, cov, F, W, rates, torch.full((4, 1), h, dtype=F64))
+    exact = imm_forecast(prob, mean, cov, F, W, rates, torch.full((4, 1), h, dtype=F64), noise)
     errors = []
     for N in (64, 512):
         p, m, P = prob, mean, cov
         for _ in range(N):
-            step = _one_shot(p, m, P, sdes, rates, torch.tensor([h / N], dtype=F64), GaussianNoise())
+            step = _one_shot(p, m, P, sdes, rates, torch.tensor([h / N], dtype=F64), noise)
             p, m, P = step.mode_probabilities[:, 0], step.mode_mean[:, 0], step.mode_cov[:, 0]
         errors.append(
             [
@@ -152,7 +162,7 @@ def test_it_is_the_limit_of_the_imm_prediction_over_vanishing_steps() -> None:
                 float((exact.cov[:, 0] - step.cov[:, 0]).abs().max()),
             ]
         )
-    one_shot = _one_shot(prob, mean, cov, sdes, rates, torch.tensor([h], dtype=F64), GaussianNoise())
+    one_shot = _one_shot(prob, mean, cov, sdes, rates, torch.tensor([h], dtype=F64), noise)
     assert float((exact.mean[:, 0] - one_shot.mean[:, 0]).abs().max()) > 20 * errors[1][0]  # it is not the one-shot
     for coarse, fine in zip(*errors):
         assert 5.0 < coarse / fine < 11.0  # first order: 8× the steps, ~1/8 the error
