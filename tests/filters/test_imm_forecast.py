@@ -255,3 +255,15 @@ def test_the_filters_own_states_are_valid_forecast_origins_after_huge_residuals(
         state = (out.mode_probabilities, out.mode_mean, out.mode_cov)
         fc = imm.forecast(state, torch.tensor([300.0], dtype=F64))
     assert fc.mean.shape == (4, 100, 1, 4) and bool(torch.isfinite(fc.cov).all())
+
+
+def test_a_horizon_beyond_the_accuracy_of_the_squarings_raises() -> None:
+    """Σ p = 1 exactly, so its drift measures what ~log2(h ν) squarings lost: within √eps up to
+    1e7 s here, and a clear error beyond (not mode probabilities of 1e-227, as unchecked)."""
+    sdes, H, R = _bank()
+    imm = tl.IMMFilter(sdes[:2], H, R, torch.full((2, 2), 0.1, dtype=F64))
+    out = imm(torch.randn(2, 10, 2, dtype=F64), torch.ones(2, 10, dtype=F64))
+    fc = imm.forecast(out, torch.tensor([900.0, 1e7], dtype=F64))
+    assert float((fc.mode_probabilities.sum(-1) - 1).abs().max()) < 1e-12 and bool(torch.isfinite(fc.cov).all())
+    with pytest.raises(ValueError, match="horizons up to 1e\\+10 loses accuracy"):
+        imm.forecast(out, 1e10)

@@ -57,7 +57,6 @@ from torchsde_lti.core.validation import (
     shape_str,
 )
 from torchsde_lti.filters.imm import (
-    IMMPrediction,
     IMMResult,
     combine,
     imm_filter,
@@ -490,7 +489,7 @@ class IMMFilter(ValidateArgs, nn.Module):
         H, R = model.H, model.R
         if self.validate_args:
             check_model_values(model, dt, IMMState(prob, mean, cov))
-        p: IMMPrediction = imm_forecast(prob, mean, cov, *bank_of(model.modes), model.rates, dt, model.noise)
+        p = imm_forecast(prob, mean, cov, *bank_of(model.modes), model.rates, dt, model.noise, self.validate_args)
         ym = (H @ p.mode_mean.unsqueeze(-1)).squeeze(-1)  # (..., K, M, m)
         S = sym(H @ p.mode_cov @ H.mT + R)
         obs_mean, obs_cov = combine(p.mode_probabilities, ym, S, model.noise.with_axis())
