@@ -237,6 +237,7 @@ CASES = [
     Case("forecast-dt-negative", lambda: _cv().forecast(_out(), -1.0), Raises(ValueError, r"dt must be non-negative")),
     Case("forecast-dt-nan", lambda: _cv().forecast(_out(), math.nan), Raises(ValueError, r"dt contains NaN")),
     Case("forecast-dt-1e10", lambda: _cv().forecast(_out(), 1e10), Finite()),
+    Case("forecast-dt-1e100", lambda: _cv().forecast(_out(), 1e100), Raises(ValueError, r"forecast overflows")),
     Case(
         "forecast-from-mean-cov",
         lambda: _cv().forecast(

@@ -34,6 +34,7 @@ from torch import Tensor
 
 from torchsde_lti.core import transition_apply
 from torchsde_lti.core.linalg import sym
+from torchsde_lti.core.validation import checks_values
 from torchsde_lti.filters.imm import IMMPrediction, combine
 from torchsde_lti.filters.noise import GAUSSIAN, NoiseModel
 
@@ -145,7 +146,7 @@ def imm_forecast(
         G.unsqueeze(-3) if G.dim() > 2 else G, horizons, z0.unsqueeze(-2), validate_args=validate_args
     )  # (..., K, D)
     p, q, S = z.split([M, M * n, M * upper.numel()], -1)
-    if validate_args:  # Σ p = 1 exactly: its drift measures what the squarings lost (~2^digits eps)
+    if checks_values(validate_args):  # Σ p = 1 exactly: its drift measures what the squarings lost (~2^digits eps)
         drift = float((p.detach().sum(-1) - 1.0).abs().amax()) if p.numel() else 0.0
         if not drift <= math.sqrt(torch.finfo(work).eps):
             raise ValueError(

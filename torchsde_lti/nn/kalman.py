@@ -61,6 +61,7 @@ from torchsde_lti.core.validation import (
     broadcast_batch,
     check_finite,
     check_matrix,
+    checks_values,
     parse_learn,
     shape_str,
 )
@@ -465,6 +466,8 @@ class KalmanFilter(KalmanOnline):
             self._check_values(mats, dt, psd=(("state.cov", cov),), u=u, H=H, R=R, D=D, mean=mean)
         d = self._discretize(dt, mats, series_layout=False)
         m, P = predict_moments(mean.unsqueeze(-2), cov.unsqueeze(-3), d.A, d.Q, d.G, u)
+        if checks_values(self.validate_args) and not bool(torch.isfinite(m).all() & torch.isfinite(P).all()):
+            raise ValueError(f"the forecast overflows {F.dtype} for horizons up to {float(dt.max()):.3g}: shorten them")
         Hk = H.unsqueeze(-3) if H.dim() > 2 else H
         Rk = R.unsqueeze(-3) if R.dim() > 2 else R
         obs_mean = matvec(Hk, m)
