@@ -126,8 +126,8 @@ def imm_forecast(
     Arguments are taken as checked (:meth:`~torchsde_lti.IMMFilter.forecast` checks them);
     ``validate_args``: a moment that overflows float64 (a horizon too long for an unstable or
     fast-growing mode, :func:`~torchsde_lti.core.transition_apply`), or mode probabilities whose
-    total has drifted from 1 by more than √eps (the ~2^digits eps of as many squarings: horizons
-    beyond about 10⁷ of the model's fastest time scale) raise ValueError.
+    total (conserved exactly) drifts by more than √eps (the ~2^digits eps of as many squarings:
+    horizons beyond about 10⁷ of the model's fastest time scale) raise ValueError.
 
     Returns:
         :class:`~torchsde_lti.filters.IMMPrediction` with a K axis after the batch: c (..., K, M),
@@ -146,12 +146,12 @@ def imm_forecast(
         G.unsqueeze(-3) if G.dim() > 2 else G, horizons, z0.unsqueeze(-2), validate_args=validate_args
     )  # (..., K, D)
     p, q, S = z.split([M, M * n, M * upper.numel()], -1)
-    if checks_values(validate_args):  # Σ p = 1 exactly: its drift measures what the squarings lost (~2^digits eps)
-        drift = float((p.detach().sum(-1) - 1.0).abs().amax()) if p.numel() else 0.0
+    if checks_values(validate_args):  # Σ p is conserved exactly: its drift measures what the squarings lost
+        drift = float((p.detach().sum(-1) - prob.detach().sum(-1, keepdim=True)).abs().amax()) if p.numel() else 0.0
         if not drift <= math.sqrt(torch.finfo(work).eps):
             raise ValueError(
                 f"the forecast over horizons up to {float(horizons.detach().max()):.3g} loses accuracy: the mode "
-                f"probabilities sum to 1 ± {drift:.2g} after squaring the moment system that often in float64; "
+                f"probabilities' total drifts by {drift:.2g} after squaring the moment system that often in float64; "
                 "forecast over shorter horizons"
             )
     q, S = q.unflatten(-1, (M, n)), S.unflatten(-1, (M, upper.numel()))[..., full].unflatten(-1, (n, n))
