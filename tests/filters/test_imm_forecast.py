@@ -15,6 +15,12 @@ from torchsde_lti.core.linalg import noise_covariance
 from torchsde_lti.filters import GaussianNoise, StudentTNoise, imm_forecast, imm_predict
 
 F64 = torch.float64
+#: Gaussian modes, Student-t modes with one ν, and with a ν per mode (3 modes).
+NOISES = [
+    GaussianNoise(),
+    StudentTNoise(torch.tensor(4.0, dtype=F64)),
+    StudentTNoise(torch.tensor([3.0, 5.0, 9.0], dtype=F64), True),
+]
 
 
 def _hurwitz(n: int, seed: int) -> torch.Tensor:
@@ -98,15 +104,7 @@ def _one_shot(prob, mean, cov, sdes, rates, h, noise):  # type: ignore[no-untype
     return imm_predict(prob, mean, cov, A, Q, Pi, noise)
 
 
-@pytest.mark.parametrize(
-    "noise",
-    [
-        GaussianNoise(),
-        StudentTNoise(torch.tensor(4.0, dtype=F64)),
-        StudentTNoise(torch.tensor([3.0, 5.0, 9.0], dtype=F64), True),
-    ],
-    ids=["gaussian", "t-shared", "t-per-mode"],
-)
+@pytest.mark.parametrize("noise", NOISES, ids=["gaussian", "t-shared", "t-per-mode"])
 def test_without_switching_it_is_the_imm_prediction(noise) -> None:  # type: ignore[no-untyped-def]
     sdes, _, _ = _bank()
     F, W = _matrices(sdes)
@@ -130,15 +128,7 @@ def test_one_mode_is_the_kalman_forecast() -> None:
     assert torch.allclose(a.cov, b.cov, rtol=1e-9, atol=1e-9)
 
 
-@pytest.mark.parametrize(
-    "noise",
-    [
-        GaussianNoise(),
-        StudentTNoise(torch.tensor(4.0, dtype=F64)),
-        StudentTNoise(torch.tensor([3.0, 5.0, 9.0], dtype=F64), True),
-    ],
-    ids=["gaussian", "t-shared", "t-per-mode"],
-)
+@pytest.mark.parametrize("noise", NOISES, ids=["gaussian", "t-shared", "t-per-mode"])
 def test_it_is_the_limit_of_the_imm_prediction_over_vanishing_steps(noise) -> None:  # type: ignore[no-untyped-def]
     """N one-shot IMM predictions of h/N each converge to the exact moments, the error ~ 1/N; for
     t modes too (scales mixed as covariances r_i P_i, the process noise added to the scale)."""
