@@ -258,3 +258,13 @@ def test_a_horizon_beyond_the_accuracy_of_the_squarings_raises() -> None:
     assert float((fc.mode_probabilities.sum(-1) - 1).abs().max()) < 1e-12 and bool(torch.isfinite(fc.cov).all())
     with pytest.raises(ValueError, match="horizons up to 1e\\+10 loses accuracy"):
         imm.forecast(out, 1e10)
+
+
+def test_moments_that_overflow_raise() -> None:
+    """An unstable mode over a long horizon: its moments leave float64, a clear error."""
+    unstable = tl.LTISDE(0.5 * torch.eye(2, dtype=F64), torch.eye(2, dtype=F64), torch.eye(2, dtype=F64))
+    imm = tl.IMMFilter([unstable, unstable], torch.eye(2, dtype=F64), torch.eye(2, dtype=F64), torch.full((2, 2), 0.1))
+    out = imm(torch.randn(1, 3, 2, dtype=F64), torch.ones(1, 3, dtype=F64))
+    assert bool(torch.isfinite(imm.forecast(out, 60.0).cov).all())
+    with pytest.raises(ValueError, match="forecast overflows float64 for horizons up to 3e\\+03"):
+        imm.forecast(out, 3000.0)

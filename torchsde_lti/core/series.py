@@ -30,7 +30,6 @@ derivatives exactly (third derivatives are not claimed). The powers of x are tak
 
 from __future__ import annotations
 
-import math
 from typing import Any, NamedTuple
 
 import torch
@@ -202,10 +201,9 @@ def _apply(F: Tensor, dt: Tensor, x: Tensor) -> Tensor:
         h0 = THETA_SHARED / nu
         m = torch.floor(torch.nan_to_num(dtw / h0, nan=0.0, posinf=torch.finfo(work).max))
     r = torch.minimum(dtw - m * h0, h0).unsqueeze(-1)  # (h0 where dt/h0 overflows)
-    eps = torch.finfo(work).eps  # K: the least degree whose omitted terms e^θ θ^(K+1)/(K+1)! ≤ eps/2
-    K = next(
-        k for k in range(1, 100) if math.exp(THETA_SHARED) * THETA_SHARED ** (k + 1) / math.factorial(k + 1) <= eps / 2
-    )
+    # K: series_degree's bound is for the Lyapunov operator (norm 2ν); the exponential alone has
+    # norm ν, so its omitted terms e^θ θ^K/(K+1)! are that bound at θ/2
+    K = series_degree(work, 1, THETA_SHARED / 2)
     shared = Fw.dim() == 2
 
     def apply(M: Tensor, y: Tensor) -> Tensor:

@@ -62,12 +62,11 @@ def _packing(n: int, device: torch.device) -> tuple[Tensor, Tensor]:
     return rows * n + cols, torch.maximum(index, index.mT).reshape(-1)
 
 
-def _generator(F: Tensor, W: Tensor, rates: Tensor) -> Tensor:
+def _generator(F: Tensor, W: Tensor, rates: Tensor, upper: Tensor, full: Tensor) -> Tensor:
     """𝒢 (..., D, D) of the moment vector ``z = [p (M) | q (M n) | vech S (M n(n+1)/2)]``
-    (vech: the upper triangle, row-major), D = M (1 + n + n(n+1)/2): F (..., M, n, n), W (..., M,
-    n, n) (covariance units), rates (..., M, M)."""
+    (vech: the upper triangle, row-major, :func:`_packing`'s upper and full), D = M (1 + n +
+    n(n+1)/2): F (..., M, n, n), W (..., M, n, n) (covariance units), rates (..., M, M)."""
     M, n = F.shape[-3], F.shape[-1]
-    upper, full = _packing(n, F.device)
     t = upper.numel()
     eye_m = torch.eye(M, dtype=F.dtype, device=F.device)
     eye_n = torch.eye(n, dtype=F.dtype, device=F.device)
@@ -125,9 +124,9 @@ def imm_forecast(
 
     Arguments are taken as checked (:meth:`~torchsde_lti.IMMFilter.forecast` checks them);
     ``validate_args``: a moment that overflows float64 (a horizon too long for an unstable or
-    fast-growing mode, :func:`~torchsde_lti.core.transition_apply`), or mode probabilities whose
-    total (conserved exactly) drifts by more than √eps (the ~2^digits eps of as many squarings:
-    horizons beyond about 10⁷ of the model's fastest time scale) raise ValueError.
+    fast-growing mode), or mode probabilities whose total (conserved exactly) drifts by more
+    than √eps (the ~2^digits eps of as many squarings: horizons beyond about 10⁷ of the model's
+    fastest time scale) raise ValueError.
 
     Returns:
         :class:`~torchsde_lti.filters.IMMPrediction` with a K axis after the batch: c (..., K, M),
@@ -141,13 +140,19 @@ def imm_forecast(
     second = prob[..., None, None] * (cov * r[..., None, None] + mean.unsqueeze(-1) * mean.unsqueeze(-2))
     upper, full = _packing(n, F.device)
     z0 = torch.cat([prob, (prob.unsqueeze(-1) * mean).flatten(-2), second.flatten(-2)[..., upper].flatten(-2)], -1)
-    G = _generator(F, W * r[..., None, None], rates)  # (..., D, D)
-    z = transition_apply(
-        G.unsqueeze(-3) if G.dim() > 2 else G, horizons, z0.unsqueeze(-2), validate_args=validate_args
-    )  # (..., K, D)
-    p, q, S = z.split([M, M * n, M * upper.numel()], -1)
-    if checks_values(validate_args):  # Σ p is conserved exactly: its drift measures what the squarings lost
-        drift = float((p.detach().sum(-1) - prob.detach().sum(-1, keepdim=True)).abs().amax()) if p.numel() else 0.0
+    G = _generator(F, W * r[..., None, None], rates, upper, full)  # (..., D, D)
+    # (the arguments are checked; the moments are checked below)
+    z = transition_apply(G.unsqueeze(-3) if G.dim() > 2 else G, horizons, z0.unsqueeze(-2), validate_args=False)
+    p, q, S = z.split([M, M * n, M * upper.numel()], -1)  # (..., K, ·)
+    if checks_values(validate_args) and z.numel():  # one synchronisation
+        with torch.no_grad():  # Σ p is conserved exactly: its drift measures what the squarings lost
+            total_drift = (p.sum(-1) - prob.sum(-1, keepdim=True)).abs().amax()
+            finite, drift = torch.stack([torch.isfinite(z).all().to(work), total_drift]).tolist()
+        if not finite:
+            raise ValueError(
+                f"the forecast overflows float64 for horizons up to {float(horizons.detach().max()):.3g} (an unstable "
+                "or fast-growing mode): shorten them"
+            )
         if not drift <= math.sqrt(torch.finfo(work).eps):
             raise ValueError(
                 f"the forecast over horizons up to {float(horizons.detach().max()):.3g} loses accuracy: the mode "
