@@ -189,7 +189,7 @@ def ship(train_set: str, name: str, run: Path, slice_vessels: int = 12) -> Path:
     d = cfg["data"]
     assert isinstance(d, dict)
     loader_args = set(inspect.signature(load_tracks).parameters) - {"source", "cut_times"}
-    kind = name.split("-", 2)[-1]
+    kind = name.removeprefix(f"{PREFIX[train_set]}-")  # "flights-turn-imm-kstep" -> "turn-imm-kstep"
     card: dict[str, Any] = {
         "name": name,
         "description": f"{DESCRIPTIONS.get(kind, kind)}; trained on {d['source']}",
