@@ -61,6 +61,8 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 SELECTION = RESULTS / "ais_selection.json"
 KSTEP = ["module.k_step=[4,8,12]", "module.k_step_weight=0.3"]
+#: The aircraft's k-step loss: 5, 10 and 15 reports of 60 s, the forecast horizons.
+KSTEP_MINUTES = ["module.k_step=[5,10,15]", "module.k_step_weight=0.3"]
 NY = "data=ais_ny_week_holdout"
 R1000_IMM = "model.noise_init=[[1000.0,1000.0],[1000.0,1000.0],[1000.0,1000.0]]"
 #: Train sets: the prefix of their shipped names and each filter's training overrides (the
@@ -89,8 +91,7 @@ RUNS: dict[str, dict[str, list[str]]] = {
         # added 7 Dec 2026 with the exact IMM forecasts: the k-step loss at 5 / 10 / 15 min (reports every 60 s)
         "flights-turn-imm-kstep": [
             "experiment=flights_turn",
-            "module.k_step=[5,10,15]",
-            "module.k_step_weight=0.3",
+            *KSTEP_MINUTES,
             "trainer.max_epochs=8",
         ],
         # added 7 Dec 2026: the observation-noise std started at 1,000 m, the flights TRAIN split's
@@ -99,8 +100,7 @@ RUNS: dict[str, dict[str, list[str]]] = {
         "flights-turn-imm-r1000": ["experiment=flights_turn", "trainer.max_epochs=8", R1000_IMM],
         "flights-turn-imm-kstep-r1000": [
             "experiment=flights_turn",
-            "module.k_step=[5,10,15]",
-            "module.k_step_weight=0.3",
+            *KSTEP_MINUTES,
             "trainer.max_epochs=8",
             R1000_IMM,
         ],
